@@ -1,0 +1,158 @@
+"""Camera models of the binocular head.
+
+Frames follow OpenCV: x right, y down, z forward into the scene. The left
+camera is the reference frame of everything; the stereo extrinsics follow
+``cv2.stereoCalibrate``: ``X_right = R @ X_left + T`` (mm).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+
+def _as_matrix(name: str, value, shape: tuple[int, ...]) -> np.ndarray:
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.shape != shape:
+        raise ValueError(f"{name}: expected shape {shape}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name}: expected finite values, got {arr.tolist()}")
+    return arr
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """A calibrated pinhole camera with Brown-Conrady distortion.
+
+    Parameters
+    ----------
+    K : (3, 3) float64
+        Intrinsic matrix, pixels.
+    dist : (5,) float64
+        Distortion coefficients ``k1 k2 p1 p2 k3`` (OpenCV order).
+    image_size : (int, int)
+        ``(width, height)`` in pixels.
+    """
+
+    K: np.ndarray
+    dist: np.ndarray
+    image_size: tuple[int, int]
+
+    def __post_init__(self) -> None:
+        K = _as_matrix("K", self.K, (3, 3))
+        if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1.0 or K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0:
+            raise ValueError(f"K: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, got {K.tolist()}")
+        dist = np.asarray(self.dist, dtype=np.float64).ravel()
+        if dist.shape != (5,):
+            raise ValueError(f"dist: expected 5 coefficients k1 k2 p1 p2 k3, got {dist.shape[0]}")
+        dist = _as_matrix("dist", dist, (5,))
+        w, h = (int(v) for v in self.image_size)
+        if w <= 0 or h <= 0:
+            raise ValueError(f"image_size: expected positive (width, height), got {self.image_size}")
+        object.__setattr__(self, "K", K)
+        object.__setattr__(self, "dist", dist)
+        object.__setattr__(self, "image_size", (w, h))
+
+    @property
+    def width(self) -> int:
+        return self.image_size[0]
+
+    @property
+    def height(self) -> int:
+        return self.image_size[1]
+
+    def pixel_rays(self) -> np.ndarray:
+        """Rays through the pixel centres of the *undistorted* image.
+
+        Returns
+        -------
+        rays : (H, W, 3) float64
+            ``(x, y, 1)`` with ``x = (u - cx) / fx`` etc. (left-camera frame,
+            not normalised: a point at depth ``z`` mm is ``z * rays``).
+        """
+        return undistorted_rays(self.K, self.image_size)
+
+    def undistort_image(self, image: np.ndarray, *, interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
+        """Resample a distorted image onto the undistorted grid with the same K.
+
+        Parameters
+        ----------
+        image : (H, W) or (H, W, C) array, as the camera gives it.
+
+        Returns
+        -------
+        (H, W) or (H, W, C) array of the same dtype, pixel ``(u, v)`` of which
+        sees the ray ``K^-1 (u, v, 1)``.
+        """
+        map1, map2 = self.undistort_maps()
+        return cv2.remap(image, map1, map2, interpolation, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+    def undistort_maps(self) -> tuple[np.ndarray, np.ndarray]:
+        """``cv2.remap`` maps from the undistorted grid (same K) to the raw image."""
+        return cv2.initUndistortRectifyMap(self.K, self.dist, np.eye(3), self.K, self.image_size, cv2.CV_32FC1)
+
+    def project(self, points_mm: np.ndarray) -> np.ndarray:
+        """Project points of this camera's frame into its raw (distorted) image.
+
+        Parameters
+        ----------
+        points_mm : (M, 3) float, camera frame, mm, z > 0.
+
+        Returns
+        -------
+        (M, 2) float64 pixel coordinates ``(u, v)``.
+        """
+        pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 1, 3)
+        uv, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), self.K, self.dist)
+        return uv.reshape(-1, 2)
+
+
+def undistorted_rays(K: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
+    """Rays ``K^-1 (u, v, 1)`` for every pixel of a ``(width, height)`` grid.
+
+    Returns
+    -------
+    (H, W, 3) float64, unit z component.
+    """
+    w, h = image_size
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    Kinv = np.linalg.inv(K)
+    pix = np.stack([u, v, np.ones_like(u)], axis=-1)
+    return pix @ Kinv.T
+
+
+@dataclass(frozen=True)
+class StereoRig:
+    """Two calibrated cameras; the left one is the reference frame.
+
+    ``X_right = R @ X_left + T`` with ``T`` in mm (``cv2.stereoCalibrate``).
+    """
+
+    left: CameraModel
+    right: CameraModel
+    R: np.ndarray
+    T: np.ndarray
+    rms_px: float | None = None
+    board: dict | None = field(default=None, compare=False)
+
+    def __post_init__(self) -> None:
+        R = _as_matrix("R", self.R, (3, 3))
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) <= 0:
+            raise ValueError("R: expected a proper rotation matrix (orthonormal, det +1)")
+        T = _as_matrix("T", np.asarray(self.T, dtype=np.float64).ravel(), (3,))
+        if self.left.image_size != self.right.image_size:
+            raise ValueError(
+                f"image_size: left {self.left.image_size} and right {self.right.image_size} differ"
+            )
+        object.__setattr__(self, "R", R)
+        object.__setattr__(self, "T", T)
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        return self.left.image_size
+
+    @property
+    def baseline_mm(self) -> float:
+        return float(np.linalg.norm(self.T))

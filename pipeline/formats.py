@@ -1,0 +1,212 @@
+"""The four JSON file formats of DESIGN.md as pydantic models.
+
+Unknown keys are an error, missing required keys are an error. A format
+change is a new format version, never a silent edit. Reading files (and
+turning validation failures into :class:`InputError` naming the file and the
+field) lives in :mod:`pipeline.io`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+CALIBRATION_FORMAT = "stereo-calibration/1"
+CAPTURE_FORMAT = "plate-capture/1"
+TARGET_FORMAT = "plate-target/1"
+RESULT_FORMAT = "plate-result/1"
+
+#: Tolerance on |l| - 1 for a light direction to count as a unit vector.
+UNIT_TOLERANCE = 1e-3
+
+
+class InputError(ValueError):
+    """Bad input: names the file and the field that is wrong.
+
+    ``str(err)`` is one line: ``"<file>: <field>: <reason>"``; the CLI prints
+    it and exits 2, the service answers 422 with it.
+    """
+
+    def __init__(self, file: str, field: str, reason: str):
+        self.file = str(file)
+        self.field = field
+        self.reason = reason
+        where = f"{self.file}: {field}" if field else self.file
+        super().__init__(f"{where}: {reason}")
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+Mat3 = Annotated[list[Vec3], Field(min_length=3, max_length=3)]
+
+
+def _finite(values) -> bool:
+    if isinstance(values, (list, tuple)):
+        return all(_finite(v) for v in values)
+    return values is None or math.isfinite(values)
+
+
+# --------------------------------------------------------------------------- calibration
+
+
+class CameraIntrinsics(_Strict):
+    K: Mat3
+    dist: Annotated[list[float], Field(min_length=5, max_length=5)]
+
+    @field_validator("K", "dist")
+    @classmethod
+    def _check_finite(cls, v):
+        if not _finite(v):
+            raise ValueError("expected finite numbers")
+        return v
+
+
+class BoardSpec(_Strict):
+    inner_corners: Annotated[list[int], Field(min_length=2, max_length=2)]
+    square_mm: float = Field(gt=0)
+
+
+class StereoCalibrationFile(_Strict):
+    format: Literal["stereo-calibration/1"]
+    image_size: Annotated[list[int], Field(min_length=2, max_length=2)]
+    left: CameraIntrinsics
+    right: CameraIntrinsics
+    R: Mat3
+    T: Vec3
+    rms_px: float | None = None
+    board: BoardSpec | None = None
+
+    @field_validator("image_size")
+    @classmethod
+    def _positive_size(cls, v):
+        if any(x <= 0 for x in v):
+            raise ValueError(f"expected positive [width, height], got {v}")
+        return v
+
+
+# --------------------------------------------------------------------------- capture
+
+
+class Light(_Strict):
+    direction: Vec3
+    intensity: float = Field(default=1.0, gt=0)
+
+    @field_validator("direction")
+    @classmethod
+    def _unit(cls, v):
+        if not _finite(v):
+            raise ValueError(f"expected finite numbers, got {v}")
+        norm = math.sqrt(sum(x * x for x in v))
+        if norm == 0:
+            raise ValueError("expected a unit vector, got the zero vector")
+        if abs(norm - 1.0) > UNIT_TOLERANCE:
+            raise ValueError(f"expected a unit vector, got length {norm:.4f}")
+        return v
+
+    @field_validator("intensity")
+    @classmethod
+    def _finite_intensity(cls, v):
+        if not math.isfinite(v):
+            raise ValueError(f"expected a finite number, got {v}")
+        return v
+
+
+class Photometric(_Strict):
+    lights: list[Light]
+    images: list[str]
+    dark: str | None = None
+
+    @model_validator(mode="after")
+    def _counts(self):
+        if len(self.lights) < 3:
+            raise ValueError(f"lights: expected at least 3 lights, got {len(self.lights)}")
+        if len(self.lights) != len(self.images):
+            raise ValueError(
+                f"lights: expected {len(self.images)} lights to match {len(self.images)} images, got {len(self.lights)}"
+            )
+        return self
+
+
+class StereoPair(_Strict):
+    left: str
+    right: str
+
+
+class CaptureFile(_Strict):
+    format: Literal["plate-capture/1"]
+    plate_id: str = Field(min_length=1)
+    captured_at: str | None = None
+    calibration: str | StereoCalibrationFile
+    bit_depth: Literal[8, 10, 12, 14, 16]
+    photometric: Photometric
+    stereo: StereoPair | None = None
+    working_distance_mm: float | None = Field(default=None, gt=0)
+
+
+# --------------------------------------------------------------------------- target
+
+
+class PlaneShape(_Strict):
+    type: Literal["plane"]
+
+
+class CylinderShape(_Strict):
+    type: Literal["cylinder"]
+    radius_mm: float = Field(gt=0)
+
+
+class SphereShape(_Strict):
+    type: Literal["sphere"]
+    radius_mm: float = Field(gt=0)
+
+
+class MeshShape(_Strict):
+    type: Literal["mesh"]
+    file: str = Field(min_length=1)
+
+
+TargetShape = Annotated[PlaneShape | CylinderShape | SphereShape | MeshShape, Field(discriminator="type")]
+
+
+class TargetFile(_Strict):
+    format: Literal["plate-target/1"]
+    shape: TargetShape
+    size_mm: Annotated[list[float], Field(min_length=2, max_length=2)]
+    tolerance_mm: float = Field(gt=0)
+
+    @field_validator("size_mm")
+    @classmethod
+    def _positive(cls, v):
+        if any(not math.isfinite(x) or x <= 0 for x in v):
+            raise ValueError(f"expected two positive sizes in mm, got {v}")
+        return v
+
+
+# --------------------------------------------------------------------------- result
+
+
+class DeviationStats(_Strict):
+    rms: float
+    max_abs: float
+    p95: float
+
+
+class ResultFile(_Strict):
+    format: Literal["plate-result/1"] = RESULT_FORMAT
+    plate_id: str
+    radius_mm: float | None
+    principal_radii_mm: Annotated[list[float | None], Field(min_length=2, max_length=2)]
+    target_radius_mm: float | None
+    radius_error_pct: float | None
+    deviation_mm: DeviationStats | None
+    tolerance_mm: float
+    within_tolerance_pct: float | None
+    verdict: Literal["pass", "fail", "error"]
+    error: str | None = None
+    timings_s: dict[str, float]
+    artifacts: dict[str, str]
