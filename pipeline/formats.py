@@ -37,6 +37,18 @@ class InputError(ValueError):
         super().__init__(f"{where}: {reason}")
 
 
+class PipelineError(Exception):
+    """Valid input that cannot be processed (a domain error, not a bad file)."""
+
+
+class CalibrationError(PipelineError):
+    """The calibration images cannot give a calibration (too few usable views, ...)."""
+
+
+class CaptureError(PipelineError):
+    """A well-formed capture that cannot be measured (no plate found, too few lit pixels, ...)."""
+
+
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
