@@ -1,0 +1,236 @@
+"""``plate-inspect``: simulate, calibrate, inspect (and ``serve`` from the service package).
+
+Exit codes (DESIGN.md): 0 done (pass or fail), 2 bad input (a one-line reason
+on stderr naming the file and field), 1 internal error.
+
+Subcommands that live outside ``pipeline/`` (the service's ``serve``) are found
+through the entry-point group ``plate_inspect.commands``: each entry is a
+function ``register(subparsers)`` that adds its own subparser with a
+``handler`` default. The pipeline never imports the service.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import traceback
+from importlib.metadata import entry_points
+from pathlib import Path
+
+from .formats import InputError, PipelineError
+
+EXIT_OK, EXIT_INTERNAL, EXIT_BAD_INPUT = 0, 1, 2
+
+
+class BadArgument(ValueError):
+    """A command-line value that cannot be used; reported like bad input (exit 2)."""
+
+
+def _pair(text: str, *, sep: str = "x", kind=int, name: str) -> tuple:
+    parts = text.lower().split(sep)
+    try:
+        if len(parts) != 2:
+            raise ValueError
+        return tuple(kind(p) for p in parts)
+    except ValueError:
+        raise BadArgument(f"{name}: expected two numbers as A{sep}B, got {text!r}") from None
+
+
+def _dent(text: str):
+    from .simulate import Dent
+
+    try:
+        x, y, r, d = (float(v) for v in text.split(","))
+    except ValueError:
+        raise BadArgument(f"--dent: expected X_MM,Y_MM,RADIUS_MM,DEPTH_MM, got {text!r}") from None
+    return Dent(x_mm=x, y_mm=y, radius_mm=r, depth_mm=d)
+
+
+# --------------------------------------------------------------------------- simulate
+
+
+def _cmd_simulate_capture(args: argparse.Namespace) -> int:
+    from .simulate import CaptureSpec, PlateSpec, simulate_capture
+
+    width, height = _pair(args.size, name="--size")
+    plate = PlateSpec(
+        shape=args.shape,
+        radius_mm=None if args.shape == "plane" else args.radius,
+        radius2_mm=args.radius2,
+        convex=not args.concave,
+        dents=tuple(_dent(d) for d in args.dent),
+        distance_mm=args.distance,
+    )
+    capture = CaptureSpec(
+        n_lights=args.lights,
+        noise=args.noise,
+        bit_depth=args.bit_depth,
+        specular=args.specular,
+        stereo=not args.no_stereo,
+        working_distance_mm=None if args.no_working_distance else args.distance,
+        width=width,
+        height=height,
+    )
+    out = simulate_capture(
+        args.out, plate=plate, capture=capture, plate_id=args.plate_id, tolerance_mm=args.tolerance, seed=args.seed
+    )
+    print(out)
+    return EXIT_OK
+
+
+def _cmd_simulate_boards(args: argparse.Namespace) -> int:
+    from .simulate import default_rig, render_calibration_pairs
+
+    width, height = _pair(args.size, name="--size")
+    cols, rows = _pair(args.board, name="--board")
+    paths = render_calibration_pairs(
+        args.out,
+        rig=default_rig(width=width, height=height),
+        n_pairs=args.pairs,
+        inner_corners=(cols, rows),
+        square_mm=args.square,
+        seed=args.seed,
+    )
+    print(f"{len(paths)} images in {args.out}")
+    return EXIT_OK
+
+
+# --------------------------------------------------------------------------- calibrate
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from .calibration import calibrate_stereo, calibration_document
+
+    cols, rows = _pair(args.board, name="--board")
+    if not args.square > 0:
+        raise BadArgument(f"--square: expected a positive size in mm, got {args.square}")
+    report = calibrate_stereo(args.dir, inner_corners=(cols, rows), square_mm=args.square)
+    for view in report.views:
+        print(f"  {view.key}: left {view.left_error_px:.3f} px, right {view.right_error_px:.3f} px")
+    for key, reason in report.rejected:
+        print(f"  {key}: not used: {reason}")
+    print(
+        f"{len(report.views)} pairs, stereo RMS {report.rms_px:.3f} px "
+        f"(left {report.left_rms_px:.3f}, right {report.right_rms_px:.3f}), baseline {report.rig.baseline_mm:.1f} mm"
+    )
+    Path(args.out).write_text(json.dumps(calibration_document(report), indent=2) + "\n")
+    print(f"wrote {args.out}")
+    return EXIT_OK
+
+
+# --------------------------------------------------------------------------- inspect
+
+
+def _cmd_inspect(args: argparse.Namespace) -> int:
+    from .run import InspectOptions, inspect
+
+    def progress(stage: str, fraction: float) -> None:
+        if args.verbose:
+            print(f"[{100 * fraction:5.1f} %] {stage}", file=sys.stderr)
+
+    result = inspect(
+        args.capture,
+        args.target,
+        out_dir=args.out,
+        progress=progress,
+        options=InspectOptions(normals_method=args.normals),
+    )
+    doc = result.document
+    radius = doc["radius_mm"]
+    dev = doc["deviation_mm"]
+    print(
+        f"{doc['plate_id']}: {doc['verdict'].upper()}"
+        + (f"  radius {radius:.1f} mm ({doc['radius_error_pct']:+.3f} %)" if radius is not None else "")
+        + f"  deviation rms {dev['rms']:.2f} mm, max {dev['max_abs']:.2f} mm, {doc['within_tolerance_pct']:.2f} % within"
+        f" {doc['tolerance_mm']} mm  ({doc['timings_s']['total']:.2f} s)"
+    )
+    print(f"wrote {Path(args.out) / 'result.json'}")
+    return EXIT_OK
+
+
+# --------------------------------------------------------------------------- parser
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="plate-inspect",
+        description="Forming inspection of ship hull plates (photometric stereo + binocular depth).",
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="print progress and warnings")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    sim = sub.add_parser("simulate", help="render simulated captures or calibration boards")
+    sim_sub = sim.add_subparsers(dest="what", required=True, metavar="WHAT")
+    cap = sim_sub.add_parser("capture", help="render a capture bundle of a plate (+ target.json, truth.npz)")
+    cap.add_argument("out", help="output folder")
+    cap.add_argument("--shape", choices=["plane", "cylinder", "sphere", "saddle"], default="cylinder")
+    cap.add_argument("--radius", type=float, default=5000.0, help="radius, mm (default 5000)")
+    cap.add_argument("--radius2", type=float, default=None, help="saddle: second radius, mm")
+    cap.add_argument("--concave", action="store_true", help="bent away from the cameras (default: convex)")
+    cap.add_argument("--dent", action="append", default=[], metavar="X,Y,R,D",
+                     help="local dent at plate coordinates X,Y mm, radius R mm, depth D mm (negative: bump); repeatable")
+    cap.add_argument("--lights", type=int, default=12, help="number of light directions (default 12)")
+    cap.add_argument("--noise", type=float, default=0.004, help="sensor noise, fraction of full scale (default 0.004)")
+    cap.add_argument("--bit-depth", type=int, choices=[8, 12, 16], default=16)
+    cap.add_argument("--specular", type=float, default=0.0, help="specular lobe strength (default 0: Lambertian)")
+    cap.add_argument("--size", default="1224x1024", help="image size WIDTHxHEIGHT px (default 1224x1024)")
+    cap.add_argument("--distance", type=float, default=3000.0, help="working distance, mm (default 3000)")
+    cap.add_argument("--no-stereo", action="store_true", help="omit the stereo pair")
+    cap.add_argument("--no-working-distance", action="store_true", help="omit working_distance_mm from the bundle")
+    cap.add_argument("--tolerance", type=float, default=2.0, help="tolerance written to target.json, mm")
+    cap.add_argument("--plate-id", default="SIM-0001")
+    cap.add_argument("--seed", type=int, default=0)
+    cap.set_defaults(handler=_cmd_simulate_capture)
+    boards = sim_sub.add_parser("boards", help="render checkerboard pairs for `plate-inspect calibrate`")
+    boards.add_argument("out", help="output folder")
+    boards.add_argument("--pairs", type=int, default=12)
+    boards.add_argument("--board", default="9x6", help="inner corners COLSxROWS (default 9x6)")
+    boards.add_argument("--square", type=float, default=100.0, help="square size, mm (default 100)")
+    boards.add_argument("--size", default="1224x1024", help="image size WIDTHxHEIGHT px")
+    boards.add_argument("--seed", type=int, default=0)
+    boards.set_defaults(handler=_cmd_simulate_boards)
+
+    cal = sub.add_parser("calibrate", help="stereo calibration from checkerboard pairs (Zhang)")
+    cal.add_argument("dir", help="folder of left<KEY>.<ext> / right<KEY>.<ext> pairs")
+    cal.add_argument("--board", required=True, help="inner corners COLSxROWS, e.g. 9x6")
+    cal.add_argument("--square", required=True, type=float, help="square size, mm")
+    cal.add_argument("--out", default="calibration.json", help="output stereo-calibration/1 file")
+    cal.set_defaults(handler=_cmd_calibrate)
+
+    ins = sub.add_parser("inspect", help="measure a capture bundle against its target")
+    ins.add_argument("capture", help="capture bundle: folder or .zip (plate-capture/1)")
+    ins.add_argument("--target", required=True, help="target file (plate-target/1)")
+    ins.add_argument("--out", required=True, help="output folder for result.json and artifacts")
+    ins.add_argument("--normals", choices=["robust", "lstsq"], default="robust", help="photometric estimator")
+    ins.set_defaults(handler=_cmd_inspect)
+
+    for entry in entry_points(group="plate_inspect.commands"):
+        entry.load()(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return int(args.handler(args) or EXIT_OK)
+    except (InputError, BadArgument, PipelineError, FileNotFoundError, NotADirectoryError) as err:
+        print(f"plate-inspect {args.command}: {_one_line(err)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        return EXIT_INTERNAL
+    except Exception as err:  # noqa: BLE001 - the CLI's last line of defence
+        traceback.print_exc()
+        print(f"plate-inspect {args.command}: internal error: {_one_line(err)}", file=sys.stderr)
+        return EXIT_INTERNAL
+
+
+def _one_line(err: BaseException) -> str:
+    return " ".join(str(err).split())
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,271 @@
+"""The one orchestration entry point: a capture bundle and a target in, a judged plate out.
+
+The CLI (``plate-inspect inspect``) and the service's job both call
+:func:`inspect`; neither re-implements a stage.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from . import artifacts, curvature, deviation, integration, normals, stereo
+from .formats import RESULT_FORMAT, CaptureError, ResultFile
+from .io import Capture, Target, load_capture, load_target
+from .preprocess import preprocess
+
+#: Stage names in the order they run; ``progress`` reports these.
+STAGES = ("load", "preprocess", "normals", "stereo", "depth", "curvature", "deviation", "artifacts")
+
+ProgressCallback = Callable[[str, float], None]
+
+
+@dataclass(frozen=True)
+class InspectOptions:
+    """Knobs of the measurement; the defaults are the product's settings.
+
+    Attributes
+    ----------
+    normals_method : {"robust", "lstsq"}
+        Per-pixel photometric estimator (see :func:`pipeline.normals.estimate_normals`).
+    stereo_weight : float
+        Weight of the stereo depth against the normal equations in the fusion
+        (dimensionless, per pixel, log-depth units).
+    depth_margin : float
+        The stereo search covers ``working distance * (1 -/+ depth_margin)``.
+    """
+
+    normals_method: str = "robust"
+    stereo_weight: float = 1e-2
+    depth_margin: float = 0.25
+
+
+@dataclass(frozen=True)
+class InspectionResult:
+    """What :func:`inspect` produced.
+
+    Attributes
+    ----------
+    document : dict
+        The ``plate-result/1`` object, as written to ``out_dir/result.json``.
+    out_dir : Path
+    """
+
+    document: dict
+    out_dir: Path
+
+    @property
+    def verdict(self) -> str:
+        return self.document["verdict"]
+
+
+class _Clock:
+    """Times the stages and reports progress."""
+
+    def __init__(self, progress: ProgressCallback | None):
+        self.progress = progress
+        self.timings: dict[str, float] = {}
+        self.start = time.perf_counter()
+        self._t = self.start
+
+    def begin(self, stage: str) -> None:
+        self._t = time.perf_counter()
+        if self.progress is not None:
+            self.progress(stage, STAGES.index(stage) / len(STAGES))
+
+    def end(self, stage: str) -> None:
+        self.timings[stage] = round(time.perf_counter() - self._t, 4)
+
+    def total(self) -> float:
+        return round(time.perf_counter() - self.start, 4)
+
+
+def inspect(
+    capture: Capture | str | Path,
+    target: Target | dict | str | Path,
+    *,
+    out_dir: str | Path,
+    progress: ProgressCallback | None = None,
+    options: InspectOptions | None = None,
+) -> InspectionResult:
+    """Measure a plate and judge it against its CAD target.
+
+    Parameters
+    ----------
+    capture : Capture or path
+        A capture bundle (folder or .zip, ``plate-capture/1``) or one already loaded.
+    target : Target, dict or path
+        The ``plate-target/1`` target.
+    out_dir : path
+        Where ``result.json`` and the artifacts are written (created if needed).
+    progress : callable(stage, fraction), optional
+        Called when each stage of :data:`STAGES` starts (fraction 0..1 of the
+        stages done) and once with ``("done", 1.0)``.
+    options : InspectOptions, optional
+
+    Returns
+    -------
+    InspectionResult
+
+    Raises
+    ------
+    pipeline.formats.InputError
+        Bad input files (names the file and the field).
+    pipeline.formats.CaptureError
+        A valid capture that cannot be measured (no plate found, no metric scale).
+    """
+    opts = options or InspectOptions()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    clock = _Clock(progress)
+
+    clock.begin("load")
+    cap = capture if isinstance(capture, Capture) else load_capture(capture)
+    tgt = target if isinstance(target, Target) else load_target(target)
+    if not cap.has_stereo and cap.working_distance_mm is None:
+        raise CaptureError(
+            f"{cap.source}: stereo, working_distance_mm: a metric result needs a stereo pair or a working distance"
+        )
+    clock.end("load")
+
+    clock.begin("preprocess")
+    pre = preprocess(cap)
+    clock.end("preprocess")
+
+    clock.begin("normals")
+    field = normals.estimate_normals(pre.images, cap.light_dirs, pre.mask, valid=pre.valid, method=opts.normals_method)
+    clock.end("normals")
+
+    clock.begin("stereo")
+    prior = None
+    if cap.has_stereo:
+        z_nominal = cap.working_distance_mm or _nominal_distance_mm(cap)
+        sd = stereo.stereo_depth(
+            cap.stereo_left,
+            cap.stereo_right,
+            cap.rig,
+            z_min_mm=z_nominal * (1 - opts.depth_margin),
+            z_max_mm=z_nominal * (1 + opts.depth_margin),
+            mask=field.mask,
+        )
+        prior = np.where(sd.valid & field.mask, sd.depth_mm, np.nan)
+        if np.count_nonzero(np.isfinite(prior)) < 100:
+            if cap.working_distance_mm is None:
+                raise CaptureError(f"{cap.source}: stereo: fewer than 100 pixels matched and no working_distance_mm")
+            prior = None
+    clock.end("stereo")
+
+    clock.begin("depth")
+    K = cap.rig.left.K
+    if prior is not None:
+        depth = integration.integrate_normals(field.normals, field.mask, K, prior_depth_mm=prior, prior_weight=opts.stereo_weight)
+    else:
+        depth = integration.integrate_normals(field.normals, field.mask, K, reference_depth_mm=cap.working_distance_mm)
+        depth = _scale_to_working_distance(depth, K, cap.working_distance_mm)
+    points = depth.depth_mm[..., None] * cap.rig.left.pixel_rays()
+    surface_mask = depth.mask & np.isfinite(depth.depth_mm)
+    clock.end("depth")
+
+    clock.begin("curvature")
+    curv = curvature.principal_curvatures(points, surface_mask)
+    fitted_radius = deviation.fitted_target_radius(points, surface_mask, tgt)
+    clock.end("curvature")
+
+    clock.begin("deviation")
+    registration = deviation.register_to_target(points, surface_mask, tgt)
+    dev = deviation.deviation_map(points, surface_mask, tgt, registration)
+    judgement = deviation.judge(
+        dev, surface_mask, tgt.tolerance_mm, pixel_area_mm2=_pixel_area_mm2(points, surface_mask)
+    )
+    clock.end("deviation")
+
+    clock.begin("artifacts")
+    names = {
+        "surface": "surface.ply",
+        "target_surface": "target.ply",
+        "deviation_map": "deviation.png",
+        "normals": "normals.png",
+        "depth": "depth.npy",
+    }
+    artifacts.write_surface_ply(out / names["surface"], points, surface_mask, dev)
+    verts, faces = deviation.target_surface(tgt)
+    artifacts.write_target_ply(out / names["target_surface"], verts, faces, registration.T_cam_target)
+    artifacts.write_deviation_png(out / names["deviation_map"], dev, surface_mask, tolerance_mm=tgt.tolerance_mm)
+    artifacts.write_normals_png(out / names["normals"], field.normals, field.mask)
+    artifacts.save_depth(out / names["depth"], depth.depth_mm)
+    clock.end("artifacts")
+
+    target_radius = tgt.radius_mm if tgt.shape in ("cylinder", "sphere") else None
+    radius_error = (
+        100.0 * (fitted_radius - target_radius) / target_radius
+        if fitted_radius is not None and target_radius is not None
+        else None
+    )
+    timings = dict(clock.timings)
+    timings["total"] = clock.total()
+    doc = ResultFile(
+        format=RESULT_FORMAT,
+        plate_id=cap.plate_id,
+        radius_mm=_round(fitted_radius, 2),
+        principal_radii_mm=[_round(r, 1) for r in curv.principal_radii_mm],
+        target_radius_mm=target_radius,
+        radius_error_pct=_round(radius_error, 3),
+        deviation_mm={
+            "rms": round(judgement.rms_mm, 3),
+            "max_abs": round(judgement.max_abs_mm, 3),
+            "p95": round(judgement.p95_mm, 3),
+        },
+        tolerance_mm=tgt.tolerance_mm,
+        within_tolerance_pct=round(judgement.within_tolerance_pct, 3),
+        verdict=judgement.verdict,
+        timings_s=timings,
+        artifacts=names | {"result": "result.json"},
+    ).model_dump(mode="json")
+    doc["artifacts"].pop("result")
+    (out / "result.json").write_text(json.dumps(doc, indent=2) + "\n")
+    if progress is not None:
+        progress("done", 1.0)
+    return InspectionResult(document=doc, out_dir=out)
+
+
+def _round(value: float | None, digits: int) -> float | None:
+    return None if value is None else round(float(value), digits)
+
+
+def _nominal_distance_mm(cap: Capture) -> float:
+    """Without a working-distance hint, search the stereo pair over 1-6 m (the cell's range)."""
+    return 3500.0
+
+
+def _scale_to_working_distance(depth, K: np.ndarray, working_distance_mm: float):
+    """Scale an up-to-scale depth so the plate's depth on the optical axis is the working distance.
+
+    The working distance is the depth (mm, along the optical axis) of the surface
+    point seen at the principal point; where the plate does not cover it, the
+    median depth over the plate stands in for it.
+    """
+    z = depth.depth_mm
+    cx, cy = int(round(K[0, 2])), int(round(K[1, 2]))
+    window = z[max(cy - 2, 0) : cy + 3, max(cx - 2, 0) : cx + 3]
+    on_axis = window[np.isfinite(window)]
+    reference = float(np.median(on_axis)) if on_axis.size else float(np.nanmedian(z))
+    if not reference > 0:
+        raise CaptureError("depth: the integrated surface has no positive depth to scale")
+    factor = working_distance_mm / reference
+    return replace(depth, depth_mm=z * factor)
+
+
+def _pixel_area_mm2(points: np.ndarray, mask: np.ndarray) -> float:
+    """Median area (mm^2) of the surface patch one pixel covers."""
+    du = np.linalg.norm(np.diff(points, axis=1), axis=-1)[:-1]
+    dv = np.linalg.norm(np.diff(points, axis=0), axis=-1)[:, :-1]
+    area = du * dv
+    ok = mask[:-1, :-1] & mask[1:, :-1] & mask[:-1, 1:] & np.isfinite(area)
+    if not ok.any():
+        raise CaptureError("depth: no measured surface to judge")
+    return float(np.median(area[ok]))
