@@ -140,12 +140,12 @@ def plate_mask(brightness: np.ndarray, *, erode_px: int = 3, min_fraction: float
         image has no contrast.
     """
     b = np.nan_to_num(np.asarray(brightness, dtype=np.float32), nan=0.0)
-    hi = float(np.percentile(b, 99.5))
+    # smooth the texture so the threshold sees the plate, not its rust spots or a single highlight
+    smooth = cv2.GaussianBlur(b, (0, 0), 2.0)
+    hi = float(smooth.max())
     if not hi > 0:
         raise CaptureError("photometric images: no light on the plate (all images dark)")
-    # smooth the texture so the threshold sees the plate, not its rust spots
-    small = cv2.GaussianBlur(np.clip(b / hi, 0, 1), (0, 0), 2.0)
-    eight = (small * 255).astype(np.uint8)
+    eight = np.clip(smooth * (255.0 / hi), 0, 255).astype(np.uint8)
     _, binary = cv2.threshold(eight, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
     binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, np.ones((5, 5), np.uint8))
     n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=4)
