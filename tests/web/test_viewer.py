@@ -1,0 +1,124 @@
+"""The viser view: mesh preparation and the websocket bridge (no browser)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from fastapi import FastAPI
+from fastapi.testclient import TestClient
+from starlette.websockets import WebSocketDisconnect
+
+from app.viewer import (
+    CLOSE_NOT_FOUND,
+    VISER_SUBPROTOCOL,
+    PlateViewer,
+    decimate_mesh,
+    deviation_colours,
+    load_plate_meshes,
+    read_surface_ply,
+    router,
+)
+from tests.web.plates import cylinder_grid, write_artifacts
+
+
+def test_decimate_keeps_a_cylinder_on_its_surface():
+    # Cluster means of points on a cylinder lie inside it by at most the sagitta of a
+    # cell: cell ~ sqrt(3000*2000/2000) ~ 55 mm -> sagitta 55^2/(8*5000) ~ 0.08 mm; allow 0.5 mm.
+    v, f, _ = cylinder_grid(radius_mm=5000.0, size_mm=(3000.0, 2000.0), n=(121, 81))
+    dv, df, _ = decimate_mesh(v, f, max_vertices=2000)
+    assert len(dv) <= 2000 and len(dv) > 500
+    radial = np.hypot(dv[:, 0], dv[:, 2] - 3000.0 - 5000.0)
+    assert np.abs(radial - 5000.0).max() < 0.5
+    assert df.max() < len(dv) and len(np.unique(np.sort(df, axis=1), axis=0)) == len(df)
+    assert np.all((df[:, 0] != df[:, 1]) & (df[:, 1] != df[:, 2]) & (df[:, 0] != df[:, 2]))
+
+
+def test_decimate_averages_values_and_leaves_small_meshes_alone():
+    v, f, _ = cylinder_grid(radius_mm=5000.0, size_mm=(1000.0, 1000.0), n=(41, 41))
+    values = 0.01 * v[:, 0]  # linear in x: cluster means of a linear field are the field at the cluster mean
+    dv, _, dval = decimate_mesh(v, f, values, max_vertices=300)
+    np.testing.assert_allclose(dval, 0.01 * dv[:, 0], atol=1e-9)
+    same_v, same_f, same_val = decimate_mesh(v, f, values, max_vertices=len(v))
+    np.testing.assert_array_equal(same_v, v)
+    np.testing.assert_array_equal(same_f, f)
+
+
+def test_decimate_refuses_bad_input():
+    v, f, _ = cylinder_grid(radius_mm=5000.0, size_mm=(100.0, 100.0), n=(3, 3))
+    with pytest.raises(ValueError, match=r"vertices: expected shape \(V, 3\)"):
+        decimate_mesh(v[:, :2], f, max_vertices=2)
+    with pytest.raises(ValueError, match=r"faces: expected indices in \[0, 8\]"):
+        decimate_mesh(v, f + 5, max_vertices=2)
+    with pytest.raises(ValueError, match=r"values: expected shape \(9,\)"):
+        decimate_mesh(v, f, np.zeros(4), max_vertices=2)
+    with pytest.raises(ValueError, match="max_vertices: expected >= 1"):
+        decimate_mesh(v, f, max_vertices=0)
+
+
+def test_deviation_colours_are_diverging_and_saturate():
+    rgb = deviation_colours(np.array([-9.0, -4.0, 0.0, 4.0, 9.0, np.nan]), 4.0)
+    assert tuple(rgb[0]) == tuple(rgb[1]) == (33, 102, 172)  # saturated blue at and beyond -scale
+    assert tuple(rgb[3]) == tuple(rgb[4]) == (178, 24, 43)
+    assert tuple(rgb[2]) == (247, 247, 247)
+    assert tuple(rgb[5]) == (128, 128, 128)
+    with pytest.raises(ValueError, match="scale_mm: expected a positive number"):
+        deviation_colours(np.zeros(3), 0.0)
+
+
+def test_load_plate_meshes_in_display_frame(tmp_path):
+    write_artifacts(tmp_path, size_mm=(3000.0, 2000.0), n=(31, 21))
+    meshes = load_plate_meshes(tmp_path, max_vertices=10_000)
+    # Display frame: metres, centred; the apex (nearest the cameras) is the highest point.
+    assert meshes.extent_m == pytest.approx(3.0)
+    apex = meshes.measured_vertices[np.argmin(np.abs(meshes.measured_vertices[:, 0]) + np.abs(meshes.measured_vertices[:, 1]))]
+    assert apex[2] == pytest.approx(meshes.measured_vertices[:, 2].max(), abs=1e-6)
+    tri = meshes.measured_vertices[meshes.measured_faces]
+    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    assert np.all(normals[:, 2] > 0)  # wound to face up (the cameras' side)
+    assert meshes.tolerance_mm == 2.0 and meshes.scale_mm == 4.0
+    _, _, dev = read_surface_ply(tmp_path / "surface.ply")
+    np.testing.assert_allclose(meshes.deviation_mm, dev, atol=1e-6)
+
+
+def test_read_surface_ply_needs_a_deviation(tmp_path):
+    import trimesh
+
+    v, f, _ = cylinder_grid(radius_mm=5000.0, size_mm=(100.0, 100.0), n=(3, 3))
+    (tmp_path / "s.ply").write_bytes(trimesh.exchange.ply.export_ply(trimesh.Trimesh(v, f, process=False)))
+    with pytest.raises(ValueError, match=r"s.ply: vertex: expected a property among \('deviation_mm'"):
+        read_surface_ply(tmp_path / "s.ply")
+
+
+@pytest.fixture
+def viewer_app(tmp_path):
+    write_artifacts(tmp_path / "7", n=(31, 21))
+    app = FastAPI()
+    app.include_router(router)
+    app.state.viewer = PlateViewer(lambda i: tmp_path / str(i), idle_s=0.0)
+    yield app
+    app.state.viewer.close()
+
+
+def test_viewer_page_serves_the_bundled_client(viewer_app):
+    with TestClient(viewer_app) as client:
+        page = client.get("/viewer/7/")
+        assert page.status_code == 200 and "<html" in page.text.lower()
+        assert "https://" not in page.text  # offline: nothing fetched from outside
+        assert client.get("/viewer/8/").status_code == 404
+
+
+def test_bridge_reaches_the_inspection_server(viewer_app):
+    viewer: PlateViewer = viewer_app.state.viewer
+    with TestClient(viewer_app) as client:
+        with client.websocket_connect("/viewer/7", subprotocols=[VISER_SUBPROTOCOL]) as ws:
+            first = ws.receive_bytes()  # viser's first message batch, relayed from loopback
+            assert len(first) > 0
+            assert viewer.port_for(7) > 0
+        with pytest.raises(WebSocketDisconnect) as closed:
+            with client.websocket_connect("/viewer/8", subprotocols=[VISER_SUBPROTOCOL]) as ws:
+                ws.receive_bytes()
+        assert closed.value.code == CLOSE_NOT_FOUND
+        with pytest.raises(WebSocketDisconnect) as refused:
+            with client.websocket_connect("/viewer/7", subprotocols=["viser-v0.0.1"]) as ws:
+                ws.receive_bytes()
+        assert refused.value.code == 1002
