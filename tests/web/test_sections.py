@@ -1,0 +1,75 @@
+"""Virtual templates: sections of analytic cylinders."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from tests.web.plates import cylinder_grid
+from web.sections import cut_sections, plate_frame, section_positions
+
+
+def _sag(radius_mm, x):
+    return radius_mm - np.sqrt(radius_mm**2 - x**2)
+
+
+def _pose(vertices, rotation, shift):
+    return (vertices - [0, 0, 3000.0]) @ rotation.T + [0, 0, 3000.0] + shift
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_gap_matches_two_cylinders(seed):
+    # Target R 5000, plate R 5050 touching at the apex, both posed by the same random
+    # rigid motion (tilt up to 10 deg): the gap is the difference of sagittas, whatever
+    # the pose. Grid 50 mm -> chord error 50^2/(8 R) ~ 0.06 mm per surface, nearly the
+    # same on both (radii 1 % apart) and the plane's tilt adds a cos(slope) factor on
+    # gaps of <= 2.3 mm: 0.02 mm covers both.
+    rng = np.random.default_rng(seed)
+    rot = Rotation.from_rotvec(rng.uniform(-1, 1, 3) * np.deg2rad(10) / np.sqrt(3)).as_matrix()
+    shift = rng.uniform(-200, 200, 3)
+    tv, tf, _ = cylinder_grid(radius_mm=5000.0, size_mm=(3000.0, 2000.0), n=(61, 41))
+    mv, mf, _ = cylinder_grid(radius_mm=5050.0, size_mm=(3000.0, 2000.0), n=(61, 41))
+    frame, sections = cut_sections(_pose(mv, rot, shift), mf, _pose(tv, rot, shift), tf, spacing_mm=500.0)
+    # Frames are stacked along the cylinder axis (camera y before the pose).
+    assert abs(frame.along @ (rot @ [0, 1, 0])) > 0.999
+    assert frame.normal @ (rot @ [0, 0, -1]) > 0.999  # towards the cameras
+    np.testing.assert_allclose([s.position_mm for s in sections], [500.0, 1000.0, 1500.0], atol=1.0)
+    for s in sections:
+        x = s.u_mm - 1500.0
+        expected = _sag(5000.0, x) - _sag(5050.0, x)
+        ok = np.isfinite(s.gap_mm)
+        assert ok.mean() > 0.97
+        np.testing.assert_allclose(s.gap_mm[ok], expected[ok], atol=0.02)
+
+
+def test_positions_are_centred_and_spaced():
+    tv, _, _ = cylinder_grid(radius_mm=5000.0, size_mm=(3000.0, 2000.0), n=(31, 21))
+    frame = plate_frame(tv)
+    positions = section_positions(frame, 600.0)
+    np.testing.assert_allclose(positions, [400.0, 1000.0, 1600.0], atol=1e-6)
+    with pytest.raises(ValueError, match="spacing_mm: expected a positive number"):
+        section_positions(frame, 0.0)
+    with pytest.raises(ValueError, match="spacing_mm: expected at most 200 sections"):
+        section_positions(frame, 5.0)
+
+
+def test_holes_are_nan_not_bridged():
+    tv, tf, _ = cylinder_grid(radius_mm=5000.0, size_mm=(3000.0, 2000.0), n=(61, 41))
+    # Remove the measured faces over x in (-400, 400): the section must show NaN there.
+    centres = tv[tf].mean(axis=1)
+    mf = tf[np.abs(centres[:, 0]) > 400]
+    _, sections = cut_sections(tv, mf, tv, tf, spacing_mm=1000.0)
+    s = sections[0]
+    x = s.u_mm - 1500.0
+    assert np.all(np.isnan(s.gap_mm[np.abs(x) < 350]))
+    np.testing.assert_allclose(s.gap_mm[np.abs(x) > 450], 0.0, atol=1e-9)
+
+
+def test_plate_frame_refuses_bad_input():
+    with pytest.raises(ValueError, match=r"target_vertices_mm: expected shape \(V, 3\) with V >= 6"):
+        plate_frame(np.zeros((4, 3)))
+    bad = np.zeros((10, 3))
+    bad[0, 0] = np.nan
+    with pytest.raises(ValueError, match="expected finite coordinates"):
+        plate_frame(bad)
