@@ -1,0 +1,65 @@
+"""Database engine, sessions and migrations (SQLAlchemy 2, Alembic).
+
+The web process and the job consumer share one database (a SQLite file by default):
+SQLite runs in WAL mode with a busy timeout so the two processes can write in turn.
+The schema is created and upgraded by Alembic only (never ``create_all``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from alembic import command
+from alembic.config import Config
+from sqlalchemy import Engine, create_engine, event
+from sqlalchemy.orm import Session, sessionmaker
+
+MIGRATIONS_DIR = Path(__file__).resolve().parents[1] / "migrations"
+
+#: Seconds a SQLite connection waits for the other process's write lock.
+SQLITE_BUSY_TIMEOUT_S = 30.0
+
+
+def make_engine(url: str) -> Engine:
+    """An engine for ``url``; SQLite connections get WAL, foreign keys and a busy timeout."""
+    if not url:
+        raise ValueError("database url: expected a SQLAlchemy URL, got an empty string")
+    is_sqlite = url.startswith("sqlite")
+    engine = create_engine(
+        url,
+        connect_args={"timeout": SQLITE_BUSY_TIMEOUT_S, "check_same_thread": False} if is_sqlite else {},
+    )
+    if is_sqlite:
+
+        @event.listens_for(engine, "connect")
+        def _sqlite_pragmas(dbapi_conn, _record):
+            cur = dbapi_conn.cursor()
+            cur.execute("PRAGMA journal_mode=WAL")
+            cur.execute("PRAGMA foreign_keys=ON")
+            cur.execute("PRAGMA synchronous=NORMAL")
+            cur.close()
+
+    return engine
+
+
+def make_session_factory(engine: Engine) -> sessionmaker[Session]:
+    """Sessions that keep loaded attributes after commit (routes build responses after it)."""
+    return sessionmaker(bind=engine, expire_on_commit=False)
+
+
+def alembic_config(url: str) -> Config:
+    """Alembic configuration for ``url`` (script location: the project's ``migrations/``)."""
+    cfg = Config(str(MIGRATIONS_DIR / "alembic.ini"))
+    cfg.set_main_option("script_location", str(MIGRATIONS_DIR))
+    # ConfigParser interpolation: '%' in the URL must be doubled.
+    cfg.set_main_option("sqlalchemy.url", url.replace("%", "%%"))
+    # The server's logging is configured already: env.py must not reset it from the .ini.
+    cfg.attributes["configure_logging"] = False
+    return cfg
+
+
+def upgrade_database(url: str) -> None:
+    """Bring the database at ``url`` to the newest migration (creates a SQLite file if missing)."""
+    if url.startswith("sqlite:///"):
+        Path(url.removeprefix("sqlite:///")).parent.mkdir(parents=True, exist_ok=True)
+    command.upgrade(alembic_config(url), "head")

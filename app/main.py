@@ -1,0 +1,123 @@
+"""The FastAPI application: ``create_app()``.
+
+The web process serves the REST API (``/api/v1``, OpenAPI at ``/docs``), ``/healthz``, and the
+operator dashboard (``web.routes.router``, static files at ``/static``) when it is installed. The
+pipeline runs elsewhere (:mod:`app.worker`); this process only queues job ids.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import secrets
+from contextlib import AsyncExitStack, asynccontextmanager
+from pathlib import Path
+
+from fastapi import FastAPI
+from pydantic import SecretStr
+
+from app.db import make_engine, make_session_factory, upgrade_database
+from app.errors import install_error_handlers
+from app.jobs import JobQueue
+from app.limits import BodySizeLimit
+from app.routes import api_router
+from app.routes.health import router as health_router
+from app.settings import Settings
+from app.storage import Storage
+
+log = logging.getLogger(__name__)
+
+
+def resolve_token(settings: Settings) -> Settings:
+    """Settings with an API token: the configured one, or a generated one in demo mode.
+
+    Raises
+    ------
+    ValueError
+        No token configured and not in demo mode.
+    """
+    if settings.api_token is not None:
+        if not settings.api_token.get_secret_value().strip():
+            raise ValueError("PLATE_INSPECT_API_TOKEN: expected a non-empty token, got an empty string")
+        return settings
+    if not settings.demo:
+        raise ValueError(
+            "PLATE_INSPECT_API_TOKEN: expected a token for writes (or demo mode, which generates one), got none"
+        )
+    return settings.model_copy(update={"api_token": SecretStr(secrets.token_urlsafe(24))})
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """Build the web application.
+
+    Parameters
+    ----------
+    settings : Settings, optional
+        Defaults to ``Settings()`` (the ``PLATE_INSPECT_*`` environment). Without an API token,
+        demo mode generates one (``app.state.settings.api_token``); otherwise a ValueError.
+
+    Notes
+    -----
+    On start (lifespan) the database is upgraded with Alembic, and the dashboard's viewer hook
+    ``app.viewer.attach(app, settings)`` runs if that module exists; it may return an async
+    context manager, which is exited at shutdown. ``app.state`` holds ``settings``, ``api_token``,
+    ``engine``, ``session_factory``, ``storage`` and ``jobs`` (:class:`app.jobs.JobQueue`).
+    """
+    settings = resolve_token(settings or Settings())
+    storage = Storage(settings.data_dir)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        async with AsyncExitStack() as stack:
+            viewer = _optional_module("app.viewer")
+            if viewer is not None and hasattr(viewer, "attach"):
+                hook = viewer.attach(app, settings)
+                if hook is not None and hasattr(hook, "__aenter__"):
+                    await stack.enter_async_context(hook)
+            yield
+        app.state.engine.dispose()
+
+    app = FastAPI(
+        title="plate-inspect",
+        version="1",
+        summary="Forming inspection of curved hull plates: inspections, results and targets for the MES.",
+        lifespan=lifespan,
+    )
+    app.add_middleware(BodySizeLimit, max_bytes=settings.max_upload_bytes)
+    # The database is ready before the first request (also under TestClient without lifespan).
+    storage.ensure()
+    upgrade_database(settings.sqlalchemy_url)
+    engine = make_engine(settings.sqlalchemy_url)
+    app.state.settings = settings
+    app.state.api_token = settings.api_token.get_secret_value()
+    app.state.engine = engine
+    app.state.session_factory = make_session_factory(engine)
+    app.state.storage = storage
+    app.state.jobs = JobQueue(settings, app.state.session_factory, storage)
+
+    install_error_handlers(app)
+    app.include_router(health_router)
+    app.include_router(api_router)
+    _include_dashboard(app)
+    return app
+
+
+def _optional_module(name: str):
+    """Import ``name`` if it exists (the dashboard is developed apart); errors inside it propagate."""
+    try:
+        return importlib.import_module(name)
+    except ModuleNotFoundError as err:
+        if err.name is not None and (name == err.name or name.startswith(err.name + ".")):
+            return None
+        raise
+
+
+def _include_dashboard(app: FastAPI) -> None:
+    from fastapi.staticfiles import StaticFiles
+
+    routes = _optional_module("web.routes")
+    if routes is not None and hasattr(routes, "router"):
+        app.include_router(routes.router)
+    static_dir = Path(__file__).resolve().parents[1] / "web" / "static"
+    if static_dir.is_dir():
+        app.mount("/static", StaticFiles(directory=static_dir), name="static")

@@ -1,0 +1,147 @@
+"""Database models (SQLAlchemy 2, typed ``Mapped[...]``).
+
+Plates are named by the yard (the MES's plate id). Targets and calibrations are versioned:
+a new upload is a new row, the newest row is the current one. An inspection row is the source
+of truth for its job: ``queued -> running -> done | failed``.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime, timezone
+from typing import Any
+
+from sqlalchemy import JSON, DateTime, Float, ForeignKey, Integer, String, Text, TypeDecorator, UniqueConstraint
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
+
+#: Job states of an inspection.
+STATUSES = ("queued", "running", "done", "failed")
+#: Verdicts: the pipeline's pass/fail, or error for a failed job.
+VERDICTS = ("pass", "fail", "error")
+
+
+def utcnow() -> datetime:
+    return datetime.now(timezone.utc)
+
+
+class UTCDateTime(TypeDecorator):
+    """A timezone-aware UTC datetime on every backend (SQLite stores naive values)."""
+
+    impl = DateTime
+    cache_ok = True
+
+    def process_bind_param(self, value, dialect):
+        if value is None:
+            return None
+        if value.tzinfo is None:
+            raise ValueError(f"datetime: expected a timezone-aware value, got naive {value!r}")
+        return value.astimezone(timezone.utc).replace(tzinfo=None)
+
+    def process_result_value(self, value, dialect):
+        return None if value is None else value.replace(tzinfo=timezone.utc)
+
+
+class Base(DeclarativeBase):
+    type_annotation_map = {datetime: UTCDateTime(), dict[str, Any]: JSON}
+
+
+class Plate(Base):
+    __tablename__ = "plates"
+
+    id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+    targets: Mapped[list[Target]] = relationship(back_populates="plate", order_by="Target.id")
+    inspections: Mapped[list[Inspection]] = relationship(back_populates="plate", order_by="Inspection.id")
+
+
+class Target(Base):
+    """One version of a plate's CAD target (``plate-target/1``); files under the storage dir."""
+
+    __tablename__ = "targets"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    plate_id: Mapped[str] = mapped_column(ForeignKey("plates.id"), index=True)
+    shape: Mapped[str] = mapped_column(String(16))
+    radius_mm: Mapped[float | None] = mapped_column(Float)
+    tolerance_mm: Mapped[float] = mapped_column(Float)
+    document: Mapped[dict[str, Any]]
+    #: target.json path, relative to the data dir.
+    path: Mapped[str] = mapped_column(String(512))
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+    plate: Mapped[Plate] = relationship(back_populates="targets")
+
+
+class Calibration(Base):
+    """One uploaded ``stereo-calibration/1``; the newest is the cell's current calibration."""
+
+    __tablename__ = "calibrations"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    image_width: Mapped[int] = mapped_column(Integer)
+    image_height: Mapped[int] = mapped_column(Integer)
+    rms_px: Mapped[float | None] = mapped_column(Float)
+    document: Mapped[dict[str, Any]]
+    path: Mapped[str] = mapped_column(String(512))
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+
+class Inspection(Base):
+    """One inspection job and its summary result."""
+
+    __tablename__ = "inspections"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    plate_id: Mapped[str] = mapped_column(ForeignKey("plates.id"), index=True)
+    target_id: Mapped[int | None] = mapped_column(ForeignKey("targets.id"))
+    #: "upload" (a bundle .zip) or "simulated" (rendered by the job from ``simulation``).
+    source: Mapped[str] = mapped_column(String(16))
+    simulation: Mapped[dict[str, Any] | None]
+
+    status: Mapped[str] = mapped_column(String(16), default="queued", index=True)
+    progress: Mapped[float] = mapped_column(Float, default=0.0)
+    stage: Mapped[str | None] = mapped_column(String(32))
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    error: Mapped[str | None] = mapped_column(Text)
+
+    #: Input paths relative to the data dir: the bundle (.zip or folder) and the target.json used.
+    capture_path: Mapped[str | None] = mapped_column(String(512))
+    target_path: Mapped[str | None] = mapped_column(String(512))
+
+    result: Mapped[dict[str, Any] | None]
+    timings_s: Mapped[dict[str, Any] | None]
+    radius_mm: Mapped[float | None] = mapped_column(Float)
+    target_radius_mm: Mapped[float | None] = mapped_column(Float)
+    radius_error_pct: Mapped[float | None] = mapped_column(Float)
+    rms_mm: Mapped[float | None] = mapped_column(Float)
+    max_abs_mm: Mapped[float | None] = mapped_column(Float)
+    p95_mm: Mapped[float | None] = mapped_column(Float)
+    within_tolerance_pct: Mapped[float | None] = mapped_column(Float)
+    tolerance_mm: Mapped[float | None] = mapped_column(Float)
+    verdict: Mapped[str | None] = mapped_column(String(8))
+
+    created_at: Mapped[datetime] = mapped_column(default=utcnow, index=True)
+    started_at: Mapped[datetime | None]
+    finished_at: Mapped[datetime | None]
+
+    plate: Mapped[Plate] = relationship(back_populates="inspections")
+    target: Mapped[Target | None] = relationship()
+
+
+class IdempotencyKey(Base):
+    """The first answer to a write sent with an ``Idempotency-Key`` (per route and token)."""
+
+    __tablename__ = "idempotency_keys"
+    __table_args__ = (UniqueConstraint("key", "scope", "token_hash", name="uq_idempotency_key_scope_token"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    key: Mapped[str] = mapped_column(String(255))
+    #: "METHOD /path" of the request.
+    scope: Mapped[str] = mapped_column(String(512))
+    #: sha256 hex of the bearer token.
+    token_hash: Mapped[str] = mapped_column(String(64))
+    #: "pending" while the first request runs, then "done".
+    state: Mapped[str] = mapped_column(String(8), default="pending")
+    status_code: Mapped[int | None] = mapped_column(Integer)
+    body: Mapped[dict[str, Any] | None]
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)

@@ -1,0 +1,14 @@
+"""Thin routers, one per resource, gathered under ``/api/v1``."""
+
+from fastapi import APIRouter
+
+from app.routes import calibrations, inspections, plates, session
+from app.routes.common import API_PREFIX
+
+api_router = APIRouter(prefix=API_PREFIX)
+api_router.include_router(inspections.router)
+api_router.include_router(plates.router)
+api_router.include_router(calibrations.router)
+api_router.include_router(session.router)
+
+__all__ = ["api_router"]

@@ -1,0 +1,76 @@
+"""Calibrations of the camera pair: upload a new one, read the current one."""
+
+from __future__ import annotations
+
+import shutil
+from typing import Annotated
+
+from fastapi import APIRouter, File, Request, UploadFile, status
+
+from app.deps import SessionDep, StorageDep, WriterDep
+from app.errors import ApiError
+from app.routes.common import IdempotencyKeyHeader, idempotent_write
+from app.schemas import CalibrationOut, ErrorOut
+from app.services import calibrations as svc
+from app.services.calibrations import CALIBRATION_FILE
+
+router = APIRouter(tags=["calibrations"])
+
+
+def calibration_out(row) -> CalibrationOut:
+    return CalibrationOut(
+        id=row.id,
+        image_size=(row.image_width, row.image_height),
+        rms_px=row.rms_px,
+        document=row.document,
+        created_at=row.created_at,
+    )
+
+
+@router.post(
+    "/calibrations",
+    status_code=status.HTTP_201_CREATED,
+    response_model=CalibrationOut,
+    responses={401: {"model": ErrorOut}, 413: {"model": ErrorOut}, 422: {"model": ErrorOut}},
+    summary="Upload a stereo calibration; it becomes the current one",
+)
+def upload_calibration(
+    request: Request,
+    calibration: Annotated[UploadFile, File(description="a stereo-calibration/1 JSON file")],
+    session: SessionDep,
+    storage: StorageDep,
+    writer: WriterDep,
+    idempotency_key: IdempotencyKeyHeader = None,
+):
+    staging = storage.new_staging_dir()
+    created: list[int] = []
+
+    def cleanup():
+        storage.remove(staging)
+        for calibration_id in created:
+            storage.remove(storage.calibration_dir(calibration_id))
+
+    def work():
+        with open(staging / CALIBRATION_FILE, "wb") as fh:
+            shutil.copyfileobj(calibration.file, fh, length=1 << 20)
+        row = svc.create_calibration(session=session, storage=storage, staging_dir=staging)
+        created.append(row.id)
+        return 201, calibration_out(row).model_dump(mode="json"), None
+
+    return idempotent_write(
+        request=request, session=session, writer=writer, key=idempotency_key, work=work, cleanup=cleanup,
+        staging=staging, upload_field="calibration",
+    )
+
+
+@router.get("/calibrations/current", response_model=CalibrationOut, responses={404: {"model": ErrorOut}})
+def current_calibration(session: SessionDep):
+    row = svc.current_calibration(session=session)
+    if row is None:
+        raise ApiError(404, "calibration: no calibration uploaded yet", field=None)
+    return calibration_out(row)
+
+
+@router.get("/calibrations", response_model=list[CalibrationOut], summary="Calibrations, newest first")
+def list_calibrations(session: SessionDep):
+    return [calibration_out(r) for r in svc.list_calibrations(session=session)]

@@ -1,0 +1,154 @@
+"""Helpers shared by the routers: path parameters, idempotent writes, response builders."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from pathlib import Path
+from typing import Annotated, Any
+
+from fastapi import Header, Path, Request
+from fastapi.responses import JSONResponse
+from sqlalchemy.orm import Session
+
+from app.deps import Writer
+from app.errors import error_body, known_error, relabel_input_error
+from app.models import Inspection, Target
+from app.schemas import InspectionOut, InspectionSummary, PlateOut, TargetOut
+from app.services import idempotency
+from app.services.inspections import artifact_names
+from app.services.plates import PlateOverview
+from app.storage import PLATE_ID_PATTERN, Storage
+from pipeline.formats import InputError
+
+log = logging.getLogger(__name__)
+
+API_PREFIX = "/api/v1"
+
+PlateIdPath = Annotated[
+    str,
+    Path(
+        pattern=PLATE_ID_PATTERN.pattern,
+        max_length=64,
+        description="the yard's plate id: letters, digits, '.', '_', '-'",
+        examples=["H1234-P07"],
+    ),
+]
+IdempotencyKeyHeader = Annotated[
+    str | None,
+    Header(alias="Idempotency-Key", description="a retry with the same key returns the first answer", max_length=255),
+]
+
+#: work() -> (status code, JSON body, called after the commit (e.g. enqueue) or None)
+Work = Callable[[], tuple[int, dict[str, Any], Callable[[], None] | None]]
+
+
+def idempotent_write(
+    *,
+    request: Request,
+    session: Session,
+    writer: Writer,
+    key: str | None,
+    work: Work,
+    cleanup: Callable[[], None] = lambda: None,
+    upload_field: str | None = None,
+    staging: Path | None = None,
+) -> JSONResponse:
+    """Run a write once per ``Idempotency-Key`` (per route and token) and answer with JSON.
+
+    ``work`` adds rows without committing; this commits them together with the stored answer,
+    then calls the after-commit hook. A refused request (4xx) is remembered too, so a retry gets
+    the same refusal; a bug (5xx) forgets the key. ``cleanup`` undoes files ``work`` wrote when its
+    rows are not committed. File errors name files relative to ``staging`` (the upload's folder).
+    """
+    row_id = None
+    if key is not None:
+        try:
+            row, claimed = idempotency.claim(
+                session=session, key=key, scope=f"{request.method} {request.url.path}", token_hash=writer.token_hash
+            )
+        except ValueError as err:
+            cleanup()
+            return JSONResponse(error_body(str(err), "Idempotency-Key"), status_code=422)
+        if not claimed:
+            cleanup()
+            if row.state == "done":
+                return JSONResponse(row.body, status_code=row.status_code, headers={"Idempotent-Replayed": "true"})
+            return JSONResponse(
+                error_body("Idempotency-Key: the first request with this key is still in progress, retry later",
+                           "Idempotency-Key"),
+                status_code=409,
+            )
+        row_id = row.id
+    try:
+        status, body, after_commit = work()
+        if row_id is not None:
+            idempotency.record(session=session, row_id=row_id, status_code=status, body=body)
+        session.commit()
+    except Exception as exc:
+        session.rollback()
+        cleanup()
+        if isinstance(exc, InputError) and staging is not None:
+            exc = relabel_input_error(exc, staging)
+        known = known_error(exc, upload_field=upload_field)
+        if known is None:
+            if row_id is not None:
+                idempotency.release(session=session, row_id=row_id)
+                session.commit()
+            raise
+        status, body = known
+        if row_id is not None:
+            idempotency.record(session=session, row_id=row_id, status_code=status, body=body)
+            session.commit()
+        return JSONResponse(body, status_code=status)
+    if after_commit is not None:
+        after_commit()
+    return JSONResponse(body, status_code=status)
+
+
+# ------------------------------------------------------------------ response builders
+
+
+def artifact_url(inspection_id: int, name: str) -> str:
+    return f"{API_PREFIX}/inspections/{inspection_id}/artifacts/{name}"
+
+
+def inspection_out(row: Inspection, *, storage: Storage) -> InspectionOut:
+    names = artifact_names(storage=storage, inspection=row) if row.status in ("done", "failed") else []
+    return InspectionOut(
+        id=row.id,
+        plate_id=row.plate_id,
+        status=row.status,
+        progress=row.progress,
+        stage=row.stage,
+        result=row.result,
+        error=row.error,
+        source=row.source,
+        verdict=row.verdict,
+        created_at=row.created_at,
+        started_at=row.started_at,
+        finished_at=row.finished_at,
+        artifacts={name: artifact_url(row.id, name) for name in names},
+    )
+
+
+def inspection_summary(row: Inspection) -> InspectionSummary:
+    return InspectionSummary.model_validate(
+        {name: getattr(row, name) for name in InspectionSummary.model_fields}
+    )
+
+
+def target_out(row: Target) -> TargetOut:
+    return TargetOut.model_validate({name: getattr(row, name) for name in TargetOut.model_fields})
+
+
+def plate_out(view: PlateOverview) -> PlateOut:
+    latest = view.latest_inspection
+    return PlateOut(
+        id=view.plate.id,
+        created_at=view.plate.created_at,
+        inspection_count=view.inspection_count,
+        latest_verdict=latest.verdict if latest is not None else None,
+        latest_inspection=inspection_summary(latest) if latest is not None else None,
+        target=target_out(view.target) if view.target is not None else None,
+    )

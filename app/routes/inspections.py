@@ -1,0 +1,168 @@
+"""Inspections: start one (uploaded bundle or simulated cell), follow it, fetch its artifacts."""
+
+from __future__ import annotations
+
+import mimetypes
+import shutil
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, File, Query, Request, UploadFile, status
+from fastapi.responses import FileResponse
+
+from app.deps import JobsDep, SessionDep, StorageDep, WriterDep
+from app.errors import ApiError
+from app.schemas import ErrorOut, InspectionCreated, InspectionOut, InspectionSummary, Page, SimulatedInspectionIn
+from app.routes.common import IdempotencyKeyHeader, PlateIdPath, idempotent_write, inspection_out, inspection_summary
+from app.services import inspections as svc
+from app.services.inspections import CAPTURE_FILE
+from app.services.targets import TARGET_FILE
+
+router = APIRouter(tags=["inspections"])
+
+ERRORS = {401: {"model": ErrorOut}, 413: {"model": ErrorOut}, 422: {"model": ErrorOut}}
+
+
+@router.post(
+    "/plates/{plate_id}/inspections",
+    status_code=status.HTTP_202_ACCEPTED,
+    response_model=InspectionCreated,
+    responses=ERRORS,
+    summary="Inspect an uploaded capture bundle",
+)
+def create_inspection(
+    request: Request,
+    plate_id: PlateIdPath,
+    capture: Annotated[UploadFile, File(description="the capture bundle (plate-capture/1) as a .zip")],
+    session: SessionDep,
+    storage: StorageDep,
+    jobs: JobsDep,
+    writer: WriterDep,
+    idempotency_key: IdempotencyKeyHeader = None,
+    target: Annotated[UploadFile | None, File(description="plate-target/1 JSON; optional if the plate has a target")] = None,
+):
+    """Validate the bundle (and target), store them and queue the inspection: 202 ``{"id", "status"}``.
+
+    A bad bundle or target is refused with 422 naming the file and field, and nothing is stored.
+    """
+    staging = storage.new_staging_dir()
+    created: list[int] = []
+
+    def cleanup():
+        storage.remove(staging)
+        for inspection_id in created:
+            storage.remove(storage.inspection_dir(inspection_id))
+
+    def work():
+        with open(staging / CAPTURE_FILE, "wb") as fh:
+            shutil.copyfileobj(capture.file, fh, length=1 << 20)
+        if target is not None:
+            (staging / "target").mkdir()
+            with open(staging / "target" / TARGET_FILE, "wb") as fh:
+                shutil.copyfileobj(target.file, fh, length=1 << 20)
+        row = svc.create_uploaded_inspection(session=session, storage=storage, plate_id=plate_id, staging_dir=staging)
+        created.append(row.id)
+        return 202, {"id": row.id, "status": row.status}, lambda: jobs.enqueue(row.id)
+
+    return idempotent_write(
+        request=request, session=session, writer=writer, key=idempotency_key, work=work, cleanup=cleanup,
+        staging=staging, upload_field="capture",
+    )
+
+
+@router.post(
+    "/plates/{plate_id}/inspections/simulated",
+    status_code=status.HTTP_202_ACCEPTED,
+    response_model=InspectionCreated,
+    responses=ERRORS,
+    summary="Inspect a plate rendered by the simulator (the demo cell)",
+)
+def create_simulated_inspection(
+    request: Request,
+    plate_id: PlateIdPath,
+    body: SimulatedInspectionIn,
+    session: SessionDep,
+    storage: StorageDep,
+    jobs: JobsDep,
+    writer: WriterDep,
+    idempotency_key: IdempotencyKeyHeader = None,
+):
+    """Queue a job that renders a capture of the described plate, then inspects it."""
+    created: list[int] = []
+
+    def cleanup():
+        for inspection_id in created:
+            storage.remove(storage.inspection_dir(inspection_id))
+
+    def work():
+        row = svc.create_simulated_inspection(
+            session=session, storage=storage, plate_id=plate_id, simulation=body.model_dump(mode="json")
+        )
+        created.append(row.id)
+        return 202, {"id": row.id, "status": row.status}, lambda: jobs.enqueue(row.id)
+
+    return idempotent_write(
+        request=request, session=session, writer=writer, key=idempotency_key, work=work, cleanup=cleanup
+    )
+
+
+@router.get(
+    "/plates/{plate_id}/inspections",
+    response_model=Page[InspectionSummary],
+    summary="A plate's inspections, newest first",
+)
+def list_plate_inspections(
+    plate_id: PlateIdPath,
+    session: SessionDep,
+    limit: Annotated[int, Query(ge=1, le=200)] = 20,
+    offset: Annotated[int, Query(ge=0)] = 0,
+):
+    items, total = svc.list_inspections(session=session, plate_id=plate_id, limit=limit, offset=offset)
+    return Page[InspectionSummary](
+        items=[inspection_summary(r) for r in items], total=total, limit=limit, offset=offset
+    )
+
+
+@router.get("/inspections", response_model=Page[InspectionSummary], summary="All inspections, newest first")
+def list_inspections(
+    session: SessionDep,
+    status_: Annotated[
+        list[Literal["queued", "running", "done", "failed"]] | None,
+        Query(alias="status", description="only these statuses (repeat the parameter)"),
+    ] = None,
+    limit: Annotated[int, Query(ge=1, le=200)] = 20,
+    offset: Annotated[int, Query(ge=0)] = 0,
+):
+    items, total = svc.list_inspections(
+        session=session, statuses=tuple(status_) if status_ else None, limit=limit, offset=offset
+    )
+    return Page[InspectionSummary](
+        items=[inspection_summary(r) for r in items], total=total, limit=limit, offset=offset
+    )
+
+
+@router.get("/inspections/{inspection_id}", response_model=InspectionOut, responses={404: {"model": ErrorOut}})
+def get_inspection(inspection_id: int, session: SessionDep, storage: StorageDep):
+    """Job state (status, progress 0..1, stage), the plate-result/1 object once done, or the error."""
+    row = svc.get_inspection(session=session, inspection_id=inspection_id)
+    if row is None:
+        raise ApiError(404, f"inspection_id: no inspection {inspection_id}", field="inspection_id")
+    return inspection_out(row, storage=storage)
+
+
+@router.get(
+    "/inspections/{inspection_id}/artifacts/{name}",
+    response_class=FileResponse,
+    responses={404: {"model": ErrorOut}, 422: {"model": ErrorOut}},
+)
+def get_artifact(inspection_id: int, name: str, session: SessionDep, storage: StorageDep):
+    """One artifact file of an inspection (result.json, surface.ply, deviation.png, ...)."""
+    if svc.get_inspection(session=session, inspection_id=inspection_id) is None:
+        raise ApiError(404, f"inspection_id: no inspection {inspection_id}", field="inspection_id")
+    try:
+        path = storage.artifact_path(inspection_id, name)
+    except ValueError as err:
+        raise ApiError(422, str(err), field="name") from None
+    if path is None:
+        raise ApiError(404, f"name: inspection {inspection_id} has no artifact {name!r}", field="name")
+    media_type = mimetypes.guess_type(name)[0] or "application/octet-stream"
+    return FileResponse(path, media_type=media_type, filename=name, content_disposition_type="inline")

@@ -1,0 +1,156 @@
+"""Plates: the list with each plate's latest verdict, one plate, its target (read and replace)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from typing import Annotated
+
+from fastapi import APIRouter, Query, Request
+from fastapi.concurrency import run_in_threadpool
+from starlette.datastructures import UploadFile
+
+from app.deps import SessionDep, StorageDep, WriterDep
+from app.errors import ApiError
+from app.routes.common import IdempotencyKeyHeader, PlateIdPath, idempotent_write, plate_out, target_out
+from app.schemas import ErrorOut, Page, PlateOut, TargetOut
+from app.services import plates as svc
+from app.services.targets import TARGET_FILE, create_target
+from app.storage import ARTIFACT_NAME_PATTERN
+
+router = APIRouter(tags=["plates"])
+
+MESH_SUFFIXES = (".stl", ".ply", ".obj")
+
+
+@router.get("/plates", response_model=Page[PlateOut], summary="Plates with their latest verdict")
+def list_plates(
+    session: SessionDep,
+    limit: Annotated[int, Query(ge=1, le=500)] = 50,
+    offset: Annotated[int, Query(ge=0)] = 0,
+):
+    views, total = svc.list_plates(session=session, limit=limit, offset=offset)
+    return Page[PlateOut](items=[plate_out(v) for v in views], total=total, limit=limit, offset=offset)
+
+
+@router.get("/plates/{plate_id}", response_model=PlateOut, responses={404: {"model": ErrorOut}})
+def get_plate(plate_id: PlateIdPath, session: SessionDep):
+    view = svc.overview(session=session, plate_id=plate_id)
+    if view is None:
+        raise ApiError(404, f"plate_id: no plate {plate_id!r}", field="plate_id")
+    return plate_out(view)
+
+
+@router.get("/plates/{plate_id}/target", response_model=TargetOut, responses={404: {"model": ErrorOut}})
+def get_target(plate_id: PlateIdPath, session: SessionDep):
+    row = svc.current_target(session=session, plate_id=plate_id)
+    if row is None:
+        raise ApiError(404, f"plate_id: plate {plate_id!r} has no target", field="plate_id")
+    return target_out(row)
+
+
+@router.put(
+    "/plates/{plate_id}/target",
+    response_model=TargetOut,
+    responses={401: {"model": ErrorOut}, 413: {"model": ErrorOut}, 415: {"model": ErrorOut}, 422: {"model": ErrorOut}},
+    openapi_extra={
+        "requestBody": {
+            "required": True,
+            "content": {
+                "application/json": {"schema": {"type": "object", "description": "a plate-target/1 document"}},
+                "multipart/form-data": {
+                    "schema": {
+                        "type": "object",
+                        "required": ["mesh"],
+                        "properties": {
+                            "mesh": {"type": "string", "format": "binary", "description": "STL, PLY or OBJ, mm"},
+                            "target": {"type": "string", "format": "binary",
+                                       "description": "plate-target/1 JSON with shape mesh (file = the mesh's name)"},
+                            "size_x_mm": {"type": "number"},
+                            "size_y_mm": {"type": "number"},
+                            "tolerance_mm": {"type": "number"},
+                        },
+                    }
+                },
+            },
+        }
+    },
+    summary="Set the plate's target: a plate-target/1 JSON body, or a mesh upload",
+)
+async def put_target(
+    request: Request,
+    plate_id: PlateIdPath,
+    session: SessionDep,
+    storage: StorageDep,
+    writer: WriterDep,
+    idempotency_key: IdempotencyKeyHeader = None,
+):
+    """Replace the plate's target (the old one stays with the inspections that used it).
+
+    JSON body: a ``plate-target/1`` document (plane, cylinder or sphere). Multipart: ``mesh``
+    (STL/PLY/OBJ in mm) and either ``target`` (a plate-target/1 JSON whose ``shape.file`` names
+    the mesh) or the fields ``size_x_mm``, ``size_y_mm``, ``tolerance_mm``.
+    """
+    content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    staging = storage.new_staging_dir()
+    try:
+        if content_type == "application/json":
+            body = await request.body()
+            (staging / TARGET_FILE).write_bytes(body)
+        elif content_type == "multipart/form-data":
+            form = await request.form()
+            await _stage_mesh_form(form, staging)
+        else:
+            raise ApiError(
+                415, f"Content-Type: expected application/json or multipart/form-data, got {content_type or 'none'!r}",
+                field="Content-Type",
+            )
+    except BaseException:
+        storage.remove(staging)
+        raise
+
+    def work():
+        row = create_target(session=session, storage=storage, plate_id=plate_id, staging_dir=staging)
+        return 200, target_out(row).model_dump(mode="json"), None
+
+    return await run_in_threadpool(
+        idempotent_write,
+        request=request, session=session, writer=writer, key=idempotency_key, work=work,
+        cleanup=lambda: storage.remove(staging), upload_field="target", staging=staging,
+    )
+
+
+async def _stage_mesh_form(form, staging) -> None:
+    mesh = form.get("mesh")
+    if not isinstance(mesh, UploadFile):
+        raise ApiError(422, "mesh: expected a mesh file upload (STL, PLY or OBJ)", field="mesh")
+    target_part = form.get("target")
+    if target_part is not None:
+        raw = await target_part.read() if isinstance(target_part, UploadFile) else str(target_part).encode()
+        try:
+            document = json.loads(raw)
+            mesh_name = document["shape"]["file"]
+        except (ValueError, KeyError, TypeError):
+            raise ApiError(422, "target: expected a plate-target/1 JSON with shape.file naming the mesh",
+                           field="target") from None
+        if not isinstance(mesh_name, str) or not ARTIFACT_NAME_PATTERN.match(mesh_name) or ".." in mesh_name:
+            raise ApiError(422, f"target: shape.file: expected a plain file name, got {mesh_name!r}", field="target")
+        (staging / TARGET_FILE).write_bytes(raw)
+    else:
+        suffix = "." + (mesh.filename or "").rsplit(".", 1)[-1].lower() if "." in (mesh.filename or "") else ""
+        if suffix not in MESH_SUFFIXES:
+            raise ApiError(422, f"mesh: expected a .stl, .ply or .obj file, got {mesh.filename!r}", field="mesh")
+        mesh_name = "plate" + suffix
+        document = {"format": "plate-target/1", "shape": {"type": "mesh", "file": mesh_name}}
+        for name in ("size_x_mm", "size_y_mm", "tolerance_mm"):
+            value = form.get(name)
+            if value is None or isinstance(value, UploadFile):
+                raise ApiError(422, f"{name}: expected a number (mm) with the mesh upload, got none", field=name)
+            try:
+                document[name] = float(value)
+            except ValueError:
+                raise ApiError(422, f"{name}: expected a number (mm), got {value!r}", field=name) from None
+        document["size_mm"] = [document.pop("size_x_mm"), document.pop("size_y_mm")]
+        (staging / TARGET_FILE).write_text(json.dumps(document, indent=2), encoding="utf-8")
+    with open(staging / mesh_name, "wb") as fh:
+        shutil.copyfileobj(mesh.file, fh, length=1 << 20)

@@ -1,0 +1,153 @@
+"""Request and response bodies of the REST API (pydantic)."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any, Generic, Literal, TypeVar
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+T = TypeVar("T")
+
+Status = Literal["queued", "running", "done", "failed"]
+Verdict = Literal["pass", "fail", "error"]
+
+
+class ErrorOut(BaseModel):
+    """Every error answer: a message, and the request field it is about (or null)."""
+
+    detail: str
+    field: str | None = None
+
+
+class Page(BaseModel, Generic[T]):
+    """One page of a list, newest first."""
+
+    items: list[T]
+    total: int
+    limit: int
+    offset: int
+
+
+# ------------------------------------------------------------------ inspections
+
+
+class DentIn(BaseModel):
+    """A dent pressed into the simulated plate (plate frame, mm; depth > 0 is away from the cameras)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    x_mm: float
+    y_mm: float
+    radius_mm: float = Field(gt=0)
+    depth_mm: float
+
+
+class SimulatedInspectionIn(BaseModel):
+    """The demo cell: a formed plate to render with the simulator and inspect."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    shape: Literal["plane", "cylinder", "sphere", "saddle"] = "cylinder"
+    radius_mm: float | None = Field(default=5000.0, gt=0, description="formed radius, mm (ignored for a plane)")
+    convex: bool = True
+    n_lights: int = Field(default=12, ge=3, le=64)
+    noise: float = Field(default=0.004, ge=0, le=0.5, description="image noise, fraction of full scale")
+    bit_depth: Literal[8, 10, 12, 14, 16] = 16
+    specular: float = Field(default=0.0, ge=0, le=1)
+    dents: list[DentIn] = Field(default_factory=list, max_length=32)
+    seed: int = Field(default=0, ge=0, le=2**31 - 1)
+    width: int = Field(default=1224, ge=64, le=4096, description="image width, px")
+    height: int = Field(default=1024, ge=64, le=4096, description="image height, px")
+    tolerance_mm: float = Field(default=2.0, gt=0)
+
+    @model_validator(mode="after")
+    def _radius_needed(self):
+        if self.shape != "plane" and self.radius_mm is None:
+            raise ValueError(f"radius_mm: expected a radius for a {self.shape} plate, got null")
+        return self
+
+
+class InspectionCreated(BaseModel):
+    id: int
+    status: Status
+
+
+class InspectionOut(BaseModel):
+    """An inspection: its job state and, once done, its ``plate-result/1`` document."""
+
+    id: int
+    plate_id: str
+    status: Status
+    progress: float
+    stage: str | None
+    result: dict[str, Any] | None
+    error: str | None
+    source: str
+    verdict: Verdict | None
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+    #: artifact name -> URL, for the files present on disk.
+    artifacts: dict[str, str]
+
+
+class InspectionSummary(BaseModel):
+    """One row of a plate's history."""
+
+    id: int
+    plate_id: str
+    status: Status
+    progress: float
+    stage: str | None
+    source: str
+    verdict: Verdict | None
+    radius_mm: float | None
+    target_radius_mm: float | None
+    radius_error_pct: float | None
+    rms_mm: float | None
+    max_abs_mm: float | None
+    p95_mm: float | None
+    within_tolerance_pct: float | None
+    tolerance_mm: float | None
+    error: str | None
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+
+
+# ------------------------------------------------------------------ plates, targets, calibrations
+
+
+class TargetOut(BaseModel):
+    id: int
+    plate_id: str
+    shape: str
+    radius_mm: float | None
+    tolerance_mm: float
+    document: dict[str, Any]
+    created_at: datetime
+
+
+class PlateOut(BaseModel):
+    id: str
+    created_at: datetime
+    inspection_count: int
+    latest_verdict: Verdict | None
+    latest_inspection: InspectionSummary | None
+    target: TargetOut | None
+
+
+class CalibrationOut(BaseModel):
+    id: int
+    image_size: tuple[int, int]
+    rms_px: float | None
+    document: dict[str, Any]
+    created_at: datetime
+
+
+class Health(BaseModel):
+    status: Literal["ok"]
+    database: Literal["ok"]
+    queued: int
+    running: int

@@ -1,0 +1,76 @@
+"""Idempotency keys: an MES retry with the same ``Idempotency-Key`` gets the first answer again.
+
+A key is scoped by the route (``"POST /api/v1/plates/P1/inspections"``) and the writer's token.
+The first request *claims* the key (a committed "pending" row: the unique constraint makes a
+concurrent twin fail), does its work, and stores its answer in the same transaction as the work.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from sqlalchemy import delete, select
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from app.models import IdempotencyKey
+
+MAX_KEY_LENGTH = 255
+
+
+def check_key(key: str) -> str:
+    if not key or len(key) > MAX_KEY_LENGTH or not key.isprintable():
+        raise ValueError(f"Idempotency-Key: expected 1-{MAX_KEY_LENGTH} printable characters, got {key[:40]!r}")
+    return key
+
+
+def find(*, session: Session, key: str, scope: str, token_hash: str) -> IdempotencyKey | None:
+    return session.scalars(
+        select(IdempotencyKey).where(
+            IdempotencyKey.key == key, IdempotencyKey.scope == scope, IdempotencyKey.token_hash == token_hash
+        )
+    ).first()
+
+
+def claim(*, session: Session, key: str, scope: str, token_hash: str) -> tuple[IdempotencyKey, bool]:
+    """Claim ``key`` for this request, or find the request that claimed it first.
+
+    Commits (the claim must be visible to a concurrent twin before the work starts).
+
+    Returns
+    -------
+    (row, claimed)
+        ``claimed`` is True when this request owns the key; otherwise ``row`` is the first
+        request's: ``state == "done"`` with its answer, or ``"pending"`` while it still runs.
+    """
+    check_key(key)
+    existing = find(session=session, key=key, scope=scope, token_hash=token_hash)
+    if existing is not None:
+        return existing, False
+    row = IdempotencyKey(key=key, scope=scope, token_hash=token_hash, state="pending")
+    session.add(row)
+    try:
+        session.commit()
+    except IntegrityError:
+        session.rollback()
+        existing = find(session=session, key=key, scope=scope, token_hash=token_hash)
+        if existing is None:
+            raise
+        return existing, False
+    return row, True
+
+
+def record(*, session: Session, row_id: int, status_code: int, body: dict[str, Any]) -> None:
+    """Store the answer of the request that claimed the key (caller commits)."""
+    row = session.get(IdempotencyKey, row_id)
+    if row is None:
+        raise LookupError(f"idempotency key row {row_id}: not found")
+    row.state = "done"
+    row.status_code = int(status_code)
+    row.body = body
+    session.flush()
+
+
+def release(*, session: Session, row_id: int) -> None:
+    """Forget a claim whose request failed by a bug (a retry may then try again; caller commits)."""
+    session.execute(delete(IdempotencyKey).where(IdempotencyKey.id == row_id))

@@ -1,0 +1,242 @@
+"""Inspections: created by an upload or the simulated cell, run by the job, read by the API.
+
+The row is the source of truth of its job: ``queued -> running -> done | failed``.
+The state changes used by the job (:func:`claim`, :func:`record_progress`, :func:`mark_done`,
+:func:`mark_failed`, :func:`requeue_interrupted`) are single conditional UPDATEs, so a job
+delivered twice (at-least-once queue) runs once.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import func, select, update
+from sqlalchemy.orm import Session
+
+from app.models import Inspection, utcnow
+from app.services.errors import UnprocessableError
+from app.services.plates import current_target, get_or_create_plate
+from app.services.targets import TARGET_FILE, copy_target_files, create_target
+from app.storage import Storage
+from pipeline import io as pio
+from pipeline.formats import InputError
+
+CAPTURE_FILE = "capture.zip"
+SIMULATION_FILE = "simulation.json"
+#: Folder (under inputs/) of a simulated inspection's rendered bundle.
+SIMULATED_BUNDLE_DIR = "bundle"
+
+
+# ------------------------------------------------------------------ creation
+
+
+def create_uploaded_inspection(
+    *, session: Session, storage: Storage, plate_id: str, staging_dir: Path
+) -> Inspection:
+    """A queued inspection of an uploaded bundle.
+
+    ``staging_dir`` holds ``capture.zip`` and, optionally, ``target/target.json`` (+ mesh).
+    Both are validated with the pipeline's loaders before anything is added. A target sent
+    with the inspection becomes the plate's current target. Once the row has an id, the staging
+    folder becomes the inspection's ``inputs/`` folder.
+
+    Raises
+    ------
+    pipeline.formats.InputError
+        A bad bundle or target (names the file and field); nothing was added.
+    UnprocessableError
+        No target sent and the plate has none (field ``target``).
+    """
+    staging_dir = Path(staging_dir)
+    capture = pio.load_capture(staging_dir / CAPTURE_FILE)
+    if capture.plate_id != plate_id:
+        raise InputError(
+            "capture.json", "plate_id", f"expected {plate_id!r} (the plate of the URL), got {capture.plate_id!r}"
+        )
+    target_staging = staging_dir / "target"
+    if (target_staging / TARGET_FILE).is_file():
+        # The target keeps its own copy under the plate; the inspection keeps the one it used.
+        plate_copy = storage.staging_copy(target_staging)
+        try:
+            target = create_target(session=session, storage=storage, plate_id=plate_id, staging_dir=plate_copy)
+        except BaseException:
+            storage.remove(plate_copy)
+            raise
+    else:
+        get_or_create_plate(session=session, plate_id=plate_id)
+        target = current_target(session=session, plate_id=plate_id)
+        if target is None:
+            raise UnprocessableError(
+                f"target: plate {plate_id!r} has no target yet: send a plate-target/1 file as 'target'",
+                field="target",
+            )
+    row = Inspection(plate_id=plate_id, target_id=target.id, source="upload", status="queued", progress=0.0)
+    session.add(row)
+    session.flush()
+    inputs = storage.adopt(staging_dir, storage.inputs_dir(row.id))
+    if not (inputs / "target" / TARGET_FILE).is_file():
+        copy_target_files(storage=storage, target=target, destination=inputs / "target")
+    row.capture_path = storage.relative(inputs / CAPTURE_FILE)
+    row.target_path = storage.relative(inputs / "target" / TARGET_FILE)
+    row.tolerance_mm = target.tolerance_mm
+    row.target_radius_mm = target.radius_mm
+    session.flush()
+    return row
+
+
+def create_simulated_inspection(
+    *, session: Session, storage: Storage, plate_id: str, simulation: dict[str, Any]
+) -> Inspection:
+    """A queued simulated inspection: the job renders the capture from ``simulation`` then inspects it.
+
+    ``simulation`` is a validated :class:`app.schemas.SimulatedInspectionIn` as a dict; it is kept
+    in the row and in ``inputs/simulation.json``.
+    """
+    get_or_create_plate(session=session, plate_id=plate_id)
+    row = Inspection(
+        plate_id=plate_id,
+        source="simulated",
+        simulation=simulation,
+        status="queued",
+        progress=0.0,
+        tolerance_mm=float(simulation["tolerance_mm"]),
+        target_radius_mm=None if simulation["shape"] == "plane" else simulation.get("radius_mm"),
+    )
+    session.add(row)
+    session.flush()
+    inputs = storage.inputs_dir(row.id)
+    inputs.mkdir(parents=True)
+    (inputs / SIMULATION_FILE).write_text(json.dumps(simulation, indent=2), encoding="utf-8")
+    bundle = inputs / SIMULATED_BUNDLE_DIR
+    row.capture_path = storage.relative(bundle)
+    row.target_path = storage.relative(bundle / TARGET_FILE)
+    session.flush()
+    return row
+
+
+# ------------------------------------------------------------------ reading
+
+
+def get_inspection(*, session: Session, inspection_id: int) -> Inspection | None:
+    return session.get(Inspection, inspection_id)
+
+
+def list_inspections(
+    *,
+    session: Session,
+    plate_id: str | None = None,
+    statuses: tuple[str, ...] | None = None,
+    limit: int = 20,
+    offset: int = 0,
+) -> tuple[list[Inspection], int]:
+    """Inspections newest first, optionally of one plate and/or in some statuses.
+
+    Returns
+    -------
+    (inspections, total)
+    """
+    if limit < 1 or offset < 0:
+        raise ValueError(f"paging: expected limit >= 1 and offset >= 0, got limit={limit}, offset={offset}")
+    where = []
+    if plate_id is not None:
+        where.append(Inspection.plate_id == plate_id)
+    if statuses:
+        where.append(Inspection.status.in_(statuses))
+    total = int(session.scalar(select(func.count()).select_from(Inspection).where(*where)) or 0)
+    items = list(
+        session.scalars(select(Inspection).where(*where).order_by(Inspection.id.desc()).limit(limit).offset(offset))
+    )
+    return items, total
+
+
+def artifact_names(*, storage: Storage, inspection: Inspection) -> list[str]:
+    """Names of the files in the inspection's artifacts folder (sorted)."""
+    folder = storage.artifacts_dir(inspection.id)
+    if not folder.is_dir():
+        return []
+    return sorted(p.name for p in folder.iterdir() if p.is_file())
+
+
+def count_by_status(*, session: Session) -> dict[str, int]:
+    rows = session.execute(select(Inspection.status, func.count()).group_by(Inspection.status)).all()
+    return {status: int(n) for status, n in rows}
+
+
+# ------------------------------------------------------------------ job state
+
+
+def claim(*, session: Session, inspection_id: int) -> bool:
+    """queued -> running, if the row is queued; False if it is not (done, failed, or taken)."""
+    res = session.execute(
+        update(Inspection)
+        .where(Inspection.id == inspection_id, Inspection.status == "queued")
+        .values(
+            status="running",
+            started_at=utcnow(),
+            finished_at=None,
+            progress=0.0,
+            stage=None,
+            error=None,
+            attempts=Inspection.attempts + 1,
+        )
+    )
+    return res.rowcount == 1
+
+
+def record_progress(*, session: Session, inspection_id: int, stage: str, progress: float) -> None:
+    """The running job's stage name and overall progress (0..1)."""
+    if not 0.0 <= progress <= 1.0:
+        raise ValueError(f"progress: expected a fraction in [0, 1], got {progress}")
+    session.execute(
+        update(Inspection)
+        .where(Inspection.id == inspection_id, Inspection.status == "running")
+        .values(stage=stage[:32], progress=float(progress))
+    )
+
+
+def mark_done(*, session: Session, inspection_id: int, document: dict[str, Any]) -> None:
+    """running -> done with the ``plate-result/1`` document and its summary numbers."""
+    dev = document.get("deviation_mm") or {}
+    session.execute(
+        update(Inspection)
+        .where(Inspection.id == inspection_id, Inspection.status == "running")
+        .values(
+            status="done",
+            progress=1.0,
+            stage="done",
+            finished_at=utcnow(),
+            result=document,
+            timings_s=document.get("timings_s"),
+            radius_mm=document.get("radius_mm"),
+            target_radius_mm=document.get("target_radius_mm"),
+            radius_error_pct=document.get("radius_error_pct"),
+            rms_mm=dev.get("rms"),
+            max_abs_mm=dev.get("max_abs"),
+            p95_mm=dev.get("p95"),
+            within_tolerance_pct=document.get("within_tolerance_pct"),
+            tolerance_mm=document.get("tolerance_mm"),
+            verdict=document.get("verdict"),
+            error=document.get("error"),
+        )
+    )
+
+
+def mark_failed(*, session: Session, inspection_id: int, error: str) -> None:
+    """queued or running -> failed with its message; the inputs stay on disk."""
+    session.execute(
+        update(Inspection)
+        .where(Inspection.id == inspection_id, Inspection.status.in_(("queued", "running")))
+        .values(status="failed", verdict="error", error=error, finished_at=utcnow())
+    )
+
+
+def requeue_interrupted(*, session: Session) -> list[int]:
+    """running -> queued for jobs whose consumer died; returns every queued id, oldest first.
+
+    Call it when the (only) consumer starts, before it takes work: a row still "running" then
+    belongs to a consumer that is gone.
+    """
+    session.execute(update(Inspection).where(Inspection.status == "running").values(status="queued", stage=None))
+    return list(session.scalars(select(Inspection.id).where(Inspection.status == "queued").order_by(Inspection.id)))

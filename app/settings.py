@@ -1,0 +1,87 @@
+"""The service's settings: one pydantic-settings class, environment prefix ``PLATE_INSPECT_``.
+
+``PLATE_INSPECT_DATA_DIR``, ``PLATE_INSPECT_DATABASE_URL``, ``PLATE_INSPECT_API_TOKEN``,
+``PLATE_INSPECT_MAX_UPLOAD_MB``, ``PLATE_INSPECT_DEMO``, ...
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import Field, SecretStr, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+#: Environment variable prefix of every setting.
+ENV_PREFIX = "PLATE_INSPECT_"
+
+
+class Settings(BaseSettings):
+    """Configuration of the web process and the job consumer (both read the same environment).
+
+    Attributes
+    ----------
+    data_dir : Path
+        Root of everything stored on disk: the SQLite database (by default), the huey queue,
+        uploads and artifacts (layout in :mod:`app.storage`).
+    database_url : str or None
+        SQLAlchemy URL; None means ``sqlite:///<data_dir>/plate_inspect.db``.
+    api_token : SecretStr or None
+        Bearer token required by every write. Without one the server refuses to start unless
+        ``demo`` is set, in which case a random token is generated and printed at start.
+    max_upload_mb : float
+        Largest request body accepted, in MiB (413 beyond it).
+    demo : bool
+        Demo cell: a generated token, and dashboard pages get a write session without a login.
+    progress_interval_s : float
+        Shortest interval between two progress writes of a running job to the database, s.
+    inspect_entry : str
+        ``module:function`` the job calls to inspect; ``pipeline.run:inspect`` in production
+        (tests point it at a test double to control timing).
+    """
+
+    model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, extra="ignore")
+
+    data_dir: Path = Path("var")
+    database_url: str | None = None
+    api_token: SecretStr | None = None
+    max_upload_mb: float = Field(default=512.0, gt=0)
+    demo: bool = False
+    progress_interval_s: float = Field(default=0.5, ge=0)
+    inspect_entry: str = "pipeline.run:inspect"
+
+    @field_validator("inspect_entry")
+    @classmethod
+    def _entry_shape(cls, v: str) -> str:
+        if v.count(":") != 1 or not all(v.split(":")):
+            raise ValueError(f"expected 'module:function', got {v!r}")
+        return v
+
+    @property
+    def sqlalchemy_url(self) -> str:
+        """The database URL in use (the explicit one, or the SQLite file under ``data_dir``)."""
+        if self.database_url:
+            return self.database_url
+        return f"sqlite:///{(self.data_dir / 'plate_inspect.db').resolve()}"
+
+    @property
+    def huey_path(self) -> Path:
+        """The huey queue's SQLite file."""
+        return self.data_dir / "huey.db"
+
+    @property
+    def max_upload_bytes(self) -> int:
+        return int(self.max_upload_mb * 1024 * 1024)
+
+    def to_env(self) -> dict[str, str]:
+        """These settings as ``PLATE_INSPECT_*`` environment variables (for the consumer process)."""
+        env = {
+            f"{ENV_PREFIX}DATA_DIR": str(self.data_dir.resolve()),
+            f"{ENV_PREFIX}DATABASE_URL": self.sqlalchemy_url,
+            f"{ENV_PREFIX}MAX_UPLOAD_MB": repr(self.max_upload_mb),
+            f"{ENV_PREFIX}DEMO": "1" if self.demo else "0",
+            f"{ENV_PREFIX}PROGRESS_INTERVAL_S": repr(self.progress_interval_s),
+            f"{ENV_PREFIX}INSPECT_ENTRY": self.inspect_entry,
+        }
+        if self.api_token is not None:
+            env[f"{ENV_PREFIX}API_TOKEN"] = self.api_token.get_secret_value()
+        return env

@@ -1,0 +1,130 @@
+"""Layout of the data directory: uploads and artifacts on disk, one folder per record.
+
+::
+
+    <data_dir>/
+      plate_inspect.db                 the database (default SQLite URL)
+      huey.db                          the job queue
+      staging/<random>/                an upload being validated (removed after)
+      plates/<plate_id>/targets/<target_id>/target.json (+ mesh file)
+      calibrations/<calibration_id>/calibration.json
+      inspections/<inspection_id>/inputs/     capture.zip (or bundle/ for a simulated one),
+                                              target.json (+ mesh), simulation.json
+      inspections/<inspection_id>/artifacts/  result.json and the pipeline's artifacts
+
+Paths stored in the database are relative to the data dir (the dir can move).
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+
+#: Plate ids become folder names: letters, digits, '.', '_', '-'; 1..64 characters.
+PLATE_ID_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
+#: Artifact names served over HTTP: one plain file name, no folders.
+ARTIFACT_NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
+
+
+def check_plate_id(plate_id: str) -> str:
+    """``plate_id`` if it is a valid plate id, else ValueError naming what is allowed."""
+    if not isinstance(plate_id, str) or not PLATE_ID_PATTERN.match(plate_id) or ".." in plate_id:
+        raise ValueError(
+            f"plate_id: expected 1-64 letters, digits, '.', '_' or '-' (starting with a letter or digit), got {plate_id!r}"
+        )
+    return plate_id
+
+
+@dataclass(frozen=True)
+class Storage:
+    """The data directory of one service (see the module docstring for the layout)."""
+
+    data_dir: Path
+
+    def __post_init__(self):
+        object.__setattr__(self, "data_dir", Path(self.data_dir).resolve())
+
+    def ensure(self) -> None:
+        """Create the top-level folders."""
+        for sub in ("staging", "plates", "calibrations", "inspections"):
+            (self.data_dir / sub).mkdir(parents=True, exist_ok=True)
+
+    # ---------------------------------------------------------------- paths
+
+    def relative(self, path: Path) -> str:
+        """``path`` relative to the data dir, as stored in the database."""
+        return Path(path).resolve().relative_to(self.data_dir).as_posix()
+
+    def absolute(self, stored: str) -> Path:
+        """The absolute path of a path stored in the database."""
+        return self.data_dir / stored
+
+    def new_staging_dir(self) -> Path:
+        path = self.data_dir / "staging" / uuid.uuid4().hex
+        path.mkdir(parents=True)
+        return path
+
+    def target_dir(self, plate_id: str, target_id: int) -> Path:
+        return self.data_dir / "plates" / check_plate_id(plate_id) / "targets" / str(int(target_id))
+
+    def calibration_dir(self, calibration_id: int) -> Path:
+        return self.data_dir / "calibrations" / str(int(calibration_id))
+
+    def inspection_dir(self, inspection_id: int) -> Path:
+        return self.data_dir / "inspections" / str(int(inspection_id))
+
+    def inputs_dir(self, inspection_id: int) -> Path:
+        return self.inspection_dir(inspection_id) / "inputs"
+
+    def artifacts_dir(self, inspection_id: int) -> Path:
+        return self.inspection_dir(inspection_id) / "artifacts"
+
+    def artifact_path(self, inspection_id: int, name: str) -> Path | None:
+        """The file of artifact ``name`` of an inspection, or None if there is no such file.
+
+        Raises
+        ------
+        ValueError
+            ``name`` is not a plain file name (folders and ``..`` are refused).
+        """
+        if not ARTIFACT_NAME_PATTERN.match(name) or ".." in name:
+            raise ValueError(f"name: expected a plain file name (letters, digits, '.', '_', '-'), got {name!r}")
+        path = self.artifacts_dir(inspection_id) / name
+        return path if path.is_file() else None
+
+    # ---------------------------------------------------------------- moves
+
+    def staging_copy(self, source: Path) -> Path:
+        """A copy of folder ``source`` in a new staging folder."""
+        path = self.data_dir / "staging" / uuid.uuid4().hex
+        shutil.copytree(source, path)
+        return path
+
+    def adopt(self, staging: Path, destination: Path) -> Path:
+        """Move a staging folder to its final place (which must not exist yet)."""
+        if destination.exists():
+            raise FileExistsError(f"storage: {destination} exists already")
+        destination.parent.mkdir(parents=True, exist_ok=True)
+        shutil.move(str(staging), str(destination))
+        return destination
+
+    @staticmethod
+    def remove(path: Path | None) -> None:
+        """Remove a folder or file if it exists (used to undo a refused upload)."""
+        if path is None:
+            return
+        path = Path(path)
+        if path.is_dir():
+            shutil.rmtree(path, ignore_errors=True)
+        elif path.exists():
+            path.unlink()
+
+    def clear_artifacts(self, inspection_id: int) -> Path:
+        """An empty artifacts folder for a (re)run of an inspection."""
+        out = self.artifacts_dir(inspection_id)
+        self.remove(out)
+        out.mkdir(parents=True)
+        return out

@@ -1,0 +1,1 @@
+"""Alembic migrations of the service database (``app.db.upgrade_database`` runs them)."""
