@@ -445,6 +445,8 @@ class _FolderBundle:
         self.root = root
         self._real_root = root.resolve()
         self.capture_label = str(root / "capture.json")
+        if not (root / "capture.json").is_file():
+            raise InputError(self.capture_label, "", "file not found (a capture bundle folder must hold capture.json)")
 
     def label(self, rel: str) -> str:
         return str(self.root / rel)
@@ -616,9 +618,11 @@ def _decode_into(data: bytes, job: _ImageJob, out: np.ndarray, *, bit_depth: int
         cv2.cvtColor(img.astype(np.float32), code, dst=out)
 
 
-def _load_images(bundle, jobs: list[_ImageJob], *, bit_depth: int, workers: int | None) -> list[np.ndarray]:
-    """Read and decode ``jobs`` in a thread pool; the first failure in job order is raised."""
-    outs = [np.empty((j.expected_size[1], j.expected_size[0]), dtype=np.float32) for j in jobs]
+def _load_images(bundle, jobs: list[_ImageJob], outs: list[np.ndarray], *, bit_depth: int, workers: int | None) -> None:
+    """Read and decode ``jobs`` into ``outs`` (float32 (H, W) each) in a thread pool.
+
+    The first failure in job order is raised.
+    """
 
     def one(k: int) -> None:
         data = bundle.read(jobs[k].rel, field=jobs[k].field)
@@ -628,12 +632,11 @@ def _load_images(bundle, jobs: list[_ImageJob], *, bit_depth: int, workers: int 
     if n <= 1:
         for k in range(len(jobs)):
             one(k)
-        return outs
+        return
     with ThreadPoolExecutor(max_workers=n) as pool:
         futures = [pool.submit(one, k) for k in range(len(jobs))]
         for fut in futures:
             fut.result()
-    return outs
 
 
 # =========================================================================== capture
@@ -736,10 +739,10 @@ def _load_capture(bundle, source: Path, *, workers: int | None) -> Capture:
             jobs.append(_ImageJob(_check_relative(getattr(cap.stereo, side), label=label, field=field), field, cam_size, f"stereo {side} image"))
             extra.append(side)
 
-    arrays = _load_images(bundle, jobs, bit_depth=cap.bit_depth, workers=workers)
     n = len(cap.photometric.images)
-    images = np.stack(arrays[:n]) if n else np.empty((0, size[1], size[0]), np.float32)
-    named = dict(zip(extra, arrays[n:]))
+    images = np.empty((n, size[1], size[0]), dtype=np.float32)
+    named = {key: np.empty((job.expected_size[1], job.expected_size[0]), np.float32) for key, job in zip(extra, jobs[n:])}
+    _load_images(bundle, jobs, [*images, *named.values()], bit_depth=cap.bit_depth, workers=workers)
 
     dirs = np.array([light.direction for light in cap.photometric.lights], dtype=np.float64)
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
