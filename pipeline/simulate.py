@@ -38,13 +38,13 @@ import numpy as np
 
 from .camera import CameraModel, StereoRig
 from .formats import (
-    CALIBRATION_FORMAT,
     CAPTURE_FORMAT,
     TARGET_FORMAT,
     CaptureFile,
     StereoCalibrationFile,
     TargetFile,
 )
+from .io import calibration_document
 
 # Reference head: fx = 900 px at 1224 px width (a 3000 mm plate at 3000 mm fills ~74 % of the width).
 _FX_PER_WIDTH_PX = 900.0 / 1224.0
@@ -114,33 +114,6 @@ def default_rig(*, width: int = 1224, height: int = 1024) -> StereoRig:
     centre_right = np.array([_BASELINE_MM, 0.0, 0.0])
     T = -R @ centre_right
     return StereoRig(left, right, R, T)
-
-
-def rig_to_calibration(rig: StereoRig) -> dict:
-    """The ``stereo-calibration/1`` object of a rig (validated with :class:`StereoCalibrationFile`).
-
-    Parameters
-    ----------
-    rig : StereoRig
-
-    Returns
-    -------
-    dict
-        JSON-ready; ``rms_px`` and ``board`` only when the rig has them.
-    """
-    obj = {
-        "format": CALIBRATION_FORMAT,
-        "image_size": [int(rig.image_size[0]), int(rig.image_size[1])],
-        "left": {"K": rig.left.K.tolist(), "dist": rig.left.dist.tolist()},
-        "right": {"K": rig.right.K.tolist(), "dist": rig.right.dist.tolist()},
-        "R": rig.R.tolist(),
-        "T": rig.T.tolist(),
-    }
-    if rig.rms_px is not None:
-        obj["rms_px"] = float(rig.rms_px)
-    if rig.board is not None:
-        obj["board"] = rig.board
-    return StereoCalibrationFile.model_validate(obj).model_dump(exclude_none=True)
 
 
 def _raw_pixel_rays(camera: CameraModel) -> np.ndarray:
@@ -804,7 +777,9 @@ def simulate_capture(
     )
 
     # ---- JSON files
-    (out / "calibration.json").write_text(json.dumps(rig_to_calibration(rig), indent=2))
+    calibration_doc = calibration_document(rig)
+    StereoCalibrationFile.model_validate(calibration_doc)
+    (out / "calibration.json").write_text(json.dumps(calibration_doc, indent=2))
     (out / "target.json").write_text(json.dumps(_target_object(plate, tolerance_mm, out), indent=2))
     capture_obj = {
         "format": CAPTURE_FORMAT,
