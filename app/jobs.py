@@ -21,6 +21,7 @@ from huey import SqliteHuey
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.services import inspections as svc
+from app.services.inspections import SIMULATION_FILE
 from app.settings import Settings
 from app.storage import Storage
 from pipeline.formats import InputError, PipelineError
@@ -133,27 +134,17 @@ def render_simulated_bundle(*, bundle_dir: Path, plate_id: str, simulation: dict
     Idempotent: an existing complete bundle (its ``capture.json`` present) is reused; a partial
     one left by a killed job is rendered again.
     """
-    from pipeline.simulate import CaptureSpec, Dent, PlateSpec, simulate_capture
+    from pipeline.simulate import simulate_capture
 
     if (bundle_dir / "capture.json").is_file():
         return bundle_dir
     partial = bundle_dir.with_name(bundle_dir.name + ".partial")
     Storage.remove(partial)
     partial.mkdir(parents=True)
-    plate = PlateSpec(
-        shape=simulation["shape"],
-        radius_mm=float(simulation["radius_mm"]) if simulation.get("radius_mm") is not None else 5000.0,
-        convex=bool(simulation["convex"]),
-        dents=tuple(Dent(d["x_mm"], d["y_mm"], d["radius_mm"], d["depth_mm"]) for d in simulation["dents"]),
-    )
-    capture = CaptureSpec(
-        n_lights=int(simulation["n_lights"]),
-        noise=float(simulation["noise"]),
-        bit_depth=int(simulation["bit_depth"]),
-        specular=float(simulation["specular"]),
-        width=int(simulation["width"]),
-        height=int(simulation["height"]),
-    )
+    try:
+        plate, capture = svc.simulation_specs(simulation)
+    except ValueError as err:  # the simulator refuses the described plate
+        raise InputError(SIMULATION_FILE, "", str(err)) from None
     simulate_capture(
         partial,
         plate=plate,

@@ -59,8 +59,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     Notes
     -----
     On start (lifespan) the database is upgraded with Alembic, and the dashboard's viewer hook
-    ``app.viewer.attach(app, settings)`` runs if that module exists; it may return an async
-    context manager, which is exited at shutdown. ``app.state`` holds ``settings``, ``api_token``,
+    ``app.viewer.attach(app, settings)`` runs if that module exists; what it returns is closed at
+    shutdown (an async context manager is exited, else its ``close()`` is called). ``app.state`` holds ``settings``, ``api_token``,
     ``engine``, ``session_factory``, ``storage`` and ``jobs`` (:class:`app.jobs.JobQueue`).
     """
     settings = resolve_token(settings or Settings())
@@ -72,8 +72,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             viewer = _optional_module("app.viewer")
             if viewer is not None and hasattr(viewer, "attach"):
                 hook = viewer.attach(app, settings)
-                if hook is not None and hasattr(hook, "__aenter__"):
+                if hasattr(hook, "__aenter__"):
                     await stack.enter_async_context(hook)
+                elif hasattr(hook, "close"):
+                    stack.callback(hook.close)
             yield
         app.state.engine.dispose()
 

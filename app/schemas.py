@@ -53,7 +53,7 @@ class SimulatedInspectionIn(BaseModel):
     convex: bool = True
     n_lights: int = Field(default=12, ge=3, le=64)
     noise: float = Field(default=0.004, ge=0, le=0.5, description="image noise, fraction of full scale")
-    bit_depth: Literal[8, 10, 12, 14, 16] = 16
+    bit_depth: Literal[8, 12, 16] = 16
     specular: float = Field(default=0.0, ge=0, le=1)
     dents: list[DentIn] = Field(default_factory=list, max_length=32)
     seed: int = Field(default=0, ge=0, le=2**31 - 1)

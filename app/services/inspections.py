@@ -94,6 +94,10 @@ def create_simulated_inspection(
     ``simulation`` is a validated :class:`app.schemas.SimulatedInspectionIn` as a dict; it is kept
     in the row and in ``inputs/simulation.json``.
     """
+    try:
+        simulation_specs(simulation)
+    except ValueError as err:
+        raise UnprocessableError(f"simulation: {err}", field="body") from None
     get_or_create_plate(session=session, plate_id=plate_id)
     row = Inspection(
         plate_id=plate_id,
@@ -114,6 +118,33 @@ def create_simulated_inspection(
     row.target_path = storage.relative(bundle / TARGET_FILE)
     session.flush()
     return row
+
+
+def simulation_specs(simulation: dict):
+    """The simulator's ``(PlateSpec, CaptureSpec)`` for a simulated inspection's parameters.
+
+    Raises
+    ------
+    ValueError
+        The simulator refuses the described plate or capture.
+    """
+    from pipeline.simulate import CaptureSpec, Dent, PlateSpec
+
+    plate = PlateSpec(
+        shape=simulation["shape"],
+        radius_mm=None if simulation.get("radius_mm") is None else float(simulation["radius_mm"]),
+        convex=bool(simulation["convex"]),
+        dents=tuple(Dent(d["x_mm"], d["y_mm"], d["radius_mm"], d["depth_mm"]) for d in simulation["dents"]),
+    )
+    capture = CaptureSpec(
+        n_lights=int(simulation["n_lights"]),
+        noise=float(simulation["noise"]),
+        bit_depth=int(simulation["bit_depth"]),
+        specular=float(simulation["specular"]),
+        width=int(simulation["width"]),
+        height=int(simulation["height"]),
+    )
+    return plate, capture
 
 
 # ------------------------------------------------------------------ reading

@@ -1,0 +1,118 @@
+"""``plate-inspect serve``: the web server plus its job consumer (a child process).
+
+Registered in the CLI through the entry-point group ``plate_inspect.commands``
+(``serve = "app.cli:register"``); the pipeline's CLI never imports ``app``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+from app.settings import Settings
+
+log = logging.getLogger("app.serve")
+
+#: Seconds the consumer gets to stop after SIGTERM before it is killed.
+CONSUMER_STOP_TIMEOUT_S = 10.0
+
+
+def register(subparsers) -> None:
+    """Add the ``serve`` subcommand to the CLI's subparsers."""
+    p = subparsers.add_parser(
+        "serve",
+        help="run the inspection service (REST API, dashboard, job consumer)",
+        description="Run the cell's server: the REST API under /api/v1 (OpenAPI at /docs), the dashboard, and a "
+        "job consumer process that runs the pipeline. Settings come from PLATE_INSPECT_* variables.",
+    )
+    p.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
+    p.add_argument("--port", type=int, default=8000, help="port (default 8000)")
+    p.add_argument("--data-dir", type=Path, default=None, help="data directory (default: PLATE_INSPECT_DATA_DIR or ./var)")
+    p.add_argument("--demo", action="store_true", help="demo cell: generate and print an API token if none is set")
+    p.set_defaults(handler=serve_command)
+
+
+class ConsumerProcess:
+    """The job consumer (``python -m app.worker``) as a supervised child process.
+
+    It is restarted if it exits while the server runs (its interrupted job is re-queued by
+    the new consumer); :meth:`stop` ends it with SIGTERM, then SIGKILL after a timeout.
+    """
+
+    def __init__(self, settings: Settings):
+        self.env = {**os.environ, **settings.to_env()}
+        self.proc: subprocess.Popen | None = None
+        self._stopping = threading.Event()
+        self._watchdog: threading.Thread | None = None
+
+    def start(self) -> None:
+        self._spawn()
+        self._watchdog = threading.Thread(target=self._watch, name="consumer-watchdog", daemon=True)
+        self._watchdog.start()
+
+    def _spawn(self) -> None:
+        self.proc = subprocess.Popen([sys.executable, "-m", "app.worker"], env=self.env)
+        log.info("job consumer started (pid %s)", self.proc.pid)
+
+    def _watch(self) -> None:
+        while not self._stopping.wait(1.0):
+            code = self.proc.poll()
+            if code is not None and not self._stopping.is_set():
+                log.warning("job consumer exited with %s; restarting it", code)
+                self._spawn()
+
+    def stop(self) -> None:
+        self._stopping.set()
+        if self._watchdog is not None:
+            self._watchdog.join()
+        if self.proc is None or self.proc.poll() is not None:
+            return
+        self.proc.send_signal(signal.SIGTERM)
+        try:
+            self.proc.wait(CONSUMER_STOP_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            log.warning("job consumer did not stop in %.0f s; killing it", CONSUMER_STOP_TIMEOUT_S)
+            self.proc.kill()
+            self.proc.wait()
+        log.info("job consumer stopped")
+
+
+def serve_command(args: argparse.Namespace) -> int:
+    """Handler of ``plate-inspect serve``: start the consumer, run uvicorn, stop the consumer."""
+    import uvicorn
+
+    from app.main import create_app
+
+    if not 0 < args.port < 65536:
+        raise ValueError(f"--port: expected 1..65535, got {args.port}")
+    overrides = {}
+    if args.data_dir is not None:
+        overrides["data_dir"] = args.data_dir
+    if args.demo:
+        overrides["demo"] = True
+    settings = Settings(**overrides)
+    generated_token = settings.api_token is None
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s", force=True)
+    try:
+        app = create_app(settings)
+    except ValueError as err:
+        print(f"plate-inspect serve: {err}", file=sys.stderr)
+        return 2
+    settings = app.state.settings
+    if generated_token:
+        print(f"plate-inspect serve: demo mode, API token: {app.state.api_token}", flush=True)
+    print(f"plate-inspect serve: http://{args.host}:{args.port}/ (API docs at /docs), data in {settings.data_dir.resolve()}",
+          flush=True)
+    consumer = ConsumerProcess(settings)
+    consumer.start()
+    try:
+        uvicorn.run(app, host=args.host, port=args.port, log_level="info")
+    finally:
+        consumer.stop()
+    return 0

@@ -1,0 +1,163 @@
+"""Service tests: a real SQLite file migrated by Alembic, a real huey consumer process."""
+
+from __future__ import annotations
+
+import io
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import zipfile
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+
+from app.main import create_app
+from app.settings import Settings
+
+ROOT = Path(__file__).resolve().parents[2]
+TOKEN = "test-token-0123456789"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+FAKE_INSPECT = "tests.api.fake_pipeline:inspect"
+
+
+def real_pipeline_available() -> bool:
+    try:
+        from pipeline.run import inspect  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+@pytest.fixture
+def settings(tmp_path) -> Settings:
+    return Settings(
+        data_dir=tmp_path / "data",
+        api_token=TOKEN,
+        max_upload_mb=8.0,
+        progress_interval_s=0.05,
+        inspect_entry=FAKE_INSPECT,
+    )
+
+
+@pytest.fixture
+def client(settings):
+    app = create_app(settings)
+    with TestClient(app) as c:
+        yield c
+    app.state.engine.dispose()
+
+
+class Consumer:
+    """``python -m app.worker`` in a child process, with the test's settings."""
+
+    def __init__(self, settings: Settings, *, stage_delay_s: float = 0.0):
+        self.env = {**os.environ, **settings.to_env(), "PLATE_INSPECT_TEST_STAGE_DELAY_S": str(stage_delay_s)}
+        self.log = settings.data_dir / "consumer.log"
+        self.proc: subprocess.Popen | None = None
+
+    def start(self) -> Consumer:
+        fh = open(self.log, "ab")
+        self.proc = subprocess.Popen([sys.executable, "-m", "app.worker"], env=self.env, cwd=ROOT, stdout=fh, stderr=fh)
+        fh.close()
+        return self
+
+    def kill(self) -> None:
+        self.proc.send_signal(signal.SIGKILL)
+        self.proc.wait(10)
+
+    def stop(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+    def output(self) -> str:
+        return self.log.read_text(errors="replace") if self.log.exists() else ""
+
+
+@pytest.fixture
+def consumer_factory(settings):
+    started: list[Consumer] = []
+
+    def make(**kw) -> Consumer:
+        c = Consumer(settings, **kw)
+        started.append(c)
+        return c
+
+    yield make
+    for c in started:
+        c.stop()
+
+
+def wait_for(client, inspection_id: int, *, statuses=("done", "failed"), timeout_s: float = 60.0, consumer=None) -> dict:
+    """Poll GET /api/v1/inspections/{id} until its status is one of ``statuses``."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        body = client.get(f"/api/v1/inspections/{inspection_id}").json()
+        if body["status"] in statuses:
+            return body
+        if time.monotonic() > deadline:
+            log = consumer.output() if consumer is not None else ""
+            raise AssertionError(f"inspection {inspection_id} still {body['status']} after {timeout_s} s\n{log}")
+        time.sleep(0.05)
+
+
+@pytest.fixture(scope="session")
+def bundle_zip(tmp_path_factory) -> bytes:
+    """A small simulated capture bundle (320x256, 6 lights) of plate P-100, zipped."""
+    from pipeline.simulate import CaptureSpec, PlateSpec, simulate_capture
+
+    folder = tmp_path_factory.mktemp("bundle") / "P-100"
+    simulate_capture(
+        folder, plate=PlateSpec(), capture=CaptureSpec(width=320, height=256, n_lights=6), plate_id="P-100", seed=1
+    )
+    return zip_folder(folder)
+
+
+def zip_folder(folder: Path, *, skip=()) -> bytes:
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED) as zf:
+        for path in sorted(folder.iterdir()):
+            if path.is_file() and path.name not in skip and path.name != "truth.npz":
+                zf.write(path, path.name)
+    return buf.getvalue()
+
+
+def rezip(data: bytes, *, replace: dict[str, bytes] | None = None, drop=()) -> bytes:
+    """A copy of a zip with some members replaced or dropped."""
+    replace = replace or {}
+    out = io.BytesIO()
+    with zipfile.ZipFile(io.BytesIO(data)) as src, zipfile.ZipFile(out, "w") as dst:
+        for info in src.infolist():
+            if info.filename in drop:
+                continue
+            dst.writestr(info.filename, replace.get(info.filename, src.read(info.filename)))
+    return out.getvalue()
+
+
+def target_json(**over) -> bytes:
+    import json
+
+    doc = {"format": "plate-target/1", "shape": {"type": "cylinder", "radius_mm": 5000.0},
+           "size_mm": [3000.0, 3000.0], "tolerance_mm": 2.0}
+    doc.update(over)
+    return json.dumps(doc).encode()
+
+
+def stored_files(data_dir: Path) -> list[str]:
+    """Every file under the data dir except the database and queue files."""
+    skip = ("plate_inspect.db", "huey.db", "consumer.log")
+    return sorted(
+        str(p.relative_to(data_dir)) for p in data_dir.rglob("*")
+        if p.is_file() and not p.name.startswith(skip)
+    )
+
+
+__all__ = ["AUTH", "TOKEN", "wait_for", "rezip", "target_json", "stored_files", "zip_folder", "shutil"]

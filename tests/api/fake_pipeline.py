@@ -1,0 +1,62 @@
+"""A test double of ``pipeline.run.inspect`` for the job machinery's tests (timing under control).
+
+It validates its inputs with the real loaders, reports progress through stages, sleeps
+``PLATE_INSPECT_TEST_STAGE_DELAY_S`` seconds per stage (so a test can kill the consumer
+mid-job), and writes a ``plate-result/1`` document whose numbers come from the target (it does
+not measure anything: the tests using it check the service, not the measurement). A plate id
+containing ``UNMEASURABLE`` raises :class:`CaptureError`; ``CRASH`` raises a RuntimeError.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from pipeline.formats import RESULT_FORMAT, CaptureError, ResultFile
+from pipeline.io import load_capture, load_target
+
+STAGES = ("load", "normals", "depth", "curvature", "deviation", "artifacts")
+
+
+@dataclass(frozen=True)
+class FakeResult:
+    document: dict
+    out_dir: Path
+
+
+def inspect(capture, target, *, out_dir: Path, progress=None) -> FakeResult:
+    delay = float(os.environ.get("PLATE_INSPECT_TEST_STAGE_DELAY_S", "0"))
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    cap = load_capture(capture)
+    tgt = load_target(target)
+    if "UNMEASURABLE" in cap.plate_id:
+        raise CaptureError(f"{cap.plate_id}: no plate found in the photometric images")
+    if "CRASH" in cap.plate_id:
+        raise RuntimeError("simulated bug")
+    for i, stage in enumerate(STAGES):
+        if progress is not None:
+            progress(stage, i / len(STAGES))
+        time.sleep(delay)
+    (out_dir / "deviation.png").write_bytes(b"\x89PNG fake")
+    document = ResultFile(
+        format=RESULT_FORMAT,
+        plate_id=cap.plate_id,
+        radius_mm=tgt.radius_mm,
+        principal_radii_mm=[tgt.radius_mm, None],
+        target_radius_mm=tgt.radius_mm,
+        radius_error_pct=0.0 if tgt.radius_mm else None,
+        deviation_mm={"rms": 0.1, "max_abs": 0.3, "p95": 0.2},
+        tolerance_mm=tgt.tolerance_mm,
+        within_tolerance_pct=100.0,
+        verdict="pass",
+        timings_s={"total": delay * len(STAGES)},
+        artifacts={"deviation_map": "deviation.png"},
+    ).model_dump(mode="json")
+    (out_dir / "result.json").write_text(json.dumps(document), encoding="utf-8")
+    if progress is not None:
+        progress(STAGES[-1], 1.0)
+    return FakeResult(document=document, out_dir=out_dir)

@@ -1,0 +1,122 @@
+"""Whole inspections through the API with a real consumer process (huey on SQLite)."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from tests.api.conftest import AUTH, rezip, target_json, wait_for
+
+
+def _post_bundle(client, plate_id, bundle, *, target=True, headers=None):
+    files = {"capture": ("bundle.zip", bundle, "application/zip")}
+    if target:
+        files["target"] = ("target.json", target_json(), "application/json")
+    return client.post(f"/api/v1/plates/{plate_id}/inspections", files=files, headers=headers or AUTH)
+
+
+def test_whole_inspection_through_the_api(client, settings, consumer_factory, bundle_zip):
+    consumer = consumer_factory().start()
+    r = _post_bundle(client, "P-100", bundle_zip)
+    assert r.status_code == 202, r.text
+    assert r.json()["status"] == "queued"
+    inspection_id = r.json()["id"]
+
+    body = wait_for(client, inspection_id, consumer=consumer)
+    assert body["status"] == "done", body
+    assert body["plate_id"] == "P-100"
+    assert body["progress"] == 1.0
+    assert body["error"] is None
+    assert body["result"]["format"] == "plate-result/1"
+    assert body["result"]["verdict"] == "pass"
+    assert body["verdict"] == "pass"
+    assert set(body["artifacts"]) >= {"result.json", "deviation.png"}
+    art = client.get(body["artifacts"]["result.json"])
+    assert art.status_code == 200 and art.json()["plate_id"] == "P-100"
+    assert client.get(f"/api/v1/inspections/{inspection_id}/artifacts/nothing.png").status_code == 404
+    assert client.get(f"/api/v1/inspections/{inspection_id}/artifacts/..%2Fresult.json").status_code in (404, 422)
+
+    plates = client.get("/api/v1/plates").json()
+    assert plates["total"] == 1
+    assert plates["items"][0]["latest_verdict"] == "pass"
+    assert plates["items"][0]["target"]["radius_mm"] == 5000.0
+    # the inputs are kept on disk
+    inputs = settings.data_dir / "inspections" / str(inspection_id) / "inputs"
+    assert (inputs / "capture.zip").is_file() and (inputs / "target" / "target.json").is_file()
+
+
+def test_simulated_inspection_is_rendered_in_the_consumer(client, settings, consumer_factory):
+    consumer = consumer_factory().start()
+    spec = {"shape": "sphere", "radius_mm": 8000.0, "n_lights": 4, "width": 160, "height": 128,
+            "dents": [{"x_mm": 100.0, "y_mm": -50.0, "radius_mm": 150.0, "depth_mm": 3.0}], "seed": 3}
+    r = client.post("/api/v1/plates/SIM-1/inspections/simulated", json=spec, headers=AUTH)
+    assert r.status_code == 202, r.text
+    body = wait_for(client, r.json()["id"], consumer=consumer)
+    assert body["status"] == "done", body
+    assert body["source"] == "simulated"
+    bundle = settings.data_dir / "inspections" / str(body["id"]) / "inputs" / "bundle"
+    assert (bundle / "capture.json").is_file() and (bundle / "target.json").is_file()
+    assert body["result"]["target_radius_mm"] == 8000.0
+
+
+def test_consumer_killed_mid_job_is_requeued_and_completes(client, consumer_factory, bundle_zip):
+    # 0.4 s per stage: the job runs ~2.4 s, so the kill lands mid-job.
+    first = consumer_factory(stage_delay_s=0.4).start()
+    inspection_id = _post_bundle(client, "P-100", bundle_zip).json()["id"]
+    deadline = time.monotonic() + 30
+    while True:
+        body = client.get(f"/api/v1/inspections/{inspection_id}").json()
+        if body["status"] == "running" and body["stage"] not in (None, "load"):
+            break
+        assert time.monotonic() < deadline, f"job never ran: {body}\n{first.output()}"
+        time.sleep(0.05)
+    first.kill()
+    time.sleep(0.5)
+    body = client.get(f"/api/v1/inspections/{inspection_id}").json()
+    assert body["status"] == "running"  # the row still says so: its consumer is gone
+
+    second = consumer_factory(stage_delay_s=0.0).start()
+    body = wait_for(client, inspection_id, consumer=second)
+    assert body["status"] == "done", body
+    assert body["result"]["verdict"] == "pass"
+    from sqlalchemy import select
+
+    from app.models import Inspection
+
+    with client.app.state.session_factory() as s:
+        assert s.scalar(select(Inspection.attempts).where(Inspection.id == inspection_id)) == 2
+
+
+@pytest.mark.parametrize(
+    ("plate_id", "message"),
+    [
+        ("P-UNMEASURABLE", "P-UNMEASURABLE: no plate found in the photometric images"),
+        ("P-CRASH", "internal error: RuntimeError: simulated bug"),
+    ],
+)
+def test_failed_job_keeps_inputs_and_error(client, settings, consumer_factory, bundle_zip, plate_id, message):
+    consumer = consumer_factory().start()
+    capture_json = _capture_json_with_plate(bundle_zip, plate_id)
+    bundle = rezip(bundle_zip, replace={"capture.json": capture_json})
+    r = _post_bundle(client, plate_id, bundle)
+    assert r.status_code == 202, r.text
+    body = wait_for(client, r.json()["id"], consumer=consumer)
+    assert body["status"] == "failed"
+    assert body["error"] == message
+    assert body["verdict"] == "error"
+    assert body["result"] is None
+    inputs = settings.data_dir / "inspections" / str(body["id"]) / "inputs"
+    assert (inputs / "capture.zip").is_file()
+    assert client.get("/api/v1/plates").json()["items"][0]["latest_verdict"] == "error"
+
+
+def _capture_json_with_plate(bundle: bytes, plate_id: str) -> bytes:
+    import io
+    import json
+    import zipfile
+
+    with zipfile.ZipFile(io.BytesIO(bundle)) as zf:
+        doc = json.loads(zf.read("capture.json"))
+    doc["plate_id"] = plate_id
+    return json.dumps(doc).encode()
