@@ -31,6 +31,7 @@ import asyncio
 import json
 import logging
 import threading
+from contextlib import asynccontextmanager
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -579,8 +580,8 @@ async def _pump(browser: WebSocket, upstream) -> None:
             raise err
 
 
-def attach(app: FastAPI, settings) -> PlateViewer:
-    """Create the app's 3D viewer (``app.state.viewer``); call ``close()`` on it at shutdown.
+def attach(app: FastAPI, settings):
+    """Create the app's 3D viewer as ``app.state.viewer``; called in the app's lifespan.
 
     Servers start on demand (the first browser to open an inspection's view), bound to
     loopback. The routes (:data:`router`) are included by :mod:`web.routes`.
@@ -589,10 +590,22 @@ def attach(app: FastAPI, settings) -> PlateViewer:
     ----------
     app : FastAPI
     settings : app.settings.Settings, its ``data_dir`` locates the artifacts.
+
+    Returns
+    -------
+    An async context manager that stops every viewer server on exit (app shutdown).
     """
     from app.storage import Storage
 
     storage = Storage(settings.data_dir)
     viewer = PlateViewer(storage.artifacts_dir)
     app.state.viewer = viewer
-    return viewer
+
+    @asynccontextmanager
+    async def running():
+        try:
+            yield viewer
+        finally:
+            viewer.close()
+
+    return running()

@@ -1,0 +1,73 @@
+"""Server-rendered pages (FastAPI TestClient, a real app on a migrated SQLite file)."""
+
+from __future__ import annotations
+
+import re
+
+from fastapi.testclient import TestClient
+
+from tests.web.conftest import seed_done_inspection, seed_queued_inspection
+
+
+def test_cell_page_has_form_queue_and_no_external_assets(demo_app):
+    queued = seed_queued_inspection(demo_app)
+    with TestClient(demo_app) as client:
+        page = client.get("/cell")
+        assert page.status_code == 200
+        html = page.text
+        assert 'id="start-form"' in html and 'id="queue"' in html
+        assert f'data-id="{queued}"' in html and "queued" in html
+        # No CDN: every script and stylesheet is served by the app.
+        for url in re.findall(r'(?:src|href)="([^"]+)"', html):
+            assert not url.startswith(("http:", "https:", "//")), url
+        for asset in re.findall(r'(?:src|href)="(/static/[^"]+)"', html):
+            assert client.get(asset).status_code == 200, asset
+        # Demo mode hands out the write session to same-origin pages.
+        assert "plate_inspect_session" in page.headers.get("set-cookie", "")
+        partial = client.get("/cell/queue")
+        assert partial.status_code == 200 and f'data-id="{queued}"' in partial.text and "<html" not in partial.text
+
+
+def test_result_page_shows_verdict_numbers_view_and_templates(demo_app):
+    inspection_id = seed_done_inspection(demo_app)
+    with TestClient(demo_app) as client:
+        html = client.get(f"/inspections/{inspection_id}").text
+        assert 'class="verdict-banner verdict-fail"' in html  # 2.2 mm max deviation > 2 mm tolerance
+        assert "5050.0 mm" in html and "5000.0 mm" in html and "+1.00 %" in html
+        assert f'src="/viewer/{inspection_id}/?hideViserLogo"' in html
+        # Frames every 700 mm over the 2000 mm axis: 3 templates (300, 1000, 1700 mm).
+        assert html.count('<figure class="template">') == 3
+        assert "Frame at 1000 mm" in html
+        # The largest true gap is at the edges: sagitta difference 2.2 mm, labelled in red.
+        assert 'class="gap-label bad"' in html
+        partial = client.get(f"/inspections/{inspection_id}/templates", params={"spacing_mm": 300})
+        assert partial.text.count('<figure class="template">') == 7 and "<html" not in partial.text
+        assert client.get(f"/inspections/{inspection_id}/templates", params={"spacing_mm": 10}).status_code == 422
+        assert client.get("/inspections/999").status_code == 404
+
+
+def test_running_result_page_watches_the_job(demo_app):
+    inspection_id = seed_queued_inspection(demo_app)
+    with TestClient(demo_app) as client:
+        html = client.get(f"/inspections/{inspection_id}").text
+        assert f'data-watch="/api/v1/inspections/{inspection_id}"' in html
+        assert "<iframe" not in html
+
+
+def test_plate_history_has_trend_and_links(demo_app):
+    first = seed_done_inspection(demo_app, plate_id="H2-P03", measured_radius_mm=5100.0)
+    second = seed_done_inspection(demo_app, plate_id="H2-P03", measured_radius_mm=5020.0)
+    with TestClient(demo_app) as client:
+        html = client.get("/plates/H2-P03").text
+        assert f'href="/inspections/{first}"' in html and f'href="/inspections/{second}"' in html
+        assert html.count('<circle class="dot dot-1"') == 2 and html.count('<circle class="dot dot-2"') == 2
+        assert 'class="limit"' in html  # the tolerance line
+        assert client.get("/plates/NOPE").status_code == 404
+
+
+def test_calibration_and_login_pages(demo_app):
+    with TestClient(demo_app) as client:
+        html = client.get("/calibration").text
+        assert "No calibration uploaded yet." in html and 'id="calibration-form"' in html
+        assert 'id="login-form"' in client.get("/login").text
+        assert client.get("/", follow_redirects=False).headers["location"] == "/cell"

@@ -1,0 +1,191 @@
+"""Server-side drawing data for the dashboard's SVGs: template sections and the history trend.
+
+Functions here turn numbers into screen coordinates; the templates draw them.
+Nothing here builds markup.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from web.sections import Section
+
+#: Nice exaggeration factors for drawing mm-scale gaps on metre-scale sections.
+_EXAGGERATIONS = (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000, 2000, 5000)
+
+
+@dataclass(frozen=True)
+class GapLabel:
+    x: float
+    y_template: float
+    y_plate: float
+    gap_mm: float
+    out_of_tolerance: bool
+
+
+@dataclass(frozen=True)
+class SectionDrawing:
+    """Screen geometry (px, y down) of one virtual template."""
+
+    position_mm: float
+    width: float
+    height: float
+    template_polygon: str  # the board: its lower edge is the target section
+    plate_polygon: str  # the plate, its upper edge at target + gap x exaggeration
+    plate_edge: str  # polyline of that edge
+    labels: list[GapLabel]
+    exaggeration: int
+    length_mm: float
+    max_gap_mm: float | None
+
+
+def _points(xs: np.ndarray, ys: np.ndarray) -> str:
+    return " ".join(f"{x:.1f},{y:.1f}" for x, y in zip(xs, ys))
+
+
+def section_drawings(
+    sections: list[Section], *, tolerance_mm: float, width: float = 1100.0, n_labels: int = 9
+) -> list[SectionDrawing]:
+    """Lay out each section like the wooden template it replaces.
+
+    The section's shape is drawn true to scale (same px/mm both ways); the gap between
+    the template's edge and the plate is exaggerated by one factor for all sections
+    (stated in the drawing) so that the largest gap spans about 24 px.
+    """
+    if not sections:
+        return []
+    pad_x, board_px, plate_px, pad_y = 40.0, 46.0, 14.0, 34.0
+    length = float(max(s.u_mm[-1] for s in sections))
+    sx = (width - 2 * pad_x) / length
+    gaps = np.concatenate([s.gap_mm[np.isfinite(s.gap_mm)] for s in sections] or [np.zeros(1)])
+    max_gap = float(np.abs(gaps).max()) if gaps.size else 0.0
+    wanted = 24.0 / (sx * max_gap) if max_gap > 0 else 1.0
+    exaggeration = max([e for e in _EXAGGERATIONS if e <= wanted] or [1])
+    h_all = np.concatenate([s.target_h_mm[np.isfinite(s.target_h_mm)] for s in sections])
+    h_top, h_bottom = float(h_all.max()), float(h_all.min())
+    rel = (h_top - h_bottom) * sx
+    height = pad_y + board_px + rel + 24.0 + plate_px + pad_y
+
+    def y_of(h_mm):
+        return pad_y + board_px + (h_top - h_mm) * sx
+
+    drawings = []
+    for s in sections:
+        ok = np.isfinite(s.target_h_mm)
+        x = pad_x + s.u_mm[ok] * sx
+        y_t = y_of(s.target_h_mm[ok])
+        top = pad_y
+        template_polygon = _points(np.r_[x[0], x, x[-1]], np.r_[top, y_t, top])
+        gap = s.gap_mm[ok]
+        has = np.isfinite(gap)
+        y_p = np.where(has, y_t - gap * exaggeration * sx, np.nan)
+        xp, yp = x[has], y_p[has]
+        plate_polygon = _points(np.r_[xp, xp[::-1]], np.r_[yp, yp[::-1] + plate_px]) if xp.size else ""
+        labels = []
+        for k in np.linspace(0, len(x) - 1, n_labels).round().astype(int):
+            if np.isfinite(gap[k]):
+                labels.append(
+                    GapLabel(float(x[k]), float(y_t[k]), float(y_p[k]), float(gap[k]), bool(abs(gap[k]) > tolerance_mm))
+                )
+        drawings.append(
+            SectionDrawing(
+                position_mm=s.position_mm,
+                width=width,
+                height=height,
+                template_polygon=template_polygon,
+                plate_polygon=plate_polygon,
+                plate_edge=_points(xp, yp),
+                labels=labels,
+                exaggeration=exaggeration,
+                length_mm=length,
+                max_gap_mm=float(np.nanmax(np.abs(gap))) if has.any() else None,
+            )
+        )
+    return drawings
+
+
+@dataclass(frozen=True)
+class TrendPoint:
+    x: float
+    y: float
+    value: float
+    inspection_id: int
+
+
+@dataclass(frozen=True)
+class TrendSeries:
+    name: str
+    unit: str
+    points: list[TrendPoint]
+    polyline: str
+    ticks: list[tuple[float, str]]  # (y px, label)
+    limit_y: float | None  # px of the tolerance line, if any
+    y0: float  # panel top, px
+    y1: float  # panel bottom, px
+
+
+@dataclass(frozen=True)
+class TrendChart:
+    width: float
+    height: float
+    left: float
+    right: float
+    series: list[TrendSeries]
+    x_labels: list[tuple[float, str]]
+
+
+def trend_chart(
+    rows: list[tuple[int, str, float | None, float | None]], *, tolerance_mm: float | None, width: float = 900.0
+) -> TrendChart:
+    """Two stacked panels: radius error (%) and max |deviation| (mm) per inspection, oldest left.
+
+    Parameters
+    ----------
+    rows : (inspection_id, label, radius_error_pct, max_abs_mm) per done inspection, oldest first.
+    tolerance_mm : drawn as a line on the deviation panel when given.
+    """
+    left, right, panel_h, gap, top = 64.0, 20.0, 130.0, 40.0, 20.0
+    n = len(rows)
+    inner = width - left - right
+    xs = [left + (inner * (i + 0.5) / n if n else 0.0) for i in range(n)]
+    series = []
+    for k, (name, unit, index, limit) in enumerate(
+        (("Radius error", "%", 2, None), ("Max |deviation|", "mm", 3, tolerance_mm))
+    ):
+        y0 = top + k * (panel_h + gap)
+        values = [r[index] for r in rows]
+        finite = [v for v in values if v is not None]
+        lo = min(finite + [0.0] + ([limit] if limit else []))
+        hi = max(finite + [0.0] + ([limit] if limit else []))
+        if hi - lo < 1e-9:
+            hi = lo + 1.0
+        span = hi - lo
+        lo, hi = lo - 0.08 * span, hi + 0.08 * span
+
+        def y_of(v, y0=y0, lo=lo, hi=hi):
+            return y0 + panel_h * (hi - v) / (hi - lo)
+
+        points = [TrendPoint(x, y_of(v), v, r[0]) for x, v, r in zip(xs, values, rows) if v is not None]
+        ticks = [(y_of(v), f"{v:.2f}") for v in np.linspace(lo, hi, 5)]
+        series.append(
+            TrendSeries(
+                name=name,
+                unit=unit,
+                points=points,
+                polyline=" ".join(f"{p.x:.1f},{p.y:.1f}" for p in points),
+                ticks=ticks,
+                limit_y=y_of(limit) if limit else None,
+                y0=y0,
+                y1=y0 + panel_h,
+            )
+        )
+    return TrendChart(
+        width=width,
+        height=top + 2 * panel_h + gap + 30.0,
+        left=left,
+        right=width - right,
+        series=series,
+        x_labels=[(x, r[1]) for x, r in zip(xs, rows)],
+    )

@@ -1,0 +1,193 @@
+"""The dashboard's pages (server-rendered, Jinja2): cell, inspection result, plate history, calibration.
+
+Pages read through the service functions (:mod:`app.services`); the browser writes through
+the REST API (``/api/v1``) from plain JS modules, with the dashboard's session cookie. In
+demo mode every page hands out that cookie; otherwise the operator logs in once with the
+API token (``/login``).
+"""
+
+from __future__ import annotations
+
+import hmac
+import logging
+from typing import Annotated
+
+from fastapi import APIRouter, HTTPException, Query, Request
+from fastapi.responses import HTMLResponse, RedirectResponse, Response
+from fastapi.templating import Jinja2Templates
+
+from app import viewer
+from app.deps import SESSION_COOKIE, SessionDep, StorageDep, issue_session_cookie, session_cookie_value
+from app.models import Inspection
+from app.services import calibrations as calibration_svc
+from app.services import inspections as inspection_svc
+from app.services import plates as plate_svc
+from web import TEMPLATES_DIR
+from web.charts import section_drawings, trend_chart
+from web.sections import load_sections
+
+logger = logging.getLogger(__name__)
+
+router = APIRouter(include_in_schema=False)
+router.include_router(viewer.router)
+templates = Jinja2Templates(directory=TEMPLATES_DIR)
+
+#: Statuses of jobs shown as "in the queue".
+ACTIVE = ("queued", "running")
+#: Frame spacings offered for the virtual templates, mm.
+SPACINGS_MM = (300, 500, 700, 1000)
+DEFAULT_SPACING_MM = 700
+
+
+def _fmt(value, digits: int = 1, unit: str = "", signed: bool = False) -> str:
+    if value is None:
+        return "—"
+    text = f"{value:+.{digits}f}" if signed else f"{value:.{digits}f}"
+    return f"{text} {unit}".strip()
+
+
+templates.env.filters["fmt"] = _fmt
+templates.env.filters["when"] = lambda dt: "—" if dt is None else dt.strftime("%Y-%m-%d %H:%M:%S")
+
+
+def _signed_in(request: Request) -> bool:
+    cookie = request.cookies.get(SESSION_COOKIE)
+    token = request.app.state.api_token
+    return cookie is not None and hmac.compare_digest(cookie, session_cookie_value(token))
+
+
+def _page(request: Request, session, name: str, context: dict, *, status_code: int = 200) -> Response:
+    """Render a full page: the side list (plates, jobs) plus the page's own context."""
+    settings = request.app.state.settings
+    plates, plate_total = plate_svc.list_plates(session=session, limit=40)
+    jobs, _ = inspection_svc.list_inspections(session=session, statuses=ACTIVE, limit=20)
+    signed_in = _signed_in(request)
+    response = templates.TemplateResponse(
+        request,
+        name,
+        {
+            "side_plates": plates,
+            "side_plate_total": plate_total,
+            "side_jobs": jobs,
+            "demo": settings.demo,
+            "signed_in": signed_in or settings.demo,
+            **context,
+        },
+        status_code=status_code,
+    )
+    if settings.demo and not signed_in:
+        issue_session_cookie(response, request.app.state.api_token, secure=request.url.scheme == "https")
+    return response
+
+
+def _inspection_or_404(session, inspection_id: int) -> Inspection:
+    row = inspection_svc.get_inspection(session=session, inspection_id=inspection_id)
+    if row is None:
+        raise HTTPException(404, f"inspection {inspection_id} not found")
+    return row
+
+
+@router.get("/")
+def home() -> RedirectResponse:
+    return RedirectResponse("/cell", status_code=303)
+
+
+@router.get("/cell", response_class=HTMLResponse)
+def cell_page(request: Request, session: SessionDep) -> Response:
+    """Start an inspection; the queue with live progress."""
+    recent, _ = inspection_svc.list_inspections(session=session, limit=12)
+    return _page(request, session, "cell.html", {"page": "cell", "queue": recent})
+
+
+@router.get("/cell/queue", response_class=HTMLResponse)
+def cell_queue(request: Request, session: SessionDep) -> Response:
+    """The queue table's rows (polled by cell.js)."""
+    recent, _ = inspection_svc.list_inspections(session=session, limit=12)
+    return templates.TemplateResponse(request, "_queue.html", {"queue": recent})
+
+
+@router.get("/inspections/{inspection_id}", response_class=HTMLResponse)
+def result_page(
+    request: Request,
+    inspection_id: int,
+    session: SessionDep,
+    storage: StorageDep,
+    spacing_mm: Annotated[int, Query(ge=50, le=10_000)] = DEFAULT_SPACING_MM,
+) -> Response:
+    """Verdict, radius, deviation, the 3D view and the virtual templates of one inspection."""
+    row = _inspection_or_404(session, inspection_id)
+    plate_viewer = getattr(request.app.state, "viewer", None)
+    has_view = row.status == "done" and plate_viewer is not None and plate_viewer.has_view(inspection_id)
+    names = inspection_svc.artifact_names(storage=storage, inspection=row)
+    context = {
+        "page": "result",
+        "row": row,
+        "result": row.result or {},
+        "has_view": has_view,
+        "artifacts": names,
+        "spacing_mm": spacing_mm,
+        "spacings": SPACINGS_MM,
+        **_templates_context(storage, row, spacing_mm),
+    }
+    return _page(request, session, "result.html", context)
+
+
+@router.get("/inspections/{inspection_id}/templates", response_class=HTMLResponse)
+def templates_partial(
+    request: Request,
+    inspection_id: int,
+    session: SessionDep,
+    storage: StorageDep,
+    spacing_mm: Annotated[int, Query(ge=50, le=10_000)] = DEFAULT_SPACING_MM,
+) -> Response:
+    """The virtual templates at another spacing (fetched by result.js)."""
+    row = _inspection_or_404(session, inspection_id)
+    return templates.TemplateResponse(
+        request, "_templates.html", {"row": row, "spacing_mm": spacing_mm, **_templates_context(storage, row, spacing_mm)}
+    )
+
+
+def _templates_context(storage, row: Inspection, spacing_mm: int) -> dict:
+    if row.status != "done":
+        return {"drawings": [], "templates_error": None}
+    folder = storage.artifacts_dir(row.id)
+    try:
+        frame, sections, tolerance = load_sections(folder, spacing_mm=float(spacing_mm))
+    except (OSError, ValueError, KeyError) as err:
+        logger.warning("inspection %s: no virtual templates: %s", row.id, err)
+        return {"drawings": [], "templates_error": str(err)}
+    return {"drawings": section_drawings(sections, tolerance_mm=tolerance), "templates_error": None}
+
+
+@router.get("/plates/{plate_id}", response_class=HTMLResponse)
+def plate_page(request: Request, plate_id: str, session: SessionDep) -> Response:
+    """Every inspection of a plate, with the trend of radius error and max deviation."""
+    overview = plate_svc.overview(session=session, plate_id=plate_id)
+    if overview is None:
+        raise HTTPException(404, f"plate {plate_id!r} not found")
+    rows, total = inspection_svc.list_inspections(session=session, plate_id=plate_id, limit=200)
+    done = [r for r in reversed(rows) if r.status == "done"]
+    tolerance = overview.target.tolerance_mm if overview.target is not None else (done[-1].tolerance_mm if done else None)
+    chart = trend_chart(
+        [(r.id, f"#{r.id}", r.radius_error_pct, r.max_abs_mm) for r in done], tolerance_mm=tolerance
+    )
+    return _page(
+        request,
+        session,
+        "plate.html",
+        {"page": "plate", "overview": overview, "rows": rows, "total": total, "chart": chart, "plate_id": plate_id},
+    )
+
+
+@router.get("/calibration", response_class=HTMLResponse)
+def calibration_page(request: Request, session: SessionDep) -> Response:
+    """The current calibration and its reprojection error; upload a new one."""
+    current = calibration_svc.current_calibration(session=session)
+    history = calibration_svc.list_calibrations(session=session, limit=10)
+    return _page(request, session, "calibration.html", {"page": "calibration", "current": current, "history": history})
+
+
+@router.get("/login", response_class=HTMLResponse)
+def login_page(request: Request, session: SessionDep) -> Response:
+    """Trade the API token for the dashboard's session cookie (non-demo servers)."""
+    return _page(request, session, "login.html", {"page": "login"})

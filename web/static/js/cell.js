@@ -1,0 +1,88 @@
+// Cell page: start an inspection (simulated or uploaded bundle) and keep the queue live.
+import { postForm, postJSON, refreshPartial, say } from "./api.js";
+
+const form = document.getElementById("start-form");
+const message = document.getElementById("start-message");
+const queue = document.getElementById("queue");
+const POLL_MS = 1000;
+
+function showSource() {
+  const source = form.elements.source.value;
+  for (const fieldset of form.querySelectorAll("fieldset[data-source]")) {
+    fieldset.hidden = fieldset.dataset.source !== source;
+  }
+}
+
+function number(name) {
+  const value = form.elements[name].valueAsNumber;
+  if (Number.isNaN(value)) throw new Error(`${name}: expected a number`);
+  return value;
+}
+
+function simulationBody() {
+  const body = {
+    shape: form.elements.shape.value,
+    radius_mm: number("radius_mm"),
+    convex: form.elements.convex.value === "true",
+    n_lights: number("n_lights"),
+    noise: number("noise"),
+    tolerance_mm: number("tolerance_mm"),
+    width: number("width"),
+    height: number("height"),
+    seed: number("seed"),
+    dents: [],
+  };
+  if (form.elements.dent.checked) {
+    body.dents.push({
+      x_mm: number("dent_x_mm"),
+      y_mm: number("dent_y_mm"),
+      radius_mm: number("dent_radius_mm"),
+      depth_mm: number("dent_depth_mm"),
+    });
+  }
+  return body;
+}
+
+async function start(event) {
+  event.preventDefault();
+  const plateId = form.elements.plate_id.value.trim();
+  const base = `/api/v1/plates/${encodeURIComponent(plateId)}/inspections`;
+  const button = form.querySelector("button[type=submit]");
+  button.disabled = true;
+  say(message, "Sending…", "ok");
+  try {
+    let created;
+    if (form.elements.source.value === "simulated") {
+      created = await postJSON(`${base}/simulated`, simulationBody());
+    } else {
+      const data = new FormData();
+      const capture = form.elements.capture.files[0];
+      if (!capture) throw new Error("capture: choose a bundle .zip");
+      data.append("capture", capture);
+      if (form.elements.target.files[0]) data.append("target", form.elements.target.files[0]);
+      created = await postForm(base, data);
+    }
+    say(message, `Inspection #${created.id} queued.`, "ok");
+    await refresh();
+  } catch (err) {
+    say(message, err.message, "error");
+  } finally {
+    button.disabled = false;
+  }
+}
+
+async function refresh() {
+  try {
+    await refreshPartial(queue, queue.dataset.src);
+    queue.dataset.updated = String(Date.now());
+  } catch (err) {
+    console.warn("queue refresh failed:", err);
+  }
+}
+
+form.addEventListener("change", (event) => {
+  if (event.target.name === "source") showSource();
+});
+form.addEventListener("submit", start);
+showSource();
+setInterval(refresh, POLL_MS);
