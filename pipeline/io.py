@@ -324,16 +324,16 @@ def _validate(model, doc: dict, *, label: str, expected_format: str, prefix: str
 # =========================================================================== calibration
 
 
-def load_calibration(source, *, file_label: str = "calibration.json") -> StereoRig:
+def load_calibration(source, *, file_label: str | None = None) -> StereoRig:
     """Read a ``stereo-calibration/1`` document into a :class:`StereoRig`.
 
     Parameters
     ----------
     source : str, Path or dict
         A path to the JSON file, or the parsed object itself.
-    file_label : str
-        How error messages name the document when ``source`` is a dict (a
-        path is named by itself).
+    file_label : str, optional
+        How error messages name the document (default: the path, or
+        ``"calibration.json"`` for a dict).
 
     Returns
     -------
@@ -350,9 +350,10 @@ def load_calibration(source, *, file_label: str = "calibration.json") -> StereoR
         that is not a rotation.
     """
     if isinstance(source, dict):
-        return _calibration_from_doc(source, label=file_label)
+        return _calibration_from_doc(source, label=file_label or "calibration.json")
     if isinstance(source, (str, os.PathLike)):
-        return _calibration_from_doc(read_json(source), label=str(source))
+        label = file_label or str(source)
+        return _calibration_from_doc(read_json(source, label=label), label=label)
     raise TypeError(f"source: expected a path or a dict, got {type(source).__name__}")
 
 
@@ -559,6 +560,8 @@ class _ZipBundle:
 
 
 def _open_bundle(path: Path, *, max_total_bytes: int, max_ratio: float):
+    if path.name == "capture.json" and path.is_file():
+        return _FolderBundle(path.parent)
     if path.is_dir():
         return _FolderBundle(path)
     if path.is_file() and zipfile.is_zipfile(path):
@@ -654,8 +657,8 @@ def load_capture(
     Parameters
     ----------
     path : str or Path
-        The bundle folder, or a ``.zip`` with ``capture.json`` at its root or
-        inside its one top folder.
+        The bundle folder (or its ``capture.json``), or a ``.zip`` with
+        ``capture.json`` at its root or inside its one top folder.
     max_total_bytes : int
         Zip only: refuse a zip whose members add up to more uncompressed bytes.
     max_ratio : float
@@ -765,7 +768,7 @@ def _load_capture(bundle, source: Path, *, workers: int | None) -> Capture:
 # =========================================================================== target
 
 
-def load_target(source, *, base_dir=None, file_label: str = "target.json") -> Target:
+def load_target(source, *, base_dir=None, file_label: str | None = None) -> Target:
     """Read a ``plate-target/1`` document.
 
     Parameters
@@ -775,8 +778,9 @@ def load_target(source, *, base_dir=None, file_label: str = "target.json") -> Ta
     base_dir : str or Path, optional
         Folder that a ``mesh`` shape's ``file`` is relative to (default: the
         folder of ``source`` when it is a path; required for a mesh given as a dict).
-    file_label : str
-        How error messages name the document when ``source`` is a dict.
+    file_label : str, optional
+        How error messages name the document (default: the path, or
+        ``"target.json"`` for a dict).
 
     Returns
     -------
@@ -793,10 +797,11 @@ def load_target(source, *, base_dir=None, file_label: str = "target.json") -> Ta
         ``base_dir``, has an unknown type, cannot be read, or holds no triangles.
     """
     if isinstance(source, dict):
-        doc, label, src = source, file_label, None
+        doc, label, src = source, file_label or "target.json", None
     elif isinstance(source, (str, os.PathLike)):
         src = Path(source)
-        doc, label = read_json(src), str(src)
+        label = file_label or str(src)
+        doc = read_json(src, label=label)
         if base_dir is None:
             base_dir = src.parent
     else:

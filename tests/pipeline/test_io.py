@@ -80,6 +80,12 @@ def test_zip_bundle_equals_folder(tmp_path, top_folder):
     assert b.source == zpath
 
 
+def test_capture_json_path_names_its_folder(tmp_path):
+    bundle = write_bundle(tmp_path)
+    assert load_capture(bundle / "capture.json").source == bundle / "capture.json"
+    np.testing.assert_array_equal(load_capture(bundle / "capture.json").images, load_capture(bundle).images)
+
+
 def test_optional_parts_may_be_missing(tmp_path):
     cap = load_capture(write_bundle(tmp_path, with_dark=False, with_stereo=False, working_distance_mm=DELETE))
     assert cap.dark is None and cap.stereo_left is None and not cap.has_stereo and cap.working_distance_mm is None
@@ -514,6 +520,8 @@ def test_bad_calibration(tmp_path, mutate, field, problem):
     path.write_text(json.dumps(doc))
     with pytest.raises(InputError, match=_err(f"c.json: {field}:", problem)):
         load_calibration(path)
+    with pytest.raises(InputError, match=_err(f"upload.json: {field}:", problem)):
+        load_calibration(path, file_label="upload.json")
 
 
 # --------------------------------------------------------------------------- read_json
