@@ -1,0 +1,211 @@
+"""Real-browser tests: Debian's Chromium (Playwright) against a live server with a real job consumer.
+
+Start an inspection on the Cell page, watch it complete in the queue, open the result,
+check that the 3D view connects and shows the plate, open the history page. Screenshots
+of each page are kept in ``test-artifacts/``.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+SHOTS = ROOT / "test-artifacts"
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = [
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+    "--disable-component-update", "--disable-sync", "--no-first-run",
+]
+
+TOKEN = "browser-test-token"
+
+pytestmark = [
+    pytest.mark.browser,
+    pytest.mark.skipif(not Path(CHROMIUM).exists(), reason=f"{CHROMIUM} is not installed"),
+]
+
+
+def _real_pipeline_available() -> bool:
+    try:
+        return importlib.util.find_spec("pipeline.run") is not None and bool(__import__("pipeline.run"))
+    except ImportError:
+        return False
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def live_server(tmp_path_factory):
+    """uvicorn (create_app, demo mode) and ``python -m app.worker`` as child processes."""
+    data = tmp_path_factory.mktemp("data")
+    port = _free_port()
+    entry = "pipeline.run:inspect" if _real_pipeline_available() else "tests.web.standin_pipeline:inspect"
+    env = {
+        **os.environ,
+        "PLATE_INSPECT_DATA_DIR": str(data),
+        "PLATE_INSPECT_DEMO": "1",
+        "PLATE_INSPECT_API_TOKEN": TOKEN,
+        "PLATE_INSPECT_INSPECT_ENTRY": entry,
+        "PLATE_INSPECT_PROGRESS_INTERVAL_S": "0.1",
+        "PYTHONPATH": str(ROOT),
+    }
+    logs = data / "logs"
+    logs.mkdir()
+    web = subprocess.Popen(
+        [sys.executable, "-m", "uvicorn", "app.main:create_app", "--factory", "--host", "127.0.0.1", "--port", str(port)],
+        env=env, cwd=ROOT, stdout=open(logs / "web.log", "wb"), stderr=subprocess.STDOUT,
+    )
+    worker = subprocess.Popen(
+        [sys.executable, "-m", "app.worker"], env=env, cwd=ROOT,
+        stdout=open(logs / "worker.log", "wb"), stderr=subprocess.STDOUT,
+    )
+    base = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 30
+    while True:
+        try:
+            urllib.request.urlopen(f"{base}/healthz", timeout=1)
+            break
+        except OSError:
+            if time.monotonic() > deadline or web.poll() is not None:
+                raise RuntimeError(f"server did not start:\n{(logs / 'web.log').read_text()}")
+            time.sleep(0.3)
+    yield {"base": base, "entry": entry, "logs": logs, "token": TOKEN}
+    for proc in (worker, web):
+        proc.terminate()
+    for proc in (worker, web):
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+
+
+@pytest.fixture(scope="module")
+def browser():
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        yield b
+        b.close()
+
+
+def _canvas_is_drawn(frame) -> bool:
+    """True when the 3D canvas holds more than one colour (WebGL, read back through a 2D copy)."""
+    return frame.evaluate(
+        """() => {
+            const c = document.querySelector('canvas');
+            if (!c || c.width === 0) return false;
+            const copy = document.createElement('canvas');
+            copy.width = 64; copy.height = 64;
+            const g = copy.getContext('2d');
+            g.drawImage(c, 0, 0, 64, 64);
+            const d = g.getImageData(0, 0, 64, 64).data;
+            const seen = new Set();
+            for (let i = 0; i < d.length; i += 4) seen.add(`${d[i] >> 3},${d[i+1] >> 3},${d[i+2] >> 3}`);
+            return seen.size > 8;
+        }"""
+    )
+
+
+def test_cell_to_result_to_history(live_server, browser):
+    SHOTS.mkdir(exist_ok=True)
+    base = live_server["base"]
+    page = browser.new_page(viewport={"width": 1920, "height": 1080})
+    errors = []
+    page.on("pageerror", lambda err: errors.append(str(err)))
+
+    page.goto(f"{base}/cell")
+    page.fill("input[name=plate_id]", "H7-P11")
+    page.fill("input[name=width]", "320")
+    page.fill("input[name=height]", "256")
+    page.check("input[name=dent]")
+    page.screenshot(path=SHOTS / "cell-form.png")
+    page.click("button[type=submit]")
+    page.wait_for_selector("#start-message[data-kind=ok]", timeout=10_000)
+    row = page.locator("#queue tr[data-id]").first
+    inspection_id = int(row.get_attribute("data-id"))
+    # The queue updates without reload: the same page sees the job finish.
+    page.wait_for_selector(f"#queue tr[data-id='{inspection_id}'][data-status='running']", timeout=60_000)
+    page.screenshot(path=SHOTS / "cell-running.png")
+    page.wait_for_selector(
+        f"#queue tr[data-id='{inspection_id}'][data-status='done'], #queue tr[data-id='{inspection_id}'][data-status='failed']",
+        timeout=90_000,
+    )
+    status = page.locator(f"#queue tr[data-id='{inspection_id}']").get_attribute("data-status")
+    page.screenshot(path=SHOTS / "cell-done.png")
+    assert status == "done", (live_server["logs"] / "worker.log").read_text()[-3000:]
+
+    page.click(f"#queue tr[data-id='{inspection_id}'] a[href='/inspections/{inspection_id}']")
+    page.wait_for_selector("#verdict")
+    assert page.locator(".verdict-word").inner_text() in ("PASS", "FAIL")
+    assert page.locator("figure.template").count() >= 1
+    frame = page.frame_locator("#viewer")
+    # viser's client says so in its panel once connected and the scene arrived.
+    frame.get_by_text("Layout", exact=True).wait_for(timeout=30_000)
+    viewer_frame = next(f for f in page.frames if f.url.startswith(f"{base}/viewer/{inspection_id}/"))
+    deadline = time.monotonic() + 20
+    while not _canvas_is_drawn(viewer_frame):
+        assert time.monotonic() < deadline, "the 3D canvas stayed blank"
+        time.sleep(0.5)
+    page.screenshot(path=SHOTS / "result.png", full_page=True)
+
+    # Templates at another spacing, fetched without reloading the 3D view.
+    page.select_option("#spacing", "300")
+    page.wait_for_function("document.querySelectorAll('figure.template').length >= 5")
+
+    page.click("a[href='/plates/H7-P11']")
+    page.wait_for_selector("svg.trend")
+    assert page.locator(f"a[href='/inspections/{inspection_id}']").count() >= 1
+    page.screenshot(path=SHOTS / "history.png", full_page=True)
+
+    page.goto(f"{base}/calibration")
+    page.screenshot(path=SHOTS / "calibration.png")
+    assert not errors, errors
+    (SHOTS / "browser-run.json").write_text(json.dumps({"inspect_entry": live_server["entry"], "inspection": inspection_id}))
+
+
+def test_two_browsers_see_their_own_plates(live_server, browser):
+    """Two operators, two inspections at once: each viewer page is served its own plate."""
+    base = live_server["base"]
+    ids = []
+    for plate in ("H8-A", "H8-B"):
+        req = urllib.request.Request(
+            f"{base}/api/v1/plates/{plate}/inspections/simulated",
+            data=json.dumps({"width": 320, "height": 256, "radius_mm": 4000.0 if plate == "H8-A" else 8000.0}).encode(),
+            headers={"Content-Type": "application/json", "Authorization": f"Bearer {_token(live_server)}"},
+        )
+        ids.append(json.load(urllib.request.urlopen(req))["id"])
+    for inspection_id in ids:
+        deadline = time.monotonic() + 90
+        while json.load(urllib.request.urlopen(f"{base}/api/v1/inspections/{inspection_id}"))["status"] not in ("done", "failed"):
+            assert time.monotonic() < deadline
+            time.sleep(0.5)
+    pages = []
+    for inspection_id in ids:
+        p = browser.new_page(viewport={"width": 1200, "height": 800})
+        p.goto(f"{base}/viewer/{inspection_id}/?hideViserLogo")
+        pages.append(p)
+    for p, inspection_id in zip(pages, ids):
+        p.locator(f"text=Inspection {inspection_id}").wait_for(timeout=30_000)
+    pages[0].screenshot(path=SHOTS / "viewer-a.png")
+    pages[1].screenshot(path=SHOTS / "viewer-b.png")
+    for p in pages:
+        p.close()
+
+
+def _token(live_server) -> str:
+    return live_server["token"]
