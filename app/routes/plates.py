@@ -109,14 +109,22 @@ async def put_target(
         storage.remove(staging)
         raise
 
+    created: list[int] = []
+
+    def cleanup():
+        storage.remove(staging)
+        for target_id in created:
+            storage.remove(storage.target_dir(plate_id, target_id))
+
     def work():
         row = create_target(session=session, storage=storage, plate_id=plate_id, staging_dir=staging)
+        created.append(row.id)
         return 200, target_out(row).model_dump(mode="json"), None
 
     return await run_in_threadpool(
         idempotent_write,
         request=request, session=session, writer=writer, key=idempotency_key, work=work,
-        cleanup=lambda: storage.remove(staging), upload_field="target", staging=staging,
+        cleanup=cleanup, upload_field="target", staging=staging,
     )
 
 

@@ -120,3 +120,43 @@ def _capture_json_with_plate(bundle: bytes, plate_id: str) -> bytes:
         doc = json.loads(zf.read("capture.json"))
     doc["plate_id"] = plate_id
     return json.dumps(doc).encode()
+
+
+def test_a_job_delivered_twice_runs_once(client, settings):
+    from app.jobs import execute_inspection
+
+    r = client.post("/api/v1/plates/SIM-2/inspections/simulated",
+                    json={"n_lights": 3, "width": 160, "height": 128}, headers=AUTH)
+    inspection_id = r.json()["id"]
+    state = client.app.state
+    kw = dict(settings=settings, session_factory=state.session_factory, storage=state.storage)
+    assert execute_inspection(inspection_id, **kw) == "done"
+    assert execute_inspection(inspection_id, **kw) == "skipped"
+    assert client.get(f"/api/v1/inspections/{inspection_id}").json()["status"] == "done"
+
+
+def test_real_pipeline_inspection(tmp_path, consumer_factory):
+    """The production entry point (pipeline.run:inspect) on a small simulated plate."""
+    from tests.api.conftest import TOKEN, Consumer, real_pipeline_available
+
+    if not real_pipeline_available():
+        pytest.skip("pipeline.run.inspect is not importable yet (pipeline stages still landing)")
+    from fastapi.testclient import TestClient
+
+    from app.main import create_app
+    from app.settings import Settings
+
+    settings = Settings(data_dir=tmp_path / "real", api_token=TOKEN, progress_interval_s=0.05)
+    app = create_app(settings)
+    consumer = Consumer(settings).start()
+    try:
+        with TestClient(app) as client:
+            r = client.post("/api/v1/plates/SIM-R/inspections/simulated",
+                            json={"width": 320, "height": 256, "n_lights": 8, "seed": 5}, headers=AUTH)
+            body = wait_for(client, r.json()["id"], timeout_s=120, consumer=consumer)
+            assert body["status"] == "done", body
+            assert body["result"]["verdict"] in ("pass", "fail")
+            assert "result.json" in body["artifacts"]
+    finally:
+        consumer.stop()
+        app.state.engine.dispose()
