@@ -208,7 +208,9 @@ def write_target_ply(path, vertices_mm, faces, T_cam_target) -> None:
         raise ValueError("vertices_mm: expected finite coordinates")
     faces = np.asarray(faces)
     if faces.ndim != 2 or faces.shape[1] != 3 or faces.shape[0] == 0 or not np.issubdtype(faces.dtype, np.integer):
-        raise ValueError(f"faces: expected an integer array of shape (F, 3) with F > 0, got {faces.dtype} {faces.shape}")
+        raise ValueError(
+            f"faces: expected an integer array of shape (F, 3) with F > 0, got {faces.dtype} {faces.shape}"
+        )
     if faces.min() < 0 or faces.max() >= verts.shape[0]:
         raise ValueError(f"faces: expected indices in [0, {verts.shape[0] - 1}], got [{faces.min()}, {faces.max()}]")
     T = np.asarray(T_cam_target, dtype=np.float64)
@@ -241,8 +243,8 @@ def _write_ply(path, vertices, faces, *, comments, colours=None, deviation=None)
     fdata["n"] = 3
     fdata["v"] = faces
     header = "\n".join(
-        ["ply", "format binary_little_endian 1.0", *(f"comment {c}" for c in comments), f"element vertex {len(vertices)}"]
-        + props
+        ["ply", "format binary_little_endian 1.0", *(f"comment {c}" for c in comments)]
+        + [f"element vertex {len(vertices)}", *props]
         + [f"element face {len(faces)}", "property list uchar int vertex_indices", "end_header"]
     )
     with open(path, "wb") as fh:

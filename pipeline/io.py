@@ -191,9 +191,8 @@ def _parse_json(data: bytes, label: str) -> dict:
 def _json_type(value) -> str:
     if value is None:
         return "null"
-    return {bool: "a boolean", int: "a number", float: "a number", str: "a string", list: "a list", dict: "an object"}.get(
-        type(value), type(value).__name__
-    )
+    names = {bool: "a boolean", int: "a number", float: "a number", str: "a string", list: "a list", dict: "an object"}
+    return names.get(type(value), type(value).__name__)
 
 
 def _reject_non_finite(value, label: str, field: str = "") -> None:
@@ -287,7 +286,8 @@ def _describe_error(model, err: dict) -> tuple[str, str]:
     if kind == "literal_error":
         return field, f"expected {ctx.get('expected')}, got {_short(err.get('input'))}"
     if kind == "union_tag_invalid":
-        return field, f"unknown {ctx.get('discriminator', 'type')} {ctx.get('tag')!r}, expected one of {ctx.get('expected_tags')}"
+        key, tag = ctx.get("discriminator", "type"), ctx.get("tag")
+        return field, f"unknown {key} {tag!r}, expected one of {ctx.get('expected_tags')}"
     if kind == "value_error":
         reason = str(ctx["error"]) if "error" in ctx else err["msg"].removeprefix("Value error, ")
         # A model-level check names the key it is about: "lights: expected ...".
@@ -539,7 +539,9 @@ class _ZipBundle:
             if f"{top}/capture.json" in self._members:
                 return f"{top}/"
         raise InputError(
-            str(self.path), "capture.json", "missing: expected capture.json at the root of the zip or in its one top folder"
+            str(self.path),
+            "capture.json",
+            "missing: expected capture.json at the root of the zip or in its one top folder",
         )
 
     def label(self, rel: str) -> str:
@@ -603,7 +605,9 @@ def _decode_into(data: bytes, job: _ImageJob, out: np.ndarray, *, bit_depth: int
     if (w, h) != job.expected_size:
         ew, eh = job.expected_size
         raise InputError(
-            label, job.field, f"{name} ({job.what}) is {w}x{h} px, expected {ew}x{eh} (calibration image_size, width x height)"
+            label,
+            job.field,
+            f"{name} ({job.what}) is {w}x{h} px, expected {ew}x{eh} (calibration image_size, width x height)",
         )
     file_bits = 8 if img.dtype == np.uint8 else 16
     if bit_depth > file_bits:
@@ -726,25 +730,26 @@ def _load_capture(bundle, source: Path, *, workers: int | None) -> Capture:
     else:
         rig = _calibration_from_doc(doc["calibration"], label=label, prefix="calibration.")
 
+    # Every path is checked before any image is read.
     size = rig.image_size
-    jobs = [
-        _ImageJob(_check_relative(name, label=label, field=f"photometric.images[{k}]"), f"photometric.images[{k}]", size, "photometric image")
+    wanted = [
+        (None, name, f"photometric.images[{k}]", size, "photometric image")
         for k, name in enumerate(cap.photometric.images)
     ]
-    extra: list[str] = []
     if cap.photometric.dark is not None:
-        jobs.append(_ImageJob(_check_relative(cap.photometric.dark, label=label, field="photometric.dark"), "photometric.dark", size, "dark frame"))
-        extra.append("dark")
+        wanted.append(("dark", cap.photometric.dark, "photometric.dark", size, "dark frame"))
     if cap.stereo is not None:
         for side in ("left", "right"):
-            field = f"stereo.{side}"
             cam_size = getattr(rig, side).image_size
-            jobs.append(_ImageJob(_check_relative(getattr(cap.stereo, side), label=label, field=field), field, cam_size, f"stereo {side} image"))
-            extra.append(side)
+            wanted.append((side, getattr(cap.stereo, side), f"stereo.{side}", cam_size, f"stereo {side} image"))
+    jobs = [
+        _ImageJob(_check_relative(name, label=label, field=field), field, sz, what)
+        for _, name, field, sz, what in wanted
+    ]
 
     n = len(cap.photometric.images)
     images = np.empty((n, size[1], size[0]), dtype=np.float32)
-    named = {key: np.empty((job.expected_size[1], job.expected_size[0]), np.float32) for key, job in zip(extra, jobs[n:])}
+    named = {key: np.empty((sz[1], sz[0]), np.float32) for key, _, _, sz, _ in wanted[n:]}
     _load_images(bundle, jobs, [*images, *named.values()], bit_depth=cap.bit_depth, workers=workers)
 
     dirs = np.array([light.direction for light in cap.photometric.lights], dtype=np.float64)
@@ -811,7 +816,8 @@ def load_target(source, *, base_dir=None, file_label: str | None = None) -> Targ
     vertices = faces = None
     if shape.type == "mesh":
         if base_dir is None:
-            raise InputError(label, "shape.file", f"{shape.file!r}: a target given as an object needs base_dir to find its mesh")
+            reason = f"{shape.file!r}: a target given as an object needs base_dir to find its mesh"
+            raise InputError(label, "shape.file", reason)
         vertices, faces = _load_mesh(Path(base_dir), shape.file, label=label)
     return Target(
         shape=shape.type,
@@ -844,7 +850,8 @@ def _load_mesh(base_dir: Path, name: str, *, label: str) -> tuple[np.ndarray, np
     vertices = np.asarray(getattr(mesh, "vertices", np.empty((0, 3))), dtype=np.float64)
     faces = np.asarray(getattr(mesh, "faces", np.empty((0, 3))), dtype=np.int64)
     if faces.ndim != 2 or faces.shape[0] == 0 or faces.shape[1] != 3:
-        raise InputError(label, field, f"{name!r}: expected a triangle mesh, got {faces.shape[0] if faces.ndim == 2 else 0} triangles")
+        count = faces.shape[0] if faces.ndim == 2 else 0
+        raise InputError(label, field, f"{name!r}: expected a triangle mesh, got {count} triangles")
     if not np.all(np.isfinite(vertices)):
         raise InputError(label, field, f"{name!r}: vertices hold non-finite coordinates")
     return vertices, faces
