@@ -1,0 +1,784 @@
+"""Normal integration: from a field of surface normals to metric depth.
+
+Stage 5 of the method (DESIGN.md): every 4-neighbour pair of pixels inside the
+mask gives one linear equation on the depth, and the overdetermined system is
+solved by least squares over the masked domain. We integrate in *log depth*
+under the pinhole camera (perspective, not orthographic), and optionally fuse a
+sparse or noisy metric depth prior from binocular stereo (Nehab et al. 2005,
+linearised in log depth): the stereo depth gives the scale and the low
+frequencies, the normals the detail.
+
+The normal equations are a masked graph Laplacian plus a diagonal prior term.
+They are solved by conjugate gradients preconditioned with one geometric
+multigrid V-cycle (2x2 aggregation, red-black Gauss-Seidel smoothing), written
+with numba; this is the exact least-squares solution on the masked domain, not a
+periodic (Fourier) approximation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+import scipy.ndimage
+
+__all__ = ["DepthResult", "HeightResult", "integrate_normals", "integrate_gradient"]
+
+#: Tolerance on the length of a normal inside the mask (normals are unit vectors).
+_UNIT_TOL = 1e-2
+#: Coarsest multigrid level: solved densely once it has at most this many cells.
+_COARSEST_CELLS = 128
+
+
+@dataclass(frozen=True)
+class DepthResult:
+    """Depth integrated from a normal field.
+
+    Attributes
+    ----------
+    depth_mm : (H, W) float64
+        Depth ``z`` along the optical axis of the left camera, mm (a pixel
+        ``(u, v)`` sees the point ``depth_mm[v, u] * K^-1 (u, v, 1)``); NaN
+        outside ``mask``.
+    mask : (H, W) bool
+        Pixels that were integrated (the input mask).
+    iterations : int
+        Preconditioned conjugate-gradient iterations taken.
+    residual : float
+        Relative residual ``||b - A x|| / ||b||`` of the normal equations at
+        the end of the solve (0 when ``b = 0``).
+    """
+
+    depth_mm: np.ndarray
+    mask: np.ndarray
+    iterations: int
+    residual: float
+
+
+@dataclass(frozen=True)
+class HeightResult:
+    """Height integrated from an orthographic gradient field.
+
+    Attributes
+    ----------
+    height : (H, W) float64
+        Height in the units of ``gradient * pixel``, zero mean over each
+        connected component of ``mask``; NaN outside ``mask``.
+    mask : (H, W) bool
+    iterations : int
+    residual : float
+        Relative residual of the normal equations.
+    """
+
+    height: np.ndarray
+    mask: np.ndarray
+    iterations: int
+    residual: float
+
+
+# --------------------------------------------------------------------------------------------
+# numba kernels. A level of the problem lives on a full (H, W) grid:
+#   ex[i, j]  weight of the edge (i, j) - (i, j + 1)   (ex[:, W - 1] = 0)
+#   ey[i, j]  weight of the edge (i, j) - (i + 1, j)   (ey[H - 1, :] = 0)
+#   wd[i, j]  weight of the prior (diagonal) term
+#   dg[i, j]  diagonal of A = wd + sum of the weights of the 4 edges (0: cell not in the system,
+#             its value is kept at 0)
+# A x = dg * x - sum_edges w * x_neighbour.
+# The kernels are single-threaded and fuse several sweeps into one pass over memory (a row
+# wavefront): the solve is memory-bound, and on a shared machine thread start-up per parallel
+# region costs more than it saves.
+# --------------------------------------------------------------------------------------------
+
+
+@nb.njit(cache=True)
+def _log_depth_gradients(normals, mask, kinv, unit_tol, p, q):
+    """p = d(log z)/du, q = d(log z)/dv on the mask (0 outside); returns the count of unusable normals."""
+    h, w = mask.shape
+    bad = 0
+    a0, a1, a2 = kinv[0, 0], kinv[0, 1], kinv[0, 2]
+    b0, b1, b2 = kinv[1, 0], kinv[1, 1], kinv[1, 2]
+    c0, c1, c2 = kinv[2, 0], kinv[2, 1], kinv[2, 2]
+    for i in range(h):
+        v = float(i)
+        for j in range(w):
+            p[i, j] = 0.0
+            q[i, j] = 0.0
+            if not mask[i, j]:
+                continue
+            nx = float(normals[i, j, 0])
+            ny = float(normals[i, j, 1])
+            nz = float(normals[i, j, 2])
+            u = float(j)
+            nr = nx * (a0 * u + a1 * v + a2) + ny * (b0 * u + b1 * v + b2) + nz * (c0 * u + c1 * v + c2)
+            nn = nx * nx + ny * ny + nz * nz
+            # NaN fails both comparisons and is counted as bad.
+            if not (nr < 0.0 and abs(nn - 1.0) <= unit_tol):
+                bad += 1
+                continue
+            p[i, j] = -(nx * a0 + ny * b0 + nz * c0) / nr
+            q[i, j] = -(nx * a1 + ny * b1 + nz * c1) / nr
+    return bad
+
+
+@nb.njit(cache=True)
+def _fine_system(mask, p, q, wd, prior, ex, ey, dg, b):
+    """Edge weights, diagonal and right-hand side of the normal equations.
+
+    Edge (a, c) with c the right/lower neighbour of a: x_c - x_a = (g_a + g_c) / 2.
+    Cells outside the mask get dg = 0 and b = 0.
+    """
+    h, w = mask.shape
+    for i in range(h):
+        for j in range(w):
+            m = mask[i, j]
+            ex[i, j] = 1.0 if (m and j + 1 < w and mask[i, j + 1]) else 0.0
+            ey[i, j] = 1.0 if (m and i + 1 < h and mask[i + 1, j]) else 0.0
+    for i in range(h):
+        for j in range(w):
+            if not mask[i, j]:
+                dg[i, j] = 0.0
+                b[i, j] = 0.0
+                continue
+            wij = float(wd[i, j])
+            d = wij
+            s = wij * prior[i, j] if wij > 0.0 else 0.0
+            if ex[i, j] > 0.0:
+                d += 1.0
+                s -= 0.5 * (p[i, j] + p[i, j + 1])
+            if j > 0 and ex[i, j - 1] > 0.0:
+                d += 1.0
+                s += 0.5 * (p[i, j - 1] + p[i, j])
+            if ey[i, j] > 0.0:
+                d += 1.0
+                s -= 0.5 * (q[i, j] + q[i + 1, j])
+            if i > 0 and ey[i - 1, j] > 0.0:
+                d += 1.0
+                s += 0.5 * (q[i - 1, j] + q[i, j])
+            dg[i, j] = d
+            b[i, j] = s
+
+
+@nb.njit(cache=True)
+def _residual_norm2(ex, ey, dg, x, b, r):
+    """r = b - A x; returns ||r||^2."""
+    h, w = dg.shape
+    acc = 0.0
+    for i in range(h):
+        for j in range(w):
+            d = dg[i, j]
+            if d == 0.0:
+                r[i, j] = 0.0
+                continue
+            s = b[i, j] - d * x[i, j]
+            if j + 1 < w:
+                s += ex[i, j] * x[i, j + 1]
+            if j > 0:
+                s += ex[i, j - 1] * x[i, j - 1]
+            if i + 1 < h:
+                s += ey[i, j] * x[i + 1, j]
+            if i > 0:
+                s += ey[i - 1, j] * x[i - 1, j]
+            r[i, j] = s
+            acc += s * s
+    return acc
+
+
+@nb.njit(cache=True)
+def _presmooth_restrict(ex, ey, dg, x, b, bc, zero_start):
+    """Red then black Gauss-Seidel half-sweeps on A x = b, then bc = P^T (b - A x).
+
+    One pass over the rows: at step t, red row t, black row t - 1, residual of row t - 2.
+    With ``zero_start`` the initial guess is x = 0 (x is overwritten), else x is the guess.
+    """
+    h, w = dg.shape
+    for t in range(h + 2):
+        for phase in range(2):  # 0: red half-sweep of row t, 1: black half-sweep of row t - 1
+            i = t - phase
+            if i < 0 or i >= h:
+                continue
+            if zero_start and phase == 0:
+                for j in range(w):
+                    d = dg[i, j]
+                    x[i, j] = b[i, j] / d if (d != 0.0 and (i + j) % 2 == 0) else 0.0
+                continue
+            for j in range((i + phase) % 2, w, 2):
+                d = dg[i, j]
+                if d == 0.0:
+                    continue
+                s = b[i, j]
+                if j + 1 < w:
+                    s += ex[i, j] * x[i, j + 1]
+                if j > 0:
+                    s += ex[i, j - 1] * x[i, j - 1]
+                if i + 1 < h:
+                    s += ey[i, j] * x[i + 1, j]
+                if i > 0:
+                    s += ey[i - 1, j] * x[i - 1, j]
+                x[i, j] = s / d
+        i = t - 2
+        if i < 0:
+            continue
+        ic = i // 2
+        if i % 2 == 0:
+            bc[ic, :] = 0.0
+        for j in range(w):
+            d = dg[i, j]
+            if d == 0.0:
+                continue
+            s = b[i, j] - d * x[i, j]
+            if j + 1 < w:
+                s += ex[i, j] * x[i, j + 1]
+            if j > 0:
+                s += ex[i, j - 1] * x[i, j - 1]
+            if i + 1 < h:
+                s += ey[i, j] * x[i + 1, j]
+            if i > 0:
+                s += ey[i - 1, j] * x[i - 1, j]
+            bc[ic, j // 2] += s
+
+
+@nb.njit(cache=True)
+def _prolong_postsmooth(ex, ey, dg, x, b, xc):
+    """x += P xc, then black then red Gauss-Seidel half-sweeps; returns b . x (final x).
+
+    One pass over the rows: at step t, prolongation into row t, black row t - 1, red row t - 2.
+    """
+    h, w = dg.shape
+    acc = 0.0
+    for t in range(h + 2):
+        if t < h:
+            for j in range(w):
+                if dg[t, j] != 0.0:
+                    x[t, j] += xc[t // 2, j // 2]
+        for phase in range(1, 3):  # 1: black half-sweep of row t - 1, 2: red half-sweep of row t - 2
+            i = t - phase
+            if i < 0 or i >= h:
+                continue
+            for j in range((i + phase) % 2, w, 2):
+                d = dg[i, j]
+                if d == 0.0:
+                    continue
+                s = b[i, j]
+                if j + 1 < w:
+                    s += ex[i, j] * x[i, j + 1]
+                if j > 0:
+                    s += ex[i, j - 1] * x[i, j - 1]
+                if i + 1 < h:
+                    s += ey[i, j] * x[i + 1, j]
+                if i > 0:
+                    s += ey[i - 1, j] * x[i - 1, j]
+                x[i, j] = s / d
+        i = t - 2
+        if i >= 0:
+            for j in range(w):
+                acc += float(b[i, j]) * float(x[i, j])
+    return acc
+
+
+@nb.njit(cache=True)
+def _direction_matvec(z, beta, pdir, ex, ey, dg, ap):
+    """p = z + beta p, then ap = A p; returns p . A p (one pass: p of row t, A p of row t - 1)."""
+    h, w = dg.shape
+    acc = 0.0
+    for t in range(h + 1):
+        if t < h:
+            for j in range(w):
+                pdir[t, j] = z[t, j] + beta * pdir[t, j]
+        i = t - 1
+        if i < 0:
+            continue
+        for j in range(w):
+            d = dg[i, j]
+            if d == 0.0:
+                ap[i, j] = 0.0
+                continue
+            s = d * pdir[i, j]
+            if j + 1 < w:
+                s -= ex[i, j] * pdir[i, j + 1]
+            if j > 0:
+                s -= ex[i, j - 1] * pdir[i, j - 1]
+            if i + 1 < h:
+                s -= ey[i, j] * pdir[i + 1, j]
+            if i > 0:
+                s -= ey[i - 1, j] * pdir[i - 1, j]
+            ap[i, j] = s
+            acc += s * pdir[i, j]
+    return acc
+
+
+@nb.njit(cache=True)
+def _cg_step(alpha, pdir, ap, x, r):
+    """x += alpha p, r -= alpha A p; returns ||r||^2."""
+    h, w = x.shape
+    acc = 0.0
+    for i in range(h):
+        for j in range(w):
+            x[i, j] += alpha * pdir[i, j]
+            s = r[i, j] - alpha * ap[i, j]
+            r[i, j] = s
+            acc += s * s
+    return acc
+
+
+@nb.njit(cache=True)
+def _coarsen(ex, ey, wd, edge_scale, exc, eyc, wdc, dgc):
+    """Operator of the next level by 2x2 aggregation (fine edges between two blocks summed)."""
+    h, w = wd.shape
+    hc, wc = wdc.shape
+    for ic in range(hc):
+        for jc in range(wc):
+            i0 = 2 * ic
+            j0 = 2 * jc
+            s = 0.0
+            for di in range(2):
+                for dj in range(2):
+                    if i0 + di < h and j0 + dj < w:
+                        s += wd[i0 + di, j0 + dj]
+            wdc[ic, jc] = s
+            e = 0.0
+            if jc + 1 < wc:
+                for di in range(2):
+                    if i0 + di < h:
+                        e += ex[i0 + di, j0 + 1]
+            exc[ic, jc] = edge_scale * e
+            e = 0.0
+            if ic + 1 < hc:
+                for dj in range(2):
+                    if j0 + dj < w:
+                        e += ey[i0 + 1, j0 + dj]
+            eyc[ic, jc] = edge_scale * e
+    for ic in range(hc):
+        for jc in range(wc):
+            d = wdc[ic, jc] + exc[ic, jc] + eyc[ic, jc]
+            if jc > 0:
+                d += exc[ic, jc - 1]
+            if ic > 0:
+                d += eyc[ic - 1, jc]
+            dgc[ic, jc] = d
+
+
+@nb.njit(cache=True)
+def _restrict(r, rc):
+    """rc = P^T r: sums over 2x2 blocks."""
+    h, w = r.shape
+    rc[:, :] = 0.0
+    for i in range(h):
+        for j in range(w):
+            rc[i // 2, j // 2] += r[i, j]
+
+
+@nb.njit(cache=True)
+def _prolong(xc, dg, x):
+    """x = P xc (piecewise constant over 2x2 blocks) on the cells in the system, 0 elsewhere."""
+    h, w = x.shape
+    for i in range(h):
+        for j in range(w):
+            x[i, j] = xc[i // 2, j // 2] if dg[i, j] != 0.0 else 0.0
+
+
+class _Level:
+    """One level of the multigrid hierarchy: its operator and work buffers."""
+
+    def __init__(self, ex, ey, wd, dg):
+        self.ex, self.ey, self.wd, self.dg = ex, ey, wd, dg
+        self.x = np.zeros_like(dg)
+        self.b = np.zeros_like(dg)
+
+
+class _Multigrid:
+    """Symmetric V(1,1)-cycle for the masked Laplacian + diagonal, in float32.
+
+    Coarse operators are Galerkin products with piecewise-constant 2x2 prolongation, with the
+    edge part scaled by ``edge_scale`` (1/2 corrects the energy overestimate of piecewise-constant
+    interpolation of a smooth field in 2-D); the prior part is kept exact. Smoothing is red-black
+    Gauss-Seidel (red then black before, black then red after), so one cycle from a zero guess
+    is a symmetric positive (semi)definite operator and can precondition conjugate gradients.
+    """
+
+    def __init__(self, ex, ey, wd, dg, *, edge_scale=0.5):
+        lv = _Level(ex, ey, wd, dg)
+        self.levels = [lv]
+        while lv.dg.size > _COARSEST_CELLS and min(lv.dg.shape) > 2:
+            hc, wc = (lv.dg.shape[0] + 1) // 2, (lv.dg.shape[1] + 1) // 2
+            arrs = [np.empty((hc, wc), np.float32) for _ in range(4)]
+            _coarsen(lv.ex, lv.ey, lv.wd, np.float32(edge_scale), *arrs)
+            lv = _Level(*arrs)
+            self.levels.append(lv)
+        self._coarse_inv = _dense_pinv(lv)
+
+    def apply(self, r: np.ndarray) -> tuple[np.ndarray, float]:
+        """z = M^-1 r (one V-cycle from a zero guess) and r . z; z is float32 (H, W), a buffer
+        that the next call overwrites."""
+        rz = self._vcycle(0, r, zero_start=True)
+        return self.levels[0].x, rz
+
+    def full_multigrid(self, b: np.ndarray) -> np.ndarray:
+        """Approximate solution of A x = b by nested iteration (coarse solve, prolonged, one
+        V-cycle per level); float32 (H, W) buffer that the next call overwrites."""
+        lv = self.levels
+        lv[0].b[...] = b
+        for k in range(len(lv) - 1):
+            _restrict(lv[k].b, lv[k + 1].b)
+        self._coarsest(lv[-1].b)
+        for k in range(len(lv) - 2, -1, -1):
+            _prolong(lv[k + 1].x, lv[k].dg, lv[k].x)
+            # lv[k].b is overwritten below level k only, so it still holds the restricted b.
+            self._vcycle(k, lv[k].b, zero_start=False)
+        return lv[0].x
+
+    def _coarsest(self, b: np.ndarray) -> float:
+        lv = self.levels[-1]
+        lv.x.ravel()[:] = self._coarse_inv @ b.ravel().astype(np.float32)
+        return float(np.dot(b.ravel(), lv.x.ravel()))
+
+    def _vcycle(self, k: int, b: np.ndarray, *, zero_start: bool) -> float:
+        lv = self.levels[k]
+        if k == len(self.levels) - 1:
+            return self._coarsest(b)
+        nxt = self.levels[k + 1]
+        _presmooth_restrict(lv.ex, lv.ey, lv.dg, lv.x, b, nxt.b, zero_start)
+        self._vcycle(k + 1, nxt.b, zero_start=True)
+        return _prolong_postsmooth(lv.ex, lv.ey, lv.dg, lv.x, b, nxt.x)
+
+
+def _dense_pinv(lv: _Level) -> np.ndarray:
+    """Pseudo-inverse of the coarsest operator (cells outside the system map to 0)."""
+    h, w = lv.dg.shape
+    n = h * w
+    a = np.zeros((n, n))
+    idx = np.arange(n).reshape(h, w)
+    a[idx.ravel(), idx.ravel()] = lv.dg.ravel()
+    for ia, ib, wt in (
+        (idx[:, :-1], idx[:, 1:], lv.ex[:, :-1]),
+        (idx[:-1, :], idx[1:, :], lv.ey[:-1, :]),
+    ):
+        a[ia.ravel(), ib.ravel()] -= wt.ravel()
+        a[ib.ravel(), ia.ravel()] -= wt.ravel()
+    return np.linalg.pinv(a, hermitian=True).astype(np.float32)
+
+
+def _pcg(ex, ey, dg, b, x, precond, *, tol, max_iter):
+    """Preconditioned conjugate gradients on the full grid (cells with dg = 0 stay 0).
+
+    Returns (iterations, relative residual ||b - A x|| / ||b||).
+    """
+    bnorm = float(np.sqrt(np.dot(b.ravel(), b.ravel())))
+    if bnorm == 0.0:
+        x[...] = 0.0
+        return 0, 0.0
+    r = np.empty_like(b)
+    rel = np.sqrt(_residual_norm2(ex, ey, dg, x, b, r)) / bnorm
+    it = 0
+    pdir = np.zeros_like(b)
+    ap = np.empty_like(b)
+    rz_old = 1.0
+    while rel > tol and it < max_iter:
+        z, rz = precond.apply(r)
+        pap = _direction_matvec(z, rz / rz_old if it else 0.0, pdir, ex, ey, dg, ap)
+        it += 1
+        rel = np.sqrt(_cg_step(rz / pap, pdir, ap, x, r)) / bnorm
+        rz_old = rz
+    return it, float(rel)
+
+
+def _solve(ex, ey, wd, dg, b, *, tol, max_iter):
+    """Least-squares solution of the assembled system; returns (x, iterations, residual)."""
+    mg = _Multigrid(ex, ey, wd, dg)
+    x = mg.full_multigrid(b).astype(np.float64)
+    it, rel = _pcg(ex, ey, dg, b, x, mg, tol=tol, max_iter=max_iter)
+    return x, it, rel
+
+
+def _check_mask(mask, shape_hw, name="mask") -> np.ndarray:
+    mask = np.asarray(mask)
+    if mask.shape != shape_hw:
+        raise ValueError(f"{name}: expected shape {shape_hw}, got {mask.shape}")
+    if mask.dtype != np.bool_:
+        raise ValueError(f"{name}: expected dtype bool, got {mask.dtype}")
+    if not mask.any():
+        raise ValueError(f"{name}: expected at least one valid (True) pixel, got none")
+    return mask
+
+
+def _check_options(tol, max_iter) -> None:
+    if not (np.isfinite(tol) and 0.0 < tol < 1.0):
+        raise ValueError(f"tol: expected a relative residual in (0, 1), got {tol}")
+    if int(max_iter) != max_iter or max_iter < 1:
+        raise ValueError(f"max_iter: expected a positive integer, got {max_iter}")
+
+
+def integrate_normals(
+    normals: np.ndarray,
+    mask: np.ndarray,
+    K: np.ndarray,
+    *,
+    prior_depth_mm: np.ndarray | None = None,
+    prior_weight: float | np.ndarray = 1e-2,
+    reference_depth_mm: float | None = None,
+    tol: float = 1e-6,
+    max_iter: int = 200,
+) -> DepthResult:
+    """Integrate a normal field seen by a pinhole camera into metric depth.
+
+    Every pair of 4-neighbour pixels inside ``mask`` gives one equation on the
+    log depth ``t = log z``: ``t_b - t_a = (g_a + g_b) / 2`` where ``g`` is the
+    derivative of ``t`` along the pair (pixel units) computed from the normal and
+    the pixel's ray; optional prior equations ``sqrt(w) (t - log z_prior) = 0``
+    fuse a metric depth. The overdetermined system is solved by least squares
+    over the masked domain.
+
+    Parameters
+    ----------
+    normals : (H, W, 3) float32 or float64
+        Unit normals in the left-camera frame (OpenCV: x right, y down, z
+        forward), pointing out of the surface towards the camera (``n . ray < 0``),
+        on the *undistorted* left image grid. Values outside ``mask`` are ignored
+        (may be NaN).
+    mask : (H, W) bool
+        Pixels to integrate (True = valid).
+    K : (3, 3) array_like
+        Intrinsics of the undistorted left image, pixels (``fx`` may differ
+        from ``fy``).
+    prior_depth_mm : (H, W) float, optional
+        Metric depth along the optical axis (mm, > 0), NaN where unknown, e.g.
+        from binocular stereo. Fixes the scale; with a large weight it also
+        fixes the low frequencies.
+    prior_weight : float or (H, W) float, optional
+        Weight ``w >= 0`` of each prior equation relative to a neighbour
+        equation (both are in log depth). ``w`` sets the length scale
+        ``~ 1 / sqrt(w)`` pixels below which the normals dominate.
+    reference_depth_mm : float, optional
+        Without a prior the solution is known only up to a scale: it is fixed
+        so that the median depth over the mask equals this value (mm). Each
+        connected part of the mask that has no prior pixel is scaled on its
+        own this way.
+    tol : float, optional
+        Relative residual ``||b - A x|| / ||b||`` of the normal equations at
+        which the conjugate-gradient solve stops.
+    max_iter : int, optional
+        Maximum number of conjugate-gradient iterations.
+
+    Returns
+    -------
+    DepthResult
+        ``depth_mm`` (H, W) float64, mm along the left optical axis, NaN
+        outside ``mask``.
+
+    Raises
+    ------
+    ValueError
+        On bad shapes or values: normals inside the mask that are not finite,
+        not unit, or not facing the camera; a prior that is not positive;
+        negative weights; neither a prior nor ``reference_depth_mm`` for a part
+        of the mask.
+
+    Notes
+    -----
+    For a pixel ``(u, v)`` with ray ``r = K^-1 (u, v, 1)`` the surface point is
+    ``X = z r``. Its tangents ``X_u = z_u r + z K^-1 e_1`` and
+    ``X_v = z_v r + z K^-1 e_2`` are orthogonal to the normal ``n``, so
+
+    ``d(log z)/du = -(n . K^-1 e_1) / (n . r)``,
+    ``d(log z)/dv = -(n . K^-1 e_2) / (n . r)``
+
+    (for ``K`` without skew: ``-n_x / (fx n . r)`` and ``-n_y / (fy n . r)``).
+    These are independent of the length of ``n`` and exact for any surface.
+
+    The normal equations are a masked graph Laplacian plus the diagonal prior
+    weights; they are solved by conjugate gradients preconditioned by a
+    multigrid V-cycle.
+
+    References
+    ----------
+    .. [1] J.-D. Durou, J.-F. Aujol, F. Courteille, "Integrating the normal
+       field of a surface in the presence of discontinuities", EMMCVPR 2009.
+    .. [2] Y. Queau, J.-D. Durou, J.-F. Aujol, "Normal integration: a survey",
+       J. Math. Imaging Vis. 60, 2018 (perspective case, log depth).
+    .. [3] D. Nehab, S. Rusinkiewicz, J. Davis, R. Ramamoorthi, "Efficiently
+       combining positions and normals for precise 3D geometry", SIGGRAPH 2005.
+    """
+    normals = np.asarray(normals)
+    if normals.ndim != 3 or normals.shape[2] != 3:
+        raise ValueError(f"normals: expected shape (H, W, 3), got {normals.shape}")
+    if normals.dtype not in (np.float32, np.float64):
+        raise ValueError(f"normals: expected dtype float32 or float64, got {normals.dtype}")
+    hw = normals.shape[:2]
+    mask = _check_mask(mask, hw)
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)):
+        raise ValueError(f"K: expected a finite (3, 3) matrix, got shape {K.shape}")
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
+        raise ValueError(f"K: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, got {K.tolist()}")
+    _check_options(tol, max_iter)
+    if reference_depth_mm is not None and not (np.isfinite(reference_depth_mm) and reference_depth_mm > 0):
+        raise ValueError(f"reference_depth_mm: expected a positive depth in mm, got {reference_depth_mm}")
+
+    wd, log_prior, shift = _prior_terms(prior_depth_mm, prior_weight, mask)
+    if prior_depth_mm is None and reference_depth_mm is None:
+        raise ValueError(
+            "prior_depth_mm, reference_depth_mm: expected at least one to fix the scale of the depth, got neither"
+        )
+
+    normals = np.ascontiguousarray(normals)
+    mask_c = np.ascontiguousarray(mask)
+    p = np.empty(hw)
+    q = np.empty(hw)
+    bad = _log_depth_gradients(normals, mask_c, np.linalg.inv(K), _UNIT_TOL, p, q)
+    if bad:
+        raise ValueError(
+            f"normals: expected finite unit vectors facing the camera (n . ray < 0) inside the mask, "
+            f"got {bad} pixel(s) that are not"
+        )
+    x, it, rel, floating = _integrate(mask_c, p, q, wd, log_prior, tol=tol, max_iter=max_iter)
+    x += shift
+    depth = np.exp(x, out=x)
+    if floating is not None:
+        if reference_depth_mm is None:
+            raise ValueError(
+                f"reference_depth_mm: {floating[1]} connected part(s) of the mask have no prior depth, "
+                "expected reference_depth_mm to fix their scale, got None"
+            )
+        _scale_to_median(depth, floating[0], floating[1], float(reference_depth_mm))
+    depth[~mask_c] = np.nan
+    return DepthResult(depth_mm=depth, mask=mask_c.copy(), iterations=it, residual=rel)
+
+
+def integrate_gradient(
+    grad_u: np.ndarray,
+    grad_v: np.ndarray,
+    mask: np.ndarray,
+    *,
+    tol: float = 1e-6,
+    max_iter: int = 200,
+) -> HeightResult:
+    """Least-squares integration of an orthographic gradient field on a masked grid.
+
+    The same solver as :func:`integrate_normals`, for a field given directly as
+    derivatives of a height: every 4-neighbour pair inside ``mask`` gives
+    ``h_b - h_a = (g_a + g_b) / 2``.
+
+    Parameters
+    ----------
+    grad_u : (H, W) float
+        ``dh/du``: derivative along image columns (u = column index, rightwards),
+        in height units per pixel.
+    grad_v : (H, W) float
+        ``dh/dv``: derivative along image rows (v = row index, downwards).
+    mask : (H, W) bool
+        Pixels to integrate; the gradients must be finite there.
+    tol, max_iter
+        As in :func:`integrate_normals`.
+
+    Returns
+    -------
+    HeightResult
+        ``height`` (H, W) float64 with zero mean over each connected part of
+        the mask, NaN outside it.
+
+    Raises
+    ------
+    ValueError
+        On bad shapes, or gradients that are not finite inside the mask.
+    """
+    grad_u = np.asarray(grad_u, dtype=np.float64)
+    grad_v = np.asarray(grad_v, dtype=np.float64)
+    if grad_u.ndim != 2:
+        raise ValueError(f"grad_u: expected shape (H, W), got {grad_u.shape}")
+    if grad_v.shape != grad_u.shape:
+        raise ValueError(f"grad_v: expected shape {grad_u.shape} like grad_u, got {grad_v.shape}")
+    mask = np.ascontiguousarray(_check_mask(mask, grad_u.shape))
+    _check_options(tol, max_iter)
+    for name, g in (("grad_u", grad_u), ("grad_v", grad_v)):
+        n_bad = int(np.count_nonzero(~np.isfinite(g[mask])))
+        if n_bad:
+            raise ValueError(f"{name}: expected finite values inside the mask, got {n_bad} that are not")
+    p = np.where(mask, grad_u, 0.0)
+    q = np.where(mask, grad_v, 0.0)
+    zeros = np.zeros(grad_u.shape)
+    x, it, rel, floating = _integrate(mask, p, q, zeros, zeros, tol=tol, max_iter=max_iter)
+    labels, n = floating
+    sums = np.bincount(labels.ravel(), weights=x.ravel(), minlength=n + 1)
+    counts = np.bincount(labels.ravel(), minlength=n + 1)
+    means = sums / np.maximum(counts, 1)
+    means[0] = 0.0
+    x -= means[labels]
+    x[~mask] = np.nan
+    return HeightResult(height=x, mask=mask.copy(), iterations=it, residual=rel)
+
+
+def _prior_terms(prior_depth_mm, prior_weight, mask):
+    """Prior weights wd, shifted log prior and the shift (median log prior) on the grid."""
+    hw = mask.shape
+    if prior_depth_mm is None:
+        return np.zeros(hw), np.zeros(hw), 0.0
+    prior = np.asarray(prior_depth_mm, dtype=np.float64)
+    if prior.shape != hw:
+        raise ValueError(f"prior_depth_mm: expected shape {hw}, got {prior.shape}")
+    known = mask & ~np.isnan(prior)
+    vals = prior[known]
+    if not np.all(np.isfinite(vals) & (vals > 0)):
+        n_bad = int(np.count_nonzero(~(np.isfinite(vals) & (vals > 0))))
+        raise ValueError(f"prior_depth_mm: expected depths > 0 mm or NaN, got {n_bad} pixel(s) infinite or <= 0")
+    weight = np.asarray(prior_weight, dtype=np.float64)
+    if weight.ndim == 0:
+        if not (np.isfinite(weight) and weight >= 0):
+            raise ValueError(f"prior_weight: expected a finite weight >= 0, got {float(weight)}")
+        wd = np.where(known, float(weight), 0.0)
+    else:
+        if weight.shape != hw:
+            raise ValueError(f"prior_weight: expected a scalar or shape {hw}, got {weight.shape}")
+        wk = weight[known]
+        if not np.all(np.isfinite(wk) & (wk >= 0)):
+            raise ValueError("prior_weight: expected finite weights >= 0 where the prior is known")
+        wd = np.where(known, weight, 0.0)
+    used = wd > 0
+    if not used.any():
+        return np.zeros(hw), np.zeros(hw), 0.0
+    log_prior = np.zeros(hw)
+    log_prior[used] = np.log(prior[used])
+    shift = float(np.median(log_prior[used]))
+    log_prior[used] -= shift
+    return wd, log_prior, shift
+
+
+def _integrate(mask, p, q, wd, log_prior, *, tol, max_iter):
+    """Assemble and solve; returns (x, iterations, residual, floating) with floating = (labels, n)
+    of the connected parts without any prior pixel, or None when every part has one."""
+    hw = mask.shape
+    ex = np.empty(hw, np.float32)
+    ey = np.empty(hw, np.float32)
+    dg = np.empty(hw, np.float32)
+    b = np.empty(hw)
+    wd = wd.astype(np.float32)
+    _fine_system(mask, p, q, wd, log_prior, ex, ey, dg, b)
+    x, it, rel = _solve(ex, ey, wd, dg, b, tol=tol, max_iter=max_iter)
+    labels, n = scipy.ndimage.label(mask)
+    has_prior = np.zeros(n + 1, bool)
+    has_prior[np.unique(labels[wd > 0])] = True
+    has_prior[0] = True
+    if has_prior.all():
+        return x, it, rel, None
+    floating = ~has_prior[labels]
+    labels = np.where(floating, labels, 0)
+    return x, it, rel, (labels, n)
+
+
+def _scale_to_median(depth, labels, n, reference):
+    """Scale each labelled part (label > 0) of ``depth`` so that its median is ``reference``, in place."""
+    counts = np.bincount(labels.ravel(), minlength=n + 1)
+    present = np.flatnonzero(counts[1:]) + 1
+    if present.size == 1:
+        sel = labels == present[0]
+        depth[sel] *= reference / np.median(depth[sel])
+        return
+    flat = depth.ravel()
+    lab = labels.ravel()
+    idx = np.flatnonzero(lab)
+    order = idx[np.argsort(lab[idx], kind="stable")]
+    ends = np.cumsum(counts[1:])
+    starts = ends - counts[1:]
+    for s, e in zip(starts, ends):
+        if e > s:
+            part = order[s:e]
+            flat[part] *= reference / np.median(flat[part])
