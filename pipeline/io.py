@@ -10,7 +10,9 @@ never extracted to disk: every member name, type and size is checked first
 (no absolute paths, no ``..``, no symlinks, no encrypted members, no duplicate
 names, a total uncompressed size limit and a per-member compression-ratio
 limit); only then are the members the capture names read and decoded with
-``cv2.imdecode`` from bytes.
+``cv2.imdecode`` from bytes. Images must be PNG or TIFF; their size is read
+from the file header and checked against the calibration before decoding, so a
+small file claiming a huge image is refused without allocating it.
 """
 
 from __future__ import annotations
@@ -586,9 +588,49 @@ class _ImageJob:
     what: str  # "photometric image", "dark frame", ...
 
 
+_PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+_TIFF_MAGICS = (b"II*\x00", b"MM\x00*")
+
+
+def _header_size(data: bytes) -> tuple[int, int] | None:
+    """``(width, height)`` from a PNG's IHDR or a TIFF's first IFD, without decoding; None if unreadable."""
+    if data.startswith(_PNG_MAGIC) and len(data) >= 24 and data[12:16] == b"IHDR":
+        return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    if data[:4] in _TIFF_MAGICS:
+        order = "little" if data[:2] == b"II" else "big"
+        ifd = int.from_bytes(data[4:8], order)
+        if ifd + 2 > len(data):
+            return None
+        count = int.from_bytes(data[ifd : ifd + 2], order)
+        size: dict[int, int] = {}
+        for i in range(count):
+            entry = data[ifd + 2 + 12 * i : ifd + 14 + 12 * i]
+            if len(entry) < 12:
+                return None
+            tag, kind = int.from_bytes(entry[0:2], order), int.from_bytes(entry[2:4], order)
+            if tag in (256, 257):  # ImageWidth, ImageLength: SHORT (3) or LONG (4)
+                size[tag] = int.from_bytes(entry[8:10] if kind == 3 else entry[8:12], order)
+        return (size[256], size[257]) if len(size) == 2 else None
+    return None
+
+
 def _decode_into(data: bytes, job: _ImageJob, out: np.ndarray, *, bit_depth: int, label: str) -> None:
-    """Decode one image file, check it, and write it as grey float32 into ``out`` (H, W)."""
+    """Check one image file's header, decode it, check it, and write it as grey float32 into ``out`` (H, W).
+
+    The size is read from the header first, so a small file claiming a huge
+    image is refused before anything is allocated for it.
+    """
     name = repr(job.rel)
+    if not (data.startswith(_PNG_MAGIC) or data[:4] in _TIFF_MAGICS):
+        raise InputError(label, job.field, f"{name}: not a PNG or TIFF file (expected an 8- or 16-bit PNG or TIFF)")
+    header = _header_size(data)
+    if header is not None and header != job.expected_size:
+        ew, eh = job.expected_size
+        raise InputError(
+            label,
+            job.field,
+            f"{name} ({job.what}) is {header[0]}x{header[1]} px, expected {ew}x{eh} (calibration image_size, width x height)",
+        )
     try:
         img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED) if data else None
     except cv2.error:

@@ -153,9 +153,13 @@ def test_missing_image_file(tmp_path):
 
 def test_corrupt_image(tmp_path):
     good = (write_bundle(tmp_path, name="g") / "ps_01.png").read_bytes()
-    for content in (b"not an image at all", good[: len(good) // 2], b""):
+    for content in (good[: len(good) // 2], good[:40] + bytes(200)):
         bundle = write_bundle(tmp_path, name="bad", files={"ps_01.png": content})
         with pytest.raises(InputError, match=_err("capture.json: photometric.images[1]: 'ps_01.png'", "cannot decode")):
+            load_capture(bundle)
+    for content in (b"not an image at all", b""):
+        bundle = write_bundle(tmp_path, name="bad", files={"ps_01.png": content})
+        with pytest.raises(InputError, match=_err("capture.json: photometric.images[1]: 'ps_01.png'", "not a PNG or TIFF")):
             load_capture(bundle)
 
 
@@ -165,6 +169,50 @@ def test_image_size_differs_from_calibration(tmp_path):
         InputError, match=_err("photometric.images[3]: 'ps_03.png'", f"is {WIDTH + 2}x{HEIGHT}", f"expected {WIDTH}x{HEIGHT}")
     ):
         load_capture(bundle)
+
+
+@pytest.mark.parametrize("ext", [".png", ".tiff"])
+def test_huge_image_header_refused_before_decoding(tmp_path, ext, monkeypatch):
+    """A small file whose header claims 100000 x 90000 px is refused from the header alone."""
+    big = np.zeros((HEIGHT, WIDTH), np.uint16)
+    ok, buf = cv2.imencode(ext, big)
+    data = bytearray(buf.tobytes())
+    if ext == ".png":
+        data[16:24] = (100_000).to_bytes(4, "big") + (90_000).to_bytes(4, "big")
+    else:  # little-endian TIFF: patch the ImageWidth / ImageLength entries of IFD 0
+        order = "little" if data[:2] == b"II" else "big"
+        ifd = int.from_bytes(data[4:8], order)
+        for i in range(int.from_bytes(data[ifd : ifd + 2], order)):
+            e = ifd + 2 + 12 * i
+            tag = int.from_bytes(data[e : e + 2], order)
+            if tag in (256, 257):
+                data[e + 2 : e + 4] = (4).to_bytes(2, order)  # LONG
+                data[e + 8 : e + 12] = (100_000 if tag == 256 else 90_000).to_bytes(4, order)
+    bundle = write_bundle(tmp_path, files={"ps_01.png": bytes(data)})
+    real_imdecode = cv2.imdecode
+
+    def imdecode(buf, flags):
+        if buf.tobytes() == bytes(data):
+            pytest.fail("decoded a file whose header is already wrong")
+        return real_imdecode(buf, flags)
+
+    monkeypatch.setattr(cv2, "imdecode", imdecode)
+    with pytest.raises(InputError, match=_err("photometric.images[1]: 'ps_01.png'", "is 100000x90000 px", "expected 64x48")):
+        load_capture(bundle, workers=1)
+
+
+def test_image_of_another_type_refused(tmp_path):
+    ok, jpeg = cv2.imencode(".jpg", np.zeros((HEIGHT, WIDTH), np.uint8))
+    bundle = write_bundle(tmp_path, files={"ps_01.png": jpeg.tobytes()})
+    with pytest.raises(InputError, match=_err("photometric.images[1]: 'ps_01.png': not a PNG or TIFF")):
+        load_capture(bundle)
+
+
+def test_sixteen_bit_tiff_images(tmp_path):
+    imgs = {f"ps_{k:02d}.tif": np.full((HEIGHT, WIDTH), 1000 * (k + 1), np.uint16) for k in range(4)}
+    bundle = write_bundle(tmp_path, files=imgs, mutate=_set(["photometric", "images"], sorted(imgs)))
+    cap = load_capture(bundle)
+    np.testing.assert_array_equal(cap.images[:, 0, 0], [1000, 2000, 3000, 4000])
 
 
 def test_dark_frame_of_wrong_size(tmp_path):
