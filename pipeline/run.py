@@ -192,7 +192,7 @@ def inspect(
         "normals": "normals.png",
         "depth": "depth.npy",
     }
-    artifacts.write_surface_ply(out / names["surface"], points, surface_mask, dev)
+    artifacts.write_surface_ply(out / names["surface"], points, surface_mask, dev, tolerance_mm=tgt.tolerance_mm)
     verts, faces = deviation.target_surface(tgt)
     artifacts.write_target_ply(out / names["target_surface"], verts, faces, registration.T_cam_target)
     artifacts.write_deviation_png(out / names["deviation_map"], dev, surface_mask, tolerance_mm=tgt.tolerance_mm)
