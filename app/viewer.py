@@ -78,7 +78,7 @@ class PlateMeshes:
     target_vertices : (W, 3) float32, m
     target_faces : (G, 3) int32
     tolerance_mm : float
-    extent_m : float, largest side of the measured surface's bounding box, m.
+    extent_m : float, largest side of the measured or the target surface's bounding box, m.
     """
 
     measured_vertices: np.ndarray
@@ -277,7 +277,7 @@ def load_plate_meshes(artifact_dir: Path, *, max_vertices: int = 150_000) -> Pla
         target_vertices=tv,
         target_faces=_facing_up(tv, tf),
         tolerance_mm=float(document["tolerance_mm"]),
-        extent_m=float(np.max(hi - lo) / 1000.0),
+        extent_m=float(max(np.ptp(mv, axis=0).max(), np.ptp(tv, axis=0).max())),
     )
 
 
