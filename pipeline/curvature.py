@@ -623,7 +623,13 @@ def principal_curvatures(points_mm, mask, *, flat_sagitta_mm: float = FLAT_SAGIT
     frame = frame * np.array([[1.0], [-1.0], [-1.0]])  # ez towards the camera, still right-handed
     q = (sub - c) @ frame.T
     a = _local_quadric(q)
-    evals = np.linalg.eigvalsh(np.array([[2 * a[3], a[4]], [a[4], 2 * a[5]]]))
+    evals, evecs = np.linalg.eigh(np.array([[2 * a[3], a[4]], [a[4], 2 * a[5]]]))
+    # Turn x_p to the quadric's direction of strongest curvature: the tangent basis below (e1 along r_x)
+    # then follows the principal directions, so their median tensor does not mix k1 into k2.
+    i_max = int(np.argmax(np.abs(evals)))
+    ex = evecs[0, i_max] * frame[0] + evecs[1, i_max] * frame[1]
+    frame = np.stack([ex, np.cross(frame[2], ex), frame[2]])
+    q = (sub - c) @ frame.T
     half = (q[:, :2].max(axis=0) - q[:, :2].min(axis=0)) / 2
     deg = _choose_degree(float(np.max(np.abs(evals)) * np.max(half)))
     poly = _HeightPoly(q, deg)
