@@ -1,0 +1,275 @@
+"""Registration, deviation sign, verdict and target surface against ray-cast analytic plates."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from pipeline.deviation import (
+    Registration,
+    deviation_map,
+    fitted_target_radius,
+    judge,
+    register_to_target,
+    target_surface,
+)
+from pipeline.io import Target
+from tests.pipeline.test_curvature import cylinder, dented, plate_grid, saddle, sphere
+
+PLATE_CENTRE = np.array([30.0, -20.0, 3000.0])  # where plate_grid puts the plate frame's origin
+
+
+def target(shape, radius=None, tol=2.0, **kw):
+    return Target(shape=shape, radius_mm=radius, size_mm=(3000.0, 3000.0), tolerance_mm=tol, **kw)
+
+
+def pixel_area(mask):
+    return 3000.0 * 3000.0 / mask.sum()  # the 3 m x 3 m plate over its pixels (mean), mm^2
+
+
+def true_registration(shape, R_cp, sign):
+    """T_cam_target of the generating plate: the plate frame for convex plates (centre at +z_p); for concave
+    ones the target's +z is -z_p (its centre of curvature is towards the camera), y flipped to stay proper."""
+    R = R_cp if sign > 0 or shape == "plane" else R_cp @ np.diag([1.0, -1.0, -1.0])
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, PLATE_CENTRE
+    return Registration(T_cam_target=T, shape=shape, rms_mm=0.0, convex_towards_camera=None)
+
+
+def shape_height(shape, R, sign, offset_mm=0.0):
+    """Height of the plate whose surface lies ``offset_mm`` towards the camera from the nominal one
+    (concentric for cylinder and sphere, so the offset is exact along every normal)."""
+    if shape == "plane":
+        return lambda x, y: 0 * x - offset_mm
+    Ro = R + sign * offset_mm
+    if shape == "cylinder":
+        return lambda x, y: sign * (R - np.sqrt(Ro * Ro - x * x))
+    return lambda x, y: sign * (R - np.sqrt(Ro * Ro - x * x - y * y))
+
+
+# --------------------------------------------------------------------------- analytic targets
+
+
+@pytest.mark.parametrize("shape", ["plane", "cylinder", "sphere"])
+@pytest.mark.parametrize("sign", [1, -1])
+def test_registration_gives_noise_level_deviation(shape, sign):
+    R = 5000.0
+    rng = np.random.default_rng(31 + 2 * sign + len(shape))
+    pts, m, _, R_cp = plate_grid(shape_height(shape, R, sign), noise_mm=0.2, rng=rng)
+    tgt = target(shape, None if shape == "plane" else R)
+    reg = register_to_target(pts, m, tgt)
+    assert reg.T_cam_target.shape == (4, 4)
+    if shape != "plane":
+        assert reg.convex_towards_camera == (sign > 0)
+        # the target's +z points to its centre of curvature: away from the camera for a convex plate
+        assert np.sign(reg.T_cam_target[:3, 2] @ R_cp[:, 2]) == sign
+    if shape == "cylinder":
+        assert abs(reg.T_cam_target[:3, 1] @ R_cp[:, 1]) > math.cos(math.radians(0.1))  # y = the axis
+    dev = deviation_map(pts, m, tgt, reg)
+    assert dev.dtype == np.float32 and dev.shape == m.shape
+    assert np.isnan(dev[~m]).all() and np.isfinite(dev[m]).all()
+    # The deviation is the 0.2 mm noise: mean ~0 (0.02 mm = 10 sigma of the mean), RMS 0.2 +- 25 %.
+    assert abs(np.mean(dev[m])) < 0.02
+    assert 0.15 < np.sqrt(np.mean(dev[m] ** 2)) < 0.25
+    assert reg.rms_mm == pytest.approx(np.sqrt(np.mean(dev[m] ** 2)), rel=0.1)
+    j = judge(dev, m, 2.0, pixel_area_mm2=pixel_area(m))
+    assert j.verdict == "pass" and j.defects == () and j.within_tolerance_pct == 100.0
+
+
+@pytest.mark.parametrize("shape", ["plane", "cylinder", "sphere"])
+@pytest.mark.parametrize("sign", [1, -1])
+def test_deviation_sign_with_known_pose(shape, sign):
+    R = 3000.0
+    pts, m, _, R_cp = plate_grid(shape_height(shape, R, sign, offset_mm=1.0))
+    tgt = target(shape, None if shape == "plane" else R)
+    dev = deviation_map(pts, m, tgt, true_registration(shape, R_cp, sign))
+    # 1 mm towards the cameras, exactly along every normal: +1 mm (noise-free; float32 output).
+    assert np.allclose(dev[m], 1.0, atol=1e-4)
+    behind = deviation_map(*plate_grid(shape_height(shape, R, sign, offset_mm=-1.0))[:2], tgt,
+                           true_registration(shape, R_cp, sign))
+    assert np.allclose(behind[np.isfinite(behind)], -1.0, atol=1e-4)
+
+
+def test_uniform_offset_is_absorbed_by_best_fit():
+    # A rigid best fit cannot tell a plate shifted by 1 mm from one in place: the deviation after
+    # registration is ~0 (the 1 mm shows only with a fixed pose, test above).
+    R = 5000.0
+    pts, m, _, _ = plate_grid(lambda x, y: cylinder(R)(x, y) - 1.0)
+    tgt = target("cylinder", R)
+    dev = deviation_map(pts, m, tgt, register_to_target(pts, m, tgt))
+    assert np.max(np.abs(dev[m])) < 1e-3
+
+
+def test_dent_fails_and_the_same_plate_without_it_passes():
+    R = 5000.0
+    tgt = target("cylinder", R, tol=2.0)
+    plain, m0, _, _ = plate_grid(cylinder(R), noise_mm=0.2, rng=np.random.default_rng(8))
+    dent, m1, xy, _ = plate_grid(dented(cylinder(R), depth_mm=6.0, radius_mm=100.0, at=(300.0, -200.0)),
+                                 noise_mm=0.2, rng=np.random.default_rng(8))
+    j0 = judge(deviation_map(plain, m0, tgt, register_to_target(plain, m0, tgt)), m0, 2.0, pixel_area_mm2=pixel_area(m0))
+    assert j0.verdict == "pass"
+    dev = deviation_map(dent, m1, tgt, register_to_target(dent, m1, tgt))
+    j1 = judge(dev, m1, 2.0, pixel_area_mm2=pixel_area(m1))
+    assert j1.verdict == "fail" and len(j1.defects) == 1
+    d = j1.defects[0]
+    # The dent is pushed away from the cameras: negative, peak -6 mm +- noise and pixel sampling.
+    assert -6.8 < d.peak_deviation_mm < -5.0
+    # Out of tolerance where 6 (1 - q)^3 > 2: r < 64 mm, ~13 000 mm^2; pixels of ~19 mm: +- 50 %.
+    assert 6_000 < d.area_mm2 < 20_000
+    dist = np.where(m1, np.hypot(xy[..., 0] - 300.0, xy[..., 1] + 200.0), np.inf)
+    row, col = np.unravel_index(np.argmin(dist), m1.shape)
+    assert abs(d.centroid_px[0] - col) < 2 and abs(d.centroid_px[1] - row) < 2
+
+
+def test_judge_rules_single_pixel_block_and_scatter():
+    rng = np.random.default_rng(3)
+    m = np.ones((100, 120), dtype=bool)
+    m[:, :5] = False
+    dev = rng.normal(0.0, 0.2, m.shape)
+    area = 4.0  # mm^2 per pixel
+    spike = dev.copy()
+    spike[50, 60] = 10.0  # one noisy pixel: 4 mm^2 < 100 mm^2
+    j = judge(spike, m, 2.0, pixel_area_mm2=area)
+    assert j.verdict == "pass" and j.max_abs_mm == 10.0 and j.outside_area_mm2 == 4.0
+    block = dev.copy()
+    block[10:16, 20:26] = -3.0  # 36 px = 144 mm^2 >= 100 mm^2
+    j = judge(block, m, 2.0, pixel_area_mm2=area)
+    assert j.verdict == "fail" and len(j.defects) == 1
+    assert j.defects[0].area_mm2 == 144.0 and j.defects[0].peak_deviation_mm == -3.0
+    assert j.defects[0].centroid_px == (22.5, 12.5)
+    scatter = dev.copy()
+    pick = np.zeros(m.shape, dtype=bool)
+    pick[::2, ::2] = rng.random((50, 60)) < 0.3  # isolated pixels: no region reaches 100 mm^2, ~7 % out
+    scatter[pick] = 2.5
+    j = judge(scatter, m, 2.0, pixel_area_mm2=area)
+    assert j.defects == () and j.verdict == "fail" and "% of the area" in j.reasons[0]
+
+
+def test_judge_statistics():
+    m = np.ones((20, 20), dtype=bool)
+    dev = np.full((20, 20), 0.5)
+    dev[:2] = -1.5  # 40 of 400 pixels
+    dev[5, 5] = np.nan  # not judged
+    m[19, :] = False
+    area = np.full((20, 20), 2.0)
+    area[:2] = 6.0
+    j = judge(dev, m, 1.0, pixel_area_mm2=area)
+    a = np.abs(dev[m & np.isfinite(dev)])
+    assert j.n_pixels == a.size == 379
+    assert j.rms_mm == pytest.approx(np.sqrt(np.mean(a * a)))
+    assert j.max_abs_mm == 1.5 and j.p95_mm == pytest.approx(np.percentile(a, 95))
+    # area-weighted: 40 px x 6 mm^2 out of tolerance, 339 px x 2 mm^2 in
+    assert j.within_tolerance_pct == pytest.approx(100 * 339 * 2 / (339 * 2 + 40 * 6))
+    assert j.verdict == "fail"
+
+
+# --------------------------------------------------------------------------- mesh targets
+
+
+def _patch_mesh(height, half=1650.0, n=67):
+    g = np.linspace(-half, half, n)
+    gx, gy = np.meshgrid(g, g)
+    V = np.stack([gx.ravel(), gy.ravel(), height(gx, gy).ravel()], axis=1)
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    return V, np.concatenate([np.stack([a, b, c], 1), np.stack([b, d, c], 1)])
+
+
+@pytest.mark.parametrize("name,height", [("cylinder", cylinder(4000.0, -1)), ("saddle", saddle(4000.0, 6000.0))])
+def test_mesh_target_from_stl_registers(tmp_path, name, height):
+    V, F = _patch_mesh(height)
+    # The mesh in an arbitrary frame of its own, written as STL by trimesh and read back.
+    R_mesh = Rotation.from_euler("zyx", [70, 40, -25], degrees=True).as_matrix()
+    moved = V @ R_mesh.T + np.array([500.0, -2000.0, 800.0])
+    path = tmp_path / "target.stl"
+    trimesh.Trimesh(moved, F).export(path)
+    loaded = trimesh.load(path)
+    tgt = target("mesh", mesh_vertices_mm=np.asarray(loaded.vertices), mesh_faces=np.asarray(loaded.faces))
+    pts, m, _, _ = plate_grid(height)
+    reg = register_to_target(pts, m, tgt)
+    dev = deviation_map(pts, m, tgt, reg)
+    assert np.isfinite(dev[m]).all()
+    # Registered to ~0.1 mm RMS: the mesh's 50 mm facets differ from the true surface by up to
+    # 50^2 / (8 * 4000) = 0.08 mm, the rest is registration.
+    assert np.sqrt(np.mean(dev[m] ** 2)) < 0.1
+    assert reg.rms_mm < 0.1
+    # Sign: the plate moved 1 mm towards the camera along z_p reads about +1 mm.
+    pts1, m1, _, _ = plate_grid(lambda x, y: height(x, y) - 1.0)
+    dev1 = deviation_map(pts1, m1, tgt, reg)
+    assert 0.7 < np.nanmedian(dev1[m1]) < 1.1
+
+
+# --------------------------------------------------------------------------- radius, target surface
+
+
+def test_fitted_target_radius():
+    rng = np.random.default_rng(12)
+    pts, m, _, _ = plate_grid(cylinder(6000.0, -1), noise_mm=0.2, rng=rng)
+    assert fitted_target_radius(pts, m, target("cylinder", 5000.0)) == pytest.approx(6000.0, rel=5e-4)
+    pts, m, _, _ = plate_grid(sphere(7000.0), noise_mm=0.2, rng=rng)
+    assert fitted_target_radius(pts, m, target("sphere", 7500.0)) == pytest.approx(7000.0, rel=5e-4)
+    assert fitted_target_radius(pts, m, target("plane")) is None
+
+
+@pytest.mark.parametrize("shape", ["plane", "cylinder", "sphere"])
+def test_target_surface(shape):
+    R = 2500.0
+    V, F = target_surface(target(shape, None if shape == "plane" else R), spacing_mm=100.0)
+    assert V.shape == (31 * 31, 3) and F.shape == (2 * 30 * 30, 3) and F.dtype == np.int64
+    assert np.allclose(V[:, :2].min(axis=0), -1500) and np.allclose(V[:, :2].max(axis=0), 1500)
+    x, y, z = V.T
+    if shape == "plane":
+        assert np.all(z == 0)
+    elif shape == "cylinder":
+        assert np.allclose(x * x + (z - R) ** 2, R * R)
+    else:
+        assert np.allclose(x * x + y * y + (z - R) ** 2, R * R)
+    normals = trimesh.Trimesh(V, F, process=False).face_normals
+    assert np.all(normals[:, 2] > 0)  # towards +z, the centre of curvature
+    V2, F2 = target_surface(target("mesh", mesh_vertices_mm=V, mesh_faces=F))
+    assert np.array_equal(V2, V) and np.array_equal(F2, F)
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+def test_bad_inputs():
+    pts, m, _, R_cp = plate_grid(cylinder(5000.0), shape=(40, 50))
+    good = target("cylinder", 5000.0)
+    with pytest.raises(TypeError, match="target: expected a pipeline.io.Target, got dict"):
+        register_to_target(pts, m, {"shape": "cylinder"})
+    with pytest.raises(ValueError, match="target.shape: expected one of"):
+        register_to_target(pts, m, target("cone", 5.0))
+    with pytest.raises(ValueError, match="target.radius_mm: expected a positive radius for a sphere, got None"):
+        register_to_target(pts, m, target("sphere"))
+    with pytest.raises(ValueError, match="target.mesh_vertices_mm/mesh_faces: expected arrays"):
+        register_to_target(pts, m, target("mesh"))
+    with pytest.raises(ValueError, match=r"target.mesh_faces: expected \(F, 3\) indices below 3"):
+        register_to_target(pts, m, target("mesh", mesh_vertices_mm=np.eye(3), mesh_faces=np.array([[0, 1, 3]])))
+    with pytest.raises(ValueError, match=r"mask: expected shape \(40, 50\)"):
+        register_to_target(pts, m[:, :-1], good)
+    reg = true_registration("cylinder", R_cp, 1)
+    with pytest.raises(TypeError, match="registration: expected a Registration"):
+        deviation_map(pts, m, good, np.eye(4))
+    skew = Registration(T_cam_target=np.diag([2.0, 1, 1, 1]), shape="cylinder", rms_mm=0, convex_towards_camera=None)
+    with pytest.raises(ValueError, match="registration.T_cam_target: expected a rigid transform"):
+        deviation_map(pts, m, good, skew)
+    dev = deviation_map(pts, m, good, reg)
+    with pytest.raises(ValueError, match="tolerance_mm: expected a positive number of mm, got 0"):
+        judge(dev, m, 0.0, pixel_area_mm2=1.0)
+    with pytest.raises(ValueError, match=r"pixel_area_mm2: expected a number or shape \(40, 50\)"):
+        judge(dev, m, 2.0, pixel_area_mm2=np.ones((3, 3)))
+    with pytest.raises(ValueError, match="pixel_area_mm2: expected a positive area"):
+        judge(dev, m, 2.0, pixel_area_mm2=-1.0)
+    with pytest.raises(ValueError, match="deviation_mm: expected finite deviations inside the mask, got none"):
+        judge(np.full(m.shape, np.nan), m, 2.0, pixel_area_mm2=1.0)
+    with pytest.raises(ValueError, match=r"mask: expected a bool array of shape \(40, 50\)"):
+        judge(dev, m.astype(int), 2.0, pixel_area_mm2=1.0)
+    with pytest.raises(ValueError, match="spacing_mm: expected a positive spacing"):
+        target_surface(good, spacing_mm=0.0)
+    with pytest.raises(ValueError, match="cannot span size_mm"):
+        target_surface(target("cylinder", 1000.0))
