@@ -339,8 +339,8 @@ def _intersect(plate: PlateSpec, T_cam_plate: np.ndarray, origin: np.ndarray, di
             root = np.sqrt(B * B - 4.0 * A * C)
             # Convex: the near side of a circle centred behind the plate; concave: the far side of
             # one centred in front of it.
-            s_q = (-B - c * root) / (2.0 * A)
-            s = np.where(np.isfinite(s_q), s_q, s)
+            # A ray that misses the base surface (NaN) misses the plate: it sees the conveyor.
+            s = (-B - c * root) / (2.0 * A)
 
         if plate.shape == "saddle" or plate.dents:
             # Newton on f(s) = z_p(s) - h(x_p(s), y_p(s)); h is evaluated inside the footprint only
@@ -356,7 +356,8 @@ def _intersect(plate: PlateSpec, T_cam_plate: np.ndarray, origin: np.ndarray, di
                 f = o[2] + s * dz - h
                 step = f / (dz - hx * dx - hy * dy)
                 s = s - step
-                if not np.nanmax(np.abs(step)) > 1e-9:
+                moving = np.abs(step[np.isfinite(step)])
+                if moving.size == 0 or moving.max() <= 1e-9:
                     break
 
         x = o[0] + s * dx
@@ -365,6 +366,12 @@ def _intersect(plate: PlateSpec, T_cam_plate: np.ndarray, origin: np.ndarray, di
         xq = np.where(on_plate, x, 0.0)
         yq = np.where(on_plate, y, 0.0)
         h, hx, hy = plate_height(plate, xq, yq)
+        residual = np.abs(o[2] + s * dz - h)[on_plate]
+        if residual.size and residual.max() > 1e-6:
+            raise ValueError(
+                f"plate: ray casting did not converge (|z - h| up to {residual.max():.3g} mm); "
+                "are the dents too steep (depth_mm comparable to radius_mm)?"
+            )
 
         # The conveyor: a plane z_p = const behind the plate's farthest point.
         z_bg = _conveyor_z(plate)
