@@ -59,6 +59,8 @@ _CONVEYOR_GAP_MM = 40.0
 #: rig's lenses (5: 7e-7 px); a count-only criterion skips the per-point error check (3x faster).
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT, 12, 0.0)
 _CAPTURED_AT = "2026-01-01T00:00:00Z"
+#: Calibration boards are seen within 50 deg of head-on by both cameras.
+_BOARD_MIN_COS = math.cos(math.radians(50.0))
 
 ShapeName = Literal["plane", "cylinder", "sphere", "saddle"]
 
@@ -1017,7 +1019,9 @@ def render_calibration_pairs(
             ok = True
             for cam, Rc, tc in ((rig.left, R_lb, t_lb), (rig.right, R_rb, t_rb)):
                 pc = outline @ Rc.T + tc
-                if np.any(pc[:, 2] <= 0) or Rc[2, 2] <= 0.3:  # in front, and facing the camera
+                # In front, facing the camera, and seen within 50 deg of head-on (oblique views of
+                # the right camera, toed in and 800 mm aside, would otherwise defeat the detector).
+                if np.any(pc[:, 2] <= 0) or (Rc[:, 2] @ tc) / np.linalg.norm(tc) < _BOARD_MIN_COS:
                     ok = False
                     break
                 uv = cam.project(pc)
