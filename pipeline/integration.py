@@ -28,7 +28,9 @@ __all__ = ["DepthResult", "HeightResult", "integrate_normals", "integrate_gradie
 #: Tolerance on the length of a normal inside the mask (normals are unit vectors).
 _UNIT_TOL = 1e-2
 #: Coarsest multigrid level: solved densely once it has at most this many cells.
-_COARSEST_CELLS = 128
+_COARSEST_CELLS = 64
+#: Symmetric Gauss-Seidel sweeps that solve the coarsest level (<= 64 cells: error / 1e5 or better).
+_COARSEST_SWEEPS = 100
 
 
 @dataclass(frozen=True)
@@ -100,16 +102,16 @@ def _log_depth_gradients(normals, mask, kinv, unit_tol, p, q):
     b0, b1, b2 = kinv[1, 0], kinv[1, 1], kinv[1, 2]
     c0, c1, c2 = kinv[2, 0], kinv[2, 1], kinv[2, 2]
     for i in range(h):
-        v = float(i)
+        v = np.float64(i)
         for j in range(w):
             p[i, j] = 0.0
             q[i, j] = 0.0
             if not mask[i, j]:
                 continue
-            nx = float(normals[i, j, 0])
-            ny = float(normals[i, j, 1])
-            nz = float(normals[i, j, 2])
-            u = float(j)
+            nx = np.float64(normals[i, j, 0])
+            ny = np.float64(normals[i, j, 1])
+            nz = np.float64(normals[i, j, 2])
+            u = np.float64(j)
             nr = nx * (a0 * u + a1 * v + a2) + ny * (b0 * u + b1 * v + b2) + nz * (c0 * u + c1 * v + c2)
             nn = nx * nx + ny * ny + nz * nz
             # NaN fails both comparisons and is counted as bad.
@@ -140,7 +142,7 @@ def _fine_system(mask, p, q, wd, prior, ex, ey, dg, b):
                 dg[i, j] = 0.0
                 b[i, j] = 0.0
                 continue
-            wij = float(wd[i, j])
+            wij = np.float64(wd[i, j])
             d = wij
             s = wij * prior[i, j] if wij > 0.0 else 0.0
             if ex[i, j] > 0.0:
@@ -160,25 +162,27 @@ def _fine_system(mask, p, q, wd, prior, ex, ey, dg, b):
 
 
 @nb.njit(cache=True)
-def _residual_norm2(ex, ey, dg, x, b, r):
-    """r = b - A x; returns ||r||^2."""
-    h, w = dg.shape
+def _residual_norm2(ex, ey, wd, x, b, r):
+    """r = b - A x with the diagonal summed exactly in float64 from the weights; returns ||r||^2."""
+    h, w = wd.shape
     acc = 0.0
     for i in range(h):
         for j in range(w):
-            d = dg[i, j]
-            if d == 0.0:
-                r[i, j] = 0.0
-                continue
-            s = b[i, j] - d * x[i, j]
+            d = np.float64(wd[i, j])
+            s = 0.0
             if j + 1 < w:
+                d += ex[i, j]
                 s += ex[i, j] * x[i, j + 1]
             if j > 0:
+                d += ex[i, j - 1]
                 s += ex[i, j - 1] * x[i, j - 1]
             if i + 1 < h:
+                d += ey[i, j]
                 s += ey[i, j] * x[i + 1, j]
             if i > 0:
+                d += ey[i - 1, j]
                 s += ey[i - 1, j] * x[i - 1, j]
+            s = b[i, j] - d * x[i, j] + s if d != 0.0 else 0.0
             r[i, j] = s
             acc += s * s
     return acc
@@ -272,14 +276,15 @@ def _prolong_postsmooth(ex, ey, dg, x, b, xc):
         i = t - 2
         if i >= 0:
             for j in range(w):
-                acc += float(b[i, j]) * float(x[i, j])
+                acc += np.float64(b[i, j]) * np.float64(x[i, j])
     return acc
 
 
 @nb.njit(cache=True)
-def _direction_matvec(z, beta, pdir, ex, ey, dg, ap):
-    """p = z + beta p, then ap = A p; returns p . A p (one pass: p of row t, A p of row t - 1)."""
-    h, w = dg.shape
+def _direction_matvec(z, beta, pdir, ex, ey, wd, ap):
+    """p = z + beta p, then ap = A p (diagonal summed exactly in float64 from the weights);
+    returns p . A p. One pass: p of row t, A p of row t - 1."""
+    h, w = wd.shape
     acc = 0.0
     for t in range(h + 1):
         if t < h:
@@ -289,19 +294,21 @@ def _direction_matvec(z, beta, pdir, ex, ey, dg, ap):
         if i < 0:
             continue
         for j in range(w):
-            d = dg[i, j]
-            if d == 0.0:
-                ap[i, j] = 0.0
-                continue
-            s = d * pdir[i, j]
+            d = np.float64(wd[i, j])
+            s = 0.0
             if j + 1 < w:
-                s -= ex[i, j] * pdir[i, j + 1]
+                d += ex[i, j]
+                s += ex[i, j] * pdir[i, j + 1]
             if j > 0:
-                s -= ex[i, j - 1] * pdir[i, j - 1]
+                d += ex[i, j - 1]
+                s += ex[i, j - 1] * pdir[i, j - 1]
             if i + 1 < h:
-                s -= ey[i, j] * pdir[i + 1, j]
+                d += ey[i, j]
+                s += ey[i, j] * pdir[i + 1, j]
             if i > 0:
-                s -= ey[i - 1, j] * pdir[i - 1, j]
+                d += ey[i - 1, j]
+                s += ey[i - 1, j] * pdir[i - 1, j]
+            s = d * pdir[i, j] - s
             ap[i, j] = s
             acc += s * pdir[i, j]
     return acc
@@ -369,12 +376,65 @@ def _restrict(r, rc):
 
 
 @nb.njit(cache=True)
-def _prolong(xc, dg, x):
-    """x = P xc (piecewise constant over 2x2 blocks) on the cells in the system, 0 elsewhere."""
+def _interpolate(xc, dgc, dg, x):
+    """x = bilinear interpolation of the coarse cells in the system (cell-centred: fine cell
+    2I + 1 lies 1/4 from coarse cell I towards I + 1); cells outside the system get 0. Used for
+    the nested-iteration start only (the V-cycle uses piecewise-constant prolongation)."""
     h, w = x.shape
+    hc, wc = xc.shape
+    for i in range(h):
+        ic0 = i // 2
+        ic1 = ic0 - 1 if i % 2 == 0 else ic0 + 1
+        for j in range(w):
+            if dg[i, j] == 0.0:
+                x[i, j] = 0.0
+                continue
+            jc0 = j // 2
+            jc1 = jc0 - 1 if j % 2 == 0 else jc0 + 1
+            s = 0.0
+            sw = 0.0
+            for a in range(2):
+                ic = ic0 if a == 0 else ic1
+                if ic < 0 or ic >= hc:
+                    continue
+                for c in range(2):
+                    jc = jc0 if c == 0 else jc1
+                    if jc < 0 or jc >= wc or dgc[ic, jc] == 0.0:
+                        continue
+                    wt = (0.75 if a == 0 else 0.25) * (0.75 if c == 0 else 0.25)
+                    s += wt * xc[ic, jc]
+                    sw += wt
+            x[i, j] = s / sw if sw > 0.0 else xc[ic0, jc0]
+
+
+@nb.njit(cache=True)
+def _coarsest_solve(ex, ey, dg, x, b, sweeps):
+    """x ~ A^-1 b on the coarsest grid by ``sweeps`` symmetric red-black Gauss-Seidel sweeps from
+    zero, in the palindromic order red, black, red, ..., black, red (a symmetric operator)."""
+    h, w = dg.shape
+    x[:, :] = 0.0
+    for k in range(2 * sweeps + 1):
+        color = k % 2
+        for i in range(h):
+            for j in range((i + color) % 2, w, 2):
+                d = dg[i, j]
+                if d == 0.0:
+                    continue
+                s = b[i, j]
+                if j + 1 < w:
+                    s += ex[i, j] * x[i, j + 1]
+                if j > 0:
+                    s += ex[i, j - 1] * x[i, j - 1]
+                if i + 1 < h:
+                    s += ey[i, j] * x[i + 1, j]
+                if i > 0:
+                    s += ey[i - 1, j] * x[i - 1, j]
+                x[i, j] = s / d
+    acc = 0.0
     for i in range(h):
         for j in range(w):
-            x[i, j] = xc[i // 2, j // 2] if dg[i, j] != 0.0 else 0.0
+            acc += np.float64(b[i, j]) * np.float64(x[i, j])
+    return acc
 
 
 class _Level:
@@ -399,13 +459,12 @@ class _Multigrid:
     def __init__(self, ex, ey, wd, dg, *, edge_scale=0.5):
         lv = _Level(ex, ey, wd, dg)
         self.levels = [lv]
-        while lv.dg.size > _COARSEST_CELLS and min(lv.dg.shape) > 2:
+        while lv.dg.size > _COARSEST_CELLS:
             hc, wc = (lv.dg.shape[0] + 1) // 2, (lv.dg.shape[1] + 1) // 2
             arrs = [np.empty((hc, wc), np.float32) for _ in range(4)]
             _coarsen(lv.ex, lv.ey, lv.wd, np.float32(edge_scale), *arrs)
             lv = _Level(*arrs)
             self.levels.append(lv)
-        self._coarse_inv = _dense_pinv(lv)
 
     def apply(self, r: np.ndarray) -> tuple[np.ndarray, float]:
         """z = M^-1 r (one V-cycle from a zero guess) and r . z; z is float32 (H, W), a buffer
@@ -422,15 +481,14 @@ class _Multigrid:
             _restrict(lv[k].b, lv[k + 1].b)
         self._coarsest(lv[-1].b)
         for k in range(len(lv) - 2, -1, -1):
-            _prolong(lv[k + 1].x, lv[k].dg, lv[k].x)
+            _interpolate(lv[k + 1].x, lv[k + 1].dg, lv[k].dg, lv[k].x)
             # lv[k].b is overwritten below level k only, so it still holds the restricted b.
             self._vcycle(k, lv[k].b, zero_start=False)
         return lv[0].x
 
     def _coarsest(self, b: np.ndarray) -> float:
         lv = self.levels[-1]
-        lv.x.ravel()[:] = self._coarse_inv @ b.ravel().astype(np.float32)
-        return float(np.dot(b.ravel(), lv.x.ravel()))
+        return _coarsest_solve(lv.ex, lv.ey, lv.dg, lv.x, b, _COARSEST_SWEEPS)
 
     def _vcycle(self, k: int, b: np.ndarray, *, zero_start: bool) -> float:
         lv = self.levels[k]
@@ -442,24 +500,8 @@ class _Multigrid:
         return _prolong_postsmooth(lv.ex, lv.ey, lv.dg, lv.x, b, nxt.x)
 
 
-def _dense_pinv(lv: _Level) -> np.ndarray:
-    """Pseudo-inverse of the coarsest operator (cells outside the system map to 0)."""
-    h, w = lv.dg.shape
-    n = h * w
-    a = np.zeros((n, n))
-    idx = np.arange(n).reshape(h, w)
-    a[idx.ravel(), idx.ravel()] = lv.dg.ravel()
-    for ia, ib, wt in (
-        (idx[:, :-1], idx[:, 1:], lv.ex[:, :-1]),
-        (idx[:-1, :], idx[1:, :], lv.ey[:-1, :]),
-    ):
-        a[ia.ravel(), ib.ravel()] -= wt.ravel()
-        a[ib.ravel(), ia.ravel()] -= wt.ravel()
-    return np.linalg.pinv(a, hermitian=True).astype(np.float32)
-
-
-def _pcg(ex, ey, dg, b, x, precond, *, tol, max_iter):
-    """Preconditioned conjugate gradients on the full grid (cells with dg = 0 stay 0).
+def _pcg(ex, ey, wd, b, x, precond, *, tol, max_iter):
+    """Preconditioned conjugate gradients on the full grid (cells outside the system stay 0).
 
     Returns (iterations, relative residual ||b - A x|| / ||b||).
     """
@@ -468,14 +510,16 @@ def _pcg(ex, ey, dg, b, x, precond, *, tol, max_iter):
         x[...] = 0.0
         return 0, 0.0
     r = np.empty_like(b)
-    rel = np.sqrt(_residual_norm2(ex, ey, dg, x, b, r)) / bnorm
+    rel = np.sqrt(_residual_norm2(ex, ey, wd, x, b, r)) / bnorm
     it = 0
     pdir = np.zeros_like(b)
     ap = np.empty_like(b)
     rz_old = 1.0
     while rel > tol and it < max_iter:
         z, rz = precond.apply(r)
-        pap = _direction_matvec(z, rz / rz_old if it else 0.0, pdir, ex, ey, dg, ap)
+        pap = _direction_matvec(z, rz / rz_old if it else 0.0, pdir, ex, ey, wd, ap)
+        if not pap > 0.0:  # the direction lies in the null space (constants of a part): nothing left to do
+            break
         it += 1
         rel = np.sqrt(_cg_step(rz / pap, pdir, ap, x, r)) / bnorm
         rz_old = rz
@@ -486,7 +530,7 @@ def _solve(ex, ey, wd, dg, b, *, tol, max_iter):
     """Least-squares solution of the assembled system; returns (x, iterations, residual)."""
     mg = _Multigrid(ex, ey, wd, dg)
     x = mg.full_multigrid(b).astype(np.float64)
-    it, rel = _pcg(ex, ey, dg, b, x, mg, tol=tol, max_iter=max_iter)
+    it, rel = _pcg(ex, ey, wd, b, x, mg, tol=tol, max_iter=max_iter)
     return x, it, rel
 
 
@@ -636,7 +680,7 @@ def integrate_normals(
     if floating is not None:
         if reference_depth_mm is None:
             raise ValueError(
-                f"reference_depth_mm: {floating[1]} connected part(s) of the mask have no prior depth, "
+                f"reference_depth_mm: {floating[2]} connected part(s) of the mask have no prior depth, "
                 "expected reference_depth_mm to fix their scale, got None"
             )
         _scale_to_median(depth, floating[0], floating[1], float(reference_depth_mm))
@@ -697,7 +741,7 @@ def integrate_gradient(
     q = np.where(mask, grad_v, 0.0)
     zeros = np.zeros(grad_u.shape)
     x, it, rel, floating = _integrate(mask, p, q, zeros, zeros, tol=tol, max_iter=max_iter)
-    labels, n = floating
+    labels, n, _ = floating
     sums = np.bincount(labels.ravel(), weights=x.ravel(), minlength=n + 1)
     counts = np.bincount(labels.ravel(), minlength=n + 1)
     means = sums / np.maximum(counts, 1)
@@ -761,7 +805,7 @@ def _integrate(mask, p, q, wd, log_prior, *, tol, max_iter):
         return x, it, rel, None
     floating = ~has_prior[labels]
     labels = np.where(floating, labels, 0)
-    return x, it, rel, (labels, n)
+    return x, it, rel, (labels, n, int(np.count_nonzero(~has_prior)))
 
 
 def _scale_to_median(depth, labels, n, reference):
