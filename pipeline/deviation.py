@@ -41,6 +41,7 @@ from .curvature import (
     _robust_scale,
     check_grid,
     fit_cylinder,
+    grid_sample,
     fit_sphere,
 )
 from .io import Target
@@ -177,13 +178,6 @@ def _check_registration(registration) -> np.ndarray:
     return T
 
 
-def _grid_sample(pts: np.ndarray, m: np.ndarray, max_points: int) -> np.ndarray:
-    """Valid points of a strided sub-grid (about ``max_points``, spread evenly over the mask), (M, 3)."""
-    n = int(np.count_nonzero(m))
-    step = max(1, int(math.floor(math.sqrt(n / max_points))))
-    return pts[::step, ::step][m[::step, ::step]]
-
-
 def _pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3] = R
@@ -222,9 +216,9 @@ def fitted_target_radius(points_mm, mask, target) -> float | None:
     tgt = _check_target(target)
     pts, m = check_grid(points_mm, mask, min_points=50)
     if tgt.shape == "cylinder":
-        return fit_cylinder(_grid_sample(pts, m, MAX_FIT_POINTS)).radius_mm
+        return fit_cylinder(grid_sample(pts, m, MAX_FIT_POINTS)).radius_mm
     if tgt.shape == "sphere":
-        return fit_sphere(_grid_sample(pts, m, MAX_FIT_POINTS)).radius_mm
+        return fit_sphere(grid_sample(pts, m, MAX_FIT_POINTS)).radius_mm
     return None
 
 
@@ -261,7 +255,7 @@ def register_to_target(points_mm, mask, target) -> Registration:
     """
     tgt = _check_target(target)
     pts, m = check_grid(points_mm, mask, min_points=50)
-    sample = _grid_sample(pts, m, MAX_FIT_POINTS)
+    sample = grid_sample(pts, m, MAX_FIT_POINTS)
     if tgt.shape == "mesh":
         return _register_mesh(sample, tgt)
     centroid = sample.mean(axis=0)
@@ -524,28 +518,33 @@ def deviation_map(points_mm, mask, target, registration) -> np.ndarray:
     T = _check_registration(registration)
     pts, m = check_grid(points_mm, mask, min_points=1)
     R, t = T[:3, :3], T[:3, 3]
-    x = (pts[m] - t) @ R  # target frame
-    cam = -R.T @ t  # camera centre in the target frame
-    if tgt.shape == "mesh":
-        grid = _mesh_grid(tgt)
-        q = (x - grid.origin) @ grid.frame.T
-        h, s = grid.sample(q)
-        q_cam = (cam - grid.origin) @ grid.frame
-        h0, _ = grid.sample(q_cam[None, :], filled=True)
-        side = 1.0 if q_cam[2] > h0[0] else -1.0
-        dev = side * (q[:, 2] - h) * s
-    else:
-        Rt = tgt.radius_mm
-        if tgt.shape == "plane":
-            outward = -x[:, 2]
-        elif tgt.shape == "cylinder":
-            outward = np.hypot(x[:, 0], x[:, 2] - Rt) - Rt
+    T_target_cam = np.hstack([R.T, (-R.T @ t)[:, None]])
+    # Rigid transform of every pixel (cv2.transform: one pass in C); NaNs outside the mask stay NaN.
+    x = cv2.transform(pts.reshape(-1, 1, 3), T_target_cam).reshape(-1, 3)
+    cam = T_target_cam[:, 3]  # camera centre in the target frame
+    with np.errstate(invalid="ignore"):
+        if tgt.shape == "mesh":
+            grid = _mesh_grid(tgt)
+            q = cv2.transform((x - grid.origin).reshape(-1, 1, 3), grid.frame).reshape(-1, 3)
+            h, s = grid.sample(q)
+            q_cam = grid.frame @ (cam - grid.origin)
+            h0, _ = grid.sample(q_cam[None, :], filled=True)
+            side = 1.0 if q_cam[2] > h0[0] else -1.0
+            dev = side * (q[:, 2] - h) * s
         else:
-            outward = np.sqrt(x[:, 0] ** 2 + x[:, 1] ** 2 + (x[:, 2] - Rt) ** 2) - Rt
-        # "outward" is the -z side at the plate centre; the camera is on it when its z < 0.
-        dev = outward if cam[2] < 0 else -outward
-    out = np.full(m.shape, np.nan, dtype=np.float32)
-    out[m] = dev
+            Rt = tgt.radius_mm
+            xx, yy, zz = x[:, 0], x[:, 1], x[:, 2]
+            if tgt.shape == "plane":
+                outward = -zz
+            else:
+                # |p - c| - R = (|p|^2 - 2 R z) / (|p - c| + R) for c = (0, 0, R): no cancellation at large R
+                r2 = xx * xx + zz * zz if tgt.shape == "cylinder" else xx * xx + yy * yy + zz * zz
+                num = r2 - 2.0 * Rt * zz
+                outward = num / (np.sqrt(np.maximum(num + Rt * Rt, 0.0)) + Rt)
+            # "outward" is the -z side at the plate centre; the camera is on it when its z < 0.
+            dev = outward if cam[2] < 0 else -outward
+    out = dev.astype(np.float32).reshape(m.shape)
+    out[~m] = np.nan
     return out
 
 
@@ -628,22 +627,22 @@ def judge(deviation_mm, mask, tolerance_mm: float, *, pixel_area_mm2, min_defect
         out_map = np.zeros(dev.shape, dtype=bool)
         out_map[judged] = outside
         labels, n_lab = ndimage.label(out_map, structure=np.ones((3, 3), dtype=bool))
-        idx = np.arange(1, n_lab + 1)
-        area_map = np.broadcast_to(area, dev.shape) if area.ndim == 0 else area
-        reg_area = ndimage.sum_labels(area_map, labels, idx)
-        big = idx[reg_area >= min_defect_area_mm2]
-        if big.size:
-            dev_masked = np.where(out_map, dev, 0.0)
-            centres = ndimage.center_of_mass(out_map, labels, big)
-            counts = ndimage.sum_labels(out_map, labels, big)
-            hi = ndimage.maximum(dev_masked, labels, big)
-            lo = ndimage.minimum(dev_masked, labels, big)
-            for k, lab in enumerate(big):
-                peak = hi[k] if abs(hi[k]) >= abs(lo[k]) else lo[k]
-                row, col = centres[k]
-                defects.append(DefectRegion(centroid_px=(float(col), float(row)), area_mm2=float(reg_area[lab - 1]),
-                                            peak_deviation_mm=float(peak), n_pixels=int(counts[k])))
-            defects.sort(key=lambda d: -d.area_mm2)
+        rows, cols = np.nonzero(out_map)  # few pixels: per-region sums by bincount over them only
+        lab = labels[rows, cols]
+        px_area = np.full(lab.size, float(area)) if area.ndim == 0 else area[rows, cols]
+        reg_area = np.bincount(lab, weights=px_area, minlength=n_lab + 1)
+        reg_count = np.bincount(lab, minlength=n_lab + 1)
+        reg_row = np.bincount(lab, weights=rows, minlength=n_lab + 1)
+        reg_col = np.bincount(lab, weights=cols, minlength=n_lab + 1)
+        vals = dev[rows, cols]
+        for k in np.nonzero(reg_area >= min_defect_area_mm2)[0]:
+            if k == 0:
+                continue
+            v = vals[lab == k]
+            peak = float(v[np.argmax(np.abs(v))])
+            defects.append(DefectRegion(centroid_px=(float(reg_col[k] / reg_count[k]), float(reg_row[k] / reg_count[k])),
+                                        area_mm2=float(reg_area[k]), peak_deviation_mm=peak, n_pixels=int(reg_count[k])))
+        defects.sort(key=lambda d: -d.area_mm2)
     reasons = []
     if defects:
         reasons.append(f"{len(defects)} region(s) out of the {tolerance_mm:g} mm tolerance over "
