@@ -874,7 +874,6 @@ def _board_pose(rng: np.random.Generator, distance_mm: tuple[float, float]) -> t
 
 
 def _board_view(
-    camera: CameraModel,
     rays: np.ndarray,
     R_cb: np.ndarray,
     t_cb: np.ndarray,
@@ -1036,8 +1035,8 @@ def render_calibration_pairs(
             )
         Rs.append(R_lb)
         ts.append(t_lb)
-        for side, cam, rays, Rc, tc in (("left", rig.left, rays_l, R_lb, t_lb), ("right", rig.right, rays_r, R_rb, t_rb)):
-            img = _board_view(cam, rays, Rc, tc, squares, square_mm, margin_sq, rng)
+        for side, rays, Rc, tc in (("left", rays_l, R_lb, t_lb), ("right", rays_r, R_rb, t_rb)):
+            img = _board_view(rays, Rc, tc, squares, square_mm, margin_sq, rng)
             if blur_px > 0:
                 img = cv2.GaussianBlur(img, (0, 0), blur_px)
             img = img + np.float32(noise) * rng.standard_normal(img.shape, np.float32)
