@@ -20,6 +20,10 @@ Positive where the measured surface lies on the side of the target that faces th
 proud of its target, towards the cameras), negative behind it. The camera-facing side is the side of the
 target on which the left camera centre lies, taken at the plate centre (a plate seen whole by the camera has
 the camera on one side of it everywhere).
+
+References
+----------
+.. [1] Besl, P. J., McKay, N. D., "A method for registration of 3-D shapes", IEEE TPAMI 14(2), 1992 (ICP).
 """
 
 from __future__ import annotations
