@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from . import artifacts, curvature, deviation, integration, normals, stereo
-from .formats import RESULT_FORMAT, CaptureError, ResultFile
+from .formats import RESULT_FORMAT, CaptureError, PipelineError, ResultFile
 from .io import Capture, Target, load_capture, load_target
 from .preprocess import preprocess
 
@@ -123,7 +123,15 @@ def inspect(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     clock = _Clock(progress)
+    try:
+        return _inspect(capture, target, out, clock, opts)
+    except PipelineError as err:
+        # a capture that cannot be measured still leaves a result that says why
+        _write_error_result(out, capture, target, err, clock)
+        raise
 
+
+def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions) -> InspectionResult:
     clock.begin("load")
     cap = capture if isinstance(capture, Capture) else load_capture(capture)
     tgt = target if isinstance(target, Target) else load_target(target)
@@ -179,9 +187,7 @@ def inspect(
     clock.begin("deviation")
     registration = deviation.register_to_target(points, surface_mask, tgt)
     dev = deviation.deviation_map(points, surface_mask, tgt, registration)
-    judgement = deviation.judge(
-        dev, surface_mask, tgt.tolerance_mm, pixel_area_mm2=_pixel_area_mm2(points, surface_mask)
-    )
+    judgement = deviation.judge(dev, surface_mask, tgt.tolerance_mm, pixel_area_mm2=_pixel_area_mm2(points, surface_mask))
     clock.end("deviation")
 
     clock.begin("artifacts")
@@ -191,6 +197,7 @@ def inspect(
         "deviation_map": "deviation.png",
         "normals": "normals.png",
         "depth": "depth.npy",
+        "details": "details.json",
     }
     artifacts.write_surface_ply(out / names["surface"], points, surface_mask, dev, tolerance_mm=tgt.tolerance_mm)
     verts, faces = deviation.target_surface(tgt)
@@ -198,6 +205,23 @@ def inspect(
     artifacts.write_deviation_png(out / names["deviation_map"], dev, surface_mask, tolerance_mm=tgt.tolerance_mm)
     artifacts.write_normals_png(out / names["normals"], field.normals, field.mask)
     artifacts.save_depth(out / names["depth"], depth.depth_mm)
+    details = {
+        "T_cam_target": registration.T_cam_target.tolist(),
+        "registration_rms_mm": float(registration.rms_mm),
+        "principal_directions": np.asarray(curv.principal_directions).tolist(),
+        "defects": [
+            {"centroid_px": list(map(float, d.centroid_px)), "area_mm2": float(d.area_mm2),
+             "peak_deviation_mm": float(d.peak_deviation_mm)}
+            for d in judgement.defects
+        ],
+        "reasons": list(judgement.reasons),
+        "normals_filled": int(field.n_filled),
+        "samples_saturated": pre.n_saturated,
+        "samples_shadowed": pre.n_shadowed,
+        "stereo_matched_pct": None if prior is None else float(100 * np.isfinite(prior).sum() / max(field.mask.sum(), 1)),
+        "metric_scale": "stereo" if prior is not None else "working_distance",
+    }
+    (out / names["details"]).write_text(json.dumps(details, indent=2) + "\n")
     clock.end("artifacts")
 
     target_radius = tgt.radius_mm if tgt.shape in ("cylinder", "sphere") else None
@@ -228,9 +252,38 @@ def inspect(
     ).model_dump(mode="json")
     doc["artifacts"].pop("result")
     (out / "result.json").write_text(json.dumps(doc, indent=2) + "\n")
-    if progress is not None:
-        progress("done", 1.0)
+    if clock.progress is not None:
+        clock.progress("done", 1.0)
     return InspectionResult(document=doc, out_dir=out)
+
+
+def _write_error_result(out: Path, capture, target, err: Exception, clock: _Clock) -> None:
+    """Write a ``plate-result/1`` with verdict ``error`` saying why the capture could not be measured."""
+    plate_id = capture.plate_id if isinstance(capture, Capture) else None
+    if plate_id is None:
+        try:
+            plate_id = load_capture(capture).plate_id
+        except Exception:  # noqa: BLE001 - the bundle itself may be what failed
+            plate_id = "unknown"
+    try:
+        tolerance = (target if isinstance(target, Target) else load_target(target)).tolerance_mm
+    except Exception:  # noqa: BLE001 - the target itself may be what failed
+        tolerance = 0.0
+    doc = ResultFile(
+        plate_id=plate_id,
+        radius_mm=None,
+        principal_radii_mm=[None, None],
+        target_radius_mm=None,
+        radius_error_pct=None,
+        deviation_mm=None,
+        tolerance_mm=tolerance,
+        within_tolerance_pct=None,
+        verdict="error",
+        error=" ".join(str(err).split()),
+        timings_s=dict(clock.timings) | {"total": clock.total()},
+        artifacts={},
+    ).model_dump(mode="json")
+    (out / "result.json").write_text(json.dumps(doc, indent=2) + "\n")
 
 
 def _round(value: float | None, digits: int) -> float | None:
@@ -260,12 +313,17 @@ def _scale_to_working_distance(depth, K: np.ndarray, working_distance_mm: float)
     return replace(depth, depth_mm=z * factor)
 
 
-def _pixel_area_mm2(points: np.ndarray, mask: np.ndarray) -> float:
-    """Median area (mm^2) of the surface patch one pixel covers."""
+def _pixel_area_mm2(points: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(H, W) area (mm^2) of the surface patch each pixel covers, from its forward neighbours.
+
+    Where a neighbour is missing (the plate's edge) the median area stands in.
+    """
     du = np.linalg.norm(np.diff(points, axis=1), axis=-1)[:-1]
     dv = np.linalg.norm(np.diff(points, axis=0), axis=-1)[:, :-1]
-    area = du * dv
-    ok = mask[:-1, :-1] & mask[1:, :-1] & mask[:-1, 1:] & np.isfinite(area)
+    cell = du * dv
+    ok = mask[:-1, :-1] & mask[1:, :-1] & mask[:-1, 1:] & np.isfinite(cell)
     if not ok.any():
         raise CaptureError("depth: no measured surface to judge")
-    return float(np.median(area[ok]))
+    area = np.full(mask.shape, float(np.median(cell[ok])))
+    area[:-1, :-1][ok] = cell[ok]
+    return area
