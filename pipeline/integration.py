@@ -25,6 +25,9 @@ import scipy.ndimage
 
 __all__ = ["DepthResult", "HeightResult", "integrate_normals", "integrate_gradient"]
 
+#: LLVM fast-math flags for the solver kernels: reassociation lets sums and dot products
+#: vectorise; NaN/Inf semantics are kept (inputs are checked before).
+_FAST = {"reassoc", "contract", "arcp"}
 #: Tolerance on the length of a normal inside the mask (normals are unit vectors).
 _UNIT_TOL = 1e-2
 #: Coarsest multigrid level: solved densely once it has at most this many cells.
@@ -80,16 +83,18 @@ class HeightResult:
 
 
 # --------------------------------------------------------------------------------------------
-# numba kernels. A level of the problem lives on a full (H, W) grid:
-#   ex[i, j]  weight of the edge (i, j) - (i, j + 1)   (ex[:, W - 1] = 0)
-#   ey[i, j]  weight of the edge (i, j) - (i + 1, j)   (ey[H - 1, :] = 0)
+# numba kernels. A level of the problem lives on a grid padded with one cell of zeros on every
+# side (interior cells 1..h, 1..w), so that the stencils need no bounds checks:
+#   ex[i, j]  weight of the edge (i, j) - (i, j + 1)   (0 on edges that leave the system)
+#   ey[i, j]  weight of the edge (i, j) - (i + 1, j)
 #   wd[i, j]  weight of the prior (diagonal) term
-#   dg[i, j]  diagonal of A = wd + sum of the weights of the 4 edges (0: cell not in the system,
-#             its value is kept at 0)
-# A x = dg * x - sum_edges w * x_neighbour.
-# The kernels are single-threaded and fuse several sweeps into one pass over memory (a row
-# wavefront): the solve is memory-bound, and on a shared machine thread start-up per parallel
-# region costs more than it saves.
+#   dg[i, j]  diagonal of A = wd + the weights of the 4 edges; idg = 1 / dg, or 0 for a cell that
+#             is not in the system (its value stays 0)
+# A x = dg * x - sum over the 4 edges of weight * x_neighbour.
+# Red cells have (i + j) even. The kernels are single-threaded and fuse several sweeps into one
+# pass over memory (a row wavefront): the solve is memory-bound, and on a shared machine the
+# start-up of a parallel region costs more than it saves.
+# Note: in numba, float(x) of a float32 stays float32; np.float64(x) is used where it matters.
 # --------------------------------------------------------------------------------------------
 
 
@@ -124,197 +129,160 @@ def _log_depth_gradients(normals, mask, kinv, unit_tol, p, q):
 
 
 @nb.njit(cache=True)
-def _fine_system(mask, p, q, wd, prior, ex, ey, dg, b):
-    """Edge weights, diagonal and right-hand side of the normal equations.
+def _fine_system(mask, p, q, wd, prior, ex, ey, wdp, dg, idg, b):
+    """The normal equations on the padded grid from (H, W) inputs.
 
-    Edge (a, c) with c the right/lower neighbour of a: x_c - x_a = (g_a + g_c) / 2.
-    Cells outside the mask get dg = 0 and b = 0.
+    Edge (a, c) with c the right/lower neighbour of a: x_c - x_a = (g_a + g_c) / 2; prior term
+    wd * (x - prior). Outputs ex, ey, wdp (float32 copy of wd), dg, idg, b are (H + 2, W + 2) and
+    must be zero on the padding.
     """
     h, w = mask.shape
     for i in range(h):
         for j in range(w):
             m = mask[i, j]
-            ex[i, j] = 1.0 if (m and j + 1 < w and mask[i, j + 1]) else 0.0
-            ey[i, j] = 1.0 if (m and i + 1 < h and mask[i + 1, j]) else 0.0
+            ex[i + 1, j + 1] = 1.0 if (m and j + 1 < w and mask[i, j + 1]) else 0.0
+            ey[i + 1, j + 1] = 1.0 if (m and i + 1 < h and mask[i + 1, j]) else 0.0
     for i in range(h):
         for j in range(w):
             if not mask[i, j]:
-                dg[i, j] = 0.0
-                b[i, j] = 0.0
                 continue
-            wij = np.float64(wd[i, j])
-            d = wij
-            s = wij * prior[i, j] if wij > 0.0 else 0.0
-            if ex[i, j] > 0.0:
+            wij = np.float32(wd[i, j])
+            wdp[i + 1, j + 1] = wij
+            d = np.float64(wij)
+            s = d * prior[i, j] if wij > 0.0 else 0.0
+            if ex[i + 1, j + 1] > 0.0:
                 d += 1.0
                 s -= 0.5 * (p[i, j] + p[i, j + 1])
-            if j > 0 and ex[i, j - 1] > 0.0:
+            if ex[i + 1, j] > 0.0:
                 d += 1.0
                 s += 0.5 * (p[i, j - 1] + p[i, j])
-            if ey[i, j] > 0.0:
+            if ey[i + 1, j + 1] > 0.0:
                 d += 1.0
                 s -= 0.5 * (q[i, j] + q[i + 1, j])
-            if i > 0 and ey[i - 1, j] > 0.0:
+            if ey[i, j + 1] > 0.0:
                 d += 1.0
                 s += 0.5 * (q[i - 1, j] + q[i, j])
-            dg[i, j] = d
-            b[i, j] = s
+            b[i + 1, j + 1] = s
+            if d > 0.0:
+                dg[i + 1, j + 1] = d
+                idg[i + 1, j + 1] = 1.0 / d
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, fastmath=_FAST)
 def _residual_norm2(ex, ey, wd, x, b, r):
-    """r = b - A x with the diagonal summed exactly in float64 from the weights; returns ||r||^2."""
-    h, w = wd.shape
+    """r = b - A x with the diagonal summed in float64 from the weights; returns ||r||^2."""
+    h, w = wd.shape[0] - 2, wd.shape[1] - 2
     acc = 0.0
-    for i in range(h):
-        for j in range(w):
-            d = np.float64(wd[i, j])
-            s = 0.0
-            if j + 1 < w:
-                d += ex[i, j]
-                s += ex[i, j] * x[i, j + 1]
-            if j > 0:
-                d += ex[i, j - 1]
-                s += ex[i, j - 1] * x[i, j - 1]
-            if i + 1 < h:
-                d += ey[i, j]
-                s += ey[i, j] * x[i + 1, j]
-            if i > 0:
-                d += ey[i - 1, j]
-                s += ey[i - 1, j] * x[i - 1, j]
-            s = b[i, j] - d * x[i, j] + s if d != 0.0 else 0.0
+    for i in range(1, h + 1):
+        for j in range(1, w + 1):
+            e, wst, s_, n_ = ex[i, j], ex[i, j - 1], ey[i, j], ey[i - 1, j]
+            d = np.float64(wd[i, j]) + e + wst + s_ + n_
+            s = b[i, j] - d * x[i, j] + e * x[i, j + 1] + wst * x[i, j - 1] + s_ * x[i + 1, j] + n_ * x[i - 1, j]
             r[i, j] = s
             acc += s * s
     return acc
 
 
-@nb.njit(cache=True)
-def _presmooth_restrict(ex, ey, dg, x, b, bc, zero_start):
+@nb.njit(cache=True, fastmath=_FAST)
+def _presmooth_restrict(ex, ey, dg, idg, x, b, bc, zero_start):
     """Red then black Gauss-Seidel half-sweeps on A x = b, then bc = P^T (b - A x).
 
     One pass over the rows: at step t, red row t, black row t - 1, residual of row t - 2.
     With ``zero_start`` the initial guess is x = 0 (x is overwritten), else x is the guess.
+    A half-sweep computes the update of the whole row into a buffer (a contiguous loop that
+    vectorises) and copies back the cells of its colour.
     """
-    h, w = dg.shape
-    for t in range(h + 2):
+    h, w = dg.shape[0] - 2, dg.shape[1] - 2
+    tmp = np.empty(w + 2, x.dtype)
+    for t in range(1, h + 3):
         for phase in range(2):  # 0: red half-sweep of row t, 1: black half-sweep of row t - 1
             i = t - phase
-            if i < 0 or i >= h:
+            if i < 1 or i > h:
                 continue
+            j0 = 1 + (i + 1 + phase) % 2
             if zero_start and phase == 0:
-                for j in range(w):
-                    d = dg[i, j]
-                    x[i, j] = b[i, j] / d if (d != 0.0 and (i + j) % 2 == 0) else 0.0
-                continue
-            for j in range((i + phase) % 2, w, 2):
-                d = dg[i, j]
-                if d == 0.0:
-                    continue
-                s = b[i, j]
-                if j + 1 < w:
-                    s += ex[i, j] * x[i, j + 1]
-                if j > 0:
-                    s += ex[i, j - 1] * x[i, j - 1]
-                if i + 1 < h:
-                    s += ey[i, j] * x[i + 1, j]
-                if i > 0:
-                    s += ey[i - 1, j] * x[i - 1, j]
-                x[i, j] = s / d
+                for j in range(1, w + 1):
+                    tmp[j] = b[i, j] * idg[i, j]
+                    x[i, j] = 0.0
+            else:
+                for j in range(1, w + 1):
+                    tmp[j] = (b[i, j] + ex[i, j] * x[i, j + 1] + ex[i, j - 1] * x[i, j - 1]
+                              + ey[i, j] * x[i + 1, j] + ey[i - 1, j] * x[i - 1, j]) * idg[i, j]
+            for j in range(j0, w + 1, 2):
+                x[i, j] = tmp[j]
         i = t - 2
-        if i < 0:
+        if i < 1:
             continue
-        ic = i // 2
-        if i % 2 == 0:
-            bc[ic, :] = 0.0
-        for j in range(w):
-            d = dg[i, j]
-            if d == 0.0:
-                continue
-            s = b[i, j] - d * x[i, j]
-            if j + 1 < w:
-                s += ex[i, j] * x[i, j + 1]
-            if j > 0:
-                s += ex[i, j - 1] * x[i, j - 1]
-            if i + 1 < h:
-                s += ey[i, j] * x[i + 1, j]
-            if i > 0:
-                s += ey[i - 1, j] * x[i - 1, j]
-            bc[ic, j // 2] += s
+        for j in range(1, w + 1):
+            tmp[j] = (b[i, j] - dg[i, j] * x[i, j] + ex[i, j] * x[i, j + 1] + ex[i, j - 1] * x[i, j - 1]
+                      + ey[i, j] * x[i + 1, j] + ey[i - 1, j] * x[i - 1, j])
+        tmp[w + 1] = 0.0
+        ic = (i + 1) // 2
+        if i % 2 == 1:
+            for jc in range(1, (w + 1) // 2 + 1):
+                bc[ic, jc] = tmp[2 * jc - 1] + tmp[2 * jc]
+        else:
+            for jc in range(1, (w + 1) // 2 + 1):
+                bc[ic, jc] += tmp[2 * jc - 1] + tmp[2 * jc]
 
 
-@nb.njit(cache=True)
-def _prolong_postsmooth(ex, ey, dg, x, b, xc):
+@nb.njit(cache=True, fastmath=_FAST)
+def _prolong_postsmooth(ex, ey, idg, x, b, xc):
     """x += P xc, then black then red Gauss-Seidel half-sweeps; returns b . x (final x).
 
     One pass over the rows: at step t, prolongation into row t, black row t - 1, red row t - 2.
+    The prolongation also writes cells outside the system; the sweeps reset them to 0 (idg = 0),
+    and their edges have weight 0 in between. Half-sweeps as in :func:`_presmooth_restrict`.
     """
-    h, w = dg.shape
+    h, w = idg.shape[0] - 2, idg.shape[1] - 2
+    tmp = np.empty(w + 2, x.dtype)
     acc = 0.0
-    for t in range(h + 2):
-        if t < h:
-            for j in range(w):
-                if dg[t, j] != 0.0:
-                    x[t, j] += xc[t // 2, j // 2]
-        for phase in range(1, 3):  # 1: black half-sweep of row t - 1, 2: red half-sweep of row t - 2
+    for t in range(1, h + 3):
+        if t <= h:
+            ic = (t + 1) // 2
+            for j in range(1, w + 1):
+                x[t, j] += xc[ic, (j + 1) // 2]
+        for phase in (1, 2):  # 1: black half-sweep of row t - 1, 2: red half-sweep of row t - 2
             i = t - phase
-            if i < 0 or i >= h:
+            if i < 1 or i > h:
                 continue
-            for j in range((i + phase) % 2, w, 2):
-                d = dg[i, j]
-                if d == 0.0:
-                    continue
-                s = b[i, j]
-                if j + 1 < w:
-                    s += ex[i, j] * x[i, j + 1]
-                if j > 0:
-                    s += ex[i, j - 1] * x[i, j - 1]
-                if i + 1 < h:
-                    s += ey[i, j] * x[i + 1, j]
-                if i > 0:
-                    s += ey[i - 1, j] * x[i - 1, j]
-                x[i, j] = s / d
+            for j in range(1, w + 1):
+                tmp[j] = (b[i, j] + ex[i, j] * x[i, j + 1] + ex[i, j - 1] * x[i, j - 1]
+                          + ey[i, j] * x[i + 1, j] + ey[i - 1, j] * x[i - 1, j]) * idg[i, j]
+            for j in range(1 + (i + 1 + phase) % 2, w + 1, 2):
+                x[i, j] = tmp[j]
         i = t - 2
-        if i >= 0:
-            for j in range(w):
+        if i >= 1:
+            for j in range(1, w + 1):
                 acc += np.float64(b[i, j]) * np.float64(x[i, j])
     return acc
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, fastmath=_FAST)
 def _direction_matvec(z, beta, pdir, ex, ey, wd, ap):
-    """p = z + beta p, then ap = A p (diagonal summed exactly in float64 from the weights);
-    returns p . A p. One pass: p of row t, A p of row t - 1."""
-    h, w = wd.shape
+    """p = z + beta p, then ap = A p (diagonal summed in float64 from the weights); returns p . A p.
+
+    One pass: p of row t, A p of row t - 1.
+    """
+    h, w = wd.shape[0] - 2, wd.shape[1] - 2
     acc = 0.0
-    for t in range(h + 1):
-        if t < h:
-            for j in range(w):
+    for t in range(1, h + 2):
+        if t <= h:
+            for j in range(1, w + 1):
                 pdir[t, j] = z[t, j] + beta * pdir[t, j]
         i = t - 1
-        if i < 0:
+        if i < 1:
             continue
-        for j in range(w):
-            d = np.float64(wd[i, j])
-            s = 0.0
-            if j + 1 < w:
-                d += ex[i, j]
-                s += ex[i, j] * pdir[i, j + 1]
-            if j > 0:
-                d += ex[i, j - 1]
-                s += ex[i, j - 1] * pdir[i, j - 1]
-            if i + 1 < h:
-                d += ey[i, j]
-                s += ey[i, j] * pdir[i + 1, j]
-            if i > 0:
-                d += ey[i - 1, j]
-                s += ey[i - 1, j] * pdir[i - 1, j]
-            s = d * pdir[i, j] - s
+        for j in range(1, w + 1):
+            e, wst, s_, n_ = ex[i, j], ex[i, j - 1], ey[i, j], ey[i - 1, j]
+            d = np.float64(wd[i, j]) + e + wst + s_ + n_
+            s = d * pdir[i, j] - (e * pdir[i, j + 1] + wst * pdir[i, j - 1] + s_ * pdir[i + 1, j] + n_ * pdir[i - 1, j])
             ap[i, j] = s
             acc += s * pdir[i, j]
     return acc
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, fastmath=_FAST)
 def _cg_step(alpha, pdir, ap, x, r):
     """x += alpha p, r -= alpha A p; returns ||r||^2."""
     h, w = x.shape
@@ -328,122 +296,87 @@ def _cg_step(alpha, pdir, ap, x, r):
     return acc
 
 
-@nb.njit(cache=True)
-def _coarsen(ex, ey, wd, edge_scale, exc, eyc, wdc, dgc):
-    """Operator of the next level by 2x2 aggregation (fine edges between two blocks summed)."""
-    h, w = wd.shape
-    hc, wc = wdc.shape
-    for ic in range(hc):
-        for jc in range(wc):
-            i0 = 2 * ic
-            j0 = 2 * jc
-            s = 0.0
-            for di in range(2):
-                for dj in range(2):
-                    if i0 + di < h and j0 + dj < w:
-                        s += wd[i0 + di, j0 + dj]
-            wdc[ic, jc] = s
-            e = 0.0
-            if jc + 1 < wc:
-                for di in range(2):
-                    if i0 + di < h:
-                        e += ex[i0 + di, j0 + 1]
-            exc[ic, jc] = edge_scale * e
-            e = 0.0
-            if ic + 1 < hc:
-                for dj in range(2):
-                    if j0 + dj < w:
-                        e += ey[i0 + 1, j0 + dj]
-            eyc[ic, jc] = edge_scale * e
-    for ic in range(hc):
-        for jc in range(wc):
-            d = wdc[ic, jc] + exc[ic, jc] + eyc[ic, jc]
-            if jc > 0:
-                d += exc[ic, jc - 1]
-            if ic > 0:
-                d += eyc[ic - 1, jc]
+@nb.njit(cache=True, fastmath=_FAST)
+def _coarsen(ex, ey, wd, edge_scale, exc, eyc, wdc, dgc, idgc):
+    """Operator of the next level by 2x2 aggregation: coarse cell (I, J) is the block of fine cells
+    2I - 1, 2I by 2J - 1, 2J (padded indices); fine edges between two blocks are summed. The
+    coarse arrays must be zero on the padding."""
+    hc, wc = wdc.shape[0] - 2, wdc.shape[1] - 2
+    for ic in range(1, hc + 1):
+        i0, i1 = 2 * ic - 1, 2 * ic
+        for jc in range(1, wc + 1):
+            j0, j1 = 2 * jc - 1, 2 * jc
+            wdc[ic, jc] = wd[i0, j0] + wd[i0, j1] + wd[i1, j0] + wd[i1, j1]
+            exc[ic, jc] = edge_scale * (ex[i0, j1] + ex[i1, j1])
+            eyc[ic, jc] = edge_scale * (ey[i1, j0] + ey[i1, j1])
+    for ic in range(1, hc + 1):
+        for jc in range(1, wc + 1):
+            d = wdc[ic, jc] + exc[ic, jc] + exc[ic, jc - 1] + eyc[ic, jc] + eyc[ic - 1, jc]
             dgc[ic, jc] = d
+            idgc[ic, jc] = 1.0 / d if d > 0.0 else 0.0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, fastmath=_FAST)
 def _restrict(r, rc):
-    """rc = P^T r: sums over 2x2 blocks."""
-    h, w = r.shape
-    rc[:, :] = 0.0
-    for i in range(h):
-        for j in range(w):
-            rc[i // 2, j // 2] += r[i, j]
+    """rc = P^T r: sums over the 2x2 blocks (padded grids)."""
+    hc, wc = rc.shape[0] - 2, rc.shape[1] - 2
+    for ic in range(1, hc + 1):
+        for jc in range(1, wc + 1):
+            rc[ic, jc] = r[2 * ic - 1, 2 * jc - 1] + r[2 * ic - 1, 2 * jc] + r[2 * ic, 2 * jc - 1] + r[2 * ic, 2 * jc]
 
 
-@nb.njit(cache=True)
-def _interpolate(xc, dgc, dg, x):
-    """x = bilinear interpolation of the coarse cells in the system (cell-centred: fine cell
-    2I + 1 lies 1/4 from coarse cell I towards I + 1); cells outside the system get 0. Used for
-    the nested-iteration start only (the V-cycle uses piecewise-constant prolongation)."""
-    h, w = x.shape
-    hc, wc = xc.shape
-    for i in range(h):
-        ic0 = i // 2
-        ic1 = ic0 - 1 if i % 2 == 0 else ic0 + 1
-        for j in range(w):
-            if dg[i, j] == 0.0:
+@nb.njit(cache=True, fastmath=_FAST)
+def _interpolate(xc, dgc, idg, x):
+    """x = bilinear interpolation of the coarse cells in the system (cell-centred: a fine cell lies
+    1/4 of a coarse cell from its block's centre); cells outside the system get 0. Used for the
+    nested-iteration start only (the V-cycle uses piecewise-constant prolongation)."""
+    h, w = x.shape[0] - 2, x.shape[1] - 2
+    for i in range(1, h + 1):
+        ic0 = (i + 1) // 2
+        ic1 = ic0 - 1 if i % 2 == 1 else ic0 + 1
+        for j in range(1, w + 1):
+            if idg[i, j] == 0.0:
                 x[i, j] = 0.0
                 continue
-            jc0 = j // 2
-            jc1 = jc0 - 1 if j % 2 == 0 else jc0 + 1
+            jc0 = (j + 1) // 2
+            jc1 = jc0 - 1 if j % 2 == 1 else jc0 + 1
             s = 0.0
             sw = 0.0
-            for a in range(2):
-                ic = ic0 if a == 0 else ic1
-                if ic < 0 or ic >= hc:
-                    continue
-                for c in range(2):
-                    jc = jc0 if c == 0 else jc1
-                    if jc < 0 or jc >= wc or dgc[ic, jc] == 0.0:
-                        continue
-                    wt = (0.75 if a == 0 else 0.25) * (0.75 if c == 0 else 0.25)
-                    s += wt * xc[ic, jc]
-                    sw += wt
+            for ic, wi in ((ic0, 0.75), (ic1, 0.25)):
+                for jc, wj in ((jc0, 0.75), (jc1, 0.25)):
+                    if dgc[ic, jc] != 0.0:
+                        s += wi * wj * xc[ic, jc]
+                        sw += wi * wj
             x[i, j] = s / sw if sw > 0.0 else xc[ic0, jc0]
 
 
-@nb.njit(cache=True)
-def _coarsest_solve(ex, ey, dg, x, b, sweeps):
+@nb.njit(cache=True, fastmath=_FAST)
+def _coarsest_solve(ex, ey, idg, x, b, sweeps):
     """x ~ A^-1 b on the coarsest grid by ``sweeps`` symmetric red-black Gauss-Seidel sweeps from
-    zero, in the palindromic order red, black, red, ..., black, red (a symmetric operator)."""
-    h, w = dg.shape
+    zero, in the palindromic order red, black, red, ..., black, red (a symmetric operator);
+    returns b . x."""
+    h, w = idg.shape[0] - 2, idg.shape[1] - 2
     x[:, :] = 0.0
     for k in range(2 * sweeps + 1):
-        color = k % 2
-        for i in range(h):
-            for j in range((i + color) % 2, w, 2):
-                d = dg[i, j]
-                if d == 0.0:
-                    continue
-                s = b[i, j]
-                if j + 1 < w:
-                    s += ex[i, j] * x[i, j + 1]
-                if j > 0:
-                    s += ex[i, j - 1] * x[i, j - 1]
-                if i + 1 < h:
-                    s += ey[i, j] * x[i + 1, j]
-                if i > 0:
-                    s += ey[i - 1, j] * x[i - 1, j]
-                x[i, j] = s / d
+        for i in range(1, h + 1):
+            for j in range(1 + (i + 1 + k) % 2, w + 1, 2):
+                x[i, j] = (b[i, j] + ex[i, j] * x[i, j + 1] + ex[i, j - 1] * x[i, j - 1]
+                           + ey[i, j] * x[i + 1, j] + ey[i - 1, j] * x[i - 1, j]) * idg[i, j]
     acc = 0.0
-    for i in range(h):
-        for j in range(w):
+    for i in range(1, h + 1):
+        for j in range(1, w + 1):
             acc += np.float64(b[i, j]) * np.float64(x[i, j])
     return acc
 
 
 class _Level:
-    """One level of the multigrid hierarchy: its operator and work buffers."""
+    """One level of the multigrid hierarchy: its operator and work buffers (padded grids)."""
 
-    def __init__(self, ex, ey, wd, dg):
-        self.ex, self.ey, self.wd, self.dg = ex, ey, wd, dg
-        self.x = np.zeros_like(dg)
-        self.b = np.zeros_like(dg)
+    def __init__(self, ex, ey, wd, dg, idg, *, with_rhs=True):
+        self.ex, self.ey, self.wd, self.dg, self.idg = ex, ey, wd, dg, idg
+        self.x = np.zeros(dg.shape, dg.dtype)
+        # the finest level's right-hand side is always given by the caller
+        self.b = np.zeros(dg.shape, dg.dtype) if with_rhs else None
 
 
 class _Multigrid:
@@ -456,52 +389,48 @@ class _Multigrid:
     is a symmetric positive (semi)definite operator and can precondition conjugate gradients.
     """
 
-    def __init__(self, ex, ey, wd, dg, *, edge_scale=0.5):
-        lv = _Level(ex, ey, wd, dg)
+    def __init__(self, ex, ey, wd, dg, idg, *, edge_scale=0.5):
+        lv = _Level(ex, ey, wd, dg, idg, with_rhs=False)
         self.levels = [lv]
-        while lv.dg.size > _COARSEST_CELLS:
-            hc, wc = (lv.dg.shape[0] + 1) // 2, (lv.dg.shape[1] + 1) // 2
-            arrs = [np.empty((hc, wc), np.float32) for _ in range(4)]
+        while (lv.dg.shape[0] - 2) * (lv.dg.shape[1] - 2) > _COARSEST_CELLS:
+            hc, wc = (lv.dg.shape[0] - 1) // 2, (lv.dg.shape[1] - 1) // 2  # ceil(h / 2), ceil(w / 2)
+            arrs = [np.zeros((hc + 2, wc + 2), np.float32) for _ in range(5)]
             _coarsen(lv.ex, lv.ey, lv.wd, np.float32(edge_scale), *arrs)
             lv = _Level(*arrs)
             self.levels.append(lv)
 
     def apply(self, r: np.ndarray) -> tuple[np.ndarray, float]:
-        """z = M^-1 r (one V-cycle from a zero guess) and r . z; z is float32 (H, W), a buffer
-        that the next call overwrites."""
+        """z = M^-1 r (one V-cycle from a zero guess) and r . z; z is a float32 padded grid, a
+        buffer that the next call overwrites."""
         rz = self._vcycle(0, r, zero_start=True)
         return self.levels[0].x, rz
 
     def full_multigrid(self, b: np.ndarray) -> np.ndarray:
-        """Approximate solution of A x = b by nested iteration (coarse solve, prolonged, one
-        V-cycle per level); float32 (H, W) buffer that the next call overwrites."""
+        """Approximate solution of A x = b by nested iteration (coarse solve, interpolated, one
+        V-cycle per level); float32 padded grid, a buffer that the next call overwrites."""
         lv = self.levels
-        lv[0].b[...] = b
+        rhs = [b] + [lv[k].b for k in range(1, len(lv))]
         for k in range(len(lv) - 1):
-            _restrict(lv[k].b, lv[k + 1].b)
-        self._coarsest(lv[-1].b)
+            _restrict(rhs[k], rhs[k + 1])
+        self._vcycle(len(lv) - 1, rhs[-1], zero_start=True)
         for k in range(len(lv) - 2, -1, -1):
-            _interpolate(lv[k + 1].x, lv[k + 1].dg, lv[k].dg, lv[k].x)
+            _interpolate(lv[k + 1].x, lv[k + 1].dg, lv[k].idg, lv[k].x)
             # lv[k].b is overwritten below level k only, so it still holds the restricted b.
-            self._vcycle(k, lv[k].b, zero_start=False)
+            self._vcycle(k, rhs[k], zero_start=False)
         return lv[0].x
-
-    def _coarsest(self, b: np.ndarray) -> float:
-        lv = self.levels[-1]
-        return _coarsest_solve(lv.ex, lv.ey, lv.dg, lv.x, b, _COARSEST_SWEEPS)
 
     def _vcycle(self, k: int, b: np.ndarray, *, zero_start: bool) -> float:
         lv = self.levels[k]
         if k == len(self.levels) - 1:
-            return self._coarsest(b)
+            return _coarsest_solve(lv.ex, lv.ey, lv.idg, lv.x, b, _COARSEST_SWEEPS)
         nxt = self.levels[k + 1]
-        _presmooth_restrict(lv.ex, lv.ey, lv.dg, lv.x, b, nxt.b, zero_start)
+        _presmooth_restrict(lv.ex, lv.ey, lv.dg, lv.idg, lv.x, b, nxt.b, zero_start)
         self._vcycle(k + 1, nxt.b, zero_start=True)
-        return _prolong_postsmooth(lv.ex, lv.ey, lv.dg, lv.x, b, nxt.x)
+        return _prolong_postsmooth(lv.ex, lv.ey, lv.idg, lv.x, b, nxt.x)
 
 
 def _pcg(ex, ey, wd, b, x, precond, *, tol, max_iter):
-    """Preconditioned conjugate gradients on the full grid (cells outside the system stay 0).
+    """Preconditioned conjugate gradients on the padded grid (cells outside the system stay 0).
 
     Returns (iterations, relative residual ||b - A x|| / ||b||).
     """
@@ -509,11 +438,11 @@ def _pcg(ex, ey, wd, b, x, precond, *, tol, max_iter):
     if bnorm == 0.0:
         x[...] = 0.0
         return 0, 0.0
-    r = np.empty_like(b)
+    r = np.zeros(b.shape)
     rel = np.sqrt(_residual_norm2(ex, ey, wd, x, b, r)) / bnorm
     it = 0
-    pdir = np.zeros_like(b)
-    ap = np.empty_like(b)
+    pdir = np.zeros(b.shape)
+    ap = np.zeros(b.shape)
     rz_old = 1.0
     while rel > tol and it < max_iter:
         z, rz = precond.apply(r)
@@ -526,12 +455,16 @@ def _pcg(ex, ey, wd, b, x, precond, *, tol, max_iter):
     return it, float(rel)
 
 
-def _solve(ex, ey, wd, dg, b, *, tol, max_iter):
-    """Least-squares solution of the assembled system; returns (x, iterations, residual)."""
-    mg = _Multigrid(ex, ey, wd, dg)
+def _solve(mask, p, q, wd, log_prior, *, tol, max_iter):
+    """Assemble the normal equations and solve them; returns (x (H, W), iterations, residual)."""
+    h, w = mask.shape
+    ex, ey, wdp, dg, idg = (np.zeros((h + 2, w + 2), np.float32) for _ in range(5))
+    b = np.zeros((h + 2, w + 2))
+    _fine_system(mask, p, q, wd, log_prior, ex, ey, wdp, dg, idg, b)
+    mg = _Multigrid(ex, ey, wdp, dg, idg)
     x = mg.full_multigrid(b).astype(np.float64)
-    it, rel = _pcg(ex, ey, wd, b, x, mg, tol=tol, max_iter=max_iter)
-    return x, it, rel
+    it, rel = _pcg(ex, ey, wdp, b, x, mg, tol=tol, max_iter=max_iter)
+    return x[1:-1, 1:-1], it, rel
 
 
 def _check_mask(mask, shape_hw, name="mask") -> np.ndarray:
@@ -675,16 +608,15 @@ def integrate_normals(
             f"got {bad} pixel(s) that are not"
         )
     x, it, rel, floating = _integrate(mask_c, p, q, wd, log_prior, tol=tol, max_iter=max_iter)
-    x += shift
-    depth = np.exp(x, out=x)
+    depth = np.empty(hw)
+    _exp_depth(x, mask_c, shift, depth)
     if floating is not None:
         if reference_depth_mm is None:
             raise ValueError(
                 f"reference_depth_mm: {floating[2]} connected part(s) of the mask have no prior depth, "
                 "expected reference_depth_mm to fix their scale, got None"
             )
-        _scale_to_median(depth, floating[0], floating[1], float(reference_depth_mm))
-    depth[~mask_c] = np.nan
+        _scale_to_median(depth, mask_c, *floating, float(reference_depth_mm))
     return DepthResult(depth_mm=depth, mask=mask_c.copy(), iterations=it, residual=rel)
 
 
@@ -741,12 +673,12 @@ def integrate_gradient(
     q = np.where(mask, grad_v, 0.0)
     zeros = np.zeros(grad_u.shape)
     x, it, rel, floating = _integrate(mask, p, q, zeros, zeros, tol=tol, max_iter=max_iter)
-    labels, n, _ = floating
+    labels, n = floating[0], floating[1]
     sums = np.bincount(labels.ravel(), weights=x.ravel(), minlength=n + 1)
     counts = np.bincount(labels.ravel(), minlength=n + 1)
     means = sums / np.maximum(counts, 1)
     means[0] = 0.0
-    x -= means[labels]
+    x = x - means[labels]
     x[~mask] = np.nan
     return HeightResult(height=x, mask=mask.copy(), iterations=it, residual=rel)
 
@@ -787,42 +719,75 @@ def _prior_terms(prior_depth_mm, prior_weight, mask):
 
 
 def _integrate(mask, p, q, wd, log_prior, *, tol, max_iter):
-    """Assemble and solve; returns (x, iterations, residual, floating) with floating = (labels, n)
-    of the connected parts without any prior pixel, or None when every part has one."""
-    hw = mask.shape
-    ex = np.empty(hw, np.float32)
-    ey = np.empty(hw, np.float32)
-    dg = np.empty(hw, np.float32)
-    b = np.empty(hw)
-    wd = wd.astype(np.float32)
-    _fine_system(mask, p, q, wd, log_prior, ex, ey, dg, b)
-    x, it, rel = _solve(ex, ey, wd, dg, b, tol=tol, max_iter=max_iter)
+    """Assemble and solve; returns (x, iterations, residual, floating) with ``x`` (H, W) float64
+    (a view) and ``floating = (labels, n, n_floating, has_prior)`` describing the connected parts
+    of the mask that have no prior pixel, or None when every part has one."""
+    x, it, rel = _solve(mask, p, q, wd, log_prior, tol=tol, max_iter=max_iter)
     labels, n = scipy.ndimage.label(mask)
-    has_prior = np.zeros(n + 1, bool)
-    has_prior[np.unique(labels[wd > 0])] = True
+    has_prior = _parts_with_prior(labels, wd, n)
     has_prior[0] = True
     if has_prior.all():
         return x, it, rel, None
-    floating = ~has_prior[labels]
-    labels = np.where(floating, labels, 0)
-    return x, it, rel, (labels, n, int(np.count_nonzero(~has_prior)))
+    return x, it, rel, (labels, n, int(np.count_nonzero(~has_prior)), has_prior)
 
 
-def _scale_to_median(depth, labels, n, reference):
-    """Scale each labelled part (label > 0) of ``depth`` so that its median is ``reference``, in place."""
-    counts = np.bincount(labels.ravel(), minlength=n + 1)
-    present = np.flatnonzero(counts[1:]) + 1
-    if present.size == 1:
-        sel = labels == present[0]
-        depth[sel] *= reference / np.median(depth[sel])
-        return
-    flat = depth.ravel()
-    lab = labels.ravel()
-    idx = np.flatnonzero(lab)
-    order = idx[np.argsort(lab[idx], kind="stable")]
-    ends = np.cumsum(counts[1:])
-    starts = ends - counts[1:]
-    for s, e in zip(starts, ends):
-        if e > s:
-            part = order[s:e]
-            flat[part] *= reference / np.median(flat[part])
+@nb.njit(cache=True)
+def _parts_with_prior(labels, wd, n):
+    out = np.zeros(n + 1, np.bool_)
+    h, w = labels.shape
+    for i in range(h):
+        for j in range(w):
+            if wd[i, j] > 0.0:
+                out[labels[i, j]] = True
+    return out
+
+
+@nb.njit(cache=True)
+def _exp_depth(x, mask, shift, depth):
+    """depth = exp(x + shift) on the mask, NaN elsewhere."""
+    h, w = mask.shape
+    for i in range(h):
+        for j in range(w):
+            depth[i, j] = np.exp(x[i, j] + shift) if mask[i, j] else np.nan
+
+
+@nb.njit(cache=True)
+def _gather(values, labels, label, out):
+    """The values of the cells with ``labels == label`` (label -1: every cell with label > 0), in
+    row-major order; returns how many."""
+    k = 0
+    h, w = labels.shape
+    for i in range(h):
+        for j in range(w):
+            lab = labels[i, j]
+            if (label < 0 and lab > 0) or lab == label:
+                out[k] = values[i, j]
+                k += 1
+    return k
+
+
+@nb.njit(cache=True)
+def _scale_parts(depth, labels, factor):
+    """depth *= factor[label] on the cells with label > 0."""
+    h, w = labels.shape
+    for i in range(h):
+        for j in range(w):
+            lab = labels[i, j]
+            if lab > 0:
+                depth[i, j] *= factor[lab]
+
+
+def _scale_to_median(depth, mask, labels, n, n_floating, has_prior, reference):
+    """Scale each part of the mask without prior so that its median depth is ``reference``, in place."""
+    factor = np.ones(n + 1)
+    if n == 1:
+        buf = np.empty(int(np.count_nonzero(mask)))
+        _gather(depth, labels, 1, buf)
+        factor[1] = reference / np.median(buf, overwrite_input=True)
+    else:
+        counts = np.bincount(labels.ravel(), minlength=n + 1)
+        buf = np.empty(int(counts[1:].max()))
+        for part in np.flatnonzero(~has_prior):
+            k = _gather(depth, labels, part, buf)
+            factor[part] = reference / np.median(buf[:k])
+    _scale_parts(depth, labels, factor)
