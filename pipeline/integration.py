@@ -129,12 +129,12 @@ def _log_depth_gradients(normals, mask, kinv, unit_tol, p, q):
 
 
 @nb.njit(cache=True)
-def _fine_system(mask, p, q, wd, prior, ex, ey, wdp, dg, idg, b):
+def _fine_system(mask, p, q, wd, prior, shift, ex, ey, wdp, dg, idg, b):
     """The normal equations on the padded grid from (H, W) inputs.
 
     Edge (a, c) with c the right/lower neighbour of a: x_c - x_a = (g_a + g_c) / 2; prior term
-    wd * (x - prior). Outputs ex, ey, wdp (float32 copy of wd), dg, idg, b are (H + 2, W + 2) and
-    must be zero on the padding.
+    wd * (x - (prior - shift)). Outputs ex, ey, wdp (float32 copy of wd), dg, idg, b are
+    (H + 2, W + 2) and must be zero on the padding.
     """
     h, w = mask.shape
     for i in range(h):
@@ -149,7 +149,7 @@ def _fine_system(mask, p, q, wd, prior, ex, ey, wdp, dg, idg, b):
             wij = np.float32(wd[i, j])
             wdp[i + 1, j + 1] = wij
             d = np.float64(wij)
-            s = d * prior[i, j] if wij > 0.0 else 0.0
+            s = d * (prior[i, j] - shift) if wij > 0.0 else 0.0
             if ex[i + 1, j + 1] > 0.0:
                 d += 1.0
                 s -= 0.5 * (p[i, j] + p[i, j + 1])
@@ -455,12 +455,12 @@ def _pcg(ex, ey, wd, b, x, precond, *, tol, max_iter):
     return it, float(rel)
 
 
-def _solve(mask, p, q, wd, log_prior, *, tol, max_iter):
+def _solve(mask, p, q, wd, log_prior, shift, *, tol, max_iter):
     """Assemble the normal equations and solve them; returns (x (H, W), iterations, residual)."""
     h, w = mask.shape
     ex, ey, wdp, dg, idg = (np.zeros((h + 2, w + 2), np.float32) for _ in range(5))
     b = np.zeros((h + 2, w + 2))
-    _fine_system(mask, p, q, wd, log_prior, ex, ey, wdp, dg, idg, b)
+    _fine_system(mask, p, q, wd, log_prior, shift, ex, ey, wdp, dg, idg, b)
     mg = _Multigrid(ex, ey, wdp, dg, idg)
     x = mg.full_multigrid(b).astype(np.float64)
     it, rel = _pcg(ex, ey, wdp, b, x, mg, tol=tol, max_iter=max_iter)
@@ -607,7 +607,7 @@ def integrate_normals(
             f"normals: expected finite unit vectors facing the camera (n . ray < 0) inside the mask, "
             f"got {bad} pixel(s) that are not"
         )
-    x, it, rel, floating = _integrate(mask_c, p, q, wd, log_prior, tol=tol, max_iter=max_iter)
+    x, it, rel, floating = _integrate(mask_c, p, q, wd, log_prior, shift, tol=tol, max_iter=max_iter)
     depth = np.empty(hw)
     _exp_depth(x, mask_c, shift, depth)
     if floating is not None:
@@ -671,8 +671,9 @@ def integrate_gradient(
             raise ValueError(f"{name}: expected finite values inside the mask, got {n_bad} that are not")
     p = np.where(mask, grad_u, 0.0)
     q = np.where(mask, grad_v, 0.0)
-    zeros = np.zeros(grad_u.shape)
-    x, it, rel, floating = _integrate(mask, p, q, zeros, zeros, tol=tol, max_iter=max_iter)
+    x, it, rel, floating = _integrate(
+        mask, p, q, np.zeros(grad_u.shape, np.float32), np.zeros(grad_u.shape), 0.0, tol=tol, max_iter=max_iter
+    )
     labels, n = floating[0], floating[1]
     sums = np.bincount(labels.ravel(), weights=x.ravel(), minlength=n + 1)
     counts = np.bincount(labels.ravel(), minlength=n + 1)
@@ -684,45 +685,70 @@ def integrate_gradient(
 
 
 def _prior_terms(prior_depth_mm, prior_weight, mask):
-    """Prior weights wd, shifted log prior and the shift (median log prior) on the grid."""
+    """Prior weights ``wd`` (H, W) float32 (0 where no prior is used), log prior (H, W) float64 and
+    a shift (the median log prior of a subsample) that centres the unknowns."""
     hw = mask.shape
     if prior_depth_mm is None:
-        return np.zeros(hw), np.zeros(hw), 0.0
+        return np.zeros(hw, np.float32), np.zeros(hw), 0.0
     prior = np.asarray(prior_depth_mm, dtype=np.float64)
     if prior.shape != hw:
         raise ValueError(f"prior_depth_mm: expected shape {hw}, got {prior.shape}")
-    known = mask & ~np.isnan(prior)
-    vals = prior[known]
-    if not np.all(np.isfinite(vals) & (vals > 0)):
-        n_bad = int(np.count_nonzero(~(np.isfinite(vals) & (vals > 0))))
-        raise ValueError(f"prior_depth_mm: expected depths > 0 mm or NaN, got {n_bad} pixel(s) infinite or <= 0")
     weight = np.asarray(prior_weight, dtype=np.float64)
     if weight.ndim == 0:
         if not (np.isfinite(weight) and weight >= 0):
             raise ValueError(f"prior_weight: expected a finite weight >= 0, got {float(weight)}")
-        wd = np.where(known, float(weight), 0.0)
-    else:
-        if weight.shape != hw:
-            raise ValueError(f"prior_weight: expected a scalar or shape {hw}, got {weight.shape}")
-        wk = weight[known]
-        if not np.all(np.isfinite(wk) & (wk >= 0)):
-            raise ValueError("prior_weight: expected finite weights >= 0 where the prior is known")
-        wd = np.where(known, weight, 0.0)
-    used = wd > 0
-    if not used.any():
-        return np.zeros(hw), np.zeros(hw), 0.0
-    log_prior = np.zeros(hw)
-    log_prior[used] = np.log(prior[used])
-    shift = float(np.median(log_prior[used]))
-    log_prior[used] -= shift
+        weight = weight.reshape(1, 1)
+    elif weight.shape != hw:
+        raise ValueError(f"prior_weight: expected a scalar or shape {hw}, got {weight.shape}")
+    wd = np.empty(hw, np.float32)
+    log_prior = np.empty(hw)
+    bad_prior, bad_weight = _prior_arrays(np.ascontiguousarray(mask), prior, weight, wd, log_prior)
+    if bad_prior:
+        raise ValueError(f"prior_depth_mm: expected depths > 0 mm or NaN, got {bad_prior} pixel(s) infinite or <= 0")
+    if bad_weight:
+        raise ValueError(
+            f"prior_weight: expected finite weights >= 0 where the prior is known, got {bad_weight} that are not"
+        )
+    sample = log_prior[::7, ::7][wd[::7, ::7] > 0]
+    if sample.size == 0:
+        sample = log_prior[wd > 0]
+    shift = float(np.median(sample)) if sample.size else 0.0
     return wd, log_prior, shift
 
 
-def _integrate(mask, p, q, wd, log_prior, *, tol, max_iter):
+@nb.njit(cache=True)
+def _prior_arrays(mask, prior, weight, wd, log_prior):
+    """wd = weight and log_prior = log(prior) where the mask and a prior are given (0 elsewhere);
+    ``weight`` is (1, 1) for a scalar. Returns the counts of bad priors and of bad weights."""
+    h, w = mask.shape
+    scalar = weight.shape[0] == 1 and weight.shape[1] == 1
+    bad_prior = 0
+    bad_weight = 0
+    for i in range(h):
+        for j in range(w):
+            wd[i, j] = 0.0
+            log_prior[i, j] = 0.0
+            z = prior[i, j]
+            if not mask[i, j] or np.isnan(z):
+                continue
+            if not (0.0 < z < np.inf):
+                bad_prior += 1
+                continue
+            wt = weight[0, 0] if scalar else weight[i, j]
+            if not (0.0 <= wt < np.inf):
+                bad_weight += 1
+                continue
+            if wt > 0.0:
+                wd[i, j] = wt
+                log_prior[i, j] = np.log(z)
+    return bad_prior, bad_weight
+
+
+def _integrate(mask, p, q, wd, log_prior, shift, *, tol, max_iter):
     """Assemble and solve; returns (x, iterations, residual, floating) with ``x`` (H, W) float64
     (a view) and ``floating = (labels, n, n_floating, has_prior)`` describing the connected parts
     of the mask that have no prior pixel, or None when every part has one."""
-    x, it, rel = _solve(mask, p, q, wd, log_prior, tol=tol, max_iter=max_iter)
+    x, it, rel = _solve(mask, p, q, wd, log_prior, shift, tol=tol, max_iter=max_iter)
     labels, n = scipy.ndimage.label(mask)
     has_prior = _parts_with_prior(labels, wd, n)
     has_prior[0] = True

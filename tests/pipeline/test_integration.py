@@ -398,3 +398,37 @@ def test_vase_plain_least_squares_rmse():
     err = float(np.sqrt(np.mean((res.height[mask] - truth[mask]) ** 2)))
     # SOURCE.txt: the same least-squares equations solved by spsolve give 0.108
     assert err == pytest.approx(0.108, abs=0.002)
+
+
+def test_multigrid_preconditioner_is_symmetric_and_positive():
+    # conjugate gradients needs a symmetric positive preconditioner: the V-cycle must be its own
+    # adjoint (pre-smoothing red-black, post-smoothing black-red, restriction = prolongation^T)
+    from pipeline.integration import _fine_system, _Multigrid
+
+    rng = np.random.default_rng(4)
+    hw = (70, 90)
+    mask = irregular_mask(rng, hw)
+    h, w = hw
+    ex, ey, wdp, dg, idg = (np.zeros((h + 2, w + 2), np.float32) for _ in range(5))
+    b = np.zeros((h + 2, w + 2))
+    wd = np.where(rng.random(hw) < 0.05, 0.01, 0.0).astype(np.float32)
+    _fine_system(mask, np.zeros(hw), np.zeros(hw), wd, np.zeros(hw), 0.0, ex, ey, wdp, dg, idg, b)
+    mg = _Multigrid(ex, ey, wdp, dg, idg)
+    u, v = (np.zeros((h + 2, w + 2)) for _ in range(2))
+    u[1:-1, 1:-1][mask] = rng.normal(size=mask.sum())
+    v[1:-1, 1:-1][mask] = rng.normal(size=mask.sum())
+    mu = mg.apply(u)[0].astype(np.float64)
+    mv = mg.apply(v)[0].astype(np.float64)
+    # float32 arithmetic inside the cycle: symmetric to ~1e-6 relative
+    assert abs(np.vdot(v, mu) - np.vdot(u, mv)) < 1e-5 * np.vdot(u, mu)
+    assert np.vdot(u, mu) > 0 and np.vdot(v, mv) > 0
+    assert np.all(mu[1:-1, 1:-1][~mask] == 0)
+
+
+def test_bad_prior_weight_map_is_rejected(small):
+    n, mask, K, depth = small
+    weight = np.full(mask.shape, 0.01)
+    weight[5, 5] = np.nan
+    weight[6, 6] = -1.0
+    with pytest.raises(ValueError, match=r"prior_weight: expected finite weights >= 0 where the prior is known, got 2"):
+        integrate_normals(n, mask, K, prior_depth_mm=depth, prior_weight=weight)
