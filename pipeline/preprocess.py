@@ -156,6 +156,10 @@ def plate_mask(brightness: np.ndarray, *, erode_px: int = 3, min_fraction: float
     if erode_px > 0:
         k = 2 * erode_px + 1
         mask = cv2.erode(mask.view(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
+        # erosion can cut off slivers at a ragged edge: keep the plate itself
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.view(np.uint8), connectivity=4)
+        if n > 2:
+            mask = labels == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
     if mask.mean() < min_fraction:
         raise CaptureError(
             f"photometric images: the plate covers {100 * mask.mean():.1f} % of the image, "

@@ -35,13 +35,18 @@ class InspectOptions:
         Per-pixel photometric estimator (see :func:`pipeline.normals.estimate_normals`).
     stereo_weight : float
         Weight of the stereo depth against the normal equations in the fusion
-        (dimensionless, per pixel, log-depth units).
+        (dimensionless, per pixel, log-depth units). The normals win above the
+        wavelength ``2 pi / sqrt(stereo_weight)`` pixels (~630 px at 1e-4): the
+        stereo pair sets scale, position and tilt, the normals the shape. Measured
+        on simulated plates (1224x1024): 1e-2 lets stereo noise through
+        (deviation RMS 0.15 mm on a perfect cylinder), 1e-4 gives 0.03 mm, 1e-5
+        starts to lose the scale (+0.05 % radius).
     depth_margin : float
         The stereo search covers ``working distance * (1 -/+ depth_margin)``.
     """
 
     normals_method: str = "robust"
-    stereo_weight: float = 1e-2
+    stereo_weight: float = 1e-4
     depth_margin: float = 0.25
 
 
