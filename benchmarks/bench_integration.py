@@ -30,6 +30,7 @@ from tests.pipeline.test_integration import (  # noqa: E402
     made_after_median_scale,
     plate_camera,
     render_cylinder,
+    sparse_least_squares,
 )
 
 #: BiNI (k=2, perspective) MADE in mm, from the data's SOURCE.txt.
@@ -110,6 +111,22 @@ def accuracy_table():
             integrate_normals(noisy, mask, K, prior_depth_mm=noisy_prior))
 
 
+def exactness_table():
+    print(f"\n## Same equations, direct sparse solve (scipy spsolve of the normal equations) ({load()})")
+    print(f"{'size':>10} {'ours s':>7} {'spsolve s':>9} {'max |dlog z|':>12}")
+    rng = np.random.default_rng(2)
+    for w, h, f in ((306, 256, 225.0), (612, 512, 450.0)):
+        K = plate_camera(w, h, f)
+        n, mask, depth = render_cylinder(K, (h, w))
+        n = n + rng.normal(0.0, 0.005, n.shape)
+        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+        prior = np.where(rng.random(depth.shape) < 0.3, depth + rng.normal(0.0, 2.0, depth.shape), np.nan)
+        res, wall, _ = timed(lambda: integrate_normals(n, mask, K, prior_depth_mm=prior, tol=1e-10), 3)
+        ref, wall_ref, _ = timed(lambda: sparse_least_squares(n, mask, K, np.log(prior), np.float32(1e-2)), 1)
+        diff = np.nanmax(np.abs(np.log(res.depth_mm) - ref))
+        print(f"{w:>5}x{h:<4} {wall:7.3f} {wall_ref:9.3f} {diff:12.1e}")
+
+
 def bini_table():
     if not BINI.is_dir():
         print(f"\n## BiNI DiLiGenT: skipped, {BINI} not found")
@@ -146,6 +163,7 @@ def main():
     sizes = [(612, 512, 450.0), (1224, 1024, 900.0)] + ([] if args.quick else [(2448, 2048, 1800.0)])
     speed_table(sizes, repeat=3)
     accuracy_table()
+    exactness_table()
     bini_table()
     vase_table()
 

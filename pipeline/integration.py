@@ -30,7 +30,7 @@ __all__ = ["DepthResult", "HeightResult", "integrate_normals", "integrate_gradie
 _FAST = {"reassoc", "contract", "arcp"}
 #: Tolerance on the length of a normal inside the mask (normals are unit vectors).
 _UNIT_TOL = 1e-2
-#: Coarsest multigrid level: solved densely once it has at most this many cells.
+#: Coarsest multigrid level: at most this many cells, solved by Gauss-Seidel sweeps.
 _COARSEST_CELLS = 64
 #: Symmetric Gauss-Seidel sweeps that solve the coarsest level (<= 64 cells: error / 1e5 or better).
 _COARSEST_SWEEPS = 100
@@ -532,9 +532,11 @@ def integrate_normals(
         own this way.
     tol : float, optional
         Relative residual ``||b - A x|| / ||b||`` of the normal equations at
-        which the conjugate-gradient solve stops.
+        which the conjugate-gradient solve stops (each iteration divides it by
+        about 8, independently of the image size).
     max_iter : int, optional
-        Maximum number of conjugate-gradient iterations.
+        Maximum number of conjugate-gradient iterations. If it is reached
+        first, the result carries its larger ``residual``: compare with ``tol``.
 
     Returns
     -------
@@ -564,7 +566,11 @@ def integrate_normals(
 
     The normal equations are a masked graph Laplacian plus the diagonal prior
     weights; they are solved by conjugate gradients preconditioned by a
-    multigrid V-cycle.
+    multigrid V-cycle, single-threaded (about 0.2 s at 1224 x 1024 and 0.7 s
+    at 2448 x 2048 on this project's 2-core machine). The first call in a fresh
+    installation compiles the numba kernels (~10 s); they are cached on disk.
+    Prior weights are used in float32 (the solution is the exact least-squares
+    solution for those weights).
 
     References
     ----------
@@ -591,11 +597,11 @@ def integrate_normals(
     if reference_depth_mm is not None and not (np.isfinite(reference_depth_mm) and reference_depth_mm > 0):
         raise ValueError(f"reference_depth_mm: expected a positive depth in mm, got {reference_depth_mm}")
 
-    wd, log_prior, shift = _prior_terms(prior_depth_mm, prior_weight, mask)
     if prior_depth_mm is None and reference_depth_mm is None:
         raise ValueError(
             "prior_depth_mm, reference_depth_mm: expected at least one to fix the scale of the depth, got neither"
         )
+    wd, log_prior, shift = _prior_terms(prior_depth_mm, prior_weight, mask)
 
     normals = np.ascontiguousarray(normals)
     mask_c = np.ascontiguousarray(mask)
