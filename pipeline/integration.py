@@ -455,12 +455,18 @@ def _pcg(ex, ey, wd, b, x, precond, *, tol, max_iter):
     return it, float(rel)
 
 
-def _solve(mask, p, q, wd, log_prior, shift, *, tol, max_iter):
-    """Assemble the normal equations and solve them; returns (x (H, W), iterations, residual)."""
+def _assemble(mask, p, q, wd, log_prior, shift):
+    """The normal equations on the padded grid: (ex, ey, wd, dg, idg) float32 and b float64."""
     h, w = mask.shape
     ex, ey, wdp, dg, idg = (np.zeros((h + 2, w + 2), np.float32) for _ in range(5))
     b = np.zeros((h + 2, w + 2))
     _fine_system(mask, p, q, wd, log_prior, shift, ex, ey, wdp, dg, idg, b)
+    return ex, ey, wdp, dg, idg, b
+
+
+def _solve(system, *, tol, max_iter):
+    """Solve the assembled system; returns (x (H, W) float64 view, iterations, residual)."""
+    ex, ey, wdp, dg, idg, b = system
     mg = _Multigrid(ex, ey, wdp, dg, idg)
     x = mg.full_multigrid(b).astype(np.float64)
     it, rel = _pcg(ex, ey, wdp, b, x, mg, tol=tol, max_iter=max_iter)
@@ -613,7 +619,10 @@ def integrate_normals(
             f"normals: expected finite unit vectors facing the camera (n . ray < 0) inside the mask, "
             f"got {bad} pixel(s) that are not"
         )
-    x, it, rel, floating = _integrate(mask_c, p, q, wd, log_prior, shift, tol=tol, max_iter=max_iter)
+    system = _assemble(mask_c, p, q, wd, log_prior, shift)
+    del p, q, log_prior  # the largest inputs are not needed by the solve
+    x, it, rel, floating = _integrate(mask_c, system, wd, tol=tol, max_iter=max_iter)
+    del system
     depth = np.empty(hw)
     _exp_depth(x, mask_c, shift, depth)
     if floating is not None:
@@ -677,9 +686,9 @@ def integrate_gradient(
             raise ValueError(f"{name}: expected finite values inside the mask, got {n_bad} that are not")
     p = np.where(mask, grad_u, 0.0)
     q = np.where(mask, grad_v, 0.0)
-    x, it, rel, floating = _integrate(
-        mask, p, q, np.zeros(grad_u.shape, np.float32), np.zeros(grad_u.shape), 0.0, tol=tol, max_iter=max_iter
-    )
+    wd = np.zeros(grad_u.shape, np.float32)
+    system = _assemble(mask, p, q, wd, np.zeros(grad_u.shape), 0.0)
+    x, it, rel, floating = _integrate(mask, system, wd, tol=tol, max_iter=max_iter)
     labels, n = floating[0], floating[1]
     sums = np.bincount(labels.ravel(), weights=x.ravel(), minlength=n + 1)
     counts = np.bincount(labels.ravel(), minlength=n + 1)
@@ -750,11 +759,11 @@ def _prior_arrays(mask, prior, weight, wd, log_prior):
     return bad_prior, bad_weight
 
 
-def _integrate(mask, p, q, wd, log_prior, shift, *, tol, max_iter):
-    """Assemble and solve; returns (x, iterations, residual, floating) with ``x`` (H, W) float64
-    (a view) and ``floating = (labels, n, n_floating, has_prior)`` describing the connected parts
-    of the mask that have no prior pixel, or None when every part has one."""
-    x, it, rel = _solve(mask, p, q, wd, log_prior, shift, tol=tol, max_iter=max_iter)
+def _integrate(mask, system, wd, *, tol, max_iter):
+    """Solve and find the parts without prior; returns (x, iterations, residual, floating) with
+    ``x`` (H, W) float64 (a view) and ``floating = (labels, n, n_floating, has_prior)`` describing
+    the connected parts of the mask that have no prior pixel, or None when every part has one."""
+    x, it, rel = _solve(system, tol=tol, max_iter=max_iter)
     labels, n = scipy.ndimage.label(mask)
     has_prior = _parts_with_prior(labels, wd, n)
     has_prior[0] = True
