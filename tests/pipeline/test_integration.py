@@ -432,3 +432,34 @@ def test_bad_prior_weight_map_is_rejected(small):
     weight[6, 6] = -1.0
     with pytest.raises(ValueError, match=r"prior_weight: expected finite weights >= 0 where the prior is known, got 2"):
         integrate_normals(n, mask, K, prior_depth_mm=depth, prior_weight=weight)
+
+
+def render_sphere(K, hw, *, radius_mm, centre_mm):
+    """Ray-trace the near side of a sphere (camera frame, mm); returns normals, mask, depth."""
+    h, w = hw
+    u, v = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
+    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T
+    c = np.asarray(centre_mm, dtype=float)
+    a = np.sum(rays * rays, -1)
+    half_b = -np.sum(rays * c, -1)
+    disc = half_b**2 - a * (c @ c - radius_mm**2)
+    lam = (-half_b - np.sqrt(np.maximum(disc, 0.0))) / a  # the nearer hit
+    pts = lam[..., None] * rays
+    n = (pts - c) / radius_mm
+    mask = disc > 0
+    return n, mask, np.where(mask, lam, np.nan)
+
+
+def test_sphere_cap_off_axis_with_prior_on_a_few_pixels():
+    # double curvature, off the optical axis, fx != fy: nothing cylinder-specific
+    K = plate_camera(320, 240, 260.0)
+    n, mask, depth = render_sphere(K, (240, 320), radius_mm=4000.0, centre_mm=(600.0, -300.0, 7200.0))
+    mask &= np.sum(n * np.array([0.0, 0.0, -1.0]), -1) > 0.9  # the cap within ~25 deg of facing the camera
+    rng = np.random.default_rng(9)
+    prior = np.where(rng.random(mask.shape) < 0.02, depth, np.nan)
+    res = integrate_normals(n, mask, K, prior_depth_mm=prior)
+    # exact normals and exact sparse prior: only the trapezoid-rule error remains (2.4 um RMS here; it
+    # is second order: 0.6 um at twice the resolution). On steeper caps it grows along the thin pixel
+    # chains of the mask border (slopes up to 53 deg: 0.18 mm RMS, 20 mm at one border pixel)
+    assert rms(res.depth_mm - depth) < 0.02
+    assert np.nanmax(np.abs(res.depth_mm - depth)) < 0.1
