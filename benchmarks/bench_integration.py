@@ -105,7 +105,8 @@ def accuracy_table():
         noisy = n + rng.normal(0.0, sigma_n, n.shape)
         noisy /= np.linalg.norm(noisy, axis=-1, keepdims=True)
         deg = np.degrees(np.arccos(np.clip(np.sum(noisy * n, -1), -1, 1)))[mask].mean()
-        row(f"normals + noise ({deg:.2f} deg mean), reference", integrate_normals(noisy, mask, K, reference_depth_mm=ref))
+        row(f"normals + noise ({deg:.2f} deg mean), reference",
+            integrate_normals(noisy, mask, K, reference_depth_mm=ref))
         noisy_prior = depth + rng.normal(0.0, 2.0, depth.shape)
         row(f"normals + noise ({deg:.2f} deg mean), prior 2 mm, w 1e-2",
             integrate_normals(noisy, mask, K, prior_depth_mm=noisy_prior))

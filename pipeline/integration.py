@@ -47,7 +47,9 @@ class DepthResult:
         ``(u, v)`` sees the point ``depth_mm[v, u] * K^-1 (u, v, 1)``); NaN
         outside ``mask``.
     mask : (H, W) bool
-        Pixels that were integrated (the input mask).
+        Pixels with a metric depth: the input mask, minus the connected parts
+        of it that no prior pixel reaches when a prior but no
+        ``reference_depth_mm`` is given.
     iterations : int
         Preconditioned conjugate-gradient iterations taken.
     residual : float
@@ -526,7 +528,9 @@ def integrate_normals(
     prior_depth_mm : (H, W) float, optional
         Metric depth along the optical axis (mm, > 0), NaN where unknown, e.g.
         from binocular stereo. Fixes the scale; with a large weight it also
-        fixes the low frequencies.
+        fixes the low frequencies. A connected part of the mask without any
+        prior pixel gets its scale from ``reference_depth_mm``, or, without
+        it, NaN depth and is left out of the result's ``mask``.
     prior_weight : float or (H, W) float, optional
         Weight ``w >= 0`` of each prior equation relative to a neighbour
         equation (both are in log depth). ``w`` sets the length scale
@@ -535,7 +539,7 @@ def integrate_normals(
         Without a prior the solution is known only up to a scale: it is fixed
         so that the median depth over the mask equals this value (mm). Each
         connected part of the mask that has no prior pixel is scaled on its
-        own this way.
+        own this way (its relative scale is not observable).
     tol : float, optional
         Relative residual ``||b - A x|| / ||b||`` of the normal equations at
         which the conjugate-gradient solve stops (each iteration divides it by
@@ -555,8 +559,7 @@ def integrate_normals(
     ValueError
         On bad shapes or values: normals inside the mask that are not finite,
         not unit, or not facing the camera; a prior that is not positive;
-        negative weights; neither a prior nor ``reference_depth_mm`` for a part
-        of the mask.
+        negative weights; neither ``prior_depth_mm`` nor ``reference_depth_mm``.
 
     Notes
     -----
@@ -607,7 +610,12 @@ def integrate_normals(
         raise ValueError(
             "prior_depth_mm, reference_depth_mm: expected at least one to fix the scale of the depth, got neither"
         )
-    wd, log_prior, shift = _prior_terms(prior_depth_mm, prior_weight, mask)
+    wd, log_prior, shift, n_prior = _prior_terms(prior_depth_mm, prior_weight, mask)
+    if n_prior == 0 and reference_depth_mm is None:
+        raise ValueError(
+            "prior_depth_mm: expected at least one depth with a weight > 0 inside the mask to fix the scale, "
+            "got none (give reference_depth_mm to integrate without a prior)"
+        )
 
     normals = np.ascontiguousarray(normals)
     mask_c = np.ascontiguousarray(mask)
@@ -625,14 +633,16 @@ def integrate_normals(
     del system
     depth = np.empty(hw)
     _exp_depth(x, mask_c, shift, depth)
+    result_mask = mask_c.copy()
     if floating is not None:
-        if reference_depth_mm is None:
-            raise ValueError(
-                f"reference_depth_mm: {floating[2]} connected part(s) of the mask have no prior depth, "
-                "expected reference_depth_mm to fix their scale, got None"
-            )
-        _scale_to_median(depth, mask_c, *floating, float(reference_depth_mm))
-    return DepthResult(depth_mm=depth, mask=mask_c.copy(), iterations=it, residual=rel)
+        if reference_depth_mm is not None:
+            _scale_to_median(depth, mask_c, *floating, float(reference_depth_mm))
+        else:  # only with a prior: parts it does not reach have no metric depth
+            labels, has_prior = floating[0], floating[3]
+            unscaled = ~has_prior[labels]
+            depth[unscaled] = np.nan
+            result_mask &= ~unscaled
+    return DepthResult(depth_mm=depth, mask=result_mask, iterations=it, residual=rel)
 
 
 def integrate_gradient(
@@ -700,11 +710,12 @@ def integrate_gradient(
 
 
 def _prior_terms(prior_depth_mm, prior_weight, mask):
-    """Prior weights ``wd`` (H, W) float32 (0 where no prior is used), log prior (H, W) float64 and
-    a shift (the median log prior of a subsample) that centres the unknowns."""
+    """Prior weights ``wd`` (H, W) float32 (0 where no prior is used), log prior (H, W) float64, a
+    shift (the median log prior of a subsample) that centres the unknowns, and the count of pixels
+    with a prior."""
     hw = mask.shape
     if prior_depth_mm is None:
-        return np.zeros(hw, np.float32), np.zeros(hw), 0.0
+        return np.zeros(hw, np.float32), np.zeros(hw), 0.0, 0
     prior = np.asarray(prior_depth_mm, dtype=np.float64)
     if prior.shape != hw:
         raise ValueError(f"prior_depth_mm: expected shape {hw}, got {prior.shape}")
@@ -717,7 +728,7 @@ def _prior_terms(prior_depth_mm, prior_weight, mask):
         raise ValueError(f"prior_weight: expected a scalar or shape {hw}, got {weight.shape}")
     wd = np.empty(hw, np.float32)
     log_prior = np.empty(hw)
-    bad_prior, bad_weight = _prior_arrays(np.ascontiguousarray(mask), prior, weight, wd, log_prior)
+    bad_prior, bad_weight, n_used = _prior_arrays(np.ascontiguousarray(mask), prior, weight, wd, log_prior)
     if bad_prior:
         raise ValueError(f"prior_depth_mm: expected depths > 0 mm or NaN, got {bad_prior} pixel(s) infinite or <= 0")
     if bad_weight:
@@ -728,17 +739,19 @@ def _prior_terms(prior_depth_mm, prior_weight, mask):
     if sample.size == 0:
         sample = log_prior[wd > 0]
     shift = float(np.median(sample)) if sample.size else 0.0
-    return wd, log_prior, shift
+    return wd, log_prior, shift, n_used
 
 
 @nb.njit(cache=True)
 def _prior_arrays(mask, prior, weight, wd, log_prior):
     """wd = weight and log_prior = log(prior) where the mask and a prior are given (0 elsewhere);
-    ``weight`` is (1, 1) for a scalar. Returns the counts of bad priors and of bad weights."""
+    ``weight`` is (1, 1) for a scalar. Returns the counts of bad priors, of bad weights and of the
+    pixels with a prior."""
     h, w = mask.shape
     scalar = weight.shape[0] == 1 and weight.shape[1] == 1
     bad_prior = 0
     bad_weight = 0
+    used = 0
     for i in range(h):
         for j in range(w):
             wd[i, j] = 0.0
@@ -753,10 +766,12 @@ def _prior_arrays(mask, prior, weight, wd, log_prior):
             if not (0.0 <= wt < np.inf):
                 bad_weight += 1
                 continue
-            if wt > 0.0:
-                wd[i, j] = wt
+            wf = np.float32(wt)  # the weight as the solver uses it
+            if wf > 0.0:
+                wd[i, j] = wf
                 log_prior[i, j] = np.log(z)
-    return bad_prior, bad_weight
+                used += 1
+    return bad_prior, bad_weight, used
 
 
 def _integrate(mask, system, wd, *, tol, max_iter):

@@ -227,7 +227,7 @@ def test_solver_equals_direct_sparse_solve_on_an_irregular_mask():
     np.testing.assert_allclose(res.depth_mm[mask], ref[mask], rtol=1e-8)
 
 
-def test_parts_without_prior_are_scaled_by_the_reference_each():
+def test_parts_without_prior_take_the_reference_or_are_left_out():
     K = plate_camera(120, 80, 100.0)
     n, _, depth = render_cylinder(K, (80, 120), plate_mm=(9000.0, 9000.0))
     mask = np.zeros((80, 120), bool)
@@ -248,8 +248,16 @@ def test_parts_without_prior_are_scaled_by_the_reference_each():
     res = integrate_normals(n, mask, K, prior_depth_mm=prior, reference_depth_mm=2500.0)
     np.testing.assert_allclose(res.depth_mm[5:40, 5:50], depth[5:40, 5:50], rtol=1e-4)
     assert np.median(res.depth_mm[45:75, 60:115]) == pytest.approx(2500.0, rel=1e-12)
-    with pytest.raises(ValueError, match=r"reference_depth_mm: 2 connected part\(s\) of the mask have no prior"):
-        integrate_normals(n, mask, K, prior_depth_mm=prior)
+    # without a reference, the parts the prior does not reach have no metric depth: NaN, and left out
+    # of the result's mask (the isolated pixel too)
+    res = integrate_normals(n, mask, K, prior_depth_mm=prior)
+    np.testing.assert_allclose(res.depth_mm[5:40, 5:50], depth[5:40, 5:50], rtol=1e-4)
+    assert np.all(np.isnan(res.depth_mm[45:75, 60:115])) and np.isnan(res.depth_mm[60, 10])
+    expected = np.zeros_like(mask)
+    expected[5:40, 5:50] = True
+    np.testing.assert_array_equal(res.mask, expected)
+    with pytest.raises(ValueError, match=r"prior_depth_mm: expected at least one depth with a weight > 0 inside"):
+        integrate_normals(n, mask, K, prior_depth_mm=np.full(mask.shape, np.nan))
 
 
 def test_fronto_parallel_plane_gives_constant_depth():
