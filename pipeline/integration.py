@@ -285,6 +285,14 @@ def _direction_matvec(z, beta, pdir, ex, ey, wd, ap):
 
 
 @nb.njit(cache=True, fastmath=_FAST)
+def _norm2(a):
+    acc = 0.0
+    for v in a.ravel():
+        acc += v * v
+    return acc
+
+
+@nb.njit(cache=True, fastmath=_FAST)
 def _cg_step(alpha, pdir, ap, x, r):
     """x += alpha p, r -= alpha A p; returns ||r||^2."""
     h, w = x.shape
@@ -436,7 +444,7 @@ def _pcg(ex, ey, wd, b, x, precond, *, tol, max_iter):
 
     Returns (iterations, relative residual ||b - A x|| / ||b||).
     """
-    bnorm = float(np.sqrt(np.dot(b.ravel(), b.ravel())))
+    bnorm = float(np.sqrt(_norm2(b)))  # not np.dot: BLAS threads would spin beside the solve
     if bnorm == 0.0:
         x[...] = 0.0
         return 0, 0.0
