@@ -43,6 +43,15 @@ REFINE_MAX_STEP_PX = 1.0
 MIN_ZNCC = 0.7
 #: Extra disparity searched on each side of the range implied by z_min..z_max, pixels.
 RANGE_MARGIN_PX = 2
+#: The coarse pass matches the pair reduced this many times (area averaging) to find the scene's disparity span.
+COARSE_FACTOR = 4
+#: Percentiles of the coarse disparities (over the mask) taken as the scene's span: robust to a few wild matches.
+COARSE_PERCENTILES = (0.5, 99.5)
+#: Added to each side of the coarse span (full-size pixels) before rounding the fine range outward to multiples
+#: of 16: two coarse pixels, the coarse pass's error plus the plate's parts beyond the percentiles.
+FINE_MARGIN_PX = 8
+#: Fewer trusted coarse matches than this: the fine pass searches the whole given depth range instead.
+COARSE_MIN_MATCHES = 50
 
 
 @dataclass(frozen=True)
@@ -62,15 +71,22 @@ class StereoDepth:
         ``(x0 + j, y0 + i)``.
     disparity_origin_px : (int, int)
         ``(x0, y0)`` above.
+    search_disparity_px : (int, int)
+        First and last disparity (full-size pixels) the fine SGBM pass searched.
+    coarse_span_px : (float, float) or None
+        The scene's disparity span found by the coarse pass (its ``COARSE_PERCENTILES``, full-size
+        pixels); None if the coarse pass found too few matches and the whole given range was searched.
     timings : dict of str to float
-        Seconds per step: ``rectify``, ``match``, ``refine`` (refinement and ZNCC check),
-        ``triangulate``, ``resample``.
+        Seconds per step: ``coarse`` (the coarse pass), ``rectify``, ``match``, ``refine``
+        (refinement and ZNCC check), ``triangulate``, ``resample``.
     """
 
     depth_mm: np.ndarray
     valid: np.ndarray
     disparity_px: np.ndarray
     disparity_origin_px: tuple[int, int] = (0, 0)
+    search_disparity_px: tuple[int, int] = (0, 0)
+    coarse_span_px: tuple[float, float] | None = None
     timings: dict[str, float] = field(default_factory=dict)
 
 
@@ -273,121 +289,70 @@ def match_correlation(left: np.ndarray, right: np.ndarray, disparity: np.ndarray
     return np.where(valid & (var_l > 1e-6) & (var_r > 1e-6), zncc, np.nan).astype(np.float32)
 
 
-def stereo_depth(
-    left_raw: np.ndarray,
-    right_raw: np.ndarray,
-    rig: StereoRig,
-    *,
-    z_min_mm: float,
-    z_max_mm: float,
-    mask: np.ndarray | None = None,
-    refine: bool = True,
-) -> StereoDepth:
-    """Metric depth of the scene from one stereo pair.
+@dataclass(frozen=True)
+class _Pass:
+    """One rectify-and-match pass on a window of the rectified pair (internal)."""
 
-    Parameters
-    ----------
-    left_raw, right_raw : (H, W) or (H, W, 3) array, any real dtype
-        The pair as the cameras gave it (distorted; 8-, 12- or 16-bit counts or float).
-        ``(W, H) == rig.image_size``.
-    rig : StereoRig
-        Calibration; ``X_right = R @ X_left + T`` (mm), horizontal baseline.
-    z_min_mm, z_max_mm : float
-        Range of depths (left camera z, mm) to search; sets the disparity range.
-    mask : (H, W) bool, optional
-        Pixels of the left *undistorted* grid that matter (the plate). It narrows the
-        disparity range to what these pixels can see, and depth outside it is a hole.
-        Pixels within ``BLOCK_SIZE // 2 + 1`` px of its edge are holes too (their matching
-        blocks straddle the edge), and only its pixels feed the sub-pixel refinement.
-    refine : bool
-        Refine SGBM's disparities by :func:`refine_disparity` (windowed Gauss-Newton on the
-        float images). Right for smooth surfaces such as a plate: on a simulated plate at
-        3 m it takes the median depth error from ~1.3 mm to ~0.65 mm and removes SGBM's
-        ~0.6 mm bias. Across depth discontinuities (cluttered scenes) it mixes depths: on
-        Middlebury Aloe it raises the share of pixels off by > 1 px; pass False there.
+    d_win: np.ndarray  # (h', w') float32 disparity (x_left - x_right, pixels of this pass); NaN = no match
+    rect_l: np.ndarray
+    rect_r: np.ndarray
+    seen_l: np.ndarray
+    seen_r: np.ndarray
+    K1w: np.ndarray
+    x0: int
+    y0: int
+    win: tuple[int, int]
+    seconds: tuple[float, float]  # rectify, match
 
-    Returns
-    -------
-    StereoDepth
-        ``depth_mm`` (H, W) float32 on the left undistorted grid (NaN = hole),
-        ``valid`` (H, W) bool, ``disparity_px`` on the rectified grid, ``timings``.
 
-    Raises
-    ------
-    ValueError
-        Bad shapes, non-finite pixels, a depth range that is not ``0 < z_min < z_max``,
-        a mask that is not (H, W) bool, or a vertical baseline.
+def _match_pass(
+    left: np.ndarray,
+    right: np.ndarray,
+    K_l: np.ndarray,
+    dist_l: np.ndarray,
+    K_r: np.ndarray,
+    dist_r: np.ndarray,
+    R1: np.ndarray,
+    R2: np.ndarray,
+    f: float,
+    box_rays: np.ndarray,
+    shift: int,
+    num_disp: int,
+    mask: np.ndarray | None,
+    K_mask_inv: np.ndarray,
+    limit_px: int,
+) -> _Pass:
+    """Rectify the window of ``left``/``right`` that holds ``box_rays`` and match it by SGBM over ``shift .. shift + num_disp - 1``.
 
-    Notes
-    -----
-    Matching is SGBM (3-way, ``BLOCK_SIZE`` px window, 1/16 px parabolic sub-pixel)
-    with its left-right check (``disp12MaxDiff = LR_MAX_DIFF_PX``), uniqueness
-    and speckle filters, then (``refine``) the sub-pixel refinement, then a
-    correlation check (windowed ZNCC of the match >= ``MIN_ZNCC``: SGM's
-    smoothness term propagates disparities into textureless areas, which this
-    rejects); rejected pixels stay NaN. Each pixel of the left
-    undistorted grid looks up the rectified depth on the same ray (homography
-    ``K_rect R1 K^-1``, bilinear); a lookup touching any hole is a hole, and
-    ``z_left = z_rect / (R1 K^-1 (u, v, 1))_z``. Depths outside ``z_min..z_max``
-    are holes too.
+    ``K_l``, ``K_r`` are the cameras of the given images (full or reduced size), ``f`` the rectified
+    focal length at that size; ``mask`` lives on the full-size left undistorted grid (``K_mask_inv``).
     """
-    timings: dict[str, float] = {}
-    if not isinstance(rig, StereoRig):
-        raise TypeError(f"rig: expected a StereoRig, got {type(rig).__name__}")
-    size = rig.image_size
-    left = _grey("left_raw", left_raw, size)
-    right = _grey("right_raw", right_raw, size)
-    z_min, z_max = float(z_min_mm), float(z_max_mm)
-    if not (np.isfinite(z_min) and np.isfinite(z_max) and 0 < z_min < z_max):
-        raise ValueError(f"z_min_mm, z_max_mm: expected 0 < z_min_mm < z_max_mm, got {z_min_mm!r}, {z_max_mm!r}")
-    if mask is not None:
-        mask = np.asarray(mask)
-        if mask.dtype != bool or mask.shape != (size[1], size[0]):
-            raise ValueError(f"mask: expected a {(size[1], size[0])} bool array, got {mask.shape} {mask.dtype}")
-        if not mask.any():
-            raise ValueError("mask: expected at least one True pixel, got none")
-
     t0 = time.perf_counter()
-    w, h = size
-    K_inv = np.linalg.inv(rig.left.K)
-    R1, R2, f, bx = rectification(rig)
-    # the region to match: the mask's bounding box (the whole image without a mask) seen in the
-    # rectified-left camera K0 = [[f, 0, 0], [0, f, 0], [0, 0, 1]]
-    corners = _bbox_corners(mask, size)
-    rays = np.c_[corners, np.ones(4)] @ (R1 @ K_inv).T  # rectified frame, one per corner, z = left depth 1
-    if np.any(rays[:, 2] <= 0):
-        raise ValueError("rig: the rectified left camera does not look forward over the image; check R and T")
-    xs, ys = f * rays[:, 0] / rays[:, 2], f * rays[:, 1] / rays[:, 2]
-    # disparity x_left - x_right = -f * bx / Z_rect is extreme at the box corners and the range ends
-    disps = np.concatenate([-f * bx / (z * rays[:, 2]) for z in (z_min, z_max)])
-    shift = int(np.floor(disps.min())) - RANGE_MARGIN_PX
-    num_disp = int(np.ceil((np.ceil(disps.max()) + RANGE_MARGIN_PX - shift + 1) / 16.0)) * 16
+    xs, ys = f * box_rays[:, 0] / box_rays[:, 2], f * box_rays[:, 1] / box_rays[:, 2]
     pad = BLOCK_SIZE + 2
     x0 = int(np.floor(xs.min())) - pad - num_disp
     x1 = int(np.ceil(xs.max())) + pad
     y0 = int(np.floor(ys.min())) - pad
     y1 = int(np.ceil(ys.max())) + pad
     win = (x1 - x0 + 1, y1 - y0 + 1)
-    if win[0] * win[1] > 4 * w * h:
+    if win[0] * win[1] > limit_px:
         raise ValueError(
             f"rig, z_min_mm, z_max_mm: the rectified search window would be {win[0]}x{win[1]} px "
-            f"for a {w}x{h} image; the rig or the depth range is implausible"
+            f"for a {left.shape[1]}x{left.shape[0]} image; the rig or the depth range is implausible"
         )
     # window cameras: x_left' = x_left - x0, x_right' = x_right - x0 + shift, so SGBM's disparity is d - shift >= 0
     K1w = np.array([[f, 0.0, -x0], [0.0, f, -y0], [0.0, 0.0, 1.0]])
     K2w = np.array([[f, 0.0, -x0 + shift], [0.0, f, -y0], [0.0, 0.0, 1.0]])
-    maps_l = cv2.initUndistortRectifyMap(rig.left.K, rig.left.dist, R1, K1w, win, cv2.CV_32FC1)
-    maps_r = cv2.initUndistortRectifyMap(rig.right.K, rig.right.dist, R2, K2w, win, cv2.CV_32FC1)
-    ones_l = np.ones((h, w), np.float32)
-    seen_l = cv2.remap(ones_l, *maps_l, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0.999
-    seen_r = cv2.remap(ones_l, *maps_r, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0.999
+    maps_l = cv2.initUndistortRectifyMap(K_l, dist_l, R1, K1w, win, cv2.CV_32FC1)
+    maps_r = cv2.initUndistortRectifyMap(K_r, dist_r, R2, K2w, win, cv2.CV_32FC1)
+    ones = np.ones(left.shape, np.float32)
+    seen_l = cv2.remap(ones, *maps_l, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0.999
+    seen_r = cv2.remap(ones, *maps_r, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0.999
     rect_l = cv2.remap(left, *maps_l, RECTIFY_INTERPOLATION, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     rect_r = cv2.remap(right, *maps_r, RECTIFY_INTERPOLATION, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     img_l = to_uint8(rect_l, seen_l)
     img_r = to_uint8(rect_r, seen_r)
-    timings["rectify"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
+    t1 = time.perf_counter()
     matcher = cv2.StereoSGBM_create(
         minDisparity=0,
         numDisparities=num_disp,
@@ -409,31 +374,182 @@ def stereo_depth(
     cols_i = np.clip(np.rint(cols), 0, win[0] - 1).astype(np.intp)
     rows_i = np.broadcast_to(np.arange(win[1])[:, None], cols_i.shape)
     matched &= (cols >= 0) & seen_r[rows_i, cols_i]
-    timings["match"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
     if mask is not None:
-        # only plate pixels take part in the refinement windows (the background lies at another depth)
-        H_win_from_left = K1w @ R1 @ K_inv
-        mask_win = cv2.warpPerspective(mask.astype(np.uint8), H_win_from_left, win, flags=cv2.INTER_NEAREST) > 0
+        # only plate pixels count (the background lies at another depth)
+        mask_win = cv2.warpPerspective(mask.astype(np.uint8), K1w @ R1 @ K_mask_inv, win, flags=cv2.INTER_NEAREST) > 0
         # a matching block that straddles the plate's edge mixes two depths: such pixels are holes
         edge = BLOCK_SIZE // 2 + 1
         mask_win = cv2.erode(mask_win.astype(np.uint8), np.ones((2 * edge + 1, 2 * edge + 1), np.uint8)) > 0
         matched &= mask_win
-    d_win = np.where(matched, d_win, np.nan).astype(np.float32)
-    scaled_l, scaled_r = _scaled(rect_l, seen_l), _scaled(rect_r, seen_r)
+    d_win = np.where(matched, d_win + np.float32(shift), np.nan).astype(np.float32)
+    return _Pass(d_win, rect_l, rect_r, seen_l, seen_r, K1w, x0, y0, win, (t1 - t0, time.perf_counter() - t1))
+
+
+def _search_range(d_lo: float, d_hi: float, quantum: int = 1) -> tuple[int, int]:
+    """SGBM's ``(shift, num_disp)`` covering disparities ``d_lo .. d_hi``: ``num_disp`` a multiple of 16,
+    ``shift`` rounded down to a multiple of ``quantum``."""
+    shift = int(np.floor(d_lo / quantum)) * quantum
+    num_disp = int(np.ceil((np.ceil(d_hi) - shift + 1) / 16.0)) * 16
+    return shift, num_disp
+
+
+def _reduced_camera(K: np.ndarray, factor: int) -> np.ndarray:
+    """Camera matrix of an image reduced by ``factor`` by area averaging (pixel centres: ``u = factor * u' + (factor - 1) / 2``)."""
+    S = np.array([[1.0 / factor, 0.0, -(factor - 1) / (2.0 * factor)], [0.0, 1.0 / factor, -(factor - 1) / (2.0 * factor)], [0, 0, 1]])
+    return S @ K
+
+
+def stereo_depth(
+    left_raw: np.ndarray,
+    right_raw: np.ndarray,
+    rig: StereoRig,
+    *,
+    z_min_mm: float,
+    z_max_mm: float,
+    mask: np.ndarray | None = None,
+    refine: bool = True,
+) -> StereoDepth:
+    """Metric depth of the scene from one stereo pair.
+
+    Two passes: a coarse one finds where the scene actually is, the fine one measures it.
+    The coarse pass matches the pair reduced ``COARSE_FACTOR`` times over the whole range
+    ``z_min_mm .. z_max_mm``; the ``COARSE_PERCENTILES`` of its disparities over the mask,
+    widened by ``FINE_MARGIN_PX`` and rounded outward to multiples of 16 px, are the fine
+    pass's disparity range. So the depth range given only bounds the coarse search: two
+    ranges that both contain the scene give the same fine range and the same depth map
+    (up to the rare case where a percentile of the coarse pass sits on a rounding boundary).
+
+    Parameters
+    ----------
+    left_raw, right_raw : (H, W) or (H, W, 3) array, any real dtype
+        The pair as the cameras gave it (distorted; 8-, 12- or 16-bit counts or float).
+        ``(W, H) == rig.image_size``.
+    rig : StereoRig
+        Calibration; ``X_right = R @ X_left + T`` (mm), horizontal baseline.
+    z_min_mm, z_max_mm : float
+        Range of depths (left camera z, mm) where the scene may be: the coarse pass searches
+        all of it (the cell's whole working range is fine; a 1:4 range costs ~0.05 s at
+        2448x2048). If the coarse pass finds fewer than ``COARSE_MIN_MATCHES`` matches, the
+        fine pass searches this whole range instead.
+    mask : (H, W) bool, optional
+        Pixels of the left *undistorted* grid that matter (the plate). Only they set the
+        disparity range, and depth outside it is a hole.
+        Pixels within ``BLOCK_SIZE // 2 + 1`` px of its edge are holes too (their matching
+        blocks straddle the edge), and only its pixels feed the sub-pixel refinement.
+    refine : bool
+        Refine SGBM's disparities by :func:`refine_disparity` (windowed Gauss-Newton on the
+        float images). Right for smooth surfaces such as a plate: on a simulated plate at
+        3 m it takes the median depth error from ~1.3 mm to ~0.65 mm and removes SGBM's
+        ~0.6 mm bias. Across depth discontinuities (cluttered scenes) it mixes depths: on
+        Middlebury Aloe it raises the share of pixels off by > 1 px; pass False there.
+
+    Returns
+    -------
+    StereoDepth
+        ``depth_mm`` (H, W) float32 on the left undistorted grid (NaN = hole),
+        ``valid`` (H, W) bool, ``disparity_px`` on the rectified grid, the fine search range
+        ``search_disparity_px``, ``timings``.
+
+    Raises
+    ------
+    ValueError
+        Bad shapes, non-finite pixels, a depth range that is not ``0 < z_min < z_max``,
+        a mask that is not (H, W) bool, or a vertical baseline.
+
+    Notes
+    -----
+    Matching is SGBM (3-way, ``BLOCK_SIZE`` px window, 1/16 px parabolic sub-pixel)
+    with its left-right check (``disp12MaxDiff = LR_MAX_DIFF_PX``), uniqueness
+    and speckle filters, then (``refine``) the sub-pixel refinement, then a
+    correlation check (windowed ZNCC of the match >= ``MIN_ZNCC``: SGM's
+    smoothness term propagates disparities into textureless areas, which this
+    rejects); rejected pixels stay NaN. The coarse pass uses the same matcher and
+    correlation check on images reduced by area averaging. Each pixel of the left
+    undistorted grid looks up the rectified depth on the same ray (homography
+    ``K_rect R1 K^-1``, bilinear); a lookup touching any hole is a hole, and
+    ``z_left = z_rect / (R1 K^-1 (u, v, 1))_z``.
+    """
+    timings: dict[str, float] = {}
+    if not isinstance(rig, StereoRig):
+        raise TypeError(f"rig: expected a StereoRig, got {type(rig).__name__}")
+    size = rig.image_size
+    left = _grey("left_raw", left_raw, size)
+    right = _grey("right_raw", right_raw, size)
+    z_min, z_max = float(z_min_mm), float(z_max_mm)
+    if not (np.isfinite(z_min) and np.isfinite(z_max) and 0 < z_min < z_max):
+        raise ValueError(f"z_min_mm, z_max_mm: expected 0 < z_min_mm < z_max_mm, got {z_min_mm!r}, {z_max_mm!r}")
+    if mask is not None:
+        mask = np.asarray(mask)
+        if mask.dtype != bool or mask.shape != (size[1], size[0]):
+            raise ValueError(f"mask: expected a {(size[1], size[0])} bool array, got {mask.shape} {mask.dtype}")
+        if not mask.any():
+            raise ValueError("mask: expected at least one True pixel, got none")
+
+    w, h = size
+    K_inv = np.linalg.inv(rig.left.K)
+    R1, R2, f, bx = rectification(rig)
+    # the region to match: the mask's bounding box (the whole image without a mask) seen in the
+    # rectified-left camera K0 = [[f, 0, 0], [0, f, 0], [0, 0, 1]]
+    corners = _bbox_corners(mask, size)
+    rays = np.c_[corners, np.ones(4)] @ (R1 @ K_inv).T  # rectified frame, one per corner, z = left depth 1
+    if np.any(rays[:, 2] <= 0):
+        raise ValueError("rig: the rectified left camera does not look forward over the image; check R and T")
+    # disparity x_left - x_right = -f * bx / Z_rect is extreme at the box corners and the range ends
+    disps = np.concatenate([-f * bx / (z * rays[:, 2]) for z in (z_min, z_max)])
+    user_lo, user_hi = float(disps.min()) - RANGE_MARGIN_PX, float(disps.max()) + RANGE_MARGIN_PX
+
+    # ---- coarse pass: where is the scene?
+    t0 = time.perf_counter()
+    c = COARSE_FACTOR
+    wc, hc = w // c, h // c
+    coarse_span = None
+    if min(wc, hc) >= 4 * BLOCK_SIZE:
+        small_l = cv2.resize(left[: hc * c, : wc * c], (wc, hc), interpolation=cv2.INTER_AREA)
+        small_r = cv2.resize(right[: hc * c, : wc * c], (wc, hc), interpolation=cv2.INTER_AREA)
+        fc = f / c
+        shift_c, num_c = _search_range(user_lo / c - RANGE_MARGIN_PX, user_hi / c + RANGE_MARGIN_PX)
+        cp = _match_pass(
+            small_l, small_r, _reduced_camera(rig.left.K, c), rig.left.dist, _reduced_camera(rig.right.K, c),
+            rig.right.dist, R1, R2, fc, rays, shift_c, num_c, mask, K_inv, 4 * wc * hc,
+        )
+        d_c = cp.d_win
+        sl, sr = _scaled(cp.rect_l, cp.seen_l), _scaled(cp.rect_r, cp.seen_r)
+        zncc = match_correlation(sl, sr, np.where(np.isfinite(d_c), d_c - shift_c, np.nan), sigma_px=REFINE_SIGMA_PX / 2)
+        good = d_c[np.isfinite(d_c) & (zncc >= MIN_ZNCC)]
+        if good.size >= COARSE_MIN_MATCHES:
+            p_lo, p_hi = np.percentile(good, COARSE_PERCENTILES)
+            coarse_span = (float(c * p_lo), float(c * p_hi))
+    # the fine range: the coarse span widened, never beyond the given range
+    lo = user_lo if coarse_span is None else max(coarse_span[0] - FINE_MARGIN_PX, user_lo)
+    hi = user_hi if coarse_span is None else min(coarse_span[1] + FINE_MARGIN_PX, user_hi)
+    if hi < lo:  # unreachable unless the coarse pass matched only at the range's ends; search it all
+        lo, hi, coarse_span = user_lo, user_hi, None
+    shift, num_disp = _search_range(lo, hi, quantum=16 if coarse_span is not None else 1)
+    timings["coarse"] = time.perf_counter() - t0
+
+    # ---- fine pass on the full-size pair over the range the data gave
+    fp = _match_pass(
+        left, right, rig.left.K, rig.left.dist, rig.right.K, rig.right.dist, R1, R2, f, rays, shift, num_disp,
+        mask, K_inv, 4 * w * h,
+    )
+    timings["rectify"], timings["match"] = fp.seconds
+    d_win, K1w, x0, y0 = fp.d_win, fp.K1w, fp.x0, fp.y0
+
+    t0 = time.perf_counter()
+    scaled_l, scaled_r = _scaled(fp.rect_l, fp.seen_l), _scaled(fp.rect_r, fp.seen_r)
+    d_rel = d_win - np.float32(shift)
     if refine:
-        d_win = refine_disparity(
+        d_rel = refine_disparity(
             scaled_l,
             scaled_r,
-            d_win,
+            d_rel,
             sigma_px=REFINE_SIGMA_PX,
             iterations=REFINE_ITERATIONS,
             max_step_px=REFINE_MAX_STEP_PX,
         )
-    zncc = match_correlation(scaled_l, scaled_r, d_win, sigma_px=REFINE_SIGMA_PX)
-    d_win[~(zncc >= MIN_ZNCC)] = np.nan
-    disparity = (d_win + np.float32(shift)).astype(np.float32)
+    zncc = match_correlation(scaled_l, scaled_r, d_rel, sigma_px=REFINE_SIGMA_PX)
+    d_rel[~(zncc >= MIN_ZNCC)] = np.nan
+    disparity = (d_rel + np.float32(shift)).astype(np.float32)
     timings["refine"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -458,11 +574,17 @@ def stereo_depth(
     z_on_left = cv2.remap(z_filled, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     support = cv2.remap(finite.astype(np.float32), map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     depth = (z_on_left / ray_z).astype(np.float32)
-    valid = (support > 0.999) & (depth >= z_min) & (depth <= z_max)
+    valid = (support > 0.999) & (depth > 0)
     if mask is not None:
         valid &= mask
     depth[~valid] = np.nan
     timings["resample"] = time.perf_counter() - t0
     return StereoDepth(
-        depth_mm=depth, valid=valid, disparity_px=disparity, disparity_origin_px=(x0, y0), timings=timings
+        depth_mm=depth,
+        valid=valid,
+        disparity_px=disparity,
+        disparity_origin_px=(x0, y0),
+        search_disparity_px=(shift, shift + num_disp - 1),
+        coarse_span_px=coarse_span,
+        timings=timings,
     )
