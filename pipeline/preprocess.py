@@ -11,7 +11,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy import ndimage
 
 from .formats import CaptureError
 from .io import Capture
@@ -82,38 +81,38 @@ def preprocess(capture: Capture, *, shadow_fraction: float = 0.05, erode_px: int
     full_scale = float(2**capture.bit_depth - 1)
     camera = capture.rig.left
     map1, map2 = camera.undistort_maps()
-    dark = capture.dark if capture.dark is not None else None
-    raw = capture.images
+    raw, dark = capture.images, capture.dark
+    n, (h, w) = capture.n_lights, raw.shape[1:]
+    # undistorted pixels whose ray leaves the raw image have no sample in any image
+    seen = cv2.remap(np.ones(raw.shape[1:], np.uint8), map1, map2, cv2.INTER_NEAREST, borderValue=0).astype(bool)
+    images = np.empty((n, h, w), np.float32)
+    saturated = np.zeros((n, h, w), bool)
+    threshold = SATURATION_FRACTION * full_scale
 
-    def one(k: int) -> tuple[np.ndarray, np.ndarray]:
+    def one(k: int) -> None:
         img = raw[k]
-        saturated = img >= SATURATION_FRACTION * full_scale
-        signal = img - dark if dark is not None else img
-        signal = signal * np.float32(1.0 / (capture.light_intensity[k] * full_scale))
-        und = cv2.remap(signal, map1, map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
-        # a sample is bad if any raw pixel it interpolates from is saturated: dilate by one pixel first
-        bad = cv2.dilate(saturated.view(np.uint8), np.ones((3, 3), np.uint8))
-        bad_u = cv2.remap(bad, map1, map2, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=1)
-        return und, bad_u.astype(bool)
+        signal = cv2.subtract(img, dark) if dark is not None else img
+        signal = cv2.multiply(signal, 1.0 / (capture.light_intensity[k] * full_scale))
+        cv2.remap(signal, map1, map2, cv2.INTER_LINEAR, dst=images[k], borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        if img.max() >= threshold:
+            # a sample is bad if any raw pixel it interpolates from is saturated: dilate by one pixel first
+            bad = cv2.dilate((img >= threshold).view(np.uint8), np.ones((3, 3), np.uint8))
+            saturated[k] = cv2.remap(bad, map1, map2, cv2.INTER_NEAREST, borderValue=0).astype(bool)
 
     with ThreadPoolExecutor(max_workers=2) as pool:
-        results = list(pool.map(one, range(capture.n_lights)))
-    images = np.stack([r[0] for r in results])
-    saturated = np.stack([r[1] for r in results])
-    outside = ~np.isfinite(images)
-    images[outside] = 0.0
+        list(pool.map(one, range(n)))
 
     brightest = images.max(axis=0)
-    mask = plate_mask(brightest, erode_px=erode_px)
+    mask = plate_mask(brightest, erode_px=erode_px) & seen
     shadowed = images < shadow_fraction * brightest[None]
-    valid = ~(saturated | outside | shadowed)
-    inside = mask[None]
+    valid = ~(shadowed | saturated)
+    valid &= seen[None]
     return Preprocessed(
         images=images,
         valid=valid,
         mask=mask,
-        n_saturated=int(np.count_nonzero(saturated & inside & ~outside)),
-        n_shadowed=int(np.count_nonzero(shadowed & inside & ~saturated & ~outside)),
+        n_saturated=int(np.count_nonzero(saturated[:, mask])),
+        n_shadowed=int(np.count_nonzero(shadowed[:, mask] & ~saturated[:, mask])),
     )
 
 
@@ -152,7 +151,7 @@ def plate_mask(brightness: np.ndarray, *, erode_px: int = 3, min_fraction: float
     if n <= 1:
         raise CaptureError("photometric images: no plate found (no region brighter than the background)")
     largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-    mask = ndimage.binary_fill_holes(labels == largest)
+    mask = _fill_holes(labels == largest)
     if erode_px > 0:
         k = 2 * erode_px + 1
         mask = cv2.erode(mask.view(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
@@ -166,3 +165,13 @@ def plate_mask(brightness: np.ndarray, *, erode_px: int = 3, min_fraction: float
             f"expected at least {100 * min_fraction:.0f} %"
         )
     return mask
+
+
+def _fill_holes(mask: np.ndarray) -> np.ndarray:
+    """Fill the holes of a (H, W) bool region: background parts that do not touch the image border."""
+    n, labels = cv2.connectedComponents((~mask).view(np.uint8), connectivity=4)
+    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    keep = np.zeros(n, bool)
+    keep[border] = True
+    keep[0] = False  # label 0 is the region itself
+    return ~keep[labels]

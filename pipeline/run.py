@@ -180,7 +180,8 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions) ->
     else:
         depth = integration.integrate_normals(field.normals, field.mask, K, reference_depth_mm=cap.working_distance_mm)
         depth = _scale_to_working_distance(depth, K, cap.working_distance_mm)
-    points = depth.depth_mm[..., None] * cap.rig.left.pixel_rays()
+    rays = cap.rig.left.pixel_rays()
+    points = depth.depth_mm[..., None] * rays
     surface_mask = depth.mask & np.isfinite(depth.depth_mm)
     clock.end("depth")
 
@@ -192,7 +193,7 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions) ->
     clock.begin("deviation")
     registration = deviation.register_to_target(points, surface_mask, tgt)
     dev = deviation.deviation_map(points, surface_mask, tgt, registration)
-    judgement = deviation.judge(dev, surface_mask, tgt.tolerance_mm, pixel_area_mm2=_pixel_area_mm2(points, surface_mask))
+    judgement = deviation.judge(dev, surface_mask, tgt.tolerance_mm, pixel_area_mm2=_pixel_area_mm2(depth.depth_mm, field.normals, rays, K))
     clock.end("deviation")
 
     clock.begin("artifacts")
@@ -318,17 +319,13 @@ def _scale_to_working_distance(depth, K: np.ndarray, working_distance_mm: float)
     return replace(depth, depth_mm=z * factor)
 
 
-def _pixel_area_mm2(points: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """(H, W) area (mm^2) of the surface patch each pixel covers, from its forward neighbours.
+def _pixel_area_mm2(depth_mm: np.ndarray, normals: np.ndarray, rays: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(H, W) area (mm^2) of the surface patch each pixel sees.
 
-    Where a neighbour is missing (the plate's edge) the median area stands in.
+    A pixel spans the solid angle ``cos^3(a) / (fx fy)`` (``a``: its ray's angle to
+    the optical axis); at distance ``z / cos(a)`` on a surface tilted by ``t``
+    against the ray that is ``z^2 / (fx fy |n . r|)`` with ``r = K^-1 (u, v, 1)``.
     """
-    du = np.linalg.norm(np.diff(points, axis=1), axis=-1)[:-1]
-    dv = np.linalg.norm(np.diff(points, axis=0), axis=-1)[:, :-1]
-    cell = du * dv
-    ok = mask[:-1, :-1] & mask[1:, :-1] & mask[:-1, 1:] & np.isfinite(cell)
-    if not ok.any():
-        raise CaptureError("depth: no measured surface to judge")
-    area = np.full(mask.shape, float(np.median(cell[ok])))
-    area[:-1, :-1][ok] = cell[ok]
-    return area
+    n_dot_r = np.abs(np.einsum("hwc,hwc->hw", normals, rays))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return depth_mm**2 / (K[0, 0] * K[1, 1] * n_dot_r)

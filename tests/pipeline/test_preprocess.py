@@ -42,3 +42,38 @@ def test_plate_mask_is_one_piece_after_erosion():
     from scipy import ndimage
 
     assert ndimage.label(mask)[1] == 1
+
+
+def _sphere_capture(tmp_path, **kwargs):
+    from pipeline.io import load_capture
+    from tests.pipeline.bundles import write_bundle
+
+    return load_capture(write_bundle(tmp_path, n_lights=6, width=96, height=80, **kwargs))
+
+
+def test_preprocess_normalises_and_flags_saturation_and_shadows(tmp_path):
+    from pipeline.preprocess import preprocess
+
+    cap = _sphere_capture(tmp_path)
+    pre = preprocess(cap)
+    assert pre.images.shape == (6, 80, 96) and pre.images.dtype == np.float32
+    # dark-subtracted and divided by full scale: the sphere's brightest samples are ~0.8 * cos(slant)
+    assert 0.5 < float(np.percentile(pre.images[:, pre.mask], 99)) < 0.85
+    assert pre.n_saturated == 0
+    # lights on a ring: the sphere's rim facing away from a light is in attached shadow for that light
+    assert pre.n_shadowed > 0
+    assert not pre.valid[:, pre.mask].all()
+
+
+def test_preprocess_drops_saturated_samples(tmp_path):
+    from pipeline.preprocess import preprocess
+
+    img = np.full((80, 96), 65535, np.uint16)
+    img[:, :40] = 20000
+    cap = _sphere_capture(tmp_path, files={"ps_02.png": img})
+    pre = preprocess(cap)
+    # the saturated half of image 2 is not valid anywhere inside the plate; the other images are untouched
+    right = np.zeros((80, 96), bool)
+    right[:, 50:] = True
+    assert not pre.valid[2][pre.mask & right].any()
+    assert pre.n_saturated >= np.count_nonzero(pre.mask & right)
