@@ -61,12 +61,22 @@ def deviation_colormap(deviation_mm, *, limit_mm: float) -> np.ndarray:
         raise ValueError(f"limit_mm: expected a positive finite number of mm, got {limit_mm!r}")
     if np.isinf(dev).any():
         raise ValueError(f"deviation_mm: expected finite values or NaN, got {int(np.isinf(dev).sum())} infinite")
-    nan = np.isnan(dev)
-    t = np.clip(np.where(nan, 0.0, dev) / float(limit_mm), -1.0, 1.0)
+    # a lookup table of _LUT_SIZE steps over [-limit, +limit] (finer than 8-bit colour can show), last entry = no data
+    index = np.rint((dev / float(limit_mm) + 1.0) * (0.5 * (_LUT_SIZE - 1)))
+    np.clip(index, 0, _LUT_SIZE - 1, out=index)
+    index[np.isnan(dev)] = _LUT_SIZE
+    return _COLOUR_LUT[index.astype(np.intp)]
+
+
+def _colour_lut(size: int) -> np.ndarray:
+    t = np.linspace(-1.0, 1.0, size)
     stops = np.asarray(COLOUR_STOPS, dtype=np.float64)
     rgb = np.stack([np.interp(t, _STOP_T, stops[:, k]) for k in range(3)], axis=-1)
-    rgb[nan] = NO_DATA_RGB
-    return np.rint(rgb).astype(np.uint8)
+    return np.rint(np.vstack([rgb, NO_DATA_RGB])).astype(np.uint8)
+
+
+_LUT_SIZE = 2049
+_COLOUR_LUT = _colour_lut(_LUT_SIZE)
 
 
 def default_limit_mm(tolerance_mm: float) -> float:
@@ -402,21 +412,18 @@ def write_normals_png(path, normals, mask) -> None:
     OSError
         The file cannot be written.
     """
-    n = np.asarray(normals, dtype=np.float64)
+    n = np.asarray(normals, dtype=np.float32)
     if n.ndim != 3 or n.shape[2] != 3:
         raise ValueError(f"normals: expected shape (H, W, 3), got {n.shape}")
     mask = _check_mask(mask, n.shape[:2])
-    inside = n[mask]
-    if not np.all(np.isfinite(inside)):
-        bad = int((~np.isfinite(inside)).any(axis=1).sum())
-        raise ValueError(f"normals: expected finite values inside the mask, got {bad} non-finite")
-    if inside.size:
-        err = np.abs(np.linalg.norm(inside, axis=1) - 1)
-        if err.max() > 1e-3:
-            raise ValueError(f"normals: expected unit vectors inside the mask, got a length off by {err.max():.3g}")
-    enc = np.stack([1 + n[..., 0], 1 - n[..., 1], 1 - n[..., 2]], axis=-1) * 127.5
-    rgb = np.zeros(n.shape, dtype=np.uint8)
-    rgb[mask] = np.rint(enc[mask]).astype(np.uint8)
+    length = np.sqrt(np.einsum("hwc,hwc->hw", n, n))[mask]
+    if not np.all(np.isfinite(length)):
+        raise ValueError(f"normals: expected finite values inside the mask, got {int((~np.isfinite(length)).sum())} non-finite")
+    if length.size and np.abs(length - 1).max() > 1e-3:
+        raise ValueError(f"normals: expected unit vectors inside the mask, got a length off by {np.abs(length - 1).max():.3g}")
+    enc = n * np.array([127.5, -127.5, -127.5], np.float32) + np.float32(127.5)
+    enc[~mask] = 0.0
+    rgb = np.rint(enc).astype(np.uint8)
     _imwrite(path, rgb)
 
 

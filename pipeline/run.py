@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import time
+from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -42,12 +43,16 @@ class InspectOptions:
         (deviation RMS 0.15 mm on a perfect cylinder), 1e-4 gives 0.03 mm, 1e-5
         starts to lose the scale (+0.05 % radius).
     depth_margin : float
-        The stereo search covers ``working distance * (1 -/+ depth_margin)``.
+        The stereo pair's coarse search covers ``working distance / (1 + depth_margin)``
+        .. ``working distance * (1 + depth_margin)`` (1500-6000 mm for a 3000 mm hint at 1.0;
+        1750-7000 mm without a hint). It only bounds where the plate is looked for: the fine
+        search range comes from the plate's disparities found by the coarse pass, so a wrong
+        hint that still brackets the plate changes nothing (see :func:`pipeline.stereo.stereo_depth`).
     """
 
     normals_method: str = "robust"
     stereo_weight: float = 1e-4
-    depth_margin: float = 0.25
+    depth_margin: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -162,7 +167,7 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions) ->
             cap.stereo_left,
             cap.stereo_right,
             cap.rig,
-            z_min_mm=z_nominal * (1 - opts.depth_margin),
+            z_min_mm=z_nominal / (1 + opts.depth_margin),
             z_max_mm=z_nominal * (1 + opts.depth_margin),
             mask=field.mask,
         )
@@ -205,12 +210,21 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions) ->
         "depth": "depth.npy",
         "details": "details.json",
     }
-    artifacts.write_surface_ply(out / names["surface"], points, surface_mask, dev, tolerance_mm=tgt.tolerance_mm)
     verts, faces = deviation.target_surface(tgt)
-    artifacts.write_target_ply(out / names["target_surface"], verts, faces, registration.T_cam_target)
-    artifacts.write_deviation_png(out / names["deviation_map"], dev, surface_mask, tolerance_mm=tgt.tolerance_mm)
-    artifacts.write_normals_png(out / names["normals"], field.normals, field.mask)
-    artifacts.save_depth(out / names["depth"], depth.depth_mm)
+    # image encoding and file writing release the GIL: write the artifacts side by side
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        writes = [
+            pool.submit(artifacts.write_surface_ply, out / names["surface"], points, surface_mask, dev,
+                        tolerance_mm=tgt.tolerance_mm),
+            pool.submit(artifacts.write_deviation_png, out / names["deviation_map"], dev, surface_mask,
+                        tolerance_mm=tgt.tolerance_mm),
+            pool.submit(artifacts.write_normals_png, out / names["normals"], field.normals, field.mask),
+            pool.submit(artifacts.write_target_ply, out / names["target_surface"], verts, faces,
+                        registration.T_cam_target),
+            pool.submit(artifacts.save_depth, out / names["depth"], depth.depth_mm),
+        ]
+        for write in writes:
+            write.result()
     details = {
         "T_cam_target": registration.T_cam_target.tolist(),
         "registration_rms_mm": float(registration.rms_mm),
