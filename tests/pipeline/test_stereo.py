@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from pipeline.camera import CameraModel, StereoRig
-from pipeline.stereo import StereoDepth, stereo_depth
+from pipeline.stereo import COARSE_PERCENTILES, FINE_MARGIN_PX, StereoDepth, rectification, stereo_depth
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 ALOE = DATA / "middlebury_aloe"
@@ -51,6 +51,81 @@ def test_plate_at_3m_median_depth_error_within_1mm(plate_3m):
     assert sd.valid.sum() >= 0.95 * mask.sum()
     # no wild matches kept: 99.9 % of the valid pixels within 10 mm (0.8 px of disparity)
     assert np.mean(np.abs(err) <= 10.0) >= 0.999
+
+
+def _coarse_range(hint_mm: float | None) -> tuple[float, float]:
+    # what pipeline/run.py passes: hint / 2 .. hint * 2 (InspectOptions.depth_margin = 1), 3500 mm without a hint
+    z = 3500.0 if hint_mm is None else hint_mm
+    return z / 2.0, z * 2.0
+
+
+def _true_disparity(rig, depth_true, mask):
+    """Disparity x_left - x_right (rectified pixels) of every plate pixel, from the simulator's depth."""
+    R1, _, f, bx = rectification(rig)
+    h, w = mask.shape
+    uv1 = np.stack([*np.meshgrid(np.arange(w), np.arange(h)), np.ones((h, w))], axis=-1)
+    ray_z = (uv1 @ (R1 @ np.linalg.inv(rig.left.K)).T)[..., 2]
+    return (-f * bx / (depth_true * ray_z))[mask]
+
+
+def test_the_working_distance_hint_does_not_change_the_depth(plate_3m):
+    # issue 4: the hint only bounds the coarse search; the fine range comes from the plate's own disparities,
+    # rounded outward to multiples of 16 px, so hints 2600 / 3000 / 3400 mm and no hint give the same depth map
+    rig, left, right, depth_true, mask = plate_3m
+    runs = [stereo_depth(left, right, rig, z_min_mm=a, z_max_mm=b, mask=mask)
+            for a, b in map(_coarse_range, (3000.0, 2600.0, 3400.0, None))]
+    for sd in runs[1:]:
+        assert sd.search_disparity_px == runs[0].search_disparity_px
+        np.testing.assert_array_equal(sd.depth_mm, runs[0].depth_mm)
+    sd = runs[0]
+    assert sd.coarse_span_px is not None
+    # the fine range holds every plate disparity and is no wider than the plate's span plus the margins and the
+    # rounding to 16 (up to 15 px each side): tight, as SGBM's speed wants
+    d_true = _true_disparity(rig, depth_true, mask)
+    lo, hi = sd.search_disparity_px
+    assert lo <= d_true.min() and d_true.max() <= hi
+    assert hi - lo + 1 <= (d_true.max() - d_true.min()) + 2 * FINE_MARGIN_PX + 2 * 16
+    # the coarse span is the plate's (percentiles COARSE_PERCENTILES of its disparities), within the coarse
+    # pass's resolution: 4 px of the full size at the 1/4 size, i.e. one coarse pixel
+    p_lo, p_hi = np.percentile(d_true, COARSE_PERCENTILES)
+    assert abs(sd.coarse_span_px[0] - p_lo) <= 4.0 and abs(sd.coarse_span_px[1] - p_hi) <= 4.0
+    # and accuracy is that of the tight search (median |error| <= 1 mm at 3 m)
+    err = (sd.depth_mm - depth_true)[sd.valid]
+    assert np.median(np.abs(err)) <= 1.0 and sd.valid.sum() >= 0.95 * mask.sum()
+
+
+@pytest.mark.parametrize(
+    "distance_mm, size_mm, median_limit_mm",
+    [
+        # the right camera is toed in for 3 m: at 2 m a 1.5 m plate stays in both views. The depth error grows as
+        # z^2 / (f b): 0.65 mm at 3 m -> ~0.3 mm at 2 m, ~1.5 mm at 4.5 m (1224 px); limits leave ~1.5x room
+        (2000.0, (1500.0, 1500.0), 0.5),
+        (4500.0, (3000.0, 3000.0), 2.2),
+    ],
+)
+def test_a_plate_is_found_without_a_hint(tmp_path, distance_mm, size_mm, median_limit_mm):
+    plate = simulate.PlateSpec(distance_mm=distance_mm, size_mm=size_mm)
+    rig, left, right, depth_true, mask = _capture(tmp_path, width=1224, seed=7, plate=plate)
+    z_min, z_max = _coarse_range(None)
+    sd = stereo_depth(left, right, rig, z_min_mm=z_min, z_max_mm=z_max, mask=mask)
+    d_true = _true_disparity(rig, depth_true, mask)
+    lo, hi = sd.search_disparity_px
+    assert lo <= d_true.min() and d_true.max() <= hi
+    err = (sd.depth_mm - depth_true)[sd.valid]
+    assert sd.valid.sum() >= 0.95 * mask.sum()
+    assert np.median(np.abs(err)) <= median_limit_mm
+    assert np.mean(np.abs(err) <= 10.0 * median_limit_mm) >= 0.999
+
+
+def test_nothing_to_match_searches_the_given_range_and_invents_nothing():
+    # a textureless pair: the coarse pass finds no match, the fine pass falls back to the whole given range
+    rig = _small_rig()
+    flat = np.full((128, 160), 1000, np.uint16)
+    sd = stereo_depth(flat, flat, rig, z_min_mm=2000.0, z_max_mm=4000.0, mask=np.ones((128, 160), bool))
+    assert sd.coarse_span_px is None
+    # 150 px * 800 mm / z: 30 .. 60 px, plus RANGE_MARGIN_PX each side
+    assert sd.search_disparity_px[0] <= 28 and sd.search_disparity_px[1] >= 62
+    assert not sd.valid.any() and np.all(np.isnan(sd.depth_mm))
 
 
 def test_without_refinement_sgbm_alone_is_coarser(plate_3m):
