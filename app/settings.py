@@ -1,7 +1,8 @@
 """The service's settings: one pydantic-settings class, environment prefix ``PLATE_INSPECT_``.
 
 ``PLATE_INSPECT_DATA_DIR``, ``PLATE_INSPECT_DATABASE_URL``, ``PLATE_INSPECT_API_TOKEN``,
-``PLATE_INSPECT_MAX_UPLOAD_MB``, ``PLATE_INSPECT_DEMO``, ...
+``PLATE_INSPECT_MAX_UPLOAD_MB``, ``PLATE_INSPECT_DEMO``, ``PLATE_INSPECT_PROGRESS_INTERVAL_S``,
+``PLATE_INSPECT_INSPECT_ENTRY``, ``PLATE_INSPECT_VIEWER_IDLE_S``, ``PLATE_INSPECT_VIEWER_MAX_SERVERS``.
 """
 
 from __future__ import annotations
@@ -37,6 +38,10 @@ class Settings(BaseSettings):
     inspect_entry : str
         ``module:function`` the job calls to inspect; ``pipeline.run:inspect`` in production
         (tests point it at a test double to control timing).
+    viewer_idle_s : float
+        A 3D view's viser server stops this long after its last browser left, s.
+    viewer_max_servers : int
+        Most 3D views (one viser server each, on loopback) running at once.
     """
 
     model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, extra="ignore")
@@ -48,6 +53,8 @@ class Settings(BaseSettings):
     demo: bool = False
     progress_interval_s: float = Field(default=0.5, ge=0)
     inspect_entry: str = "pipeline.run:inspect"
+    viewer_idle_s: float = Field(default=300.0, ge=0)
+    viewer_max_servers: int = Field(default=8, ge=1, le=64)
 
     @field_validator("inspect_entry")
     @classmethod

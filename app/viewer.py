@@ -15,7 +15,8 @@ Inside a server every browser gets its own scene and GUI (``on_client_connect``)
 the measured surface coloured by signed deviation, the registered CAD target,
 a layout toggle (side by side / overlaid with the target translucent) and a
 colour legend in mm. A server with no client left is stopped after
-``idle_s`` seconds.
+``idle_s`` seconds, and at most ``max_servers`` run at once (an idle one makes
+room; when all have browsers the page says so).
 
 Display frame: metres, origin at the centre of the measured surface's bounding
 box, axes ``(x, -y, -z)`` of the left camera frame, so the side of the plate that
@@ -28,6 +29,7 @@ requests (the cell network is closed).
 from __future__ import annotations
 
 import asyncio
+import html
 import json
 import logging
 import threading
@@ -55,10 +57,14 @@ DEVIATION_PROPERTIES = ("deviation_mm", "deviation", "quality")
 SCALE_TOLERANCES = 2.0
 #: Close code sent to the browser when an inspection has nothing to show.
 CLOSE_NOT_FOUND = 4404
+#: Close code (RFC 6455 "try again later") when every allowed viewer server is busy.
+CLOSE_TRY_AGAIN_LATER = 1013
 
 # Display frame from the left camera frame: x, -y, -z (the cameras' side looks up).
 _CAM_TO_DISPLAY = np.diag([1.0, -1.0, -1.0])
 _TARGET_COLOUR = (176, 180, 188)
+# Scene background: a vertical gradient from light grey-blue (top) to a darker one (bottom).
+_BACKGROUND = np.linspace((236, 240, 245), (196, 205, 216), 64).round().astype(np.uint8)[:, None, :].repeat(4, axis=1)
 _LAYOUTS = ("Side by side", "Overlaid")
 
 
@@ -88,6 +94,12 @@ class PlateMeshes:
     target_faces: np.ndarray
     tolerance_mm: float
     extent_m: float
+
+    @property
+    def floor_z_m(self) -> float:
+        """Height of a floor just below both meshes (display frame), m."""
+        low = min(float(self.measured_vertices[:, 2].min()), float(self.target_vertices[:, 2].min()))
+        return low - 0.02 * self.extent_m
 
     @property
     def scale_mm(self) -> float:
@@ -309,7 +321,9 @@ class _InspectionView:
         self.server = _OfflineViserServer(host=host, port=0, label=f"Inspection {inspection_id}", verbose=False)
         self.server.gui.configure_theme(show_share_button=False, show_logo=False, control_width="medium")
         extent = max(meshes.extent_m, 0.1)
-        self.server.initial_camera.position = (0.0, -1.05 * extent, 0.85 * extent)
+        # Far enough back that both plates side by side (about 2.2 extents wide) fit a
+        # landscape panel (viser's vertical field of view is 75 deg), seen from the front, above.
+        self.server.initial_camera.position = (0.0, -1.45 * extent, 1.15 * extent)
         self.server.initial_camera.look_at = (0.0, 0.0, 0.0)
         self._client_nodes: dict[int, tuple[str, ...]] = {}
         self.server.on_client_connect(self._build_client_scene)
@@ -322,7 +336,8 @@ class _InspectionView:
     def _build_client_scene(self, client: viser.ClientHandle) -> None:
         """Give one browser its own copy of the plate, layout toggle and legend."""
         meshes = self.meshes
-        half = np.array([0.575 * max(meshes.extent_m, 0.1), 0.0, 0.0])
+        extent = max(meshes.extent_m, 0.1)
+        half = np.array([0.575 * extent, 0.0, 0.0])
         client.gui.configure_theme(show_share_button=False, show_logo=False, control_width="medium")
         measured = client.scene.add_glb("/plate/measured", self._glb, position=-half)
         target = client.scene.add_mesh_simple(
@@ -333,6 +348,19 @@ class _InspectionView:
             opacity=1.0,
             side="double",
             position=half,
+        )
+        # A tinted background and a floor grid (0.5 m cells): a plate within tolerance is
+        # coloured near white, which must not vanish into a white page.
+        client.scene.set_background_image(_BACKGROUND, format="png")
+        client.scene.add_grid(
+            "/floor",
+            width=2.6 * extent,
+            height=1.6 * extent,
+            cell_size=0.5,
+            section_size=1.0,
+            cell_color=(170, 178, 188),
+            section_color=(120, 130, 142),
+            position=(0.0, 0.0, meshes.floor_z_m),
         )
         layout = client.gui.add_dropdown("Layout", _LAYOUTS, initial_value=_LAYOUTS[0])
         client.gui.add_html(legend_html(meshes.scale_mm, meshes.tolerance_mm))
@@ -363,6 +391,10 @@ def _measured_glb(meshes: PlateMeshes) -> bytes:
     return mesh.export(file_type="glb")
 
 
+class ViewerBusyError(RuntimeError):
+    """Every allowed viser server is in use by a browser; the message says what to do."""
+
+
 class PlateViewer:
     """The viser servers of the inspections that browsers are looking at.
 
@@ -373,7 +405,10 @@ class PlateViewer:
     host : str, interface the viser servers bind to; loopback, since browsers reach
         them only through the app's websocket bridge.
     idle_s : float, an inspection's server is stopped this long after its last
-        browser left.
+        browser left, s.
+    max_servers : int, most servers running at once. Opening one more stops the
+        longest-idle server without a browser; when every server has a browser,
+        :class:`ViewerBusyError` says so.
     max_vertices : int, display meshes are decimated to about this many vertices.
     """
 
@@ -383,16 +418,20 @@ class PlateViewer:
         *,
         host: str = "127.0.0.1",
         idle_s: float = 300.0,
+        max_servers: int = 8,
         max_vertices: int = 150_000,
     ):
         if idle_s < 0:
             raise ValueError(f"idle_s: expected >= 0, got {idle_s}")
+        if max_servers < 1:
+            raise ValueError(f"max_servers: expected >= 1, got {max_servers}")
         self._artifacts_dir = artifacts_dir
         self._host = host
         self._idle_s = idle_s
+        self._max_servers = max_servers
         self._max_vertices = max_vertices
         self._lock = threading.Lock()
-        self._load_locks: dict[int, threading.Lock] = {}
+        self._load_lock = threading.Lock()
         self._views: dict[int, _InspectionView] = {}
         self._bridges: dict[int, int] = {}
         self._idle_timers: dict[int, threading.Timer] = {}
@@ -402,31 +441,69 @@ class PlateViewer:
         folder = Path(self._artifacts_dir(inspection_id))
         return (folder / "result.json").is_file() and (folder / "surface.ply").is_file()
 
+    def running(self) -> list[int]:
+        """Inspections whose viser server is running."""
+        with self._lock:
+            return sorted(self._views)
+
+    def check_capacity(self, inspection_id: int) -> None:
+        """Raise :class:`ViewerBusyError` if opening this inspection's view would exceed the cap."""
+        with self._lock:
+            if inspection_id in self._views or len(self._views) < self._max_servers:
+                return
+            if any(self._bridges.get(i, 0) == 0 for i in self._views):
+                return  # an idle server can make room
+        raise ViewerBusyError(
+            f"3D view: {self._max_servers} inspections are already being viewed (the most this cell runs at once); "
+            "close the 3D view of another inspection and reload this page"
+        )
+
     def port_for(self, inspection_id: int) -> int:
         """The loopback port of the inspection's viser server, started (and meshes loaded) if needed.
 
-        Blocks while loading; call it from a worker thread in async code.
+        Blocks while loading (one load at a time); call it from a worker thread in async code.
 
         Raises
         ------
         FileNotFoundError
             If the inspection has no result or meshes.
+        ViewerBusyError
+            If ``max_servers`` servers run and each has a browser.
         """
         with self._lock:
             view = self._views.get(inspection_id)
-            load_lock = self._load_locks.setdefault(inspection_id, threading.Lock())
         if view is not None:
             return view.port
-        with load_lock:
+        with self._load_lock:
             with self._lock:
                 view = self._views.get(inspection_id)
-            if view is None:
-                meshes = load_plate_meshes(Path(self._artifacts_dir(inspection_id)), max_vertices=self._max_vertices)
-                view = _InspectionView(inspection_id, meshes, host=self._host)
-                with self._lock:
-                    self._views[inspection_id] = view
-                logger.info("viewer: inspection %s on %s:%s", inspection_id, self._host, view.port)
+            if view is not None:
+                return view.port
+            self.check_capacity(inspection_id)
+            self._make_room()
+            meshes = load_plate_meshes(Path(self._artifacts_dir(inspection_id)), max_vertices=self._max_vertices)
+            view = _InspectionView(inspection_id, meshes, host=self._host)
+            with self._lock:
+                self._views[inspection_id] = view
+            logger.info("viewer: inspection %s on %s:%s", inspection_id, self._host, view.port)
         return view.port
+
+    def _make_room(self) -> None:
+        """At the cap, stop the server that has been idle longest (caller holds the load lock)."""
+        with self._lock:
+            if len(self._views) < self._max_servers:
+                return
+            # Longest idle first: timers are kept in the order they were armed.
+            idle = [i for i in [*self._idle_timers, *self._views] if i in self._views and self._bridges.get(i, 0) == 0]
+            if not idle:
+                return
+            oldest = idle[0]
+            view = self._views.pop(oldest)
+            timer = self._idle_timers.pop(oldest, None)
+            if timer is not None:
+                timer.cancel()
+        view.stop()
+        logger.info("viewer: inspection %s stopped to make room", oldest)
 
     def client_count(self, inspection_id: int) -> int:
         """Browsers whose scene is built (viser clients) for an inspection."""
@@ -453,21 +530,30 @@ class PlateViewer:
     def bridge_closed(self, inspection_id: int) -> None:
         """Uncount a browser connection; the last one out arms the idle stop."""
         with self._lock:
-            left = self._bridges.get(inspection_id, 1) - 1
+            left = max(self._bridges.get(inspection_id, 1) - 1, 0)
             self._bridges[inspection_id] = left
-            if left > 0:
-                return
-            timer = threading.Timer(self._idle_s, self._stop_if_idle, args=(inspection_id,))
-            timer.daemon = True
-            self._idle_timers[inspection_id] = timer
+            if left == 0 and inspection_id in self._views:
+                self._arm_idle_locked(inspection_id)
+
+    def _arm_idle_locked(self, inspection_id: int) -> None:
+        """(Re)start the idle timer of a view; the caller holds ``self._lock``."""
+        old = self._idle_timers.pop(inspection_id, None)
+        if old is not None:
+            old.cancel()
+        timer = threading.Timer(self._idle_s, self._stop_if_idle, args=(inspection_id,))
+        timer.daemon = True
+        self._idle_timers[inspection_id] = timer
         timer.start()
 
     def _stop_if_idle(self, inspection_id: int) -> None:
         with self._lock:
+            if self._idle_timers.get(inspection_id) is not threading.current_thread():
+                return  # re-armed or cancelled meanwhile: a newer timer decides
             if self._bridges.get(inspection_id, 0) > 0:
                 return
             view = self._views.pop(inspection_id, None)
             self._idle_timers.pop(inspection_id, None)
+            self._bridges.pop(inspection_id, None)
         if view is not None:
             view.stop()
             logger.info("viewer: inspection %s stopped (idle)", inspection_id)
@@ -508,6 +594,10 @@ def viewer_page(inspection_id: int, request: Request) -> HTMLResponse:
         return HTMLResponse("<p>The 3D view is not running on this server.</p>", status_code=503)
     if not viewer.has_view(inspection_id):
         return HTMLResponse(f"<p>Inspection {inspection_id} has no surface to show.</p>", status_code=404)
+    try:
+        viewer.check_capacity(inspection_id)
+    except ViewerBusyError as err:
+        return HTMLResponse(f"<p>{html.escape(str(err))}.</p>", status_code=503)
     return HTMLResponse(_client_page())
 
 
@@ -522,15 +612,20 @@ async def viewer_bridge(websocket: WebSocket, inspection_id: int) -> None:
         offered = websocket.scope.get("subprotocols", [])
         await websocket.close(code=1002, reason=f"expected subprotocol {VISER_SUBPROTOCOL}, got {offered}")
         return
-    try:
-        port = await run_in_threadpool(viewer.port_for, inspection_id)
-    except (OSError, ValueError) as err:
-        logger.error("viewer: inspection %s cannot be shown: %s", inspection_id, err)
-        await websocket.close(code=CLOSE_NOT_FOUND)
-        return
-    await websocket.accept(subprotocol=VISER_SUBPROTOCOL)
+    # Counted before the server starts, so that it is stopped when idle however this ends.
     viewer.bridge_opened(inspection_id)
     try:
+        try:
+            port = await run_in_threadpool(viewer.port_for, inspection_id)
+        except ViewerBusyError as err:
+            logger.warning("viewer: inspection %s refused: %s", inspection_id, err)
+            await websocket.close(code=CLOSE_TRY_AGAIN_LATER, reason=str(err)[:120])
+            return
+        except (OSError, ValueError) as err:
+            logger.error("viewer: inspection %s cannot be shown: %s", inspection_id, err)
+            await websocket.close(code=CLOSE_NOT_FOUND)
+            return
+        await websocket.accept(subprotocol=VISER_SUBPROTOCOL)
         async with websockets.connect(
             f"ws://127.0.0.1:{port}",
             subprotocols=[VISER_SUBPROTOCOL],
@@ -584,7 +679,7 @@ def attach(app: FastAPI, settings):
     """Create the app's 3D viewer as ``app.state.viewer``; called in the app's lifespan.
 
     Servers start on demand (the first browser to open an inspection's view), bound to
-    loopback. The routes (:data:`router`) are included by :mod:`web.routes`.
+    loopback; ``settings.viewer_idle_s`` and ``settings.viewer_max_servers`` bound them. The routes (:data:`router`) are included by :mod:`web.routes`.
 
     Parameters
     ----------
@@ -598,7 +693,9 @@ def attach(app: FastAPI, settings):
     from app.storage import Storage
 
     storage = Storage(settings.data_dir)
-    viewer = PlateViewer(storage.artifacts_dir)
+    viewer = PlateViewer(
+        storage.artifacts_dir, idle_s=settings.viewer_idle_s, max_servers=settings.viewer_max_servers
+    )
     app.state.viewer = viewer
 
     @asynccontextmanager

@@ -24,14 +24,6 @@ AUTH = {"Authorization": f"Bearer {TOKEN}"}
 FAKE_INSPECT = "tests.api.fake_pipeline:inspect"
 
 
-def real_pipeline_available() -> bool:
-    try:
-        from pipeline.run import inspect  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
 @pytest.fixture
 def settings(tmp_path) -> Settings:
     return Settings(

@@ -137,10 +137,8 @@ def test_a_job_delivered_twice_runs_once(client, settings):
 
 def test_real_pipeline_inspection(tmp_path, consumer_factory):
     """The production entry point (pipeline.run:inspect) on a small simulated plate."""
-    from tests.api.conftest import TOKEN, Consumer, real_pipeline_available
+    from tests.api.conftest import TOKEN, Consumer
 
-    if not real_pipeline_available():
-        pytest.skip("pipeline.run.inspect is not importable yet (pipeline stages still landing)")
     from fastapi.testclient import TestClient
 
     from app.main import create_app

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 from fastapi import FastAPI
@@ -122,3 +124,58 @@ def test_bridge_reaches_the_inspection_server(viewer_app):
             with client.websocket_connect("/viewer/7", subprotocols=["viser-v0.0.1"]) as ws:
                 ws.receive_bytes()
         assert refused.value.code == 1002
+
+
+def test_idle_servers_stop_and_at_most_max_servers_run(tmp_path):
+    from app.viewer import ViewerBusyError
+
+    for i in (1, 2, 3):
+        write_artifacts(tmp_path / str(i), n=(11, 9))
+    viewer = PlateViewer(lambda i: tmp_path / str(i), idle_s=0.5, max_servers=2)
+    try:
+        viewer.port_for(1)
+        viewer.bridge_opened(1)
+        viewer.port_for(2)
+        viewer.bridge_opened(2)
+        assert viewer.running() == [1, 2]
+        # Both servers have a browser: a third view is refused with a message that says why.
+        with pytest.raises(ViewerBusyError, match="2 inspections are already being viewed"):
+            viewer.port_for(3)
+        viewer.bridge_closed(1)
+        viewer.bridge_opened(3)  # the bridge counts the browser, then asks for the port
+        viewer.port_for(3)  # the idle server of inspection 1 makes room
+        assert viewer.running() == [2, 3]
+        viewer.bridge_closed(2)
+        viewer.bridge_closed(3)
+        # No browser left: both stop after idle_s.
+        deadline = time.monotonic() + 10.0
+        while viewer.running() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert viewer.running() == []
+    finally:
+        viewer.close()
+
+
+def test_servers_bind_loopback_only_and_refuse_sharing(viewer_app):
+    viewer: PlateViewer = viewer_app.state.viewer
+    port = viewer.port_for(7)
+    view = viewer._views[7]
+    assert view.server.get_host() == "127.0.0.1" and port == view.server.get_port()
+    assert view.server.request_share_url() is None  # no tunnel to an outside host
+
+
+def test_viewer_page_says_when_every_server_is_busy(tmp_path):
+    for i in (1, 2):
+        write_artifacts(tmp_path / str(i), n=(11, 9))
+    app = FastAPI()
+    app.include_router(router)
+    app.state.viewer = PlateViewer(lambda i: tmp_path / str(i), idle_s=60.0, max_servers=1)
+    try:
+        app.state.viewer.port_for(1)
+        app.state.viewer.bridge_opened(1)
+        with TestClient(app) as client:
+            page = client.get("/viewer/2/")
+            assert page.status_code == 503 and "1 inspections are already being viewed" in page.text
+            assert client.get("/viewer/1/").status_code == 200
+    finally:
+        app.state.viewer.close()
