@@ -20,12 +20,14 @@ import functools
 import warnings
 from dataclasses import dataclass
 
+import cv2
 import numba
 import numpy as np
 import scipy.ndimage as ndi
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from .camera import undistorted_rays
 from .formats import UNIT_TOLERANCE, CaptureError
 
 METHODS = ("robust", "lstsq")
@@ -86,6 +88,8 @@ class NormalField:
         of ``mask``.
     n_filled : int
         ``filled.sum()``.
+    specular : SpecularFit or None
+        The specular lobe fitted (``method="robust"`` with ``view_dirs``); None otherwise.
     """
 
     normals: np.ndarray
@@ -93,6 +97,7 @@ class NormalField:
     mask: np.ndarray
     filled: np.ndarray
     n_filled: int
+    specular: "SpecularFit | None" = None
 
 
 def estimate_normals(
@@ -103,6 +108,7 @@ def estimate_normals(
     valid: np.ndarray | None = None,
     method: str = "robust",
     min_samples: int = 3,
+    view_dirs: np.ndarray | None = None,
 ) -> NormalField:
     """Estimate unit normals and albedo per pixel from N images under N distant lights.
 
@@ -126,6 +132,12 @@ def estimate_normals(
     min_samples : int
         A pixel with fewer usable samples than this (>= 3) is a hole, filled from its
         neighbours.
+    view_dirs : (3,) or (H, W, 3) float, optional
+        Unit vectors from the surface towards the camera, left-camera frame (v_z < 0): one
+        for all pixels (orthographic view, e.g. (0, 0, -1)) or one per pixel
+        (``-normalize(K^-1 (u, v, 1))`` on the undistorted grid). With ``method="robust"``
+        they switch on the specular stage (see Notes); None = no specular model.
+        ``method="lstsq"`` ignores them (it is the plain Lambertian baseline).
 
     Returns
     -------
@@ -161,6 +173,24 @@ def estimate_normals(
     Lambertian, 12 clustered lights of limited accuracy) it is slightly worse than least
     squares (4.93 against 4.71 deg inside 0.9 R).
 
+    Specular stage (``method="robust"`` with ``view_dirs``): shiny coatings add a lobe
+    around the mirror direction to every sample, I_k = rho n.l_k + s g(n.h_k) with the
+    half vector h_k = normalize(l_k + v). For a ring of lights the lobe is, to first order
+    in the normal, inside the span of the Lambertian model, so rejecting samples cannot
+    remove it: it biases every normal smoothly (about 1 deg at a lobe as bright as the
+    diffuse part), and the integrated surface gets the wrong curvature. This stage models it:
+    the lobe's shape g(c) = max(0, c)^e is fitted globally (1-D search over LOBE_EXPONENTS
+    on a subsample of pixels: the e whose per-pixel non-negative amplitude removes the most
+    residual); if the lobe explains less than LOBE_MIN_F times what a free parameter takes
+    out of pure noise the stage stops (matte: the robust estimate stands). Otherwise
+    SPECULAR_ITERATIONS joint Gauss-Newton passes fit b = rho n per pixel and the amplitude
+    s >= 0 pooled over SPECULAR_WINDOW-pixel boxes (a per-pixel s is not identifiable; the
+    pooled normal equation of s has the pixel's b eliminated: Schur complement), on the lit
+    samples with residuals within SPECULAR_K global noise scales (the first pass, before
+    the lobe is known, keeps all bright ones). The exponent is searched again half way.
+    On the simulated cylinder (R 5 m, 12 lights at 45 deg, lobe e = 40 at 0.4 of white) the
+    smoothed normal bias falls from ~1 deg to ~0.01 deg. The fit is in ``NormalField.specular``.
+
     Orientation: with lights on the camera side (l_z < 0) and images consistent with
     them, every lit sample has n . l > 0, so the least-squares b has n_z < 0 without any
     sign flip. A pixel whose estimate still has n_z >= 0 (noise, a black pixel with
@@ -178,10 +208,14 @@ def estimate_normals(
     Woodham 1980 (see the module docstring).
     """
     images, light_dirs, mask, valid = _check_inputs(images, light_dirs, mask, valid, method, min_samples)
+    view_dirs = _check_view_dirs(view_dirs, mask.shape)
+    specular = None
     if method == "lstsq":
         b, status = _lstsq(images, light_dirs, mask, valid, min_samples)
     else:
         b, status = _robust(images, light_dirs, mask, valid, min_samples)
+        if view_dirs is not None:
+            specular = _specular(images, valid, status, light_dirs, view_dirs, b)
     h, w = mask.shape
     normals = np.empty((h, w, 3), dtype=np.float32)
     albedo = np.empty((h, w), dtype=np.float32)
@@ -215,6 +249,7 @@ def estimate_normals(
         mask=estimated | filled,
         filled=filled,
         n_filled=int(filled.sum()),
+        specular=specular,
     )
 
 
@@ -262,6 +297,26 @@ def _check_inputs(images, light_dirs, mask, valid, method, min_samples):
         if valid.dtype != bool:
             raise ValueError(f"valid: expected a bool array, got dtype {valid.dtype}")
     return images.astype(np.float32, copy=False), light_dirs, mask, valid
+
+
+def _check_view_dirs(view_dirs, shape):
+    """None, or view directions as float64 (3,) or float32 (H, W, 3) unit vectors with v_z < 0."""
+    if view_dirs is None:
+        return None
+    v = np.asarray(view_dirs)
+    if v.shape not in ((3,), shape + (3,)):
+        raise ValueError(f"view_dirs: expected shape (3,) or {shape + (3,)} to match the mask, got {v.shape}")
+    if not np.issubdtype(v.dtype, np.floating):
+        raise ValueError(f"view_dirs: expected a float array, got dtype {v.dtype}")
+    if not np.all(np.isfinite(v)):
+        raise ValueError("view_dirs: expected finite numbers, got NaN or inf")
+    lengths = np.linalg.norm(v, axis=-1)
+    if np.any(np.abs(lengths - 1.0) > UNIT_TOLERANCE):
+        worst = np.unravel_index(np.argmax(np.abs(lengths - 1.0)), lengths.shape)
+        raise ValueError(f"view_dirs{list(worst)}: expected a unit vector, got length {float(lengths[worst]):.4f}")
+    if np.any(v[..., 2] >= 0):
+        raise ValueError("view_dirs: expected vectors from the surface towards the camera (v_z < 0), got v_z >= 0")
+    return v.astype(np.float64) if v.ndim == 1 else np.ascontiguousarray(v, dtype=np.float32)
 
 
 # --------------------------------------------------------------------------- least squares
@@ -677,3 +732,318 @@ def _harmonic_fill(normals, albedo, known, holes):
     albedo[at] = sol[:, 3]
     filled[at] = True
     return filled
+
+
+# --------------------------------------------------------------------------- specular lobe
+
+# Specular stage (method="robust" with view_dirs), see estimate_normals' Notes.
+#: Candidate lobe exponents e of g(c) = c^e, c = n.h (1-D search on the summed residual;
+#: the minimum is refined by a parabola in log e). 2 ~ a very broad sheen, 1000 ~ a mirror-like glint.
+LOBE_EXPONENTS = tuple(float(x) for x in np.geomspace(2.0, 1000.0, 28))
+#: The search uses at most this many pixels (a regular subsample of the estimated ones).
+LOBE_SEARCH_PIXELS = 40000
+#: The lobe is modelled only when it explains this many times the residual that one extra
+#: free parameter per pixel removes from pure noise (an F-ratio over the search pixels).
+LOBE_MIN_F = 4.0
+#: Side (px) of the box over which the specular amplitude s is pooled: s is a property of
+#: the coating that varies slowly; one s per pixel is not identifiable (for a ring of lights
+#: the lobe is, to first order, in the span of the Lambertian model).
+SPECULAR_WINDOW = 31
+#: Joint Gauss-Newton passes (normals per pixel, pooled amplitude).
+SPECULAR_ITERATIONS = 4
+#: In the specular stage a sample is used when lit (n.l > COS_MIN) and its residual is within
+#: SPECULAR_K global noise scales (a cast shadow, an interreflection, a lobe of another shape).
+SPECULAR_K = 3.0
+#: Samples of the lobe table over c in [0, 1].
+_LOBE_TABLE = 4096
+
+
+@dataclass(frozen=True)
+class SpecularFit:
+    """The specular lobe fitted by :func:`estimate_normals` (``method="robust"`` with ``view_dirs``).
+
+    Attributes
+    ----------
+    modelled : bool
+        False when the data showed no lobe worth modelling (matte: the Lambertian estimate stands).
+    exponent : float
+        Lobe exponent e of g(c) = max(0, c)^e, c = n . h_k, h_k = normalize(l_k + v) (NaN if not modelled).
+    f_ratio : float
+        Residual explained by the lobe over what one free parameter explains in pure noise (~1 without a lobe).
+    amplitude_median : float
+        Median over the estimated pixels of the pooled amplitude s (same units as the images).
+    """
+
+    modelled: bool
+    exponent: float
+    f_ratio: float
+    amplitude_median: float
+
+
+def _lobe_tables(exponent: float) -> tuple[np.ndarray, np.ndarray]:
+    """g(c) = c^e and g'(c) = e c^(e-1) sampled at c = i / (_LOBE_TABLE - 1), float64 (_LOBE_TABLE + 1,) each
+    (one guard entry for the interpolation at c = 1)."""
+    c = np.linspace(0.0, 1.0, _LOBE_TABLE)
+    g = c**exponent
+    dg = exponent * c ** (exponent - 1.0)
+    return np.append(g, g[-1]), np.append(dg, dg[-1])
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _lookup(table, c):
+    """Linear interpolation of a lobe table at c (clamped to [0, 1]: the lobe is 0 for c <= 0)."""
+    x = min(max(c, 0.0), 1.0) * (_LOBE_TABLE - 1)
+    i = int(x)
+    f = x - i
+    return table[i] + f * (table[i + 1] - table[i])
+
+
+@numba.njit(parallel=True, cache=True)
+def _lobe_search_kernel(samples, usable, b, view, L, g_tables, cos_min, shadow_fraction, out):
+    """Per search pixel p and lobe e: the residual the lobe removes from the Lambertian fit.
+
+    samples, usable : (N, P); b : (3, P) current rho n; view : (P, 3); g_tables : (E, T+1).
+    out : (P, E + 2): [:, e] reduction of the summed squared residual by s g_e (s >= 0),
+    [:, E] the Lambertian residual, [:, E + 1] the number of samples used (0: pixel unusable).
+    """
+    n, p_count = samples.shape
+    n_exp = g_tables.shape[0]
+    for p in numba.prange(p_count):
+        out[p, :] = 0.0
+        rho = np.sqrt(b[0, p] ** 2 + b[1, p] ** 2 + b[2, p] ** 2)
+        if not rho > 0:
+            continue
+        nx, ny, nz = b[0, p] / rho, b[1, p] / rho, b[2, p] / rho
+        w = np.zeros(n)
+        cs = np.zeros(n)
+        m00 = m01 = m02 = m11 = m12 = m22 = r0 = r1 = r2 = cnt = 0.0
+        for k in range(n):
+            lx, ly, lz = L[k, 0], L[k, 1], L[k, 2]
+            nl = nx * lx + ny * ly + nz * lz
+            x = samples[k, p]
+            if usable[k, p] and nl > cos_min and x > shadow_fraction * rho * nl:
+                w[k] = 1.0
+                m00 += lx * lx
+                m01 += lx * ly
+                m02 += lx * lz
+                m11 += ly * ly
+                m12 += ly * lz
+                m22 += lz * lz
+                r0 += x * lx
+                r1 += x * ly
+                r2 += x * lz
+                cnt += 1.0
+            hx, hy, hz = lx + view[p, 0], ly + view[p, 1], lz + view[p, 2]
+            hn = np.sqrt(hx * hx + hy * hy + hz * hz)
+            cs[k] = (nx * hx + ny * hy + nz * hz) / hn
+        c00 = m11 * m22 - m12 * m12
+        c01 = m02 * m12 - m01 * m22
+        c02 = m01 * m12 - m02 * m11
+        c11 = m00 * m22 - m02 * m02
+        c12 = m01 * m02 - m00 * m12
+        c22 = m00 * m11 - m01 * m01
+        det = m00 * c00 + m01 * c01 + m02 * c02
+        tr = (m00 + m11 + m22) / 3.0
+        if cnt < _MIN_FIT + 2 or not det > DEGENERATE_RATIO * tr * tr * tr:
+            continue
+        b0 = (c00 * r0 + c01 * r1 + c02 * r2) / det
+        b1 = (c01 * r0 + c11 * r1 + c12 * r2) / det
+        b2 = (c02 * r0 + c12 * r1 + c22 * r2) / det
+        sse = 0.0
+        for k in range(n):
+            r = samples[k, p] - (b0 * L[k, 0] + b1 * L[k, 1] + b2 * L[k, 2])
+            sse += w[k] * r * r
+        out[p, n_exp] = sse
+        out[p, n_exp + 1] = cnt
+        for e in range(n_exp):
+            gi = glx = gly = glz = gg = 0.0
+            for k in range(n):
+                if w[k] > 0:
+                    g = _lookup(g_tables[e], cs[k])
+                    gi += g * samples[k, p]
+                    glx += g * L[k, 0]
+                    gly += g * L[k, 1]
+                    glz += g * L[k, 2]
+                    gg += g * g
+            a0 = (c00 * glx + c01 * gly + c02 * glz) / det
+            a1 = (c01 * glx + c11 * gly + c12 * glz) / det
+            a2 = (c02 * glx + c12 * gly + c22 * glz) / det
+            num = gi - (a0 * r0 + a1 * r1 + a2 * r2)
+            den = gg - (a0 * glx + a1 * gly + a2 * glz)
+            if den > 1e-12 * gg and num > 0:  # s = num / den >= 0
+                out[p, e] = num * num / den
+
+
+@numba.njit(parallel=True, cache=True)
+def _specular_pass_kernel(images, valid, use_valid, fit, L, view, per_pixel_view, g_table, dg_table, b, s_map,
+                          cos_min, lo, hi, db0, coef, num, den):
+    """One joint Gauss-Newton linearisation of I_k = b.l_k + s g(n.h_k) at every pixel with fit True.
+
+    b (3, H, W) = rho n and s_map (H, W) are the current estimate; lo < r_k < hi selects the samples.
+    Out: db0 (3, H, W) the step in b with s fixed, coef (3, H, W) the change of that step per unit
+    change of s, num / den (H, W) the pixel's normal equation for s with b eliminated (Schur
+    complement): ds = num / den (0, 0 where the pixel has no well-posed system).
+    """
+    n, h, w = images.shape
+    for i in numba.prange(h):
+        for j in range(w):
+            db0[0, i, j] = db0[1, i, j] = db0[2, i, j] = 0.0
+            coef[0, i, j] = coef[1, i, j] = coef[2, i, j] = 0.0
+            num[i, j] = 0.0
+            den[i, j] = 0.0
+            if not fit[i, j]:
+                continue
+            bx, by, bz = b[0, i, j], b[1, i, j], b[2, i, j]
+            rho = np.sqrt(bx * bx + by * by + bz * bz)
+            if not rho > 0:
+                continue
+            nx, ny, nz = bx / rho, by / rho, bz / rho
+            vi = i * per_pixel_view
+            vj = j * per_pixel_view
+            vx, vy, vz = view[vi, vj, 0], view[vi, vj, 1], view[vi, vj, 2]
+            s = s_map[i, j]
+            a00 = a01 = a02 = a11 = a12 = a22 = 0.0
+            jr0 = jr1 = jr2 = jg0 = jg1 = jg2 = gr = gg = cnt = 0.0
+            for k in range(n):
+                if use_valid and not valid[k, i, j]:
+                    continue
+                lx, ly, lz = L[k, 0], L[k, 1], L[k, 2]
+                nl = nx * lx + ny * ly + nz * lz
+                if not nl > cos_min:
+                    continue
+                hx, hy, hz = lx + vx, ly + vy, lz + vz
+                hn = 1.0 / np.sqrt(hx * hx + hy * hy + hz * hz)
+                hx, hy, hz = hx * hn, hy * hn, hz * hn
+                c = nx * hx + ny * hy + nz * hz
+                g = _lookup(g_table, c)
+                r = images[k, i, j] - (bx * lx + by * ly + bz * lz) - s * g
+                if not (lo < r < hi):
+                    continue
+                t = s * _lookup(dg_table, c) / rho  # d(s g)/db = t (h - c n)
+                j0 = lx + t * (hx - c * nx)
+                j1 = ly + t * (hy - c * ny)
+                j2 = lz + t * (hz - c * nz)
+                a00 += j0 * j0
+                a01 += j0 * j1
+                a02 += j0 * j2
+                a11 += j1 * j1
+                a12 += j1 * j2
+                a22 += j2 * j2
+                jr0 += j0 * r
+                jr1 += j1 * r
+                jr2 += j2 * r
+                jg0 += j0 * g
+                jg1 += j1 * g
+                jg2 += j2 * g
+                gr += g * r
+                gg += g * g
+                cnt += 1.0
+            c00 = a11 * a22 - a12 * a12
+            c01 = a02 * a12 - a01 * a22
+            c02 = a01 * a12 - a02 * a11
+            c11 = a00 * a22 - a02 * a02
+            c12 = a01 * a02 - a00 * a12
+            c22 = a00 * a11 - a01 * a01
+            det = a00 * c00 + a01 * c01 + a02 * c02
+            tr = (a00 + a11 + a22) / 3.0
+            if cnt < _MIN_FIT or not det > DEGENERATE_RATIO * tr * tr * tr:
+                continue
+            d0 = (c00 * jr0 + c01 * jr1 + c02 * jr2) / det
+            d1 = (c01 * jr0 + c11 * jr1 + c12 * jr2) / det
+            d2 = (c02 * jr0 + c12 * jr1 + c22 * jr2) / det
+            e0 = (c00 * jg0 + c01 * jg1 + c02 * jg2) / det
+            e1 = (c01 * jg0 + c11 * jg1 + c12 * jg2) / det
+            e2 = (c02 * jg0 + c12 * jg1 + c22 * jg2) / det
+            db0[0, i, j], db0[1, i, j], db0[2, i, j] = d0, d1, d2
+            coef[0, i, j], coef[1, i, j], coef[2, i, j] = e0, e1, e2
+            if cnt > _MIN_FIT:
+                num[i, j] = gr - (e0 * jr0 + e1 * jr1 + e2 * jr2)
+                den[i, j] = max(gg - (e0 * jg0 + e1 * jg1 + e2 * jg2), 0.0)
+
+
+def _specular(images, valid, status, L, view, b):
+    """The specular stage: fit a lobe and refine b (3, H, W) float32 in place. Returns a SpecularFit."""
+    n, h, w = images.shape
+    fit = status == _OK
+    use_valid = valid is not None
+    v = valid if use_valid else np.ones((1, 1, 1), dtype=bool)
+    per_pixel = view.ndim == 3
+    view3 = view if per_pixel else view.reshape(1, 1, 3)
+    flat = np.flatnonzero(fit)
+    sel = flat[:: max(1, flat.size // LOBE_SEARCH_PIXELS)]
+    rows, cols = np.divmod(sel, w)
+
+    def search():
+        samples = np.ascontiguousarray(images[:, rows, cols], dtype=np.float64)
+        usable = np.ascontiguousarray(valid[:, rows, cols]) if use_valid else np.ones(samples.shape, dtype=bool)
+        pv = np.ascontiguousarray(view3[rows, cols] if per_pixel else np.broadcast_to(view, (sel.size, 3)), dtype=np.float64)
+        exps = np.array(LOBE_EXPONENTS)
+        tables = np.stack([_lobe_tables(e)[0] for e in exps])
+        out = np.empty((sel.size, exps.size + 2))
+        _lobe_search_kernel(samples, usable, np.ascontiguousarray(b[:, rows, cols], dtype=np.float64), pv, L, tables,
+                            COS_MIN, SHADOW_FRACTION, out)
+        used = out[:, -1] > 0
+        if not used.any():
+            return float("nan"), 0.0, float("nan")
+        red = out[used, :-2].sum(axis=0)
+        best = int(np.argmax(red))
+        dof = (out[used, -1] - 4.0).sum()
+        sigma2 = (out[used, -2].sum() - red[best]) / dof
+        f_ratio = float(red[best] / sigma2 / used.sum()) if sigma2 > 0 else float("inf")
+        log_e = np.log(exps[best])
+        if 0 < best < exps.size - 1:  # parabola through the neighbours in log e
+            y0, y1, y2 = red[best - 1], red[best], red[best + 1]
+            curv = y0 - 2 * y1 + y2
+            step = np.log(exps[best + 1]) - log_e
+            if curv < 0:
+                log_e += 0.5 * step * (y0 - y2) / curv
+        return float(np.exp(log_e)), f_ratio, float(np.sqrt(max(sigma2, 0.0)))
+
+    exponent, f_ratio, sigma = search()
+    if not f_ratio >= LOBE_MIN_F:
+        return SpecularFit(modelled=False, exponent=float("nan"), f_ratio=f_ratio, amplitude_median=0.0)
+    s = np.zeros((h, w), dtype=np.float32)
+    db0 = np.empty((3, h, w), dtype=np.float32)
+    coef = np.empty((3, h, w), dtype=np.float32)
+    num = np.empty((h, w), dtype=np.float32)
+    den = np.empty((h, w), dtype=np.float32)
+    box = (SPECULAR_WINDOW, SPECULAR_WINDOW)
+    for it in range(SPECULAR_ITERATIONS):
+        if it == SPECULAR_ITERATIONS // 2:
+            exponent, f_ratio, sigma = search()  # again, from the better normals
+        g_table, dg_table = _lobe_tables(exponent)
+        hi = np.inf if it == 0 else SPECULAR_K * sigma  # the first pass starts without the lobe
+        _specular_pass_kernel(images, v, use_valid, fit, L, view3, int(per_pixel), g_table, dg_table, b, s, COS_MIN,
+                              -SPECULAR_K * sigma, hi, db0, coef, num, den)
+        pooled_num = cv2.boxFilter(num, -1, box, normalize=False)
+        pooled_den = cv2.boxFilter(den, -1, box, normalize=False)
+        ds = np.divide(pooled_num, pooled_den, out=np.zeros_like(num), where=pooled_den > 0)
+        s_new = np.maximum(s + ds, 0.0)  # the lobe adds light: s >= 0 (a constraint of the model)
+        step = s_new - s
+        b += db0 - coef * step
+        s = s_new
+    return SpecularFit(modelled=True, exponent=exponent, f_ratio=f_ratio, amplitude_median=float(np.median(s[fit])))
+
+
+def view_directions(K: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Per-pixel unit view directions of the undistorted grid: ``-normalize(K^-1 (u, v, 1))``.
+
+    Parameters
+    ----------
+    K : (3, 3) float
+        Camera matrix of the undistorted grid (pixels).
+    shape : (H, W)
+        Image size.
+
+    Returns
+    -------
+    (H, W, 3) float32
+        From the surface towards the camera, camera frame (v_z < 0): ``view_dirs`` of
+        :func:`estimate_normals` for a perspective camera at a finite distance.
+    """
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise ValueError(f"K: expected a finite (3, 3) camera matrix with fx, fy > 0, got {K.tolist()}")
+    h, w = shape
+    rays = undistorted_rays(K, (w, h))
+    return (-rays / np.linalg.norm(rays, axis=-1, keepdims=True)).astype(np.float32)
