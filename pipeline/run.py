@@ -156,7 +156,8 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions) ->
     clock.end("preprocess")
 
     clock.begin("normals")
-    field = normals.estimate_normals(pre.images, cap.light_dirs, pre.mask, valid=pre.valid, method=opts.normals_method)
+    field = normals.estimate_normals(pre.images, cap.light_dirs, pre.mask, valid=pre.valid, method=opts.normals_method,
+                                     view_dirs=normals.view_directions(cap.rig.left.K, pre.mask.shape))
     clock.end("normals")
 
     clock.begin("stereo")
