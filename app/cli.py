@@ -110,9 +110,15 @@ def serve_command(args: argparse.Namespace) -> int:
     print(f"plate-inspect serve: http://{args.host}:{args.port}/ (API docs at /docs), data in {settings.data_dir.resolve()}",
           flush=True)
     consumer = ConsumerProcess(settings)
+    # uvicorn shuts down gracefully on SIGTERM, then raises the signal again with the handler
+    # that was installed before it started: the default one would end this process before the
+    # consumer is stopped (leaving it orphaned). Ours just notes it, so the consumer stops first.
+    stopped_by: list[int] = []
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: stopped_by.append(signum))
     consumer.start()
     try:
         uvicorn.run(app, host=args.host, port=args.port, log_level="info")
     finally:
         consumer.stop()
-    return 0
+        signal.signal(signal.SIGTERM, previous)
+    return 128 + signal.SIGTERM if stopped_by else 0

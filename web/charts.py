@@ -52,8 +52,13 @@ def section_drawings(
 
     The section's shape is drawn true to scale (same px/mm both ways); the gap between
     the template's edge and the plate is exaggerated by one factor for all sections
-    (stated in the drawing) so that the largest gap spans about 24 px.
+    (stated in the drawing) so that the larger of the largest gap and the tolerance spans
+    about 24 px: a plate within tolerance looks like it fits its template (measurement
+    noise of a few hundredths of a mm is not blown up into ripples), one beyond it shows
+    its gap.
     """
+    if not (np.isfinite(tolerance_mm) and tolerance_mm > 0):
+        raise ValueError(f"tolerance_mm: expected a positive number, got {tolerance_mm}")
     if not sections:
         return []
     pad_x, board_px, plate_px, pad_y = 40.0, 46.0, 14.0, 34.0
@@ -61,7 +66,7 @@ def section_drawings(
     sx = (width - 2 * pad_x) / length
     gaps = np.concatenate([s.gap_mm[np.isfinite(s.gap_mm)] for s in sections] or [np.zeros(1)])
     max_gap = float(np.abs(gaps).max()) if gaps.size else 0.0
-    wanted = 24.0 / (sx * max_gap) if max_gap > 0 else 1.0
+    wanted = 24.0 / (sx * max(max_gap, tolerance_mm))
     exaggeration = max([e for e in _EXAGGERATIONS if e <= wanted] or [1])
     h_all = np.concatenate([s.target_h_mm[np.isfinite(s.target_h_mm)] for s in sections])
     h_top, h_bottom = float(h_all.max()), float(h_all.min())
@@ -104,6 +109,27 @@ def section_drawings(
             )
         )
     return drawings
+
+
+def nice_ticks(lo: float, hi: float, *, max_ticks: int = 6) -> tuple[list[float], int]:
+    """Round axis ticks covering ``[lo, hi]``: a step of 1, 2, 2.5 or 5 times a power of ten.
+
+    Returns
+    -------
+    ticks : the tick values, ascending, the first <= lo and the last >= hi (at least 2).
+    decimals : digits after the point that print every tick exactly.
+    """
+    if not (np.isfinite(lo) and np.isfinite(hi)) or hi < lo:
+        raise ValueError(f"axis range: expected finite lo <= hi, got [{lo}, {hi}]")
+    if hi - lo < 1e-12:
+        lo, hi = lo - 0.5 * max(abs(lo), 1.0), hi + 0.5 * max(abs(hi), 1.0)
+    raw = (hi - lo) / (max_ticks - 1)
+    power = 10.0 ** np.floor(np.log10(raw))
+    step = next(m * power for m in (1.0, 2.0, 2.5, 5.0, 10.0) if m * power >= raw * (1 - 1e-9))
+    first, last = np.floor(lo / step + 1e-9), np.ceil(hi / step - 1e-9)
+    ticks = [float(k * step) + 0.0 for k in np.arange(first, last + 1)]
+    decimals = max(0, int(-np.floor(np.log10(step) + 1e-9)) + (1 if round(step / power) * power != step else 0))
+    return ticks, decimals
 
 
 @dataclass(frozen=True)
@@ -159,16 +185,15 @@ def trend_chart(
         finite = [v for v in values if v is not None]
         lo = min(finite + [0.0] + ([limit] if limit else []))
         hi = max(finite + [0.0] + ([limit] if limit else []))
-        if hi - lo < 1e-9:
-            hi = lo + 1.0
-        span = hi - lo
-        lo, hi = lo - 0.08 * span, hi + 0.08 * span
+        margin = 0.04 * (hi - lo)  # keep points and the tolerance line off the panel's edge
+        tick_values, decimals = nice_ticks(lo - margin if lo < 0 else lo, hi + margin if hi > 0 else hi)
+        lo, hi = tick_values[0], tick_values[-1]
 
         def y_of(v, y0=y0, lo=lo, hi=hi):
             return y0 + panel_h * (hi - v) / (hi - lo)
 
         points = [TrendPoint(x, y_of(v), v, r[0]) for x, v, r in zip(xs, values, rows) if v is not None]
-        ticks = [(y_of(v), f"{v:.2f}") for v in np.linspace(lo, hi, 5)]
+        ticks = [(y_of(v), f"{v:.{decimals}f}") for v in tick_values]
         series.append(
             TrendSeries(
                 name=name,

@@ -73,3 +73,39 @@ def test_plate_frame_refuses_bad_input():
     bad[0, 0] = np.nan
     with pytest.raises(ValueError, match="expected finite coordinates"):
         plate_frame(bad)
+
+
+def test_trend_axis_ticks_are_round_numbers():
+    from web.charts import nice_ticks, trend_chart
+
+    assert nice_ticks(0.0, 0.017) == ([0.0, 0.005, 0.01, 0.015, 0.02], 3)
+    assert nice_ticks(-0.16, 2.16) == ([-0.5, 0.0, 0.5, 1.0, 1.5, 2.0, 2.5], 1)
+    assert nice_ticks(0.0, 130.0) == ([0.0, 50.0, 100.0, 150.0], 0)
+    with pytest.raises(ValueError, match="axis range: expected finite lo <= hi"):
+        nice_ticks(1.0, 0.0)
+    chart = trend_chart([(1, "#1", 0.017, 0.22), (2, "#2", -0.4, 2.6)], tolerance_mm=2.0)
+    radius, deviation = chart.series
+    assert [label for _, label in radius.ticks] == ["-0.5", "-0.4", "-0.3", "-0.2", "-0.1", "0.0", "0.1"]
+    assert [label for _, label in deviation.ticks] == ["0", "1", "2", "3"]
+    # the tolerance line lies inside the panel
+    assert deviation.y0 < deviation.limit_y < deviation.y1
+
+
+def test_template_gap_enlargement_follows_the_tolerance_or_the_gap():
+    from web.charts import section_drawings
+    from web.sections import Section
+
+    u = np.linspace(0.0, 3000.0, 61)
+    target_h = 225.0 - (5000.0 - np.sqrt(5000.0**2 - (u - 1500.0) ** 2))  # a 5 m arc, mm
+
+    def drawing(gap_mm):
+        gap = np.full_like(u, gap_mm)
+        return section_drawings([Section(100.0, u, target_h, target_h + gap, gap)], tolerance_mm=2.0, width=1100.0)[0]
+
+    sx = (1100.0 - 80.0) / 3000.0  # px per mm along the section (40 px pads)
+    small = drawing(0.05)  # noise-level gaps: the tolerance sets the scale (2 mm -> <= 24 px)
+    assert 2.0 * small.exaggeration * sx <= 24.0 < 2.0 * 2.5 * small.exaggeration * sx
+    large = drawing(6.0)  # a gap beyond tolerance sets it instead
+    assert 6.0 * large.exaggeration * sx <= 24.0 and large.exaggeration < small.exaggeration
+    with pytest.raises(ValueError, match="tolerance_mm: expected a positive number"):
+        section_drawings([Section(100.0, u, target_h, target_h, np.zeros_like(u))], tolerance_mm=0.0)
