@@ -14,6 +14,7 @@ from contextlib import AsyncExitStack, asynccontextmanager
 from pathlib import Path
 
 from fastapi import FastAPI
+from fastapi_offline import FastAPIOffline
 from pydantic import SecretStr
 
 from app.db import make_engine, make_session_factory, upgrade_database
@@ -79,11 +80,16 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             yield
         app.state.engine.dispose()
 
-    app = FastAPI(
+    # /docs from Swagger UI files shipped in the fastapi-offline wheel: the cell's network is closed
+    # (FastAPI's own /docs page loads them from a CDN). No ReDoc page (it would fetch web fonts).
+    app = FastAPIOffline(
         title="plate-inspect",
         version="1",
         summary="Forming inspection of curved hull plates: inspections, results and targets for the MES.",
         lifespan=lifespan,
+        redoc_url=None,
+        static_url="/static-docs",
+        swagger_ui_parameters={"validatorUrl": None},  # no badge fetched from an outside validator
     )
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_upload_bytes)
     # The database is ready before the first request (also under TestClient without lifespan).

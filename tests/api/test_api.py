@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import json
+import re
 import zipfile
 
 import pytest
@@ -198,7 +199,13 @@ def test_healthz_and_openapi(client):
                  "/api/v1/plates", "/api/v1/plates/{plate_id}/target", "/api/v1/calibrations",
                  "/api/v1/calibrations/current"):
         assert path in paths, path
-    assert client.get("/docs").status_code == 200
+    docs = client.get("/docs")
+    assert docs.status_code == 200
+    # The cell's network is closed: Swagger UI's files come from this server, not a CDN.
+    assets = re.findall(r'(?:src|href)="([^"]+)"', docs.text)
+    assert assets and not re.search(r"https?://", docs.text), assets
+    for asset in assets:
+        assert client.get(asset).status_code == 200, asset
 
 
 # ------------------------------------------------------------------ targets and calibrations

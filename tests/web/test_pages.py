@@ -71,3 +71,19 @@ def test_calibration_and_login_pages(demo_app):
         assert "No calibration uploaded yet." in html and 'id="calibration-form"' in html
         assert 'id="login-form"' in client.get("/login").text
         assert client.get("/", follow_redirects=False).headers["location"] == "/cell"
+
+
+def test_no_outside_url_in_pages_static_files_or_the_viewer_client():
+    """Shop-floor networks are closed: nothing the dashboard or the 3D view serves points outside."""
+    from pathlib import Path
+
+    import viser
+
+    web = Path(__file__).resolve().parents[2] / "web"
+    files = [p for p in web.rglob("*") if p.is_file() and p.suffix in (".html", ".js", ".css")]
+    assert len(files) >= 10
+    for path in files:
+        assert not re.search(r"https?://|//cdn", path.read_text(encoding="utf-8")), path
+    client_page = (Path(viser.__file__).parent / "client" / "build" / "index.html").read_text(encoding="utf-8")
+    # The only URL in viser's bundled client is the SVG namespace (an identifier, never fetched).
+    assert set(re.findall(r"https?://[A-Za-z0-9.-]+", client_page)) <= {"http://www.w3.org"}
