@@ -195,7 +195,9 @@ def execute_inspection(
         result = inspect(capture_path, target_path, out_dir=out_dir, progress=progress)
         document = json.loads(json.dumps(result.document))  # plain JSON types only
     except (InputError, PipelineError) as err:
-        message = " ".join(str(err).split()) or type(err).__name__
+        # Name the files as the client knows them (capture.zip, bundle/...), not by server path.
+        inputs = str(storage.inputs_dir(inspection_id)) + "/"
+        message = " ".join(str(err).replace(inputs, "").split()) or type(err).__name__
         log.info("inspection %s: failed: %s", inspection_id, message)
         return _finish_failed(session_factory, inspection_id, message)
     except Exception as err:  # noqa: BLE001 - stored as failed, never lost

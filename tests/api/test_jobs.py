@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import io
+import json
 import time
+import zipfile
 
 import pytest
 
@@ -135,8 +138,9 @@ def test_a_job_delivered_twice_runs_once(client, settings):
     assert client.get(f"/api/v1/inspections/{inspection_id}").json()["status"] == "done"
 
 
-def test_real_pipeline_inspection(tmp_path, consumer_factory):
-    """The production entry point (pipeline.run:inspect) on a small simulated plate."""
+def test_real_pipeline_inspection(tmp_path, consumer_factory, bundle_zip):
+    """The production entry point (pipeline.run:inspect): a simulated plate is measured; a valid
+    bundle with neither a stereo pair nor a working distance is accepted, then fails saying why."""
     from tests.api.conftest import TOKEN, Consumer
 
     from fastapi.testclient import TestClient
@@ -155,6 +159,21 @@ def test_real_pipeline_inspection(tmp_path, consumer_factory):
             assert body["status"] == "done", body
             assert body["result"]["verdict"] in ("pass", "fail")
             assert "result.json" in body["artifacts"]
+
+            doc = json.loads(zipfile.ZipFile(io.BytesIO(bundle_zip)).read("capture.json"))
+            del doc["stereo"]
+            doc.pop("working_distance_mm", None)
+            no_scale = rezip(bundle_zip, replace={"capture.json": json.dumps(doc).encode()},
+                             drop=("stereo_left.png", "stereo_right.png"))
+            r = _post_bundle(client, "P-100", no_scale)
+            assert r.status_code == 202, r.text  # a valid bundle: refused only when measured
+            body = wait_for(client, r.json()["id"], timeout_s=120, consumer=consumer)
+            assert body["status"] == "failed" and body["verdict"] == "error"
+            assert body["error"] == (
+                "capture.zip: stereo, working_distance_mm: a metric result needs a stereo pair or a working distance"
+            )
+            inputs = settings.data_dir / "inspections" / str(body["id"]) / "inputs"
+            assert (inputs / "capture.zip").is_file() and (inputs / "target" / "target.json").is_file()
     finally:
         consumer.stop()
         app.state.engine.dispose()
