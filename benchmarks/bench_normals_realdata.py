@@ -93,16 +93,18 @@ def speed_table(repeat: int) -> None:
     print(f"\nSpeed at {w}x{h}, {n} lights, mask {mask.mean():.0%} of the frame, "
           f"{(~valid).mean():.2%} samples invalid (best of {repeat})")
     print("wall = elapsed time (the machine is shared: see the load); cpu = process CPU time, all threads")
-    print(f"{'method':<8} {'valid':<6} {'wall':>7} {'cpu':>7} {'filled':>7}")
-    for method in ("lstsq", "robust"):
+    print(f"{'method':<12} {'valid':<6} {'wall':>7} {'cpu':>7} {'filled':>7}")
+    view = np.array([0.0, 0.0, -1.0])
+    for method in ("lstsq", "robust", "robust+view"):
         for use_valid in (False, True):
             walls, cpus = [], []
+            kw = dict(method="robust", view_dirs=view) if method == "robust+view" else dict(method=method)
             for _ in range(repeat):
                 t0, c0 = time.perf_counter(), time.process_time()
-                field = estimate_normals(images, lights, mask, valid=valid if use_valid else None, method=method)
+                field = estimate_normals(images, lights, mask, valid=valid if use_valid else None, **kw)
                 walls.append(time.perf_counter() - t0)
                 cpus.append(time.process_time() - c0)
-            print(f"{method:<8} {str(use_valid):<6} {min(walls):>6.3f}s {min(cpus):>6.3f}s {field.n_filled:>7d}")
+            print(f"{method:<12} {str(use_valid):<6} {min(walls):>6.3f}s {min(cpus):>6.3f}s {field.n_filled:>7d}")
     print(f"load average while measuring: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores, "
           f"numba threads: {numba.get_num_threads()}")
 

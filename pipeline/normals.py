@@ -954,6 +954,8 @@ def _specular_pass_kernel(images, valid, use_valid, fit, L, view, per_pixel_view
             e0 = (c00 * jg0 + c01 * jg1 + c02 * jg2) / det
             e1 = (c01 * jg0 + c11 * jg1 + c12 * jg2) / det
             e2 = (c02 * jg0 + c12 * jg1 + c22 * jg2) / det
+            if not (np.isfinite(d0 + d1 + d2) and np.isfinite(e0 + e1 + e2) and abs(e0) + abs(e1) + abs(e2) < 1e6):
+                continue  # overflow in float32: leave the pixel as it is
             db0[0, i, j], db0[1, i, j], db0[2, i, j] = d0, d1, d2
             coef[0, i, j], coef[1, i, j], coef[2, i, j] = e0, e1, e2
             if cnt > _MIN_FIT:
@@ -1017,7 +1019,8 @@ def _specular(images, valid, status, L, view, b):
                               -SPECULAR_K * sigma, hi, db0, coef, num, den)
         pooled_num = cv2.boxFilter(num, -1, box, normalize=False)
         pooled_den = cv2.boxFilter(den, -1, box, normalize=False)
-        ds = np.divide(pooled_num, pooled_den, out=np.zeros_like(num), where=pooled_den > 0)
+        # a box with (almost) no information on s keeps its s
+        ds = np.divide(pooled_num, pooled_den, out=np.zeros_like(num), where=pooled_den > 1e-6 * float(pooled_den.max()))
         s_new = np.maximum(s + ds, 0.0)  # the lobe adds light: s >= 0 (a constraint of the model)
         step = s_new - s
         b += db0 - coef * step

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pipeline.formats import CaptureError
-from pipeline.normals import NormalField, estimate_normals
+from pipeline.normals import NormalField, estimate_normals, view_directions
 from tests import realdata as rd
 
 H, W = 128, 160
@@ -299,3 +299,114 @@ def test_uw_grey_sphere_lstsq():
     disc = rd.uw_sphere_disc(data, 0.9)
     err = angle_deg(field.normals, data.normals_gt, disc).mean()
     assert abs(err - 4.7) <= 0.1, err  # SOURCE.txt: about 4.7 deg inside 0.9 R
+
+
+# --------------------------------------------------------------------------- specular stage
+
+
+def perspective_view(f_px: float = 150.0) -> np.ndarray:
+    """Per-pixel unit view directions (H, W, 3) of a pinhole camera with focal f_px, centred."""
+    K = np.array([[f_px, 0.0, W / 2 - 0.5], [0.0, f_px, H / 2 - 0.5], [0.0, 0.0, 1.0]])
+    return view_directions(K, (H, W))
+
+
+def render_lobe(normals, albedo, lights, view, rng, *, noise, specular, lobe):
+    """rho max(0, n.l) + specular * lobe(n.h) [n.l > 0] with the per-pixel half vector + noise: (N, H, W) float32."""
+    n = np.nan_to_num(normals)
+    images = []
+    for light in lights:
+        nl = n @ light
+        half = light + view
+        half /= np.linalg.norm(half, axis=-1, keepdims=True)
+        nh = np.clip(np.einsum("hwc,hwc->hw", n, half), 0.0, 1.0)
+        images.append(albedo * np.maximum(nl, 0.0) + specular * lobe(nh) * (nl > 0))
+    images = np.array(images) + rng.normal(0.0, noise, (len(lights), H, W))
+    return images.astype(np.float32)
+
+
+def smoothed_bias_deg(normals, truth, mask, size=33):
+    """RMS over the mask's interior of the box-averaged normal error (x and y components), deg."""
+    import scipy.ndimage as ndi
+
+    err = np.where(mask[..., None], np.nan_to_num(normals - truth), 0.0)
+    weight = ndi.uniform_filter(mask.astype(float), size)
+    inner = ndi.binary_erosion(mask, iterations=size // 2) & (weight > 0)
+    parts = [ndi.uniform_filter(err[..., c], size)[inner] / weight[inner] for c in (0, 1)]
+    return float(np.degrees(np.sqrt(np.mean(parts[0] ** 2 + parts[1] ** 2))))
+
+
+@pytest.mark.parametrize(
+    "lobe_name, lobe, exponent",
+    [
+        ("blinn-phong e=40", lambda c: c**40, 40.0),
+        # another shape than the fitted family c^e: a Gaussian in the half-vector angle
+        ("gaussian 12 deg", lambda c: np.exp(-((np.arccos(c) / np.radians(12.0)) ** 2)), None),
+    ],
+)
+def test_specular_lobe_with_perspective_view_is_modelled(lobe_name, lobe, exponent):
+    rng = np.random.default_rng(17)
+    n_true, rho = curved_plate()
+    rho = 0.25 * rho  # a dark coating: the lobe is as bright as the diffuse part
+    lights = ring_lights(12, polar_deg=45.0)
+    view = perspective_view()
+    images = render_lobe(n_true, rho, lights, view, rng, noise=0.002, specular=0.3, lobe=lobe)
+    mask = np.ones((H, W), bool)
+    plain = estimate_normals(images, lights, mask, method="robust")
+    field = estimate_normals(images, lights, mask, method="robust", view_dirs=view)
+    assert field.specular is not None and field.specular.modelled, field.specular
+    if exponent is not None:
+        # a 1-D search over a 28-point grid refined by a parabola: within a few %
+        assert abs(field.specular.exponent / exponent - 1) < 0.05, field.specular
+    b_plain = smoothed_bias_deg(plain.normals, n_true, mask)
+    b_spec = smoothed_bias_deg(field.normals, n_true, mask)
+    err = angle_deg(field.normals, n_true, mask)
+    # measured: the rejection-only estimate keeps a smooth bias of 4.3 deg (Blinn-Phong) and
+    # 3.4 deg (Gaussian): the lobe is in every sample; the modelled lobe leaves 0.53 and 0.43 deg
+    # (amplitude fitted ~12 % low on this small, strongly curved view: see the report)
+    assert b_spec < 0.2 * b_plain, (b_spec, b_plain)
+    # noise: sigma 0.002 on rho ~0.15 gives ~1 deg median for Lambertian least squares
+    # (scaled from test_recovers_curved_plate); the lobe adds information, it must not add noise
+    assert np.median(err) < 1.0 and np.median(err) < np.median(angle_deg(plain.normals, n_true, mask)), np.median(err)
+
+
+def test_specular_stage_leaves_a_matte_plate_alone():
+    rng = np.random.default_rng(3)
+    n_true, rho = curved_plate()
+    lights = ring_lights(12)
+    images = render(n_true, rho, lights, rng, noise=0.005)
+    mask = np.ones((H, W), bool)
+    plain = estimate_normals(images, lights, mask, method="robust")
+    field = estimate_normals(images, lights, mask, method="robust", view_dirs=perspective_view())
+    # no lobe in the data: the F-ratio stays near 1 (noise), the stage stops, the estimate is the robust one
+    assert field.specular is not None and not field.specular.modelled and field.specular.f_ratio < 4.0
+    np.testing.assert_array_equal(field.normals, plain.normals)
+
+
+def test_specular_stage_on_a_sphere_with_orthographic_view():
+    rng = np.random.default_rng(23)
+    n_true, mask = sphere()
+    rho = np.full((H, W), 0.3)
+    lights = ring_lights(12, polar_deg=40.0)
+    view = np.array([0.0, 0.0, -1.0])
+    images = render_lobe(n_true, rho, lights, np.broadcast_to(view, (H, W, 3)), rng, noise=0.003, specular=0.5,
+                         lobe=lambda c: c**60)
+    plain = estimate_normals(images, lights, mask, method="robust")
+    field = estimate_normals(images, lights, mask, method="robust", view_dirs=view)
+    inner = mask & (np.hypot(n_true[..., 0], n_true[..., 1]) < 0.8)  # away from the grazing rim
+    e_plain = angle_deg(plain.normals, n_true, inner).mean()
+    e_spec = angle_deg(field.normals, n_true, inner).mean()
+    assert abs(field.specular.exponent / 60.0 - 1) < 0.05, field.specular
+    # measured: rejection only 0.99 deg, modelled lobe 0.63 deg (noise sigma 0.003 on rho 0.3)
+    assert e_spec < 0.75 * e_plain, (e_spec, e_plain)
+
+
+def test_bad_view_dirs():
+    images, lights, mask = _ok_inputs()
+    with pytest.raises(ValueError, match=r"view_dirs: expected shape \(3,\) or \(20, 30, 3\)"):
+        estimate_normals(images, lights, mask, view_dirs=np.zeros((20, 30, 2)))
+    with pytest.raises(ValueError, match=r"view_dirs\[\]: expected a unit vector, got length 2.0000"):
+        estimate_normals(images, lights, mask, view_dirs=np.array([0.0, 0.0, -2.0]))
+    with pytest.raises(ValueError, match=r"view_dirs: expected vectors from the surface towards the camera"):
+        estimate_normals(images, lights, mask, view_dirs=np.array([0.0, 0.0, 1.0]))
+    with pytest.raises(ValueError, match="view_dirs: expected finite numbers"):
+        estimate_normals(images, lights, mask, view_dirs=np.full(3, np.nan))
