@@ -321,11 +321,14 @@ def _match_pass(
     mask: np.ndarray | None,
     K_mask_inv: np.ndarray,
     limit_px: int,
+    levels: tuple[tuple[float, float], tuple[float, float]] | None = None,
 ) -> _Pass:
     """Rectify the window of ``left``/``right`` that holds ``box_rays`` and match it by SGBM over ``shift .. shift + num_disp - 1``.
 
     ``K_l``, ``K_r`` are the cameras of the given images (full or reduced size), ``f`` the rectified
     focal length at that size; ``mask`` lives on the full-size left undistorted grid (``K_mask_inv``).
+    ``levels``: the grey levels ``((lo, hi) left, (lo, hi) right)`` mapped to 0 / 255 for SGBM; None: the
+    0.5 / 99.5 percentiles of each rectified window.
     """
     t0 = time.perf_counter()
     xs, ys = f * box_rays[:, 0] / box_rays[:, 2], f * box_rays[:, 1] / box_rays[:, 2]
@@ -350,8 +353,10 @@ def _match_pass(
     seen_r = cv2.remap(ones, *maps_r, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0.999
     rect_l = cv2.remap(left, *maps_l, RECTIFY_INTERPOLATION, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     rect_r = cv2.remap(right, *maps_r, RECTIFY_INTERPOLATION, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    img_l = to_uint8(rect_l, seen_l)
-    img_r = to_uint8(rect_r, seen_r)
+    if levels is None:
+        img_l, img_r = to_uint8(rect_l, seen_l), to_uint8(rect_r, seen_r)
+    else:
+        img_l, img_r = _levels_uint8(rect_l, *levels[0]), _levels_uint8(rect_r, *levels[1])
     t1 = time.perf_counter()
     matcher = cv2.StereoSGBM_create(
         minDisparity=0,
@@ -383,6 +388,13 @@ def _match_pass(
         matched &= mask_win
     d_win = np.where(matched, d_win + np.float32(shift), np.nan).astype(np.float32)
     return _Pass(d_win, rect_l, rect_r, seen_l, seen_r, K1w, x0, y0, win, (t1 - t0, time.perf_counter() - t1))
+
+
+def _levels_uint8(image: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """``image`` mapped so ``lo`` / ``hi`` become 0 / 255, saturating beyond (all 0 if ``hi <= lo``)."""
+    if not hi > lo:
+        return np.zeros(image.shape, np.uint8)
+    return np.clip((image - np.float32(lo)) * np.float32(255.0 / (hi - lo)) + 0.5, 0, 255).astype(np.uint8)
 
 
 def _search_range(d_lo: float, d_hi: float, quantum: int = 1) -> tuple[int, int]:
@@ -511,6 +523,9 @@ def stereo_depth(
         cp = _match_pass(
             small_l, small_r, _reduced_camera(rig.left.K, c), rig.left.dist, _reduced_camera(rig.right.K, c),
             rig.right.dist, R1, R2, fc, rays, shift_c, num_c, mask, K_inv, 4 * wc * hc,
+            # grey levels from the whole reduced images, not the window (whose width follows the given range):
+            # the coarse pass then sees the same pixels whatever the range, and its span barely moves with it
+            levels=(tuple(np.percentile(small_l, [0.5, 99.5])), tuple(np.percentile(small_r, [0.5, 99.5]))),
         )
         d_c = cp.d_win
         sl, sr = _scaled(cp.rect_l, cp.seen_l), _scaled(cp.rect_r, cp.seen_r)
