@@ -323,7 +323,7 @@ class _InspectionView:
         extent = max(meshes.extent_m, 0.1)
         # Far enough back that both plates side by side (about 2.2 extents wide) fit a
         # landscape panel (viser's vertical field of view is 75 deg), seen from the front, above.
-        self.server.initial_camera.position = (0.0, -1.45 * extent, 1.15 * extent)
+        self.server.initial_camera.position = (0.0, -1.25 * extent, 1.0 * extent)
         self.server.initial_camera.look_at = (0.0, 0.0, 0.0)
         self._client_nodes: dict[int, tuple[str, ...]] = {}
         self.server.on_client_connect(self._build_client_scene)

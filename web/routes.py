@@ -37,6 +37,8 @@ ACTIVE = ("queued", "running")
 #: Frame spacings offered for the virtual templates, mm.
 SPACINGS_MM = (300, 500, 700, 1000)
 DEFAULT_SPACING_MM = 700
+#: The ``spacing_mm`` query parameter of the virtual templates, mm.
+SpacingQuery = Annotated[int, Query(ge=50, le=10_000, description="frame spacing of the virtual templates, mm")]
 
 
 def _fmt(value, digits: int = 1, unit: str = "", signed: bool = False) -> str:
@@ -112,7 +114,7 @@ def result_page(
     inspection_id: int,
     session: SessionDep,
     storage: StorageDep,
-    spacing_mm: Annotated[int, Query(ge=50, le=10_000)] = DEFAULT_SPACING_MM,
+    spacing_mm: SpacingQuery = DEFAULT_SPACING_MM,
 ) -> Response:
     """Verdict, radius, deviation, the 3D view and the virtual templates of one inspection."""
     row = _inspection_or_404(session, inspection_id)
@@ -138,7 +140,7 @@ def templates_partial(
     inspection_id: int,
     session: SessionDep,
     storage: StorageDep,
-    spacing_mm: Annotated[int, Query(ge=50, le=10_000)] = DEFAULT_SPACING_MM,
+    spacing_mm: SpacingQuery = DEFAULT_SPACING_MM,
 ) -> Response:
     """The virtual templates at another spacing (fetched by result.js)."""
     row = _inspection_or_404(session, inspection_id)
