@@ -1023,7 +1023,7 @@ def _specular(images, valid, status, L, view, b):
         ds = np.divide(pooled_num, pooled_den, out=np.zeros_like(num), where=pooled_den > 1e-6 * float(pooled_den.max()))
         s_new = np.maximum(s + ds, 0.0)  # the lobe adds light: s >= 0 (a constraint of the model)
         step = s_new - s
-        b += db0 - coef * step
+        np.add(b, db0 - coef * step, out=b, where=fit)  # b outside the fitted pixels is not defined
         s = s_new
     return SpecularFit(modelled=True, exponent=exponent, f_ratio=f_ratio, amplitude_median=float(np.median(s[fit])))
 
