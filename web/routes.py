@@ -120,7 +120,8 @@ def result_page(
     row = _inspection_or_404(session, inspection_id)
     plate_viewer = getattr(request.app.state, "viewer", None)
     has_view = row.status == "done" and plate_viewer is not None and plate_viewer.has_view(inspection_id)
-    names = inspection_svc.artifact_names(storage=storage, inspection=row)
+    finished = row.status in ("done", "failed")  # a running job's folder holds partial files
+    names = inspection_svc.artifact_names(storage=storage, inspection=row) if finished else []
     context = {
         "page": "result",
         "row": row,
