@@ -9,6 +9,7 @@ Prints tables; no assertions. The depth range passed is what ``pipeline/run.py``
 from __future__ import annotations
 
 import argparse
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -104,6 +105,8 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=[1224, 2448])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     args = parser.parse_args()
+    # the machine is shared: timings scale with the load (SGBM's tight range is 0.25 s at 2448x2048 when idle)
+    print("load average (1, 5, 15 min): " + ", ".join(f"{x:.1f}" for x in os.getloadavg()))
     simulated(args.sizes, args.seeds)
     aloe()
 
