@@ -1,10 +1,13 @@
 """Binocular metric depth: rectify, match (semi-global), triangulate, resample on the left grid.
 
 The stereo pair is rectified from the raw (distorted) images with the rig's
-calibration, matched by OpenCV's semi-global block matching (3-way mode) over
-the disparity range that the working-distance range allows, checked for
-left-right consistency, triangulated in the rectified-left frame and brought
-back to the left camera frame. The result is a depth map on the *left
+calibration and matched by OpenCV's semi-global block matching (3-way mode) in
+two passes: a coarse one on the pair reduced 4x over the whole depth range the
+caller allows finds the plate's disparity span; the full-size pass searches only
+that span (widened a little, rounded outward to 16 px), so the caller's range
+(e.g. from a working-distance hint) does not decide the result. Matches are
+checked for left-right consistency, triangulated in the rectified-left frame and
+brought back to the left camera frame. The result is a depth map on the *left
 undistorted grid* (the grid of :meth:`CameraModel.undistort_image`: pixel
 ``(u, v)`` sees the ray ``K^-1 (u, v, 1)``), so a point is ``depth * K^-1 (u, v, 1)``.
 Pixels without a trustworthy match are holes (NaN); nothing is filled in.
