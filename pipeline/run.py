@@ -48,11 +48,16 @@ class InspectOptions:
         1750-7000 mm without a hint). It only bounds where the plate is looked for: the fine
         search range comes from the plate's disparities found by the coarse pass, so a wrong
         hint that still brackets the plate changes nothing (see :func:`pipeline.stereo.stereo_depth`).
+    min_stereo_pct : float
+        Below this share of the plate matched (percent), the stereo depth is not
+        trusted (a plate outside the searched range gives a few wrong matches): the
+        working distance sets the scale instead, or the capture is refused without one.
     """
 
     normals_method: str = "robust"
     stereo_weight: float = 1e-4
     depth_margin: float = 1.0
+    min_stereo_pct: float = 20.0
 
 
 @dataclass(frozen=True)
@@ -155,29 +160,26 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions) ->
     pre = preprocess(cap)
     clock.end("preprocess")
 
-    clock.begin("normals")
-    field = normals.estimate_normals(pre.images, cap.light_dirs, pre.mask, valid=pre.valid, method=opts.normals_method,
-                                     view_dirs=normals.view_directions(cap.rig.left.K, pre.mask.shape))
-    clock.end("normals")
-
-    clock.begin("stereo")
-    prior = None
-    if cap.has_stereo:
-        z_nominal = cap.working_distance_mm or _nominal_distance_mm(cap)
-        sd = stereo.stereo_depth(
-            cap.stereo_left,
-            cap.stereo_right,
-            cap.rig,
-            z_min_mm=z_nominal / (1 + opts.depth_margin),
-            z_max_mm=z_nominal * (1 + opts.depth_margin),
-            mask=field.mask,
+    # the stereo pair needs only the plate mask: match it on the second core while the normals are estimated
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        stereo_job = pool.submit(_stereo_prior, cap, pre.mask, opts) if cap.has_stereo else None
+        clock.begin("normals")
+        field = normals.estimate_normals(
+            pre.images, cap.light_dirs, pre.mask, valid=pre.valid, method=opts.normals_method,
+            view_dirs=normals.view_directions(cap.rig.left.K, pre.mask.shape),
         )
-        prior = np.where(sd.valid & field.mask, sd.depth_mm, np.nan)
-        if np.count_nonzero(np.isfinite(prior)) < 100:
-            if cap.working_distance_mm is None:
-                raise CaptureError(f"{cap.source}: stereo: fewer than 100 pixels matched and no working_distance_mm")
-            prior = None
-    clock.end("stereo")
+        clock.end("normals")
+        clock.begin("stereo")
+        prior, stereo_s = stereo_job.result() if stereo_job is not None else (None, 0.0)
+        clock.timings["stereo"] = stereo_s
+    matched_pct = None if prior is None else 100.0 * np.count_nonzero(np.isfinite(prior) & field.mask) / field.mask.sum()
+    if prior is not None and matched_pct < opts.min_stereo_pct:
+        if cap.working_distance_mm is None:
+            raise CaptureError(
+                f"{cap.source}: stereo: {matched_pct:.1f} % of the plate matched in the stereo pair, expected at least "
+                f"{opts.min_stereo_pct:.0f} %, and there is no working_distance_mm to fall back on"
+            )
+        prior = None  # too little to trust: the working distance sets the scale (details.json says so)
 
     clock.begin("depth")
     K = cap.rig.left.K
@@ -239,7 +241,7 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions) ->
         "normals_filled": int(field.n_filled),
         "samples_saturated": pre.n_saturated,
         "samples_shadowed": pre.n_shadowed,
-        "stereo_matched_pct": None if prior is None else float(100 * np.isfinite(prior).sum() / max(field.mask.sum(), 1)),
+        "stereo_matched_pct": None if matched_pct is None else round(float(matched_pct), 2),
         "metric_scale": "stereo" if prior is not None else "working_distance",
     }
     (out / names["details"]).write_text(json.dumps(details, indent=2) + "\n")
@@ -309,6 +311,22 @@ def _write_error_result(out: Path, capture, target, err: Exception, clock: _Cloc
 
 def _round(value: float | None, digits: int) -> float | None:
     return None if value is None else round(float(value), digits)
+
+
+def _stereo_prior(cap: Capture, mask: np.ndarray, opts: InspectOptions) -> tuple[np.ndarray, float]:
+    """Stereo depth (mm, left undistorted grid, NaN where unmatched or off the plate) and its run time (s)."""
+    t = time.perf_counter()
+    z_nominal = cap.working_distance_mm or _nominal_distance_mm(cap)
+    sd = stereo.stereo_depth(
+        cap.stereo_left,
+        cap.stereo_right,
+        cap.rig,
+        z_min_mm=z_nominal / (1 + opts.depth_margin),
+        z_max_mm=z_nominal * (1 + opts.depth_margin),
+        mask=mask,
+    )
+    prior = np.where(sd.valid & mask, sd.depth_mm, np.nan)
+    return prior, round(time.perf_counter() - t, 4)
 
 
 def _nominal_distance_mm(cap: Capture) -> float:
