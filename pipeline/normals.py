@@ -754,6 +754,9 @@ SPECULAR_ITERATIONS = 4
 #: In the specular stage a sample is used when lit (n.l > COS_MIN) and its residual is within
 #: SPECULAR_K global noise scales (a cast shadow, an interreflection, a lobe of another shape).
 SPECULAR_K = 3.0
+#: A pixel the specular stage turns by more than this keeps its robust Lambertian estimate
+#: (the stage's corrections are ~1-4 deg on the simulated and synthetic plates).
+MAX_SPECULAR_TURN_DEG = 8.0
 #: Samples of the lobe table over c in [0, 1].
 _LOBE_TABLE = 4096
 
@@ -772,12 +775,16 @@ class SpecularFit:
         Residual explained by the lobe over what one free parameter explains in pure noise (~1 without a lobe).
     amplitude_median : float
         Median over the estimated pixels of the pooled amplitude s (same units as the images).
+    n_reverted : int
+        Pixels the lobe turned by more than MAX_SPECULAR_TURN_DEG (or away from the camera):
+        they keep the robust Lambertian estimate.
     """
 
     modelled: bool
     exponent: float
     f_ratio: float
     amplitude_median: float
+    n_reverted: int = 0
 
 
 def _lobe_tables(exponent: float) -> tuple[np.ndarray, np.ndarray]:
@@ -1004,6 +1011,7 @@ def _specular(images, valid, status, L, view, b):
     exponent, f_ratio, sigma = search()
     if not f_ratio >= LOBE_MIN_F:
         return SpecularFit(modelled=False, exponent=float("nan"), f_ratio=f_ratio, amplitude_median=0.0)
+    b_start = b.copy()
     s = np.zeros((h, w), dtype=np.float32)
     db0 = np.empty((3, h, w), dtype=np.float32)
     coef = np.empty((3, h, w), dtype=np.float32)
@@ -1011,8 +1019,10 @@ def _specular(images, valid, status, L, view, b):
     den = np.empty((h, w), dtype=np.float32)
     box = (SPECULAR_WINDOW, SPECULAR_WINDOW)
     for it in range(SPECULAR_ITERATIONS):
-        if it == SPECULAR_ITERATIONS // 2:
-            exponent, f_ratio, sigma = search()  # again, from the better normals
+        if it == SPECULAR_ITERATIONS // 2:  # again, from the better normals; kept only if it is a clear lobe
+            again = search()
+            if again[1] >= LOBE_MIN_F and LOBE_EXPONENTS[0] < again[0] < LOBE_EXPONENTS[-1]:
+                exponent, f_ratio, sigma = again
         g_table, dg_table = _lobe_tables(exponent)
         hi = np.inf if it == 0 else SPECULAR_K * sigma  # the first pass starts without the lobe
         _specular_pass_kernel(images, v, use_valid, fit, L, view3, int(per_pixel), g_table, dg_table, b, s, COS_MIN,
@@ -1025,7 +1035,14 @@ def _specular(images, valid, status, L, view, b):
         step = s_new - s
         np.add(b, db0 - coef * step, out=b, where=fit)  # b outside the fitted pixels is not defined
         s = s_new
-    return SpecularFit(modelled=True, exponent=exponent, f_ratio=f_ratio, amplitude_median=float(np.median(s[fit])))
+    # a pixel the lobe turned by more than MAX_SPECULAR_TURN_DEG (or away from the camera) keeps
+    # its Lambertian estimate: the lobe did not describe it (saturated peak, another material)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cos_turn = (b * b_start).sum(axis=0) / np.sqrt((b * b).sum(axis=0) * (b_start * b_start).sum(axis=0))
+    revert = fit & ~((cos_turn > np.cos(np.radians(MAX_SPECULAR_TURN_DEG))) & (b[2] < 0))
+    b[:, revert] = b_start[:, revert]
+    return SpecularFit(modelled=True, exponent=exponent, f_ratio=f_ratio, amplitude_median=float(np.median(s[fit])),
+                       n_reverted=int(revert.sum()))
 
 
 def view_directions(K: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
