@@ -27,6 +27,9 @@ _STOP_T = (-1.0, -0.5, 0.0, 0.5, 1.0)
 NO_DATA_RGB = (128, 128, 128)
 #: Minimum height in pixels of the deviation PNG (small maps are enlarged by an integer factor).
 MIN_PNG_HEIGHT = 540
+#: Tallest map drawn (px); a taller one is sampled down by a whole stride.
+MAX_PNG_HEIGHT = 1080
+
 #: Widest enlargement of a small map (px), so thin maps are not blown up without bound.
 MAX_PNG_WIDTH = 4000
 
@@ -284,6 +287,11 @@ def write_deviation_png(path, deviation_mm, mask, *, tolerance_mm: float, limit_
 
     Notes
     -----
+    A map taller than ``MAX_PNG_HEIGHT`` (1080) px is first sampled down by the
+    smallest whole stride that fits (every ``s``-th row and column: the figure is for
+    the screen; the full-resolution deviation is in ``surface.ply`` and can be
+    recomputed from ``depth.npy``).
+
     Layout: the map at the top left, enlarged by the integer factor
     ``k = max(1, min(ceil(540 / H), floor(4000 / W)))`` (nearest neighbour,
     so map pixel ``[r, c]`` covers ``[r*k:(r+1)*k, c*k:(c+1)*k]``); a white
@@ -306,6 +314,10 @@ def write_deviation_png(path, deviation_mm, mask, *, tolerance_mm: float, limit_
     _check_positive("tolerance_mm", tolerance_mm)
     limit = default_limit_mm(tolerance_mm) if limit_mm is None else limit_mm
     _check_positive("limit_mm", limit)
+    # a map taller than a screen is shown reduced anyway: sample it down by a whole stride
+    stride = math.ceil(dev.shape[0] / MAX_PNG_HEIGHT)
+    if stride > 1:
+        dev, mask = dev[::stride, ::stride], mask[::stride, ::stride]
     h, w = dev.shape
 
     rgb = deviation_colormap(np.where(mask, dev, np.nan), limit_mm=limit)

@@ -63,6 +63,22 @@ class CameraModel:
     def height(self) -> int:
         return self.image_size[1]
 
+    def scaled(self, factor: float) -> "CameraModel":
+        """The same camera seen on an image resized by ``factor`` (e.g. 0.5 for half size).
+
+        Pixel centres map as ``u' = factor * (u + 0.5) - 0.5``; the distortion of
+        normalised coordinates is unchanged.
+        """
+        if not factor > 0:
+            raise ValueError(f"factor: expected a positive scale, got {factor}")
+        K = self.K.copy()
+        K[0, :2] *= factor
+        K[1, 1] *= factor
+        K[0, 2] = factor * (K[0, 2] + 0.5) - 0.5
+        K[1, 2] = factor * (K[1, 2] + 0.5) - 0.5
+        size = (int(round(self.width * factor)), int(round(self.height * factor)))
+        return CameraModel(K=K, dist=self.dist, image_size=size)
+
     def pixel_rays(self) -> np.ndarray:
         """Rays through the pixel centres of the *undistorted* image.
 
@@ -117,10 +133,14 @@ def undistorted_rays(K: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
     (H, W, 3) float64, unit z component.
     """
     w, h = image_size
-    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    Kinv = np.linalg.inv(K)
-    pix = np.stack([u, v, np.ones_like(u)], axis=-1)
-    return pix @ Kinv.T
+    K = np.asarray(K, dtype=np.float64)
+    fx, skew, cx, fy, cy = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
+    rays = np.empty((h, w, 3), dtype=np.float64)
+    y = (np.arange(h, dtype=np.float64) - cy) / fy  # K is upper triangular: solve from the bottom row up
+    rays[..., 1] = y[:, None]
+    rays[..., 0] = (np.arange(w, dtype=np.float64)[None, :] - cx - skew * y[:, None]) / fx
+    rays[..., 2] = 1.0
+    return rays
 
 
 @dataclass(frozen=True)

@@ -310,7 +310,7 @@ def _check_view_dirs(view_dirs, shape):
         raise ValueError(f"view_dirs: expected a float array, got dtype {v.dtype}")
     if not np.all(np.isfinite(v)):
         raise ValueError("view_dirs: expected finite numbers, got NaN or inf")
-    lengths = np.linalg.norm(v, axis=-1)
+    lengths = np.sqrt(np.einsum("...c,...c->...", v, v))
     if np.any(np.abs(lengths - 1.0) > UNIT_TOLERANCE):
         worst = np.unravel_index(np.argmax(np.abs(lengths - 1.0)), lengths.shape)
         raise ValueError(f"view_dirs{list(worst)}: expected a unit vector, got length {float(lengths[worst]):.4f}")
@@ -1066,5 +1066,6 @@ def view_directions(K: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     if K.shape != (3, 3) or not np.all(np.isfinite(K)) or not (K[0, 0] > 0 and K[1, 1] > 0):
         raise ValueError(f"K: expected a finite (3, 3) camera matrix with fx, fy > 0, got {K.tolist()}")
     h, w = shape
-    rays = undistorted_rays(K, (w, h))
-    return (-rays / np.linalg.norm(rays, axis=-1, keepdims=True)).astype(np.float32)
+    rays = undistorted_rays(K, (w, h)).astype(np.float32)
+    rays *= (-1.0 / np.sqrt(np.einsum("hwc,hwc->hw", rays, rays)))[..., None]
+    return rays

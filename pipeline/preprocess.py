@@ -89,7 +89,7 @@ def preprocess(capture: Capture, *, shadow_fraction: float = 0.05, erode_px: int
     saturated = np.zeros((n, h, w), bool)
     threshold = SATURATION_FRACTION * full_scale
 
-    def one(k: int) -> None:
+    def one(k: int) -> bool:
         img = raw[k]
         signal = cv2.subtract(img, dark) if dark is not None else img
         signal = cv2.multiply(signal, 1.0 / (capture.light_intensity[k] * full_scale))
@@ -98,21 +98,28 @@ def preprocess(capture: Capture, *, shadow_fraction: float = 0.05, erode_px: int
             # a sample is bad if any raw pixel it interpolates from is saturated: dilate by one pixel first
             bad = cv2.dilate((img >= threshold).view(np.uint8), np.ones((3, 3), np.uint8))
             saturated[k] = cv2.remap(bad, map1, map2, cv2.INTER_NEAREST, borderValue=0).astype(bool)
+            return True
+        return False
 
     with ThreadPoolExecutor(max_workers=2) as pool:
-        list(pool.map(one, range(n)))
+        any_saturated = any(list(pool.map(one, range(n))))  # list: every image must be done
 
     brightest = images.max(axis=0)
     mask = plate_mask(brightest, erode_px=erode_px) & seen
-    shadowed = images < shadow_fraction * brightest[None]
-    valid = ~(shadowed | saturated)
-    valid &= seen[None]
+    valid = images >= shadow_fraction * brightest[None]  # not in an attached shadow
+    n_lit = int(np.count_nonzero(valid & mask))
+    n_saturated = 0
+    if any_saturated:
+        n_saturated = int(np.count_nonzero(saturated & mask))
+        n_lit -= int(np.count_nonzero(valid & saturated & mask))
+        valid &= ~saturated
+    valid &= seen
     return Preprocessed(
         images=images,
         valid=valid,
         mask=mask,
-        n_saturated=int(np.count_nonzero(saturated[:, mask])),
-        n_shadowed=int(np.count_nonzero(shadowed[:, mask] & ~saturated[:, mask])),
+        n_saturated=n_saturated,
+        n_shadowed=n * int(np.count_nonzero(mask)) - n_lit - n_saturated,
     )
 
 

@@ -54,3 +54,26 @@ def test_rig_checks_rotation_and_sizes():
         StereoRig(left=cam, right=cam, R=2 * np.eye(3), T=[1.0, 0, 0])
     with pytest.raises(ValueError, match="image_size: left"):
         StereoRig(left=cam, right=make_camera((640, 480)), R=np.eye(3), T=[1.0, 0, 0])
+
+
+def test_rays_are_the_inverse_intrinsics_with_skew():
+    from pipeline.camera import undistorted_rays
+
+    K = np.array([[900.0, 2.5, 611.7], [0, 905.0, 512.2], [0, 0, 1]])
+    rays = undistorted_rays(K, (40, 30))
+    v, u = np.mgrid[0:30, 0:40]
+    expected = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(K).T
+    np.testing.assert_allclose(rays, expected, atol=1e-12)
+
+
+def test_scaled_camera_sees_the_same_rays_at_half_size():
+    cam = make_camera((320, 256))
+    half = cam.scaled(0.5)
+    assert half.image_size == (160, 128)
+    # the centre of half-size pixel (u', v') is full-size (2u' + 0.5, 2v' + 0.5): same ray
+    full_rays = cam.pixel_rays()
+    half_rays = half.pixel_rays()
+    u, v = 37, 51
+    full_ray = np.linalg.inv(cam.K) @ np.array([2 * u + 0.5, 2 * v + 0.5, 1.0])
+    np.testing.assert_allclose(half_rays[v, u], full_ray, atol=1e-12)
+    assert full_rays.shape == (256, 320, 3)
