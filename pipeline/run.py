@@ -198,18 +198,6 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions) ->
     surface_mask = depth.mask & np.isfinite(depth.depth_mm)
     clock.end("depth")
 
-    clock.begin("curvature")
-    curv = curvature.principal_curvatures(points, surface_mask)
-    fitted_radius = deviation.fitted_target_radius(points, surface_mask, tgt)
-    clock.end("curvature")
-
-    clock.begin("deviation")
-    registration = deviation.register_to_target(points, surface_mask, tgt)
-    dev = deviation.deviation_map(points, surface_mask, tgt, registration)
-    judgement = deviation.judge(dev, surface_mask, tgt.tolerance_mm, pixel_area_mm2=_pixel_area_mm2(depth.depth_mm, field.normals, rays, K))
-    clock.end("deviation")
-
-    clock.begin("artifacts")
     names = {
         "surface": "surface.ply",
         "target_surface": "target.ply",
@@ -218,19 +206,32 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions) ->
         "depth": "depth.npy",
         "details": "details.json",
     }
-    verts, faces = deviation.target_surface(tgt)
-    # image encoding and file writing release the GIL: write the artifacts side by side
+    # from here on the stages only read the surface: curvature runs beside the registration, and the
+    # artifacts (image encoding and file writing release the GIL) are written as soon as they are known
     with ThreadPoolExecutor(max_workers=2) as pool:
+        clock.begin("curvature")
+        curvature_job = pool.submit(_curvature, points, surface_mask, tgt)
         writes = [
+            pool.submit(artifacts.write_normals_png, out / names["normals"], field.normals, field.mask),
+            pool.submit(artifacts.save_depth, out / names["depth"], depth.depth_mm),
+        ]
+        clock.begin("deviation")
+        registration = deviation.register_to_target(points, surface_mask, tgt)
+        dev = deviation.deviation_map(points, surface_mask, tgt, registration)
+        area = _pixel_area_mm2(depth.depth_mm, field.normals, rays, K)
+        judgement = deviation.judge(dev, surface_mask, tgt.tolerance_mm, pixel_area_mm2=area)
+        clock.end("deviation")
+        clock.begin("artifacts")
+        verts, faces = deviation.target_surface(tgt)
+        writes += [
             pool.submit(artifacts.write_surface_ply, out / names["surface"], points, surface_mask, dev,
                         tolerance_mm=tgt.tolerance_mm),
             pool.submit(artifacts.write_deviation_png, out / names["deviation_map"], dev, surface_mask,
                         tolerance_mm=tgt.tolerance_mm),
-            pool.submit(artifacts.write_normals_png, out / names["normals"], field.normals, field.mask),
             pool.submit(artifacts.write_target_ply, out / names["target_surface"], verts, faces,
                         registration.T_cam_target),
-            pool.submit(artifacts.save_depth, out / names["depth"], depth.depth_mm),
         ]
+        curv, fitted_radius, clock.timings["curvature"] = curvature_job.result()
         for write in writes:
             write.result()
     details = {
@@ -316,6 +317,14 @@ def _write_error_result(out: Path, capture, target, err: Exception, clock: _Cloc
 
 def _round(value: float | None, digits: int) -> float | None:
     return None if value is None else round(float(value), digits)
+
+
+def _curvature(points: np.ndarray, mask: np.ndarray, tgt: Target):
+    """Principal curvatures, the target shape's fitted radius (mm or None), and their run time (s)."""
+    t = time.perf_counter()
+    curv = curvature.principal_curvatures(points, mask)
+    fitted_radius = deviation.fitted_target_radius(points, mask, tgt)
+    return curv, fitted_radius, round(time.perf_counter() - t, 4)
 
 
 def _stereo_prior(cap: Capture, mask: np.ndarray, opts: InspectOptions) -> tuple[np.ndarray, float]:
