@@ -70,13 +70,16 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--quick", action="store_true", help="3, 12 and 36 lights, one seed, 1224x1024 only")
+    parser.add_argument("--only", choices=["timing", "lights"], help="print one of the two tables")
     args = parser.parse_args()
     lights = (3, 12, 36) if args.quick else LIGHTS
     seeds = args.seeds[:1] if args.quick else args.seeds
     sizes = [(1224, 1024)] if args.quick else [(1224, 1024), (2448, 2048)]
     with tempfile.TemporaryDirectory() as tmp:
-        timing_table(Path(tmp), sizes, args.repeat)
-        lights_table(Path(tmp), seeds, lights)
+        if args.only != "lights":
+            timing_table(Path(tmp), sizes, args.repeat)
+        if args.only != "timing":
+            lights_table(Path(tmp), seeds, lights)
 
 
 if __name__ == "__main__":
