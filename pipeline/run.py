@@ -26,6 +26,10 @@ STAGES = ("load", "preprocess", "normals", "stereo", "depth", "curvature", "devi
 
 ProgressCallback = Callable[[str, float], None]
 
+#: Without a working-distance hint the stereo pair is searched around this depth (mm):
+#: with the default ``depth_margin`` of 1.0 that is 1750-7000 mm, the cell's whole range.
+NOMINAL_DISTANCE_MM = 3500.0
+
 
 @dataclass(frozen=True)
 class InspectOptions:
@@ -330,7 +334,7 @@ def _curvature(points: np.ndarray, mask: np.ndarray, tgt: Target):
 def _stereo_prior(cap: Capture, mask: np.ndarray, opts: InspectOptions) -> tuple[np.ndarray, float]:
     """Stereo depth (mm, left undistorted grid, NaN where unmatched or off the plate) and its run time (s)."""
     t = time.perf_counter()
-    z_nominal = cap.working_distance_mm or _nominal_distance_mm(cap)
+    z_nominal = cap.working_distance_mm or NOMINAL_DISTANCE_MM
     left, right, rig, stereo_mask = cap.stereo_left, cap.stereo_right, cap.rig, mask
     width, height = rig.image_size
     halve = width > opts.stereo_max_width
@@ -353,11 +357,6 @@ def _stereo_prior(cap: Capture, mask: np.ndarray, opts: InspectOptions) -> tuple
         depth = cv2.resize(depth, (width, height), interpolation=cv2.INTER_LINEAR)
     prior = np.where(mask, depth, np.nan)
     return prior, round(time.perf_counter() - t, 4)
-
-
-def _nominal_distance_mm(cap: Capture) -> float:
-    """Without a working-distance hint, search the stereo pair over 1-6 m (the cell's range)."""
-    return 3500.0
 
 
 def _scale_to_working_distance(depth, K: np.ndarray, working_distance_mm: float):
