@@ -15,14 +15,15 @@ from __future__ import annotations
 
 import re
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from . import io
 from .camera import CameraModel, StereoRig
-from .formats import CALIBRATION_FORMAT, CalibrationError, StereoCalibrationFile
+from .formats import CalibrationError, StereoCalibrationFile
 
 #: File extensions read as board images (lower case, with the dot).
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
@@ -398,20 +399,7 @@ def calibration_document(report: CalibrationReport) -> dict:
     """
     if not isinstance(report, CalibrationReport):
         raise TypeError(f"report: expected a CalibrationReport, got {type(report).__name__}")
-    rig = report.rig
-    doc = {
-        "format": CALIBRATION_FORMAT,
-        "image_size": [int(rig.image_size[0]), int(rig.image_size[1])],
-        "left": {"K": rig.left.K.tolist(), "dist": rig.left.dist.tolist()},
-        "right": {"K": rig.right.K.tolist(), "dist": rig.right.dist.tolist()},
-        "R": rig.R.tolist(),
-        "T": rig.T.tolist(),
-        "rms_px": float(report.rms_px),
-    }
-    if rig.board is not None:
-        doc["board"] = {
-            "inner_corners": [int(v) for v in rig.board["inner_corners"]],
-            "square_mm": float(rig.board["square_mm"]),
-        }
+    # the rig carries the stereo RMS and the board (set by calibrate_stereo); io writes the format
+    doc = io.calibration_document(replace(report.rig, rms_px=float(report.rms_px)))
     StereoCalibrationFile.model_validate(doc)
     return doc
