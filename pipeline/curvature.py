@@ -74,12 +74,16 @@ class SphereFit:
         Signed curvature ``+-1/radius_mm``: positive when the surface is convex towards the camera.
     rms_mm : float
         RMS orthogonal distance of the points to the sphere, mm (all points, robust loss or not).
+    free_curvature_per_mm : float or None
+        With ``radius_mm`` fixed: the signed curvature of the radius-free fit made first on the same
+        points (what ``fit_sphere`` without a radius returns); None when the radius was free.
     """
 
     center_mm: np.ndarray
     radius_mm: float
     curvature_per_mm: float
     rms_mm: float
+    free_curvature_per_mm: float | None = None
 
     @property
     def convex_towards_camera(self) -> bool:
@@ -102,6 +106,9 @@ class CylinderFit:
         Signed curvature ``+-1/radius_mm``: positive when convex towards the camera.
     rms_mm : float
         RMS orthogonal distance of the points to the cylinder, mm.
+    free_curvature_per_mm : float or None
+        With ``radius_mm`` fixed: the signed curvature of the radius-free fit made first on the same
+        points (what ``fit_cylinder`` without a radius returns); None when the radius was free.
     """
 
     axis: np.ndarray
@@ -109,6 +116,7 @@ class CylinderFit:
     radius_mm: float
     curvature_per_mm: float
     rms_mm: float
+    free_curvature_per_mm: float | None = None
 
     @property
     def convex_towards_camera(self) -> bool:
@@ -399,11 +407,22 @@ def _fit_curved(pts: np.ndarray, *, cylinder: bool, radius_mm: float | None, max
         return n, ax, t
 
     n_shape = 4 if cylinder else 3  # parameters besides k
+    ww_all = np.einsum("ij,ij->i", w_all, w_all)  # |w|^2, fixed over the fit
 
     def residuals(x, k_fixed, w):
+        # _signed_distance(w - t n, n, k, ax) expanded so each call costs two mat-vecs: n is orthogonal to the
+        # axis (unpack), hence (w - t n).ax = w.ax, (w - t n).n = w.n - t, |w - t n|^2 = |w|^2 - 2 t w.n + t^2.
         n, ax, t = unpack(x)
         k = x[n_shape] if k_fixed is None else k_fixed
-        return _signed_distance(w - t * n, n, k, ax)
+        if ax is None:
+            wn = w @ n
+            s2 = ww_all - 2.0 * t * wn + t * t
+        else:
+            wa = w @ np.stack([n, ax], axis=1)
+            wn = wa[:, 0]
+            s2 = ww_all - wa[:, 1] * wa[:, 1] - 2.0 * t * wn + t * t
+        g = k * s2 - 2.0 * (wn - t)
+        return g / (1.0 + np.sqrt(np.maximum(1.0 + k * g, 0.0)))
 
     steps = np.full(n_shape + 1, 1e-6)  # rad for the angles / axis offsets
     steps[n_shape - 1] = 1e-3  # mm, offset along the normal
@@ -422,21 +441,27 @@ def _fit_curved(pts: np.ndarray, *, cylinder: bool, radius_mm: float | None, max
     x[: n_shape + (k_fix is None)], _ = solve(x, k_fix, f_scale)
     f_scale = max(3.0 * _robust_scale(residuals(x, k_fix, w_all)), 0.01)
     x[: n_shape + (k_fix is None)], _ = solve(x, k_fix, f_scale)
+    k_free = float(x[n_shape])
     if radius_mm is not None and curvature_per_mm is None:
-        # Radius fixed: try both orientations (convex / concave towards the camera) for a few steps; the
-        # lower cost decides and is then solved to convergence.
-        best = None
-        for k_try in (1.0 / radius_mm, -1.0 / radius_mm):
-            xs, cost = solve(x[:n_shape].copy(), k_try, f_scale, max_iter=6)
-            if best is None or cost < best[2]:
-                best = (xs, k_try, cost)
+        # Radius fixed: when the free fit's curvature is clearly on one side (at least half the fixed
+        # curvature), that side is taken; otherwise both orientations (convex / concave towards the camera)
+        # are tried for a few steps and the lower cost decides. The winner is solved to convergence.
+        k_abs = 1.0 / radius_mm
+        sides = (math.copysign(k_abs, k_free),) if abs(k_free) >= 0.5 * k_abs else (k_abs, -k_abs)
+        best = (x[:n_shape].copy(), sides[0], None)
+        if len(sides) > 1:
+            best = None
+            for k_try in sides:
+                xs, cost = solve(x[:n_shape].copy(), k_try, f_scale, max_iter=6)
+                if best is None or cost < best[2]:
+                    best = (xs, k_try, cost)
         xs, _ = solve(best[0], best[1], f_scale)
         x = np.append(xs, best[1])
     n, ax, t = unpack(x)
     k = float(x[n_shape])
     p0 = p_ref + t * n
     rms = float(np.sqrt(np.mean(_signed_distance(pts - p0, n, k, ax) ** 2)))
-    return n, p0, k, ax, rms
+    return n, p0, k, ax, rms, k_free
 
 
 def fit_sphere(points_mm, *, radius_mm: float | None = None, max_points: int = MAX_FIT_POINTS) -> SphereFit:
@@ -447,7 +472,8 @@ def fit_sphere(points_mm, *, radius_mm: float | None = None, max_points: int = M
     points_mm : (M, 3) array_like of float
         Points in the left-camera frame, mm; M >= 5.
     radius_mm : float, optional
-        Fix the radius (mm); the fit then chooses convex or concave by the lower cost.
+        Fix the radius (mm). Convex or concave: the side of the radius-free fit made first when its
+        curvature is at least half of ``1 / radius_mm``, else the lower cost of both.
     max_points : int
         Fit on at most this many points (uniform subsample); the RMS is over all points.
 
@@ -470,9 +496,10 @@ def fit_sphere(points_mm, *, radius_mm: float | None = None, max_points: int = M
     """
     pts = _check_points(points_mm, min_points=5)
     r = _check_radius(radius_mm)
-    n, p0, k, _, rms = _fit_curved(pts, cylinder=False, radius_mm=r, max_points=max_points)
+    n, p0, k, _, rms, k_free = _fit_curved(pts, cylinder=False, radius_mm=r, max_points=max_points)
     center = p0 + n / k if k != 0 else np.full(3, np.inf)
-    return SphereFit(center_mm=center, radius_mm=abs(1.0 / k) if k != 0 else math.inf, curvature_per_mm=k, rms_mm=rms)
+    return SphereFit(center_mm=center, radius_mm=abs(1.0 / k) if k != 0 else math.inf, curvature_per_mm=k, rms_mm=rms,
+                     free_curvature_per_mm=None if r is None else k_free)
 
 
 def fit_cylinder(points_mm, *, radius_mm: float | None = None, max_points: int = MAX_FIT_POINTS) -> CylinderFit:
@@ -483,7 +510,8 @@ def fit_cylinder(points_mm, *, radius_mm: float | None = None, max_points: int =
     points_mm : (M, 3) array_like of float
         Points in the left-camera frame, mm; M >= 6.
     radius_mm : float, optional
-        Fix the radius (mm); the fit then chooses convex or concave by the lower cost.
+        Fix the radius (mm). Convex or concave: the side of the radius-free fit made first when its
+        curvature is at least half of ``1 / radius_mm``, else the lower cost of both.
     max_points : int
         Fit on at most this many points (uniform subsample); the RMS is over all points.
 
@@ -507,7 +535,7 @@ def fit_cylinder(points_mm, *, radius_mm: float | None = None, max_points: int =
     """
     pts = _check_points(points_mm, min_points=6)
     r = _check_radius(radius_mm)
-    n, p0, k, ax, rms = _fit_curved(pts, cylinder=True, radius_mm=r, max_points=max_points)
+    n, p0, k, ax, rms, k_free = _fit_curved(pts, cylinder=True, radius_mm=r, max_points=max_points)
     if ax[1] < 0 or (ax[1] == 0 and ax[0] < 0):
         ax = -ax
     if k != 0:
@@ -517,7 +545,7 @@ def fit_cylinder(points_mm, *, radius_mm: float | None = None, max_points: int =
     else:
         point = np.full(3, np.inf)
     return CylinderFit(axis=ax, point_on_axis_mm=point, radius_mm=abs(1.0 / k) if k != 0 else math.inf,
-                       curvature_per_mm=k, rms_mm=rms)
+                       curvature_per_mm=k, rms_mm=rms, free_curvature_per_mm=None if r is None else k_free)
 
 
 # --------------------------------------------------------------------------- principal curvatures

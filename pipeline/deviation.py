@@ -82,12 +82,17 @@ class Registration:
         RMS orthogonal distance of the measured points used in the fit to the registered target, mm.
     convex_towards_camera : bool or None
         For cylinder and sphere targets: whether the fit chose the plate convex towards the cameras.
+    fitted_radius_mm : float or None
+        For cylinder and sphere targets: the radius of the radius-free fit of the same shape made on the
+        way (equal to :func:`fitted_target_radius` on the same grid; ``inf`` for an exactly flat fit).
+        None for plane and mesh targets.
     """
 
     T_cam_target: np.ndarray
     shape: str
     rms_mm: float
     convex_towards_camera: bool | None
+    fitted_radius_mm: float | None = None
 
 
 @dataclass(frozen=True)
@@ -249,8 +254,9 @@ def register_to_target(points_mm, mask, target) -> Registration:
 
     Notes
     -----
-    Plane, cylinder, sphere: a robust geometric fit of the shape with the target's radius fixed (both
-    convex and concave tried, the lower cost wins); the in-surface position is the measured plate's
+    Plane, cylinder, sphere: a robust geometric fit of the shape with the target's radius fixed, started
+    from the radius-free fit (its curvature picks convex or concave when it is at least half the target's;
+    otherwise both are tried and the lower cost wins); the in-surface position is the measured plate's
     centroid and the in-plane x axis its principal direction (these two do not change the deviation of a
     rotationally or translationally symmetric target). Mesh: the mesh is rasterised to a height grid over
     its own PCA plane; the measured and mesh PCA frames are matched under the 4 proper axis flips (and
@@ -264,7 +270,7 @@ def register_to_target(points_mm, mask, target) -> Registration:
         return _register_mesh(sample, tgt)
     centroid = sample.mean(axis=0)
     if tgt.shape == "plane":
-        n, p0, _, _, rms = _fit_curved(sample, cylinder=False, radius_mm=None, max_points=MAX_FIT_POINTS,
+        n, p0, _, _, rms, _ = _fit_curved(sample, cylinder=False, radius_mm=None, max_points=MAX_FIT_POINTS,
                                        curvature_per_mm=0.0)
         z = n  # the fit's normal points away from the camera
         origin = p0 + ((centroid - p0) - ((centroid - p0) @ z) * z)
@@ -279,7 +285,7 @@ def register_to_target(points_mm, mask, target) -> Registration:
         z = -v
         y = a
         x = np.cross(y, z)
-        rms, convex = fit.rms_mm, fit.convex_towards_camera
+        rms, convex, k_free = fit.rms_mm, fit.convex_towards_camera, fit.free_curvature_per_mm
     else:  # sphere
         fit = fit_sphere(sample, radius_mm=tgt.radius_mm)
         v = centroid - fit.center_mm
@@ -287,11 +293,12 @@ def register_to_target(points_mm, mask, target) -> Registration:
         origin = fit.center_mm + tgt.radius_mm * v
         z = -v
         x = _in_plane_x(sample, z, tgt.size_mm)
-        rms, convex = fit.rms_mm, fit.convex_towards_camera
+        rms, convex, k_free = fit.rms_mm, fit.convex_towards_camera, fit.free_curvature_per_mm
     y = np.cross(z, x)
     R = np.stack([x, y, z], axis=1)
+    free_radius = None if convex is None else (abs(1.0 / k_free) if k_free != 0 else math.inf)
     return Registration(T_cam_target=_pose(R, origin), shape=tgt.shape, rms_mm=float(rms),
-                        convex_towards_camera=convex)
+                        convex_towards_camera=convex, fitted_radius_mm=free_radius)
 
 
 # --------------------------------------------------------------------------- mesh targets

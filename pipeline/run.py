@@ -214,7 +214,7 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions) ->
     # artifacts (image encoding and file writing release the GIL) are written as soon as they are known
     with ThreadPoolExecutor(max_workers=2) as pool:
         clock.begin("curvature")
-        curvature_job = pool.submit(_curvature, points, surface_mask, tgt)
+        curvature_job = pool.submit(_curvature, points, surface_mask)
         writes = [
             pool.submit(artifacts.write_normals_png, out / names["normals"], field.normals, field.mask),
             pool.submit(artifacts.save_depth, out / names["depth"], depth.depth_mm),
@@ -235,7 +235,9 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions) ->
             pool.submit(artifacts.write_target_ply, out / names["target_surface"], verts, faces,
                         registration.T_cam_target),
         ]
-        curv, fitted_radius, clock.timings["curvature"] = curvature_job.result()
+        curv, clock.timings["curvature"] = curvature_job.result()
+        # the registration fits the target's shape radius-free on its way (= deviation.fitted_target_radius)
+        fitted_radius = registration.fitted_radius_mm
         for write in writes:
             write.result()
     details = {
@@ -323,12 +325,11 @@ def _round(value: float | None, digits: int) -> float | None:
     return None if value is None else round(float(value), digits)
 
 
-def _curvature(points: np.ndarray, mask: np.ndarray, tgt: Target):
-    """Principal curvatures, the target shape's fitted radius (mm or None), and their run time (s)."""
+def _curvature(points: np.ndarray, mask: np.ndarray):
+    """Principal curvatures and their run time (s)."""
     t = time.perf_counter()
     curv = curvature.principal_curvatures(points, mask)
-    fitted_radius = deviation.fitted_target_radius(points, mask, tgt)
-    return curv, fitted_radius, round(time.perf_counter() - t, 4)
+    return curv, round(time.perf_counter() - t, 4)
 
 
 def _stereo_prior(cap: Capture, mask: np.ndarray, opts: InspectOptions) -> tuple[np.ndarray, float]:
