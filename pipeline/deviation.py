@@ -530,8 +530,8 @@ def deviation_map(points_mm, mask, target, registration) -> np.ndarray:
     pts, m = check_grid(points_mm, mask, min_points=1)
     R, t = T[:3, :3], T[:3, 3]
     T_target_cam = np.hstack([R.T, (-R.T @ t)[:, None]])
-    # Rigid transform of every pixel (cv2.transform: one pass in C); NaNs outside the mask stay NaN.
-    x = cv2.transform(pts.reshape(-1, 1, 3), T_target_cam).reshape(-1, 3)
+    # Rigid transform of the valid pixels only (the rest stay NaN): a plate rarely fills the frame.
+    x = pts[m] @ T_target_cam[:, :3].T + T_target_cam[:, 3]
     cam = T_target_cam[:, 3]  # camera centre in the target frame
     with np.errstate(invalid="ignore"):
         if tgt.shape == "mesh":
@@ -554,8 +554,8 @@ def deviation_map(points_mm, mask, target, registration) -> np.ndarray:
                 outward = num / (np.sqrt(np.maximum(num + Rt * Rt, 0.0)) + Rt)
             # "outward" is the -z side at the plate centre; the camera is on it when its z < 0.
             dev = outward if cam[2] < 0 else -outward
-    out = dev.astype(np.float32).reshape(m.shape)
-    out[~m] = np.nan
+    out = np.full(m.shape, np.nan, dtype=np.float32)
+    out[m] = dev
     return out
 
 

@@ -1046,7 +1046,7 @@ def _specular(images, valid, status, L, view, b):
                        n_reverted=int(revert.sum()))
 
 
-def view_directions(K: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+def view_directions(K: np.ndarray, shape: tuple[int, int], *, rays: np.ndarray | None = None) -> np.ndarray:
     """Per-pixel unit view directions of the undistorted grid: ``-normalize(K^-1 (u, v, 1))``.
 
     Parameters
@@ -1055,6 +1055,8 @@ def view_directions(K: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
         Camera matrix of the undistorted grid (pixels).
     shape : (H, W)
         Image size.
+    rays : (H, W, 3) float array, optional
+        ``K^-1 (u, v, 1)`` already computed (``CameraModel.pixel_rays``), to skip computing it again.
 
     Returns
     -------
@@ -1066,6 +1068,10 @@ def view_directions(K: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     if K.shape != (3, 3) or not np.all(np.isfinite(K)) or not (K[0, 0] > 0 and K[1, 1] > 0):
         raise ValueError(f"K: expected a finite (3, 3) camera matrix with fx, fy > 0, got {K.tolist()}")
     h, w = shape
-    rays = undistorted_rays(K, (w, h)).astype(np.float32)
-    rays *= (-1.0 / np.sqrt(np.einsum("hwc,hwc->hw", rays, rays)))[..., None]
-    return rays
+    if rays is None:
+        rays = undistorted_rays(K, (w, h))
+    elif np.shape(rays) != (h, w, 3):
+        raise ValueError(f"rays: expected shape {(h, w, 3)} for an image of shape {(h, w)}, got {np.shape(rays)}")
+    dirs = np.asarray(rays, dtype=np.float32).copy()
+    dirs *= (-1.0 / np.sqrt(np.einsum("hwc,hwc->hw", dirs, dirs)))[..., None]
+    return dirs

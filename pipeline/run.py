@@ -173,9 +173,10 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions) ->
     with ThreadPoolExecutor(max_workers=1) as pool:
         stereo_job = pool.submit(_stereo_prior, cap, pre.mask, opts) if cap.has_stereo else None
         clock.begin("normals")
+        rays = cap.rig.left.pixel_rays()  # (H, W, 3) float64, shared by the normals, the surface and the areas
         field = normals.estimate_normals(
             pre.images, cap.light_dirs, pre.mask, valid=pre.valid, method=opts.normals_method,
-            view_dirs=normals.view_directions(cap.rig.left.K, pre.mask.shape),
+            view_dirs=normals.view_directions(cap.rig.left.K, pre.mask.shape, rays=rays),
         )
         clock.end("normals")
         clock.begin("stereo")
@@ -197,7 +198,6 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions) ->
     else:
         depth = integration.integrate_normals(field.normals, field.mask, K, reference_depth_mm=cap.working_distance_mm)
         depth = _scale_to_working_distance(depth, K, cap.working_distance_mm)
-    rays = cap.rig.left.pixel_rays()
     points = depth.depth_mm[..., None] * rays
     surface_mask = depth.mask & np.isfinite(depth.depth_mm)
     clock.end("depth")
