@@ -530,9 +530,20 @@ def deviation_map(points_mm, mask, target, registration) -> np.ndarray:
     pts, m = check_grid(points_mm, mask, min_points=1)
     R, t = T[:3, :3], T[:3, 3]
     T_target_cam = np.hstack([R.T, (-R.T @ t)[:, None]])
-    # Rigid transform of the valid pixels only (the rest stay NaN): a plate rarely fills the frame.
-    x = pts[m] @ T_target_cam[:, :3].T + T_target_cam[:, 3]
     cam = T_target_cam[:, 3]  # camera centre in the target frame
+    if tgt.shape != "mesh":
+        # Analytic shapes: in chunks of pixels, so the float64 temporaries stay in cache instead of
+        # allocating several (H, W, 3) arrays (their page faults cost more than the arithmetic).
+        out = np.empty(m.size, dtype=np.float32)
+        flat = pts.reshape(-1, 3)
+        for start in range(0, flat.shape[0], _CHUNK):
+            x = cv2.transform(flat[start : start + _CHUNK].reshape(-1, 1, 3), T_target_cam).reshape(-1, 3)
+            out[start : start + _CHUNK] = _analytic_deviation(x, tgt, cam)
+        out = out.reshape(m.shape)
+        out[~m] = np.nan
+        return out
+    # Rigid transform of every pixel (cv2.transform: one pass in C); NaNs outside the mask stay NaN.
+    x = cv2.transform(pts.reshape(-1, 1, 3), T_target_cam).reshape(-1, 3)
     with np.errstate(invalid="ignore"):
         if tgt.shape == "mesh":
             grid = _mesh_grid(tgt)
@@ -542,21 +553,28 @@ def deviation_map(points_mm, mask, target, registration) -> np.ndarray:
             h0, _ = grid.sample(q_cam[None, :], filled=True)
             side = 1.0 if q_cam[2] > h0[0] else -1.0
             dev = side * (q[:, 2] - h) * s
-        else:
-            Rt = tgt.radius_mm
-            xx, yy, zz = x[:, 0], x[:, 1], x[:, 2]
-            if tgt.shape == "plane":
-                outward = -zz
-            else:
-                # |p - c| - R = (|p|^2 - 2 R z) / (|p - c| + R) for c = (0, 0, R): no cancellation at large R
-                r2 = xx * xx + zz * zz if tgt.shape == "cylinder" else xx * xx + yy * yy + zz * zz
-                num = r2 - 2.0 * Rt * zz
-                outward = num / (np.sqrt(np.maximum(num + Rt * Rt, 0.0)) + Rt)
-            # "outward" is the -z side at the plate centre; the camera is on it when its z < 0.
-            dev = outward if cam[2] < 0 else -outward
-    out = np.full(m.shape, np.nan, dtype=np.float32)
-    out[m] = dev
+    out = dev.astype(np.float32).reshape(m.shape)
+    out[~m] = np.nan
     return out
+
+
+_CHUNK = 1 << 16  # pixels per chunk of deviation_map's analytic shapes
+
+
+def _analytic_deviation(x: np.ndarray, tgt: Target, cam: np.ndarray) -> np.ndarray:
+    """Signed deviation (mm, + on the camera's side) of target-frame points (N, 3) from a plane, cylinder or sphere."""
+    Rt = tgt.radius_mm
+    xx, yy, zz = x[:, 0], x[:, 1], x[:, 2]
+    with np.errstate(invalid="ignore"):
+        if tgt.shape == "plane":
+            outward = -zz
+        else:
+            # |p - c| - R = (|p|^2 - 2 R z) / (|p - c| + R) for c = (0, 0, R): no cancellation at large R
+            r2 = xx * xx + zz * zz if tgt.shape == "cylinder" else xx * xx + yy * yy + zz * zz
+            num = r2 - 2.0 * Rt * zz
+            outward = num / (np.sqrt(np.maximum(num + Rt * Rt, 0.0)) + Rt)
+    # "outward" is the -z side at the plate centre; the camera is on it when its z < 0.
+    return outward if cam[2] < 0 else -outward
 
 
 # --------------------------------------------------------------------------- verdict
