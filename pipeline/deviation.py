@@ -638,14 +638,15 @@ def judge(deviation_mm, mask, tolerance_mm: float, *, pixel_area_mm2, min_defect
     n = int(np.count_nonzero(judged))
     if n == 0:
         raise ValueError("deviation_mm: expected finite deviations inside the mask, got none")
-    if area.ndim == 2 and not np.all(np.isfinite(area[judged]) & (area[judged] > 0)):
+    area_judged = area[judged] if area.ndim == 2 else None
+    if area_judged is not None and not np.all(np.isfinite(area_judged) & (area_judged > 0)):
         raise ValueError("pixel_area_mm2: expected positive finite areas at every judged pixel")
 
     a = np.abs(dev[judged])
     rms = float(np.sqrt(np.mean(a * a)))
     max_abs = float(a.max())
     p95 = float(np.percentile(a, 95))
-    w = np.full(n, float(area)) if area.ndim == 0 else area[judged]
+    w = np.full(n, float(area)) if area.ndim == 0 else area_judged
     outside = a > tolerance_mm
     total_area = float(w.sum())
     outside_area = float(w[outside].sum())
