@@ -308,10 +308,13 @@ def _check_view_dirs(view_dirs, shape):
         raise ValueError(f"view_dirs: expected shape (3,) or {shape + (3,)} to match the mask, got {v.shape}")
     if not np.issubdtype(v.dtype, np.floating):
         raise ValueError(f"view_dirs: expected a float array, got dtype {v.dtype}")
-    if not np.all(np.isfinite(v)):
+    # one pass: a NaN or inf component makes the length check fail too; which one it was is sorted out after
+    with np.errstate(invalid="ignore", over="ignore"):
+        lengths = np.sqrt(np.einsum("...c,...c->...", v, v))
+        unit = bool(np.all(np.abs(lengths - 1.0) <= UNIT_TOLERANCE))
+    if not unit and not np.all(np.isfinite(v)):
         raise ValueError("view_dirs: expected finite numbers, got NaN or inf")
-    lengths = np.sqrt(np.einsum("...c,...c->...", v, v))
-    if np.any(np.abs(lengths - 1.0) > UNIT_TOLERANCE):
+    if not unit:
         worst = np.unravel_index(np.argmax(np.abs(lengths - 1.0)), lengths.shape)
         raise ValueError(f"view_dirs{list(worst)}: expected a unit vector, got length {float(lengths[worst]):.4f}")
     if np.any(v[..., 2] >= 0):
