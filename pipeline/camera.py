@@ -63,21 +63,22 @@ class CameraModel:
     def height(self) -> int:
         return self.image_size[1]
 
-    def scaled(self, factor: float) -> "CameraModel":
-        """The same camera seen on an image resized by ``factor`` (e.g. 0.5 for half size).
+    def resized(self, image_size: tuple[int, int]) -> "CameraModel":
+        """The same camera seen on its image resized to ``(width, height)`` px (as ``cv2.resize`` does).
 
-        Pixel centres map as ``u' = factor * (u + 0.5) - 0.5``; the distortion of
-        normalised coordinates is unchanged.
+        Pixel centres map as ``u' = sx (u + 0.5) - 0.5`` with ``sx = width' / width``
+        (likewise v); the distortion of normalised coordinates is unchanged.
         """
-        if not factor > 0:
-            raise ValueError(f"factor: expected a positive scale, got {factor}")
+        w, h = (int(v) for v in image_size)
+        if w <= 0 or h <= 0:
+            raise ValueError(f"image_size: expected positive (width, height), got {image_size}")
+        sx, sy = w / self.width, h / self.height
         K = self.K.copy()
-        K[0, :2] *= factor
-        K[1, 1] *= factor
-        K[0, 2] = factor * (K[0, 2] + 0.5) - 0.5
-        K[1, 2] = factor * (K[1, 2] + 0.5) - 0.5
-        size = (int(round(self.width * factor)), int(round(self.height * factor)))
-        return CameraModel(K=K, dist=self.dist, image_size=size)
+        K[0, :2] *= sx
+        K[1, 1] *= sy
+        K[0, 2] = sx * (K[0, 2] + 0.5) - 0.5
+        K[1, 2] = sy * (K[1, 2] + 0.5) - 0.5
+        return CameraModel(K=K, dist=self.dist, image_size=(w, h))
 
     def pixel_rays(self) -> np.ndarray:
         """Rays through the pixel centres of the *undistorted* image.

@@ -58,8 +58,9 @@ class InspectOptions:
         trusted (a plate outside the searched range gives a few wrong matches): the
         working distance sets the scale instead, or the capture is refused without one.
     stereo_max_width : int
-        A stereo pair wider than this (px) is matched at half size: its depth only
-        anchors the scale and the lowest frequencies of the fused surface.
+        A stereo pair wider than this (px) is matched reduced by the smallest whole
+        factor that fits: its depth only anchors the scale and the lowest frequencies
+        of the fused surface.
     """
 
     normals_method: str = "robust"
@@ -338,13 +339,13 @@ def _stereo_prior(cap: Capture, mask: np.ndarray, opts: InspectOptions) -> tuple
     z_nominal = cap.working_distance_mm or NOMINAL_DISTANCE_MM
     left, right, rig, stereo_mask = cap.stereo_left, cap.stereo_right, cap.rig, mask
     width, height = rig.image_size
-    halve = width > opts.stereo_max_width
-    if halve:
-        # the stereo depth only anchors scale and the lowest frequencies: half size is plenty, and 4x cheaper
-        half = (width // 2, height // 2)
-        left, right = (cv2.resize(im, half, interpolation=cv2.INTER_AREA) for im in (left, right))
-        rig = replace(rig, left=rig.left.scaled(half[0] / width), right=rig.right.scaled(half[0] / width))
-        stereo_mask = cv2.resize(mask.view(np.uint8), half, interpolation=cv2.INTER_NEAREST).astype(bool)
+    step = -(-width // opts.stereo_max_width)  # the smallest whole reduction that fits
+    if step > 1:
+        # the stereo depth only anchors scale and the lowest frequencies: a reduced pair is plenty, and cheaper
+        small = (width // step, height // step)
+        left, right = (cv2.resize(im, small, interpolation=cv2.INTER_AREA) for im in (left, right))
+        rig = replace(rig, left=rig.left.resized(small), right=rig.right.resized(small))
+        stereo_mask = cv2.resize(mask.view(np.uint8), small, interpolation=cv2.INTER_NEAREST).astype(bool)
     sd = stereo.stereo_depth(
         left,
         right,
@@ -354,7 +355,7 @@ def _stereo_prior(cap: Capture, mask: np.ndarray, opts: InspectOptions) -> tuple
         mask=stereo_mask,
     )
     depth = sd.depth_mm
-    if halve:  # back onto the full grid; a hole spreads to the pixels that interpolate from it
+    if step > 1:  # back onto the full grid; a hole spreads to the pixels that interpolate from it
         depth = cv2.resize(depth, (width, height), interpolation=cv2.INTER_LINEAR)
     prior = np.where(mask, depth, np.nan)
     return prior, round(time.perf_counter() - t, 4)

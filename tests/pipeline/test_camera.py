@@ -68,7 +68,7 @@ def test_rays_are_the_inverse_intrinsics_with_skew():
 
 def test_scaled_camera_sees_the_same_rays_at_half_size():
     cam = make_camera((320, 256))
-    half = cam.scaled(0.5)
+    half = cam.resized((160, 128))
     assert half.image_size == (160, 128)
     # the centre of half-size pixel (u', v') is full-size (2u' + 0.5, 2v' + 0.5): same ray
     full_rays = cam.pixel_rays()
