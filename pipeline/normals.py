@@ -884,7 +884,7 @@ def _lobe_search_kernel(samples, usable, b, view, L, g_tables, cos_min, shadow_f
                 out[p, e] = num * num / den
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, fastmath=_FASTMATH, error_model="numpy")
 def _specular_pass_kernel(images, valid, use_valid, fit, L, view, per_pixel_view, g_table, dg_table, b, s_map,
                           cos_min, lo, hi, db0, coef, num, den):
     """One joint Gauss-Newton linearisation of I_k = b.l_k + s g(n.h_k) at every pixel with fit True.
