@@ -170,39 +170,6 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions) ->
     pre = preprocess(cap)
     clock.end("preprocess")
 
-    # the stereo pair needs only the plate mask: match it on the second core while the normals are estimated
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        stereo_job = pool.submit(_stereo_prior, cap, pre.mask, opts) if cap.has_stereo else None
-        clock.begin("normals")
-        rays = cap.rig.left.pixel_rays()  # (H, W, 3) float64, shared by the normals, the surface and the areas
-        field = normals.estimate_normals(
-            pre.images, cap.light_dirs, pre.mask, valid=pre.valid, method=opts.normals_method,
-            view_dirs=normals.view_directions(cap.rig.left.K, pre.mask.shape, rays=rays),
-        )
-        clock.end("normals")
-        clock.begin("stereo")
-        prior, stereo_s = stereo_job.result() if stereo_job is not None else (None, 0.0)
-        clock.timings["stereo"] = stereo_s
-    matched_pct = None if prior is None else 100.0 * np.count_nonzero(np.isfinite(prior) & field.mask) / field.mask.sum()
-    if prior is not None and matched_pct < opts.min_stereo_pct:
-        if cap.working_distance_mm is None:
-            raise CaptureError(
-                f"{cap.source}: stereo: {matched_pct:.1f} % of the plate matched in the stereo pair, expected at least "
-                f"{opts.min_stereo_pct:.0f} %, and there is no working_distance_mm to fall back on"
-            )
-        prior = None  # too little to trust: the working distance sets the scale (details.json says so)
-
-    clock.begin("depth")
-    K = cap.rig.left.K
-    if prior is not None:
-        depth = integration.integrate_normals(field.normals, field.mask, K, prior_depth_mm=prior, prior_weight=opts.stereo_weight)
-    else:
-        depth = integration.integrate_normals(field.normals, field.mask, K, reference_depth_mm=cap.working_distance_mm)
-        depth = _scale_to_working_distance(depth, K, cap.working_distance_mm)
-    points = depth.depth_mm[..., None] * rays
-    surface_mask = depth.mask & np.isfinite(depth.depth_mm)
-    clock.end("depth")
-
     names = {
         "surface": "surface.ply",
         "target_surface": "target.ply",
@@ -211,15 +178,50 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions) ->
         "depth": "depth.npy",
         "details": "details.json",
     }
-    # from here on the stages only read the surface: curvature runs beside the registration, and the
-    # artifacts (image encoding and file writing release the GIL) are written as soon as they are known
+    # Two cores: work that does not need the main line's next result runs beside it. The stereo pair
+    # needs only the plate mask (matched while the normals are estimated); normals.png is written
+    # while the depth is solved (single-threaded); curvature runs beside the registration; the other
+    # artifacts (image encoding and file writing release the GIL) as soon as they are known.
     with ThreadPoolExecutor(max_workers=2) as pool:
+        stereo_job = pool.submit(_stereo_prior, cap, pre.mask, opts) if cap.has_stereo else None
+        clock.begin("normals")
+        rays = cap.rig.left.pixel_rays()  # (H, W, 3) float64, shared by the normals, the surface and the areas
+        field = normals.estimate_normals(
+            pre.images, cap.light_dirs, pre.mask, valid=pre.valid, method=opts.normals_method,
+            view_dirs=normals.view_directions(cap.rig.left.K, pre.mask.shape, rays=rays),
+        )
+        clock.end("normals")
+        writes = [pool.submit(artifacts.write_normals_png, out / names["normals"], field.normals, field.mask)]
+        clock.begin("stereo")
+        prior, stereo_s = stereo_job.result() if stereo_job is not None else (None, 0.0)
+        clock.timings["stereo"] = stereo_s
+        matched_pct = (
+            None if prior is None else 100.0 * np.count_nonzero(np.isfinite(prior) & field.mask) / field.mask.sum()
+        )
+        if prior is not None and matched_pct < opts.min_stereo_pct:
+            if cap.working_distance_mm is None:
+                raise CaptureError(
+                    f"{cap.source}: stereo: {matched_pct:.1f} % of the plate matched in the stereo pair, expected at "
+                    f"least {opts.min_stereo_pct:.0f} %, and there is no working_distance_mm to fall back on"
+                )
+            prior = None  # too little to trust: the working distance sets the scale (details.json says so)
+
+        clock.begin("depth")
+        K = cap.rig.left.K
+        if prior is not None:
+            depth = integration.integrate_normals(
+                field.normals, field.mask, K, prior_depth_mm=prior, prior_weight=opts.stereo_weight
+            )
+        else:
+            depth = integration.integrate_normals(field.normals, field.mask, K, reference_depth_mm=cap.working_distance_mm)
+            depth = _scale_to_working_distance(depth, K, cap.working_distance_mm)
+        points = depth.depth_mm[..., None] * rays
+        surface_mask = depth.mask & np.isfinite(depth.depth_mm)
+        clock.end("depth")
+
         clock.begin("curvature")
         curvature_job = pool.submit(_curvature, points, surface_mask)
-        writes = [
-            pool.submit(artifacts.write_normals_png, out / names["normals"], field.normals, field.mask),
-            pool.submit(artifacts.save_depth, out / names["depth"], depth.depth_mm),
-        ]
+        writes.append(pool.submit(artifacts.save_depth, out / names["depth"], depth.depth_mm))
         clock.begin("deviation")
         registration = deviation.register_to_target(points, surface_mask, tgt)
         dev = deviation.deviation_map(points, surface_mask, tgt, registration)
