@@ -91,8 +91,9 @@ def preprocess(capture: Capture, *, shadow_fraction: float = 0.05, erode_px: int
 
     def one(k: int) -> bool:
         img = raw[k]
-        signal = cv2.subtract(img, dark) if dark is not None else img
-        signal = cv2.multiply(signal, 1.0 / (capture.light_intensity[k] * full_scale))
+        gain = 1.0 / (capture.light_intensity[k] * full_scale)
+        # (img - dark) * gain in one pass
+        signal = cv2.addWeighted(img, gain, dark, -gain, 0.0) if dark is not None else cv2.multiply(img, gain)
         cv2.remap(signal, map1, map2, cv2.INTER_LINEAR, dst=images[k], borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         if img.max() >= threshold:
             # a sample is bad if any raw pixel it interpolates from is saturated: dilate by one pixel first
