@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import shutil
 from typing import Annotated
 
 from fastapi import APIRouter, File, Request, UploadFile, status
 
 from app.deps import SessionDep, StorageDep, WriterDep
 from app.errors import ApiError
-from app.routes.common import IdempotencyKeyHeader, idempotent_write
+from app.routes.common import IdempotencyKeyHeader, idempotent_write, save_upload
 from app.schemas import CalibrationOut, ErrorOut
 from app.services import calibrations as svc
 from app.services.calibrations import CALIBRATION_FILE
@@ -51,8 +50,7 @@ def upload_calibration(
             storage.remove(storage.calibration_dir(calibration_id))
 
     def work():
-        with open(staging / CALIBRATION_FILE, "wb") as fh:
-            shutil.copyfileobj(calibration.file, fh, length=1 << 20)
+        save_upload(calibration, staging / CALIBRATION_FILE)
         row = svc.create_calibration(session=session, storage=storage, staging_dir=staging)
         created.append(row.id)
         return 201, calibration_out(row).model_dump(mode="json"), None

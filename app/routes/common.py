@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from pathlib import Path
+import shutil
+from pathlib import Path as FilePath
 from typing import Annotated, Any
 
 from fastapi import Header, Path, Request
@@ -52,7 +53,7 @@ def idempotent_write(
     work: Work,
     cleanup: Callable[[], None] = lambda: None,
     upload_field: str | None = None,
-    staging: Path | None = None,
+    staging: FilePath | None = None,
 ) -> JSONResponse:
     """Run a write once per ``Idempotency-Key`` (per route and token) and answer with JSON.
 
@@ -107,6 +108,12 @@ def idempotent_write(
 
 
 # ------------------------------------------------------------------ response builders
+
+
+def save_upload(upload, path: FilePath) -> None:
+    """Stream an uploaded file (FastAPI ``UploadFile``) to ``path`` in 1 MiB chunks."""
+    with open(path, "wb") as fh:
+        shutil.copyfileobj(upload.file, fh, length=1 << 20)
 
 
 def artifact_url(inspection_id: int, name: str) -> str:

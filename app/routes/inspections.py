@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import mimetypes
-import shutil
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, File, Query, Request, UploadFile, status
@@ -12,7 +11,14 @@ from fastapi.responses import FileResponse
 from app.deps import JobsDep, SessionDep, StorageDep, WriterDep
 from app.errors import ApiError
 from app.schemas import ErrorOut, InspectionCreated, InspectionOut, InspectionSummary, Page, SimulatedInspectionIn
-from app.routes.common import IdempotencyKeyHeader, PlateIdPath, idempotent_write, inspection_out, inspection_summary
+from app.routes.common import (
+    IdempotencyKeyHeader,
+    PlateIdPath,
+    idempotent_write,
+    inspection_out,
+    inspection_summary,
+    save_upload,
+)
 from app.services import inspections as svc
 from app.services.inspections import CAPTURE_FILE
 from app.services.targets import TARGET_FILE
@@ -53,12 +59,10 @@ def create_inspection(
             storage.remove(storage.inspection_dir(inspection_id))
 
     def work():
-        with open(staging / CAPTURE_FILE, "wb") as fh:
-            shutil.copyfileobj(capture.file, fh, length=1 << 20)
+        save_upload(capture, staging / CAPTURE_FILE)
         if target is not None:
             (staging / "target").mkdir()
-            with open(staging / "target" / TARGET_FILE, "wb") as fh:
-                shutil.copyfileobj(target.file, fh, length=1 << 20)
+            save_upload(target, staging / "target" / TARGET_FILE)
         row = svc.create_uploaded_inspection(session=session, storage=storage, plate_id=plate_id, staging_dir=staging)
         created.append(row.id)
         return 202, {"id": row.id, "status": row.status}, lambda: jobs.enqueue(row.id)

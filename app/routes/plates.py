@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import shutil
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Request
@@ -12,7 +11,7 @@ from starlette.datastructures import UploadFile
 
 from app.deps import SessionDep, StorageDep, WriterDep
 from app.errors import ApiError
-from app.routes.common import IdempotencyKeyHeader, PlateIdPath, idempotent_write, plate_out, target_out
+from app.routes.common import IdempotencyKeyHeader, PlateIdPath, idempotent_write, plate_out, save_upload, target_out
 from app.schemas import ErrorOut, Page, PlateOut, TargetOut
 from app.services import plates as svc
 from app.services.targets import TARGET_FILE, create_target
@@ -160,5 +159,4 @@ async def _stage_mesh_form(form, staging) -> None:
                 raise ApiError(422, f"{name}: expected a number (mm), got {value!r}", field=name) from None
         document["size_mm"] = [document.pop("size_x_mm"), document.pop("size_y_mm")]
         (staging / TARGET_FILE).write_text(json.dumps(document, indent=2), encoding="utf-8")
-    with open(staging / mesh_name, "wb") as fh:
-        shutil.copyfileobj(mesh.file, fh, length=1 << 20)
+    save_upload(mesh, staging / mesh_name)
