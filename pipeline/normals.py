@@ -27,7 +27,6 @@ import scipy.ndimage as ndi
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .camera import undistorted_rays
 from .formats import UNIT_TOLERANCE, CaptureError
 
 METHODS = ("robust", "lstsq")
@@ -109,6 +108,7 @@ def estimate_normals(
     method: str = "robust",
     min_samples: int = 3,
     view_dirs: np.ndarray | None = None,
+    camera_matrix: np.ndarray | None = None,
 ) -> NormalField:
     """Estimate unit normals and albedo per pixel from N images under N distant lights.
 
@@ -132,12 +132,15 @@ def estimate_normals(
     min_samples : int
         A pixel with fewer usable samples than this (>= 3) is a hole, filled from its
         neighbours.
-    view_dirs : (3,) or (H, W, 3) float, optional
-        Unit vectors from the surface towards the camera, left-camera frame (v_z < 0): one
-        for all pixels (orthographic view, e.g. (0, 0, -1)) or one per pixel
-        (``-normalize(K^-1 (u, v, 1))`` on the undistorted grid). With ``method="robust"``
-        they switch on the specular stage (see Notes); None = no specular model.
-        ``method="lstsq"`` ignores them (it is the plain Lambertian baseline).
+    view_dirs : (3,) float, optional
+        A distant (orthographic) camera: the unit vector from the surface towards it,
+        left-camera frame (v_z < 0), e.g. (0, 0, -1). With ``method="robust"`` it switches
+        on the specular stage (see Notes); ``method="lstsq"`` ignores it (it is the plain
+        Lambertian baseline).
+    camera_matrix : (3, 3) float, optional
+        A pinhole camera instead (the undistorted grid's K): the view direction of pixel
+        (u, v) is ``-normalize(K^-1 (u, v, 1))``, computed where the specular stage needs
+        it. At most one of ``view_dirs`` and ``camera_matrix``; neither = no specular model.
 
     Returns
     -------
@@ -173,7 +176,7 @@ def estimate_normals(
     Lambertian, 12 clustered lights of limited accuracy) it is slightly worse than least
     squares (4.93 against 4.71 deg inside 0.9 R).
 
-    Specular stage (``method="robust"`` with ``view_dirs``): shiny coatings add a lobe
+    Specular stage (``method="robust"`` with ``view_dirs`` or ``camera_matrix``): shiny coatings add a lobe
     around the mirror direction to every sample, I_k = rho n.l_k + s g(n.h_k) with the
     half vector h_k = normalize(l_k + v). For a ring of lights the lobe is, to first order
     in the normal, inside the span of the Lambertian model, so rejecting samples cannot
@@ -208,14 +211,14 @@ def estimate_normals(
     Woodham 1980 (see the module docstring).
     """
     images, light_dirs, mask, valid = _check_inputs(images, light_dirs, mask, valid, method, min_samples)
-    view_dirs = _check_view_dirs(view_dirs, mask.shape)
+    view_map = _view_map(view_dirs, camera_matrix)
     specular = None
     if method == "lstsq":
         b, status = _lstsq(images, light_dirs, mask, valid, min_samples)
     else:
         b, status = _robust(images, light_dirs, mask, valid, min_samples)
-        if view_dirs is not None:
-            specular = _specular(images, valid, status, light_dirs, view_dirs, b)
+        if view_map is not None:
+            specular = _specular(images, valid, status, light_dirs, view_map, b)
     h, w = mask.shape
     normals = np.empty((h, w, 3), dtype=np.float32)
     albedo = np.empty((h, w), dtype=np.float32)
@@ -299,27 +302,39 @@ def _check_inputs(images, light_dirs, mask, valid, method, min_samples):
     return images.astype(np.float32, copy=False), light_dirs, mask, valid
 
 
-def _check_view_dirs(view_dirs, shape):
-    """None, or view directions as float64 (3,) or float32 (H, W, 3) unit vectors with v_z < 0."""
+def _view_map(view_dirs, camera_matrix):
+    """None, or A (3, 3) float64 with the view direction of pixel (u, v) = normalize(A (u, v, 1)).
+
+    A distant camera v: A = [0 | 0 | v]; a pinhole camera K: A = -K^-1.
+    """
+    if view_dirs is not None and camera_matrix is not None:
+        raise ValueError("view_dirs, camera_matrix: expected at most one of them, got both")
+    if camera_matrix is not None:
+        K = np.asarray(camera_matrix, dtype=np.float64)
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)):
+            raise ValueError(f"camera_matrix: expected a finite (3, 3) matrix, got shape {K.shape}")
+        if not (K[0, 0] > 0 and K[1, 1] > 0 and K[1, 0] == K[2, 0] == K[2, 1] == 0 and K[2, 2] == 1):
+            raise ValueError(f"camera_matrix: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, "
+                             f"got {K.tolist()}")
+        return -np.linalg.inv(K)
     if view_dirs is None:
         return None
     v = np.asarray(view_dirs)
-    if v.shape not in ((3,), shape + (3,)):
-        raise ValueError(f"view_dirs: expected shape (3,) or {shape + (3,)} to match the mask, got {v.shape}")
+    if v.shape != (3,):
+        raise ValueError(f"view_dirs: expected shape (3,) (a distant camera; camera_matrix for a pinhole one), "
+                         f"got {v.shape}")
     if not np.issubdtype(v.dtype, np.floating):
         raise ValueError(f"view_dirs: expected a float array, got dtype {v.dtype}")
-    # one pass: a NaN or inf component makes the length check fail too; which one it was is sorted out after
-    with np.errstate(invalid="ignore", over="ignore"):
-        lengths = np.sqrt(np.einsum("...c,...c->...", v, v))
-        unit = bool(np.all(np.abs(lengths - 1.0) <= UNIT_TOLERANCE))
-    if not unit and not np.all(np.isfinite(v)):
+    if not np.all(np.isfinite(v)):
         raise ValueError("view_dirs: expected finite numbers, got NaN or inf")
-    if not unit:
-        worst = np.unravel_index(np.argmax(np.abs(lengths - 1.0)), lengths.shape)
-        raise ValueError(f"view_dirs{list(worst)}: expected a unit vector, got length {float(lengths[worst]):.4f}")
-    if np.any(v[..., 2] >= 0):
-        raise ValueError("view_dirs: expected vectors from the surface towards the camera (v_z < 0), got v_z >= 0")
-    return v.astype(np.float64) if v.ndim == 1 else np.ascontiguousarray(v, dtype=np.float32)
+    length = float(np.linalg.norm(v))
+    if abs(length - 1.0) > UNIT_TOLERANCE:
+        raise ValueError(f"view_dirs: expected a unit vector, got length {length:.4f}")
+    if v[2] >= 0:
+        raise ValueError("view_dirs: expected a vector from the surface towards the camera (v_z < 0), got v_z >= 0")
+    A = np.zeros((3, 3))
+    A[:, 2] = v
+    return A
 
 
 # --------------------------------------------------------------------------- least squares
@@ -432,7 +447,7 @@ def _robust(images, L, mask, valid, min_samples):
     v = valid if use_valid else np.ones((1, 1, 1), dtype=bool)
     _robust_kernel(
         np.ascontiguousarray(images), np.ascontiguousarray(v), use_valid, np.ascontiguousarray(mask),
-        np.ascontiguousarray(L, dtype=np.float64), int(min_samples), _robust_params(), _sorting_network(n), b, status,
+        np.ascontiguousarray(L, dtype=np.float32), int(min_samples), _robust_params(), _sorting_network(n), b, status,
     )
     return b, status
 
@@ -449,6 +464,12 @@ def _robust_params() -> np.ndarray:
 #: LLVM fast-math flags for the kernels: reassociation lets the loops over a row's pixels
 #: vectorise; no "nnan"/"ninf", so NaN and inf checks keep their meaning.
 _FASTMATH = {"nsz", "arcp", "contract", "reassoc"}
+# float32 constants for the robust kernels (a float64 literal would promote a whole loop to float64)
+_F32_ZERO, _F32_ONE, _F32_THIRD = np.float32(0.0), np.float32(1.0), np.float32(1.0 / 3.0)
+_F32_INF = np.float32(np.inf)
+_F32_MIN_FIT = np.float32(_MIN_FIT)
+_F32_DEGENERATE = np.float32(DEGENERATE_RATIO)
+_F32_MAD = np.float32(1.4826)  # median |r| -> standard deviation for Gaussian noise
 
 # The robust kernel works on one image row at a time with every per-pixel quantity an
 # array over the row's pixels, so that each step is a branch-free loop over pixels that
@@ -460,31 +481,34 @@ _FASTMATH = {"nsz", "arcp", "contract", "reassoc"}
 def _fit_row(samples, weight, L, b, ok):
     """Per pixel j of a row: weighted (0/1) least squares b[:, j] over the samples.
 
-    samples, weight : (N, W); L : (N, 3); b : (3, W) out; ok : (W,) out, 1.0 where the
-    system has >= 3 samples and is well posed (see DEGENERATE_RATIO), else 0.0.
+    samples, weight : (N, W) float32; L : (N, 3) float32; b : (3, W) float32 out; ok : (W,)
+    float32 out, 1 where the system has >= 3 samples and is well posed (see
+    DEGENERATE_RATIO), else 0. Float32 throughout: twice the SIMD lanes of float64, and
+    at most N = a few dozen unit-scale terms per sum.
     """
     n, w = samples.shape
-    m00 = np.zeros(w)
-    m01 = np.zeros(w)
-    m02 = np.zeros(w)
-    m11 = np.zeros(w)
-    m12 = np.zeros(w)
-    m22 = np.zeros(w)
-    r0 = np.zeros(w)
-    r1 = np.zeros(w)
-    r2 = np.zeros(w)
-    cnt = np.zeros(w)
+    m00 = np.zeros(w, np.float32)
+    m01 = np.zeros(w, np.float32)
+    m02 = np.zeros(w, np.float32)
+    m11 = np.zeros(w, np.float32)
+    m12 = np.zeros(w, np.float32)
+    m22 = np.zeros(w, np.float32)
+    r0 = np.zeros(w, np.float32)
+    r1 = np.zeros(w, np.float32)
+    r2 = np.zeros(w, np.float32)
+    cnt = np.zeros(w, np.float32)
     for k in range(n):
         lx, ly, lz = L[k, 0], L[k, 1], L[k, 2]
+        xx, xy, xz, yy, yz, zz = lx * lx, lx * ly, lx * lz, ly * ly, ly * lz, lz * lz
         for j in range(w):
             wk = weight[k, j]
             wi = wk * samples[k, j]
-            m00[j] += wk * (lx * lx)
-            m01[j] += wk * (lx * ly)
-            m02[j] += wk * (lx * lz)
-            m11[j] += wk * (ly * ly)
-            m12[j] += wk * (ly * lz)
-            m22[j] += wk * (lz * lz)
+            m00[j] += wk * xx
+            m01[j] += wk * xy
+            m02[j] += wk * xz
+            m11[j] += wk * yy
+            m12[j] += wk * yz
+            m22[j] += wk * zz
             r0[j] += wi * lx
             r1[j] += wi * ly
             r2[j] += wi * lz
@@ -497,13 +521,13 @@ def _fit_row(samples, weight, L, b, ok):
         c12 = m01[j] * m02[j] - m00[j] * m12[j]
         c22 = m00[j] * m11[j] - m01[j] * m01[j]
         det = m00[j] * c00 + m01[j] * c01 + m02[j] * c02
-        tr = (m00[j] + m11[j] + m22[j]) / 3.0
-        good = cnt[j] >= _MIN_FIT and det > DEGENERATE_RATIO * tr * tr * tr
-        inv = 1.0 / det if good else 0.0
+        tr = (m00[j] + m11[j] + m22[j]) * _F32_THIRD
+        good = cnt[j] >= _F32_MIN_FIT and det > _F32_DEGENERATE * tr * tr * tr
+        inv = _F32_ONE / det if good else _F32_ZERO
         b[0, j] = (c00 * r0[j] + c01 * r1[j] + c02 * r2[j]) * inv
         b[1, j] = (c01 * r0[j] + c11 * r1[j] + c12 * r2[j]) * inv
         b[2, j] = (c02 * r0[j] + c12 * r1[j] + c22 * r2[j]) * inv
-        ok[j] = 1.0 if good else 0.0
+        ok[j] = _F32_ONE if good else _F32_ZERO
 
 
 @functools.lru_cache(maxsize=16)
@@ -562,45 +586,46 @@ def _robust_kernel(images, valid, use_valid, mask, L, min_samples, params, pairs
 @numba.njit(cache=True, fastmath=_FASTMATH)
 def _robust_block(images, valid, use_valid, mask, L, min_samples, params, pairs, b_out, status, i, j0, j1):
     """The robust fit of the pixels (i, j0:j1) of one row."""
-    shadow_fraction, ref_quantile, trim_top, cos_min, outlier_k, scale_floor = (
-        params[0], params[1], params[2], params[3], params[4], params[5])
-    outlier_k_high = params[7]
+    # params: float64 (8,); the per-sample work is float32 (L too), the per-pixel quantities float32
+    shadow_fraction, trim_top, cos_min = np.float32(params[0]), params[2], np.float32(params[3])
+    outlier_k, scale_floor, outlier_k_high = np.float32(params[4]), np.float32(params[5]), np.float32(params[7])
+    ref_quantile = params[1]
     iterations = int(params[6])
     n = images.shape[0]
     w = j1 - j0
-    samples = np.empty((n, w))  # I_k, 0 where unusable
-    usable = np.empty((n, w))  # 1.0: valid sample of a mask pixel
-    ranked = np.empty((n, w))  # scratch for order statistics (+inf = not counted)
-    keep = np.empty((n, w))
-    trial = np.empty((n, w))
-    resid = np.empty((n, w))
-    m = np.zeros(w)
-    finite = np.ones(w)
+    samples = np.empty((n, w), np.float32)  # I_k, 0 where unusable
+    usable = np.empty((n, w), np.float32)  # 1: valid sample of a mask pixel
+    ranked = np.empty((n, w), np.float32)  # scratch for order statistics (+inf = not counted)
+    keep = np.empty((n, w), np.float32)
+    trial = np.empty((n, w), np.float32)
+    resid = np.empty((n, w), np.float32)
+    m = np.zeros(w, np.int64)
+    finite = np.ones(w, np.bool_)
     for k in range(n):
         for j in range(w):
             x = images[k, i, j0 + j]
             u = mask[i, j0 + j] and (not use_valid or valid[k, i, j0 + j])
-            usable[k, j] = 1.0 if u else 0.0
-            samples[k, j] = x if u else 0.0
-            ranked[k, j] = x if u else np.inf
-            m[j] += 1.0 if u else 0.0
+            usable[k, j] = _F32_ONE if u else _F32_ZERO
+            samples[k, j] = x if u else _F32_ZERO
+            ranked[k, j] = x if u else _F32_INF
+            m[j] += 1 if u else 0
             if u and not np.isfinite(x):
-                finite[j] = 0.0
+                finite[j] = False
     # shadow level and highlight cut from the pixel's order statistics
     _sort_row(ranked, pairs)  # unusable samples (+inf) sort last
-    low = np.empty(w)
-    top = np.empty(w)
+    low = np.empty(w, np.float32)
+    top = np.empty(w, np.float32)
     for j in range(w):
-        mj = int(m[j])
-        ref = ranked[int(ref_quantile * (mj - 1)), j] if mj > 0 else 0.0
+        mj = m[j]
+        ref = ranked[int(ref_quantile * (mj - 1)), j] if mj > 0 else _F32_ZERO
         low[j] = shadow_fraction * ref
         n_top = int(trim_top * mj)
-        top[j] = ranked[mj - n_top, j] if n_top > 0 else np.inf
+        top[j] = ranked[mj - n_top, j] if n_top > 0 else _F32_INF
     # first fit: without shadows and highlights; else without shadows; else all samples
-    b = np.zeros((3, w))
-    ok = np.zeros(w)
-    cand = np.empty((3, w))
-    cand_ok = np.empty(w)
+    b = np.zeros((3, w), np.float32)
+    ok = np.zeros(w, np.float32)
+    cand = np.empty((3, w), np.float32)
+    cand_ok = np.empty(w, np.float32)
     for attempt in range(3):
         for k in range(n):
             for j in range(w):
@@ -612,25 +637,25 @@ def _robust_block(images, valid, use_valid, mask, L, min_samples, params, pairs,
                 else:
                     inside = True
                 # pixels already fitted keep their weights
-                keep[k, j] = keep[k, j] if ok[j] > 0 else (usable[k, j] if inside else 0.0)
+                keep[k, j] = keep[k, j] if ok[j] > 0 else (usable[k, j] if inside else _F32_ZERO)
         _fit_row(samples, keep, L, cand, cand_ok)
         remaining = 0
         for j in range(w):
-            if ok[j] == 0.0 and cand_ok[j] > 0:
-                ok[j] = 1.0
+            if ok[j] == 0 and cand_ok[j] > 0:
+                ok[j] = _F32_ONE
                 b[0, j], b[1, j], b[2, j] = cand[0, j], cand[1, j], cand[2, j]
-            remaining += 1 if (ok[j] == 0.0 and m[j] >= _MIN_FIT) else 0
+            remaining += 1 if (ok[j] == 0 and m[j] >= _MIN_FIT) else 0
         if remaining == 0:
             break
     # re-select the samples from the fit: lit (n.l > cos_min) and within +-k robust scales
-    rho = np.empty(w)
-    scale = np.empty(w)
-    kth = np.empty(w)
+    rho = np.empty(w, np.float32)
+    scale = np.empty(w, np.float32)
+    kth = np.empty(w, np.int64)
     accept = np.empty(w, dtype=np.bool_)
     for _ in range(iterations):
         for j in range(w):
-            rho[j] = np.sqrt(b[0, j] ** 2 + b[1, j] ** 2 + b[2, j] ** 2)
-            kth[j] = 0.0
+            rho[j] = np.sqrt(b[0, j] * b[0, j] + b[1, j] * b[1, j] + b[2, j] * b[2, j])
+            kth[j] = 0
         for k in range(n):
             lx, ly, lz = L[k, 0], L[k, 1], L[k, 2]
             for j in range(w):
@@ -638,20 +663,20 @@ def _robust_block(images, valid, use_valid, mask, L, min_samples, params, pairs,
                 r = samples[k, j] - d
                 resid[k, j] = r
                 lit = usable[k, j] > 0 and d > cos_min * rho[j]
-                trial[k, j] = 1.0 if lit else 0.0
+                trial[k, j] = _F32_ONE if lit else _F32_ZERO
                 counted = lit and keep[k, j] > 0
-                ranked[k, j] = abs(r) if counted else np.inf
-                kth[j] += 1.0 if counted else 0.0
+                ranked[k, j] = abs(r) if counted else _F32_INF
+                kth[j] += 1 if counted else 0
         _sort_row(ranked, pairs)
         for j in range(w):
-            scale[j] = ranked[int(kth[j]) // 2, j]  # the (upper) median of |r|
+            scale[j] = ranked[kth[j] // 2, j]  # the (upper) median of |r|
         for j in range(w):
-            scale[j] = max(1.4826 * scale[j], scale_floor * rho[j])
+            scale[j] = max(_F32_MAD * scale[j], scale_floor * rho[j])
         for k in range(n):
             for j in range(w):
                 r = resid[k, j]
                 inlier = -outlier_k * scale[j] < r < outlier_k_high * scale[j]
-                trial[k, j] = trial[k, j] if inlier else 0.0
+                trial[k, j] = trial[k, j] if inlier else _F32_ZERO
         _fit_row(samples, trial, L, cand, cand_ok)
         for j in range(w):
             accept[j] = ok[j] > 0 and cand_ok[j] > 0 and rho[j] > 0 and kth[j] >= _MIN_FIT
@@ -664,11 +689,11 @@ def _robust_block(images, valid, use_valid, mask, L, min_samples, params, pairs,
     for j in range(w):
         if not mask[i, j0 + j]:
             status[i, j0 + j] = _OUTSIDE
-        elif finite[j] == 0.0:
+        elif not finite[j]:
             status[i, j0 + j] = _NONFINITE
         elif m[j] < min_samples:
             status[i, j0 + j] = _FEW
-        elif ok[j] == 0.0:
+        elif ok[j] == 0:
             status[i, j0 + j] = _DEGENERATE
         else:
             status[i, j0 + j] = _OK
@@ -812,12 +837,14 @@ def _lookup(table, c):
 def _lobe_search_kernel(samples, usable, b, view, L, g_tables, cos_min, shadow_fraction, out):
     """Per search pixel p and lobe e: the residual the lobe removes from the Lambertian fit.
 
-    samples, usable : (N, P); b : (3, P) current rho n; view : (P, 3); g_tables : (E, T+1).
+    samples, usable : (N, P); b : (3, P) current rho n; view : (P, 3); g_tables : (T+1, E), the
+    lobe tables side by side (row t: every lobe at c = t / (T - 1)), so that one sample's
+    interpolation weights serve all lobes in one contiguous loop.
     out : (P, E + 2): [:, e] reduction of the summed squared residual by s g_e (s >= 0),
     [:, E] the Lambertian residual, [:, E + 1] the number of samples used (0: pixel unusable).
     """
     n, p_count = samples.shape
-    n_exp = g_tables.shape[0]
+    n_exp = g_tables.shape[1]
     for p in numba.prange(p_count):
         out[p, :] = 0.0
         rho = np.sqrt(b[0, p] ** 2 + b[1, p] ** 2 + b[2, p] ** 2)
@@ -865,31 +892,42 @@ def _lobe_search_kernel(samples, usable, b, view, L, g_tables, cos_min, shadow_f
             sse += w[k] * r * r
         out[p, n_exp] = sse
         out[p, n_exp + 1] = cnt
+        gi = np.zeros(n_exp)
+        glx = np.zeros(n_exp)
+        gly = np.zeros(n_exp)
+        glz = np.zeros(n_exp)
+        gg = np.zeros(n_exp)
+        for k in range(n):
+            if w[k] > 0:
+                x = min(max(cs[k], 0.0), 1.0) * (_LOBE_TABLE - 1)  # as _lookup, for every lobe at once
+                t = int(x)
+                f = x - t
+                lo, hi = g_tables[t], g_tables[t + 1]
+                sk, lx, ly, lz = samples[k, p], L[k, 0], L[k, 1], L[k, 2]
+                for e in range(n_exp):
+                    g = lo[e] + f * (hi[e] - lo[e])
+                    gi[e] += g * sk
+                    glx[e] += g * lx
+                    gly[e] += g * ly
+                    glz[e] += g * lz
+                    gg[e] += g * g
         for e in range(n_exp):
-            gi = glx = gly = glz = gg = 0.0
-            for k in range(n):
-                if w[k] > 0:
-                    g = _lookup(g_tables[e], cs[k])
-                    gi += g * samples[k, p]
-                    glx += g * L[k, 0]
-                    gly += g * L[k, 1]
-                    glz += g * L[k, 2]
-                    gg += g * g
-            a0 = (c00 * glx + c01 * gly + c02 * glz) / det
-            a1 = (c01 * glx + c11 * gly + c12 * glz) / det
-            a2 = (c02 * glx + c12 * gly + c22 * glz) / det
-            num = gi - (a0 * r0 + a1 * r1 + a2 * r2)
-            den = gg - (a0 * glx + a1 * gly + a2 * glz)
-            if den > 1e-12 * gg and num > 0:  # s = num / den >= 0
+            a0 = (c00 * glx[e] + c01 * gly[e] + c02 * glz[e]) / det
+            a1 = (c01 * glx[e] + c11 * gly[e] + c12 * glz[e]) / det
+            a2 = (c02 * glx[e] + c12 * gly[e] + c22 * glz[e]) / det
+            num = gi[e] - (a0 * r0 + a1 * r1 + a2 * r2)
+            den = gg[e] - (a0 * glx[e] + a1 * gly[e] + a2 * glz[e])
+            if den > 1e-12 * gg[e] and num > 0:  # s = num / den >= 0
                 out[p, e] = num * num / den
 
 
 @numba.njit(parallel=True, cache=True, fastmath=_FASTMATH, error_model="numpy")
-def _specular_pass_kernel(images, valid, use_valid, fit, L, view, per_pixel_view, g_table, dg_table, b, s_map,
+def _specular_pass_kernel(images, valid, use_valid, fit, L, view_map, g_table, dg_table, b, s_map,
                           cos_min, lo, hi, db0, coef, num, den):
     """One joint Gauss-Newton linearisation of I_k = b.l_k + s g(n.h_k) at every pixel with fit True.
 
-    b (3, H, W) = rho n and s_map (H, W) are the current estimate; lo < r_k < hi selects the samples.
+    b (3, H, W) = rho n and s_map (H, W) are the current estimate; lo < r_k < hi selects the samples;
+    the view direction of pixel (i, j) is normalize(view_map (j, i, 1)).
     Out: db0 (3, H, W) the step in b with s fixed, coef (3, H, W) the change of that step per unit
     change of s, num / den (H, W) the pixel's normal equation for s with b eliminated (Schur
     complement): ds = num / den (0, 0 where the pixel has no well-posed system).
@@ -908,9 +946,11 @@ def _specular_pass_kernel(images, valid, use_valid, fit, L, view, per_pixel_view
             if not rho > 0:
                 continue
             nx, ny, nz = bx / rho, by / rho, bz / rho
-            vi = i * per_pixel_view
-            vj = j * per_pixel_view
-            vx, vy, vz = view[vi, vj, 0], view[vi, vj, 1], view[vi, vj, 2]
+            vx = view_map[0, 0] * j + view_map[0, 1] * i + view_map[0, 2]
+            vy = view_map[1, 0] * j + view_map[1, 1] * i + view_map[1, 2]
+            vz = view_map[2, 0] * j + view_map[2, 1] * i + view_map[2, 2]
+            vn = 1.0 / np.sqrt(vx * vx + vy * vy + vz * vz)
+            vx, vy, vz = vx * vn, vy * vn, vz * vn
             s = s_map[i, j]
             a00 = a01 = a02 = a11 = a12 = a22 = 0.0
             jr0 = jr1 = jr2 = jg0 = jg1 = jg2 = gr = gg = cnt = 0.0
@@ -973,26 +1013,28 @@ def _specular_pass_kernel(images, valid, use_valid, fit, L, view, per_pixel_view
                 den[i, j] = max(gg - (e0 * jg0 + e1 * jg1 + e2 * jg2), 0.0)
 
 
-def _specular(images, valid, status, L, view, b):
-    """The specular stage: fit a lobe and refine b (3, H, W) float32 in place. Returns a SpecularFit."""
+def _specular(images, valid, status, L, view_map, b):
+    """The specular stage: fit a lobe and refine b (3, H, W) float32 in place. Returns a SpecularFit.
+
+    ``view_map`` (3, 3): the view direction of pixel (u, v) is normalize(view_map (u, v, 1)).
+    """
     n, h, w = images.shape
     fit = status == _OK
     use_valid = valid is not None
     v = valid if use_valid else np.ones((1, 1, 1), dtype=bool)
-    per_pixel = view.ndim == 3
-    view3 = view if per_pixel else view.reshape(1, 1, 3)
     flat = np.flatnonzero(fit)
     sel = flat[:: max(1, flat.size // LOBE_SEARCH_PIXELS)]
     rows, cols = np.divmod(sel, w)
 
     def search():
-        samples = np.ascontiguousarray(images[:, rows, cols], dtype=np.float64)
-        usable = np.ascontiguousarray(valid[:, rows, cols]) if use_valid else np.ones(samples.shape, dtype=bool)
-        pv = np.ascontiguousarray(view3[rows, cols] if per_pixel else np.broadcast_to(view, (sel.size, 3)), dtype=np.float64)
+        samples = images.reshape(n, h * w).take(sel, axis=1).astype(np.float64)
+        usable = valid.reshape(n, h * w).take(sel, axis=1) if use_valid else np.ones(samples.shape, dtype=bool)
+        pv = np.stack([cols, rows, np.ones(sel.size)], axis=1) @ view_map.T
+        pv /= np.linalg.norm(pv, axis=1, keepdims=True)
         exps = np.array(LOBE_EXPONENTS)
-        tables = np.stack([_lobe_tables(e)[0] for e in exps])
+        tables = np.stack([_lobe_tables(e)[0] for e in exps], axis=1)
         out = np.empty((sel.size, exps.size + 2))
-        _lobe_search_kernel(samples, usable, np.ascontiguousarray(b[:, rows, cols], dtype=np.float64), pv, L, tables,
+        _lobe_search_kernel(samples, usable, b.reshape(3, h * w).take(sel, axis=1).astype(np.float64), pv, L, tables,
                             COS_MIN, SHADOW_FRACTION, out)
         used = out[:, -1] > 0
         if not used.any():
@@ -1028,7 +1070,7 @@ def _specular(images, valid, status, L, view, b):
                 exponent, f_ratio, sigma = again
         g_table, dg_table = _lobe_tables(exponent)
         hi = np.inf if it == 0 else SPECULAR_K * sigma  # the first pass starts without the lobe
-        _specular_pass_kernel(images, v, use_valid, fit, L, view3, int(per_pixel), g_table, dg_table, b, s, COS_MIN,
+        _specular_pass_kernel(images, v, use_valid, fit, L, view_map, g_table, dg_table, b, s, COS_MIN,
                               -SPECULAR_K * sigma, hi, db0, coef, num, den)
         pooled_num = cv2.boxFilter(num, -1, box, normalize=False)
         pooled_den = cv2.boxFilter(den, -1, box, normalize=False)
@@ -1040,41 +1082,10 @@ def _specular(images, valid, status, L, view, b):
         s = s_new
     # a pixel the lobe turned by more than MAX_SPECULAR_TURN_DEG (or away from the camera) keeps
     # its Lambertian estimate: the lobe did not describe it (saturated peak, another material)
-    b64, b0 = b.astype(np.float64), b_start.astype(np.float64)
-    with np.errstate(all="ignore"):  # NaN / inf compare False below: reverted
+    with np.errstate(all="ignore"):  # NaN / inf compare False below: reverted; b outside fit is undefined
+        b64, b0 = b.astype(np.float64), b_start.astype(np.float64)
         cos_turn = (b64 * b0).sum(axis=0) / np.sqrt((b64 * b64).sum(axis=0) * (b0 * b0).sum(axis=0))
     revert = fit & ~((cos_turn > np.cos(np.radians(MAX_SPECULAR_TURN_DEG))) & (b[2] < 0))
     b[:, revert] = b_start[:, revert]
     return SpecularFit(modelled=True, exponent=exponent, f_ratio=f_ratio, amplitude_median=float(np.median(s[fit])),
                        n_reverted=int(revert.sum()))
-
-
-def view_directions(K: np.ndarray, shape: tuple[int, int], *, rays: np.ndarray | None = None) -> np.ndarray:
-    """Per-pixel unit view directions of the undistorted grid: ``-normalize(K^-1 (u, v, 1))``.
-
-    Parameters
-    ----------
-    K : (3, 3) float
-        Camera matrix of the undistorted grid (pixels).
-    shape : (H, W)
-        Image size.
-    rays : (H, W, 3) float array, optional
-        ``K^-1 (u, v, 1)`` already computed (``CameraModel.pixel_rays``), to skip computing it again.
-
-    Returns
-    -------
-    (H, W, 3) float32
-        From the surface towards the camera, camera frame (v_z < 0): ``view_dirs`` of
-        :func:`estimate_normals` for a perspective camera at a finite distance.
-    """
-    K = np.asarray(K, dtype=np.float64)
-    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or not (K[0, 0] > 0 and K[1, 1] > 0):
-        raise ValueError(f"K: expected a finite (3, 3) camera matrix with fx, fy > 0, got {K.tolist()}")
-    h, w = shape
-    if rays is None:
-        rays = undistorted_rays(K, (w, h))
-    elif np.shape(rays) != (h, w, 3):
-        raise ValueError(f"rays: expected shape {(h, w, 3)} for an image of shape {(h, w)}, got {np.shape(rays)}")
-    dirs = np.asarray(rays, dtype=np.float32).copy()
-    dirs *= (-1.0 / np.sqrt(np.einsum("hwc,hwc->hw", dirs, dirs)))[..., None]
-    return dirs

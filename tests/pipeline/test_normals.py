@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from pipeline.formats import CaptureError
-from pipeline.normals import NormalField, estimate_normals, view_directions
+from pipeline.camera import undistorted_rays
+from pipeline.normals import NormalField, estimate_normals
 from tests import realdata as rd
 
 H, W = 128, 160
@@ -304,10 +305,15 @@ def test_uw_grey_sphere_lstsq():
 # --------------------------------------------------------------------------- specular stage
 
 
-def perspective_view(f_px: float = 150.0) -> np.ndarray:
-    """Per-pixel unit view directions (H, W, 3) of a pinhole camera with focal f_px, centred."""
-    K = np.array([[f_px, 0.0, W / 2 - 0.5], [0.0, f_px, H / 2 - 0.5], [0.0, 0.0, 1.0]])
-    return view_directions(K, (H, W))
+def pinhole(f_px: float = 150.0) -> np.ndarray:
+    """K of a centred pinhole camera with focal f_px."""
+    return np.array([[f_px, 0.0, W / 2 - 0.5], [0.0, f_px, H / 2 - 0.5], [0.0, 0.0, 1.0]])
+
+
+def perspective_view(K: np.ndarray) -> np.ndarray:
+    """Per-pixel unit view directions (H, W, 3) of the camera K: -normalize(K^-1 (u, v, 1))."""
+    rays = undistorted_rays(K, (W, H))
+    return -rays / np.linalg.norm(rays, axis=-1, keepdims=True)
 
 
 def render_lobe(normals, albedo, lights, view, rng, *, noise, specular, lobe):
@@ -348,11 +354,11 @@ def test_specular_lobe_with_perspective_view_is_modelled(lobe_name, lobe, expone
     n_true, rho = curved_plate()
     rho = 0.25 * rho  # a dark coating: the lobe is as bright as the diffuse part
     lights = ring_lights(12, polar_deg=45.0)
-    view = perspective_view()
-    images = render_lobe(n_true, rho, lights, view, rng, noise=0.002, specular=0.3, lobe=lobe)
+    K = pinhole()
+    images = render_lobe(n_true, rho, lights, perspective_view(K), rng, noise=0.002, specular=0.3, lobe=lobe)
     mask = np.ones((H, W), bool)
     plain = estimate_normals(images, lights, mask, method="robust")
-    field = estimate_normals(images, lights, mask, method="robust", view_dirs=view)
+    field = estimate_normals(images, lights, mask, method="robust", camera_matrix=K)
     assert field.specular is not None and field.specular.modelled, field.specular
     if exponent is not None:
         # a 1-D search over a 28-point grid refined by a parabola: within a few %
@@ -376,7 +382,7 @@ def test_specular_stage_leaves_a_matte_plate_alone():
     images = render(n_true, rho, lights, rng, noise=0.005)
     mask = np.ones((H, W), bool)
     plain = estimate_normals(images, lights, mask, method="robust")
-    field = estimate_normals(images, lights, mask, method="robust", view_dirs=perspective_view())
+    field = estimate_normals(images, lights, mask, method="robust", camera_matrix=pinhole())
     # no lobe in the data: the F-ratio stays near 1 (noise), the stage stops, the estimate is the robust one
     assert field.specular is not None and not field.specular.modelled and field.specular.f_ratio < 4.0
     np.testing.assert_array_equal(field.normals, plain.normals)
@@ -402,11 +408,17 @@ def test_specular_stage_on_a_sphere_with_orthographic_view():
 
 def test_bad_view_dirs():
     images, lights, mask = _ok_inputs()
-    with pytest.raises(ValueError, match=r"view_dirs: expected shape \(3,\) or \(20, 30, 3\)"):
-        estimate_normals(images, lights, mask, view_dirs=np.zeros((20, 30, 2)))
-    with pytest.raises(ValueError, match=r"view_dirs\[\]: expected a unit vector, got length 2.0000"):
+    with pytest.raises(ValueError, match=r"view_dirs: expected shape \(3,\) \(a distant camera; camera_matrix"):
+        estimate_normals(images, lights, mask, view_dirs=np.zeros((20, 30, 3)))
+    with pytest.raises(ValueError, match=r"view_dirs: expected a unit vector, got length 2.0000"):
         estimate_normals(images, lights, mask, view_dirs=np.array([0.0, 0.0, -2.0]))
-    with pytest.raises(ValueError, match=r"view_dirs: expected vectors from the surface towards the camera"):
+    with pytest.raises(ValueError, match=r"view_dirs: expected a vector from the surface towards the camera"):
         estimate_normals(images, lights, mask, view_dirs=np.array([0.0, 0.0, 1.0]))
     with pytest.raises(ValueError, match="view_dirs: expected finite numbers"):
         estimate_normals(images, lights, mask, view_dirs=np.full(3, np.nan))
+    with pytest.raises(ValueError, match="view_dirs, camera_matrix: expected at most one"):
+        estimate_normals(images, lights, mask, view_dirs=np.array([0.0, 0.0, -1.0]), camera_matrix=pinhole())
+    with pytest.raises(ValueError, match=r"camera_matrix: expected \[\[fx, s, cx\]"):
+        estimate_normals(images, lights, mask, camera_matrix=-pinhole())
+    with pytest.raises(ValueError, match=r"camera_matrix: expected a finite \(3, 3\) matrix"):
+        estimate_normals(images, lights, mask, camera_matrix=np.eye(4))
