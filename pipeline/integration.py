@@ -93,14 +93,16 @@ class HeightResult:
 #   dg[i, j]  diagonal of A = wd + the weights of the 4 edges; idg = 1 / dg, or 0 for a cell that
 #             is not in the system (its value stays 0)
 # A x = dg * x - sum over the 4 edges of weight * x_neighbour.
-# Red cells have (i + j) even. The kernels are single-threaded and fuse several sweeps into one
-# pass over memory (a row wavefront): the solve is memory-bound, and on a shared machine the
-# start-up of a parallel region costs more than it saves.
+# Red cells have (i + j) even. The multigrid kernels are single-threaded and fuse several sweeps
+# into one pass over memory (a row wavefront; the solve is memory-bound); the per-cell kernels
+# (assembly, matrix-vector product, vector updates) are parallel over rows (numba prange).
+# Parallel kernels must not run concurrently from two threads (numba's workqueue layer aborts):
+# pipeline.run calls them from its main thread only.
 # Note: in numba, float(x) of a float32 stays float32; np.float64(x) is used where it matters.
 # --------------------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, parallel=True)
 def _log_depth_gradients(normals, mask, kinv, unit_tol, p, q):
     """p = d(log z)/du, q = d(log z)/dv on the mask (0 outside); returns the count of unusable normals."""
     h, w = mask.shape
@@ -108,7 +110,7 @@ def _log_depth_gradients(normals, mask, kinv, unit_tol, p, q):
     a0, a1, a2 = kinv[0, 0], kinv[0, 1], kinv[0, 2]
     b0, b1, b2 = kinv[1, 0], kinv[1, 1], kinv[1, 2]
     c0, c1, c2 = kinv[2, 0], kinv[2, 1], kinv[2, 2]
-    for i in range(h):
+    for i in nb.prange(h):
         v = np.float64(i)
         for j in range(w):
             p[i, j] = 0.0
@@ -130,7 +132,7 @@ def _log_depth_gradients(normals, mask, kinv, unit_tol, p, q):
     return bad
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, parallel=True)
 def _fine_system(mask, p, q, wd, prior, shift, ex, ey, wdp, dg, idg, b):
     """The normal equations on the padded grid from (H, W) inputs.
 
@@ -139,12 +141,12 @@ def _fine_system(mask, p, q, wd, prior, shift, ex, ey, wdp, dg, idg, b):
     (H + 2, W + 2) and must be zero on the padding.
     """
     h, w = mask.shape
-    for i in range(h):
+    for i in nb.prange(h):
         for j in range(w):
             m = mask[i, j]
             ex[i + 1, j + 1] = 1.0 if (m and j + 1 < w and mask[i, j + 1]) else 0.0
             ey[i + 1, j + 1] = 1.0 if (m and i + 1 < h and mask[i + 1, j]) else 0.0
-    for i in range(h):
+    for i in nb.prange(h):
         for j in range(w):
             if not mask[i, j]:
                 continue
@@ -170,12 +172,12 @@ def _fine_system(mask, p, q, wd, prior, shift, ex, ey, wdp, dg, idg, b):
                 idg[i + 1, j + 1] = 1.0 / d
 
 
-@nb.njit(cache=True, fastmath=_FAST)
+@nb.njit(cache=True, fastmath=_FAST, parallel=True)
 def _residual_norm2(ex, ey, wd, x, b, r):
     """r = b - A x with the diagonal summed in float64 from the weights; returns ||r||^2."""
     h, w = wd.shape[0] - 2, wd.shape[1] - 2
     acc = 0.0
-    for i in range(1, h + 1):
+    for i in nb.prange(1, h + 1):
         for j in range(1, w + 1):
             e, wst, s_, n_ = ex[i, j], ex[i, j - 1], ey[i, j], ey[i - 1, j]
             d = np.float64(wd[i, j]) + e + wst + s_ + n_
@@ -260,21 +262,15 @@ def _prolong_postsmooth(ex, ey, idg, x, b, xc):
     return acc
 
 
-@nb.njit(cache=True, fastmath=_FAST)
+@nb.njit(cache=True, fastmath=_FAST, parallel=True)
 def _direction_matvec(z, beta, pdir, ex, ey, wd, ap):
-    """p = z + beta p, then ap = A p (diagonal summed in float64 from the weights); returns p . A p.
-
-    One pass: p of row t, A p of row t - 1.
-    """
+    """p = z + beta p, then ap = A p (diagonal summed in float64 from the weights); returns p . A p."""
     h, w = wd.shape[0] - 2, wd.shape[1] - 2
+    for i in nb.prange(1, h + 1):
+        for j in range(1, w + 1):
+            pdir[i, j] = z[i, j] + beta * pdir[i, j]
     acc = 0.0
-    for t in range(1, h + 2):
-        if t <= h:
-            for j in range(1, w + 1):
-                pdir[t, j] = z[t, j] + beta * pdir[t, j]
-        i = t - 1
-        if i < 1:
-            continue
+    for i in nb.prange(1, h + 1):
         for j in range(1, w + 1):
             e, wst, s_, n_ = ex[i, j], ex[i, j - 1], ey[i, j], ey[i - 1, j]
             d = np.float64(wd[i, j]) + e + wst + s_ + n_
@@ -284,20 +280,22 @@ def _direction_matvec(z, beta, pdir, ex, ey, wd, ap):
     return acc
 
 
-@nb.njit(cache=True, fastmath=_FAST)
+@nb.njit(cache=True, fastmath=_FAST, parallel=True)
 def _norm2(a):
+    h, w = a.shape
     acc = 0.0
-    for v in a.ravel():
-        acc += v * v
+    for i in nb.prange(h):
+        for j in range(w):
+            acc += a[i, j] * a[i, j]
     return acc
 
 
-@nb.njit(cache=True, fastmath=_FAST)
+@nb.njit(cache=True, fastmath=_FAST, parallel=True)
 def _cg_step(alpha, pdir, ap, x, r):
     """x += alpha p, r -= alpha A p; returns ||r||^2."""
     h, w = x.shape
     acc = 0.0
-    for i in range(h):
+    for i in nb.prange(h):
         for j in range(w):
             x[i, j] += alpha * pdir[i, j]
             s = r[i, j] - alpha * ap[i, j]
@@ -750,7 +748,7 @@ def _prior_terms(prior_depth_mm, prior_weight, mask):
     return wd, log_prior, shift, n_used
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, parallel=True)
 def _prior_arrays(mask, prior, weight, wd, log_prior):
     """wd = weight and log_prior = log(prior) where the mask and a prior are given (0 elsewhere);
     ``weight`` is (1, 1) for a scalar. Returns the counts of bad priors, of bad weights and of the
@@ -760,7 +758,7 @@ def _prior_arrays(mask, prior, weight, wd, log_prior):
     bad_prior = 0
     bad_weight = 0
     used = 0
-    for i in range(h):
+    for i in nb.prange(h):
         for j in range(w):
             wd[i, j] = 0.0
             log_prior[i, j] = 0.0
@@ -806,11 +804,11 @@ def _parts_with_prior(labels, wd, n):
     return out
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, parallel=True)
 def _exp_depth(x, mask, shift, depth):
     """depth = exp(x + shift) on the mask, NaN elsewhere."""
     h, w = mask.shape
-    for i in range(h):
+    for i in nb.prange(h):
         for j in range(w):
             depth[i, j] = np.exp(x[i, j] + shift) if mask[i, j] else np.nan
 
