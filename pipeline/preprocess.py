@@ -10,6 +10,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
+import numba
 import numpy as np
 
 from .formats import CaptureError
@@ -86,7 +87,7 @@ def preprocess(capture: Capture, *, shadow_fraction: float = 0.05, erode_px: int
     # undistorted pixels whose ray leaves the raw image have no sample in any image
     seen = cv2.remap(np.ones(raw.shape[1:], np.uint8), map1, map2, cv2.INTER_NEAREST, borderValue=0).astype(bool)
     images = np.empty((n, h, w), np.float32)
-    saturated = np.zeros((n, h, w), bool)
+    saturated = np.zeros((n, h, w), bool)  # zero pages: only the images with a saturated pixel touch theirs
     threshold = SATURATION_FRACTION * full_scale
 
     def one(k: int) -> bool:
@@ -105,16 +106,12 @@ def preprocess(capture: Capture, *, shadow_fraction: float = 0.05, erode_px: int
     with ThreadPoolExecutor(max_workers=2) as pool:
         any_saturated = any(list(pool.map(one, range(n))))  # list: every image must be done
 
-    brightest = images.max(axis=0)
+    brightest = np.empty((h, w), np.float32)
+    _brightest(images, brightest)
     mask = plate_mask(brightest, erode_px=erode_px) & seen
-    valid = images >= shadow_fraction * brightest[None]  # not in an attached shadow
-    n_lit = int(np.count_nonzero(valid & mask))
-    n_saturated = 0
-    if any_saturated:
-        n_saturated = int(np.count_nonzero(saturated & mask))
-        n_lit -= int(np.count_nonzero(valid & saturated & mask))
-        valid &= ~saturated
-    valid &= seen
+    valid = np.empty((n, h, w), bool)
+    n_lit, n_saturated = _validity(images, brightest, saturated, any_saturated, seen, mask,
+                                   np.float32(shadow_fraction), valid)
     return Preprocessed(
         images=images,
         valid=valid,
@@ -122,6 +119,44 @@ def preprocess(capture: Capture, *, shadow_fraction: float = 0.05, erode_px: int
         n_saturated=n_saturated,
         n_shadowed=n * int(np.count_nonzero(mask)) - n_lit - n_saturated,
     )
+
+
+@numba.njit(parallel=True, cache=True)
+def _brightest(images, out):
+    """out (H, W) = the brightest of the N images (N, H, W) at each pixel."""
+    n, h, w = images.shape
+    for i in numba.prange(h):
+        out[i] = images[0, i]
+        for k in range(1, n):
+            row = images[k, i]
+            for j in range(w):
+                out[i, j] = max(out[i, j], row[j])
+
+
+@numba.njit(parallel=True, cache=True)
+def _validity(images, brightest, saturated, use_saturated, seen, mask, shadow_fraction, valid):
+    """valid (N, H, W) = lit (not darker than shadow_fraction * brightest), not saturated, seen.
+
+    Returns (samples inside ``mask`` that are lit and not saturated, saturated samples inside
+    ``mask``).
+    """
+    n, h, w = images.shape
+    lit_rows = np.zeros(h, np.int64)
+    sat_rows = np.zeros(h, np.int64)
+    for i in numba.prange(h):
+        lit_i = 0
+        sat_i = 0
+        for k in range(n):
+            for j in range(w):
+                lit = images[k, i, j] >= shadow_fraction * brightest[i, j]
+                sat = use_saturated and saturated[k, i, j]
+                valid[k, i, j] = lit and not sat and seen[i, j]
+                if mask[i, j]:
+                    lit_i += 1 if (lit and not sat) else 0
+                    sat_i += 1 if sat else 0
+        lit_rows[i] = lit_i
+        sat_rows[i] = sat_i
+    return int(lit_rows.sum()), int(sat_rows.sum())
 
 
 def plate_mask(brightness: np.ndarray, *, erode_px: int = 3, min_fraction: float = 0.02) -> np.ndarray:
@@ -146,13 +181,16 @@ def plate_mask(brightness: np.ndarray, *, erode_px: int = 3, min_fraction: float
         When the plate covers less than ``min_fraction`` of the image or the
         image has no contrast.
     """
-    b = np.nan_to_num(np.asarray(brightness, dtype=np.float32), nan=0.0)
+    b = np.asarray(brightness, dtype=np.float32)
+    if np.isnan(b).any():
+        b = np.nan_to_num(b, nan=0.0)
     # smooth the texture so the threshold sees the plate, not its rust spots or a single highlight
     smooth = cv2.GaussianBlur(b, (0, 0), 2.0)
     hi = float(smooth.max())
     if not hi > 0:
         raise CaptureError("photometric images: no light on the plate (all images dark)")
-    eight = np.clip(smooth * (255.0 / hi), 0, 255).astype(np.uint8)
+    # 0..255: negative values (dark-subtracted noise) to 0 first
+    eight = cv2.convertScaleAbs(cv2.threshold(smooth, 0.0, 0.0, cv2.THRESH_TOZERO)[1], alpha=255.0 / hi)
     _, binary = cv2.threshold(eight, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
     binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, np.ones((5, 5), np.uint8))
     n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=4)
@@ -176,10 +214,13 @@ def plate_mask(brightness: np.ndarray, *, erode_px: int = 3, min_fraction: float
 
 
 def _fill_holes(mask: np.ndarray) -> np.ndarray:
-    """Fill the holes of a (H, W) bool region: background parts that do not touch the image border."""
-    n, labels = cv2.connectedComponents((~mask).view(np.uint8), connectivity=4)
-    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
-    keep = np.zeros(n, bool)
-    keep[border] = True
-    keep[0] = False  # label 0 is the region itself
-    return ~keep[labels]
+    """Fill the holes of a (H, W) bool region: background parts that do not touch the image border.
+
+    The region is framed by one pixel of background, which joins every background part that
+    touches the border; one 4-connected flood fill from the frame's corner reaches exactly those.
+    """
+    h, w = mask.shape
+    framed = np.zeros((h + 2, w + 2), np.uint8)
+    framed[1:-1, 1:-1] = mask
+    cv2.floodFill(framed, None, (0, 0), 2, flags=4)
+    return framed[1:-1, 1:-1] != 2
