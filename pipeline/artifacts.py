@@ -18,6 +18,7 @@ import math
 from pathlib import Path
 
 import cv2
+import numba
 import numpy as np
 
 #: Colour stops (RGB) at t = -1, -1/2, 0, 1/2, 1 of ``deviation / limit_mm``; the viewer uses the same.
@@ -148,19 +149,22 @@ def write_surface_ply(
         raise ValueError(f"deviation_mm: expected shape {(h, w)} to match points_mm, got {dev.shape}")
     if not (isinstance(max_vertices, (int, np.integer)) and max_vertices >= 3):
         raise ValueError(f"max_vertices: expected an integer >= 3, got {max_vertices!r}")
-    valid = mask & np.all(np.isfinite(pts), axis=-1)
     if limit_mm is None:
         if tolerance_mm is not None:
             _check_positive("tolerance_mm", tolerance_mm)
             limit_mm = default_limit_mm(tolerance_mm)
         else:
-            finite = np.abs(dev[valid & np.isfinite(dev)])
+            finite = np.abs(dev[mask & np.isfinite(dev) & np.isfinite(pts).all(axis=-1)])
             limit_mm = float(finite.max()) if finite.size and finite.max() > 0 else 1.0
     _check_positive("limit_mm", limit_mm)
 
-    stride = max(1, int(math.sqrt(np.count_nonzero(valid) / max_vertices)))
+    def valid_at(stride: int) -> np.ndarray:
+        """The grid points at this stride that are in the mask and finite (checked on those only)."""
+        return mask[::stride, ::stride] & np.isfinite(pts[::stride, ::stride]).all(axis=-1)
+
+    stride = max(1, int(math.sqrt(np.count_nonzero(mask) / max_vertices)))
     while True:
-        sub = valid[::stride, ::stride]
+        sub = valid_at(stride)
         cell = sub[:-1, :-1] & sub[:-1, 1:] & sub[1:, :-1] & sub[1:, 1:]
         used = np.zeros_like(sub)
         used[:-1, :-1] |= cell
@@ -173,7 +177,7 @@ def write_surface_ply(
     if not cell.any():
         raise ValueError(
             f"mask: no 2x2 cell with four valid corners at stride {stride} "
-            f"({np.count_nonzero(valid)} valid points of {h}x{w}): nothing to mesh"
+            f"({np.count_nonzero(sub)} valid points of {sub.shape[1]}x{sub.shape[0]} at that stride): nothing to mesh"
         )
 
     index = np.full(sub.shape, -1, dtype=np.int64)
@@ -424,19 +428,46 @@ def write_normals_png(path, normals, mask) -> None:
     OSError
         The file cannot be written.
     """
-    n = np.asarray(normals, dtype=np.float32)
+    n = np.ascontiguousarray(normals, dtype=np.float32)
     if n.ndim != 3 or n.shape[2] != 3:
         raise ValueError(f"normals: expected shape (H, W, 3), got {n.shape}")
-    mask = _check_mask(mask, n.shape[:2])
-    length = np.sqrt(np.einsum("hwc,hwc->hw", n, n))[mask]
-    if not np.all(np.isfinite(length)):
-        raise ValueError(f"normals: expected finite values inside the mask, got {int((~np.isfinite(length)).sum())} non-finite")
-    if length.size and np.abs(length - 1).max() > 1e-3:
-        raise ValueError(f"normals: expected unit vectors inside the mask, got a length off by {np.abs(length - 1).max():.3g}")
-    enc = n * np.array([127.5, -127.5, -127.5], np.float32) + np.float32(127.5)
-    enc[~mask] = 0.0
-    rgb = np.rint(enc).astype(np.uint8)
-    _imwrite(path, rgb)
+    mask = np.ascontiguousarray(_check_mask(mask, n.shape[:2]))
+    bgr = np.empty(n.shape, np.uint8)
+    n_bad, worst = _encode_normals(n, mask, bgr)
+    if n_bad:
+        raise ValueError(f"normals: expected finite values inside the mask, got {n_bad} non-finite")
+    if worst > 1e-3:
+        raise ValueError(f"normals: expected unit vectors inside the mask, got a length off by {worst:.3g}")
+    if not cv2.imwrite(str(path), bgr):
+        raise OSError(f"{path}: cannot write the image (is the suffix .png and the folder writable?)")
+
+
+@numba.njit(cache=True)
+def _encode_normals(n, mask, bgr):
+    """The normal map of :func:`write_normals_png` into ``bgr`` (H, W, 3) uint8, in OpenCV's channel order.
+
+    Returns (the number of non-finite normals inside the mask, the largest | |n| - 1 | there).
+    Single-threaded: the pipeline writes it beside the depth solve, whose kernels are parallel.
+    """
+    h, w = mask.shape
+    bad_rows = np.zeros(h, np.int64)
+    worst_rows = np.zeros(h)
+    for i in range(h):
+        for j in range(w):
+            if not mask[i, j]:
+                bgr[i, j, 0] = bgr[i, j, 1] = bgr[i, j, 2] = 0
+                continue
+            x, y, z = n[i, j, 0], n[i, j, 1], n[i, j, 2]
+            if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+                bad_rows[i] += 1
+                bgr[i, j, 0] = bgr[i, j, 1] = bgr[i, j, 2] = 0
+                continue
+            worst_rows[i] = max(worst_rows[i], abs(np.sqrt(x * x + y * y + z * z) - 1.0))
+            # (R, G, B) = 127.5 (1 + x, 1 - y, 1 - z), rounded half to even like np.rint, clipped
+            bgr[i, j, 0] = min(max(np.rint(127.5 - 127.5 * z), 0.0), 255.0)
+            bgr[i, j, 1] = min(max(np.rint(127.5 - 127.5 * y), 0.0), 255.0)
+            bgr[i, j, 2] = min(max(np.rint(127.5 + 127.5 * x), 0.0), 255.0)
+    return int(bad_rows.sum()), float(worst_rows.max()) if h else 0.0
 
 
 def save_depth(path, depth_mm) -> None:

@@ -727,7 +727,7 @@ def principal_curvatures(points_mm, mask, *, flat_sagitta_mm: float = FLAT_SAGIT
             kmap = np.pad(kmap, ((0, max(0, H - kmap.shape[0])), (0, max(0, W - kmap.shape[1])), (0, 0)), mode="edge")
         kmap = kmap[:H, :W]
     kmap = np.asarray(kmap, dtype=np.float32)
-    kmap[~m] = np.nan
+    np.copyto(kmap, np.float32(np.nan), where=~m[..., None])
     return CurvatureResult(
         principal_radii_mm=(radii[0], radii[1]),
         principal_curvatures_per_mm=(float(lam[0]), float(lam[1])),
