@@ -384,7 +384,22 @@ def _rasterise(q_vertices: np.ndarray, faces: np.ndarray, step: float):
     return lo, height
 
 
+#: The last mesh target rasterised and its grid: registration and deviation map of one inspection
+#: rasterise the same target (one entry: a service inspects one plate at a time).
+_last_grid: tuple[Target, _MeshGrid] | None = None
+
+
 def _mesh_grid(target: Target) -> _MeshGrid:
+    global _last_grid
+    last = _last_grid
+    if last is not None and last[0] is target:
+        return last[1]
+    grid = _rasterised_grid(target)
+    _last_grid = (target, grid)
+    return grid
+
+
+def _rasterised_grid(target: Target) -> _MeshGrid:
     v = np.asarray(target.mesh_vertices_mm, dtype=np.float64)
     f = np.asarray(target.mesh_faces, dtype=np.int64)
     tri = v[f]
@@ -542,23 +557,26 @@ def deviation_map(points_mm, mask, target, registration) -> np.ndarray:
         out = out.reshape(m.shape)
         out[~m] = np.nan
         return out
-    # Rigid transform of every pixel (cv2.transform: one pass in C); NaNs outside the mask stay NaN.
-    x = cv2.transform(pts.reshape(-1, 1, 3), T_target_cam).reshape(-1, 3)
-    with np.errstate(invalid="ignore"):
-        if tgt.shape == "mesh":
-            grid = _mesh_grid(tgt)
-            q = cv2.transform((x - grid.origin).reshape(-1, 1, 3), grid.frame).reshape(-1, 3)
-            h, s = grid.sample(q)
-            q_cam = grid.frame @ (cam - grid.origin)
-            h0, _ = grid.sample(q_cam[None, :], filled=True)
-            side = 1.0 if q_cam[2] > h0[0] else -1.0
-            dev = side * (q[:, 2] - h) * s
-    out = dev.astype(np.float32).reshape(m.shape)
+    # Mesh: camera frame -> plate coordinates of the mesh grid in one transform, in chunks as above.
+    grid = _mesh_grid(tgt)
+    to_plate = grid.frame @ np.hstack([T_target_cam[:, :3], (T_target_cam[:, 3] - grid.origin)[:, None]])
+    q_cam = grid.frame @ (cam - grid.origin)
+    h0, _ = grid.sample(q_cam[None, :], filled=True)
+    side = 1.0 if q_cam[2] > h0[0] else -1.0
+    out = np.empty(m.size, dtype=np.float32)
+    flat = pts.reshape(-1, 3)
+    with np.errstate(invalid="ignore"):  # NaN points outside the mask
+        for start in range(0, flat.shape[0], _MESH_CHUNK):
+            q = cv2.transform(flat[start : start + _MESH_CHUNK].reshape(-1, 1, 3), to_plate).reshape(-1, 3)
+            h, slope = grid.sample(q)
+            out[start : start + _MESH_CHUNK] = side * (q[:, 2] - h) * slope
+    out = out.reshape(m.shape)
     out[~m] = np.nan
     return out
 
 
 _CHUNK = 1 << 16  # pixels per chunk of deviation_map's analytic shapes
+_MESH_CHUNK = 1 << 18  # and of mesh targets (each chunk samples the grid with cv2.remap)
 
 
 def _analytic_deviation(x: np.ndarray, tgt: Target, cam: np.ndarray) -> np.ndarray:
