@@ -11,6 +11,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
 
 import cv2
@@ -190,9 +191,9 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions) ->
         "details": "details.json",
     }
     # Two cores: work that does not need the main line's next result runs beside it. The stereo pair
-    # needs only the plate mask (matched while the normals are estimated); normals.png is written
-    # while the depth is solved; curvature and the pixel areas beside the registration; the other
-    # artifacts (image encoding and file writing release the GIL) as soon as they are known.
+    # needs only the plate mask (matched while the normals are estimated); curvature and the pixel
+    # areas run beside the registration; the artifacts (image encoding and file writing release the
+    # GIL) as soon as they are known.
     # numba's parallel kernels (normals, depth) run on this thread only: never two at once.
     with ThreadPoolExecutor(max_workers=2) as pool:
         stereo_job = pool.submit(_stereo_prior, cap, pre.mask, opts) if cap.has_stereo else None
@@ -203,7 +204,11 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions) ->
             camera_matrix=cap.rig.left.K,
         )
         clock.end("normals")
-        writes = [pool.submit(artifacts.write_normals_png, out / names["normals"], field.normals, field.mask)]
+        write_normals = partial(artifacts.write_normals_png, out / names["normals"], field.normals, field.mask)
+        # normals.png: now if the stereo pair is still being matched (a core waits for it anyway), else after
+        # the depth, whose parallel kernels would wait for the core it takes
+        normals_early = stereo_job is not None and not stereo_job.done()
+        writes = [pool.submit(write_normals)] if normals_early else []
         clock.begin("stereo")
         prior, stereo_s = stereo_job.result() if stereo_job is not None else (None, 0.0)
         clock.timings["stereo"] = stereo_s
@@ -238,6 +243,8 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions) ->
         curvature_job = pool.submit(_curvature, points, surface_mask)
         area_job = pool.submit(_pixel_area_mm2, depth.depth_mm, field.normals, rays, K)
         writes.append(pool.submit(artifacts.save_depth, out / names["depth"], depth.depth_mm))
+        if not normals_early:
+            writes.append(pool.submit(write_normals))
         clock.begin("deviation")
         registration = deviation.register_to_target(points, surface_mask, tgt)
         dev = deviation.deviation_map(points, surface_mask, tgt, registration)
