@@ -3,9 +3,9 @@ and the public datasets (BiNI's DiLiGenT depth maps, Queau's vase) next to their
 
 Run from the project root:  .venv/bin/python benchmarks/bench_integration.py [--quick]
 
-Wall time is the median of a few runs; CPU is the process time of the same runs (the solver is
-single-threaded, so on a machine shared with other work CPU time is the better measure of what an
-idle machine would give). The load average is printed with each table.
+Wall time is the median of a few runs; CPU is the process time of the same runs, all threads (the
+multigrid sweeps are single-threaded, the other kernels use both cores). The load average is
+printed with each table: on a machine shared with other work, wall time varies.
 """
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ def load():
 
 
 def speed_table(sizes, repeat):
-    print(f"\n## Speed ({load()}; single thread)")
+    print(f"\n## Speed ({load()})")
     print(f"{'size':>10} {'mask':>8} {'fill':>5} {'mode':>9} {'wall s':>7} {'cpu s':>7} {'iter':>4} "
           f"{'residual':>9} {'rms mm':>9}")
     rng = np.random.default_rng(0)

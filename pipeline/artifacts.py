@@ -104,8 +104,8 @@ def write_surface_ply(
     """Write the measured surface as a binary PLY triangle mesh with per-vertex deviation.
 
     The grid is subsampled by the smallest integer stride ``s`` (rows and
-    columns ``0, s, 2s, ...``) that keeps the vertex count at or under
-    ``max_vertices``; every 2x2 cell of the subsampled grid whose four corners
+    columns ``0, s, 2s, ...``), searched upwards from ``sqrt(mask pixels /
+    max_vertices)``, that keeps the vertex count at or under ``max_vertices``; every 2x2 cell of the subsampled grid whose four corners
     are valid gives two triangles; only vertices used by a triangle are written.
 
     Parameters
@@ -447,7 +447,8 @@ def _encode_normals(n, mask, bgr):
     """The normal map of :func:`write_normals_png` into ``bgr`` (H, W, 3) uint8, in OpenCV's channel order.
 
     Returns (the number of non-finite normals inside the mask, the largest | |n| - 1 | there).
-    Single-threaded: the pipeline writes it beside the depth solve, whose kernels are parallel.
+    Single-threaded: the pipeline writes it from a worker thread, and numba's parallel kernels
+    must not run from two threads at once.
     """
     h, w = mask.shape
     bad_rows = np.zeros(h, np.int64)

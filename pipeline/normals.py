@@ -88,7 +88,8 @@ class NormalField:
     n_filled : int
         ``filled.sum()``.
     specular : SpecularFit or None
-        The specular lobe fitted (``method="robust"`` with ``view_dirs``); None otherwise.
+        The specular lobe fitted (``method="robust"`` with ``view_dirs`` or ``camera_matrix``);
+        None otherwise.
     """
 
     normals: np.ndarray
@@ -562,7 +563,7 @@ def _sort_row(values, pairs):
 
 
 #: Pixels per work block of the robust kernel: a block's N x width scratch arrays should
-#: stay in the L2 cache (N = 12: 256 px, ~25 kB per array).
+#: stay in the L2 cache (N = 12: 256 px, ~12 kB per float32 array).
 _BLOCK_SAMPLES = 3072
 
 
@@ -764,7 +765,7 @@ def _harmonic_fill(normals, albedo, known, holes):
 
 # --------------------------------------------------------------------------- specular lobe
 
-# Specular stage (method="robust" with view_dirs), see estimate_normals' Notes.
+# Specular stage (method="robust" with view_dirs or camera_matrix), see estimate_normals' Notes.
 #: Candidate lobe exponents e of g(c) = c^e, c = n.h (1-D search on the summed residual;
 #: the minimum is refined by a parabola in log e). 2 ~ a very broad sheen, 1000 ~ a mirror-like glint.
 LOBE_EXPONENTS = tuple(float(x) for x in np.geomspace(2.0, 1000.0, 28))
@@ -791,7 +792,7 @@ _LOBE_TABLE = 4096
 
 @dataclass(frozen=True)
 class SpecularFit:
-    """The specular lobe fitted by :func:`estimate_normals` (``method="robust"`` with ``view_dirs``).
+    """The specular lobe fitted by :func:`estimate_normals` (``method="robust"`` with a view direction).
 
     Attributes
     ----------
