@@ -61,6 +61,7 @@ def timing_table(root: Path, sizes: list[tuple[int, int]], repeat: int) -> None:
         bundle = simulate_capture(
             root / f"t{width}", plate=PLATES[0][1], capture=CaptureSpec(n_lights=12, width=width, height=height), seed=7
         )
+        inspect(bundle, bundle / "target.json", out_dir=bundle / "out")  # warm-up: numba loads (or compiles) its kernels
         runs = [inspect(bundle, bundle / "target.json", out_dir=bundle / "out").document["timings_s"] for _ in range(repeat)]
         best = min(runs, key=lambda t: t["total"])
         totals = [t["total"] for t in runs]
