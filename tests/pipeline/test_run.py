@@ -16,7 +16,7 @@ import pytest
 
 from pipeline.cli import main as cli_main
 from pipeline.formats import CaptureError, ResultFile
-from pipeline.run import STAGES, inspect
+from pipeline.run import STAGES, inspect, warm_up
 from pipeline.simulate import CaptureSpec, Dent, PlateSpec, simulate_capture
 
 FULL = dict(width=1224, height=1024)
@@ -143,8 +143,18 @@ def test_cli_inspect_exit_codes(tmp_path, capsys):
     doc = json.loads((bundle / "capture.json").read_text())
     doc["photometric"]["lights"][1]["direction"] = [0.0, 0.0, 0.0]
     (bundle / "capture.json").write_text(json.dumps(doc))
-    code = cli_main(["inspect", str(bundle), "--target", str(bundle / "target.json"), "--out", str(tmp_path / "o2")])
+    code = cli_main(["inspect", str(bundle), "--target", str(bundle / "target.json"), "--out", str(tmp_path / "o2"),
+                     "--no-warm-up"])
     err = capsys.readouterr().err.strip()
     assert code == 2
     assert len(err.splitlines()) == 1 and "capture.json" in err and "lights[1].direction" in err
     assert cli_main(["calibrate", str(tmp_path), "--board", "9by6", "--square", "25"]) == 2
+
+
+def test_warm_up_runs_a_small_inspection_and_leaves_nothing(tmp_path, monkeypatch):
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    seconds = warm_up()
+    assert seconds > 0
+    assert list(tmp_path.iterdir()) == []  # its temporary folder is gone
