@@ -7,6 +7,7 @@ The CLI (``plate-inspect inspect``) and the service's job both call
 from __future__ import annotations
 
 import json
+import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Callable
@@ -326,8 +327,6 @@ def warm_up() -> float:
     (320x256, 12 lights, stereo: every kernel of the usual path and of the specular stage) in a
     temporary folder. Returns its run time, seconds.
     """
-    import tempfile
-
     from .simulate import CaptureSpec, PlateSpec, simulate_capture
 
     t = time.perf_counter()
