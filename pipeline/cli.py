@@ -72,6 +72,12 @@ def _cmd_simulate_capture(args: argparse.Namespace) -> int:
         working_distance_mm=None if args.no_working_distance else args.distance,
         width=width,
         height=height,
+        light_elevation_deg=args.elevation,
+        near_field_mm=args.near_field,
+        led_mu=args.led_mu,
+        light_error_deg=args.light_error_deg,
+        manifest_lights="nominal" if args.nominal_lights else "exact",
+        texture=args.texture,
     )
     out = simulate_capture(
         args.out, plate=plate, capture=capture, plate_id=args.plate_id, tolerance_mm=args.tolerance, seed=args.seed
@@ -180,6 +186,16 @@ def build_parser() -> argparse.ArgumentParser:
     cap.add_argument("--specular", type=float, default=0.0, help="specular lobe strength (default 0: Lambertian)")
     cap.add_argument("--size", default="1224x1024", help="image size WIDTHxHEIGHT px (default 1224x1024)")
     cap.add_argument("--distance", type=float, default=3000.0, help="working distance, mm (default 3000)")
+    cap.add_argument("--elevation", type=float, default=45.0,
+                     help="angle of the lights from the optical axis, seen from the plate centre, deg (default 45)")
+    cap.add_argument("--near-field", type=float, default=None, metavar="MM",
+                     help="point lights (LEDs) this high above the plate, mm (default: distant lights)")
+    cap.add_argument("--led-mu", type=float, default=0.0, help="LED beam profile exponent cos^mu (default 0)")
+    cap.add_argument("--light-error-deg", type=float, default=0.0,
+                     help="write the lights turned by this angle about the plate centre (a bumped light)")
+    cap.add_argument("--nominal-lights", action="store_true",
+                     help="with --near-field: write only each light's direction from the plate centre")
+    cap.add_argument("--texture", choices=["rusty", "painted", "uniform"], default="rusty", help="plate albedo")
     cap.add_argument("--no-stereo", action="store_true", help="omit the stereo pair")
     cap.add_argument("--no-working-distance", action="store_true", help="omit working_distance_mm from the bundle")
     cap.add_argument("--tolerance", type=float, default=2.0, help="tolerance written to target.json, mm")

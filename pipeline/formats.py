@@ -1,4 +1,4 @@
-"""The four JSON file formats of DESIGN.md as pydantic models.
+"""The JSON file formats of DESIGN.md as pydantic models.
 
 Unknown keys are an error, missing required keys are an error. A format
 change is a new format version, never a silent edit. Reading files (and
@@ -17,6 +17,7 @@ CALIBRATION_FORMAT = "stereo-calibration/1"
 CAPTURE_FORMAT = "plate-capture/1"
 TARGET_FORMAT = "plate-target/1"
 RESULT_FORMAT = "plate-result/1"
+LIGHT_CALIBRATION_FORMAT = "light-calibration/1"
 
 #: Tolerance on |l| - 1 for a light direction to count as a unit vector.
 UNIT_TOLERANCE = 1e-3
@@ -104,28 +105,59 @@ class StereoCalibrationFile(_Strict):
 # --------------------------------------------------------------------------- capture
 
 
+def _unit_vector(v, what: str = "a unit vector"):
+    if not _finite(v):
+        raise ValueError(f"expected finite numbers, got {v}")
+    norm = math.sqrt(sum(x * x for x in v))
+    if norm == 0:
+        raise ValueError(f"expected {what}, got the zero vector")
+    if abs(norm - 1.0) > UNIT_TOLERANCE:
+        raise ValueError(f"expected {what}, got length {norm:.4f}")
+    return v
+
+
 class Light(_Strict):
-    direction: Vec3
+    """One photometric light: distant (``direction``) or a point light (``position_mm``).
+
+    A point light's irradiance on a surface point X is ``intensity * (1000 / |P - X|)^2 *
+    max(0, cos theta_axis)^mu * max(0, n . (P - X) / |P - X|)`` (DESIGN.md, capture bundle).
+    """
+
+    direction: Vec3 | None = None
+    position_mm: Vec3 | None = None
+    axis: Vec3 | None = None
+    mu: float | None = Field(default=None, ge=0)
     intensity: float = Field(default=1.0, gt=0)
 
-    @field_validator("direction")
+    @field_validator("direction", "axis")
     @classmethod
     def _unit(cls, v):
-        if not _finite(v):
+        return None if v is None else _unit_vector(v)
+
+    @field_validator("position_mm")
+    @classmethod
+    def _finite_position(cls, v):
+        if v is not None and not _finite(v):
             raise ValueError(f"expected finite numbers, got {v}")
-        norm = math.sqrt(sum(x * x for x in v))
-        if norm == 0:
-            raise ValueError("expected a unit vector, got the zero vector")
-        if abs(norm - 1.0) > UNIT_TOLERANCE:
-            raise ValueError(f"expected a unit vector, got length {norm:.4f}")
         return v
 
-    @field_validator("intensity")
+    @field_validator("intensity", "mu")
     @classmethod
     def _finite_intensity(cls, v):
-        if not math.isfinite(v):
+        if v is not None and not math.isfinite(v):
             raise ValueError(f"expected a finite number, got {v}")
         return v
+
+    @model_validator(mode="after")
+    def _one_kind(self):
+        if (self.direction is None) == (self.position_mm is None):
+            raise ValueError(
+                "direction, position_mm: expected exactly one of them (a distant light or a point light), got "
+                + ("both" if self.direction is not None else "neither")
+            )
+        if self.direction is not None and (self.axis is not None or self.mu is not None):
+            raise ValueError("axis, mu: only a point light (position_mm) has an LED axis and profile, got a distant light")
+        return self
 
 
 class Photometric(_Strict):
@@ -158,6 +190,33 @@ class CaptureFile(_Strict):
     photometric: Photometric
     stereo: StereoPair | None = None
     working_distance_mm: float | None = Field(default=None, gt=0)
+
+
+class CalibratedLight(_Strict):
+    """A light measured by ``calibrate-lights``: always a point light."""
+
+    position_mm: Vec3
+    axis: Vec3
+    mu: float = Field(ge=0)
+    intensity: float = Field(gt=0)
+
+    @field_validator("axis")
+    @classmethod
+    def _unit(cls, v):
+        return _unit_vector(v)
+
+    @field_validator("position_mm")
+    @classmethod
+    def _finite_position(cls, v):
+        if not _finite(v):
+            raise ValueError(f"expected finite numbers, got {v}")
+        return v
+
+
+class LightCalibrationFile(_Strict):
+    format: Literal["light-calibration/1"]
+    lights: Annotated[list[CalibratedLight], Field(min_length=3)]
+    rms: float | None = Field(default=None, ge=0)
 
 
 # --------------------------------------------------------------------------- target
@@ -220,5 +279,6 @@ class ResultFile(_Strict):
     within_tolerance_pct: float | None
     verdict: Literal["pass", "fail", "error"]
     error: str | None = None
+    warnings: list[str] | None = None
     timings_s: dict[str, float]
     artifacts: dict[str, str]

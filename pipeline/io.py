@@ -38,12 +38,15 @@ import pydantic
 from pydantic import BaseModel
 
 from .camera import CameraModel, StereoRig
+from .lights import CAMERA_HEAD_RADIUS_MM, Lights
 from .formats import (
     CALIBRATION_FORMAT,
     CAPTURE_FORMAT,
     TARGET_FORMAT,
+    LIGHT_CALIBRATION_FORMAT,
     CaptureFile,
     InputError,
+    LightCalibrationFile,
     StereoCalibrationFile,
     TargetFile,
 )
@@ -72,10 +75,8 @@ class Capture:
         The calibration the bundle names; ``rig.image_size`` matches every image.
     bit_depth : int
         Significant bits per pixel; every pixel is ``<= 2**bit_depth - 1``.
-    light_dirs : (N, 3) float64
-        Unit vectors, left-camera frame, from the surface towards light k.
-    light_intensity : (N,) float64
-        Relative intensity ``e_k`` of light k.
+    lights : pipeline.lights.Lights
+        The N lights (distant or point lights), left-camera frame, mm.
     images : (N, H, W) float32
         Photometric images of the left camera, raw counts (distorted, dark not
         subtracted). Colour images are converted to grey on loading.
@@ -92,8 +93,7 @@ class Capture:
     captured_at: str | None
     rig: StereoRig
     bit_depth: int
-    light_dirs: np.ndarray
-    light_intensity: np.ndarray
+    lights: Lights
     images: np.ndarray
     dark: np.ndarray | None
     stereo_left: np.ndarray | None
@@ -103,7 +103,17 @@ class Capture:
 
     @property
     def n_lights(self) -> int:
-        return int(self.light_dirs.shape[0])
+        return self.lights.n
+
+    @property
+    def light_dirs(self) -> np.ndarray:
+        """(N, 3) float64 unit directions of distant lights (NaN rows for point lights)."""
+        return self.lights.directions
+
+    @property
+    def light_intensity(self) -> np.ndarray:
+        """(N,) float64 relative intensity ``e_k`` of light k."""
+        return self.lights.intensity
 
     @property
     def has_stereo(self) -> bool:
@@ -794,15 +804,14 @@ def _load_capture(bundle, source: Path, *, workers: int | None) -> Capture:
     named = {key: np.empty((sz[1], sz[0]), np.float32) for key, _, _, sz, _ in wanted[n:]}
     _load_images(bundle, jobs, [*images, *named.values()], bit_depth=cap.bit_depth, workers=workers)
 
-    dirs = np.array([light.direction for light in cap.photometric.lights], dtype=np.float64)
-    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    lights = Lights.from_documents(cap.photometric.lights)
+    _check_light_positions(lights, rig, cap.working_distance_mm, label=label)
     return Capture(
         plate_id=cap.plate_id,
         captured_at=cap.captured_at,
         rig=rig,
         bit_depth=int(cap.bit_depth),
-        light_dirs=dirs,
-        light_intensity=np.array([light.intensity for light in cap.photometric.lights], dtype=np.float64),
+        lights=lights,
         images=images,
         dark=named.get("dark"),
         stereo_left=named.get("left"),
@@ -810,6 +819,83 @@ def _load_capture(bundle, source: Path, *, workers: int | None) -> Capture:
         working_distance_mm=cap.working_distance_mm,
         source=source,
     )
+
+
+def _check_light_positions(lights: Lights, rig: StereoRig, working_distance_mm: float | None, *, label: str) -> None:
+    """Point lights must lie between the camera head and the plate: not inside the head, not behind the plate."""
+    centres = {"left": np.zeros(3), "right": -rig.R.T @ rig.T}
+    for k in np.flatnonzero(lights.is_point):
+        p = lights.positions_mm[k]
+        field = f"photometric.lights[{k}].position_mm"
+        for side, c in centres.items():
+            if np.linalg.norm(p - c) < CAMERA_HEAD_RADIUS_MM:
+                raise InputError(
+                    label, field,
+                    f"a light {np.linalg.norm(p - c):.0f} mm from the {side} camera's centre is inside the camera head "
+                    f"(expected at least {CAMERA_HEAD_RADIUS_MM:.0f} mm; positions are mm in the left camera frame), "
+                    f"got {[round(float(v), 1) for v in p]}",
+                )
+        if working_distance_mm is not None and p[2] >= working_distance_mm:
+            raise InputError(
+                label, field,
+                f"a light at z = {p[2]:.0f} mm is behind the plate (working_distance_mm {working_distance_mm:.0f}; "
+                f"positions are mm in the left camera frame, z forward), got {[round(float(v), 1) for v in p]}",
+            )
+
+
+# =========================================================================== light calibration
+
+
+def load_light_calibration(source, *, file_label: str | None = None) -> tuple[Lights, float | None]:
+    """Read a ``light-calibration/1`` document.
+
+    Parameters
+    ----------
+    source : str, Path or dict
+        A path to the JSON file, or the parsed object itself.
+    file_label : str, optional
+        How error messages name the document.
+
+    Returns
+    -------
+    (Lights, rms)
+        The calibrated point lights in image order (left-camera frame, mm) and the fit's
+        residual (None when the file does not give it).
+
+    Raises
+    ------
+    InputError
+        Unreadable file, unknown format, unknown or missing keys, non-finite numbers, an axis that
+        is not a unit vector, a negative mu, fewer than 3 lights.
+    """
+    if isinstance(source, dict):
+        label, doc = file_label or "lights.json", source
+    elif isinstance(source, (str, os.PathLike)):
+        label = file_label or str(source)
+        doc = read_json(source, label=label)
+    else:
+        raise TypeError(f"source: expected a path or a dict, got {type(source).__name__}")
+    cal = _validate(LightCalibrationFile, doc, label=label, expected_format=LIGHT_CALIBRATION_FORMAT)
+    return Lights.from_documents(cal.lights), cal.rms
+
+
+def light_calibration_document(lights: Lights, rms: float | None) -> dict:
+    """Point lights as a ``light-calibration/1`` object (inverse of :func:`load_light_calibration`)."""
+    if not lights.is_point.all():
+        raise ValueError("lights: a light calibration holds point lights only, got distant ones")
+    doc = {"format": LIGHT_CALIBRATION_FORMAT, "lights": [], "rms": None if rms is None else float(rms)}
+    for k in range(lights.n):
+        axis = lights.axes[k] if np.isfinite(lights.axes[k]).all() else np.array([0.0, 0.0, 1.0])
+        doc["lights"].append({
+            "position_mm": [float(v) for v in lights.positions_mm[k]],
+            "axis": [float(v) for v in axis],
+            "mu": float(lights.mu[k]),
+            "intensity": float(lights.intensity[k]),
+        })
+    if rms is None:
+        doc.pop("rms")
+    LightCalibrationFile.model_validate(doc)
+    return doc
 
 
 # =========================================================================== target

@@ -46,6 +46,7 @@ from .formats import (
     TargetFile,
 )
 from .io import calibration_document
+from .lights import Lights
 
 # Reference head: fx = 900 px at 1224 px width (a 3000 mm plate at 3000 mm fills ~74 % of the width).
 _FX_PER_WIDTH_PX = 900.0 / 1224.0
@@ -522,6 +523,24 @@ class CaptureSpec:
         Written into ``capture.json``; None omits it.
     width, height : int
         Image size of :func:`default_rig` when no rig is given (ignored when a rig is given).
+    near_field_mm : float or None
+        None: distant lights (``light_directions``). Otherwise point lights (LEDs) on a ring this far
+        (mm, along the optical axis) in front of the plate centre, i.e. that high above the plate,
+        each seen from the plate centre at ``light_elevation_deg`` from the optical axis; the
+        irradiance falls off with the inverse square of the distance and the LED profile ``led_mu``
+        (see :mod:`pipeline.lights`). Each light's ``intensity`` is chosen so that it casts
+        ``e_k`` (``1 +- intensity_spread``) on the plate centre, as bright as a distant light.
+    led_mu : float
+        Point lights: exponent of the LED beam profile ``cos^mu`` about its axis, which points at
+        the plate centre (0: isotropic).
+    light_error_deg : float
+        The lights written into ``capture.json`` are the true ones turned by this angle about the
+        plate centre, each about its own random axis (a light bumped out of place); the images are
+        rendered with the true lights (``truth.npz``).
+    manifest_lights : {"exact", "nominal"}
+        Point lights only: ``"exact"`` writes positions, axes and profiles; ``"nominal"`` writes
+        only each light's direction and irradiance as seen from the plate centre (what a cell
+        without a light calibration knows).
     """
 
     n_lights: int = 12
@@ -540,6 +559,10 @@ class CaptureSpec:
     working_distance_mm: float | None = 3000.0
     width: int = 1224
     height: int = 1024
+    near_field_mm: float | None = None
+    led_mu: float = 0.0
+    light_error_deg: float = 0.0
+    manifest_lights: Literal["exact", "nominal"] = "exact"
 
     def __post_init__(self) -> None:
         if not isinstance(self.n_lights, (int, np.integer)) or self.n_lights < 3:
@@ -568,12 +591,38 @@ class CaptureSpec:
             raise ValueError(f"CaptureSpec.working_distance_mm: expected > 0 or None, got {self.working_distance_mm}")
         if self.width < 64 or self.height < 64:
             raise ValueError(f"CaptureSpec.width, height: expected at least 64 x 64, got {self.width} x {self.height}")
+        if self.near_field_mm is not None and not (math.isfinite(self.near_field_mm) and self.near_field_mm > 0):
+            raise ValueError(f"CaptureSpec.near_field_mm: expected a height > 0 mm or None, got {self.near_field_mm}")
+        if not (math.isfinite(self.led_mu) and self.led_mu >= 0):
+            raise ValueError(f"CaptureSpec.led_mu: expected >= 0, got {self.led_mu}")
+        if not (math.isfinite(self.light_error_deg) and 0 <= self.light_error_deg < 30):
+            raise ValueError(f"CaptureSpec.light_error_deg: expected in [0, 30), got {self.light_error_deg}")
+        if self.manifest_lights not in ("exact", "nominal"):
+            raise ValueError(f"CaptureSpec.manifest_lights: expected exact or nominal, got {self.manifest_lights!r}")
 
     def light_directions(self) -> np.ndarray:
         """(n_lights, 3) float64 unit vectors, left-camera frame, from the surface towards each light."""
         el = math.radians(self.light_elevation_deg)
         phi = math.radians(self.light_azimuth_deg) + 2.0 * np.pi * np.arange(self.n_lights) / self.n_lights
         return np.stack([math.sin(el) * np.cos(phi), math.sin(el) * np.sin(phi), np.full(phi.shape, -math.cos(el))], 1)
+
+    def lights(self, centre_mm: np.ndarray, intensities: np.ndarray) -> Lights:
+        """The true lights for a plate centred at ``centre_mm`` (3,) (left-camera frame, mm).
+
+        Distant: :meth:`light_directions` with ``intensities``. Near field: point lights on a ring
+        ``near_field_mm`` in front of the centre, each in its light direction from the centre, aimed
+        at it, with intensities that cast ``intensities`` on it (see the class docstring).
+        """
+        dirs = self.light_directions()
+        if self.near_field_mm is None:
+            return Lights.distant(dirs, intensities)
+        centre = np.asarray(centre_mm, dtype=np.float64)
+        reach = self.near_field_mm / -dirs[:, 2]  # distance along each direction to the lights' plane
+        positions = centre + reach[:, None] * dirs
+        axes = -dirs
+        unit = Lights.points(positions, np.ones(len(dirs)), axes=axes, mu=np.full(len(dirs), self.led_mu))
+        at_centre = unit.attenuation_at(centre)  # cos(theta) = 1 on the axis
+        return unit.with_intensity(np.asarray(intensities) / at_centre)
 
 
 @dataclass(frozen=True)
@@ -598,19 +647,26 @@ def _shade(
     albedo: np.ndarray,
     points_cam: np.ndarray,
     eye: np.ndarray,
-    light_dirs: np.ndarray,
-    intensities: np.ndarray,
+    lights: Lights,
     capture: CaptureSpec,
 ) -> np.ndarray:
-    """Noise-free radiance (N, H, W) float32 in fractions of full scale, dark not added."""
+    """Noise-free radiance (N, H, W) float32 in fractions of full scale, dark not added.
+
+    Per pixel and light: the direction towards the light and its attenuation at the surface point
+    (:class:`pipeline.lights.Lights`; constant for distant lights).
+    """
     n = hits.normals.astype(np.float32)
-    out = np.empty((len(light_dirs),) + albedo.shape, dtype=np.float32)
+    out = np.empty((lights.n,) + albedo.shape, dtype=np.float32)
     view = None
     if capture.specular > 0:
         view = eye.astype(np.float32) - points_cam.astype(np.float32)
         view /= np.linalg.norm(view, axis=-1, keepdims=True)
-    for k, (l, e) in enumerate(zip(light_dirs.astype(np.float32), intensities)):
-        ndotl = n @ l
+    for k in range(lights.n):
+        one = Lights(lights.directions[k:k + 1], lights.positions_mm[k:k + 1], lights.axes[k:k + 1],
+                     lights.mu[k:k + 1], lights.intensity[k:k + 1])
+        l = one.directions_at(points_cam)[0].astype(np.float32)
+        gain = (one.intensity[0] * one.attenuation_at(points_cam)[0]).astype(np.float32)
+        ndotl = np.einsum("hwc,hwc->hw", n, l)
         lit = np.maximum(ndotl, 0.0)
         img = albedo * lit
         if view is not None:
@@ -618,8 +674,28 @@ def _shade(
             half /= np.linalg.norm(half, axis=-1, keepdims=True)
             ndoth = np.maximum(np.einsum("hwc,hwc->hw", n, half), 0.0)
             img = img + np.where(ndotl > 0, capture.specular * ndoth**capture.shininess, 0.0)
-        out[k] = np.float32(capture.exposure * e) * img
+        out[k] = np.float32(capture.exposure) * gain * img
     return out
+
+
+def _bumped(lights: Lights, centre_mm: np.ndarray, error_deg: float, rng: np.random.Generator) -> Lights:
+    """Every light turned by ``error_deg`` about ``centre_mm``, each about a random axis across its direction."""
+    if error_deg == 0:
+        return lights
+    dirs = lights.directions_at(centre_mm)
+    angle = math.radians(error_deg)
+    directions, positions, axes = lights.directions.copy(), lights.positions_mm.copy(), lights.axes.copy()
+    for k in range(lights.n):
+        across = np.cross(dirs[k], rng.standard_normal(3))
+        across /= np.linalg.norm(across)
+        rot, _ = cv2.Rodrigues(across * angle)
+        if lights.is_point[k]:
+            positions[k] = centre_mm + rot @ (positions[k] - centre_mm)
+            if np.isfinite(axes[k]).all():
+                axes[k] = rot @ axes[k]
+        else:
+            directions[k] = rot @ directions[k]
+    return Lights(directions, positions, axes, lights.mu.copy(), lights.intensity.copy())
 
 
 def _quantise(frac: np.ndarray, bit_depth: int) -> np.ndarray:
@@ -678,8 +754,10 @@ def simulate_capture(
           (H, W, 2) float32 plate-frame coordinates, NaN off the plate; on the RAW grid
           ``depth_raw_mm`` float32 and ``mask_raw``; and ``radius_mm``,
           ``radius2_mm`` (NaN if none), ``shape``, ``convex``, ``size_mm``, ``dents`` (D, 4) rows
-          ``x, y, radius, depth`` mm, ``T_cam_plate`` (4, 4), ``light_dirs`` (N, 3),
-          ``light_intensity`` (N,), ``K``, ``dist``, ``bit_depth``, ``noise``, ``exposure``.
+          ``x, y, radius, depth`` mm, ``T_cam_plate`` (4, 4), the true lights: ``light_dirs`` (N, 3)
+          (seen from the plate centre), ``light_intensity`` (N,), ``light_positions_mm`` (N, 3) (NaN
+          for distant lights), ``light_axes`` (N, 3), ``light_mu`` (N,); ``K``, ``dist``,
+          ``bit_depth``, ``noise``, ``exposure``.
 
     Raises
     ------
@@ -716,9 +794,13 @@ def simulate_capture(
         ),
         conveyor=_conveyor_texture(plate, conveyor_seed).prefiltered(mm_per_px),
     )
-    light_dirs = capture.light_directions()
     spread = capture.intensity_spread
     intensities = rng_lights.uniform(1.0 - spread, 1.0 + spread, capture.n_lights)
+    centre = T_cam_plate[:3, 3]
+    lights = capture.lights(centre, intensities)
+    written = _bumped(lights, centre, capture.light_error_deg, rng_lights)
+    if lights.any_point and capture.manifest_lights == "nominal":
+        written = written.nominal_directions(centre)
 
     # PNG encoding (cv2 releases the GIL) overlaps with rendering on a second thread.
     pool = ThreadPoolExecutor(max_workers=2)
@@ -732,7 +814,7 @@ def simulate_capture(
         if not hits_raw.on_plate.any():
             raise ValueError("plate: no pixel of the left camera sees the plate (check distance_mm, tilt_deg, size_mm)")
         points_raw = hits_raw.s[..., None] * left_rays
-        radiance = _shade(hits_raw, albedo_raw, points_raw, eye_left, light_dirs, intensities, capture)
+        radiance = _shade(hits_raw, albedo_raw, points_raw, eye_left, lights, capture)
         dark_map = (capture.dark_level + 0.001 * rng_dark.standard_normal((h, w))).astype(np.float32)
         if capture.dark_level == 0:
             dark_map[:] = 0.0
@@ -753,7 +835,7 @@ def simulate_capture(
             eye_right = -rig.R.T @ rig.T
             hits_r, albedo_r = _render_view(scene, eye_right, right_rays)
             points_r = eye_right + hits_r.s[..., None] * right_rays
-            flash_r = _shade(hits_r, albedo_r, points_r, eye_right, light_dirs, intensities, capture).mean(axis=0)
+            flash_r = _shade(hits_r, albedo_r, points_r, eye_right, lights, capture).mean(axis=0)
             dark_r = (capture.dark_level + 0.001 * rng_dark.standard_normal((h, w))).astype(np.float32)
             if capture.dark_level == 0:
                 dark_r[:] = 0.0
@@ -787,8 +869,11 @@ def simulate_capture(
         size_mm=np.array(plate.size_mm),
         dents=np.array([[d.x_mm, d.y_mm, d.radius_mm, d.depth_mm] for d in plate.dents], dtype=np.float64).reshape(-1, 4),
         T_cam_plate=T_cam_plate,
-        light_dirs=light_dirs,
-        light_intensity=intensities,
+        light_dirs=lights.directions_at(centre),
+        light_intensity=lights.intensity,
+        light_positions_mm=lights.positions_mm,
+        light_axes=lights.axes,
+        light_mu=lights.mu,
         K=rig.left.K,
         dist=rig.left.dist,
         bit_depth=np.int64(capture.bit_depth),
@@ -808,9 +893,7 @@ def simulate_capture(
         "calibration": "calibration.json",
         "bit_depth": capture.bit_depth,
         "photometric": {
-            "lights": [
-                {"direction": [float(v) for v in l], "intensity": float(e)} for l, e in zip(light_dirs, intensities)
-            ],
+            "lights": written.documents(),
             "images": image_names,
             "dark": "dark.png",
         },
