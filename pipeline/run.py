@@ -22,6 +22,7 @@ from threadpoolctl import threadpool_limits
 from . import artifacts, curvature, deviation, integration, normals, stereo
 from .formats import RESULT_FORMAT, CaptureError, PipelineError, ResultFile
 from .io import Capture, Target, load_capture, load_target
+from .lights import Lights
 from .preprocess import preprocess
 
 #: Stage names in the order they run; ``progress`` reports these.
@@ -126,6 +127,7 @@ def inspect(
     out_dir: str | Path,
     progress: ProgressCallback | None = None,
     options: InspectOptions | None = None,
+    light_calibration: Lights | None = None,
 ) -> InspectionResult:
     """Measure a plate and judge it against its CAD target.
 
@@ -141,6 +143,12 @@ def inspect(
         Called when each stage of :data:`STAGES` starts (fraction 0..1 of the
         stages done) and once with ``("done", 1.0)``.
     options : InspectOptions, optional
+    light_calibration : pipeline.lights.Lights, optional
+        The cell's measured lights (``plate-inspect calibrate-lights``, read with
+        :func:`pipeline.io.load_light_calibration`). Applied to a capture whose lights are all
+        given only as directions (nominal lights) and as many as its images; the result then
+        carries a warning that says so. A capture that gives point lights keeps its own; a
+        calibration with another count of lights is not applied (a warning says why).
 
     Returns
     -------
@@ -162,17 +170,19 @@ def inspect(
         # after each one and take a core from the work running beside it (measured: ~0.3 core-s
         # per inspection at 1224x1024)
         with threadpool_limits(limits=1, user_api="blas"):
-            return _inspect(capture, target, out, clock, opts)
+            return _inspect(capture, target, out, clock, opts, light_calibration)
     except PipelineError as err:
         # a capture that cannot be measured still leaves a result that says why
         _write_error_result(out, capture, target, err, clock)
         raise
 
 
-def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions) -> InspectionResult:
+def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, light_calibration) -> InspectionResult:
     clock.begin("load")
     cap = capture if isinstance(capture, Capture) else load_capture(capture)
     tgt = target if isinstance(target, Target) else load_target(target)
+    warnings: list[str] = []
+    cap = _apply_light_calibration(cap, light_calibration, warnings)
     if not cap.has_stereo and cap.working_distance_mm is None:
         raise CaptureError(
             f"{cap.source}: stereo, working_distance_mm: a metric result needs a stereo pair or a working distance"
@@ -308,10 +318,13 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions) ->
         tolerance_mm=tgt.tolerance_mm,
         within_tolerance_pct=round(judgement.within_tolerance_pct, 3),
         verdict=judgement.verdict,
+        warnings=warnings or None,
         timings_s=timings,
         artifacts=names | {"result": "result.json"},
-    ).model_dump(mode="json")
+    ).model_dump(mode="json", exclude_none=False)
     doc["artifacts"].pop("result")
+    if doc["warnings"] is None:
+        del doc["warnings"]
     (out / "result.json").write_text(json.dumps(doc, indent=2) + "\n")
     if clock.progress is not None:
         clock.progress("done", 1.0)
@@ -363,8 +376,22 @@ def _write_error_result(out: Path, capture, target, err: Exception, clock: _Cloc
         error=" ".join(str(err).split()),
         timings_s=dict(clock.timings) | {"total": clock.total()},
         artifacts={},
-    ).model_dump(mode="json")
+    ).model_dump(mode="json", exclude={"warnings"})
     (out / "result.json").write_text(json.dumps(doc, indent=2) + "\n")
+
+
+def _apply_light_calibration(cap: Capture, calibration: Lights | None, warnings: list[str]) -> Capture:
+    """The capture with the calibrated lights in place of nominal ones (see :func:`inspect`)."""
+    if calibration is None or cap.lights.any_point:
+        return cap
+    if calibration.n != cap.n_lights:
+        warnings.append(
+            f"the light calibration was not applied: it has {calibration.n} lights, the capture "
+            f"{cap.n_lights} images; nominal light directions were used"
+        )
+        return cap
+    warnings.append("a light calibration was applied to the capture's nominal light directions")
+    return replace(cap, lights=calibration)
 
 
 def _round(value: float | None, digits: int) -> float | None:
