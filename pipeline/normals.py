@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import functools
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numba
@@ -220,6 +220,12 @@ def estimate_normals(
         b, status = _robust(images, light_dirs, mask, valid, min_samples)
         if view_map is not None:
             specular = _specular(images, valid, status, light_dirs, view_map, b)
+    return _field_from_fit(b, status, mask, specular=specular)
+
+
+def _field_from_fit(b, status, mask, *, specular) -> NormalField:
+    """The NormalField of a per-pixel fit: b = rho n (3, H, W) float32 and status (H, W) int8 -> unit
+    normals and albedo, holes (no estimate, or one facing away) filled from their neighbours."""
     h, w = mask.shape
     normals = np.empty((h, w, 3), dtype=np.float32)
     albedo = np.empty((h, w), dtype=np.float32)
@@ -235,7 +241,7 @@ def estimate_normals(
     if not estimated.any():
         raise CaptureError(
             f"images: no pixel of the mask ({int(mask.sum())} px) gave a normal "
-            f"(too few usable samples, or images dark or inconsistent with light_dirs)"
+            f"(too few usable samples, or images dark or inconsistent with the lights)"
         )
     holes = mask & ~estimated
     filled = _harmonic_fill(normals, albedo, estimated, holes)
@@ -245,7 +251,7 @@ def estimate_normals(
             f"estimate_normals: {int(unfilled.sum())} mask pixels in holes with no estimated "
             f"neighbour were left without a normal (excluded from the mask)",
             RuntimeWarning,
-            stacklevel=2,
+            stacklevel=3,
         )
     return NormalField(
         normals=normals,
@@ -255,6 +261,51 @@ def estimate_normals(
         n_filled=int(filled.sum()),
         specular=specular,
     )
+
+
+def drop_facing_away(field: NormalField, K: np.ndarray, *, min_cos: float = 0.02) -> tuple[NormalField, int]:
+    """Treat normals that do not face their pixel's ray as holes and fill them.
+
+    A normal can have n_z < 0 and still face away from a pixel near the image's edge, whose ray
+    is tilted (noise, a saturated pixel, a light model that does not fit there); the integration
+    needs ``n . r < 0`` for every pixel's ray ``r = K^-1 (u, v, 1)``.
+
+    Parameters
+    ----------
+    field : NormalField
+    K : (3, 3) float
+        Intrinsics of the grid, pixels.
+    min_cos : float
+        A normal is kept when ``-n . r / |r| > min_cos`` (dimensionless; 0.02 ~ within 88.9 deg).
+
+    Returns
+    -------
+    (NormalField, int)
+        The field with those normals filled from their neighbours (``filled`` and ``n_filled``
+        include them; pixels that cannot be filled leave the mask), and how many were dropped.
+    """
+    h, w = field.mask.shape
+    kinv = np.linalg.inv(np.asarray(K, dtype=np.float64)).astype(np.float32)
+    u = np.arange(w, dtype=np.float32)
+    v = np.arange(h, dtype=np.float32)[:, None]
+    rays = [kinv[c, 0] * u + kinv[c, 1] * v + kinv[c, 2] for c in range(3)]
+    norm = np.sqrt(rays[0] ** 2 + rays[1] ** 2 + rays[2] ** 2)
+    n = field.normals
+    cos = -(n[..., 0] * rays[0] + n[..., 1] * rays[1] + n[..., 2] * rays[2]) / norm
+    bad = field.mask & ~(cos > min_cos)  # NaN counts as bad
+    count = int(np.count_nonzero(bad))
+    if count == 0:
+        return field, 0
+    normals, albedo = field.normals.copy(), field.albedo.copy()
+    known = field.mask & ~bad
+    if not known.any():
+        raise CaptureError(f"normals: every one of the {count} normals faces away from its camera ray")
+    normals[bad] = np.nan
+    filled_now = _harmonic_fill(normals, albedo, known, bad)
+    mask = known | filled_now
+    filled = (field.filled & known) | filled_now
+    return replace(field, normals=normals, albedo=albedo, mask=mask, filled=filled,
+                   n_filled=int(np.count_nonzero(filled))), count
 
 
 # --------------------------------------------------------------------------- checks
@@ -482,9 +533,10 @@ _F32_MAD = np.float32(1.4826)  # median |r| -> standard deviation for Gaussian n
 def _fit_row(samples, weight, L, b, ok):
     """Per pixel j of a row: weighted (0/1) least squares b[:, j] over the samples.
 
-    samples, weight : (N, W) float32; L : (N, 3) float32; b : (3, W) float32 out; ok : (W,)
-    float32 out, 1 where the system has >= 3 samples and is well posed (see
-    DEGENERATE_RATIO), else 0. Float32 throughout: twice the SIMD lanes of float64, and
+    samples, weight : (N, W) float32; L : (N, 3, W) float32, the light vector of each sample
+    (the same for every pixel of a distant light, per pixel for a point light); b : (3, W)
+    float32 out; ok : (W,) float32 out, 1 where the system has >= 3 samples and is well posed
+    (see DEGENERATE_RATIO), else 0. Float32 throughout: twice the SIMD lanes of float64, and
     at most N = a few dozen unit-scale terms per sum.
     """
     n, w = samples.shape
@@ -499,17 +551,18 @@ def _fit_row(samples, weight, L, b, ok):
     r2 = np.zeros(w, np.float32)
     cnt = np.zeros(w, np.float32)
     for k in range(n):
-        lx, ly, lz = L[k, 0], L[k, 1], L[k, 2]
-        xx, xy, xz, yy, yz, zz = lx * lx, lx * ly, lx * lz, ly * ly, ly * lz, lz * lz
+        lxk, lyk, lzk = L[k, 0], L[k, 1], L[k, 2]
         for j in range(w):
+            lx, ly, lz = lxk[j], lyk[j], lzk[j]
             wk = weight[k, j]
             wi = wk * samples[k, j]
-            m00[j] += wk * xx
-            m01[j] += wk * xy
-            m02[j] += wk * xz
-            m11[j] += wk * yy
-            m12[j] += wk * yz
-            m22[j] += wk * zz
+            wx, wy = wk * lx, wk * ly
+            m00[j] += wx * lx
+            m01[j] += wx * ly
+            m02[j] += wx * lz
+            m11[j] += wy * ly
+            m12[j] += wy * lz
+            m22[j] += wk * lz * lz
             r0[j] += wi * lx
             r1[j] += wi * ly
             r2[j] += wi * lz
@@ -569,8 +622,8 @@ _BLOCK_SAMPLES = 3072
 
 @numba.njit(parallel=True, cache=True)
 def _robust_kernel(images, valid, use_valid, mask, L, min_samples, params, pairs, b_out, status):
-    """Robust fit of every mask pixel; see estimate_normals' Notes. Fills b_out (3, H, W)
-    with rho n and status (H, W) with a status code per pixel."""
+    """Robust fit of every mask pixel under distant lights L (N, 3); see estimate_normals' Notes.
+    Fills b_out (3, H, W) with rho n and status (H, W) with a status code per pixel."""
     n, h, w = images.shape
     width = max(16, _BLOCK_SAMPLES // n)
     per_row = (w + width - 1) // width
@@ -581,25 +634,22 @@ def _robust_kernel(images, valid, use_valid, mask, L, min_samples, params, pairs
         if not mask[i, j0:j1].any():
             status[i, j0:j1] = _OUTSIDE
             continue
-        _robust_block(images, valid, use_valid, mask, L, min_samples, params, pairs, b_out, status, i, j0, j1)
+        Lb = np.empty((n, 3, j1 - j0), np.float32)
+        for k in range(n):
+            for c in range(3):
+                Lb[k, c, :] = L[k, c]
+        samples, usable, m, finite = _load_block(images, valid, use_valid, mask, i, j0, j1)
+        _robust_block(samples, usable, m, finite, mask, Lb, min_samples, params, pairs, b_out, status, i, j0)
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
-def _robust_block(images, valid, use_valid, mask, L, min_samples, params, pairs, b_out, status, i, j0, j1):
-    """The robust fit of the pixels (i, j0:j1) of one row."""
-    # params: float64 (8,); the per-sample work is float32 (L too), the per-pixel quantities float32
-    shadow_fraction, trim_top, cos_min = np.float32(params[0]), params[2], np.float32(params[3])
-    outlier_k, scale_floor, outlier_k_high = np.float32(params[4]), np.float32(params[5]), np.float32(params[7])
-    ref_quantile = params[1]
-    iterations = int(params[6])
+def _load_block(images, valid, use_valid, mask, i, j0, j1):
+    """The samples of pixels (i, j0:j1): (N, w) float32 values (0 where unusable), (N, w) float32
+    usability (1: a valid sample of a mask pixel), (w,) int64 counts and (w,) finiteness."""
     n = images.shape[0]
     w = j1 - j0
-    samples = np.empty((n, w), np.float32)  # I_k, 0 where unusable
-    usable = np.empty((n, w), np.float32)  # 1: valid sample of a mask pixel
-    ranked = np.empty((n, w), np.float32)  # scratch for order statistics (+inf = not counted)
-    keep = np.empty((n, w), np.float32)
-    trial = np.empty((n, w), np.float32)
-    resid = np.empty((n, w), np.float32)
+    samples = np.empty((n, w), np.float32)
+    usable = np.empty((n, w), np.float32)
     m = np.zeros(w, np.int64)
     finite = np.ones(w, np.bool_)
     for k in range(n):
@@ -608,10 +658,29 @@ def _robust_block(images, valid, use_valid, mask, L, min_samples, params, pairs,
             u = mask[i, j0 + j] and (not use_valid or valid[k, i, j0 + j])
             usable[k, j] = _F32_ONE if u else _F32_ZERO
             samples[k, j] = x if u else _F32_ZERO
-            ranked[k, j] = x if u else _F32_INF
             m[j] += 1 if u else 0
             if u and not np.isfinite(x):
                 finite[j] = False
+    return samples, usable, m, finite
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _robust_block(samples, usable, m, finite, mask, L, min_samples, params, pairs, b_out, status, i, j0):
+    """The robust fit of the pixels (i, j0:j0 + w) of one row from their samples (N, w), usability
+    (N, w), counts and finiteness (see _load_block) under light vectors L (N, 3, w)."""
+    # params: float64 (8,); the per-sample work is float32 (L too), the per-pixel quantities float32
+    shadow_fraction, trim_top, cos_min = np.float32(params[0]), params[2], np.float32(params[3])
+    outlier_k, scale_floor, outlier_k_high = np.float32(params[4]), np.float32(params[5]), np.float32(params[7])
+    ref_quantile = params[1]
+    iterations = int(params[6])
+    n, w = samples.shape
+    ranked = np.empty((n, w), np.float32)  # scratch for order statistics (+inf = not counted)
+    keep = np.empty((n, w), np.float32)
+    trial = np.empty((n, w), np.float32)
+    resid = np.empty((n, w), np.float32)
+    for k in range(n):
+        for j in range(w):
+            ranked[k, j] = samples[k, j] if usable[k, j] > 0 else _F32_INF
     # shadow level and highlight cut from the pixel's order statistics
     _sort_row(ranked, pairs)  # unusable samples (+inf) sort last
     low = np.empty(w, np.float32)
@@ -658,9 +727,9 @@ def _robust_block(images, valid, use_valid, mask, L, min_samples, params, pairs,
             rho[j] = np.sqrt(b[0, j] * b[0, j] + b[1, j] * b[1, j] + b[2, j] * b[2, j])
             kth[j] = 0
         for k in range(n):
-            lx, ly, lz = L[k, 0], L[k, 1], L[k, 2]
+            lxk, lyk, lzk = L[k, 0], L[k, 1], L[k, 2]
             for j in range(w):
-                d = b[0, j] * lx + b[1, j] * ly + b[2, j] * lz  # rho n.l
+                d = b[0, j] * lxk[j] + b[1, j] * lyk[j] + b[2, j] * lzk[j]  # rho n.l
                 r = samples[k, j] - d
                 resid[k, j] = r
                 lit = usable[k, j] > 0 and d > cos_min * rho[j]

@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from . import artifacts, curvature, deviation, integration, normals, stereo
+from . import artifacts, curvature, deviation, normals, reconstruct, stereo
 from .formats import RESULT_FORMAT, CaptureError, PipelineError, ResultFile
 from .io import Capture, Target, load_capture, load_target
 from .lights import Lights
@@ -33,6 +33,9 @@ ProgressCallback = Callable[[str, float], None]
 #: Without a working-distance hint the stereo pair is searched around this depth (mm):
 #: with the default ``depth_margin`` of 1.0 that is 1750-7000 mm, the cell's whole range.
 NOMINAL_DISTANCE_MM = 3500.0
+#: The result warns that the photometric and stereo shapes disagree when the disagreement (see
+#: :class:`pipeline.fusion.Fusion`) exceeds both the noise floor and this fraction of the tolerance.
+DISAGREEMENT_FRACTION = 0.25
 
 
 @dataclass(frozen=True)
@@ -209,22 +212,27 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, li
     with ThreadPoolExecutor(max_workers=2) as pool:
         stereo_job = pool.submit(_stereo_prior, cap, pre.mask, opts) if cap.has_stereo else None
         rays_job = pool.submit(cap.rig.left.pixel_rays)  # (H, W, 3) float64, for the surface and the areas
-        clock.begin("normals")
-        field = normals.estimate_normals(
-            pre.images, cap.light_dirs, pre.mask, valid=pre.valid, method=opts.normals_method,
-            camera_matrix=cap.rig.left.K,
-        )
-        clock.end("normals")
-        write_normals = partial(artifacts.write_normals_png, out / names["normals"], field.normals, field.mask)
-        # normals.png: now if the stereo pair is still being matched (a core waits for it anyway), else after
-        # the depth, whose parallel kernels would wait for the core it takes
-        normals_early = stereo_job is not None and not stereo_job.done()
-        writes = [pool.submit(write_normals)] if normals_early else []
+        K = cap.rig.left.K
+        near_field = cap.lights.any_point
+        field = None
+        if not near_field:
+            # distant lights: the normals do not depend on the surface, estimated while stereo matches
+            clock.begin("normals")
+            field = normals.estimate_normals(
+                pre.images, cap.light_dirs, pre.mask, valid=pre.valid, method=opts.normals_method, camera_matrix=K,
+            )
+            clock.end("normals")
+        writes = []
+        if field is not None and stereo_job is not None and not stereo_job.done():
+            # a core waits for the stereo pair anyway: normals.png now (the few normals dropped later as facing
+            # away are then shown as estimated)
+            writes.append(pool.submit(artifacts.write_normals_png, out / names["normals"], field.normals, field.mask))
+        normals_written = bool(writes)
         clock.begin("stereo")
         prior, stereo_s = stereo_job.result() if stereo_job is not None else (None, 0.0)
         clock.timings["stereo"] = stereo_s
         matched_pct = (
-            None if prior is None else 100.0 * np.count_nonzero(np.isfinite(prior) & field.mask) / field.mask.sum()
+            None if prior is None else 100.0 * np.count_nonzero(np.isfinite(prior) & pre.mask) / pre.mask.sum()
         )
         if prior is not None and matched_pct < opts.min_stereo_pct:
             if cap.working_distance_mm is None:
@@ -235,27 +243,29 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, li
             prior = None  # too little to trust: the working distance sets the scale (details.json says so)
 
         clock.begin("depth")
-        K = cap.rig.left.K
-        rays = rays_job.result()
-        if prior is not None:
-            depth = integration.integrate_normals(
-                field.normals, field.mask, K, prior_depth_mm=prior, prior_weight=opts.stereo_weight, tol=opts.depth_tol
+        solve = dict(prior_mm=prior, working_distance_mm=cap.working_distance_mm, stereo_weight=opts.stereo_weight,
+                     tol=opts.depth_tol)
+        if near_field:
+            # point lights: normals and surface alternate (the normals' timing includes the integrations)
+            clock.begin("normals")
+            surface = reconstruct.near_field_surface(
+                pre.images, cap.lights, K, pre.mask, valid=pre.valid, method=opts.normals_method, **solve
             )
+            clock.end("normals")
         else:
-            depth = integration.integrate_normals(
-                field.normals, field.mask, K, reference_depth_mm=cap.working_distance_mm, tol=opts.depth_tol
-            )
-            depth = _scale_to_working_distance(depth, K, cap.working_distance_mm)
-        points = depth.depth_mm[..., None] * rays
-        surface_mask = depth.mask & np.isfinite(depth.depth_mm)
+            surface = reconstruct.distant_surface(field, K, **solve)
+        field = surface.field
+        rays = rays_job.result()
+        points = surface.depth_mm[..., None] * rays
+        surface_mask = surface.mask
         clock.end("depth")
 
         clock.begin("curvature")
         curvature_job = pool.submit(_curvature, points, surface_mask)
-        area_job = pool.submit(_pixel_area_mm2, depth.depth_mm, field.normals, rays, K)
-        writes.append(pool.submit(artifacts.save_depth, out / names["depth"], depth.depth_mm))
-        if not normals_early:
-            writes.append(pool.submit(write_normals))
+        area_job = pool.submit(_pixel_area_mm2, surface.depth_mm, field.normals, rays, K)
+        writes.append(pool.submit(artifacts.save_depth, out / names["depth"], surface.depth_mm))
+        if not normals_written:
+            writes.append(pool.submit(artifacts.write_normals_png, out / names["normals"], field.normals, field.mask))
         clock.begin("deviation")
         registration = deviation.register_to_target(points, surface_mask, tgt)
         dev = deviation.deviation_map(points, surface_mask, tgt, registration)
@@ -287,11 +297,24 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, li
         ],
         "reasons": list(judgement.reasons),
         "normals_filled": int(field.n_filled),
+        "normals_facing_away": surface.normals_facing_away,
+        "light_model": "near-field" if near_field else "distant",
+        "near_field_iterations": surface.iterations if near_field else None,
+        "near_field_depth_steps_mm": list(surface.depth_steps_mm) if near_field else None,
+        "stereo_fusion": _fusion_details(surface.fusion),
         "samples_saturated": pre.n_saturated,
         "samples_shadowed": pre.n_shadowed,
         "stereo_matched_pct": None if matched_pct is None else round(float(matched_pct), 2),
         "metric_scale": "stereo" if prior is not None else "working_distance",
     }
+    if surface.fusion is not None and surface.fusion.disagreement_mm > max(
+        surface.fusion.noise_floor_mm, DISAGREEMENT_FRACTION * tgt.tolerance_mm
+    ):
+        warnings.append(
+            f"the photometric and the stereo shapes disagreed by {surface.fusion.disagreement_mm:.1f} mm (95th "
+            f"percentile, beyond the {max(surface.fusion.noise_floor_mm, DISAGREEMENT_FRACTION * tgt.tolerance_mm):.1f}"
+            f" mm that noise explains): the stereo pair set the plate's overall shape; check the light positions"
+        )
     (out / names["details"]).write_text(json.dumps(details, indent=2) + "\n")
     clock.end("artifacts")
 
@@ -394,6 +417,20 @@ def _apply_light_calibration(cap: Capture, calibration: Lights | None, warnings:
     return replace(cap, lights=calibration)
 
 
+def _fusion_details(fused) -> dict | None:
+    """details.json's account of how the stereo pair corrected the photometric shape."""
+    if fused is None:
+        return None
+    return {
+        "disagreement_mm": round(fused.disagreement_mm, 3),
+        "noise_floor_mm": round(fused.noise_floor_mm, 3),
+        "stereo_noise_mm": round(fused.stereo_noise_mm, 3),
+        "correction_max_abs_mm": round(float(np.nanmax(np.abs(fused.correction_mm))), 3),
+        "stereo_pixels": fused.n_stereo,
+        "knot_spacing_px": None if fused.knot_spacing_px is None else round(fused.knot_spacing_px, 1),
+    }
+
+
 def _round(value: float | None, digits: int) -> float | None:
     return None if value is None else round(float(value), digits)
 
@@ -431,24 +468,6 @@ def _stereo_prior(cap: Capture, mask: np.ndarray, opts: InspectOptions) -> tuple
         depth = cv2.resize(depth, (width, height), interpolation=cv2.INTER_LINEAR)
     prior = np.where(mask, depth, np.nan)
     return prior, round(time.perf_counter() - t, 4)
-
-
-def _scale_to_working_distance(depth, K: np.ndarray, working_distance_mm: float):
-    """Scale an up-to-scale depth so the plate's depth on the optical axis is the working distance.
-
-    The working distance is the depth (mm, along the optical axis) of the surface
-    point seen at the principal point; where the plate does not cover it, the
-    median depth over the plate stands in for it.
-    """
-    z = depth.depth_mm
-    cx, cy = int(round(K[0, 2])), int(round(K[1, 2]))
-    window = z[max(cy - 2, 0) : cy + 3, max(cx - 2, 0) : cx + 3]
-    on_axis = window[np.isfinite(window)]
-    reference = float(np.median(on_axis)) if on_axis.size else float(np.nanmedian(z))
-    if not reference > 0:
-        raise CaptureError("depth: the integrated surface has no positive depth to scale")
-    factor = working_distance_mm / reference
-    return replace(depth, depth_mm=z * factor)
 
 
 def _pixel_area_mm2(depth_mm: np.ndarray, normals: np.ndarray, rays: np.ndarray, K: np.ndarray) -> np.ndarray:
