@@ -16,6 +16,7 @@ import json
 import logging
 import sys
 import traceback
+from dataclasses import replace
 from importlib.metadata import entry_points
 from pathlib import Path
 
@@ -48,6 +49,39 @@ def _dent(text: str):
     return Dent(x_mm=x, y_mm=y, radius_mm=r, depth_mm=d)
 
 
+def _cutout(text: str):
+    from .simulate import Cutout
+
+    try:
+        values = [float(v) for v in text.split(",")]
+        if len(values) == 3:
+            return Cutout.circle(*values)
+        if len(values) in (4, 5):
+            return Cutout(*values)
+        raise ValueError
+    except ValueError as err:
+        detail = f": {err}" if str(err) else ""
+        raise BadArgument(
+            f"--cutout: expected X_MM,Y_MM,RADIUS_MM (a round hole) or X_MM,Y_MM,WIDTH_MM,HEIGHT_MM[,CORNER_MM], "
+            f"got {text!r}{detail}"
+        ) from None
+
+
+def _floor(args: argparse.Namespace, size_mm: tuple[float, float]):
+    from .simulate import Floor, rail_supports
+
+    if args.floor is None:
+        if args.supports:
+            raise BadArgument("--supports: expected --floor too (supports stand on the floor)")
+        return None
+    if not args.floor > 0:
+        raise BadArgument(f"--floor: expected a distance > 0 mm below the plate, got {args.floor}")
+    if args.supports < 0:
+        raise BadArgument(f"--supports: expected a number of rails >= 0, got {args.supports}")
+    supports = rail_supports(size_mm, args.floor, args.supports) if args.supports else ()
+    return Floor(gap_mm=args.floor, albedo=args.floor_albedo, supports=supports)
+
+
 # --------------------------------------------------------------------------- simulate
 
 
@@ -62,7 +96,13 @@ def _cmd_simulate_capture(args: argparse.Namespace) -> int:
         convex=not args.concave,
         dents=tuple(_dent(d) for d in args.dent),
         distance_mm=args.distance,
+        outline=args.outline,
+        cutouts=tuple(_cutout(c) for c in args.cutout),
     )
+    try:
+        plate = replace(plate, floor=_floor(args, plate.size_mm))
+    except ValueError as err:  # a spec the simulator refuses (Floor, Support): bad input, not a defect
+        raise BadArgument(str(err)) from None
     capture = CaptureSpec(
         n_lights=args.lights,
         noise=args.noise,
@@ -180,6 +220,18 @@ def build_parser() -> argparse.ArgumentParser:
     cap.add_argument("--concave", action="store_true", help="bent away from the cameras (default: convex)")
     cap.add_argument("--dent", action="append", default=[], metavar="X,Y,R,D",
                      help="local dent at plate coordinates X,Y mm, radius R mm, depth D mm (negative: bump); repeatable")
+    cap.add_argument("--outline", choices=["rectangle", "trapezoid", "curved"], default="rectangle",
+                     help="plate outline (not a rectangle: the target is written as a mesh, target.stl)")
+    cap.add_argument("--cutout", action="append", default=[], metavar="X,Y,R",
+                     help="opening through the plate at plate coordinates X,Y mm: radius R mm, or X,Y,W,H[,CORNER] "
+                          "for a rounded rectangle; repeatable (the target is then written as a mesh); "
+                          "a negative X needs the = form: --cutout=-500,200,150")
+    cap.add_argument("--floor", type=float, default=None, metavar="MM",
+                     help="a lit, textured shop floor this far below the plate's lowest point, mm "
+                          "(default: a dark conveyor 40 mm behind the plate)")
+    cap.add_argument("--floor-albedo", type=float, default=0.55, help="mean albedo of the floor (default 0.55)")
+    cap.add_argument("--supports", type=int, default=0, metavar="N",
+                     help="with --floor: N rails 200-400 mm high (at most the floor's distance) across the plate")
     cap.add_argument("--lights", type=int, default=12, help="number of light directions (default 12)")
     cap.add_argument("--noise", type=float, default=0.004, help="sensor noise, fraction of full scale (default 0.004)")
     cap.add_argument("--bit-depth", type=int, choices=[8, 12, 16], default=16)

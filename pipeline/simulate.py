@@ -19,6 +19,12 @@ slightly textured conveyor plane behind it (lit by the same lights). The albedo 
 texture fixed to the plate (a function of plate coordinates), so both cameras see the same texture.
 Values are quantised to ``bit_depth`` and saturate at full scale.
 
+The plate's material may have another outline than its size's rectangle (``PlateSpec.outline``) and
+openings (``PlateSpec.cutouts``); rays that miss the material see what lies behind it. Instead of the
+conveyor a plate may lie over a lit, textured shop floor with supports standing on it
+(``PlateSpec.floor``), shaded by the same lights (no cast shadows, no interreflections). With these
+options off the bundle is bit-identical to what it was without them.
+
 Conventions (DESIGN.md): mm, pixels, radians in code (degrees only in the spec dataclasses, named
 ``*_deg``); OpenCV camera frame (x right, y down, z forward); left camera = reference frame;
 ``X_right = R @ X_left + T``; light directions are unit vectors from the surface towards the light
@@ -159,6 +165,200 @@ class Dent:
 
 
 @dataclass(frozen=True)
+class Cutout:
+    """An opening cut through the plate: a rounded rectangle in plate coordinates (a circle is one).
+
+    Attributes
+    ----------
+    x_mm, y_mm : float
+        Centre, plate frame, mm.
+    width_mm, height_mm : float
+        Extent along x_p and y_p, mm (> 0).
+    corner_mm : float
+        Corner radius, mm, ``0 <= corner_mm <= min(width_mm, height_mm) / 2``; equal to half of both
+        sides: a circle or a slot with round ends.
+
+    Notes
+    -----
+    An opening that overlaps the plate's outline is a notch in its edge. Rays through an opening
+    see what lies behind the plate (the conveyor, or the floor and the supports).
+    """
+
+    x_mm: float
+    y_mm: float
+    width_mm: float
+    height_mm: float
+    corner_mm: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("x_mm", "y_mm", "width_mm", "height_mm", "corner_mm"):
+            value = float(getattr(self, name))
+            if not math.isfinite(value):
+                raise ValueError(f"Cutout.{name}: expected a finite number, got {getattr(self, name)}")
+            object.__setattr__(self, name, value)
+        if self.width_mm <= 0 or self.height_mm <= 0:
+            raise ValueError(f"Cutout.width_mm, height_mm: expected > 0, got {self.width_mm}, {self.height_mm}")
+        if not 0 <= self.corner_mm <= min(self.width_mm, self.height_mm) / 2 + 1e-9:
+            raise ValueError(
+                f"Cutout.corner_mm: expected in [0, {min(self.width_mm, self.height_mm) / 2:g}] mm, got {self.corner_mm}"
+            )
+
+    @classmethod
+    def circle(cls, x_mm: float, y_mm: float, radius_mm: float) -> "Cutout":
+        """A round hole of ``radius_mm`` centred at ``(x_mm, y_mm)`` (plate frame, mm)."""
+        if not (math.isfinite(radius_mm) and radius_mm > 0):
+            raise ValueError(f"Cutout.radius_mm: expected > 0, got {radius_mm}")
+        return cls(x_mm, y_mm, 2.0 * radius_mm, 2.0 * radius_mm, radius_mm)
+
+    def signed_distance(self, x_mm: np.ndarray, y_mm: np.ndarray) -> np.ndarray:
+        """Signed distance (mm) of plate points to the opening's edge: negative inside the opening."""
+        r = self.corner_mm
+        qx = np.abs(np.asarray(x_mm, np.float64) - self.x_mm) - (self.width_mm / 2 - r)
+        qy = np.abs(np.asarray(y_mm, np.float64) - self.y_mm) - (self.height_mm / 2 - r)
+        outside = np.hypot(np.maximum(qx, 0.0), np.maximum(qy, 0.0))
+        return outside + np.minimum(np.maximum(qx, qy), 0.0) - r
+
+    def boundary(self, step_mm: float) -> np.ndarray:
+        """(M, 2) points along the opening's edge (plate frame, mm), counter-clockwise, at most ``step_mm`` apart."""
+        r = self.corner_mm
+        a, b = self.width_mm / 2 - r, self.height_mm / 2 - r
+        corners = []
+        for k, (cx, cy) in enumerate(((a, b), (-a, b), (-a, -b), (a, -b))):
+            n_arc = int(math.ceil(r * math.pi / 2 / step_mm)) if r > 0 else 0
+            t = k * math.pi / 2 + np.linspace(0.0, math.pi / 2, n_arc + 1)
+            corners.append(np.stack([cx + r * np.cos(t), cy + r * np.sin(t)], axis=1))
+        return _densify(np.concatenate(corners), step_mm) + [self.x_mm, self.y_mm]
+
+
+@dataclass(frozen=True)
+class Support:
+    """A block or rail standing on the floor under the plate: a box with sides along x_p and y_p.
+
+    Attributes
+    ----------
+    x_mm, y_mm : float
+        Centre of its footprint, plate frame, mm.
+    size_x_mm, size_y_mm : float
+        Footprint along x_p and y_p, mm (> 0); a rail is long in one of them.
+    height_mm : float
+        Height above the floor, mm (> 0, at most the floor's ``gap_mm``: it never reaches through
+        the plate).
+    albedo : float
+        Mean albedo of the support (0..1); it carries the floor's texture scaled to this mean.
+    """
+
+    x_mm: float
+    y_mm: float
+    size_x_mm: float
+    size_y_mm: float
+    height_mm: float
+    albedo: float = 0.35
+
+    def __post_init__(self) -> None:
+        for name in ("x_mm", "y_mm", "size_x_mm", "size_y_mm", "height_mm", "albedo"):
+            value = float(getattr(self, name))
+            if not math.isfinite(value):
+                raise ValueError(f"Support.{name}: expected a finite number, got {getattr(self, name)}")
+            object.__setattr__(self, name, value)
+        if self.size_x_mm <= 0 or self.size_y_mm <= 0 or self.height_mm <= 0:
+            raise ValueError(
+                f"Support.size_x_mm, size_y_mm, height_mm: expected > 0, got "
+                f"{self.size_x_mm}, {self.size_y_mm}, {self.height_mm}"
+            )
+        if not 0 < self.albedo <= 1:
+            raise ValueError(f"Support.albedo: expected in (0, 1], got {self.albedo}")
+
+
+@dataclass(frozen=True)
+class Floor:
+    """A lit, textured shop floor under the plate, with the supports the plate lies on.
+
+    Replaces the default dark conveyor (a plane 40 mm behind the plate). Floor and supports are
+    lit by the same lights as the plate (no cast shadows) and seen by both cameras.
+
+    Attributes
+    ----------
+    gap_mm : float
+        Distance (mm, along the plate frame's z_p, away from the cameras) from the plate's farthest
+        point to the floor plane, which is parallel to the plate's xy plane; > 0.
+    albedo : float
+        Mean albedo of the concrete (0..1); the default is about as bright as the painted plate.
+    texture : float
+        Contrast of the floor's texture relative to the default (0: uniform; 1: grain, slow
+        variation, stains, joints and painted lines).
+    supports : tuple of Support
+        Blocks or rails standing on the floor (see :func:`rail_supports`).
+    """
+
+    gap_mm: float = 300.0
+    albedo: float = 0.55
+    texture: float = 1.0
+    supports: tuple[Support, ...] = ()
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.gap_mm) and self.gap_mm > 0):
+            raise ValueError(f"Floor.gap_mm: expected a distance > 0 mm, got {self.gap_mm}")
+        if not (math.isfinite(self.albedo) and 0 < self.albedo <= 1):
+            raise ValueError(f"Floor.albedo: expected in (0, 1], got {self.albedo}")
+        if not (math.isfinite(self.texture) and 0 <= self.texture <= 3):
+            raise ValueError(f"Floor.texture: expected a contrast in [0, 3], got {self.texture}")
+        supports = tuple(self.supports)
+        if not all(isinstance(s, Support) for s in supports):
+            raise TypeError("Floor.supports: expected a tuple of Support")
+        for i, s in enumerate(supports):
+            if s.height_mm > self.gap_mm + 1e-9:
+                raise ValueError(
+                    f"Floor.supports[{i}].height_mm: expected at most the floor's gap_mm {self.gap_mm:g} mm "
+                    f"(a taller support would reach through the plate), got {s.height_mm:g}"
+                )
+        object.__setattr__(self, "supports", supports)
+
+
+def rail_supports(size_mm: tuple[float, float], gap_mm: float, n: int, *, heights_mm: tuple[float, float] = (200.0, 400.0),
+                  width_mm: float = 150.0, overhang_mm: float = 500.0) -> tuple[Support, ...]:
+    """``n`` rails across the plate, as a plate lies on them in a shop.
+
+    The rails run along x_p (across a cylinder's curvature), evenly spaced over the middle 70 % of
+    the plate's y_p extent, and reach ``overhang_mm`` beyond the plate on both sides, so that they
+    are seen beside it. Their heights go evenly from ``heights_mm[0]`` to ``heights_mm[1]``, each
+    at most ``gap_mm`` (a rail as high as the gap reaches the level of the plate's farthest point).
+
+    Parameters
+    ----------
+    size_mm : (float, float)
+        The plate's size (``PlateSpec.size_mm``), mm.
+    gap_mm : float
+        The floor's distance below the plate's farthest point (``Floor.gap_mm``), mm.
+    n : int
+        Number of rails, >= 1.
+
+    Returns
+    -------
+    tuple of Support
+    """
+    if not isinstance(n, (int, np.integer)) or n < 1:
+        raise ValueError(f"n: expected an integer >= 1, got {n}")
+    lo, hi = (float(v) for v in heights_mm)
+    if not 0 < lo <= hi:
+        raise ValueError(f"heights_mm: expected 0 < low <= high, got {heights_mm}")
+    half_h = size_mm[1] / 2
+    ys = np.linspace(-0.7 * half_h, 0.7 * half_h, n) if n > 1 else np.zeros(1)
+    heights = np.linspace(lo, hi, n) if n > 1 else np.array([hi])
+    return tuple(
+        Support(0.0, float(y), size_mm[0] + 2 * overhang_mm, width_mm, float(min(hgt, gap_mm)))
+        for y, hgt in zip(ys, heights)
+    )
+
+
+OutlineName = Literal["rectangle", "trapezoid", "curved"]
+#: Trapezoid outline: the edge at y_p = +size_y / 2 is this share of the full width (centred).
+TRAPEZOID_TOP = 0.6
+#: Curved outline: the edge at y_p = +size_y / 2 is a circular arc through the two corners moved
+#: in by this share of size_y, and through the middle of the straight edge (a convex bulge).
+CURVED_SAGITTA = 0.2
+
+
+@dataclass(frozen=True)
 class PlateSpec:
     """The simulated plate and where it lies.
 
@@ -181,6 +381,17 @@ class PlateSpec:
         Rotations about the camera x and y axes of the plate relative to facing the camera.
     in_plane_deg : float
         Rotation of the plate about its own normal (z_p).
+    outline : {"rectangle", "trapezoid", "curved"} or sequence of (x, y)
+        The plate's outline in plate coordinates, inside the ``size_mm`` box: the box itself; a
+        trapezoid whose edge at ``y_p = +size_y / 2`` is :data:`TRAPEZOID_TOP` of the full width;
+        the box with its ``y_p = +size_y / 2`` edge replaced by a convex circular arc through the
+        corners moved in by :data:`CURVED_SAGITTA` of ``size_y`` (a developed plate's curved
+        edge); or a simple polygon given by its vertices, mm.
+    cutouts : tuple of Cutout
+        Openings through the plate (holes inside it, notches where they overlap the outline).
+    floor : Floor or None
+        None: the dark conveyor 40 mm behind the plate. Otherwise a lit, textured shop floor and
+        the supports standing on it.
     """
 
     shape: ShapeName = "cylinder"
@@ -192,6 +403,9 @@ class PlateSpec:
     distance_mm: float = 3000.0
     tilt_deg: tuple[float, float] = (3.0, -2.0)
     in_plane_deg: float = 0.0
+    outline: OutlineName | tuple[tuple[float, float], ...] = "rectangle"
+    cutouts: tuple[Cutout, ...] = ()
+    floor: Floor | None = None
 
     def __post_init__(self) -> None:
         if self.shape not in ("plane", "cylinder", "sphere", "saddle"):
@@ -224,6 +438,28 @@ class PlateSpec:
         if not all(isinstance(d, Dent) for d in dents):
             raise TypeError("PlateSpec.dents: expected a tuple of Dent")
         object.__setattr__(self, "dents", dents)
+        if isinstance(self.outline, str):
+            if self.outline not in ("rectangle", "trapezoid", "curved"):
+                raise ValueError(
+                    f"PlateSpec.outline: expected rectangle, trapezoid, curved or polygon vertices, got {self.outline!r}"
+                )
+        else:
+            vertices = np.asarray(self.outline, dtype=np.float64)
+            if vertices.ndim != 2 or vertices.shape[0] < 3 or vertices.shape[1] != 2 or not np.isfinite(vertices).all():
+                raise ValueError(
+                    f"PlateSpec.outline: expected at least 3 finite (x, y) vertices in mm, got shape {vertices.shape}"
+                )
+            if np.any(np.abs(vertices) > np.array([half_w, half_h]) + 1e-6):
+                raise ValueError(
+                    f"PlateSpec.outline: expected vertices inside the size_mm box |x| <= {half_w:g}, |y| <= {half_h:g} mm"
+                )
+            object.__setattr__(self, "outline", tuple((float(x), float(y)) for x, y in vertices))
+        cutouts = tuple(self.cutouts)
+        if not all(isinstance(c, Cutout) for c in cutouts):
+            raise TypeError("PlateSpec.cutouts: expected a tuple of Cutout")
+        object.__setattr__(self, "cutouts", cutouts)
+        if self.floor is not None and not isinstance(self.floor, Floor):
+            raise TypeError(f"PlateSpec.floor: expected a Floor or None, got {type(self.floor).__name__}")
 
     @property
     def radius2(self) -> float | None:
@@ -243,6 +479,113 @@ def plate_pose(plate: PlateSpec) -> np.ndarray:
     T[:3, :3] = _rot_x(tx) @ _rot_y(ty) @ _rot_z(math.radians(plate.in_plane_deg))
     T[:3, 3] = (0.0, 0.0, plate.distance_mm)
     return T
+
+
+def _densify(polygon: np.ndarray, step_mm: float) -> np.ndarray:
+    """A closed polygon (V, 2) with points inserted so that no edge is longer than ``step_mm``."""
+    out = []
+    nxt = np.roll(polygon, -1, axis=0)
+    for a, b in zip(polygon, nxt):
+        length = float(np.hypot(*(b - a)))
+        if length <= 1e-9:
+            continue
+        n = max(1, int(math.ceil(length / step_mm)))
+        t = np.arange(n)[:, None] / n
+        out.append(a + t * (b - a))
+    return np.concatenate(out)
+
+
+def _curved_edge(plate: PlateSpec) -> tuple[float, float]:
+    """Centre y (mm) and radius (mm) of the circle whose arc is the curved outline's edge."""
+    half_w, half_h = plate.size_mm[0] / 2, plate.size_mm[1] / 2
+    sag = CURVED_SAGITTA * plate.size_mm[1]
+    rho = (half_w * half_w + sag * sag) / (2.0 * sag)
+    return half_h - rho, rho
+
+
+def outline_polygon(plate: PlateSpec, *, step_mm: float = 20.0) -> np.ndarray:
+    """The plate's outline as a closed polygon, counter-clockwise (x right, y up), plate frame.
+
+    Parameters
+    ----------
+    plate : PlateSpec
+    step_mm : float
+        Longest edge of the polygon, mm (arcs and long sides are subdivided).
+
+    Returns
+    -------
+    (V, 2) float64
+        Vertices ``(x_p, y_p)`` in mm; the last connects to the first. Openings are not included
+        (see ``Cutout.boundary``).
+    """
+    half_w, half_h = plate.size_mm[0] / 2, plate.size_mm[1] / 2
+    if not (math.isfinite(step_mm) and step_mm > 0):
+        raise ValueError(f"step_mm: expected > 0, got {step_mm}")
+    if not isinstance(plate.outline, str):
+        corners = np.array(plate.outline, dtype=np.float64)
+        area2 = np.sum(corners[:, 0] * np.roll(corners[:, 1], -1) - np.roll(corners[:, 0], -1) * corners[:, 1])
+        return _densify(corners if area2 > 0 else corners[::-1], step_mm)
+    if plate.outline == "rectangle":
+        corners = np.array([[-half_w, -half_h], [half_w, -half_h], [half_w, half_h], [-half_w, half_h]])
+    elif plate.outline == "trapezoid":
+        top = TRAPEZOID_TOP * half_w
+        corners = np.array([[-half_w, -half_h], [half_w, -half_h], [top, half_h], [-top, half_h]])
+    else:
+        yc, rho = _curved_edge(plate)
+        a0 = math.atan2(half_h - CURVED_SAGITTA * plate.size_mm[1] - yc, half_w)
+        n = max(2, int(math.ceil(rho * (math.pi - 2 * a0) / step_mm)))
+        t = np.linspace(a0, math.pi - a0, n + 1)
+        arc = np.stack([rho * np.cos(t), yc + rho * np.sin(t)], axis=1)
+        corners = np.concatenate([[[-half_w, -half_h], [half_w, -half_h]], arc])
+    return _densify(corners, step_mm)
+
+
+def _inside_outline(plate: PlateSpec, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    half_w, half_h = plate.size_mm[0] / 2, plate.size_mm[1] / 2
+    box = (np.abs(x) <= half_w) & (np.abs(y) <= half_h)
+    if plate.outline == "rectangle":
+        return box
+    if plate.outline == "trapezoid":
+        with np.errstate(invalid="ignore"):
+            return box & (np.abs(x) <= half_w * (1.0 - 0.5 * (1.0 - TRAPEZOID_TOP) * (1.0 + y / half_h)))
+    if plate.outline == "curved":
+        yc, rho = _curved_edge(plate)
+        return box & (x * x + (y - yc) ** 2 <= rho * rho)
+    # a polygon: even-odd crossing count over its edges
+    vertices = np.array(plate.outline, dtype=np.float64)
+    inside = np.zeros(np.shape(x), dtype=bool)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for (x0, y0), (x1, y1) in zip(vertices, np.roll(vertices, -1, axis=0)):
+            if y0 == y1:
+                continue
+            crosses = ((y0 > y) != (y1 > y)) & (x < x0 + (y - y0) * (x1 - x0) / (y1 - y0))
+            inside ^= crosses
+    return inside & box
+
+
+def plate_region(plate: PlateSpec, x_mm: np.ndarray, y_mm: np.ndarray) -> np.ndarray:
+    """Whether plate-frame points lie on the plate's material: inside its outline, outside its openings.
+
+    Parameters
+    ----------
+    plate : PlateSpec
+    x_mm, y_mm : array_like, same shape
+        Plate-frame coordinates, mm (NaN: not on the plate).
+
+    Returns
+    -------
+    bool array of that shape
+        True on the plate (its edge included).
+    """
+    x = np.asarray(x_mm, dtype=np.float64)
+    y = np.asarray(y_mm, dtype=np.float64)
+    if x.shape != y.shape:
+        raise ValueError(f"x_mm, y_mm: expected the same shape, got {x.shape} and {y.shape}")
+    inside = _inside_outline(plate, x, y)
+    for cut in plate.cutouts:
+        with np.errstate(invalid="ignore"):
+            inside &= ~(cut.signed_distance(x, y) < 0)
+    return inside
 
 
 def plate_height(plate: PlateSpec, x_mm: np.ndarray, y_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -308,12 +651,19 @@ def plate_height(plate: PlateSpec, x_mm: np.ndarray, y_mm: np.ndarray) -> tuple[
 
 @dataclass(frozen=True)
 class _Hits:
-    """Ray hits: ``s`` ray parameter, plate-frame point, camera-frame normal, whether on the plate."""
+    """Ray hits: ``s`` ray parameter, plate-frame point, camera-frame normal, whether on the plate, and
+    which surface was hit (:data:`SURFACE_PLATE`, :data:`SURFACE_CONVEYOR`, :data:`SURFACE_FLOOR` or
+    ``SURFACE_SUPPORT + k`` for support k)."""
 
     s: np.ndarray  # (...,) float64
     xyz_plate: np.ndarray  # (..., 3) float64
     normals: np.ndarray  # (..., 3) float64, camera frame, towards the cameras
     on_plate: np.ndarray  # (...,) bool
+    surface: np.ndarray  # (...,) int8
+
+
+#: Codes of ``truth.npz: surface``: what each pixel sees.
+SURFACE_PLATE, SURFACE_CONVEYOR, SURFACE_FLOOR, SURFACE_SUPPORT = 0, 1, 2, 3
 
 
 def _intersect(plate: PlateSpec, T_cam_plate: np.ndarray, origin: np.ndarray, dirs: np.ndarray) -> _Hits:
@@ -365,7 +715,7 @@ def _intersect(plate: PlateSpec, T_cam_plate: np.ndarray, origin: np.ndarray, di
 
         x = o[0] + s * dx
         y = o[1] + s * dy
-        on_plate = np.isfinite(s) & (s > 0) & (np.abs(x) <= half_w) & (np.abs(y) <= half_h)
+        on_plate = np.isfinite(s) & (s > 0) & plate_region(plate, x, y)
         xq = np.where(on_plate, x, 0.0)
         yq = np.where(on_plate, y, 0.0)
         h, hx, hy = plate_height(plate, xq, yq)
@@ -376,15 +726,54 @@ def _intersect(plate: PlateSpec, T_cam_plate: np.ndarray, origin: np.ndarray, di
                 "are the dents too steep (depth_mm comparable to radius_mm)?"
             )
 
-        # The conveyor: a plane z_p = const behind the plate's farthest point.
-        z_bg = _conveyor_z(plate)
-        s_bg = (z_bg - o[2]) / dz
-    s = np.where(on_plate, s, s_bg)
-    xyz = np.stack([o[0] + s * dx, o[1] + s * dy, np.where(on_plate, h, z_bg)], axis=-1)
-    n_plate = np.stack([np.where(on_plate, hx, 0.0), np.where(on_plate, hy, 0.0), -np.ones_like(s)], axis=-1)
+        if plate.floor is None:
+            # The conveyor: a plane z_p = const behind the plate's farthest point.
+            z_bg = _conveyor_z(plate)
+            s_bg = (z_bg - o[2]) / dz
+        else:
+            s_bg, n_bg, surface_bg = _surroundings(plate, o, d)
+    if plate.floor is None:
+        s = np.where(on_plate, s, s_bg)
+        xyz = np.stack([o[0] + s * dx, o[1] + s * dy, np.where(on_plate, h, z_bg)], axis=-1)
+        n_plate = np.stack([np.where(on_plate, hx, 0.0), np.where(on_plate, hy, 0.0), -np.ones_like(s)], axis=-1)
+        surface = np.where(on_plate, SURFACE_PLATE, SURFACE_CONVEYOR).astype(np.int8)
+    else:
+        s = np.where(on_plate, s, s_bg)
+        xyz = np.stack([o[0] + s * dx, o[1] + s * dy, np.where(on_plate, h, o[2] + s * dz)], axis=-1)
+        n_plate = np.where(on_plate[..., None], np.stack([hx, hy, -np.ones_like(s)], axis=-1), n_bg)
+        surface = np.where(on_plate, SURFACE_PLATE, surface_bg).astype(np.int8)
     n_plate /= np.linalg.norm(n_plate, axis=-1, keepdims=True)
     normals = n_plate @ R.T
-    return _Hits(s=s, xyz_plate=xyz, normals=normals, on_plate=on_plate)
+    return _Hits(s=s, xyz_plate=xyz, normals=normals, on_plate=on_plate, surface=surface)
+
+
+def _surroundings(plate: PlateSpec, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rays ``o + s d`` (plate frame) against the floor and the supports: nearest hit ``s`` (...,), its
+    outward normal (..., 3) (plate frame, towards the rays' side) and surface code (...,) int8."""
+    floor = plate.floor
+    z_floor = _conveyor_z(plate) - _CONVEYOR_GAP_MM + floor.gap_mm
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s = (z_floor - o[2]) / d[..., 2]
+        s = np.where(s > 0, s, np.inf)
+        normal = np.zeros(d.shape)
+        normal[..., 2] = -1.0
+        surface = np.full(s.shape, SURFACE_FLOOR, dtype=np.int8)
+        for k, sup in enumerate(floor.supports):
+            lo = np.array([sup.x_mm - sup.size_x_mm / 2, sup.y_mm - sup.size_y_mm / 2, z_floor - sup.height_mm])
+            hi = np.array([sup.x_mm + sup.size_x_mm / 2, sup.y_mm + sup.size_y_mm / 2, z_floor])
+            t1 = (lo - o) / d
+            t2 = (hi - o) / d
+            near = np.nan_to_num(np.minimum(t1, t2), nan=-np.inf)
+            far = np.nan_to_num(np.maximum(t1, t2), nan=np.inf)
+            enter = near.max(axis=-1)
+            hit = (enter <= far.min(axis=-1)) & (enter > 0) & (enter < s)
+            axis = near.argmax(axis=-1)
+            face = np.zeros(d.shape)
+            np.put_along_axis(face, axis[..., None], -np.sign(np.take_along_axis(d, axis[..., None], axis=-1)), axis=-1)
+            s = np.where(hit, enter, s)
+            normal = np.where(hit[..., None], face, normal)
+            surface = np.where(hit, SURFACE_SUPPORT + k, surface).astype(np.int8)
+    return s, normal, surface
 
 
 def _conveyor_z(plate: PlateSpec) -> float:
@@ -481,6 +870,29 @@ def _conveyor_texture(plate: PlateSpec, seed: int) -> _Texture:
     slats = (np.sin(2 * np.pi * y / 300.0) > 0.92).astype(np.float32)
     albedo = 0.05 + 0.008 * low + 0.006 * grain - 0.02 * slats
     return _Texture(np.clip(albedo, 0.01, None), -span / 2, -span / 2, texel)
+
+
+def _floor_texture(plate: PlateSpec, seed: int, texel_mm: float, span_mm: float) -> _Texture:
+    """Concrete shop floor (plate frame x_p, y_p over ``span_mm`` square, centred): grain, slow
+    variation, oil stains, joints every 3 m and a painted safety line, mean ``floor.albedo``."""
+    floor = plate.floor
+    n = int(math.ceil(span_mm / texel_mm)) + 1
+    rng = np.random.default_rng(seed)
+    grain = cv2.GaussianBlur(rng.standard_normal((n, n)).astype(np.float32), (0, 0), 0.8)
+    grain /= grain.std() + 1e-12
+    slow = _smooth_noise(rng, (n, n), max(2, int(span_mm / 800)))
+    stains = _smooth_noise(rng, (n, n), max(2, int(span_mm / 300)))
+    stain = np.clip((stains - 1.3) / 0.5, 0.0, 1.0)
+    stain = stain * stain * (3.0 - 2.0 * stain)
+    coords = (np.arange(n, dtype=np.float32) * texel_mm - span_mm / 2)
+    joint = lambda c: (np.abs(((c + 1500.0) % 3000.0) - 1500.0) < 8.0).astype(np.float32)  # noqa: E731
+    joints = np.maximum(joint(coords)[None, :], joint(coords)[:, None])
+    line_x = plate.size_mm[0] / 2 + 350.0
+    line = (np.abs(coords - line_x) < 50.0).astype(np.float32)[None, :]
+    c = floor.texture
+    albedo = floor.albedo * (1.0 + c * (0.10 * grain + 0.08 * slow)) * (1.0 - 0.45 * c * stain) * (1.0 - 0.5 * c * joints)
+    albedo = albedo * (1.0 - line) + line * min(0.95, floor.albedo + 0.3 * c)
+    return _Texture(np.clip(albedo, 0.02, 0.95).astype(np.float32), -span_mm / 2, -span_mm / 2, texel_mm)
 
 
 # --------------------------------------------------------------------------- capture
@@ -630,7 +1042,7 @@ class _Scene:
     plate: PlateSpec
     T_cam_plate: np.ndarray
     albedo: _Texture
-    conveyor: _Texture
+    conveyor: _Texture  # the conveyor's texture, or the floor's when the plate lies over a floor
 
 
 def _render_view(scene: _Scene, origin: np.ndarray, rays: np.ndarray) -> tuple[_Hits, np.ndarray]:
@@ -639,6 +1051,10 @@ def _render_view(scene: _Scene, origin: np.ndarray, rays: np.ndarray) -> tuple[_
     x = hits.xyz_plate[..., 0]
     y = hits.xyz_plate[..., 1]
     albedo = np.where(hits.on_plate, scene.albedo.sample(x, y), scene.conveyor.sample(x, y))
+    floor = scene.plate.floor
+    if floor is not None:
+        for k, sup in enumerate(floor.supports):  # the floor's texture, scaled to the support's albedo
+            albedo = np.where(hits.surface == SURFACE_SUPPORT + k, albedo * np.float32(sup.albedo / floor.albedo), albedo)
     return hits, albedo.astype(np.float32)
 
 
@@ -676,6 +1092,14 @@ def _shade(
             img = img + np.where(ndotl > 0, capture.specular * ndoth**capture.shininess, 0.0)
         out[k] = np.float32(capture.exposure) * gain * img
     return out
+
+
+def _floor_span_mm(plate: PlateSpec, rig: StereoRig) -> float:
+    """Side (mm) of a floor square centred under the plate that covers what both cameras see of it."""
+    w, h = rig.image_size
+    far = plate.distance_mm + _conveyor_z(plate) + plate.floor.gap_mm
+    field = max(w / rig.left.K[0, 0], h / rig.left.K[1, 1]) * far
+    return 1.2 * field + _BASELINE_MM
 
 
 def _bumped(lights: Lights, centre_mm: np.ndarray, error_deg: float, rng: np.random.Generator) -> Lights:
@@ -743,8 +1167,9 @@ def simulate_capture(
         ``out_dir``, holding:
 
         - ``capture.json`` (``plate-capture/1``), ``calibration.json`` (``stereo-calibration/1`` of
-          the rig), ``target.json`` (``plate-target/1`` of the nominal shape without dents; a saddle
-          is written as a mesh target with ``target.stl``, plate frame, mm);
+          the rig), ``target.json`` (``plate-target/1`` of the nominal shape without dents; a saddle,
+          and a plate with another outline or with openings, is written as a mesh target with
+          ``target.stl``, plate frame, mm, see :func:`plate_mesh`);
         - ``ps_00.png`` ... (left camera, raw/distorted, one light each), ``dark.png``,
           ``stereo_left.png``, ``stereo_right.png`` (when ``capture.stereo``);
         - ``truth.npz`` on the LEFT UNDISTORTED grid (pixel (u, v) sees ray ``K^-1 (u, v, 1)``):
@@ -757,7 +1182,10 @@ def simulate_capture(
           ``x, y, radius, depth`` mm, ``T_cam_plate`` (4, 4), the true lights: ``light_dirs`` (N, 3)
           (seen from the plate centre), ``light_intensity`` (N,), ``light_positions_mm`` (N, 3) (NaN
           for distant lights), ``light_axes`` (N, 3), ``light_mu`` (N,); ``K``, ``dist``,
-          ``bit_depth``, ``noise``, ``exposure``.
+          ``bit_depth``, ``noise``, ``exposure``; ``surface`` (H, W) int8, what each pixel sees
+          (:data:`SURFACE_PLATE`, :data:`SURFACE_CONVEYOR`, :data:`SURFACE_FLOOR`, ``SURFACE_SUPPORT + k``
+          for support k) and ``scene_depth_mm`` (H, W) float32, the depth of whatever it sees.
+          ``mask`` is exactly ``surface == SURFACE_PLATE``.
 
     Raises
     ------
@@ -792,7 +1220,11 @@ def simulate_capture(
         albedo=_plate_albedo_texture(plate, capture.texture, tex_seed, max(_TEXEL_MM, mm_per_px / 2)).prefiltered(
             mm_per_px
         ),
-        conveyor=_conveyor_texture(plate, conveyor_seed).prefiltered(mm_per_px),
+        conveyor=(
+            _conveyor_texture(plate, conveyor_seed)
+            if plate.floor is None
+            else _floor_texture(plate, conveyor_seed, max(4.0, mm_per_px / 2), _floor_span_mm(plate, rig))
+        ).prefiltered(mm_per_px),
     )
     spread = capture.intensity_spread
     intensities = rng_lights.uniform(1.0 - spread, 1.0 + spread, capture.n_lights)
@@ -850,7 +1282,8 @@ def simulate_capture(
     und_rays = rig.left.pixel_rays()
     hits_u, albedo_u = _render_view(scene, eye_left, und_rays)
     mask = hits_u.on_plate
-    depth = np.where(mask, hits_u.s * und_rays[..., 2], np.nan)
+    scene_depth = hits_u.s * und_rays[..., 2]
+    depth = np.where(mask, scene_depth, np.nan)
     normals = np.where(mask[..., None], hits_u.normals, np.nan)
     plate_xy = np.where(mask[..., None], hits_u.xyz_plate[..., :2], np.nan)
     np.savez(
@@ -862,6 +1295,8 @@ def simulate_capture(
         plate_xy_mm=plate_xy.astype(np.float32),
         depth_raw_mm=np.where(hits_raw.on_plate, hits_raw.s, np.nan).astype(np.float32),
         mask_raw=hits_raw.on_plate,
+        surface=hits_u.surface,
+        scene_depth_mm=scene_depth.astype(np.float32),
         radius_mm=np.float64(plate.radius_mm if plate.shape != "plane" and plate.radius_mm else np.nan),
         radius2_mm=np.float64(plate.radius2 if plate.radius2 is not None else np.nan),
         shape=np.array(plate.shape),
@@ -908,8 +1343,13 @@ def simulate_capture(
 
 
 def _target_object(plate: PlateSpec, tolerance_mm: float, out: Path) -> dict:
-    """The ``plate-target/1`` object of the nominal plate (no dents); writes ``target.stl`` for a saddle."""
-    if plate.shape == "plane":
+    """The ``plate-target/1`` object of the nominal plate (no dents); writes ``target.stl`` for a saddle
+    and for a plate with a non-rectangular outline or with openings (see :func:`plate_mesh`)."""
+    if plate.outline != "rectangle" or plate.cutouts:
+        # the analytic shapes know only a size: the outline and the openings need a mesh
+        plate_mesh(plate).export(out / "target.stl")
+        shape = {"type": "mesh", "file": "target.stl"}
+    elif plate.shape == "plane":
         shape = {"type": "plane"}
     elif plate.shape in ("cylinder", "sphere"):
         shape = {"type": plate.shape, "radius_mm": float(plate.radius_mm)}
@@ -919,6 +1359,62 @@ def _target_object(plate: PlateSpec, tolerance_mm: float, out: Path) -> dict:
     obj = {"format": TARGET_FORMAT, "shape": shape, "size_mm": list(plate.size_mm), "tolerance_mm": float(tolerance_mm)}
     TargetFile.model_validate(obj)
     return obj
+
+
+def plate_mesh(plate: PlateSpec, *, spacing_mm: float = 50.0):
+    """The nominal plate (its shape without dents) over its outline, openings cut out, as a triangle mesh.
+
+    Parameters
+    ----------
+    plate : PlateSpec
+    spacing_mm : float
+        Spacing of the interior vertices, mm; the outline and the openings' edges are sampled at half
+        of it (a chord of a 100 mm radius opening then errs by < 0.8 mm from the arc).
+
+    Returns
+    -------
+    trimesh.Trimesh
+        Vertices in the plate frame (mm, z_p = nominal height ``plate_height``), faces with normals
+        towards -z_p (the cameras). Boundary-conforming: a Delaunay triangulation of the edge samples
+        and an interior grid, keeping the triangles whose centroid lies on the plate.
+    """
+    import trimesh
+    from scipy.spatial import Delaunay, cKDTree
+
+    if not (math.isfinite(spacing_mm) and spacing_mm > 0):
+        raise ValueError(f"spacing_mm: expected > 0, got {spacing_mm}")
+    nominal = PlateSpec(
+        shape=plate.shape, radius_mm=plate.radius_mm, radius2_mm=plate.radius2_mm, convex=plate.convex,
+        size_mm=plate.size_mm, outline=plate.outline, cutouts=plate.cutouts,
+    )
+    edge_step = spacing_mm / 2
+    outline = outline_polygon(plate, step_mm=edge_step)
+    edges = [outline[~np.any([c.signed_distance(*outline.T) < 0 for c in plate.cutouts], axis=0)]
+             if plate.cutouts else outline]
+    for cut in plate.cutouts:
+        ring = cut.boundary(edge_step)
+        edges.append(ring[_inside_outline(plate, ring[:, 0], ring[:, 1])])
+    boundary = np.concatenate(edges)
+    half_w, half_h = plate.size_mm[0] / 2, plate.size_mm[1] / 2
+    gx, gy = np.meshgrid(np.arange(-half_w, half_w + 1e-9, spacing_mm), np.arange(-half_h, half_h + 1e-9, spacing_mm))
+    grid = np.stack([gx.ravel(), gy.ravel()], axis=1)
+    grid = grid[plate_region(nominal, grid[:, 0], grid[:, 1])]
+    near_edge, _ = cKDTree(boundary).query(grid)
+    points = np.concatenate([boundary, grid[near_edge >= 0.4 * spacing_mm]])
+    tri = Delaunay(points).simplices
+    # a triangle bridging an opening or a concave stretch of the outline has its centroid off the plate
+    centroid = points[tri].mean(axis=1)
+    tri = tri[plate_region(nominal, centroid[:, 0], centroid[:, 1])]
+    # faces counter-clockwise seen from -z_p (the cameras' side): clockwise in (x_p, y_p)
+    a, b, c = (points[tri[:, i]] for i in range(3))
+    ccw = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1]) > 0
+    tri[ccw] = tri[ccw][:, ::-1]
+    used = np.unique(tri)
+    remap = np.full(len(points), -1)
+    remap[used] = np.arange(used.size)
+    xy = points[used]
+    z, _, _ = plate_height(nominal, xy[:, 0], xy[:, 1])
+    return trimesh.Trimesh(vertices=np.column_stack([xy, z]), faces=remap[tri], process=False)
 
 
 def _saddle_mesh(plate: PlateSpec, n: int = 61):

@@ -6,6 +6,7 @@ Small images (320 x 256, boards 640 x 512) with a correspondingly scaled rig kee
 from __future__ import annotations
 
 import json
+import math
 
 import cv2
 import numpy as np
@@ -15,12 +16,21 @@ from scipy.ndimage import map_coordinates
 from pipeline.formats import CaptureFile, StereoCalibrationFile, TargetFile
 from pipeline.io import load_calibration, load_capture, load_target
 from pipeline.simulate import (
+    SURFACE_FLOOR,
+    SURFACE_PLATE,
+    SURFACE_SUPPORT,
     CaptureSpec,
+    Cutout,
     Dent,
+    Floor,
     PlateSpec,
+    Support,
     default_rig,
+    outline_polygon,
     plate_height,
     plate_pose,
+    plate_region,
+    rail_supports,
     render_calibration_pairs,
     simulate_capture,
 )
@@ -344,3 +354,148 @@ def test_calibration_boards_detected_in_both_images(tmp_path):
 
 def test_calibration_loads_through_io(bundle, rig):
     _assert_same_rig(load_calibration(bundle / "calibration.json"), rig)
+
+
+# --------------------------------------------------------------------------- surroundings (issue 17)
+
+
+def _plate_frame(truth, K):
+    """Points that each pixel sees (H, W, 3) in the plate frame, mm (float32 storage of the depth: ~1e-4 mm)."""
+    h, w = truth["scene_depth_mm"].shape
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T
+    pts = truth["scene_depth_mm"].astype(np.float64)[..., None] * rays
+    T = truth["T_cam_plate"]
+    return (pts - T[:3, 3]) @ T[:3, :3]
+
+
+def _projected_area(vertices, faces):
+    """Area (mm^2) of a triangle mesh projected on the plate frame's xy plane."""
+    a, b, c = (vertices[faces[:, i], :2] for i in range(3))
+    return 0.5 * float(np.abs((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1])).sum())
+
+
+@pytest.fixture(scope="module")
+def floor_bundle(tmp_path_factory):
+    """A plate with a round cut-out on three rails over a lit floor (the rails reach out beside it)."""
+    floor = Floor(gap_mm=300.0, supports=rail_supports((3000.0, 3000.0), 300.0, 3))
+    plate = PlateSpec(cutouts=(Cutout.circle(400.0, -300.0, 260.0),), floor=floor)
+    out = tmp_path_factory.mktemp("floor")
+    return simulate_capture(out, plate=plate, capture=CaptureSpec(width=W, height=H), seed=4), plate
+
+
+def test_floor_supports_and_cutout_truth(floor_bundle, rig):
+    """truth.npz marks what each pixel sees: the plate exactly where its material is, the floor a plane
+    ``gap_mm`` below the plate's farthest point, the rails' faces, the floor through the cut-out."""
+    out, plate = floor_bundle
+    truth = _truth(out)
+    surface, mask = truth["surface"], truth["mask"]
+    assert set(np.unique(surface)) == {SURFACE_PLATE, SURFACE_FLOOR, SURFACE_SUPPORT, SURFACE_SUPPORT + 1, SURFACE_SUPPORT + 2}
+    np.testing.assert_array_equal(mask, surface == SURFACE_PLATE)
+    p = _plate_frame(truth, rig.left.K)
+    # plate pixels lie on the plate's material, every other pixel's ray crosses the plate's surface off it
+    xy = truth["plate_xy_mm"][mask]
+    assert plate_region(plate, xy[:, 0], xy[:, 1]).all()
+    # the floor: z_p = (farthest point of the plate) + gap; the sagitta of R 5000 over 3000 mm is 226.3 mm
+    h_max = 5000.0 - math.sqrt(5000.0**2 - 1500.0**2)
+    np.testing.assert_allclose(p[surface == SURFACE_FLOOR][:, 2], h_max + 300.0, atol=0.01)
+    # the floor seen through the cut-out, at the cut-out's place
+    hole = (surface == SURFACE_FLOOR) & (np.hypot(p[..., 0] - 400.0, p[..., 1] + 300.0) < 200.0)
+    assert hole.sum() > 20
+    # rails: top at floor - height, or a side face; inside their footprint
+    for k, sup in enumerate(plate.floor.supports):
+        q = p[surface == SURFACE_SUPPORT + k]
+        assert q.size
+        assert np.all(q[:, 2] >= h_max + 300.0 - sup.height_mm - 0.01) and np.all(q[:, 2] <= h_max + 300.0 + 0.01)
+        assert np.all(np.abs(q[:, 1] - sup.y_mm) <= sup.size_y_mm / 2 + 0.01)
+    # depth on the plate is the scene depth there
+    np.testing.assert_allclose(truth["scene_depth_mm"][mask], truth["depth_mm"][mask], atol=1e-3)
+
+
+def test_floor_is_lit_like_the_plate(floor_bundle):
+    """The floor is a real distractor: as bright as the plate under each light, and textured."""
+    out, _ = floor_bundle
+    truth = _truth(out)
+    cap = load_capture(out)
+    img = cap.images[0] - cap.dark
+    plate = np.median(img[truth["mask_raw"]])
+    floor = np.median(img[~truth["mask_raw"]])
+    assert 0.6 < floor / plate < 1.4
+    assert np.std(img[~truth["mask_raw"]]) > 0.05 * floor
+
+
+def test_cutout_and_outline_make_a_mesh_target(floor_bundle):
+    """A plate with openings (or a non-rectangular outline) gets a mesh target carrying both."""
+    out, plate = floor_bundle
+    doc = json.loads((out / "target.json").read_text())
+    assert doc["shape"] == {"type": "mesh", "file": "target.stl"}
+    target = load_target(out / "target.json")
+    v, f = target.mesh_vertices_mm, target.mesh_faces
+    # on the nominal cylinder, and nothing inside the cut-out
+    np.testing.assert_allclose(v[:, 2], 5000.0 - np.sqrt(5000.0**2 - v[:, 0] ** 2), atol=1e-3)
+    assert np.all(np.hypot(v[:, 0] - 400.0, v[:, 1] + 300.0) >= 260.0 - 1e-3)  # STL stores float32
+    # projected area: the square less the hole (chords of the 25 mm edge samples err by < 0.1 %)
+    area = _projected_area(v, f)
+    assert area == pytest.approx(3000.0**2 - math.pi * 260.0**2, rel=1e-3)
+
+
+@pytest.mark.parametrize("outline", ["trapezoid", "curved", ((-1500.0, -1500.0), (1500.0, -1500.0), (0.0, 1500.0))])
+def test_outlines(tmp_path, rig, outline):
+    plate = PlateSpec(shape="plane", radius_mm=None, outline=outline, cutouts=(Cutout(-300.0, 0.0, 500.0, 200.0, 60.0),))
+    out = simulate_capture(tmp_path, plate=plate, capture=CaptureSpec(width=W, height=H, stereo=False), seed=6)
+    truth = _truth(out)
+    # each pixel's ray met with the plate's plane z_p = 0 (float64, as the renderer does)
+    h, w = truth["mask"].shape
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(rig.left.K).T
+    T = truth["T_cam_plate"]
+    o, d = -T[:3, :3].T @ T[:3, 3], rays @ T[:3, :3]
+    xy = o[:2] + (-o[2] / d[..., 2])[..., None] * d[..., :2]
+    inside = plate_region(plate, xy[..., 0], xy[..., 1])
+    assert np.count_nonzero(truth["mask"] != inside) <= 2  # a pixel centre within rounding of the edge
+    poly = outline_polygon(plate, step_mm=10.0)
+    x, y = poly[:, 0], poly[:, 1]
+    polygon_area = 0.5 * np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)
+    if outline == "trapezoid":
+        assert polygon_area == pytest.approx(0.5 * (3000.0 + 1800.0) * 3000.0, rel=1e-9)
+    elif outline == "curved":  # the box less the two corners above the arc: between the box and the sagitta's
+        assert 3000.0 * 2400.0 < polygon_area < 3000.0**2
+    else:
+        assert polygon_area == pytest.approx(0.5 * 3000.0 * 3000.0, rel=1e-9)
+    mesh = load_target(out / "target.json")
+    area = _projected_area(mesh.mesh_vertices_mm, mesh.mesh_faces)
+    hole = 500.0 * 200.0 - (4.0 - math.pi) * 60.0**2
+    assert area == pytest.approx(polygon_area - hole, rel=2e-3)
+    # the pixel count agrees with the area: a plane at ~3 m, ~ (3000 / fx)^2 mm^2 per pixel
+    assert np.count_nonzero(truth["mask"]) * (3000.0 / rig.left.K[0, 0]) ** 2 == pytest.approx(area, rel=0.05)
+
+
+def test_surroundings_specs_are_checked():
+    with pytest.raises(ValueError, match="Cutout.corner_mm"):
+        Cutout(0.0, 0.0, 100.0, 50.0, 40.0)
+    with pytest.raises(ValueError, match="Cutout.radius_mm"):
+        Cutout.circle(0.0, 0.0, -1.0)
+    with pytest.raises(ValueError, match=r"Floor.supports\[0\].height_mm: expected at most the floor's gap_mm 200"):
+        Floor(gap_mm=200.0, supports=(Support(0.0, 0.0, 100.0, 100.0, 300.0),))
+    with pytest.raises(ValueError, match="Floor.gap_mm"):
+        Floor(gap_mm=0.0)
+    with pytest.raises(ValueError, match="PlateSpec.outline: expected vertices inside the size_mm box"):
+        PlateSpec(outline=((0.0, 0.0), (2000.0, 0.0), (0.0, 100.0)))
+    with pytest.raises(ValueError, match="PlateSpec.outline: expected rectangle"):
+        PlateSpec(outline="oval")
+    with pytest.raises(TypeError, match="PlateSpec.floor"):
+        PlateSpec(floor=300.0)
+
+
+def test_cli_renders_the_surroundings(tmp_path):
+    from pipeline.cli import main
+
+    out = tmp_path / "b"
+    code = main(["simulate", "capture", str(out), "--size", "160x128", "--floor", "350", "--supports", "2",
+                 "--cutout", "0,0,300", "--cutout=-800,600,400,200,50", "--outline", "curved", "--lights", "4"])
+    assert code == 0
+    truth = _truth(out)
+    assert {SURFACE_FLOOR, SURFACE_SUPPORT}.issubset(set(np.unique(truth["surface"])))
+    assert json.loads((out / "target.json").read_text())["shape"]["type"] == "mesh"
+    assert main(["simulate", "capture", str(tmp_path / "c"), "--supports", "2"]) == 2
+    assert main(["simulate", "capture", str(tmp_path / "d"), "--cutout", "1,2"]) == 2
