@@ -8,11 +8,14 @@ without that bias, but with more noise per pixel. So the fused surface is
     log z = log z_ps + c(u, v)
 
 where ``c`` is the smooth part of ``log z_stereo - log z_ps``: a tensor-product cubic B-spline on a
-coarse grid of knots, fitted robustly (Huber IRLS) to the pixels where both exist. Everything the
+coarse grid of knots, fitted robustly to the medians of that difference over small blocks of pixels
+(a median per block drops stereo mismatches; Huber re-weighting drops bad blocks). Everything the
 spline can represent -- scale, tilt, bend, twist, any shape error wider than about a knot spacing --
 comes from the stereo pair; everything finer from the normals. The spline averages thousands of
 stereo pixels per coefficient, so the stereo noise that reaches the surface is small, and a shape
-feature that both see (a dent) is not in the difference at all.
+feature that both see (a dent) is not in the difference at all. The knot spacing is chosen per
+surface: the coarsest that explains the stereo pair as well as the finest (so correct normals keep
+the shape, and only wrong ones hand it to the stereo pair).
 
 References
 ----------
@@ -27,9 +30,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 #: Finest knot spacing of the correction spline as a fraction of the plate's larger extent in the
 #: image: at most, the stereo pair governs shape wider than about this.
@@ -41,12 +43,14 @@ KNOT_LADDER = (1.0 / 2.0, 1.0 / 4.0, 1.0 / 8.0, 1.0 / 16.0)
 #: explains ~0.15 mm RMS of the stereo pair's correlated noise more than scale and tilt do; with
 #: near-field LEDs given as distant directions the coarse corrections leave 3-6 mm.
 RESOLVE_MM = 0.25
-#: At most this many stereo pixels enter the fit (a regular subsample).
-MAX_FIT_PIXELS = 60_000
-#: Huber threshold, in robust standard deviations of the stereo residual.
+#: The difference is reduced to medians over square blocks of pixels; about this many blocks.
+TARGET_BLOCKS = 12_000
+#: A block needs at least this fraction of its pixels with both depths to count.
+MIN_BLOCK_FILL = 0.25
+#: Huber threshold, in robust standard deviations of the block residuals.
 HUBER_K = 2.0
-#: IRLS passes of the robust fit.
-IRLS_PASSES = 4
+#: Re-weighted passes of the robust fit.
+IRLS_PASSES = 3
 #: Weight of the second-difference penalty on the spline coefficients, relative to the data's total
 #: weight per coefficient: bridges knot cells without stereo data, negligible where there is some.
 SMOOTHING = 1e-3
@@ -66,10 +70,11 @@ class Fusion:
         The 95th percentile of ``|correction|`` after removing its best-fit plane in depth (a
         scale and tilt error is no disagreement of shape), mm.
     stereo_noise_mm : float
-        Robust standard deviation of the stereo depth about the fused surface, mm (per pixel).
+        Robust standard deviation of a stereo sample about the fused surface, mm (from the block
+        medians' residuals, as if the noise were independent between samples).
     noise_floor_mm : float
         How much disagreement the stereo noise alone explains: 3 standard errors of the spline's
-        value (the noise over the stereo pixels of a knot cell, taken as independent), mm.
+        value (the noise of the stereo samples of a knot cell, as if independent), mm.
     n_stereo : int
         Stereo pixels in the fit.
     knot_spacing_px : float or None
@@ -105,7 +110,7 @@ def fuse_low_frequencies(
         The surface's pixels.
     knot_fraction : float
         The finest knot spacing tried, as a fraction of the mask's larger extent (0 < . <= 1).
-    resolve_mm : float
+    resolve_mm : float or None
         The correction is the coarsest of a ladder -- scale and tilt only, then splines of knot
         spacing 1/2, 1/4, ... of the extent down to ``knot_fraction`` -- whose robust residual
         against the stereo pair exceeds the finest one's by less than this RMS (mm): where the
@@ -119,8 +124,8 @@ def fuse_low_frequencies(
     Raises
     ------
     ValueError
-        Bad shapes, a photometric depth that is not finite and positive on the mask, fewer stereo
-        pixels than spline coefficients.
+        Bad shapes, a photometric depth that is not finite and positive on the mask, too few
+        stereo pixels for the coarsest correction.
     """
     z = np.asarray(depth_ps_mm, dtype=np.float64)
     zs = np.asarray(stereo_depth_mm, dtype=np.float64)
@@ -132,55 +137,70 @@ def fuse_low_frequencies(
         )
     if not 0 < knot_fraction <= 1:
         raise ValueError(f"knot_fraction: expected in (0, 1], got {knot_fraction}")
-    rows, cols = np.nonzero(mask)
-    if rows.size == 0:
+    if not mask.any():
         raise ValueError("mask: expected at least one surface pixel, got none")
-    zm = z[rows, cols]
-    if not (np.all(np.isfinite(zm)) and np.all(zm > 0)):
+    rows = np.flatnonzero(mask.any(axis=1))
+    cols = np.flatnonzero(mask.any(axis=0))
+    box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+    zb, zsb, mb = z[box], zs[box], mask[box]
+    if np.any(mb & ~((zb > 0) & (zb < np.inf))):
         raise ValueError("depth_ps_mm: expected finite depths > 0 mm on the mask")
-    both = mask & np.isfinite(zs) & (zs > 0)
-    step = max(1, int(np.sqrt(np.count_nonzero(both) / MAX_FIT_PIXELS)))
-    fr, fc = np.nonzero(both[::step, ::step])
-    fr, fc = fr * step, fc * step
-    r = np.log(zs[fr, fc]) - np.log(z[fr, fc])
-    z_typ = float(np.median(zm))
-    fits = []
-    ladder = (None, *KNOT_LADDER) if resolve_mm is not None else (knot_fraction,)
-    for fraction in ladder:
-        if fraction is not None and fraction < knot_fraction:
+    sparse = max(1, int(np.sqrt(mb.size / 100_000)))
+    z_typ = float(np.median(zb[::sparse, ::sparse][mb[::sparse, ::sparse]]))
+
+    blocks = _Blocks.of(zb, zsb, mb)
+    extent = float(max(mb.shape))
+    ladder = [f for f in (None, *KNOT_LADDER) if f is None or f >= knot_fraction] if resolve_mm is not None else [
+        knot_fraction]
+
+    def fit(fraction):
+        grid = _Grid.over(mb.shape, extent * (fraction or 1.0))
+        if blocks.n_used < 4 * (3 if fraction is None else grid.size):
+            return None
+        return (fraction, grid) + _fit(grid, blocks, plane_only=fraction is None)
+
+    # the coarsest correction that explains the stereo pair as well as the finest, up to resolve_mm RMS
+    fits = [f for f in map(fit, ladder[-1:]) if f is not None]
+    for fraction in reversed(ladder[:-1]):  # the finest that has enough blocks is the reference
+        if fits:
             break
-        grid = _Grid.around(rows, cols, fraction) if fraction is not None else _Grid.around(rows, cols, 1.0)
-        if fr.size < 4 * grid.size:
-            break
-        fits.append((grid, fraction) + _robust_spline_fit(grid, fr, fc, r, plane_only=fraction is None))
+        fits = [f for f in (fit(fraction),) if f is not None]
     if not fits:
         raise ValueError(
-            f"stereo_depth_mm: expected at least {4 * _Grid.around(rows, cols, 1.0).size} matched surface pixels to "
-            f"fit the correction, got {fr.size} (subsampled by {step})"
+            f"stereo_depth_mm: expected stereo depth over at least 12 blocks of {blocks.size} px of the surface, "
+            f"got {blocks.n_used}"
         )
-    # the coarsest correction that explains the stereo pair as well as the finest, up to resolve_mm RMS
-    sigma_best = min(f[3] for f in fits)
+    chosen = fits[0]
+    rms_best = chosen[3]
     slack = 0.0 if resolve_mm is None else (resolve_mm / z_typ) ** 2
-    grid, fraction, coef, sigma_log, se_log = next(f for f in fits if f[3] ** 2 <= sigma_best**2 + slack)
-    c = grid.evaluate(coef, rows, cols)
+    for fraction in ladder:
+        if fraction is not None and fraction <= chosen[0]:
+            break
+        candidate = fit(fraction)
+        if candidate is not None and candidate[3] ** 2 <= rms_best**2 + slack:
+            chosen = candidate
+            break
+    fraction, grid, coef, rms, sigma_pix = chosen
+
     fused = np.full(z.shape, np.nan)
-    fused[rows, cols] = zm * np.exp(c)
     correction = np.full(z.shape, np.nan, np.float32)
-    corr = fused[rows, cols] - zm
-    correction[rows, cols] = corr
+    _compose(zb, grid.evaluate(coef), mb, fused[box], correction[box])
+    corr_b = correction[box]
 
     # disagreement of shape: the correction without its best plane in depth (scale and tilt)
-    sub = slice(None, None, max(1, rows.size // 200_000))
-    A = np.column_stack([np.ones(rows[sub].size), cols[sub], rows[sub]]).astype(np.float64)
-    plane, *_ = np.linalg.lstsq(A, corr[sub], rcond=None)
-    shape_part = corr[sub] - A @ plane
+    r_i, c_i = np.nonzero(mb[::4, ::4])
+    corr = corr_b[::4, ::4][r_i, c_i].astype(np.float64)
+    A = np.column_stack([np.ones(r_i.size), c_i, r_i]).astype(np.float64)
+    plane, *_ = np.linalg.lstsq(A, corr, rcond=None)
+    cells = max((grid.nv - 3) * (grid.nu - 3), 1) if fraction is not None else 1
+    per_cell = max(float(blocks.samples.sum()) / cells, 1.0)
     return Fusion(
         depth_mm=fused,
         correction_mm=correction,
-        disagreement_mm=float(np.percentile(np.abs(shape_part), 95)),
-        stereo_noise_mm=float(sigma_log * z_typ),
-        noise_floor_mm=float(3.0 * se_log * z_typ),
-        n_stereo=int(fr.size),
+        disagreement_mm=float(np.percentile(np.abs(corr - A @ plane), 95)),
+        stereo_noise_mm=float(sigma_pix * z_typ),
+        noise_floor_mm=float(3.0 * sigma_pix / np.sqrt(per_cell) * z_typ),
+        n_stereo=int(blocks.n_pixels),
         knot_spacing_px=None if fraction is None else float(grid.spacing),
     )
 
@@ -197,101 +217,152 @@ def smooth_stereo_depth(stereo_depth_mm: np.ndarray, mask: np.ndarray, *, knot_f
     return fuse_low_frequencies(ones, stereo_depth_mm, mask, knot_fraction=knot_fraction, resolve_mm=None).depth_mm
 
 
-class _Grid:
-    """Uniform cubic B-splines over a box of pixels: ``nu x nv`` coefficients, knots ``spacing`` px apart."""
+@dataclass(frozen=True)
+class _Blocks:
+    """Medians of ``log z_stereo - log z_ps`` over b x b blocks of a box of pixels.
 
-    def __init__(self, r0: float, c0: float, spacing: float, nv: int, nu: int):
-        self.r0, self.c0, self.spacing, self.nv, self.nu = r0, c0, spacing, nv, nu
+    ``value`` (nbv, nbu) float64 (0 where unused), ``count`` (nbv, nbu) pixels with both depths
+    (0 where unused), ``samples`` how many of them the median was taken over (every ``stride``-th
+    pixel), ``centre_r``/``centre_c`` block centres in box pixels.
+    """
+
+    size: int
+    value: np.ndarray
+    count: np.ndarray
+    samples: np.ndarray
+    centre_r: np.ndarray
+    centre_c: np.ndarray
+
+    @property
+    def n_used(self) -> int:
+        return int(np.count_nonzero(self.count))
+
+    @property
+    def n_pixels(self) -> int:
+        return int(self.count.sum())
 
     @classmethod
-    def around(cls, rows: np.ndarray, cols: np.ndarray, knot_fraction: float) -> "_Grid":
-        r0, r1 = float(rows.min()), float(rows.max()) + 1.0
-        c0, c1 = float(cols.min()), float(cols.max()) + 1.0
-        spacing = max(4.0, knot_fraction * max(r1 - r0, c1 - c0))
-        nv = int(np.ceil((r1 - r0) / spacing)) + 3
-        nu = int(np.ceil((c1 - c0) / spacing)) + 3
-        return cls(r0, c0, spacing, nv, nu)
+    def of(cls, z: np.ndarray, zs: np.ndarray, mask: np.ndarray) -> "_Blocks":
+        h, w = mask.shape
+        b = max(1, int(round(np.sqrt(h * w / TARGET_BLOCKS))))
+        stride = max(1, b // 4)  # a median of up to 16 samples per block is plenty
+        k = -(-b // stride)  # samples per block side
+        b = k * stride
+        nbv, nbu = -(-h // b), -(-w // b)
+        padded = np.full((nbv * b, nbu * b), np.inf)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            r = np.log(zs[::stride, ::stride]) - np.log(z[::stride, ::stride])
+        padded[:h:stride, :w:stride] = np.where(mask[::stride, ::stride] & np.isfinite(r), r, np.inf)
+        tiles = padded[::stride, ::stride].reshape(nbv, k, nbu, k)
+        tiles = tiles.transpose(0, 2, 1, 3).reshape(nbv, nbu, k * k)
+        count = np.isfinite(tiles).sum(axis=2)
+        tiles.sort(axis=2)  # +inf (no data) last
+        med = np.take_along_axis(tiles, np.maximum(count // 2, 0)[..., None], axis=2)[..., 0]
+        used = count >= max(1, int(MIN_BLOCK_FILL * k * k))
+        samples = np.where(used, count, 0).astype(np.float64)
+        centre = (b - 1) / 2.0
+        return cls(
+            size=b,
+            value=np.where(used, med, 0.0),
+            count=samples * stride * stride,  # pixels the samples stand for
+            samples=samples,
+            centre_r=np.arange(nbv) * b + centre,
+            centre_c=np.arange(nbu) * b + centre,
+        )
+
+
+class _Grid:
+    """Uniform cubic B-splines over a box of pixels: ``nv x nu`` coefficients, knots ``spacing`` px apart."""
+
+    def __init__(self, shape: tuple[int, int], spacing: float):
+        self.shape = shape
+        self.spacing = float(spacing)
+        self.nv = int(np.ceil(shape[0] / self.spacing)) + 3
+        self.nu = int(np.ceil(shape[1] / self.spacing)) + 3
+
+    @classmethod
+    def over(cls, shape: tuple[int, int], spacing: float) -> "_Grid":
+        return cls(shape, max(4.0, spacing))
 
     @property
     def size(self) -> int:
         return self.nv * self.nu
 
-    def _basis(self, x: np.ndarray, x0: float) -> tuple[np.ndarray, np.ndarray]:
-        """First coefficient index (M,) and the 4 weights (M, 4) of the cubic B-spline at x."""
-        t = (np.asarray(x, dtype=np.float64) - x0) / self.spacing
-        i = np.floor(t).astype(np.int64)
+    def basis(self, x: np.ndarray, n: int) -> np.ndarray:
+        """(len(x), n) dense cubic B-spline basis along one axis at pixel coordinates x (box pixels)."""
+        t = np.asarray(x, dtype=np.float64) / self.spacing
+        i = np.clip(np.floor(t).astype(np.int64), 0, n - 4)
         f = t - i
         w = np.stack([(1 - f) ** 3, 3 * f**3 - 6 * f**2 + 4, -3 * f**3 + 3 * f**2 + 3 * f + 1, f**3], axis=1) / 6.0
-        return i, w
-
-    def design(self, rows: np.ndarray, cols: np.ndarray) -> sp.csr_matrix:
-        """(M, nv * nu) sparse matrix of the tensor-product basis at the pixels."""
-        iv, wv = self._basis(rows, self.r0)
-        iu, wu = self._basis(cols, self.c0)
-        m = rows.size
-        idx = ((iv[:, None, None] + np.arange(4)[None, :, None]) * self.nu
-               + (iu[:, None, None] + np.arange(4)[None, None, :])).reshape(m, 16)
-        val = (wv[:, :, None] * wu[:, None, :]).reshape(m, 16)
-        indptr = np.arange(0, 16 * m + 1, 16)
-        return sp.csr_matrix((val.ravel(), idx.ravel(), indptr), shape=(m, self.size))
-
-    def evaluate(self, coef: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-        """The spline at the pixels (M,): evaluated separably on their bounding box, then indexed."""
-        r_lo, r_hi = int(rows.min()), int(rows.max()) + 1
-        c_lo, c_hi = int(cols.min()), int(cols.max()) + 1
-        Bv = self._dense(np.arange(r_lo, r_hi), self.r0, self.nv)
-        Bu = self._dense(np.arange(c_lo, c_hi), self.c0, self.nu)
-        box = (Bv @ coef.reshape(self.nv, self.nu)) @ Bu.T
-        return box[rows - r_lo, cols - c_lo]
-
-    def _dense(self, x: np.ndarray, x0: float, n: int) -> np.ndarray:
-        """(len(x), n) dense basis matrix along one axis."""
-        i, w = self._basis(x, x0)
-        B = np.zeros((x.size, n))
+        B = np.zeros((t.size, n))
         for a in range(4):
-            B[np.arange(x.size), i + a] = w[:, a]
+            B[np.arange(t.size), i + a] = w[:, a]
         return B
 
-    def penalty(self) -> sp.csr_matrix:
-        """Second differences of the coefficients along both grid directions, stacked."""
-        def d2(n):
-            return sp.diags([1.0, -2.0, 1.0], [0, 1, 2], shape=(max(n - 2, 0), n))
-        Iv, Iu = sp.identity(self.nv), sp.identity(self.nu)
-        return sp.vstack([sp.kron(d2(self.nv), Iu), sp.kron(Iv, d2(self.nu))]).tocsr()
+    def evaluate(self, coef: np.ndarray) -> np.ndarray:
+        """The spline on every pixel of the box: (H, W), separably."""
+        Bv = self.basis(np.arange(self.shape[0]), self.nv)
+        Bu = self.basis(np.arange(self.shape[1]), self.nu)
+        return (Bv @ coef.reshape(self.nv, self.nu)) @ Bu.T
+
+    def penalty(self) -> np.ndarray:
+        """P^T P of the second differences of the coefficients along both grid directions (dense)."""
+        def dtd(n):
+            d = np.diff(np.eye(n), 2, axis=0)
+            return d.T @ d
+        return np.kron(dtd(self.nv), np.eye(self.nu)) + np.kron(np.eye(self.nv), dtd(self.nu))
 
 
-def _robust_spline_fit(grid: _Grid, rows: np.ndarray, cols: np.ndarray, r: np.ndarray, *, plane_only: bool = False):
-    """Huber-IRLS penalised least squares of the spline to r at the pixels (``plane_only``: the
-    spline restricted to planes in (u, v), i.e. a scale and tilt of the depth).
+def _fit(grid: _Grid, blocks: _Blocks, *, plane_only: bool):
+    """Robust penalised least squares of the spline to the block medians (weights: pixel counts).
 
-    Returns the coefficients (nv * nu,), the robust standard deviation of the residuals and the
-    typical standard error of the fitted spline value (both in the units of r).
+    With ``plane_only`` the correction is a plane in (u, v) (a scale and tilt of the depth).
+    Returns the coefficients (nv * nu,), the robust weighted RMS of the block residuals and the
+    per-pixel robust standard deviation (both in log depth).
     """
-    A = grid.design(rows, cols)
+    Bv = grid.basis(blocks.centre_r, grid.nv)
+    Bu = grid.basis(blocks.centre_c, grid.nu)
+    R, W0 = blocks.value, blocks.count
+    Q = None
     if plane_only:
-        # a plane is a spline whose coefficients are a plane over the knot grid
         gv, gu = np.meshgrid(np.arange(grid.nv, dtype=np.float64), np.arange(grid.nu, dtype=np.float64), indexing="ij")
-        Q = sp.csr_matrix(np.column_stack([np.ones(grid.size), gv.ravel(), gu.ravel()]))
-        A = (A @ Q).tocsr()
-    P = grid.penalty() if not plane_only else sp.csr_matrix((0, 3))
-    PtP = (P.T @ P).tocsc()
-    w = np.ones(r.size)
+        Q = np.column_stack([np.ones(grid.size), gv.ravel(), gu.ravel()])
+    PtP = grid.penalty()
+    lam = SMOOTHING * W0.sum() / grid.size
+    w = W0.copy()
     coef = np.zeros(grid.size)
-    sigma = 0.0
-    lam = SMOOTHING * r.size / grid.size
+    rms = sigma_pix = 0.0
     for _ in range(IRLS_PASSES):
-        Aw = A.multiply(w[:, None]).tocsr()
-        N = (A.T @ Aw).tocsc() + lam * PtP
-        coef = spla.spsolve(N, Aw.T @ r)
-        res = r - A @ coef
-        sigma = 1.4826 * float(np.median(np.abs(res - np.median(res))))
-        if not sigma > 0:
+        # normal equations of sum_ij w_ij (R_ij - (Bv C Bu^T)_ij)^2, separably
+        inner = Bu.T @ (w[:, :, None] * Bu[None])  # (nbv, nu, nu): Bu^T diag(w_i) Bu per block row
+        outer = Bv[:, :, None] * Bv[:, None, :]  # (nbv, nv, nv)
+        N = (outer.reshape(len(Bv), -1).T @ inner.reshape(len(Bv), -1)).reshape(grid.nv, grid.nv, grid.nu, grid.nu)
+        N = N.transpose(0, 2, 1, 3).reshape(grid.size, grid.size)
+        rhs = (Bv.T @ (w * R) @ Bu).ravel()
+        if Q is not None:
+            coef = Q @ np.linalg.solve(Q.T @ N @ Q, Q.T @ rhs)
+        else:
+            coef = np.linalg.solve(N + lam * PtP, rhs)
+        res = R - (Bv @ coef.reshape(grid.nv, grid.nu)) @ Bu.T
+        used = W0 > 0
+        # per-sample units: a median of n samples ~ 1.25 sigma / sqrt(n)
+        scaled = (res * np.sqrt(blocks.samples))[used] / 1.2533
+        sigma_pix = 1.4826 * float(np.median(np.abs(scaled)))
+        rms = float(np.sqrt(np.sum(W0[used] * res[used] ** 2 * (w[used] / W0[used])) / np.sum(w[used])))
+        if not sigma_pix > 0:
             break
-        a = np.abs(res) / (HUBER_K * sigma)
-        w = np.where(a <= 1.0, 1.0, 1.0 / np.maximum(a, 1e-12))
-    # standard error of a spline value: sigma / sqrt(samples per knot cell), as if independent
-    cells = max((grid.nv - 3) * (grid.nu - 3), 1)
-    se = sigma / np.sqrt(max(float(w.sum()) / cells, 1.0))
-    if plane_only:
-        coef = Q @ coef
-    return coef, sigma, se
+        a = np.abs(res) * np.sqrt(W0) / (HUBER_K * sigma_pix)
+        w = W0 * np.where(a <= 1.0, 1.0, 1.0 / np.maximum(a, 1e-12))
+    return coef, rms, sigma_pix
+
+
+@nb.njit(cache=True, parallel=True)
+def _compose(z, c, mask, fused, correction):
+    """fused = z exp(c) and correction = fused - z on the mask (left NaN elsewhere), in place."""
+    h, w = mask.shape
+    for i in nb.prange(h):
+        for j in range(w):
+            if mask[i, j]:
+                f = z[i, j] * np.exp(c[i, j])
+                fused[i, j] = f
+                correction[i, j] = f - z[i, j]

@@ -284,16 +284,8 @@ def drop_facing_away(field: NormalField, K: np.ndarray, *, min_cos: float = 0.02
         The field with those normals filled from their neighbours (``filled`` and ``n_filled``
         include them; pixels that cannot be filled leave the mask), and how many were dropped.
     """
-    h, w = field.mask.shape
-    kinv = np.linalg.inv(np.asarray(K, dtype=np.float64)).astype(np.float32)
-    u = np.arange(w, dtype=np.float32)
-    v = np.arange(h, dtype=np.float32)[:, None]
-    rays = [kinv[c, 0] * u + kinv[c, 1] * v + kinv[c, 2] for c in range(3)]
-    norm = np.sqrt(rays[0] ** 2 + rays[1] ** 2 + rays[2] ** 2)
-    n = field.normals
-    cos = -(n[..., 0] * rays[0] + n[..., 1] * rays[1] + n[..., 2] * rays[2]) / norm
-    bad = field.mask & ~(cos > min_cos)  # NaN counts as bad
-    count = int(np.count_nonzero(bad))
+    bad = np.empty(field.mask.shape, np.bool_)
+    count = _facing_away(field.normals, field.mask, np.linalg.inv(np.asarray(K, dtype=np.float64)), float(min_cos), bad)
     if count == 0:
         return field, 0
     normals, albedo = field.normals.copy(), field.albedo.copy()
@@ -306,6 +298,27 @@ def drop_facing_away(field: NormalField, K: np.ndarray, *, min_cos: float = 0.02
     filled = (field.filled & known) | filled_now
     return replace(field, normals=normals, albedo=albedo, mask=mask, filled=filled,
                    n_filled=int(np.count_nonzero(filled))), count
+
+
+@numba.njit(parallel=True, cache=True)
+def _facing_away(normals, mask, kinv, min_cos, bad):
+    """bad = mask pixels whose normal is not within acos(min_cos) of facing its ray (NaN: bad); returns the count."""
+    h, w = mask.shape
+    count = 0
+    for i in numba.prange(h):
+        for j in range(w):
+            bad[i, j] = False
+            if not mask[i, j]:
+                continue
+            r0 = kinv[0, 0] * j + kinv[0, 1] * i + kinv[0, 2]
+            r1 = kinv[1, 0] * j + kinv[1, 1] * i + kinv[1, 2]
+            r2 = kinv[2, 0] * j + kinv[2, 1] * i + kinv[2, 2]
+            c = -(normals[i, j, 0] * r0 + normals[i, j, 1] * r1 + normals[i, j, 2] * r2) / np.sqrt(
+                r0 * r0 + r1 * r1 + r2 * r2)
+            if not c > min_cos:
+                bad[i, j] = True
+                count += 1
+    return count
 
 
 # --------------------------------------------------------------------------- checks
