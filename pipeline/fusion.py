@@ -43,8 +43,14 @@ KNOT_LADDER = (1.0 / 2.0, 1.0 / 4.0, 1.0 / 8.0, 1.0 / 16.0)
 #: explains ~0.15 mm RMS of the stereo pair's correlated noise more than scale and tilt do; with
 #: near-field LEDs given as distant directions the coarse corrections leave 3-6 mm.
 RESOLVE_MM = 0.25
+#: The finer corrections of the ladder fit the stereo noise too: each coefficient takes the variance of
+#: about this many blocks (noise correlated between neighbouring blocks) out of the residual.
+NOISE_CORRELATION = 2.0
 #: The difference is reduced to medians over square blocks of pixels; about this many blocks.
 TARGET_BLOCKS = 12_000
+#: Blocks are at least this wide (px): wider than the stereo matcher's window and the reach of its
+#: smoothness term, so that the blocks' errors are roughly independent.
+MIN_BLOCK_PX = 8
 #: A block needs at least this fraction of its pixels with both depths to count.
 MIN_BLOCK_FILL = 0.25
 #: Huber threshold, in robust standard deviations of the block residuals.
@@ -171,13 +177,18 @@ def fuse_low_frequencies(
             f"got {blocks.n_used}"
         )
     chosen = fits[0]
-    rms_best = chosen[3]
-    slack = 0.0 if resolve_mm is None else (resolve_mm / z_typ) ** 2
+    rms_best, n_best = chosen[3], (3 if chosen[0] is None else chosen[1].size)
     for fraction in ladder:
         if fraction is not None and fraction <= chosen[0]:
             break
         candidate = fit(fraction)
-        if candidate is not None and candidate[3] ** 2 <= rms_best**2 + slack:
+        if candidate is None:
+            continue
+        # what the finer fit explains more: noise it fits (its extra coefficients' share of the blocks, for
+        # noise correlated over NOISE_CORRELATION blocks) plus up to resolve_mm of shape
+        n_coef = 3 if fraction is None else candidate[1].size
+        noise = NOISE_CORRELATION * candidate[3] ** 2 * (n_best - n_coef) / blocks.n_used
+        if candidate[3] ** 2 <= rms_best**2 + noise + (resolve_mm / z_typ) ** 2:
             chosen = candidate
             break
     fraction, grid, coef, rms, sigma_pix = chosen
@@ -244,7 +255,7 @@ class _Blocks:
     @classmethod
     def of(cls, z: np.ndarray, zs: np.ndarray, mask: np.ndarray) -> "_Blocks":
         h, w = mask.shape
-        b = max(1, int(round(np.sqrt(h * w / TARGET_BLOCKS))))
+        b = max(MIN_BLOCK_PX, int(round(np.sqrt(h * w / TARGET_BLOCKS))))
         stride = max(1, b // 4)  # a median of up to 16 samples per block is plenty
         k = -(-b // stride)  # samples per block side
         b = k * stride
