@@ -38,6 +38,11 @@ class Preprocessed:
         Samples dropped as saturated (inside the plate).
     n_shadowed : int
         Samples dropped as shadowed (inside the plate).
+    brightest : (H, W) float32 or None
+        The brightest of the images at each pixel (same unit as ``images``): what
+        :func:`pipeline.segmentation.segment_plate` takes as its brightness.
+    seen : (H, W) bool or None
+        Pixels whose undistorted ray lands inside the raw images (samples exist).
     """
 
     images: np.ndarray
@@ -45,6 +50,8 @@ class Preprocessed:
     mask: np.ndarray
     n_saturated: int
     n_shadowed: int
+    brightest: np.ndarray | None = None
+    seen: np.ndarray | None = None
 
 
 def preprocess(capture: Capture, *, shadow_fraction: float = 0.05, erode_px: int = 3) -> Preprocessed:
@@ -118,6 +125,8 @@ def preprocess(capture: Capture, *, shadow_fraction: float = 0.05, erode_px: int
         mask=mask,
         n_saturated=n_saturated,
         n_shadowed=n * int(np.count_nonzero(mask)) - n_lit - n_saturated,
+        brightest=brightest,
+        seen=seen,
     )
 
 
