@@ -7,9 +7,11 @@ import math
 import numpy as np
 import pytest
 import trimesh
+from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
 from pipeline.deviation import (
+    EdgeArtefacts,
     Registration,
     deviation_map,
     fitted_target_radius,
@@ -273,3 +275,78 @@ def test_bad_inputs():
         target_surface(good, spacing_mm=0.0)
     with pytest.raises(ValueError, match="cannot span size_mm"):
         target_surface(target("cylinder", 1000.0))
+
+
+# --------------------------------------------------------------------------- edge artefacts (issue 17)
+
+
+def _plate_with_a_hole():
+    """A 200 x 240 px plate (mask) with a round opening, noise-level deviation, 10 mm^2 per pixel."""
+    rng = np.random.default_rng(17)
+    h, w = 200, 240
+    m = np.zeros((h, w), dtype=bool)
+    m[20:180, 20:220] = True
+    yy, xx = np.mgrid[0:h, 0:w]
+    m &= np.hypot(xx - 160, yy - 100) > 25
+    dev = np.where(m, rng.normal(0.0, 0.2, (h, w)), np.nan)
+    # the step beside the plate, as the segmentation gives it: the floor 350 mm behind, 8 px in
+    inner = ndimage.binary_erosion(m, iterations=8, border_value=1)
+    step = np.where(m & ~inner, 350.0, np.nan).astype(np.float32)
+    return m, dev, step
+
+
+def test_edge_artefacts_are_excluded_with_a_reason():
+    m, dev, step = _plate_with_a_hole()
+    bad = dev.copy()
+    bad[20:23, 60:120] = -9.0  # a 3 px strip along the outline: 180 px = 1800 mm^2, the floor pulled in
+    yy, xx = np.mgrid[0:m.shape[0], 0:m.shape[1]]
+    ring = m & (np.hypot(xx - 160, yy - 100) < 28)  # along the opening's edge
+    bad[ring] = 6.0
+    assert judge(bad, m, 2.0, pixel_area_mm2=10.0).verdict == "fail"  # without the rule: two "defects"
+    j = judge(bad, m, 2.0, pixel_area_mm2=10.0, edge_artefacts=EdgeArtefacts(step))
+    assert j.verdict == "pass" and j.defects == () and j.reasons == ()
+    assert len(j.excluded) == 2
+    assert {round(r.peak_deviation_mm) for r in j.excluded} == {-9, 6}
+    assert all("edge artefact" in r.reason and "350 mm behind" in r.reason for r in j.excluded)
+    # excluded from the statistics too, and counted there as not judged
+    assert j.max_abs_mm < 2.0 and j.n_pixels == np.count_nonzero(m) - sum(r.n_pixels for r in j.excluded)
+
+
+def test_a_bent_edge_still_fails():
+    """A real edge defect reaches into the plate (here 30 px of a flange bent by up to 12 mm): judged."""
+    m, dev, step = _plate_with_a_hole()
+    bent = dev.copy()
+    ramp = np.linspace(12.0, 2.5, 30)[None, :]
+    bent[60:140, 190:220] = ramp[:, ::-1]  # deepest at the outline (column 219), in tolerance 30 px in
+    j = judge(bent, m, 2.0, pixel_area_mm2=10.0, edge_artefacts=EdgeArtefacts(step))
+    assert j.verdict == "fail" and j.excluded == () and j.defects[0].peak_deviation_mm == pytest.approx(12.0)
+
+
+def test_thin_edge_regions_without_a_floor_step_are_judged():
+    m, dev, step = _plate_with_a_hole()
+    lip = dev.copy()
+    lip[20:23, 60:120] = 5.0
+    # the surroundings at the plate's own depth (a support under the edge), or unknown: judged
+    for beside in (np.where(np.isnan(step), np.nan, 20.0).astype(np.float32), np.full(m.shape, np.nan, np.float32)):
+        j = judge(lip, m, 2.0, pixel_area_mm2=10.0, edge_artefacts=EdgeArtefacts(beside))
+        assert j.verdict == "fail" and j.excluded == ()
+    # a dark background (no depth, +inf) is a step
+    dark = np.where(np.isnan(step), np.nan, np.inf).astype(np.float32)
+    j = judge(lip, m, 2.0, pixel_area_mm2=10.0, edge_artefacts=EdgeArtefacts(dark))
+    assert j.verdict == "pass" and "dark background" in j.excluded[0].reason
+    # regions that only touch the image frame are not at the plate's edge
+    full = np.ones_like(m)
+    frame = np.where(full, 0.1, np.nan)
+    frame[0:3, 60:120] = 5.0
+    j = judge(frame, full, 2.0, pixel_area_mm2=10.0, edge_artefacts=EdgeArtefacts(np.full(m.shape, 350.0, np.float32)))
+    assert j.verdict == "fail" and j.excluded == ()
+
+
+def test_edge_artefacts_option_is_checked():
+    m, dev, step = _plate_with_a_hole()
+    with pytest.raises(ValueError, match=r"edge_artefacts.step_mm: expected shape \(200, 240\)"):
+        judge(dev, m, 2.0, pixel_area_mm2=1.0, edge_artefacts=EdgeArtefacts(step[:, :10]))
+    with pytest.raises(ValueError, match="EdgeArtefacts.min_step_mm"):
+        EdgeArtefacts(step, min_step_mm=0.0)
+    with pytest.raises(TypeError, match="edge_artefacts: expected an EdgeArtefacts"):
+        judge(dev, m, 2.0, pixel_area_mm2=1.0, edge_artefacts=step)
