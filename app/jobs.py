@@ -21,6 +21,7 @@ from huey import SqliteHuey
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.services import inspections as svc
+from app.services import light_calibrations
 from app.services.inspections import SIMULATION_FILE
 from app.settings import Settings
 from app.storage import Storage
@@ -162,6 +163,10 @@ def execute_inspection(
 ) -> str:
     """Run one inspection job: claim the row, (render,) inspect, store done or failed.
 
+    The light calibration recorded in the row at submission (if any) is read from its file and
+    passed to the pipeline as ``light_calibration``; the result's ``warnings`` say whether it
+    was applied.
+
     Returns
     -------
     str
@@ -183,6 +188,7 @@ def execute_inspection(
         row = svc.get_inspection(session=session, inspection_id=inspection_id)
         source, plate_id, simulation = row.source, row.plate_id, row.simulation
         capture_path, target_path = storage.absolute(row.capture_path), storage.absolute(row.target_path)
+        light_calibration = row.light_calibration  # recorded at submission: a re-run uses the same lights
 
     progress = ProgressWriter(session_factory, inspection_id, interval_s=settings.progress_interval_s)
     log.info("inspection %s: running (%s, plate %s)", inspection_id, source, plate_id)
@@ -191,8 +197,11 @@ def execute_inspection(
         if source == "simulated":
             progress(SIMULATE_STAGE, 0.0)
             render_simulated_bundle(bundle_dir=capture_path, plate_id=plate_id, simulation=simulation)
+        lights = None
+        if light_calibration is not None:
+            lights = light_calibrations.load_lights(storage=storage, calibration=light_calibration)
         inspect = resolve_entry(settings.inspect_entry)
-        result = inspect(capture_path, target_path, out_dir=out_dir, progress=progress)
+        result = inspect(capture_path, target_path, out_dir=out_dir, progress=progress, light_calibration=lights)
         document = json.loads(json.dumps(result.document))  # plain JSON types only
     except (InputError, PipelineError) as err:
         # Name the files as the client knows them (capture.zip, bundle/...), not by server path.

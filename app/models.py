@@ -1,7 +1,7 @@
 """Database models (SQLAlchemy 2, typed ``Mapped[...]``).
 
-Plates are named by the yard (the MES's plate id). Targets and calibrations are versioned:
-a new upload is a new row, the newest row is the current one. An inspection row is the source
+Plates are named by the yard (the MES's plate id). Targets, calibrations and light calibrations
+are versioned: a new upload is a new row, the newest row is the current one. An inspection row is the source
 of truth for its job: ``queued -> running -> done | failed``.
 """
 
@@ -86,6 +86,23 @@ class Calibration(Base):
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
 
 
+class LightCalibration(Base):
+    """One uploaded ``light-calibration/1`` (the cell's measured lights); the newest is the current one."""
+
+    __tablename__ = "light_calibrations"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    #: The uploaded file's name as the client sent it (None for a JSON body).
+    file_name: Mapped[str | None] = mapped_column(String(255))
+    n_lights: Mapped[int] = mapped_column(Integer)
+    #: The fit's residual as the file gives it (None when it gives none).
+    rms: Mapped[float | None] = mapped_column(Float)
+    document: Mapped[dict[str, Any]]
+    #: lights.json path, relative to the data dir.
+    path: Mapped[str] = mapped_column(String(512))
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+
 class Inspection(Base):
     """One inspection job and its summary result."""
 
@@ -94,6 +111,10 @@ class Inspection(Base):
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     plate_id: Mapped[str] = mapped_column(ForeignKey("plates.id"), index=True)
     target_id: Mapped[int | None] = mapped_column(ForeignKey("targets.id"))
+    #: The light calibration passed to the pipeline: the current one when an uploaded capture
+    #: with nominal (direction-only) lights was submitted; None otherwise. Fixed at submission,
+    #: so a re-run (or a job queued before a new upload) measures with the same lights.
+    light_calibration_id: Mapped[int | None] = mapped_column(ForeignKey("light_calibrations.id"))
     #: "upload" (a bundle .zip) or "simulated" (rendered by the job from ``simulation``).
     source: Mapped[str] = mapped_column(String(16))
     simulation: Mapped[dict[str, Any] | None]
@@ -126,6 +147,7 @@ class Inspection(Base):
 
     plate: Mapped[Plate] = relationship(back_populates="inspections")
     target: Mapped[Target | None] = relationship()
+    light_calibration: Mapped[LightCalibration | None] = relationship()
 
 
 class IdempotencyKey(Base):

@@ -85,6 +85,8 @@ class InspectionOut(BaseModel):
     error: str | None
     source: str
     verdict: Verdict | None
+    #: The light calibration the inspection is run with (see GET /light-calibrations/{id}), or null.
+    light_calibration_id: int | None
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
@@ -142,6 +144,17 @@ class CalibrationOut(BaseModel):
     id: int
     image_size: tuple[int, int]
     rms_px: float | None
+    document: dict[str, Any]
+    created_at: datetime
+
+
+class LightCalibrationOut(BaseModel):
+    """A stored ``light-calibration/1``: the cell's point lights in image order (left-camera frame, mm)."""
+
+    id: int
+    file_name: str | None = Field(description="the uploaded file's name (null for a JSON body)")
+    n_lights: int
+    rms: float | None = Field(description="the calibration fit's residual, as the file gives it")
     document: dict[str, Any]
     created_at: datetime
 

@@ -8,6 +8,7 @@
       staging/<random>/                an upload being validated (removed after)
       plates/<plate_id>/targets/<target_id>/target.json (+ mesh file)
       calibrations/<calibration_id>/calibration.json
+      light-calibrations/<light_calibration_id>/lights.json
       inspections/<inspection_id>/inputs/     capture.zip (or bundle/ for a simulated one),
                                               target.json (+ mesh), simulation.json
       inspections/<inspection_id>/artifacts/  result.json and the pipeline's artifacts
@@ -49,7 +50,7 @@ class Storage:
 
     def ensure(self) -> None:
         """Create the top-level folders."""
-        for sub in ("staging", "plates", "calibrations", "inspections"):
+        for sub in ("staging", "plates", "calibrations", "light-calibrations", "inspections"):
             (self.data_dir / sub).mkdir(parents=True, exist_ok=True)
 
     # ---------------------------------------------------------------- paths
@@ -72,6 +73,9 @@ class Storage:
 
     def calibration_dir(self, calibration_id: int) -> Path:
         return self.data_dir / "calibrations" / str(int(calibration_id))
+
+    def light_calibration_dir(self, light_calibration_id: int) -> Path:
+        return self.data_dir / "light-calibrations" / str(int(light_calibration_id))
 
     def inspection_dir(self, inspection_id: int) -> Path:
         return self.data_dir / "inspections" / str(int(inspection_id))

@@ -2,13 +2,14 @@
 
 from fastapi import APIRouter
 
-from app.routes import calibrations, inspections, plates, session
+from app.routes import calibrations, inspections, light_calibrations, plates, session
 from app.routes.common import API_PREFIX
 
 api_router = APIRouter(prefix=API_PREFIX)
 api_router.include_router(inspections.router)
 api_router.include_router(plates.router)
 api_router.include_router(calibrations.router)
+api_router.include_router(light_calibrations.router)
 api_router.include_router(session.router)
 
 __all__ = ["api_router"]

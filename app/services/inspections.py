@@ -17,6 +17,7 @@ from sqlalchemy.orm import Session
 
 from app.models import Inspection, utcnow
 from app.services.errors import UnprocessableError
+from app.services.light_calibrations import light_calibration_for_capture
 from app.services.plates import current_target, get_or_create_plate
 from app.services.targets import TARGET_FILE, copy_target_files, create_target
 from app.storage import Storage
@@ -39,8 +40,10 @@ def create_uploaded_inspection(
 
     ``staging_dir`` holds ``capture.zip`` and, optionally, ``target/target.json`` (+ mesh).
     Both are validated with the pipeline's loaders before anything is added. A target sent
-    with the inspection becomes the plate's current target. Once the row has an id, the staging
-    folder becomes the inspection's ``inputs/`` folder.
+    with the inspection becomes the plate's current target. A capture whose lights are nominal
+    directions is run with the cell's current light calibration, recorded in the row now (see
+    :func:`app.services.light_calibrations.light_calibration_for_capture`). Once the row has an
+    id, the staging folder becomes the inspection's ``inputs/`` folder.
 
     Raises
     ------
@@ -72,7 +75,15 @@ def create_uploaded_inspection(
                 f"target: plate {plate_id!r} has no target yet: send a plate-target/1 file as 'target'",
                 field="target",
             )
-    row = Inspection(plate_id=plate_id, target_id=target.id, source="upload", status="queued", progress=0.0)
+    light_calibration = light_calibration_for_capture(session=session, capture=capture)
+    row = Inspection(
+        plate_id=plate_id,
+        target_id=target.id,
+        light_calibration_id=None if light_calibration is None else light_calibration.id,
+        source="upload",
+        status="queued",
+        progress=0.0,
+    )
     session.add(row)
     session.flush()
     inputs = storage.adopt(staging_dir, storage.inputs_dir(row.id))
@@ -92,7 +103,8 @@ def create_simulated_inspection(
     """A queued simulated inspection: the job renders the capture from ``simulation`` then inspects it.
 
     ``simulation`` is a validated :class:`app.schemas.SimulatedInspectionIn` as a dict; it is kept
-    in the row and in ``inputs/simulation.json``.
+    in the row and in ``inputs/simulation.json``. The simulator writes the lights it rendered
+    with, so no light calibration is applied.
     """
     try:
         simulation_specs(simulation)

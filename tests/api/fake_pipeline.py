@@ -5,6 +5,9 @@ It validates its inputs with the real loaders, reports progress through stages, 
 mid-job), and writes a ``plate-result/1`` document whose numbers come from the target (it does
 not measure anything: the tests using it check the service, not the measurement). A plate id
 containing ``UNMEASURABLE`` raises :class:`CaptureError`; ``CRASH`` raises a RuntimeError.
+A ``light_calibration`` is handled as the real one does for the result's ``warnings`` (applied to
+nominal lights of the same count, else a warning why not); its count of lights goes in
+``details.json`` so a test can tell which calibration the job passed.
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ class FakeResult:
     out_dir: Path
 
 
-def inspect(capture, target, *, out_dir: Path, progress=None) -> FakeResult:
+def inspect(capture, target, *, out_dir: Path, progress=None, light_calibration=None) -> FakeResult:
     delay = float(os.environ.get("PLATE_INSPECT_TEST_STAGE_DELAY_S", "0"))
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -42,6 +45,7 @@ def inspect(capture, target, *, out_dir: Path, progress=None) -> FakeResult:
             progress(stage, i / len(STAGES))
         time.sleep(delay)
     (out_dir / "deviation.png").write_bytes(b"\x89PNG fake")
+    warnings = _light_warnings(cap.lights, light_calibration)
     document = ResultFile(
         format=RESULT_FORMAT,
         plate_id=cap.plate_id,
@@ -55,8 +59,21 @@ def inspect(capture, target, *, out_dir: Path, progress=None) -> FakeResult:
         verdict="pass",
         timings_s={"total": delay * len(STAGES)},
         artifacts={"deviation_map": "deviation.png"},
+        warnings=warnings or None,
     ).model_dump(mode="json")
+    if document["warnings"] is None:
+        del document["warnings"]
+    details = {"light_calibration_n_lights": None if light_calibration is None else light_calibration.n}
+    (out_dir / "details.json").write_text(json.dumps(details), encoding="utf-8")
     (out_dir / "result.json").write_text(json.dumps(document), encoding="utf-8")
     if progress is not None:
         progress(STAGES[-1], 1.0)
     return FakeResult(document=document, out_dir=out_dir)
+
+
+def _light_warnings(lights, calibration) -> list[str]:
+    if calibration is None or lights.any_point:
+        return []
+    if calibration.n != lights.n:
+        return [f"the light calibration was not applied: it has {calibration.n} lights, the capture {lights.n} images"]
+    return ["a light calibration was applied to the capture's nominal light directions"]
