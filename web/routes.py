@@ -21,9 +21,11 @@ from app.deps import SESSION_COOKIE, SessionDep, StorageDep, issue_session_cooki
 from app.models import Inspection
 from app.services import calibrations as calibration_svc
 from app.services import inspections as inspection_svc
+from app.services import light_calibrations as light_calibration_svc
 from app.services import plates as plate_svc
 from web import TEMPLATES_DIR
 from web.charts import section_drawings, trend_chart
+from web.lights import light_plan, light_rows
 from web.sections import load_sections
 
 logger = logging.getLogger(__name__)
@@ -184,10 +186,22 @@ def plate_page(request: Request, plate_id: str, session: SessionDep) -> Response
 
 @router.get("/calibration", response_class=HTMLResponse)
 def calibration_page(request: Request, session: SessionDep) -> Response:
-    """The current calibration and its reprojection error; upload a new one."""
+    """The current stereo calibration and its reprojection error, the current light calibration
+    (its lights in a table and in plan); upload a new one of either."""
     current = calibration_svc.current_calibration(session=session)
     history = calibration_svc.list_calibrations(session=session, limit=10)
-    return _page(request, session, "calibration.html", {"page": "calibration", "current": current, "history": history})
+    light_current = light_calibration_svc.current_light_calibration(session=session)
+    light_history = light_calibration_svc.list_light_calibrations(session=session, limit=10)
+    context = {
+        "page": "calibration",
+        "current": current,
+        "history": history,
+        "light_current": light_current,
+        "light_history": light_history,
+        "light_rows": light_rows(light_current.document) if light_current is not None else [],
+        "light_plan": light_plan(light_current.document) if light_current is not None else None,
+    }
+    return _page(request, session, "calibration.html", context)
 
 
 @router.get("/login", response_class=HTMLResponse)

@@ -210,5 +210,34 @@ def test_two_browsers_see_their_own_plates(live_server, browser):
         p.close()
 
 
+def test_light_calibration_upload_on_the_calibration_page(live_server, browser):
+    """Upload a light calibration through the page's form; a bad one is refused naming file and field."""
+    from tests.web.test_light_calibration import ring_of_lights
+
+    SHOTS.mkdir(exist_ok=True)
+    page = browser.new_page(viewport={"width": 1920, "height": 1080})
+    errors = []
+    page.on("pageerror", lambda err: errors.append(str(err)))
+    page.goto(f"{live_server['base']}/calibration")
+    field = "#light-calibration-form input[name=calibration]"
+    bad = ring_of_lights(8)
+    bad["lights"][3]["mu"] = -1.0
+    page.set_input_files(field, files=[{"name": "bad-lights.json", "mimeType": "application/json",
+                                        "buffer": json.dumps(bad).encode()}])
+    page.click("#light-calibration-form button[type=submit]")
+    page.wait_for_selector("#light-calibration-message[data-kind=error]", timeout=10_000)
+    assert "bad-lights.json: lights[3].mu" in page.locator("#light-calibration-message").inner_text()
+
+    page.set_input_files(field, files=[{"name": "cell-lights.json", "mimeType": "application/json",
+                                        "buffer": json.dumps(ring_of_lights(8)).encode()}])
+    page.click("#light-calibration-form button[type=submit]")
+    page.wait_for_selector("#light-calibration-message[data-kind=ok]", timeout=10_000)
+    page.wait_for_selector("#light-table", timeout=10_000)  # the page reloads with the new current one
+    assert page.locator("#light-table tbody tr").count() == 8
+    assert page.locator(".light-plan circle.light").count() == 8
+    page.screenshot(path=SHOTS / "calibration-lights.png", full_page=True)
+    assert not errors, errors
+
+
 def _token(live_server) -> str:
     return live_server["token"]
