@@ -53,13 +53,16 @@ TARGET_BLOCKS = 12_000
 MIN_BLOCK_PX = 8
 #: A block needs at least this fraction of its pixels with both depths to count.
 MIN_BLOCK_FILL = 0.25
+#: ... and the centroid of its samples within this fraction of its side from its centre (a block cut by
+#: the surface's edge would put a steep difference at the wrong place).
+MAX_CENTROID_OFFSET = 0.1
 #: Huber threshold, in robust standard deviations of the block residuals.
 HUBER_K = 2.0
 #: Re-weighted passes of the robust fit.
 IRLS_PASSES = 3
 #: Weight of the second-difference penalty on the spline coefficients, relative to the data's total
 #: weight per coefficient: bridges knot cells without stereo data, negligible where there is some.
-SMOOTHING = 1e-3
+SMOOTHING = 1e-6
 
 
 @dataclass(frozen=True)
@@ -73,8 +76,9 @@ class Fusion:
     correction_mm : (H, W) float32
         ``depth_mm - depth_ps`` (what the stereo pair changed), mm; NaN outside the mask.
     disagreement_mm : float
-        The 95th percentile of ``|correction|`` after removing its best-fit plane in depth (a
-        scale and tilt error is no disagreement of shape), mm.
+        The 95th percentile over the surface of ``|c - plane| z`` (mm): the correction without its
+        best-fit plane in (u, v), i.e. without a change of scale and tilt, which is no
+        disagreement of shape.
     stereo_noise_mm : float
         Robust standard deviation of a stereo sample about the fused surface, mm (from the block
         medians' residuals, as if the noise were independent between samples).
@@ -198,17 +202,18 @@ def fuse_low_frequencies(
     _compose(zb, grid.evaluate(coef), mb, fused[box], correction[box])
     corr_b = correction[box]
 
-    # disagreement of shape: the correction without its best plane in depth (scale and tilt)
+    # disagreement of shape: the log correction without its best plane in (u, v) (a scale and tilt), in mm
     r_i, c_i = np.nonzero(mb[::4, ::4])
-    corr = corr_b[::4, ::4][r_i, c_i].astype(np.float64)
+    z_s = zb[::4, ::4][r_i, c_i]
+    log_corr = np.log1p(corr_b[::4, ::4][r_i, c_i].astype(np.float64) / z_s)
     A = np.column_stack([np.ones(r_i.size), c_i, r_i]).astype(np.float64)
-    plane, *_ = np.linalg.lstsq(A, corr, rcond=None)
+    plane, *_ = np.linalg.lstsq(A, log_corr, rcond=None)
     cells = max((grid.nv - 3) * (grid.nu - 3), 1) if fraction is not None else 1
     per_cell = max(float(blocks.samples.sum()) / cells, 1.0)
     return Fusion(
         depth_mm=fused,
         correction_mm=correction,
-        disagreement_mm=float(np.percentile(np.abs(corr - A @ plane), 95)),
+        disagreement_mm=float(np.percentile(np.abs(log_corr - A @ plane) * z_s, 95)),
         stereo_noise_mm=float(sigma_pix * z_typ),
         noise_floor_mm=float(3.0 * sigma_pix / np.sqrt(per_cell) * z_typ),
         n_stereo=int(blocks.n_pixels),
@@ -266,12 +271,21 @@ class _Blocks:
         padded[:h:stride, :w:stride] = np.where(mask[::stride, ::stride] & np.isfinite(r), r, np.inf)
         tiles = padded[::stride, ::stride].reshape(nbv, k, nbu, k)
         tiles = tiles.transpose(0, 2, 1, 3).reshape(nbv, nbu, k * k)
-        count = np.isfinite(tiles).sum(axis=2)
+        have = np.isfinite(tiles)
+        count = have.sum(axis=2)
+        # a block's median stands for its centre only if its samples are spread around the centre
+        offsets = np.arange(k, dtype=np.float64) - (k - 1) / 2.0
+        with np.errstate(invalid="ignore", divide="ignore"):
+            off_r = (have.reshape(nbv, nbu, k, k).sum(axis=3) @ offsets) / count
+            off_c = (have.reshape(nbv, nbu, k, k).sum(axis=2) @ offsets) / count
+        centred = (np.abs(off_r) <= MAX_CENTROID_OFFSET * k) & (np.abs(off_c) <= MAX_CENTROID_OFFSET * k)
         tiles.sort(axis=2)  # +inf (no data) last
-        med = np.take_along_axis(tiles, np.maximum(count // 2, 0)[..., None], axis=2)[..., 0]
-        used = count >= max(1, int(MIN_BLOCK_FILL * k * k))
+        lo = np.take_along_axis(tiles, np.maximum((count - 1) // 2, 0)[..., None], axis=2)[..., 0]
+        hi = np.take_along_axis(tiles, np.maximum(count // 2, 0)[..., None], axis=2)[..., 0]
+        med = 0.5 * (lo + hi)
+        used = (count >= max(1, int(MIN_BLOCK_FILL * k * k))) & centred
         samples = np.where(used, count, 0).astype(np.float64)
-        centre = (b - 1) / 2.0
+        centre = stride * (k - 1) / 2.0  # the centre of a block's samples (every stride-th pixel from its corner)
         return cls(
             size=b,
             value=np.where(used, med, 0.0),

@@ -1,0 +1,75 @@
+"""Fusion of photometric and stereo shape: stereo governs the low frequencies (issue 10, item 4)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.fusion import fuse_low_frequencies, smooth_stereo_depth
+
+H, W = 400, 480
+
+
+def _surface():
+    """A cylinder-like depth (mm) with a 6 mm dent, its mask (with a notch) and pixel grids."""
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    z = 3000.0 + (u - W / 2) ** 2 / 30.0 + 0.05 * v
+    dent = 6.0 * np.clip(1 - ((u - 300) ** 2 + (v - 150) ** 2) / 25.0**2, 0, None) ** 2
+    mask = np.zeros((H, W), bool)
+    mask[20:380, 30:450] = True
+    mask[300:380, 30:120] = False
+    return z + dent, dent, mask, u, v
+
+
+def _stereo(z, mask, rng, sigma_mm=1.5):
+    zs = z + rng.normal(0.0, sigma_mm, z.shape)
+    zs[rng.random(z.shape) < 0.2] = np.nan  # unmatched
+    zs[rng.random(z.shape) < 0.002] += 400.0  # a few wrong matches
+    return np.where(mask, zs, np.nan)
+
+
+def test_a_smooth_bend_of_the_normals_is_taken_out_and_the_dent_kept():
+    z, dent, mask, u, v = _surface()
+    rng = np.random.default_rng(0)
+    bias = 1.0 + 0.03 * ((u - W / 2) / W) ** 2 + 0.01 * (v / H) ** 3  # light-model error: tens of mm
+    z_ps = np.where(mask, z * bias, np.nan)
+    fused = fuse_low_frequencies(z_ps, _stereo(z, mask, rng), mask)
+    err = (fused.depth_mm - z)[mask]
+    # the spline keeps ~0.1 mm of the bias and lets ~0.1 mm of stereo noise through
+    assert np.sqrt(np.mean(err**2)) < 0.3, np.sqrt(np.mean(err**2))
+    assert fused.knot_spacing_px is not None
+    assert fused.disagreement_mm > 5.0  # tens of mm of bend were corrected
+    peak = (fused.depth_mm - (z - dent))[140:160, 290:310].max()
+    assert peak == pytest.approx(6.0, abs=0.3)
+
+
+def test_correct_normals_keep_their_shape_and_get_scale_and_tilt():
+    z, _, mask, u, v = _surface()
+    rng = np.random.default_rng(1)
+    z_ps = np.where(mask, z * 1.01 * (1 + 1e-5 * u), np.nan)  # 1 % scale and a tilt: what a weak prior leaves
+    fused = fuse_low_frequencies(z_ps, _stereo(z, mask, rng), mask)
+    assert fused.knot_spacing_px is None  # scale and tilt only: no stereo noise enters the shape
+    err = (fused.depth_mm - z)[mask]
+    assert np.sqrt(np.mean(err**2)) < 0.1
+    assert fused.disagreement_mm < fused.noise_floor_mm + 0.1
+
+
+def test_smooth_stereo_depth_fills_holes():
+    z, _, mask, _, _ = _surface()
+    zs = _stereo(z, mask, np.random.default_rng(2))
+    zs[100:200, 100:200] = np.nan
+    smooth = smooth_stereo_depth(zs, mask)
+    assert np.all(np.isfinite(smooth[mask])) and np.all(np.isnan(smooth[~mask]))
+    assert np.sqrt(np.mean((smooth - z)[mask] ** 2)) < 3.0  # smooth: the dent and the noise are gone
+
+
+def test_bad_inputs_are_named():
+    z, _, mask, _, _ = _surface()
+    with pytest.raises(ValueError, match="expected .H, W. arrays of one shape"):
+        fuse_low_frequencies(z, z[:-1], mask)
+    bad = z.copy()
+    bad[50, 50] = -1.0
+    with pytest.raises(ValueError, match="depth_ps_mm: expected finite depths > 0 mm on the mask"):
+        fuse_low_frequencies(bad, z, mask)
+    with pytest.raises(ValueError, match="stereo_depth_mm: expected stereo depth over at least"):
+        fuse_low_frequencies(z, np.full_like(z, np.nan), mask)
