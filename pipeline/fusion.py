@@ -36,13 +36,15 @@ import numpy as np
 #: Finest knot spacing of the correction spline as a fraction of the plate's larger extent in the
 #: image: at most, the stereo pair governs shape wider than about this.
 KNOT_FRACTION = 1.0 / 16.0
-#: Knot spacings tried, coarsest first (after a correction of scale and tilt only).
+#: Knot spacings tried, coarsest first (after a quadric correction: scale, tilt and bend only).
 KNOT_LADDER = (1.0 / 2.0, 1.0 / 4.0, 1.0 / 8.0, 1.0 / 16.0)
 #: Shape disagreement (RMS, mm) below which the normals keep the shape (see fuse_low_frequencies).
 #: Measured at 1224x1024 on simulated plates whose normals are exact (lights known): the finest spline
-#: explains ~0.15 mm RMS of the stereo pair's correlated noise more than scale and tilt do; with
+#: explains ~0.15 mm RMS of the stereo pair's correlated noise more than a quadric does; with
 #: near-field LEDs given as distant directions the coarse corrections leave 3-6 mm.
 RESOLVE_MM = 0.25
+#: Coefficients of the coarsest correction, a quadric in (u, v).
+N_QUADRIC = 6
 #: The finer corrections of the ladder fit the stereo noise too: each coefficient takes the variance of
 #: about this many blocks (noise correlated between neighbouring blocks) out of the residual.
 NOISE_CORRELATION = 2.0
@@ -88,7 +90,7 @@ class Fusion:
     n_stereo : int
         Stereo pixels in the fit.
     knot_spacing_px : float or None
-        Knot spacing of the correction chosen; None: scale and tilt only.
+        Knot spacing of the correction chosen; None: a quadric in (u, v) (scale, tilt and bend).
     """
 
     depth_mm: np.ndarray
@@ -121,10 +123,11 @@ def fuse_low_frequencies(
     knot_fraction : float
         The finest knot spacing tried, as a fraction of the mask's larger extent (0 < . <= 1).
     resolve_mm : float or None
-        The correction is the coarsest of a ladder -- scale and tilt only, then splines of knot
+        The correction is the coarsest of a ladder -- a quadric in (u, v) (scale, tilt and bend:
+        the stereo pair always governs those), then splines of knot
         spacing 1/2, 1/4, ... of the extent down to ``knot_fraction`` -- whose robust residual
         against the stereo pair exceeds the finest one's by less than this RMS (mm): where the
-        normals agree with the stereo pair to that, the stereo pair only sets scale and tilt, and
+        normals agree with the stereo pair to that, the stereo pair only sets scale, tilt and bend, and
         its noise does not reach the shape. None: always the spline of ``knot_fraction``.
 
     Returns
@@ -165,9 +168,9 @@ def fuse_low_frequencies(
 
     def fit(fraction):
         grid = _Grid.over(mb.shape, extent * (fraction or 1.0))
-        if blocks.n_used < 4 * (3 if fraction is None else grid.size):
+        if blocks.n_used < 4 * (N_QUADRIC if fraction is None else grid.size):
             return None
-        return (fraction, grid) + _fit(grid, blocks, plane_only=fraction is None)
+        return (fraction, grid) + _fit(grid, blocks, quadric=fraction is None)
 
     # the coarsest correction that explains the stereo pair as well as the finest, up to resolve_mm RMS
     fits = [f for f in map(fit, ladder[-1:]) if f is not None]
@@ -181,7 +184,7 @@ def fuse_low_frequencies(
             f"got {blocks.n_used}"
         )
     chosen = fits[0]
-    rms_best, n_best = chosen[3], (3 if chosen[0] is None else chosen[1].size)
+    rms_best, n_best = chosen[3], (N_QUADRIC if chosen[0] is None else chosen[1].size)
     for fraction in ladder:
         if fraction is not None and fraction <= chosen[0]:
             break
@@ -190,7 +193,7 @@ def fuse_low_frequencies(
             continue
         # what the finer fit explains more: noise it fits (its extra coefficients' share of the blocks, for
         # noise correlated over NOISE_CORRELATION blocks) plus up to resolve_mm of shape
-        n_coef = 3 if fraction is None else candidate[1].size
+        n_coef = N_QUADRIC if fraction is None else candidate[1].size
         noise = NOISE_CORRELATION * candidate[3] ** 2 * (n_best - n_coef) / blocks.n_used
         if candidate[3] ** 2 <= rms_best**2 + noise + (resolve_mm / z_typ) ** 2:
             chosen = candidate
@@ -338,10 +341,10 @@ class _Grid:
         return np.kron(dtd(self.nv), np.eye(self.nu)) + np.kron(np.eye(self.nv), dtd(self.nu))
 
 
-def _fit(grid: _Grid, blocks: _Blocks, *, plane_only: bool):
+def _fit(grid: _Grid, blocks: _Blocks, *, quadric: bool):
     """Robust penalised least squares of the spline to the block medians (weights: pixel counts).
 
-    With ``plane_only`` the correction is a plane in (u, v) (a scale and tilt of the depth).
+    With ``quadric`` the correction is a quadric in (u, v) (a scale, tilt and bend of the depth).
     Returns the coefficients (nv * nu,), the robust weighted RMS of the block residuals and the
     per-pixel robust standard deviation (both in log depth).
     """
@@ -349,9 +352,11 @@ def _fit(grid: _Grid, blocks: _Blocks, *, plane_only: bool):
     Bu = grid.basis(blocks.centre_c, grid.nu)
     R, W0 = blocks.value, blocks.count
     Q = None
-    if plane_only:
+    if quadric:
+        # a quadric in the coefficients' indices is a quadric in (u, v): cubic B-splines reproduce it
         gv, gu = np.meshgrid(np.arange(grid.nv, dtype=np.float64), np.arange(grid.nu, dtype=np.float64), indexing="ij")
-        Q = np.column_stack([np.ones(grid.size), gv.ravel(), gu.ravel()])
+        gv, gu = gv.ravel() - gv.mean(), gu.ravel() - gu.mean()
+        Q = np.column_stack([np.ones(grid.size), gv, gu, gv * gv, gv * gu, gu * gu])
     PtP = grid.penalty()
     lam = SMOOTHING * W0.sum() / grid.size
     w = W0.copy()

@@ -18,11 +18,11 @@ Normals that still face away from their pixel's ray are filled from their neighb
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from . import fusion, integration, nearfield, normals
+from . import fusion, integration, light_refinement, nearfield, normals
 from .formats import CaptureError
 from .lights import Lights
 
@@ -52,6 +52,9 @@ class Surface:
         Point lights: the 99th percentile of the depth's change at each alternation, mm.
     normals_facing_away : int
         Normals dropped as facing away from their ray and filled.
+    refinement : LightRefinement or None
+        The lights refitted against the stereo geometry, when the given ones disagreed with it
+        (:func:`remeasure_with_refined_lights`).
     """
 
     depth_mm: np.ndarray
@@ -61,6 +64,7 @@ class Surface:
     iterations: int
     depth_steps_mm: tuple[float, ...]
     normals_facing_away: int
+    refinement: light_refinement.LightRefinement | None = None
 
 
 def integrate_and_fuse(
@@ -127,6 +131,7 @@ def near_field_surface(
     tol: float,
     max_iterations: int = MAX_NEAR_FIELD_ITERATIONS,
     step_tol_mm: float = DEPTH_STEP_TOL_MM,
+    start_mm: np.ndarray | None = None,
 ) -> Surface:
     """Alternate near-field normals and the fused surface until the depth stops moving.
 
@@ -148,6 +153,9 @@ def near_field_surface(
         Normal estimates at most.
     step_tol_mm : float
         Stop when the 99th percentile of the depth's change falls below this, mm.
+    start_mm : (H, W) float, optional
+        The starting surface, when already computed (default: the stereo pair's smooth surface,
+        or the plane at the working distance).
 
     Returns
     -------
@@ -158,7 +166,9 @@ def near_field_surface(
     CaptureError
         A light lies behind the plate's surface (the plate would not be lit from the camera side).
     """
-    if prior_mm is not None:
+    if start_mm is not None:
+        start = start_mm
+    elif prior_mm is not None:
         start = fusion.smooth_stereo_depth(prior_mm, mask)
     else:
         start = np.where(mask, float(working_distance_mm), np.nan)
@@ -182,6 +192,67 @@ def near_field_surface(
         if step < step_tol_mm:
             break
     return Surface(depth, surface_mask, field, fused, it, tuple(steps), dropped)
+
+
+def disagrees(surface: Surface, tolerance_mm: float, fraction: float) -> bool:
+    """Whether the photometric and stereo shapes disagree beyond noise and ``fraction`` of the tolerance."""
+    f = surface.fusion
+    return f is not None and f.disagreement_mm > max(f.noise_floor_mm, fraction * tolerance_mm)
+
+
+def remeasure_with_refined_lights(
+    first: Surface,
+    images: np.ndarray,
+    lights: Lights,
+    K: np.ndarray,
+    mask: np.ndarray,
+    *,
+    valid: np.ndarray | None,
+    method: str,
+    prior_mm: np.ndarray,
+    working_distance_mm: float | None,
+    stereo_weight: float,
+    tol: float,
+) -> Surface:
+    """Refit the given lights on the stereo geometry and measure again with them.
+
+    For a surface measured with distant lights whose shape disagreed with the stereo pair's (see
+    :mod:`pipeline.light_refinement`): the refined lights are point lights (near-field
+    reconstruction) or corrected distant ones. The new surface is kept when it agrees better with
+    the stereo pair; either way ``refinement`` records the fit.
+
+    Parameters
+    ----------
+    first : Surface
+        The surface measured with the given lights.
+    images : (N, H, W) float32
+        Preprocessed images (divided by the given intensities).
+    lights : Lights
+        The given lights.
+    K, mask, valid, method, prior_mm, working_distance_mm, stereo_weight, tol
+        As for :func:`near_field_surface`; ``prior_mm`` is required.
+
+    Returns
+    -------
+    Surface
+    """
+    smooth = fusion.smooth_stereo_depth(prior_mm, mask)
+    refined = light_refinement.refine_lights(images, valid, mask, lights, smooth, K)
+    if refined is None:
+        return first
+    # the images were divided by the given intensities: by the refined ones instead
+    gain = (lights.intensity / refined.lights.intensity).astype(np.float32)
+    scaled = images * gain[:, None, None]
+    solve = dict(prior_mm=prior_mm, working_distance_mm=working_distance_mm, stereo_weight=stereo_weight, tol=tol)
+    if refined.model == "point":
+        second = near_field_surface(scaled, refined.lights, K, mask, valid=valid, method=method, start_mm=smooth,
+                                    **solve)
+    else:
+        field = normals.estimate_normals(scaled, refined.lights.directions, mask, valid=valid, method=method,
+                                         camera_matrix=K)
+        second = distant_surface(field, K, **solve)
+    better = second.fusion is not None and second.fusion.disagreement_mm < first.fusion.disagreement_mm
+    return replace(second if better else first, refinement=refined)
 
 
 def _check_lights_in_front(lights: Lights, depth_mm: np.ndarray, mask: np.ndarray) -> None:

@@ -254,6 +254,14 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, li
             clock.end("normals")
         else:
             surface = reconstruct.distant_surface(field, K, **solve)
+            if prior is not None and reconstruct.disagrees(surface, tgt.tolerance_mm, DISAGREEMENT_FRACTION):
+                # the given lights bend the surface away from the stereo pair's: refit them on its geometry
+                t_refit = time.perf_counter()
+                surface = reconstruct.remeasure_with_refined_lights(
+                    surface, pre.images, cap.lights, K, pre.mask, valid=pre.valid, method=opts.normals_method,
+                    **solve,
+                )
+                clock.timings["light_refinement"] = round(time.perf_counter() - t_refit, 4)
         field = surface.field
         rays = rays_job.result()
         points = surface.depth_mm[..., None] * rays
@@ -302,11 +310,20 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, li
         "near_field_iterations": surface.iterations if near_field else None,
         "near_field_depth_steps_mm": list(surface.depth_steps_mm) if near_field else None,
         "stereo_fusion": _fusion_details(surface.fusion),
+        "light_refinement": _refinement_details(surface.refinement),
         "samples_saturated": pre.n_saturated,
         "samples_shadowed": pre.n_shadowed,
         "stereo_matched_pct": None if matched_pct is None else round(float(matched_pct), 2),
         "metric_scale": "stereo" if prior is not None else "working_distance",
     }
+    if surface.refinement is not None:
+        r = surface.refinement
+        turn = max(c["turn_deg"] for c in r.corrections)
+        what = ("point lights (LEDs near the plate) fitted from the images on the stereo geometry"
+                if r.model == "point" else f"distant lights corrected by up to {turn:.2f} deg from the images on "
+                "the stereo geometry")
+        warnings.append(f"the capture's lights did not fit the plate the stereo pair measured; measured with {what} "
+                        "(details.json: light_refinement)")
     if surface.fusion is not None and surface.fusion.disagreement_mm > max(
         surface.fusion.noise_floor_mm, DISAGREEMENT_FRACTION * tgt.tolerance_mm
     ):
@@ -415,6 +432,20 @@ def _apply_light_calibration(cap: Capture, calibration: Lights | None, warnings:
         return cap
     warnings.append("a light calibration was applied to the capture's nominal light directions")
     return replace(cap, lights=calibration)
+
+
+def _refinement_details(refined) -> dict | None:
+    """details.json's account of the lights refitted on the stereo geometry."""
+    if refined is None:
+        return None
+    return {
+        "model": refined.model,
+        "rms_given": round(refined.rms_given, 5),
+        "rms_distant": round(refined.rms_distant, 5),
+        "rms_point": None if not np.isfinite(refined.rms_point) else round(refined.rms_point, 5),
+        "samples": refined.n_samples,
+        "corrections": refined.corrections,
+    }
 
 
 def _fusion_details(fused) -> dict | None:
