@@ -16,10 +16,12 @@ hundreds of millimetres apart, so the plate is found as the near, smooth sheet o
    the parts narrower than ``support_width_mm`` whose depth leaves the smooth surface: supports that
    reach out beside the plate at its depth (a rail under its edge). Where such a support met the
    plate, the edge band is widened to a quarter of that width.
-4. *Holes stay holes*: a region enclosed by the plate is filled only if it is a small dropout (at most
-   ``max_dropout_mm2``, and at most a quarter of it shows depth off the plate or darkness); anything
-   larger, or showing what lies behind, is an opening (or an unmatched area) and stays out of the
-   mask. Nothing is ever filled across a depth step.
+4. *Holes stay holes*: a region enclosed by the plate is filled only if at most a quarter of it shows
+   depth off the plate or darkness, and it is a small dropout (at most ``max_dropout_mm2``) or, given
+   photometric normals, its normals follow the fitted surface (median within ``DROPOUT_NORMAL_DEG``);
+   anything showing what lies behind is an opening and stays out of the mask, as does a larger
+   unmatched area without agreeing normals. Nothing is ever filled across a depth step: a filled
+   region has no stereo depth of its own (see :meth:`Segmentation.stereo_prior`).
 5. *The rim*: pixels the stereo pair could not match next to the plate (its matching windows
    straddle the edge) are added only where darkness bounds them within ``reach_px`` (a dark
    background makes the edge sharp); next to a lit floor they stay out (there the unmatched strip is
@@ -70,6 +72,9 @@ DARK_FRACTION = 0.2
 #: Dark specks of at most this many pixels enclosed by bright ones are not dark (a rust pore, noise):
 #: the stereo matcher would otherwise make a hole of its window's size around each.
 DARK_SPECK_PX = 9
+#: A larger unmatched area inside the plate is filled when the median angle between its photometric
+#: normals and the fitted surface's is at most this (deg): the stereo pair missed plate there.
+DROPOUT_NORMAL_DEG = 3.0
 #: A dropout may hold at most this share of pixels with off-plate depth or darkness.
 DROPOUT_MAX_OFF_SHARE = 0.25
 #: Near the boundary (``edge_px`` + this many px) a pixel whose photometric normal is more than
@@ -150,6 +155,19 @@ class Segmentation:
     depth_band_mm: float
     method: str
     reasons: tuple[str, ...]
+
+    def stereo_prior(self, depth_mm) -> np.ndarray:
+        """The stereo depth to fuse with the normals: ``depth_mm`` (H, W) where the mask is and the depth lies
+        within the band of the plate's surface, NaN elsewhere (mm; so a filled dropout, an edge band or a
+        stray match of the floor never pulls the surface)."""
+        d = np.asarray(depth_mm, dtype=np.float32)
+        if d.shape != self.mask.shape:
+            raise ValueError(f"depth_mm: expected shape {self.mask.shape}, got {d.shape}")
+        if self.method != "stereo":
+            return np.where(self.mask, d, np.float32(np.nan))
+        with np.errstate(invalid="ignore"):
+            near = np.abs(d - self.surface_depth_mm) < self.depth_band_mm
+        return np.where(self.mask & near, d, np.float32(np.nan))
 
     @property
     def region(self) -> np.ndarray:
@@ -619,7 +637,23 @@ def segment_plate(
     count = np.bincount(lab, minlength=n_lab)
     n_offish = np.bincount(lab, weights=(off | dark | ~ok).ravel().astype(np.float64), minlength=n_lab)
     area_lab = np.bincount(lab, weights=np.nan_to_num(area, nan=0.0).ravel().astype(np.float64), minlength=n_lab)
-    fill = inner & (area_lab <= max_dropout_mm2) & (n_offish <= DROPOUT_MAX_OFF_SHARE * count)
+    n_by_normals, largest_by_normals = 0, 0.0
+    no_depth_behind = inner & (n_offish <= DROPOUT_MAX_OFF_SHARE * count)
+    fill = no_depth_behind & (area_lab <= max_dropout_mm2)
+    larger = no_depth_behind & ~fill
+    if normals is not None and larger.any():
+        # a larger unmatched area is plate if its photometric normals follow the plate's surface: with no
+        # stereo depth in it, filling it lets no depth step into the solve, only normals that agree
+        sel = larger[labels]
+        rows, cols = np.nonzero(sel)
+        cos = np.einsum("mc,mc->m", np.asarray(normals[rows, cols], np.float32), geometry.normals_at(rows, cols))
+        agree = np.nan_to_num(cos, nan=-1.0) >= math.cos(math.radians(DROPOUT_NORMAL_DEG))
+        lab_sel = labels[rows, cols]
+        n_agree = np.bincount(lab_sel, weights=agree.astype(np.float64), minlength=n_lab)
+        by_normals = larger & (n_agree > 0.5 * count)
+        fill |= by_normals
+        n_by_normals = int(count[by_normals].sum())
+        largest_by_normals = float(area_lab[by_normals].max()) if by_normals.any() else 0.0
     hole_lab = inner & ~fill
     filled = fill[labels]
     holes = hole_lab[labels]
@@ -684,8 +718,15 @@ def segment_plate(
             f"{n_holes} region(s) inside the plate kept as holes, not measured ({holes_area:.0f} mm^2, largest "
             f"{largest:.0f} mm^2): openings or areas without stereo depth, never filled across a depth step"
         )
-    if n_filled:
-        reasons.append(f"{n_filled} px of stereo dropouts inside the plate filled (each at most {max_dropout_mm2:g} mm^2)")
+    if n_filled - n_by_normals:
+        reasons.append(
+            f"{n_filled - n_by_normals} px of stereo dropouts inside the plate filled (each at most {max_dropout_mm2:g} mm^2)"
+        )
+    if n_by_normals:
+        reasons.append(
+            f"{n_by_normals} px of larger areas without stereo depth filled (largest {largest_by_normals:.0f} mm^2): "
+            f"their photometric normals follow the plate's surface within {DROPOUT_NORMAL_DEG:g} deg"
+        )
     if n_normal_off:
         reasons.append(
             f"{n_normal_off} px near the edge whose photometric normals leave the plate's surface by over "
