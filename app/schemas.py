@@ -55,6 +55,16 @@ class SimulatedInspectionIn(BaseModel):
     noise: float = Field(default=0.004, ge=0, le=0.5, description="image noise, fraction of full scale")
     bit_depth: Literal[8, 12, 16] = 16
     specular: float = Field(default=0.0, ge=0, le=1)
+    lights: Literal["near-field", "distant"] = Field(
+        default="near-field", description="LED point lights above the plate (a real cell), or distant lights"
+    )
+    light_height_mm: float = Field(default=2800.0, gt=100, le=20000, description="near-field: LEDs above the plate, mm")
+    light_elevation_deg: float = Field(default=30.0, gt=0, lt=80, description="lights' angle from the optical axis")
+    led_mu: float = Field(default=1.5, ge=0, le=20, description="near-field: LED beam profile exponent cos^mu")
+    light_manifest: Literal["exact", "nominal"] = Field(
+        default="exact", description="near-field: the bundle gives positions (exact) or only directions (nominal)"
+    )
+    light_error_deg: float = Field(default=0.0, ge=0, lt=30, description="lights written off by this angle")
     dents: list[DentIn] = Field(default_factory=list, max_length=32)
     seed: int = Field(default=0, ge=0, le=2**31 - 1)
     width: int = Field(default=1224, ge=64, le=4096, description="image width, px")

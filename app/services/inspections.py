@@ -148,6 +148,7 @@ def simulation_specs(simulation: dict):
         convex=bool(simulation["convex"]),
         dents=tuple(Dent(d["x_mm"], d["y_mm"], d["radius_mm"], d["depth_mm"]) for d in simulation["dents"]),
     )
+    near = simulation.get("lights", "distant") == "near-field"  # rows from before point lights were distant
     capture = CaptureSpec(
         n_lights=int(simulation["n_lights"]),
         noise=float(simulation["noise"]),
@@ -155,6 +156,11 @@ def simulation_specs(simulation: dict):
         specular=float(simulation["specular"]),
         width=int(simulation["width"]),
         height=int(simulation["height"]),
+        light_elevation_deg=float(simulation.get("light_elevation_deg", 45.0)),
+        near_field_mm=float(simulation.get("light_height_mm", 2800.0)) if near else None,
+        led_mu=float(simulation.get("led_mu", 0.0)) if near else 0.0,
+        manifest_lights=simulation.get("light_manifest", "exact"),
+        light_error_deg=float(simulation.get("light_error_deg", 0.0)),
     )
     return plate, capture
 

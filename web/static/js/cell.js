@@ -25,6 +25,8 @@ function simulationBody() {
     radius_mm: number("radius_mm"),
     convex: form.elements.convex.value === "true",
     n_lights: number("n_lights"),
+    lights: form.elements.lights.value,
+    light_manifest: form.elements.light_manifest.value,
     noise: number("noise"),
     tolerance_mm: number("tolerance_mm"),
     width: number("width"),
