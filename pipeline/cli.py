@@ -166,6 +166,36 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+# --------------------------------------------------------------------------- calibrate-lights
+
+
+def _cmd_calibrate_lights(args: argparse.Namespace) -> int:
+    from .formats import CaptureError
+    from .io import light_calibration_document, load_capture
+    from .light_calibration import calibrate_lights
+
+    captures = [load_capture(path) for path in args.bundles]
+    try:
+        cal = calibrate_lights(captures)
+    except CaptureError as err:  # valid bundles that cannot give a light calibration: exit 3 (DESIGN.md)
+        print(f"plate-inspect {args.command}: {_one_line(err)}", file=sys.stderr)
+        return 3
+    for k in range(cal.lights.n):
+        p, a = cal.lights.positions_mm[k], cal.lights.axes[k]
+        print(
+            f"  light {k:2d}: position [{p[0]:8.1f} {p[1]:8.1f} {p[2]:8.1f}] mm +- {cal.position_std_mm[k]:.1f}, "
+            f"axis [{a[0]:+.3f} {a[1]:+.3f} {a[2]:+.3f}], mu {cal.lights.mu[k]:.3f}, "
+            f"intensity {cal.lights.intensity[k]:.4g}, lit {100 * cal.lit_fraction[k]:.0f} % of the plate"
+        )
+    print(
+        f"{cal.lights.n} lights from {len(captures)} bundle(s): rms {cal.rms:.5f} (of the mean sample), "
+        f"{cal.n_samples} samples of {cal.block_px} x {cal.block_px} px, {cal.iterations} iterations, {cal.seconds:.1f} s"
+    )
+    Path(args.out).write_text(json.dumps(light_calibration_document(cal.lights, cal.rms), indent=2) + "\n")
+    print(f"wrote {args.out}")
+    return EXIT_OK
+
+
 # --------------------------------------------------------------------------- inspect
 
 
@@ -269,6 +299,13 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--square", required=True, type=float, help="square size, mm")
     cal.add_argument("--out", default="calibration.json", help="output stereo-calibration/1 file")
     cal.set_defaults(handler=_cmd_calibrate)
+
+    lc = sub.add_parser("calibrate-lights", help="measure the point lights (LEDs) on a flat reference plate")
+    lc.add_argument("bundles", nargs="+", metavar="BUNDLE",
+                    help="capture bundle(s) of a flat, matte plate with a stereo pair (plate-capture/1); "
+                         "several (the plate at other heights) are fitted jointly")
+    lc.add_argument("--out", required=True, help="output light-calibration/1 file")
+    lc.set_defaults(handler=_cmd_calibrate_lights)
 
     ins = sub.add_parser("inspect", help="measure a capture bundle against its target")
     ins.add_argument("capture", help="capture bundle: folder or .zip (plate-capture/1)")
