@@ -36,15 +36,17 @@ import numpy as np
 #: Finest knot spacing of the correction spline as a fraction of the plate's larger extent in the
 #: image: at most, the stereo pair governs shape wider than about this.
 KNOT_FRACTION = 1.0 / 16.0
-#: Knot spacings tried, coarsest first (after a quadric correction: scale, tilt and bend only).
+#: Knot spacings tried, coarsest first (after a plane and a quadric in (u, v)).
 KNOT_LADDER = (1.0 / 2.0, 1.0 / 4.0, 1.0 / 8.0, 1.0 / 16.0)
 #: Shape disagreement (RMS, mm) below which the normals keep the shape (see fuse_low_frequencies).
 #: Measured at 1224x1024 on simulated plates whose normals are exact (lights known): the finest spline
 #: explains ~0.15 mm RMS of the stereo pair's correlated noise more than a quadric does; with
 #: near-field LEDs given as distant directions the coarse corrections leave 3-6 mm.
 RESOLVE_MM = 0.25
-#: Coefficients of the coarsest correction, a quadric in (u, v).
-N_QUADRIC = 6
+#: The polynomial rungs of the ladder: a plane (scale and tilt) and a quadric (and bend) in (u, v).
+PLANE, QUADRIC = "plane", "quadric"
+_POLYNOMIAL = {PLANE: 3, QUADRIC: 6}
+_DEGREE = {PLANE: 1, QUADRIC: 2}
 #: The finer corrections of the ladder fit the stereo noise too: each coefficient takes the variance of
 #: about this many blocks (noise correlated between neighbouring blocks) out of the residual.
 NOISE_CORRELATION = 2.0
@@ -90,7 +92,9 @@ class Fusion:
     n_stereo : int
         Stereo pixels in the fit.
     knot_spacing_px : float or None
-        Knot spacing of the correction chosen; None: a quadric in (u, v) (scale, tilt and bend).
+        Knot spacing of the correction chosen; None: a polynomial (see ``model``).
+    model : {"plane", "quadric", "spline"}
+        The correction chosen: scale and tilt; and bend; or a spline of ``knot_spacing_px``.
     """
 
     depth_mm: np.ndarray
@@ -100,6 +104,7 @@ class Fusion:
     noise_floor_mm: float
     n_stereo: int
     knot_spacing_px: float | None
+    model: str = "spline"
 
 
 def fuse_low_frequencies(
@@ -123,12 +128,14 @@ def fuse_low_frequencies(
     knot_fraction : float
         The finest knot spacing tried, as a fraction of the mask's larger extent (0 < . <= 1).
     resolve_mm : float or None
-        The correction is the coarsest of a ladder -- a quadric in (u, v) (scale, tilt and bend:
-        the stereo pair always governs those), then splines of knot
-        spacing 1/2, 1/4, ... of the extent down to ``knot_fraction`` -- whose robust residual
-        against the stereo pair exceeds the finest one's by less than this RMS (mm): where the
-        normals agree with the stereo pair to that, the stereo pair only sets scale, tilt and bend, and
-        its noise does not reach the shape. None: always the spline of ``knot_fraction``.
+        The correction is chosen from a ladder: a plane in (u, v) (scale and tilt), a quadric (and
+        bend), then splines of knot spacing 1/2, 1/4, ... of the extent down to ``knot_fraction``.
+        Each rung is scored by its robust residual against the stereo pair plus what its
+        coefficients would take out of pure noise (an information criterion); the best one is
+        taken if it is the plane, else the coarsest from the quadric on whose score is within this
+        RMS (mm) of the best: where the normals agree with the stereo pair to that, the stereo pair
+        sets only scale, tilt and bend, and its noise does not reach the shape. None: always the
+        spline of ``knot_fraction``.
 
     Returns
     -------
@@ -163,42 +170,37 @@ def fuse_low_frequencies(
 
     blocks = _Blocks.of(zb, zsb, mb)
     extent = float(max(mb.shape))
-    ladder = [f for f in (None, *KNOT_LADDER) if f is None or f >= knot_fraction] if resolve_mm is not None else [
+    ladder = [PLANE, QUADRIC, *(f for f in KNOT_LADDER if f >= knot_fraction)] if resolve_mm is not None else [
         knot_fraction]
 
-    def fit(fraction):
-        grid = _Grid.over(mb.shape, extent * (fraction or 1.0))
-        if blocks.n_used < 4 * (N_QUADRIC if fraction is None else grid.size):
+    def fit(rung):
+        grid = _Grid.over(mb.shape, extent * (1.0 if rung in _POLYNOMIAL else rung))
+        if blocks.n_used < 4 * _POLYNOMIAL.get(rung, grid.size):
             return None
-        return (fraction, grid) + _fit(grid, blocks, quadric=fraction is None)
+        return (rung, grid) + _fit(grid, blocks, degree=_DEGREE.get(rung))
 
-    # the coarsest correction that explains the stereo pair as well as the finest, up to resolve_mm RMS
-    fits = [f for f in map(fit, ladder[-1:]) if f is not None]
-    for fraction in reversed(ladder[:-1]):  # the finest that has enough blocks is the reference
-        if fits:
-            break
-        fits = [f for f in (fit(fraction),) if f is not None]
+    # every rung that the blocks can carry; each is scored by its residual plus what its coefficients
+    # would take out of pure noise (an information criterion), and the coarsest within resolve_mm RMS
+    # of the best score is taken
+    fits = [f for f in map(fit, ladder) if f is not None]
     if not fits:
         raise ValueError(
-            f"stereo_depth_mm: expected stereo depth over at least 12 blocks of {blocks.size} px of the surface, "
-            f"got {blocks.n_used}"
+            f"stereo_depth_mm: expected stereo depth over at least {4 * _POLYNOMIAL[PLANE]} blocks of {blocks.size} px of "
+            f"the surface, got {blocks.n_used}"
         )
-    chosen = fits[0]
-    rms_best, n_best = chosen[3], (N_QUADRIC if chosen[0] is None else chosen[1].size)
-    for fraction in ladder:
-        if fraction is not None and fraction <= chosen[0]:
-            break
-        candidate = fit(fraction)
-        if candidate is None:
-            continue
-        # what the finer fit explains more: noise it fits (its extra coefficients' share of the blocks, for
-        # noise correlated over NOISE_CORRELATION blocks) plus up to resolve_mm of shape
-        n_coef = N_QUADRIC if fraction is None else candidate[1].size
-        noise = NOISE_CORRELATION * candidate[3] ** 2 * (n_best - n_coef) / blocks.n_used
-        if candidate[3] ** 2 <= rms_best**2 + noise + (resolve_mm / z_typ) ** 2:
-            chosen = candidate
-            break
-    fraction, grid, coef, rms, sigma_pix = chosen
+    noise2 = min(f[3] for f in fits) ** 2
+    slack = 0.0 if resolve_mm is None else (resolve_mm / z_typ) ** 2
+
+    def score(f):
+        return f[3] ** 2 + 2.0 * NOISE_CORRELATION * noise2 * _POLYNOMIAL.get(f[0], f[1].size) / blocks.n_used
+
+    best = min(fits, key=score)
+    # the slack applies between the bend and the finer corrections: the bend itself needs no more than
+    # its score (a bent plate must get the stereo pair's radius)
+    chosen = best if best[0] == PLANE else next(
+        f for f in fits if f[0] != PLANE and score(f) <= score(best) + slack)
+    rung, grid, coef, rms, sigma_pix = chosen
+    fraction = rung if rung not in _POLYNOMIAL else None
 
     fused = np.full(z.shape, np.nan)
     correction = np.full(z.shape, np.nan, np.float32)
@@ -221,6 +223,7 @@ def fuse_low_frequencies(
         noise_floor_mm=float(3.0 * sigma_pix / np.sqrt(per_cell) * z_typ),
         n_stereo=int(blocks.n_pixels),
         knot_spacing_px=None if fraction is None else float(grid.spacing),
+        model=rung if rung in _POLYNOMIAL else "spline",
     )
 
 
@@ -341,10 +344,11 @@ class _Grid:
         return np.kron(dtd(self.nv), np.eye(self.nu)) + np.kron(np.eye(self.nv), dtd(self.nu))
 
 
-def _fit(grid: _Grid, blocks: _Blocks, *, quadric: bool):
+def _fit(grid: _Grid, blocks: _Blocks, *, degree: int | None):
     """Robust penalised least squares of the spline to the block medians (weights: pixel counts).
 
-    With ``quadric`` the correction is a quadric in (u, v) (a scale, tilt and bend of the depth).
+    With ``degree`` (1 or 2) the correction is a polynomial of that degree in (u, v) (scale and tilt;
+    and bend).
     Returns the coefficients (nv * nu,), the robust weighted RMS of the block residuals and the
     per-pixel robust standard deviation (both in log depth).
     """
@@ -352,11 +356,12 @@ def _fit(grid: _Grid, blocks: _Blocks, *, quadric: bool):
     Bu = grid.basis(blocks.centre_c, grid.nu)
     R, W0 = blocks.value, blocks.count
     Q = None
-    if quadric:
-        # a quadric in the coefficients' indices is a quadric in (u, v): cubic B-splines reproduce it
+    if degree is not None:
+        # a polynomial in the coefficients' indices is one in (u, v): cubic B-splines reproduce it
         gv, gu = np.meshgrid(np.arange(grid.nv, dtype=np.float64), np.arange(grid.nu, dtype=np.float64), indexing="ij")
         gv, gu = gv.ravel() - gv.mean(), gu.ravel() - gu.mean()
-        Q = np.column_stack([np.ones(grid.size), gv, gu, gv * gv, gv * gu, gu * gu])
+        Q = np.column_stack([np.ones(grid.size), gv, gu, gv * gv, gv * gu, gu * gu][: _POLYNOMIAL[PLANE] if degree == 1
+                                                                                  else _POLYNOMIAL[QUADRIC]])
     PtP = grid.penalty()
     lam = SMOOTHING * W0.sum() / grid.size
     w = W0.copy()

@@ -458,6 +458,7 @@ def _fusion_details(fused) -> dict | None:
         "stereo_noise_mm": round(fused.stereo_noise_mm, 3),
         "correction_max_abs_mm": round(float(np.nanmax(np.abs(fused.correction_mm))), 3),
         "stereo_pixels": fused.n_stereo,
+        "correction": fused.model,
         "knot_spacing_px": None if fused.knot_spacing_px is None else round(fused.knot_spacing_px, 1),
     }
 
