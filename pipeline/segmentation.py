@@ -46,7 +46,7 @@ areas in mm^2 on the fitted surface.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -117,10 +117,11 @@ class Segmentation:
         neither is near (a wide unmatched strip).
     pixel_area_mm2 : (H, W) float32
         Area of the fitted surface one pixel sees, mm^2 (NaN in brightness-only mode).
-    plate_area_mm2, edge_band_area_mm2, holes_area_mm2 : float
-        Areas on the fitted surface (NaN in brightness-only mode), mm^2.
-    n_mask, n_edge_band, n_dropout_filled, n_holes, n_hole_pixels, n_off_depth, n_dark, n_unmatched : int
-        Pixels in the mask and edge band; pixels filled as stereo dropouts; openings and unmatched
+    plate_area_mm2, edge_band_area_mm2, holes_area_mm2, filled_area_mm2 : float
+        Areas on the fitted surface (NaN in brightness-only mode), mm^2: the mask, the edge band, the
+        holes kept, and the unmatched areas filled (dropouts, or with agreeing normals).
+    n_mask, n_edge_band, n_holes, n_hole_pixels, n_off_depth, n_dark, n_unmatched : int
+        Pixels in the mask and edge band; openings and unmatched
         regions kept as holes (count and pixels); candidate pixels whose stereo depth lies off the
         plate's surface; dark pixels; candidate pixels without stereo depth.
     fit_rms_mm : float
@@ -143,9 +144,9 @@ class Segmentation:
     plate_area_mm2: float
     edge_band_area_mm2: float
     holes_area_mm2: float
+    filled_area_mm2: float
     n_mask: int
     n_edge_band: int
-    n_dropout_filled: int
     n_holes: int
     n_hole_pixels: int
     n_off_depth: int
@@ -436,10 +437,16 @@ class _Geometry:
 
     def normals_at(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """(M, 3) float32 normals at pixels (bilinear on the coarse grid)."""
-        map_x = (cols.astype(np.float32) / self.step).reshape(1, -1)
-        map_y = (rows.astype(np.float32) / self.step).reshape(1, -1)
+        m = rows.size
+        width = min(max(m, 1), 4096)  # cv2.remap wants both sizes < 32767
+        height = -(-m // width) if m else 1
+        map_x = np.zeros(width * height, np.float32)
+        map_y = np.zeros(width * height, np.float32)
+        map_x[:m] = cols / self.step
+        map_y[:m] = rows / self.step
+        map_x, map_y = map_x.reshape(height, width), map_y.reshape(height, width)
         comps = [cv2.remap(self.normal[..., i].astype(np.float32), map_x, map_y, cv2.INTER_LINEAR,
-                           borderMode=cv2.BORDER_REPLICATE).ravel() for i in range(3)]
+                           borderMode=cv2.BORDER_REPLICATE).ravel()[:m] for i in range(3)]
         n = np.stack(comps, axis=-1)
         return n / np.linalg.norm(n, axis=-1, keepdims=True)
 
@@ -486,6 +493,7 @@ def segment_plate(
     normals=None,
     depth_band_mm: float = DEPTH_BAND_MM,
     edge_px: int = EDGE_PX,
+    depth_scale_px: int = 1,
     max_dropout_mm2: float = MAX_DROPOUT_MM2,
     reach_px: int = 4,
     support_width_mm: float = SUPPORT_WIDTH_MM,
@@ -521,7 +529,11 @@ def segment_plate(
         Largest distance (mm, along the optical axis) of a plate pixel's stereo depth from the fitted
         smooth surface.
     edge_px : int
-        Width of the edge band, pixels (>= 0).
+        Width of the edge band, pixels (>= 0), for a stereo depth matched at this grid's resolution.
+    depth_scale_px : int
+        The stereo depth was matched on this grid reduced this many times (``pipeline.run`` matches a
+        pair wider than 1600 px reduced): the matcher's smearing across an edge grows with it, so the
+        edge band and the zone of the normals check are this many times wider (>= 1).
     max_dropout_mm2 : float
         Largest unmatched region inside the plate filled as a stereo dropout, mm^2 (>= 0).
     reach_px : int
@@ -579,6 +591,9 @@ def segment_plate(
     for name, value in (("edge_px", edge_px), ("reach_px", reach_px), ("step_zone_px", step_zone_px)):
         if not isinstance(value, (int, np.integer)) or value < 0:
             raise ValueError(f"{name}: expected an integer >= 0, got {value!r}")
+    if not isinstance(depth_scale_px, (int, np.integer)) or depth_scale_px < 1:
+        raise ValueError(f"depth_scale_px: expected an integer >= 1, got {depth_scale_px!r}")
+    edge_px = int(edge_px) * int(depth_scale_px)
     if target_area_mm2 is not None and not (math.isfinite(target_area_mm2) and target_area_mm2 > 0):
         raise ValueError(f"target_area_mm2: expected a positive area in mm^2 or None, got {target_area_mm2}")
     cand = candidate_mask(b, seen=ok, dark_fraction=dark_fraction) if candidates is None else (
@@ -590,7 +605,6 @@ def segment_plate(
 
     finite = np.zeros(shape, bool) if depth is None else (np.isfinite(depth) & (depth > 0) & ok)
     matched_share = np.count_nonzero(finite & cand) / np.count_nonzero(cand)
-    surface = None
     if depth is None:
         reasons.append("no stereo depth: the plate was told from its surroundings by brightness only")
     elif matched_share < MIN_MATCHED_SHARE:
@@ -599,12 +613,72 @@ def segment_plate(
             "the plate was told from its surroundings by brightness only"
         )
     else:
-        surface = _fit_surface(depth, cand & finite, K, depth_band_mm)
-        if surface is None:
+        s = int(depth_scale_px)
+        params = dict(depth_band_mm=float(depth_band_mm), max_dropout_mm2=float(max_dropout_mm2), reach_px=int(reach_px),
+                      support_width_mm=float(support_width_mm), step_zone_px=int(step_zone_px))
+        if s == 1:
+            parts = _classify(b, depth, K, ok, cand, normals, **params)
+        else:
+            # the depth has the resolution of a grid s times coarser: decide there (s^2 times less work),
+            # then bring the decisions back and draw the edge band on this grid
+            K_s = np.diag([1.0 / s, 1.0 / s, 1.0]) @ K
+            parts = _classify(b[::s, ::s], depth[::s, ::s], K_s, ok[::s, ::s], cand[::s, ::s],
+                              None if normals is None else normals[::s, ::s], **params)
+            if parts is not None:
+                parts = parts.upsampled(s, shape)
+        if parts is None:
             reasons.append("no smooth surface fits the stereo depth: brightness only")
-    if surface is None:
-        return _by_brightness(cand, dark, ok, reasons, edge_px=edge_px)
+        else:
+            return _finish(parts, b, depth, K, ok, cand, dark, normals, reasons, edge_px=edge_px,
+                           depth_scale_px=s, depth_band_mm=float(depth_band_mm), max_dropout_mm2=float(max_dropout_mm2),
+                           support_width_mm=float(support_width_mm), target_area_mm2=target_area_mm2)
+    return _by_brightness(cand, dark, ok, reasons, edge_px=edge_px)
 
+
+@dataclass(frozen=True)
+class _Parts:
+    """What the geometric segmentation decided, on its grid (internal)."""
+
+    surface: _Surface
+    region: np.ndarray  # (H, W) bool: plate, before the edge band
+    holes: np.ndarray  # (H, W) bool
+    feet: np.ndarray  # (H, W) bool: wide supports removed beside the plate
+    step: np.ndarray  # (H, W) float32, see Segmentation.surroundings_step_mm
+    mm_per_px: float  # on this grid
+    n_holes: int
+    largest_hole_mm2: float
+    filled_mm2: float  # small dropouts filled
+    filled_by_normals_mm2: float  # larger unmatched areas filled, their normals agreeing
+    largest_by_normals_mm2: float
+    protrusions_mm2: float  # supports removed
+    px_scale: int = 1  # pixels of the final grid per pixel of this one, along each axis
+
+    def upsampled(self, s: int, shape: tuple[int, int]) -> "_Parts":
+        """The decisions on a grid ``s`` times finer of ``shape`` (coarse pixel i covers s i .. s i + s - 1)."""
+        h, w = shape
+
+        def up(a: np.ndarray) -> np.ndarray:
+            src = a.view(np.uint8) if a.dtype == np.bool_ else a
+            big = cv2.resize(src, (a.shape[1] * s, a.shape[0] * s), interpolation=cv2.INTER_NEAREST)
+            out = np.zeros((h, w), src.dtype) if a.dtype == np.bool_ else np.full((h, w), np.nan, a.dtype)
+            out[: min(h, big.shape[0]), : min(w, big.shape[1])] = big[:h, :w]
+            return out.view(np.bool_) if a.dtype == np.bool_ else out
+
+        return replace(self, region=up(self.region), holes=up(self.holes), feet=up(self.feet), step=up(self.step),
+                       mm_per_px=self.mm_per_px / s, px_scale=s)
+
+
+def _classify(b, depth, K, ok, cand, normals, *, depth_band_mm: float, max_dropout_mm2: float, reach_px: int,
+              support_width_mm: float, step_zone_px: int) -> _Parts | None:
+    """Steps 2-5 and 7 of the module docstring on the given grid; None if no smooth surface fits."""
+    from .formats import CaptureError
+
+    shape = b.shape
+    dark = ok & ~cand
+    finite = np.isfinite(depth) & (depth > 0) & ok
+    surface = _fit_surface(depth, cand & finite, K, depth_band_mm)
+    if surface is None:
+        return None
     z_fit = _surface_depth(surface, K, shape)
     residual = depth - z_fit  # NaN where unmatched
     with np.errstate(invalid="ignore"):
@@ -617,14 +691,10 @@ def segment_plate(
     area = geometry.area_full(shape)
     mm_per_px = math.sqrt(float(np.nanmedian(area[core])))
     protrusions = _protrusions(core, residual, mm_per_px, support_width_mm, max(PROTRUSION_RESIDUAL_MM, 5.0 * surface.rms_mm))
-    n_protrusion = int(np.count_nonzero(protrusions))
-    if n_protrusion:
+    if protrusions.any():
         core &= ~protrusions
         core = _largest_component(core)
-        reasons.append(
-            f"{n_protrusion} px ({float(np.nansum(area[protrusions])):.0f} mm^2) of narrow parts at the plate's depth "
-            f"that leave its smooth surface (supports reaching out beside the plate) excluded"
-        )
+    feet = _wide_parts(protrusions, max(1.5, support_width_mm / mm_per_px / 20))
     unknown = ok & cand & ~finite
 
     # ---- enclosed regions: small dropouts are filled, openings and large unmatched areas stay holes
@@ -637,27 +707,22 @@ def segment_plate(
     count = np.bincount(lab, minlength=n_lab)
     n_offish = np.bincount(lab, weights=(off | dark | ~ok).ravel().astype(np.float64), minlength=n_lab)
     area_lab = np.bincount(lab, weights=np.nan_to_num(area, nan=0.0).ravel().astype(np.float64), minlength=n_lab)
-    n_by_normals, largest_by_normals = 0, 0.0
     no_depth_behind = inner & (n_offish <= DROPOUT_MAX_OFF_SHARE * count)
     fill = no_depth_behind & (area_lab <= max_dropout_mm2)
     larger = no_depth_behind & ~fill
+    by_normals = np.zeros(n_lab, bool)
     if normals is not None and larger.any():
         # a larger unmatched area is plate if its photometric normals follow the plate's surface: with no
         # stereo depth in it, filling it lets no depth step into the solve, only normals that agree
-        sel = larger[labels]
-        rows, cols = np.nonzero(sel)
+        rows, cols = np.nonzero(larger[labels])
         cos = np.einsum("mc,mc->m", np.asarray(normals[rows, cols], np.float32), geometry.normals_at(rows, cols))
         agree = np.nan_to_num(cos, nan=-1.0) >= math.cos(math.radians(DROPOUT_NORMAL_DEG))
-        lab_sel = labels[rows, cols]
-        n_agree = np.bincount(lab_sel, weights=agree.astype(np.float64), minlength=n_lab)
+        n_agree = np.bincount(labels[rows, cols], weights=agree.astype(np.float64), minlength=n_lab)
         by_normals = larger & (n_agree > 0.5 * count)
         fill |= by_normals
-        n_by_normals = int(count[by_normals].sum())
-        largest_by_normals = float(area_lab[by_normals].max()) if by_normals.any() else 0.0
     hole_lab = inner & ~fill
-    filled = fill[labels]
     holes = hole_lab[labels]
-    region = core | filled
+    region = core | fill[labels]
 
     # ---- the rim: unmatched pixels next to the plate that darkness bounds (a dark background); a pixel
     # mostly dark (under half the plate's median brightness, unsmoothed) is not taken
@@ -670,29 +735,6 @@ def segment_plate(
         grown = cv2.dilate(grown, kernel) & (reachable | grown)
     region = grown.astype(bool)
 
-    # ---- the edge band: plate pixels within edge_px of the outline or of a hole (not of the image frame)
-    if edge_px > 0:
-        k = 2 * edge_px + 1
-        padded = cv2.copyMakeBorder(region.view(np.uint8), edge_px, edge_px, edge_px, edge_px, cv2.BORDER_REPLICATE)
-        inner_region = cv2.erode(padded, np.ones((k, k), np.uint8))[edge_px:-edge_px, edge_px:-edge_px].astype(bool)
-    else:
-        inner_region = region
-    mask = inner_region & ok
-    feet = _wide_parts(protrusions, max(1.5, support_width_mm / mm_per_px / 20))
-    if feet.any():
-        # where a support met the plate, its foot may be left at the plate's edge: a wider band there
-        foot_px = max(edge_px, int(math.ceil(support_width_mm / mm_per_px / 4)))
-        mask &= cv2.distanceTransform((~feet).view(np.uint8), cv2.DIST_L2, 3) > foot_px
-    n_normal_off = 0
-    if normals is not None:
-        zone = mask & (cv2.distanceTransform(region.view(np.uint8), cv2.DIST_L2, 3) <= edge_px + EDGE_NORMAL_ZONE_PX)
-        rows, cols = np.nonzero(zone)
-        cos = np.einsum("mc,mc->m", np.asarray(normals[rows, cols], np.float32), geometry.normals_at(rows, cols))
-        turned = np.nan_to_num(cos, nan=1.0) < math.cos(math.radians(EDGE_NORMAL_DEG))
-        n_normal_off = int(np.count_nonzero(turned))
-        mask[rows[turned], cols[turned]] = False
-    edge_band = region & ~mask
-
     # ---- the step to the surroundings along the boundary, for telling edge artefacts from defects
     # (the nearest surroundings with a depth, unless darkness - no depth, a dark background - is nearer)
     outside = ~region
@@ -703,29 +745,77 @@ def segment_plate(
     step = np.full(shape, np.nan, np.float32)
     use_off = zone & (dist_off <= np.minimum(dist_dark, reach))
     step[zone & ~use_off & (dist_dark <= reach)] = np.inf
-    at = nearest_off[use_off]
-    step[use_off] = depth.ravel()[at] - z_fit[use_off]
+    step[use_off] = depth.ravel()[nearest_off[use_off]] - z_fit[use_off]
 
-    n_holes = int(np.count_nonzero(hole_lab))
-    hole_px = int(np.count_nonzero(holes))
+    small = fill & ~by_normals
+    return _Parts(surface=surface, region=region, holes=holes, feet=feet, step=step, mm_per_px=mm_per_px,
+                  n_holes=int(np.count_nonzero(hole_lab)),
+                  largest_hole_mm2=float(area_lab[hole_lab].max()) if hole_lab.any() else 0.0,
+                  filled_mm2=float(area_lab[small].sum()), filled_by_normals_mm2=float(area_lab[by_normals].sum()),
+                  largest_by_normals_mm2=float(area_lab[by_normals].max()) if by_normals.any() else 0.0,
+                  protrusions_mm2=float(np.nansum(area[protrusions])))
+
+
+def _finish(parts: _Parts, b, depth, K, ok, cand, dark, normals, reasons: list[str], *, edge_px: int,
+            depth_scale_px: int, depth_band_mm: float, max_dropout_mm2: float, support_width_mm: float,
+            target_area_mm2: float | None) -> Segmentation:
+    """Step 6 (edge band, normals check) on the full grid, areas and counts, the result."""
+    shape = b.shape
+    surface, region = parts.surface, parts.region
+    z_fit = _surface_depth(surface, K, shape)
+    geometry = _geometry(surface, K, shape)
+    area = geometry.area_full(shape)
+    finite = np.isfinite(depth) & (depth > 0) & ok
+    with np.errstate(invalid="ignore"):
+        off = finite & cand & ~(np.abs(depth - z_fit) < depth_band_mm)
+
+    # ---- the edge band: plate pixels within edge_px of the outline or of a hole (not of the image frame)
+    if edge_px > 0:
+        k = 2 * edge_px + 1
+        padded = cv2.copyMakeBorder(region.view(np.uint8), edge_px, edge_px, edge_px, edge_px, cv2.BORDER_REPLICATE)
+        inner_region = cv2.erode(padded, np.ones((k, k), np.uint8))[edge_px:-edge_px, edge_px:-edge_px].astype(bool)
+    else:
+        inner_region = region
+    mask = inner_region & ok
+    if parts.feet.any():
+        # where a support met the plate, its foot may be left at the plate's edge: a wider band there
+        foot_px = max(edge_px, int(math.ceil(support_width_mm / parts.mm_per_px / 4)))
+        mask &= cv2.distanceTransform((~parts.feet).view(np.uint8), cv2.DIST_L2, 3) > foot_px
+    n_normal_off = 0
+    if normals is not None:
+        zone_px = edge_px + EDGE_NORMAL_ZONE_PX * depth_scale_px
+        zone = mask & (cv2.distanceTransform(region.view(np.uint8), cv2.DIST_L2, 3) <= zone_px)
+        rows, cols = np.nonzero(zone)
+        cos = np.einsum("mc,mc->m", np.asarray(normals[rows, cols], np.float32), geometry.normals_at(rows, cols))
+        turned = np.nan_to_num(cos, nan=1.0) < math.cos(math.radians(EDGE_NORMAL_DEG))
+        n_normal_off = int(np.count_nonzero(turned))
+        mask[rows[turned], cols[turned]] = False
+    edge_band = region & ~mask
+    step = np.where(region, parts.step, np.float32(np.nan)).astype(np.float32)
+
+    holes = parts.holes
     plate_area = float(np.nansum(area[mask]))
     band_area = float(np.nansum(area[edge_band]))
     holes_area = float(np.nansum(area[holes]))
-    n_filled = int(np.count_nonzero(filled))
-    if n_holes:
-        largest = float(area_lab[hole_lab].max())
+    if parts.protrusions_mm2:
         reasons.append(
-            f"{n_holes} region(s) inside the plate kept as holes, not measured ({holes_area:.0f} mm^2, largest "
-            f"{largest:.0f} mm^2): openings or areas without stereo depth, never filled across a depth step"
+            f"{parts.protrusions_mm2:.0f} mm^2 of narrow parts at the plate's depth that leave its smooth surface "
+            f"(supports reaching out beside the plate) excluded"
         )
-    if n_filled - n_by_normals:
+    if parts.n_holes:
         reasons.append(
-            f"{n_filled - n_by_normals} px of stereo dropouts inside the plate filled (each at most {max_dropout_mm2:g} mm^2)"
+            f"{parts.n_holes} region(s) inside the plate kept as holes, not measured ({holes_area:.0f} mm^2, largest "
+            f"{parts.largest_hole_mm2:.0f} mm^2): openings or areas without stereo depth, never filled across a depth step"
         )
-    if n_by_normals:
+    if parts.filled_mm2:
         reasons.append(
-            f"{n_by_normals} px of larger areas without stereo depth filled (largest {largest_by_normals:.0f} mm^2): "
-            f"their photometric normals follow the plate's surface within {DROPOUT_NORMAL_DEG:g} deg"
+            f"{parts.filled_mm2:.0f} mm^2 of stereo dropouts inside the plate filled (each at most {max_dropout_mm2:g} mm^2)"
+        )
+    if parts.filled_by_normals_mm2:
+        reasons.append(
+            f"{parts.filled_by_normals_mm2:.0f} mm^2 of larger areas without stereo depth filled (largest "
+            f"{parts.largest_by_normals_mm2:.0f} mm^2): their photometric normals follow the plate's surface within "
+            f"{DROPOUT_NORMAL_DEG:g} deg"
         )
     if n_normal_off:
         reasons.append(
@@ -759,16 +849,16 @@ def segment_plate(
         plate_area_mm2=plate_area,
         edge_band_area_mm2=band_area,
         holes_area_mm2=holes_area,
+        filled_area_mm2=parts.filled_mm2 + parts.filled_by_normals_mm2,
         n_mask=int(np.count_nonzero(mask)),
         n_edge_band=int(np.count_nonzero(edge_band)),
-        n_dropout_filled=n_filled,
-        n_holes=n_holes,
-        n_hole_pixels=hole_px,
-        n_off_depth=int(np.count_nonzero(off & cand)),
+        n_holes=parts.n_holes,
+        n_hole_pixels=int(np.count_nonzero(holes)),
+        n_off_depth=int(np.count_nonzero(off)),
         n_dark=int(np.count_nonzero(dark)),
-        n_unmatched=int(np.count_nonzero(unknown)),
+        n_unmatched=int(np.count_nonzero(ok & cand & ~finite)),
         fit_rms_mm=surface.rms_mm,
-        depth_band_mm=float(depth_band_mm),
+        depth_band_mm=depth_band_mm,
         method="stereo",
         reasons=tuple(reasons),
     )
@@ -810,8 +900,9 @@ def _by_brightness(cand: np.ndarray, dark: np.ndarray, ok: np.ndarray, reasons: 
     return Segmentation(
         mask=mask, edge_band=edge_band, holes=holes, surface_depth_mm=nan, surroundings_step_mm=nan.copy(),
         pixel_area_mm2=nan.copy(), plate_area_mm2=math.nan, edge_band_area_mm2=math.nan, holes_area_mm2=math.nan,
+        filled_area_mm2=math.nan,
         n_mask=int(np.count_nonzero(mask)), n_edge_band=int(np.count_nonzero(edge_band)),
-        n_dropout_filled=int(np.count_nonzero(filled)), n_holes=n_holes, n_hole_pixels=int(np.count_nonzero(holes)),
+        n_holes=n_holes, n_hole_pixels=int(np.count_nonzero(holes)),
         n_off_depth=0, n_dark=int(np.count_nonzero(dark)), n_unmatched=int(np.count_nonzero(cand)),
         fit_rms_mm=math.nan, depth_band_mm=math.nan, method="brightness", reasons=tuple(reasons),
     )

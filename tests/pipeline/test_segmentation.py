@@ -218,7 +218,7 @@ def test_small_dropouts_are_filled_large_unmatched_areas_are_not(floor_scene):
     seg = segment_plate(pre.brightest, depth, cap.rig.left.K, seen=pre.seen, candidates=floor_scene["candidates"])
     assert seg.mask[200:203, 300:303].all()
     assert not seg.mask[250:300, 200:250].any() and seg.holes[250:300, 200:250].all()
-    assert seg.n_holes == 1 and seg.n_dropout_filled >= 9
+    assert seg.n_holes == 1 and seg.filled_area_mm2 >= 9 * 40.0
     assert truth[250:300, 200:250].all()  # it was plate: not measured, and said so
     assert any("areas without stereo depth" in r for r in seg.reasons)
 
@@ -291,3 +291,19 @@ def test_stereo_prior_keeps_only_the_plates_depth(floor_cut_scene):
     assert np.nanmax(np.abs(prior - seg.surface_depth_mm)) < seg.depth_band_mm
     with pytest.raises(ValueError, match="depth_mm: expected shape"):
         seg.stereo_prior(depth[:10])
+
+
+def test_depth_matched_at_half_size(floor_cut_scene):
+    """A depth matched on a grid reduced twice (as run.py does above 1600 px) is segmented there and the
+    decisions brought back; the edge band doubles."""
+    truth = floor_cut_scene["truth"]
+    full = _segment(floor_cut_scene)
+    half = _segment(floor_cut_scene, depth_scale_px=2)
+    assert _iou(half.region, truth["mask"]) > 0.98
+    assert np.count_nonzero(half.mask & ~_dilate(truth["mask"], 3)) == 0
+    assert half.n_holes == 1 and np.count_nonzero(half.mask & _hole_pixels(truth) & ~_dilate(truth["mask"], 1)) == 0
+    assert half.n_edge_band > 1.5 * full.n_edge_band
+    assert half.plate_area_mm2 + half.edge_band_area_mm2 == pytest.approx(
+        full.plate_area_mm2 + full.edge_band_area_mm2, rel=0.01)
+    with pytest.raises(ValueError, match="depth_scale_px: expected an integer >= 1"):
+        _segment(floor_cut_scene, depth_scale_px=0)
