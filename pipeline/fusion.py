@@ -134,8 +134,8 @@ def fuse_low_frequencies(
         coefficients would take out of pure noise (an information criterion); the best one is
         taken if it is the plane, else the coarsest from the quadric on whose score is within this
         RMS (mm) of the best: where the normals agree with the stereo pair to that, the stereo pair
-        sets only scale, tilt and bend, and its noise does not reach the shape. None: always the
-        spline of ``knot_fraction``.
+        sets only scale, tilt and bend, and its noise does not reach the shape. None: the spline of
+        ``knot_fraction`` (or, with too few stereo blocks for it, the finest rung they carry).
 
     Returns
     -------
@@ -170,8 +170,7 @@ def fuse_low_frequencies(
 
     blocks = _Blocks.of(zb, zsb, mb)
     extent = float(max(mb.shape))
-    ladder = [PLANE, QUADRIC, *(f for f in KNOT_LADDER if f >= knot_fraction)] if resolve_mm is not None else [
-        knot_fraction]
+    ladder = [PLANE, QUADRIC, *(f for f in KNOT_LADDER if f >= knot_fraction)]
 
     def fit(rung):
         grid = _Grid.over(mb.shape, extent * (1.0 if rung in _POLYNOMIAL else rung))
@@ -182,7 +181,13 @@ def fuse_low_frequencies(
     # every rung that the blocks can carry; each is scored by its residual plus what its coefficients
     # would take out of pure noise (an information criterion), and the coarsest within resolve_mm RMS
     # of the best score is taken
-    fits = [f for f in map(fit, ladder) if f is not None]
+    if resolve_mm is None:  # the spline of knot_fraction, or the finest rung the blocks carry
+        for rung in [knot_fraction, *(f for f in KNOT_LADDER[::-1] if f > knot_fraction), QUADRIC, PLANE]:
+            fits = [f for f in (fit(rung),) if f is not None]
+            if fits:
+                break
+    else:
+        fits = [f for f in map(fit, ladder) if f is not None]
     if not fits:
         raise ValueError(
             f"stereo_depth_mm: expected stereo depth over at least {4 * _POLYNOMIAL[PLANE]} blocks of {blocks.size} px of "
