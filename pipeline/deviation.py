@@ -61,6 +61,8 @@ MAX_OUTSIDE_PCT = 1.0
 MESH_GRID_MM = 10.0
 #: ICP for mesh targets: measured points used for the coarse alignment.
 ICP_POINTS = 2000
+#: ICP for mesh targets: coarse starts (in-plane turns, normal either way) refined by ICP, best scored first.
+ICP_STARTS = 4
 
 _SHAPES = ("plane", "cylinder", "sphere", "mesh")
 
@@ -513,14 +515,14 @@ def _register_mesh(sample: np.ndarray, target: Target) -> Registration:
     c_s, frame_s = _pca_frame(sample)
     icp_pts = sample[np.linspace(0, len(sample) - 1, min(len(sample), ICP_POINTS)).round().astype(np.int64)]
     # Mesh PCA frame's z is the least-spread axis; the measured frame's z is too (pointing away from camera).
-    # The 4 proper axis flips, and the same with x and y swapped (a square plate's in-plane axes are
-    # ill-defined by PCA).
+    # In the plane, PCA's axes are ill-defined for a squarish plate (and turned by an opening differently in
+    # the mesh's area weighting and the camera's pixel sampling): in-plane turns every 30 deg, each with
+    # the plate's normal either way.
     starts = []
-    for base in (np.eye(3), np.array([[0.0, 1, 0], [1, 0, 0], [0, 0, 1]])):
-        for flip in ((1, 1, 1), (-1, -1, 1), (-1, 1, -1), (1, -1, -1), (-1, -1, -1), (1, 1, -1), (1, -1, 1), (-1, 1, 1)):
-            M = np.diag(flip) @ base
-            if np.linalg.det(M) > 0:
-                starts.append(M)
+    for flip in (np.eye(3), np.diag([1.0, -1.0, -1.0])):
+        for turn in np.radians(np.arange(0.0, 360.0, 30.0)):
+            c, s_ = math.cos(turn), math.sin(turn)
+            starts.append(np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]]) @ flip)
     tree = cKDTree(target_pts)
     scored = []
     for M in starts:
@@ -530,7 +532,9 @@ def _register_mesh(sample: np.ndarray, target: Target) -> Registration:
         scored.append((float(np.mean(dist)), T0))
     scored.sort(key=lambda item: item[0])
     best = None
-    for _, T0 in scored[:2]:  # ICP from the two best starts
+    # ICP from the four best starts: a saddle turned upside down and by 90 deg is nearly itself (R1 ~ R2), and
+    # such near-symmetric poses can score better before ICP than the true one
+    for _, T0 in scored[:ICP_STARTS]:
         T, _, cost = trimesh.registration.icp(icp_pts, target_pts, initial=T0, threshold=1e-7,
                                               max_iterations=20, reflection=False, scale=False)
         if best is None or cost < best[1]:

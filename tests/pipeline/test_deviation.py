@@ -350,3 +350,25 @@ def test_edge_artefacts_option_is_checked():
         EdgeArtefacts(step, min_step_mm=0.0)
     with pytest.raises(TypeError, match="edge_artefacts: expected an EdgeArtefacts"):
         judge(dev, m, 2.0, pixel_area_mm2=1.0, edge_artefacts=step)
+
+
+def test_mesh_target_with_an_opening_registers(tmp_path):
+    """A saddle is nearly itself turned over and by 90 deg (R1 ~ R2); with an opening cut in it only the true
+    pose fits, and the coarse starts must not miss it (the simulator writes such targets, issue 17)."""
+    from pipeline.io import load_target
+    from pipeline.simulate import CaptureSpec, Cutout, PlateSpec, simulate_capture
+
+    plate = PlateSpec(shape="saddle", radius_mm=6000.0, radius2_mm=8000.0, cutouts=(Cutout.circle(400.0, -300.0, 260.0),))
+    out = simulate_capture(tmp_path, plate=plate, capture=CaptureSpec(width=320, height=256, stereo=False), seed=3)
+    truth = np.load(out / "truth.npz")
+    h, w = truth["mask"].shape
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    points = truth["depth_mm"][..., None] * (np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(truth["K"]).T)
+    tgt = load_target(out / "target.json")
+    reg = register_to_target(points, truth["mask"], tgt)
+    # the STL is in the plate frame: the registration is T_cam_plate
+    R = reg.T_cam_target[:3, :3].T @ truth["T_cam_plate"][:3, :3]
+    assert np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))) < 0.2
+    assert reg.rms_mm < 0.1
+    dev = deviation_map(points, truth["mask"], tgt, registration=reg)
+    assert np.nanmax(np.abs(dev)) < 0.5
