@@ -38,11 +38,12 @@ import numpy as np
 KNOT_FRACTION = 1.0 / 16.0
 #: Knot spacings tried, coarsest first (after a plane and a quadric in (u, v)).
 KNOT_LADDER = (1.0 / 2.0, 1.0 / 4.0, 1.0 / 8.0, 1.0 / 16.0)
-#: Shape disagreement (RMS, mm) below which the normals keep the shape (see fuse_low_frequencies).
-#: Measured at 1224x1024 on simulated plates whose normals are exact (lights known): the finest spline
-#: explains ~0.15 mm RMS of the stereo pair's correlated noise more than a quadric does; with
-#: near-field LEDs given as distant directions the coarse corrections leave 3-6 mm.
-RESOLVE_MM = 0.25
+#: Shape disagreement (RMS, mm) below which the normals keep the shape (see fuse_low_frequencies): the
+#: noise the finer rungs would fit is charged separately (NOISE_CORRELATION), so this only breaks
+#: near-ties. Measured at 1224x1024: 0.25 left corner errors of 3-4 mm in place (small in RMS) with
+#: LEDs refitted from nominal directions; 0.05 takes them out and still keeps exact normals' shape
+#: (plane or quadric chosen with lights known).
+RESOLVE_MM = 0.05
 #: The polynomial rungs of the ladder: a plane (scale and tilt) and a quadric (and bend) in (u, v).
 PLANE, QUADRIC = "plane", "quadric"
 _POLYNOMIAL = {PLANE: 3, QUADRIC: 6}
