@@ -62,9 +62,11 @@ MAX_DROPOUT_MM2 = 1500.0
 #: Default width (mm) under which a part of the matched plate that leaves the smooth surface is taken for a
 #: support reaching out beside the plate (rails and blocks are 100-200 mm wide).
 SUPPORT_WIDTH_MM = 250.0
-#: A narrow part is a support when the median distance of its stereo depth from the smooth surface exceeds
-#: this (mm) or five times the fit's RMS: a support's flat top parts from a curved plate's continuation.
+#: A narrow part is a support when PROTRUSION_SHARE of its pixels have a stereo depth farther from the smooth
+#: surface than this (mm) or five times the fit's RMS: a support's flat top parts from a curved plate's
+#: continuation.
 PROTRUSION_RESIDUAL_MM = 8.0
+PROTRUSION_SHARE = 0.3
 #: Default share of the image's bright level (95th percentile of the brightest sample) below which a
 #: pixel is dark: painted and rusty steel (albedo 0.25-0.7) stays above it, a dark conveyor (~0.05)
 #: below, even when a lit floor's painted lines set the bright level.
@@ -359,7 +361,7 @@ def _fit_surface(depth: np.ndarray, candidates: np.ndarray, K: np.ndarray, band_
 def _protrusions(core: np.ndarray, residual: np.ndarray, mm_per_px: float, width_mm: float,
                  max_residual_mm: float) -> np.ndarray:
     """(H, W) bool: the parts of ``core`` narrower than ``width_mm`` (removed by an opening with a disc
-    of that diameter) whose median ``|residual|`` (mm) exceeds ``max_residual_mm``.
+    of that diameter) of which ``PROTRUSION_SHARE`` have ``|residual|`` (mm) over ``max_residual_mm``.
 
     The opening runs on the mask reduced so the disc is ~15 px across (a plate is smooth at that scale);
     the slivers that the reduction adds along straight edges follow the surface and are kept."""
@@ -379,10 +381,11 @@ def _protrusions(core: np.ndarray, residual: np.ndarray, mm_per_px: float, width
     res = np.abs(residual[parts])
     ok = np.isfinite(res)
     lab = labels[parts][ok]
-    # median over a part above the limit <=> more than half of its pixels above it
+    # a support's part holds the plate's edge strip next to it too (the reduced opening's slivers), whose depth
+    # follows the surface: a part is a support when a good share of it (not necessarily half) leaves it
     above = np.bincount(lab, weights=(res[ok] > max_residual_mm).astype(np.float64), minlength=n)
     counted = np.bincount(lab, minlength=n)
-    out = above > 0.5 * counted
+    out = above > PROTRUSION_SHARE * counted
     out[0] = False
     return out[labels] & parts
 
@@ -541,9 +544,9 @@ def segment_plate(
         bounds them (a dark background).
     support_width_mm : float
         Parts of the matched plate narrower than this (mm; a morphological opening by a disc of this
-        diameter removes them) whose stereo depth leaves the smooth surface (median ``|residual|`` over
-        ``max(PROTRUSION_RESIDUAL_MM, 5 fit_rms_mm)``) are supports or clutter reaching out beside
-        the plate at its depth, not plate; 0 disables this.
+        diameter removes them) whose stereo depth leaves the smooth surface (``PROTRUSION_SHARE`` of
+        them farther than ``max(PROTRUSION_RESIDUAL_MM, 5 fit_rms_mm)``) are supports or clutter
+        reaching out beside the plate at its depth, not plate; 0 disables this.
     step_zone_px : int
         Width (px) of the zone along the plate's boundary where ``surroundings_step_mm`` is given.
     target_area_mm2 : float, optional
