@@ -302,7 +302,7 @@ def test_depth_matched_at_half_size(floor_cut_scene):
     assert _iou(half.region, truth["mask"]) > 0.98
     assert np.count_nonzero(half.mask & ~_dilate(truth["mask"], 3)) == 0
     assert half.n_holes == 1 and np.count_nonzero(half.mask & _hole_pixels(truth) & ~_dilate(truth["mask"], 1)) == 0
-    assert half.n_edge_band > 1.5 * full.n_edge_band
+    assert half.n_edge_band > 1.2 * full.n_edge_band  # 4 px instead of 2 (the wider band at supports alike)
     assert half.plate_area_mm2 + half.edge_band_area_mm2 == pytest.approx(
         full.plate_area_mm2 + full.edge_band_area_mm2, rel=0.01)
     with pytest.raises(ValueError, match="depth_scale_px: expected an integer >= 1"):
