@@ -141,7 +141,7 @@ class LightCalibration:
 
 
 @dataclass(frozen=True)
-class _Samples:
+class Samples:
     """Block-mean samples of one or more captures (P samples, N lights)."""
 
     intensity: np.ndarray  # (P, N) fraction of full scale, dark subtracted
@@ -243,28 +243,28 @@ def calibrate_lights(
         plates.append(pose)
         lit.append(lit_fraction)
         blocks.append(b)
-    data = _Samples(
+    data = Samples(
         intensity=np.concatenate([s.intensity for s in samples]),
         points=np.concatenate([s.points for s in samples]),
         normals=np.concatenate([s.normals for s in samples]),
     )
 
     with threadpool_limits(limits=1, user_api="blas"):  # small products: a second BLAS thread only spins
-        start = _initial_lights(captures[0].lights, plates[0], data, initial_mu=initial_mu)
+        start = initial_point_lights(captures[0].lights, plates[0], data, initial_mu=initial_mu)
         # mu held first: a light aimed far from where the start has it would otherwise run mu down to 0,
         # where its axis no longer changes anything and stays wrong
-        fit = _joint_fit(start, data, fixed_mu=True)
+        fit = joint_fit(start, data, fixed_mu=True)
         iterations = fit.njev
-        fit = _joint_fit(fit.lights, data)
+        fit = joint_fit(fit.lights, data)
         iterations += fit.njev
     # one round without the outliers (dust, a specular speck, a stereo outlier's block), from the solution
     r = fit.residuals
     sigma = 1.4826 * np.median(np.abs(r)) + 1e-12
     keep = np.all(np.abs(r) <= 6.0 * sigma, axis=1)
     if 0 < np.count_nonzero(~keep) and np.count_nonzero(keep) >= 0.5 * len(keep):
-        data = _Samples(data.intensity[keep], data.points[keep], data.normals[keep])
+        data = Samples(data.intensity[keep], data.points[keep], data.normals[keep])
         with threadpool_limits(limits=1, user_api="blas"):
-            fit = _joint_fit(fit.lights, data)
+            fit = joint_fit(fit.lights, data)
         iterations += fit.njev
     where = ", ".join(str(c.source) for c in captures)
     lights = fit.lights
@@ -373,7 +373,7 @@ def plate_pose(capture: Capture, mask: np.ndarray) -> PlatePose:
 def _capture_samples(
     cap: Capture, *, block_px: int | None, min_lit_fraction: float, min_plate_fraction: float, max_samples: int,
     rng: np.random.Generator,
-) -> tuple[_Samples, PlatePose, np.ndarray, int]:
+) -> tuple[Samples, PlatePose, np.ndarray, int]:
     """Block-mean samples of one capture, its plate pose, each light's lit fraction of the plate, the block side (px)."""
     # shadows are told here, on the images in counts: the given (nominal) intensities that preprocess
     # divides by may be far off, and would move its relative shadow threshold with them
@@ -442,7 +442,7 @@ def _capture_samples(
     along = (pose.centre_mm @ pose.normal) / (rays @ pose.normal)
     points = rays * along[:, None]
     normals = np.broadcast_to(pose.normal, points.shape).copy()
-    return _Samples(intensity=intensity, points=points, normals=normals), pose, lit, block_px
+    return Samples(intensity=intensity, points=points, normals=normals), pose, lit, block_px
 
 
 # =========================================================================== model
@@ -533,7 +533,7 @@ def _irradiance(x: np.ndarray, param: _Param, points: np.ndarray, normals: np.nd
 
 
 @dataclass(frozen=True)
-class _Fit:
+class JointFit:
     lights: Lights
     residuals: np.ndarray  # (P, N)
     rms: float
@@ -545,14 +545,14 @@ class _Fit:
     message: str
 
 
-def _projected(I: np.ndarray, E: np.ndarray):
+def albedo_projected(I: np.ndarray, E: np.ndarray):
     """Per-sample albedo ``rho`` (P,) eliminated in closed form and the residuals (P, N)."""
     S = np.einsum("pn,pn->p", E, E)
     rho = np.einsum("pn,pn->p", I, E) / np.maximum(S, 1e-300)
     return rho, S, I - rho[:, None] * E
 
 
-def _joint_fit(start: Lights, data: _Samples, *, fixed_mu: bool = False, max_iter: int = 100) -> _Fit:
+def joint_fit(start: Lights, data: Samples, *, fixed_mu: bool = False, max_iter: int = 100) -> JointFit:
     """All lights at once: Levenberg-Marquardt on the variable-projection residuals.
 
     The 7 N parameters (position mm, two axis offsets, mu, log intensity per light) are solved on
@@ -576,7 +576,7 @@ def _joint_fit(start: Lights, data: _Samples, *, fixed_mu: bool = False, max_ite
 
     def cost_of(x):
         E, _ = _irradiance(x, param, X, nrm, jac=False)
-        _, _, r = _projected(I, E)
+        _, _, r = albedo_projected(I, E)
         gauge = gauge_weight * (gauge_row @ x)
         return float(np.sum(r * r) + gauge * gauge), r
 
@@ -591,7 +591,7 @@ def _joint_fit(start: Lights, data: _Samples, *, fixed_mu: bool = False, max_ite
         ``J^T r = -sum_p rho_p G_pj r_pj``.
         """
         E, G = _irradiance(x, param, X, nrm, jac=True)
-        rho, S, r = _projected(I, E)
+        rho, S, r = albedo_projected(I, E)
         coef = (I - 2.0 * rho[:, None] * E) / np.maximum(S, 1e-300)[:, None]
         H = (coef[:, :, None] * G).reshape(P, n_par)
         F = (E[:, :, None] * G).reshape(P, n_par)
@@ -643,7 +643,7 @@ def _joint_fit(start: Lights, data: _Samples, *, fixed_mu: bool = False, max_ite
     dof = max(P * N - P - (n_par - 1), 1)
     s2 = float(np.sum(r * r)) / dof
     var = (s2 * _diagonal_of_inverse(A)).reshape(N, _N_PARAMS)
-    return _Fit(
+    return JointFit(
         lights=param.lights(x),
         residuals=r,
         rms=float(np.sqrt(np.mean(r * r)) / np.mean(I)),
@@ -676,7 +676,7 @@ def _diagonal_of_inverse(A: np.ndarray) -> np.ndarray:
     return out
 
 
-def _initial_lights(given: Lights, pose: PlatePose, data: _Samples, *, initial_mu: float) -> Lights:
+def initial_point_lights(given: Lights, pose: PlatePose, data: Samples, *, initial_mu: float) -> Lights:
     """Point lights to start the joint fit from.
 
     Point lights the capture gives are taken as they are (an axis towards the plate's centre and
@@ -717,7 +717,7 @@ def _initial_lights(given: Lights, pose: PlatePose, data: _Samples, *, initial_m
 
     def cost(t: np.ndarray) -> float:
         E = _irradiance_of(lights_at(t), X, nrm)
-        _, _, r = _projected(I, E)
+        _, _, r = albedo_projected(I, E)
         return float(np.sum(r * r))
 
     # one distance for all of them (a ring of lights at one height is the usual cell); a search per

@@ -196,12 +196,12 @@ def _samples(images, valid, mask, lights, depth_mm, K, *, max_samples, seed):
     flip = np.einsum("pc,pc->p", normals, points) > 0  # towards the camera
     normals[flip] *= -1.0
     ok = np.all(np.isfinite(normals), axis=1) & np.all(intensity > 0, axis=1)
-    return lc._Samples(intensity=intensity[ok], points=points[ok], normals=normals[ok])
+    return lc.Samples(intensity=intensity[ok], points=points[ok], normals=normals[ok])
 
 
 def _rms(data, lights: Lights) -> float:
     E = lights.irradiance(data.points, data.normals).T  # (P, N)
-    _, _, r = lc._projected(data.intensity, E)
+    _, _, r = lc.albedo_projected(data.intensity, E)
     return float(np.sqrt(np.mean(r * r)) / np.mean(data.intensity))
 
 
@@ -228,9 +228,9 @@ def _refine_distant(data, lights: Lights) -> Lights:
 def _fit_points(data, lights: Lights, pose) -> tuple[Lights | None, float]:
     """Point lights fitted from the given ones (directions: along them from the plate's centre)."""
     try:
-        start = lc._initial_lights(lights, pose, data, initial_mu=1.0)
-        fit = lc._joint_fit(start, data, fixed_mu=True)
-        fit = lc._joint_fit(fit.lights, data)
+        start = lc.initial_point_lights(lights, pose, data, initial_mu=1.0)
+        fit = lc.joint_fit(start, data, fixed_mu=True)
+        fit = lc.joint_fit(fit.lights, data)
     except (np.linalg.LinAlgError, ValueError, FloatingPointError):
         return None, float("nan")
     behind = (fit.lights.positions_mm - pose.centre_mm) @ pose.normal <= 0
