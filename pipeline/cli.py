@@ -22,7 +22,7 @@ from pathlib import Path
 
 from .formats import InputError, PipelineError
 
-EXIT_OK, EXIT_INTERNAL, EXIT_BAD_INPUT = 0, 1, 2
+EXIT_OK, EXIT_INTERNAL, EXIT_BAD_INPUT, EXIT_NOT_MEASURABLE = 0, 1, 2, 3
 
 
 class BadArgument(ValueError):
@@ -170,16 +170,11 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def _cmd_calibrate_lights(args: argparse.Namespace) -> int:
-    from .formats import CaptureError
     from .io import light_calibration_document, load_capture
     from .light_calibration import calibrate_lights
 
     captures = [load_capture(path) for path in args.bundles]
-    try:
-        cal = calibrate_lights(captures)
-    except CaptureError as err:  # valid bundles that cannot give a light calibration: exit 3 (DESIGN.md)
-        print(f"plate-inspect {args.command}: {_one_line(err)}", file=sys.stderr)
-        return 3
+    cal = calibrate_lights(captures)  # a CaptureError: valid bundles that give no light calibration (exit 3)
     for k in range(cal.lights.n):
         p, a = cal.lights.positions_mm[k], cal.lights.axes[k]
         print(
@@ -328,9 +323,12 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
         return int(args.handler(args) or EXIT_OK)
-    except (InputError, BadArgument, PipelineError, FileNotFoundError, NotADirectoryError) as err:
+    except (InputError, BadArgument, FileNotFoundError, NotADirectoryError) as err:
         print(f"plate-inspect {args.command}: {_one_line(err)}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except PipelineError as err:  # valid input that cannot be measured (inspect wrote result.json saying why)
+        print(f"plate-inspect {args.command}: {_one_line(err)}", file=sys.stderr)
+        return EXIT_NOT_MEASURABLE
     except KeyboardInterrupt:
         return EXIT_INTERNAL
     except Exception as err:  # noqa: BLE001 - the CLI's last line of defence

@@ -128,6 +128,12 @@ def test_an_unmeasurable_capture_leaves_an_error_result(tmp_path):
         inspect(bundle, bundle / "target.json", out_dir=tmp_path / "out")
     doc = json.loads((tmp_path / "out" / "result.json").read_text())
     assert doc["verdict"] == "error" and "working_distance_mm" in doc["error"]
+    assert "warnings" not in doc
+    # the CLI: exit 3 (not measurable), result.json written all the same
+    code = cli_main(["inspect", str(bundle), "--target", str(bundle / "target.json"), "--out", str(tmp_path / "o3"),
+                     "--no-warm-up"])
+    assert code == 3
+    assert json.loads((tmp_path / "o3" / "result.json").read_text())["verdict"] == "error"
 
 
 def test_cli_inspect_exit_codes(tmp_path, capsys):
