@@ -215,9 +215,9 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, li
         K = cap.rig.left.K
         near_field = cap.lights.any_point
         field = None
+        clock.begin("normals")
         if not near_field:
             # distant lights: the normals do not depend on the surface, estimated while stereo matches
-            clock.begin("normals")
             field = normals.estimate_normals(
                 pre.images, cap.light_dirs, pre.mask, valid=pre.valid, method=opts.normals_method, camera_matrix=K,
             )
@@ -242,17 +242,18 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, li
                 )
             prior = None  # too little to trust: the working distance sets the scale (details.json says so)
 
-        clock.begin("depth")
         solve = dict(prior_mm=prior, working_distance_mm=cap.working_distance_mm, stereo_weight=opts.stereo_weight,
                      tol=opts.depth_tol)
         if near_field:
-            # point lights: normals and surface alternate (the normals' timing includes the integrations)
-            clock.begin("normals")
+            # point lights: normals and surface alternate; "normals" times the whole alternation (with its
+            # integrations), "depth" what follows
+            t_near = time.perf_counter()
             surface = reconstruct.near_field_surface(
                 pre.images, cap.lights, K, pre.mask, valid=pre.valid, method=opts.normals_method, **solve
             )
-            clock.end("normals")
-        else:
+            clock.timings["normals"] = round(time.perf_counter() - t_near, 4)
+        clock.begin("depth")
+        if not near_field:
             surface = reconstruct.distant_surface(field, K, **solve)
             if prior is not None and reconstruct.disagrees(surface, tgt.tolerance_mm, DISAGREEMENT_FRACTION):
                 # the given lights bend the surface away from the stereo pair's: refit them on its geometry

@@ -23,7 +23,10 @@ NEAR = dict(near_field_mm=2800.0, light_elevation_deg=30.0, led_mu=1.5, width=61
 
 def _run(tmp_path, seed=5, **capture):
     bundle = simulate_capture(tmp_path / "bundle", plate=PlateSpec(), capture=CaptureSpec(**capture), seed=seed)
-    doc = inspect(bundle, bundle / "target.json", out_dir=tmp_path / "out").document
+    seen = []
+    doc = inspect(bundle, bundle / "target.json", out_dir=tmp_path / "out",
+                  progress=lambda stage, fraction: seen.append(fraction)).document
+    assert seen == sorted(seen) and seen[-1] == 1.0  # the progress never goes back, whichever light model
     details = json.loads((tmp_path / "out" / "details.json").read_text())
     return doc, details
 
