@@ -828,7 +828,7 @@ def _edge_artefacts(dev: np.ndarray, mask: np.ndarray, judged: np.ndarray, toler
         v = vals[lab == k]
         steps = step[(lab == k) & known]
         typical = float(np.median(steps))
-        beside = "a dark background (no depth)" if math.isinf(typical) else f"surroundings {typical:.0f} mm behind"
+        beside = "dark surroundings without stereo depth" if math.isinf(typical) else f"surroundings {typical:.0f} mm behind"
         regions.append(ExcludedRegion(
             centroid_px=(float(reg_col[k] / count[k]), float(reg_row[k] / count[k])), area_mm2=float(reg_area[k]),
             peak_deviation_mm=float(v[np.argmax(np.abs(v))]), n_pixels=int(count[k]),

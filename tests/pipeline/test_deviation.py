@@ -333,7 +333,7 @@ def test_thin_edge_regions_without_a_floor_step_are_judged():
     # a dark background (no depth, +inf) is a step
     dark = np.where(np.isnan(step), np.nan, np.inf).astype(np.float32)
     j = judge(lip, m, 2.0, pixel_area_mm2=10.0, edge_artefacts=EdgeArtefacts(dark))
-    assert j.verdict == "pass" and "dark background" in j.excluded[0].reason
+    assert j.verdict == "pass" and "dark surroundings" in j.excluded[0].reason
     # regions that only touch the image frame are not at the plate's edge
     full = np.ones_like(m)
     frame = np.where(full, 0.1, np.nan)
