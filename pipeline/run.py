@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from . import artifacts, curvature, deviation, normals, reconstruct, stereo
+from . import artifacts, curvature, deviation, normals, reconstruct, segmentation, stereo
 from .formats import RESULT_FORMAT, CaptureError, PipelineError, ResultFile
 from .io import Capture, Target, load_capture, load_target
 from .lights import Lights
@@ -29,6 +29,9 @@ from .preprocess import preprocess
 STAGES = ("load", "preprocess", "normals", "stereo", "depth", "curvature", "deviation", "artifacts")
 
 ProgressCallback = Callable[[str, float], None]
+
+#: A measured area (mask and edge band) under this share of the target's gets a warning in the result.
+AREA_WARNING_RATIO = 0.9
 
 #: Without a working-distance hint the stereo pair is searched around this depth (mm):
 #: with the default ``depth_margin`` of 1.0 that is 1750-7000 mm, the cell's whole range.
@@ -194,6 +197,10 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, li
 
     clock.begin("preprocess")
     pre = preprocess(cap)
+    # what may be plate: not dark. Over a dark conveyor that is the plate; over a lit floor, most of the
+    # image. The stereo pair is matched over it (the segmentation needs the surroundings' depth too) and,
+    # under distant lights, the normals are estimated over it while the pair is matched.
+    candidates = segmentation.candidate_mask(pre.brightest, seen=pre.seen) if cap.has_stereo else pre.mask
     clock.end("preprocess")
 
     names = {
@@ -210,7 +217,7 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, li
     # GIL) as soon as they are known.
     # numba's parallel kernels (normals, depth) run on this thread only: never two at once.
     with ThreadPoolExecutor(max_workers=2) as pool:
-        stereo_job = pool.submit(_stereo_prior, cap, pre.mask, opts) if cap.has_stereo else None
+        stereo_job = pool.submit(_stereo_depth, cap, candidates, opts) if cap.has_stereo else None
         rays_job = pool.submit(cap.rig.left.pixel_rays)  # (H, W, 3) float64, for the surface and the areas
         K = cap.rig.left.K
         near_field = cap.lights.any_point
@@ -219,20 +226,35 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, li
         if not near_field:
             # distant lights: the normals do not depend on the surface, estimated while stereo matches
             field = normals.estimate_normals(
-                pre.images, cap.light_dirs, pre.mask, valid=pre.valid, method=opts.normals_method, camera_matrix=K,
+                pre.images, cap.light_dirs, candidates, valid=pre.valid, method=opts.normals_method, camera_matrix=K,
             )
             clock.end("normals")
         writes = []
-        if field is not None and stereo_job is not None and not stereo_job.done():
-            # a core waits for the stereo pair anyway: normals.png now (the few normals dropped later as facing
+        clock.begin("stereo")
+        depth_c, stereo_s, depth_scale = stereo_job.result() if stereo_job is not None else (None, 0.0, 1)
+        clock.timings["stereo"] = stereo_s
+        # the plate among its surroundings (#17): the near, smooth sheet of the stereo depth; openings stay
+        # holes, supports beside the plate and an edge band are left out. Without a pair: the brightness mask.
+        t_seg = time.perf_counter()
+        seg = None
+        if depth_c is not None:
+            seg = segmentation.segment_plate(
+                pre.brightest, depth_c, K, seen=pre.seen, candidates=candidates, depth_scale_px=depth_scale,
+                normals=None if field is None else np.where(field.mask[..., None], field.normals, np.float32(np.nan)),
+                target_area_mm2=segmentation.target_area_mm2(tgt),
+            )
+        plate = pre.mask if seg is None else seg.mask
+        prior = None if seg is None else seg.stereo_prior(depth_c)
+        if field is not None:
+            field = _restricted(field, plate)
+        clock.timings["segmentation"] = round(time.perf_counter() - t_seg, 4)
+        if field is not None:
+            # normals.png now, while the depth is solved on this thread (the few normals dropped later as facing
             # away are then shown as estimated)
             writes.append(pool.submit(artifacts.write_normals_png, out / names["normals"], field.normals, field.mask))
         normals_written = bool(writes)
-        clock.begin("stereo")
-        prior, stereo_s = stereo_job.result() if stereo_job is not None else (None, 0.0)
-        clock.timings["stereo"] = stereo_s
         matched_pct = (
-            None if prior is None else 100.0 * np.count_nonzero(np.isfinite(prior) & pre.mask) / pre.mask.sum()
+            None if prior is None else 100.0 * np.count_nonzero(np.isfinite(prior) & plate) / plate.sum()
         )
         if prior is not None and matched_pct < opts.min_stereo_pct:
             if cap.working_distance_mm is None:
@@ -249,7 +271,7 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, li
             # integrations), "depth" what follows
             t_near = time.perf_counter()
             surface = reconstruct.near_field_surface(
-                pre.images, cap.lights, K, pre.mask, valid=pre.valid, method=opts.normals_method, **solve
+                pre.images, cap.lights, K, plate, valid=pre.valid, method=opts.normals_method, **solve
             )
             clock.timings["normals"] = round(time.perf_counter() - t_near, 4)
         clock.begin("depth")
@@ -259,7 +281,7 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, li
                 # the given lights bend the surface away from the stereo pair's: refit them on its geometry
                 t_refit = time.perf_counter()
                 surface = reconstruct.remeasure_with_refined_lights(
-                    surface, pre.images, cap.lights, K, pre.mask, valid=pre.valid, method=opts.normals_method,
+                    surface, pre.images, cap.lights, K, plate, valid=pre.valid, method=opts.normals_method,
                     **solve,
                 )
                 clock.timings["light_refinement"] = round(time.perf_counter() - t_refit, 4)
@@ -284,7 +306,10 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, li
             pool.submit(artifacts.write_deviation_png, out / names["deviation_map"], dev, surface_mask,
                         tolerance_mm=tgt.tolerance_mm),
         ]
-        judgement = deviation.judge(dev, surface_mask, tgt.tolerance_mm, pixel_area_mm2=area_job.result())
+        judgement = deviation.judge(
+            dev, surface_mask, tgt.tolerance_mm, pixel_area_mm2=area_job.result(),
+            edge_artefacts=None if seg is None else deviation.EdgeArtefacts(seg.surroundings_step_mm),
+        )
         clock.end("deviation")
         clock.begin("artifacts")
         verts, faces = deviation.target_surface(tgt)
@@ -305,6 +330,12 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, li
             for d in judgement.defects
         ],
         "reasons": list(judgement.reasons),
+        "excluded_regions": [
+            {"centroid_px": list(map(float, r.centroid_px)), "area_mm2": float(r.area_mm2),
+             "peak_deviation_mm": float(r.peak_deviation_mm), "reason": r.reason}
+            for r in judgement.excluded
+        ],
+        "segmentation": _segmentation_details(seg, tgt),
         "normals_filled": int(field.n_filled),
         "normals_facing_away": surface.normals_facing_away,
         "light_model": "near-field" if near_field else "distant",
@@ -332,6 +363,11 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, li
             f"the photometric and the stereo shapes disagreed by {surface.fusion.disagreement_mm:.1f} mm (95th "
             f"percentile, beyond the {max(surface.fusion.noise_floor_mm, DISAGREEMENT_FRACTION * tgt.tolerance_mm):.1f}"
             f" mm that noise explains): the stereo pair set the plate's overall shape; check the light positions"
+        )
+    if seg is not None and (details["segmentation"]["area_ratio"] or 1.0) < AREA_WARNING_RATIO:
+        warnings.append(
+            f"the measured area is {100 * details['segmentation']['area_ratio']:.0f} % of the target's: openings, a plate "
+            f"partly out of view, or areas the stereo pair could not match were not measured (details.json: segmentation)"
         )
     (out / names["details"]).write_text(json.dumps(details, indent=2) + "\n")
     clock.end("artifacts")
@@ -475,8 +511,9 @@ def _curvature(points: np.ndarray, mask: np.ndarray):
     return curv, round(time.perf_counter() - t, 4)
 
 
-def _stereo_prior(cap: Capture, mask: np.ndarray, opts: InspectOptions) -> tuple[np.ndarray, float]:
-    """Stereo depth (mm, left undistorted grid, NaN where unmatched or off the plate) and its run time (s)."""
+def _stereo_depth(cap: Capture, mask: np.ndarray, opts: InspectOptions) -> tuple[np.ndarray, float, int]:
+    """Stereo depth (mm, left undistorted grid, NaN where unmatched or outside ``mask``), its run time (s) and
+    the reduction the pair was matched at (1: full size)."""
     t = time.perf_counter()
     z_nominal = cap.working_distance_mm or NOMINAL_DISTANCE_MM
     left, right, rig, stereo_mask = cap.stereo_left, cap.stereo_right, cap.rig, mask
@@ -499,8 +536,38 @@ def _stereo_prior(cap: Capture, mask: np.ndarray, opts: InspectOptions) -> tuple
     depth = sd.depth_mm
     if step > 1:  # back onto the full grid; a hole spreads to the pixels that interpolate from it
         depth = cv2.resize(depth, (width, height), interpolation=cv2.INTER_LINEAR)
-    prior = np.where(mask, depth, np.nan)
-    return prior, round(time.perf_counter() - t, 4)
+    return np.where(mask, depth, np.nan), round(time.perf_counter() - t, 4), step
+
+
+def _restricted(field: normals.NormalField, mask: np.ndarray) -> normals.NormalField:
+    """The normal field on ``mask`` only (estimated over the candidates, measured on the plate)."""
+    keep = field.mask & mask
+    filled = field.filled & keep
+    return replace(field, normals=np.where(keep[..., None], field.normals, np.float32(np.nan)),
+                   albedo=np.where(keep, field.albedo, np.float32(np.nan)), mask=keep, filled=filled,
+                   n_filled=int(np.count_nonzero(filled)))
+
+
+def _segmentation_details(seg, tgt: Target) -> dict:
+    """details.json: how the plate was told from its surroundings, and its area against the target's."""
+    target_area = segmentation.target_area_mm2(tgt)
+    if seg is None:
+        return {"method": "brightness", "target_area_mm2": round(target_area, 0), "area_ratio": None, "reasons": [
+            "no stereo pair: the plate was told from its surroundings by brightness (Otsu, holes filled)"]}
+    measured = seg.plate_area_mm2 + seg.edge_band_area_mm2
+    return {
+        "method": seg.method,
+        "plate_area_mm2": round(seg.plate_area_mm2, 0),
+        "edge_band_px": seg.n_edge_band,
+        "edge_band_area_mm2": round(seg.edge_band_area_mm2, 0),
+        "holes": seg.n_holes,
+        "holes_area_mm2": round(seg.holes_area_mm2, 0),
+        "filled_area_mm2": round(seg.filled_area_mm2, 0),
+        "target_area_mm2": round(target_area, 0),
+        "area_ratio": round(measured / target_area, 4) if measured == measured else None,
+        "fit_rms_mm": round(seg.fit_rms_mm, 2) if seg.fit_rms_mm == seg.fit_rms_mm else None,
+        "reasons": list(seg.reasons),
+    }
 
 
 def _pixel_area_mm2(depth_mm: np.ndarray, normals: np.ndarray, rays: np.ndarray, K: np.ndarray) -> np.ndarray:
