@@ -4,7 +4,7 @@ Each camera is calibrated on its own (pinhole + Brown-Conrady distortion
 ``k1 k2 p1 p2 k3``), then the extrinsics ``R, T`` between the two cameras are
 estimated jointly with both intrinsics, starting from the single-camera ones
 (``X_right = R @ X_left + T``, mm, as ``cv2.stereoCalibrate``). The result is a :class:`~pipeline.camera.StereoRig`
-and the ``stereo-calibration/1`` document of DESIGN.md.
+and the ``stereo-calibration/1`` document of docs/formats.md.
 
 References
 ----------
@@ -119,7 +119,7 @@ def _scan_board_dir(directory) -> tuple[list[tuple[str, Path, Path]], list[tuple
 def find_board_pairs(directory) -> list[tuple[str, Path, Path]]:
     """List the chessboard image pairs of a calibration folder.
 
-    A pair is ``left<KEY>.<ext>`` with ``right<KEY>.<ext>`` (DESIGN.md), the
+    A pair is ``left<KEY>.<ext>`` with ``right<KEY>.<ext>`` (docs/formats.md), the
     extension one of :data:`IMAGE_EXTENSIONS` (any case). Other files are
     ignored.
 

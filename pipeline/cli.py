@@ -1,6 +1,6 @@
 """``plate-inspect``: simulate, calibrate, inspect (and ``serve`` from the service package).
 
-Exit codes (DESIGN.md): 0 done (pass or fail), 2 bad input (a one-line reason
+Exit codes (docs/formats.md): 0 done (pass or fail), 2 bad input (a one-line reason
 on stderr naming the file and field), 1 internal error.
 
 Subcommands that live outside ``pipeline/`` (the service's ``serve``) are found

@@ -1,4 +1,4 @@
-"""The JSON file formats of DESIGN.md as pydantic models.
+"""The JSON file formats (docs/formats.md) as pydantic models.
 
 Unknown keys are an error, missing required keys are an error. A format
 change is a new format version, never a silent edit. Reading files (and
@@ -120,7 +120,7 @@ class Light(_Strict):
     """One photometric light: distant (``direction``) or a point light (``position_mm``).
 
     A point light's irradiance on a surface point X is ``intensity * (1000 / |P - X|)^2 *
-    max(0, cos theta_axis)^mu * max(0, n . (P - X) / |P - X|)`` (DESIGN.md, capture bundle).
+    max(0, cos theta_axis)^mu * max(0, n . (P - X) / |P - X|)`` (docs/formats.md, capture bundle).
     """
 
     direction: Vec3 | None = None

@@ -1,6 +1,6 @@
 """Normal integration: from a field of surface normals to metric depth.
 
-Stage 5 of the method (DESIGN.md): every 4-neighbour pair of pixels inside the
+Stage 5 of the method (README: How a plate is measured): every 4-neighbour pair of pixels inside the
 mask gives one linear equation on the depth, and the overdetermined system is
 solved by least squares over the masked domain. We integrate in *log depth*
 under the pinhole camera (perspective, not orthographic), and optionally fuse a

@@ -928,8 +928,8 @@ def target_area_mm2(target) -> float:
 
     Notes
     -----
-    A parametric target has no outline: its area is its size's rectangle on the surface. DESIGN.md
-    (#17): the measured area is reported against it; missing metal is never a defect.
+    A parametric target has no outline: its area is its size's rectangle on the surface. The
+    measured area is reported against it (details.json); missing metal is never a defect.
     """
     from .io import Target
 

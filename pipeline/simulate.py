@@ -25,7 +25,7 @@ conveyor a plate may lie over a lit, textured shop floor with supports standing 
 (``PlateSpec.floor``), shaded by the same lights (no cast shadows, no interreflections). With these
 options off the bundle is bit-identical to what it was without them.
 
-Conventions (DESIGN.md): mm, pixels, radians in code (degrees only in the spec dataclasses, named
+Conventions (docs/formats.md): mm, pixels, radians in code (degrees only in the spec dataclasses, named
 ``*_deg``); OpenCV camera frame (x right, y down, z forward); left camera = reference frame;
 ``X_right = R @ X_left + T``; light directions are unit vectors from the surface towards the light
 (``l_z < 0``); normals point out of the surface towards the cameras (``n_z < 0``).
