@@ -86,7 +86,7 @@ def main() -> None:
     print("Each cell: radius error, verdict (right: pass), deviation RMS / max. Time: median inspect, s.\n")
     head = "| capture | " + ("before | " if args.before else "") + "after | max abs radius err % | time s |"
     print(head)
-    print("|---" * head.count("|") + "|"[: 0])
+    print("|---" * (head.count("|") - 1) + "|")
     with tempfile.TemporaryDirectory(prefix="bench-lights-") as tmp:
         root = Path(tmp)
         for name, spec in cases:
