@@ -65,6 +65,12 @@ class SimulatedInspectionIn(BaseModel):
         default="exact", description="near-field: the bundle gives positions (exact) or only directions (nominal)"
     )
     light_error_deg: float = Field(default=0.0, ge=0, lt=30, description="lights written off by this angle")
+    floor_mm: float | None = Field(
+        default=None, gt=50, le=2000, description="a lit shop floor this far below the plate, on 3 rails (null: dark)"
+    )
+    cutout_radius_mm: float | None = Field(
+        default=None, gt=10, le=1000, description="a round opening this big, 400 mm right and 300 mm up of the centre"
+    )
     dents: list[DentIn] = Field(default_factory=list, max_length=32)
     seed: int = Field(default=0, ge=0, le=2**31 - 1)
     width: int = Field(default=1224, ge=64, le=4096, description="image width, px")

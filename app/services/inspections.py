@@ -140,13 +140,18 @@ def simulation_specs(simulation: dict):
     ValueError
         The simulator refuses the described plate or capture.
     """
-    from pipeline.simulate import CaptureSpec, Dent, PlateSpec
+    from pipeline.simulate import CaptureSpec, Cutout, Dent, Floor, PlateSpec, rail_supports
 
+    floor_mm = simulation.get("floor_mm")
+    cutout_mm = simulation.get("cutout_radius_mm")
     plate = PlateSpec(
         shape=simulation["shape"],
         radius_mm=None if simulation.get("radius_mm") is None else float(simulation["radius_mm"]),
         convex=bool(simulation["convex"]),
         dents=tuple(Dent(d["x_mm"], d["y_mm"], d["radius_mm"], d["depth_mm"]) for d in simulation["dents"]),
+        floor=None if floor_mm is None else Floor(
+            gap_mm=float(floor_mm), supports=rail_supports((3000.0, 3000.0), float(floor_mm), 3)),
+        cutouts=() if cutout_mm is None else (Cutout.circle(400.0, -300.0, float(cutout_mm)),),
     )
     near = simulation.get("lights", "distant") == "near-field"  # rows from before point lights were distant
     capture = CaptureSpec(

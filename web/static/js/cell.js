@@ -34,6 +34,9 @@ function simulationBody() {
     seed: number("seed"),
     dents: [],
   };
+  for (const name of ["floor_mm", "cutout_radius_mm"]) {
+    if (form.elements[name].value !== "") body[name] = number(name);
+  }
   if (form.elements.dent.checked) {
     body.dents.push({
       x_mm: number("dent_x_mm"),
