@@ -237,14 +237,19 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, li
         # holes, supports beside the plate and an edge band are left out. Without a pair: the brightness mask.
         t_seg = time.perf_counter()
         seg = None
-        if depth_c is not None:
+        plain = depth_c is not None and segmentation.plain_scene(pre.mask, candidates, depth_c, K)
+        if depth_c is not None and not plain:
             seg = segmentation.segment_plate(
                 pre.brightest, depth_c, K, seen=pre.seen, candidates=candidates, depth_scale_px=depth_scale,
                 normals=None if field is None else np.where(field.mask[..., None], field.normals, np.float32(np.nan)),
                 target_area_mm2=segmentation.target_area_mm2(tgt),
             )
+        # a plain scene (a plate over a dark conveyor, no opening): the brightness mask is the plate
         plate = pre.mask if seg is None else seg.mask
-        prior = None if seg is None else seg.stereo_prior(depth_c)
+        if seg is not None:
+            prior = seg.stereo_prior(depth_c)
+        else:
+            prior = None if depth_c is None else np.where(plate, depth_c, np.nan)
         if field is not None:
             field = _restricted(field, plate)
         clock.timings["segmentation"] = round(time.perf_counter() - t_seg, 4)
@@ -306,8 +311,9 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, li
             pool.submit(artifacts.write_deviation_png, out / names["deviation_map"], dev, surface_mask,
                         tolerance_mm=tgt.tolerance_mm),
         ]
+        pixel_area = area_job.result()
         judgement = deviation.judge(
-            dev, surface_mask, tgt.tolerance_mm, pixel_area_mm2=area_job.result(),
+            dev, surface_mask, tgt.tolerance_mm, pixel_area_mm2=pixel_area,
             edge_artefacts=None if seg is None else deviation.EdgeArtefacts(seg.surroundings_step_mm),
         )
         clock.end("deviation")
@@ -335,7 +341,8 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, li
              "peak_deviation_mm": float(r.peak_deviation_mm), "reason": r.reason}
             for r in judgement.excluded
         ],
-        "segmentation": _segmentation_details(seg, tgt),
+        "segmentation": _segmentation_details(
+            seg, tgt, plain=plain, measured_area_mm2=float(np.sum(pixel_area[surface_mask & np.isfinite(pixel_area)]))),
         "normals_filled": int(field.n_filled),
         "normals_facing_away": surface.normals_facing_away,
         "light_model": "near-field" if near_field else "distant",
@@ -364,9 +371,10 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, li
             f"percentile, beyond the {max(surface.fusion.noise_floor_mm, DISAGREEMENT_FRACTION * tgt.tolerance_mm):.1f}"
             f" mm that noise explains): the stereo pair set the plate's overall shape; check the light positions"
         )
-    if seg is not None and (details["segmentation"]["area_ratio"] or 1.0) < AREA_WARNING_RATIO:
+    ratio = details["segmentation"]["area_ratio"]
+    if ratio is not None and ratio < AREA_WARNING_RATIO:
         warnings.append(
-            f"the measured area is {100 * details['segmentation']['area_ratio']:.0f} % of the target's: openings, a plate "
+            f"the measured area is {100 * ratio:.0f} % of the target's: openings, a plate "
             f"partly out of view, or areas the stereo pair could not match were not measured (details.json: segmentation)"
         )
     (out / names["details"]).write_text(json.dumps(details, indent=2) + "\n")
@@ -548,12 +556,17 @@ def _restricted(field: normals.NormalField, mask: np.ndarray) -> normals.NormalF
                    n_filled=int(np.count_nonzero(filled)))
 
 
-def _segmentation_details(seg, tgt: Target) -> dict:
-    """details.json: how the plate was told from its surroundings, and its area against the target's."""
+def _segmentation_details(seg, tgt: Target, *, plain: bool, measured_area_mm2: float) -> dict:
+    """details.json: how the plate was told from its surroundings, and its area against the target's
+    (without a segmentation, the measured surface's area: the brightness mask is eroded by 3 px)."""
     target_area = segmentation.target_area_mm2(tgt)
     if seg is None:
-        return {"method": "brightness", "target_area_mm2": round(target_area, 0), "area_ratio": None, "reasons": [
-            "no stereo pair: the plate was told from its surroundings by brightness (Otsu, holes filled)"]}
+        why = ("a plain scene: nothing lit around the plate, no opening in it, one smooth sheet in the stereo "
+               "depth; the brightness mask (Otsu) is the plate" if plain else
+               "no stereo pair: the plate was told from its surroundings by brightness (Otsu, holes filled)")
+        return {"method": "brightness", "plate_area_mm2": round(measured_area_mm2, 0),
+                "target_area_mm2": round(target_area, 0), "area_ratio": round(measured_area_mm2 / target_area, 4),
+                "reasons": [why]}
     measured = seg.plate_area_mm2 + seg.edge_band_area_mm2
     return {
         "method": seg.method,
