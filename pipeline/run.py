@@ -549,6 +549,8 @@ def _stereo_depth(cap: Capture, mask: np.ndarray, opts: InspectOptions) -> tuple
 
 def _restricted(field: normals.NormalField, mask: np.ndarray) -> normals.NormalField:
     """The normal field on ``mask`` only (estimated over the candidates, measured on the plate)."""
+    if not np.any(field.mask & ~mask):
+        return field
     keep = field.mask & mask
     filled = field.filled & keep
     return replace(field, normals=np.where(keep[..., None], field.normals, np.float32(np.nan)),
