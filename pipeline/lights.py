@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 #: The irradiance of a point light is given at this distance (mm) from it.
@@ -232,3 +233,51 @@ class Lights:
         dirs = self.directions_at(c)
         att = self.attenuation_at(c)
         return Lights.distant(dirs, self.intensity * att)
+
+
+@numba.njit(cache=True, fastmath={"nsz", "arcp", "contract", "reassoc"})
+def light_vectors_block(depth, kinv, geometry, axes, kind, mu, min_attenuation, i, j0, samples, usable, m, L):
+    """Per pixel (i, j0 + j) of a row block: the light model from the surface point it sees.
+
+    ``depth`` (H, W) mm and ``kinv`` (3, 3) give the point X = depth * K^-1 (u, v, 1); ``geometry``,
+    ``axes``, ``kind`` as :meth:`Lights.kernel_arrays`, ``mu`` (N,). Writes the unit light vectors
+    l_k(X) into ``L`` (N, 3, w) float32 and divides the samples (N, w) float32 by the attenuation
+    a_k(X) in place; a sample whose attenuation is below ``min_attenuation`` of the pixel's largest
+    becomes unusable (``usable`` 0, ``m`` (w,) counts it out). Pixels without a depth get L = 0.
+    """
+    n, w = samples.shape
+    att = np.empty(n)
+    ref2 = REFERENCE_DISTANCE_MM * REFERENCE_DISTANCE_MM
+    for j in range(w):
+        z = depth[i, j0 + j]
+        if not (z > 0.0):
+            L[:, :, j] = 0.0  # outside the mask: no samples are usable there
+            continue
+        u = float(j0 + j)
+        v = float(i)
+        x0 = z * (kinv[0, 0] * u + kinv[0, 1] * v + kinv[0, 2])
+        x1 = z * (kinv[1, 0] * u + kinv[1, 1] * v + kinv[1, 2])
+        x2 = z * (kinv[2, 0] * u + kinv[2, 1] * v + kinv[2, 2])
+        a_max = 0.0
+        for k in range(n):
+            if kind[k] == 1:
+                d0, d1, d2 = geometry[k, 0] - x0, geometry[k, 1] - x1, geometry[k, 2] - x2
+                dist2 = d0 * d0 + d1 * d1 + d2 * d2
+                dist = np.sqrt(dist2)
+                a = ref2 / dist2
+                if mu[k] > 0.0:
+                    cos = -(d0 * axes[k, 0] + d1 * axes[k, 1] + d2 * axes[k, 2]) / dist
+                    a *= max(cos, 0.0) ** mu[k]
+                L[k, 0, j], L[k, 1, j], L[k, 2, j] = d0 / dist, d1 / dist, d2 / dist
+            else:
+                a = 1.0
+                L[k, 0, j], L[k, 1, j], L[k, 2, j] = geometry[k, 0], geometry[k, 1], geometry[k, 2]
+            att[k] = a
+            a_max = max(a_max, a)
+        for k in range(n):
+            if att[k] > min_attenuation * a_max:
+                samples[k, j] = np.float32(samples[k, j] / att[k])
+            elif usable[k, j] > 0:
+                usable[k, j] = np.float32(0.0)
+                samples[k, j] = np.float32(0.0)
+                m[j] -= 1

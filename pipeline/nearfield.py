@@ -24,23 +24,10 @@ References
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
-from .lights import REFERENCE_DISTANCE_MM, Lights
-from .normals import (
-    _BLOCK_SAMPLES,
-    _F32_ZERO,
-    _FASTMATH,
-    _OUTSIDE,
-    METHODS,
-    NormalField,
-    _field_from_fit,
-    _load_block,
-    _robust_block,
-    _robust_params,
-    _sorting_network,
-)
+from .lights import Lights
+from .normals import METHODS, NormalField, _field_from_fit, _robust_kernel, _robust_params, _sorting_network
 
 #: The robust fit's parameters that make it plain least squares over the usable samples: no shadow
 #: level, no highlight trim, no re-selection (see pipeline.normals._robust_params for the order).
@@ -104,8 +91,9 @@ def estimate_normals_near(
     Notes
     -----
     Samples of a pixel whose attenuation is below MIN_RELATIVE_ATTENUATION of its largest one
-    are left out. The light vectors are computed per pixel inside the compiled kernel, a block of
-    a row at a time; nothing of size (N, H, W) beyond the inputs is allocated.
+    are left out. The light vectors are computed per pixel inside the compiled kernel
+    (:func:`pipeline.lights.light_vectors_block`), a block of a row at a time; nothing of size
+    (N, H, W) beyond the inputs is allocated.
     """
     if method not in METHODS:
         raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
@@ -140,69 +128,9 @@ def estimate_normals_near(
     b = np.empty((3, h, w), dtype=np.float32)
     status = np.empty((h, w), dtype=np.int8)
     params = _robust_params() if method == "robust" else _PLAIN_PARAMS
-    _near_kernel(
+    _robust_kernel(
         np.ascontiguousarray(images), np.ascontiguousarray(v), use_valid, np.ascontiguousarray(mask),
         np.ascontiguousarray(depth), np.linalg.inv(K), geometry, axes, kind, lights.mu.astype(np.float64),
-        int(min_samples), params, _sorting_network(n), b, status,
+        float(MIN_RELATIVE_ATTENUATION), int(min_samples), params, _sorting_network(n), b, status,
     )
     return _field_from_fit(b, status, mask, specular=None)
-
-
-@numba.njit(parallel=True, cache=True)
-def _near_kernel(images, valid, use_valid, mask, depth, kinv, geometry, axes, kind, mu, min_samples, params, pairs,
-                 b_out, status):
-    n, h, w = images.shape
-    width = max(16, _BLOCK_SAMPLES // n)
-    per_row = (w + width - 1) // width
-    for t in numba.prange(h * per_row):
-        i = t // per_row
-        j0 = (t % per_row) * width
-        j1 = min(j0 + width, w)
-        if not mask[i, j0:j1].any():
-            status[i, j0:j1] = _OUTSIDE
-            continue
-        samples, usable, m, finite = _load_block(images, valid, use_valid, mask, i, j0, j1)
-        L = np.empty((n, 3, j1 - j0), np.float32)
-        _light_block(depth, kinv, geometry, axes, kind, mu, i, j0, samples, usable, m, L)
-        _robust_block(samples, usable, m, finite, mask, L, min_samples, params, pairs, b_out, status, i, j0)
-
-
-@numba.njit(cache=True, fastmath=_FASTMATH)
-def _light_block(depth, kinv, geometry, axes, kind, mu, i, j0, samples, usable, m, L):
-    """Per pixel (i, j0 + j): unit light vectors into L (N, 3, w) and the samples divided by the
-    attenuation in place; samples of too little attenuation become unusable (``m`` counts them out)."""
-    n, w = samples.shape
-    att = np.empty(n)
-    ref2 = REFERENCE_DISTANCE_MM * REFERENCE_DISTANCE_MM
-    for j in range(w):
-        z = depth[i, j0 + j]
-        if not (z > 0.0):
-            continue  # outside the mask: no samples are usable there
-        u = float(j0 + j)
-        v = float(i)
-        x0 = z * (kinv[0, 0] * u + kinv[0, 1] * v + kinv[0, 2])
-        x1 = z * (kinv[1, 0] * u + kinv[1, 1] * v + kinv[1, 2])
-        x2 = z * (kinv[2, 0] * u + kinv[2, 1] * v + kinv[2, 2])
-        a_max = 0.0
-        for k in range(n):
-            if kind[k] == 1:
-                d0, d1, d2 = geometry[k, 0] - x0, geometry[k, 1] - x1, geometry[k, 2] - x2
-                dist2 = d0 * d0 + d1 * d1 + d2 * d2
-                dist = np.sqrt(dist2)
-                a = ref2 / dist2
-                if mu[k] > 0.0:
-                    cos = -(d0 * axes[k, 0] + d1 * axes[k, 1] + d2 * axes[k, 2]) / dist
-                    a *= max(cos, 0.0) ** mu[k]
-                L[k, 0, j], L[k, 1, j], L[k, 2, j] = d0 / dist, d1 / dist, d2 / dist
-            else:
-                a = 1.0
-                L[k, 0, j], L[k, 1, j], L[k, 2, j] = geometry[k, 0], geometry[k, 1], geometry[k, 2]
-            att[k] = a
-            a_max = max(a_max, a)
-        for k in range(n):
-            if att[k] > MIN_RELATIVE_ATTENUATION * a_max:
-                samples[k, j] = np.float32(samples[k, j] / att[k])
-            elif usable[k, j] > 0:
-                usable[k, j] = _F32_ZERO
-                samples[k, j] = _F32_ZERO
-                m[j] -= 1

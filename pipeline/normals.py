@@ -28,6 +28,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .formats import UNIT_TOLERANCE, CaptureError
+from .lights import light_vectors_block
 
 METHODS = ("robust", "lstsq")
 
@@ -510,9 +511,11 @@ def _robust(images, L, mask, valid, min_samples):
     status = np.empty((h, w), dtype=np.int8)
     use_valid = valid is not None
     v = valid if use_valid else np.ones((1, 1, 1), dtype=bool)
+    zeros = np.zeros((n, 3))
     _robust_kernel(
         np.ascontiguousarray(images), np.ascontiguousarray(v), use_valid, np.ascontiguousarray(mask),
-        np.ascontiguousarray(L, dtype=np.float32), int(min_samples), _robust_params(), _sorting_network(n), b, status,
+        np.zeros((1, 1)), np.eye(3), np.ascontiguousarray(L, dtype=np.float64), zeros, np.zeros(n, np.int64),
+        np.zeros(n), 0.0, int(min_samples), _robust_params(), _sorting_network(n), b, status,
     )
     return b, status
 
@@ -634,12 +637,21 @@ _BLOCK_SAMPLES = 3072
 
 
 @numba.njit(parallel=True, cache=True)
-def _robust_kernel(images, valid, use_valid, mask, L, min_samples, params, pairs, b_out, status):
-    """Robust fit of every mask pixel under distant lights L (N, 3); see estimate_normals' Notes.
-    Fills b_out (3, H, W) with rho n and status (H, W) with a status code per pixel."""
+def _robust_kernel(images, valid, use_valid, mask, depth, kinv, geometry, axes, kind, mu, min_attenuation,
+                   min_samples, params, pairs, b_out, status):
+    """Robust fit of every mask pixel; see estimate_normals' Notes. Fills b_out (3, H, W) with rho n and
+    status (H, W) with a status code per pixel.
+
+    The lights as :meth:`pipeline.lights.Lights.kernel_arrays` give them; with point lights, ``depth``
+    (H, W) mm and ``kinv`` give each pixel's surface point (:func:`pipeline.lights.light_vectors_block`);
+    with distant lights only, ``depth`` may be (1, 1) and is not read.
+    """
     n, h, w = images.shape
     width = max(16, _BLOCK_SAMPLES // n)
     per_row = (w + width - 1) // width
+    near = False
+    for k in range(n):
+        near = near or kind[k] == 1
     for t in numba.prange(h * per_row):
         i = t // per_row
         j0 = (t % per_row) * width
@@ -647,12 +659,15 @@ def _robust_kernel(images, valid, use_valid, mask, L, min_samples, params, pairs
         if not mask[i, j0:j1].any():
             status[i, j0:j1] = _OUTSIDE
             continue
-        Lb = np.empty((n, 3, j1 - j0), np.float32)
-        for k in range(n):
-            for c in range(3):
-                Lb[k, c, :] = L[k, c]
         samples, usable, m, finite = _load_block(images, valid, use_valid, mask, i, j0, j1)
-        _robust_block(samples, usable, m, finite, mask, Lb, min_samples, params, pairs, b_out, status, i, j0)
+        L = np.empty((n, 3, j1 - j0), np.float32)
+        if near:
+            light_vectors_block(depth, kinv, geometry, axes, kind, mu, min_attenuation, i, j0, samples, usable, m, L)
+        else:
+            for k in range(n):
+                for c in range(3):
+                    L[k, c, :] = geometry[k, c]
+        _robust_block(samples, usable, m, finite, mask, L, min_samples, params, pairs, b_out, status, i, j0)
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
