@@ -201,6 +201,10 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, li
     # image. The stereo pair is matched over it (the segmentation needs the surroundings' depth too) and,
     # under distant lights, the normals are estimated over it while the pair is matched.
     candidates = segmentation.candidate_mask(pre.brightest, seen=pre.seen) if cap.has_stereo else pre.mask
+    # a plate alone over a dark conveyor (the usual cell): the brightness mask is all the stereo pair and the
+    # normals need; the stereo depth then only confirms it is one sheet
+    plain_outline = cap.has_stereo and segmentation.plain_outline(pre.mask, candidates)
+    region = pre.mask if plain_outline else candidates
     clock.end("preprocess")
 
     names = {
@@ -217,7 +221,7 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, li
     # GIL) as soon as they are known.
     # numba's parallel kernels (normals, depth) run on this thread only: never two at once.
     with ThreadPoolExecutor(max_workers=2) as pool:
-        stereo_job = pool.submit(_stereo_depth, cap, candidates, opts) if cap.has_stereo else None
+        stereo_job = pool.submit(_stereo_depth, cap, region, opts) if cap.has_stereo else None
         rays_job = pool.submit(cap.rig.left.pixel_rays)  # (H, W, 3) float64, for the surface and the areas
         K = cap.rig.left.K
         near_field = cap.lights.any_point
@@ -226,7 +230,7 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, li
         if not near_field:
             # distant lights: the normals do not depend on the surface, estimated while stereo matches
             field = normals.estimate_normals(
-                pre.images, cap.light_dirs, candidates, valid=pre.valid, method=opts.normals_method, camera_matrix=K,
+                pre.images, cap.light_dirs, region, valid=pre.valid, method=opts.normals_method, camera_matrix=K,
             )
             clock.end("normals")
         writes = []
@@ -237,13 +241,9 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, li
         # holes, supports beside the plate and an edge band are left out. Without a pair: the brightness mask.
         t_seg = time.perf_counter()
         seg = None
-        plain = depth_c is not None and segmentation.plain_scene(pre.mask, candidates, depth_c, K)
+        plain = plain_outline and depth_c is not None and segmentation.plain_depth(pre.mask, depth_c, K)
         if depth_c is not None and not plain:
-            seg = segmentation.segment_plate(
-                pre.brightest, depth_c, K, seen=pre.seen, candidates=candidates, depth_scale_px=depth_scale,
-                normals=None if field is None else np.where(field.mask[..., None], field.normals, np.float32(np.nan)),
-                target_area_mm2=segmentation.target_area_mm2(tgt),
-            )
+            seg = _segment(pre, depth_c, K, candidates, depth_scale, field, tgt)
         # a plain scene (a plate over a dark conveyor, no opening): the brightness mask is the plate
         plate = pre.mask if seg is None else seg.mask
         if seg is not None:
@@ -285,6 +285,12 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, li
             if prior is not None and reconstruct.disagrees(surface, tgt.tolerance_mm, DISAGREEMENT_FRACTION):
                 # the given lights bend the surface away from the stereo pair's: refit them on its geometry
                 t_refit = time.perf_counter()
+                if seg is None and depth_c is not None:
+                    # so far on the brightness mask: lights that do not fit light the plate unevenly, and the
+                    # mask follows its darker edges; measured again on the segmented plate
+                    seg = _segment(pre, depth_c, K, candidates, depth_scale, field, tgt)
+                    plain, plate = False, seg.mask
+                    solve["prior_mm"] = seg.stereo_prior(depth_c)
                 surface = reconstruct.remeasure_with_refined_lights(
                     surface, pre.images, cap.lights, K, plate, valid=pre.valid, method=opts.normals_method,
                     **solve,
@@ -547,15 +553,28 @@ def _stereo_depth(cap: Capture, mask: np.ndarray, opts: InspectOptions) -> tuple
     return np.where(mask, depth, np.nan), round(time.perf_counter() - t, 4), step
 
 
+def _segment(pre, depth_mm, K, candidates, depth_scale, field, tgt):
+    """The plate told from its surroundings (:func:`pipeline.segmentation.segment_plate`)."""
+    return segmentation.segment_plate(
+        pre.brightest, depth_mm, K, seen=pre.seen, candidates=candidates, depth_scale_px=depth_scale,
+        normals=None if field is None else np.where(field.mask[..., None], field.normals, np.float32(np.nan)),
+        target_area_mm2=segmentation.target_area_mm2(tgt),
+    )
+
+
 def _restricted(field: normals.NormalField, mask: np.ndarray) -> normals.NormalField:
-    """The normal field on ``mask`` only (estimated over the candidates, measured on the plate)."""
-    if not np.any(field.mask & ~mask):
+    """The normal field on ``mask`` only (estimated over the candidates, measured on the plate).
+
+    The field's arrays are this inspection's own: the pixels left out are set to NaN in place.
+    """
+    drop = field.mask & ~mask
+    if not drop.any():
         return field
-    keep = field.mask & mask
+    field.normals[drop] = np.nan
+    field.albedo[drop] = np.nan
+    keep = field.mask & ~drop
     filled = field.filled & keep
-    return replace(field, normals=np.where(keep[..., None], field.normals, np.float32(np.nan)),
-                   albedo=np.where(keep, field.albedo, np.float32(np.nan)), mask=keep, filled=filled,
-                   n_filled=int(np.count_nonzero(filled)))
+    return replace(field, mask=keep, filled=filled, n_filled=int(np.count_nonzero(filled)))
 
 
 def _segmentation_details(seg, tgt: Target, *, plain: bool, measured_area_mm2: float) -> dict:
