@@ -11,11 +11,12 @@ algorithms never see a foreign convention:
   least-squares figures can be reproduced.
 
 The data are read-only and not part of the repository; :data:`DATA_ROOT` is
-``<project>/../shared/data``. Callers skip when :func:`data_available` is False.
+``<project>/../shared/data``, or the folder ``$PLATE_INSPECT_DATA`` names (docs/data.md). Callers skip when :func:`data_available` is False.
 """
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,7 +24,7 @@ import cv2
 import numpy as np
 import scipy.io
 
-DATA_ROOT = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+DATA_ROOT = Path(os.environ.get("PLATE_INSPECT_DATA") or Path(__file__).resolve().parents[1] / ".." / "shared" / "data")
 
 #: Grey conversion of the DiLiGenT baseline (MATLAB rgb2gray weights), for R, G, B.
 RGB2GRAY = np.array([0.2989, 0.5870, 0.1140])
