@@ -7,6 +7,8 @@ The schema is created and upgraded by Alembic only (never ``create_all``).
 
 from __future__ import annotations
 
+import fcntl
+from contextlib import contextmanager
 from pathlib import Path
 
 from alembic import command
@@ -59,7 +61,28 @@ def alembic_config(url: str) -> Config:
 
 
 def upgrade_database(url: str) -> None:
-    """Bring the database at ``url`` to the newest migration (creates a SQLite file if missing)."""
-    if url.startswith("sqlite:///"):
-        Path(url.removeprefix("sqlite:///")).parent.mkdir(parents=True, exist_ok=True)
-    command.upgrade(alembic_config(url), "head")
+    """Bring the database at ``url`` to the newest migration (creates a SQLite file if missing).
+
+    The web process and the consumer both upgrade on start, at the same moment under
+    ``serve``; for a SQLite file the upgrade holds an exclusive lock on ``<file>.migrate.lock``
+    so that the second one waits and then finds the schema current (two concurrent
+    upgrades of a new file otherwise both create the tables and one fails).
+    """
+    with _migration_lock(url):
+        command.upgrade(alembic_config(url), "head")
+
+
+@contextmanager
+def _migration_lock(url: str):
+    """An exclusive flock beside a SQLite database file (the kernel frees it if its holder dies)."""
+    if not url.startswith("sqlite:///") or url.removeprefix("sqlite:///") in ("", ":memory:"):
+        yield
+        return
+    path = Path(url.removeprefix("sqlite:///"))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path.with_name(path.name + ".migrate.lock"), "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)

@@ -71,7 +71,7 @@ def live_server(tmp_path_factory):
         stdout=open(logs / "worker.log", "wb"), stderr=subprocess.STDOUT,
     )
     base = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 30
+    deadline = time.monotonic() + 90  # a cold first start on a loaded machine imports for long
     while True:
         try:
             urllib.request.urlopen(f"{base}/healthz", timeout=1)

@@ -1,0 +1,40 @@
+"""The database's migrations: concurrent upgrades of one new SQLite file (web process and consumer)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import sqlalchemy as sa
+
+ROOT = Path(__file__).resolve().parents[2]
+
+UPGRADE = "import sys; from app.db import upgrade_database; upgrade_database(sys.argv[1])"
+
+
+def _heads() -> set[str]:
+    from alembic.script import ScriptDirectory
+
+    from app.db import alembic_config
+
+    return set(ScriptDirectory.from_config(alembic_config("sqlite://")).get_heads())
+
+
+def test_processes_upgrading_one_new_file_at_once_all_succeed(tmp_path):
+    # `serve` starts the web process and the consumer together; both upgrade on start.
+    for trial in range(3):
+        url = f"sqlite:///{tmp_path / f'trial{trial}' / 'plate_inspect.db'}"
+        procs = [
+            subprocess.Popen([sys.executable, "-c", UPGRADE, url], cwd=ROOT, stderr=subprocess.PIPE, text=True)
+            for _ in range(3)
+        ]
+        errors = [p.communicate(timeout=120)[1] for p in procs]
+        assert [p.returncode for p in procs] == [0, 0, 0], "\n".join(errors)
+        engine = sa.create_engine(url)
+        with engine.connect() as conn:
+            versions = {row[0] for row in conn.execute(sa.text("SELECT version_num FROM alembic_version"))}
+            tables = set(sa.inspect(conn).get_table_names())
+        engine.dispose()
+        assert versions == _heads()
+        assert {"inspections", "light_calibrations"} <= tables
