@@ -23,6 +23,7 @@ import os
 import posixpath
 import re
 import stat
+import sys
 import threading
 import types
 import zipfile
@@ -60,6 +61,8 @@ MAX_ZIP_RATIO = 200.0
 ZIP_RATIO_EXEMPT_BYTES = 1024**2
 #: Mesh file types a ``mesh`` target may name.
 MESH_SUFFIXES = (".stl", ".ply", ".obj")
+#: Deepest nesting of objects and lists accepted in a JSON file (the formats nest a few levels).
+MAX_JSON_DEPTH = 32
 
 
 @dataclass(frozen=True)
@@ -192,12 +195,51 @@ def _parse_json(data: bytes, label: str) -> dict:
     except UnicodeDecodeError as exc:
         raise InputError(label, "", f"not UTF-8 text (byte {exc.start})") from None
     try:
-        doc = json.loads(text)
+        doc = json.loads(text, parse_int=_parse_int)
     except json.JSONDecodeError as exc:
         raise InputError(label, "", f"not valid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}") from None
+    except RecursionError:
+        raise InputError(label, "", f"objects and lists nested deeper than {MAX_JSON_DEPTH} levels") from None
     if not isinstance(doc, dict):
         raise InputError(label, "", f"expected a JSON object, got {_json_type(doc)}")
+    _check_json_tree(doc, label)
     return doc
+
+
+class _LongInteger:
+    """Stands in for an integer literal too long for Python to convert (found with its field after parsing)."""
+
+    def __init__(self, digits: int):
+        self.digits = digits
+
+
+def _parse_int(literal: str):
+    try:
+        return int(literal)
+    except ValueError:  # more digits than sys.get_int_max_str_digits()
+        return _LongInteger(len(literal.lstrip("-")))
+
+
+def _check_json_tree(doc: dict, label: str) -> None:
+    """Refuse nesting deeper than :data:`MAX_JSON_DEPTH` and over-long integers, naming the field.
+
+    Walks the tree without recursion, so no document can exhaust the stack here.
+    """
+    stack: list[tuple[Any, str, int]] = [(doc, "", 1)]
+    while stack:
+        value, field, depth = stack.pop()
+        if isinstance(value, _LongInteger):
+            limit = sys.get_int_max_str_digits()
+            raise InputError(label, field, f"expected a number of at most {limit} digits, got one of {value.digits}")
+        if isinstance(value, dict):
+            items = [(f"{field}.{key}" if field else str(key), item) for key, item in value.items()]
+        elif isinstance(value, list):
+            items = [(f"{field}[{i}]", item) for i, item in enumerate(value)]
+        else:
+            continue
+        if depth > MAX_JSON_DEPTH:
+            raise InputError(label, field, f"objects and lists nested deeper than {MAX_JSON_DEPTH} levels")
+        stack.extend((item, name, depth + 1) for name, item in items)
 
 
 def _json_type(value) -> str:
