@@ -13,6 +13,9 @@ limit); only then are the members the capture names read and decoded with
 ``cv2.imdecode`` from bytes. Images must be PNG or TIFF; their size is read
 from the file header and checked against the calibration before decoding, so a
 small file claiming a huge image is refused without allocating it.
+:func:`read_capture_header` checks a bundle as far as that goes without decoding
+any image (capture.json, the calibration, each image's format and size from its
+header), for a process that must not hold the images (the web service).
 """
 
 from __future__ import annotations
@@ -36,6 +39,7 @@ from typing import Annotated, Any, Union, get_args, get_origin
 import cv2
 import numpy as np
 import pydantic
+from PIL import Image
 from pydantic import BaseModel
 
 from .camera import CameraModel, StereoRig
@@ -507,12 +511,17 @@ class _FolderBundle:
         return str(self.root / rel)
 
     def read(self, rel: str, *, field: str) -> bytes:
+        with self.open(rel, field=field) as fh:
+            return fh.read()
+
+    def open(self, rel: str, *, field: str):
+        """The file ``rel`` of the bundle as an open binary file."""
         path = self.root / rel
         real = path.resolve()
         if not real.is_relative_to(self._real_root):
             raise InputError(self.capture_label, field, f"{rel!r} leaves the bundle folder (through a symlink)")
         try:
-            return real.read_bytes()
+            return open(real, "rb")
         except FileNotFoundError:
             raise InputError(self.capture_label, field, f"{rel!r}: file not found in the bundle") from None
         except IsADirectoryError:
@@ -609,6 +618,16 @@ class _ZipBundle:
             with self._lock:
                 return self._zf.read(info)
         except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError) as exc:
+            raise InputError(self.capture_label, field, f"{rel!r}: corrupt zip member: {exc}") from None
+
+    def open(self, rel: str, *, field: str):
+        """The member ``rel`` as a binary stream (decompressed as it is read; seeking forward reads on)."""
+        info = self._members.get(self.prefix + rel)
+        if info is None:
+            raise InputError(self.capture_label, field, f"{rel!r}: file not found in the bundle")
+        try:
+            return self._zf.open(info)
+        except (zipfile.BadZipFile, NotImplementedError) as exc:
             raise InputError(self.capture_label, field, f"{rel!r}: corrupt zip member: {exc}") from None
 
     def close(self) -> None:
@@ -803,7 +822,12 @@ def load_capture(
         bundle.close()
 
 
-def _load_capture(bundle, source: Path, *, workers: int | None) -> Capture:
+def _read_capture_json(bundle) -> tuple[CaptureFile, StereoRig, list[tuple[str | None, _ImageJob]]]:
+    """capture.json and its calibration, validated; the image files it names, every path checked.
+
+    Returns ``(capture file, rig, [(key, job), ...])``: photometric images first (key None),
+    then ``"dark"``, ``"left"``, ``"right"`` when the bundle has them.
+    """
     label = bundle.capture_label
     doc = _parse_json(bundle.read("capture.json", field=""), label)
 
@@ -836,14 +860,20 @@ def _load_capture(bundle, source: Path, *, workers: int | None) -> Capture:
         for side in ("left", "right"):
             cam_size = getattr(rig, side).image_size
             wanted.append((side, getattr(cap.stereo, side), f"stereo.{side}", cam_size, f"stereo {side} image"))
-    jobs = [
-        _ImageJob(_check_relative(name, label=label, field=field), field, sz, what)
-        for _, name, field, sz, what in wanted
+    return cap, rig, [
+        (key, _ImageJob(_check_relative(name, label=label, field=field), field, sz, what))
+        for key, name, field, sz, what in wanted
     ]
 
+
+def _load_capture(bundle, source: Path, *, workers: int | None) -> Capture:
+    label = bundle.capture_label
+    cap, rig, wanted = _read_capture_json(bundle)
+    size = rig.image_size
     n = len(cap.photometric.images)
     images = np.empty((n, size[1], size[0]), dtype=np.float32)
-    named = {key: np.empty((sz[1], sz[0]), np.float32) for key, _, _, sz, _ in wanted[n:]}
+    named = {key: np.empty((job.expected_size[1], job.expected_size[0]), np.float32) for key, job in wanted[n:]}
+    jobs = [job for _, job in wanted]
     _load_images(bundle, jobs, [*images, *named.values()], bit_depth=cap.bit_depth, workers=workers)
 
     lights = Lights.from_documents(cap.photometric.lights)
@@ -883,6 +913,184 @@ def _check_light_positions(lights: Lights, rig: StereoRig, working_distance_mm: 
                 f"a light at z = {p[2]:.0f} mm is behind the plate (working_distance_mm {working_distance_mm:.0f}; "
                 f"positions are mm in the left camera frame, z forward), got {[round(float(v), 1) for v in p]}",
             )
+
+
+# =========================================================================== capture, headers only
+
+
+class InputLimitError(InputError):
+    """Input refused by a limit the caller set (not by the format); ``limit`` names which one.
+
+    Attributes
+    ----------
+    limit : {"lights", "image_pixels"}
+        The parameter of :func:`read_capture_header` that refused the input.
+    maximum : int
+        Its value.
+    """
+
+    def __init__(self, file: str, field: str, reason: str, *, limit: str, maximum: int):
+        super().__init__(file, field, reason)
+        self.limit = limit
+        self.maximum = maximum
+
+
+@dataclass(frozen=True)
+class ImageHeader:
+    """One image file of a capture bundle as its header describes it (nothing decoded).
+
+    Attributes
+    ----------
+    field : str
+        Where capture.json names it: ``"photometric.images[3]"``, ``"photometric.dark"``, ``"stereo.left"``.
+    name : str
+        Its path in the bundle.
+    what : str
+        ``"photometric image"``, ``"dark frame"``, ``"stereo left image"``, ...
+    width, height : int
+        Pixels, from the header.
+    """
+
+    field: str
+    name: str
+    what: str
+    width: int
+    height: int
+
+
+@dataclass(frozen=True)
+class CaptureHeader:
+    """A capture bundle checked as far as that goes without decoding an image (:func:`read_capture_header`).
+
+    Attributes
+    ----------
+    label : str
+        How error messages name the bundle's capture.json (``<bundle.zip>:capture.json``).
+    plate_id, captured_at, rig, bit_depth, lights, working_distance_mm
+        As in :class:`Capture`.
+    images : tuple of ImageHeader
+        Every image file the bundle names: photometric images in order, then the dark frame
+        and the stereo pair when given.
+    """
+
+    label: str
+    plate_id: str
+    captured_at: str | None
+    rig: StereoRig
+    bit_depth: int
+    lights: Lights
+    working_distance_mm: float | None
+    images: tuple[ImageHeader, ...]
+
+    @property
+    def n_lights(self) -> int:
+        return self.lights.n
+
+
+def read_capture_header(
+    path,
+    *,
+    max_lights: int | None = None,
+    max_image_pixels: int | None = None,
+    max_total_bytes: int = MAX_ZIP_TOTAL_BYTES,
+    max_ratio: float = MAX_ZIP_RATIO,
+) -> CaptureHeader:
+    """Check a ``plate-capture/1`` bundle without decoding its images.
+
+    Everything :func:`load_capture` checks before it decodes: the zip's members, capture.json
+    and the calibration, the lights, every image path; then each image's format and size from
+    its header only (Pillow reads the header lazily from the member's stream, so a small file
+    claiming a huge image costs nothing). Pixel values are not read: an image that is corrupt
+    past its header, or whose pixels exceed ``bit_depth``, is found by :func:`load_capture`.
+
+    Parameters
+    ----------
+    path : str or Path
+        As for :func:`load_capture`.
+    max_lights : int, optional
+        Refuse more lights (and so photometric images) than this, before any image is opened.
+    max_image_pixels : int, optional
+        Refuse an image whose header declares more pixels than this.
+    max_total_bytes, max_ratio
+        As for :func:`load_capture`.
+
+    Returns
+    -------
+    CaptureHeader
+
+    Raises
+    ------
+    InputLimitError
+        Over ``max_lights`` or ``max_image_pixels`` (names the file and the field; ``limit`` says which).
+    InputError
+        Anything :func:`load_capture` refuses before decoding: bad zip, capture.json or
+        calibration, image paths that leave the bundle or are missing, files that are not PNG
+        or TIFF, headers whose size is not the calibration's ``image_size``.
+    """
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"path: expected a path, got {type(path).__name__}")
+    for name, value in (("max_lights", max_lights), ("max_image_pixels", max_image_pixels)):
+        if value is not None and not value >= 1:
+            raise ValueError(f"{name}: expected a positive count or None, got {value}")
+    path = Path(path)
+    bundle = _open_bundle(path, max_total_bytes=max_total_bytes, max_ratio=max_ratio)
+    try:
+        label = bundle.capture_label
+        cap, rig, wanted = _read_capture_json(bundle)
+        n = len(cap.photometric.lights)
+        if max_lights is not None and n > max_lights:
+            raise InputLimitError(
+                label, "photometric.lights", f"{n} lights (and images), more than the limit of {max_lights}",
+                limit="lights", maximum=max_lights,
+            )
+        lights = Lights.from_documents(cap.photometric.lights)
+        _check_light_positions(lights, rig, cap.working_distance_mm, label=label)
+        headers = tuple(
+            _image_header(bundle, job, label=label, max_pixels=max_image_pixels) for _, job in wanted
+        )
+    finally:
+        bundle.close()
+    return CaptureHeader(
+        label=label,
+        plate_id=cap.plate_id,
+        captured_at=cap.captured_at,
+        rig=rig,
+        bit_depth=int(cap.bit_depth),
+        lights=lights,
+        working_distance_mm=cap.working_distance_mm,
+        images=headers,
+    )
+
+
+def _image_header(bundle, job: _ImageJob, *, label: str, max_pixels: int | None) -> ImageHeader:
+    """Format and size of one image from its header (Pillow's lazy open); nothing is decoded."""
+    name = repr(job.rel)
+    with bundle.open(job.rel, field=job.field) as fh:
+        try:
+            with Image.open(fh, formats=("PNG", "TIFF")) as img:
+                width, height = img.size
+        except Image.DecompressionBombError:
+            raise InputError(
+                label, job.field,
+                f"{name} ({job.what}): its header declares more than {2 * Image.MAX_IMAGE_PIXELS} px (a decompression bomb?)",
+            ) from None
+        except Image.UnidentifiedImageError:
+            raise InputError(label, job.field, f"{name}: not a PNG or TIFF file (expected an 8- or 16-bit PNG or TIFF)") from None
+        except Exception as exc:  # noqa: BLE001 - Pillow and the zip stream raise many types on bad files
+            raise InputError(label, job.field, f"{name}: cannot read the image header: {exc}") from None
+    if (width, height) != job.expected_size:
+        ew, eh = job.expected_size
+        raise InputError(
+            label, job.field,
+            f"{name} ({job.what}) is {width}x{height} px, expected {ew}x{eh} (calibration image_size, width x height)",
+        )
+    if max_pixels is not None and width * height > max_pixels:
+        raise InputLimitError(
+            label, job.field,
+            f"{name} ({job.what}) is {width}x{height} px = {width * height} px, more than the limit of {max_pixels} px",
+            limit="image_pixels", maximum=max_pixels,
+        )
+    return ImageHeader(field=job.field, name=job.rel, what=job.what, width=width, height=height)
 
 
 # =========================================================================== light calibration
@@ -1029,11 +1237,15 @@ def _load_mesh(base_dir: Path, name: str, *, label: str) -> tuple[np.ndarray, np
 
 __all__ = [
     "Capture",
+    "CaptureHeader",
+    "ImageHeader",
     "InputError",
+    "InputLimitError",
     "Target",
     "calibration_document",
     "load_calibration",
     "load_capture",
     "load_target",
+    "read_capture_header",
     "read_json",
 ]
