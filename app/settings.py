@@ -2,7 +2,9 @@
 
 ``PLATE_INSPECT_DATA_DIR``, ``PLATE_INSPECT_DATABASE_URL``, ``PLATE_INSPECT_API_TOKEN``,
 ``PLATE_INSPECT_MAX_UPLOAD_MB``, ``PLATE_INSPECT_DEMO``, ``PLATE_INSPECT_PROGRESS_INTERVAL_S``,
-``PLATE_INSPECT_INSPECT_ENTRY``, ``PLATE_INSPECT_VIEWER_IDLE_S``, ``PLATE_INSPECT_VIEWER_MAX_SERVERS``.
+``PLATE_INSPECT_INSPECT_ENTRY``, ``PLATE_INSPECT_VIEWER_IDLE_S``, ``PLATE_INSPECT_VIEWER_MAX_SERVERS``;
+request and queue limits: ``PLATE_INSPECT_MAX_IMAGE_PIXELS``, ``PLATE_INSPECT_MAX_LIGHTS``,
+``PLATE_INSPECT_MAX_SIMULATED_PIXELS``, ``PLATE_INSPECT_MAX_QUEUED_PER_PLATE``, ``PLATE_INSPECT_MAX_QUEUED``.
 """
 
 from __future__ import annotations
@@ -42,6 +44,19 @@ class Settings(BaseSettings):
         A 3D view's viser server stops this long after its last browser left, s.
     viewer_max_servers : int
         Most 3D views (one viser server each, on loopback) running at once.
+    max_image_pixels : int
+        Most pixels (width x height) of one image of an uploaded capture, and of a stereo
+        calibration's ``image_size`` (422 beyond it; read from the image headers).
+    max_lights : int
+        Most lights (= photometric images) of an uploaded capture, a light calibration or a
+        simulated inspection (422 beyond it).
+    max_simulated_pixels : int
+        Most pixels (width x height) of a simulated inspection's images (422 beyond it); the
+        simulator needs about 0.6 KB of memory per pixel.
+    max_queued_per_plate : int
+        Most inspections of one plate waiting in the queue (429 with Retry-After beyond it).
+    max_queued : int
+        Most inspections waiting in the queue in all (429 with Retry-After beyond it).
     """
 
     model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, extra="ignore")
@@ -55,6 +70,12 @@ class Settings(BaseSettings):
     inspect_entry: str = "pipeline.run:inspect"
     viewer_idle_s: float = Field(default=300.0, ge=0)
     viewer_max_servers: int = Field(default=8, ge=1, le=64)
+    # Request and queue limits (app.limits): 422 for too big a request, 429 for a full queue.
+    max_image_pixels: int = Field(default=4096 * 3072, ge=64 * 64, le=100_000_000)
+    max_lights: int = Field(default=48, ge=3, le=1024)
+    max_simulated_pixels: int = Field(default=2048 * 1024, ge=64 * 64, le=4096 * 4096)
+    max_queued_per_plate: int = Field(default=8, ge=1)
+    max_queued: int = Field(default=100, ge=1)
 
     @field_validator("inspect_entry")
     @classmethod
