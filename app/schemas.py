@@ -5,9 +5,30 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Any, Generic, Literal, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from app.limits.physical import (
+    MAX_DENT_DEPTH_MM,
+    MAX_DENT_RADIUS_MM,
+    MAX_TOLERANCE_MM,
+    RADIUS_MM,
+    SIZE_MM,
+    radius_reason,
+)
 
 T = TypeVar("T")
+
+#: A plate id as a regular expression: letters, digits, '.', '_', '-', starting with a letter or
+#: digit, never '..' (plate ids become folder names). The same rule as
+#: :func:`app.storage.check_plate_id`, written without look-ahead so that OpenAPI clients
+#: (and the Rust regex engine of pydantic) read it; length 1..64 apart (``max_length``).
+PLATE_ID_REGEX = r"^[A-Za-z0-9](?:\.?[A-Za-z0-9_-])*\.?$"
+#: Longest plate id.
+PLATE_ID_MAX_LENGTH = 64
+
+#: Request bodies: unknown keys refused, integers and booleans strict (``false`` is not 0, ``1``
+#: is not true, ``"5"`` is not a number), finite numbers only (no NaN, no Infinity).
+STRICT_BODY = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
 
 Status = Literal["queued", "running", "done", "failed"]
 Verdict = Literal["pass", "fail", "error"]
@@ -35,21 +56,25 @@ class Page(BaseModel, Generic[T]):
 class DentIn(BaseModel):
     """A dent pressed into the simulated plate (plate frame, mm; depth > 0 is away from the cameras)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = STRICT_BODY
 
-    x_mm: float
-    y_mm: float
-    radius_mm: float = Field(gt=0)
-    depth_mm: float
+    x_mm: float = Field(ge=-SIZE_MM[1] / 2, le=SIZE_MM[1] / 2)
+    y_mm: float = Field(ge=-SIZE_MM[1] / 2, le=SIZE_MM[1] / 2)
+    radius_mm: float = Field(gt=0, le=MAX_DENT_RADIUS_MM)
+    depth_mm: float = Field(ge=-MAX_DENT_DEPTH_MM, le=MAX_DENT_DEPTH_MM)
 
 
 class SimulatedInspectionIn(BaseModel):
     """The demo cell: a formed plate to render with the simulator and inspect."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = STRICT_BODY
 
     shape: Literal["plane", "cylinder", "sphere", "saddle"] = "cylinder"
-    radius_mm: float | None = Field(default=5000.0, gt=0, description="formed radius, mm (ignored for a plane)")
+    radius_mm: float | None = Field(
+        default=5000.0,
+        description="formed radius, mm (ignored for a plane)",
+        json_schema_extra={"minimum": RADIUS_MM[0], "maximum": RADIUS_MM[1]},
+    )
     convex: bool = True
     n_lights: int = Field(default=12, ge=3, le=64)
     noise: float = Field(default=0.004, ge=0, le=0.5, description="image noise, fraction of full scale")
@@ -75,7 +100,14 @@ class SimulatedInspectionIn(BaseModel):
     seed: int = Field(default=0, ge=0, le=2**31 - 1)
     width: int = Field(default=1224, ge=64, le=4096, description="image width, px")
     height: int = Field(default=1024, ge=64, le=4096, description="image height, px")
-    tolerance_mm: float = Field(default=2.0, gt=0)
+    tolerance_mm: float = Field(default=2.0, gt=0, le=MAX_TOLERANCE_MM)
+
+    @field_validator("radius_mm")
+    @classmethod
+    def _hull_plate_radius(cls, v: float | None) -> float | None:
+        if v is not None and not RADIUS_MM[0] <= v <= RADIUS_MM[1]:
+            raise ValueError(radius_reason(v))
+        return v
 
     @model_validator(mode="after")
     def _radius_needed(self):

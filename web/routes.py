@@ -19,6 +19,7 @@ from fastapi.templating import Jinja2Templates
 from app import viewer
 from app.deps import SESSION_COOKIE, SessionDep, StorageDep, issue_session_cookie, session_cookie_value
 from app.models import Inspection
+from app.routes.common import InspectionIdPath
 from app.services import calibrations as calibration_svc
 from app.services import inspections as inspection_svc
 from app.services import light_calibrations as light_calibration_svc
@@ -113,7 +114,7 @@ def cell_queue(request: Request, session: SessionDep) -> Response:
 @router.get("/inspections/{inspection_id}", response_class=HTMLResponse)
 def result_page(
     request: Request,
-    inspection_id: int,
+    inspection_id: InspectionIdPath,
     session: SessionDep,
     storage: StorageDep,
     spacing_mm: SpacingQuery = DEFAULT_SPACING_MM,
@@ -140,7 +141,7 @@ def result_page(
 @router.get("/inspections/{inspection_id}/templates", response_class=HTMLResponse)
 def templates_partial(
     request: Request,
-    inspection_id: int,
+    inspection_id: InspectionIdPath,
     session: SessionDep,
     storage: StorageDep,
     spacing_mm: SpacingQuery = DEFAULT_SPACING_MM,

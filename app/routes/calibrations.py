@@ -6,8 +6,9 @@ from typing import Annotated
 
 from fastapi import APIRouter, File, Request, UploadFile, status
 
-from app.deps import SessionDep, StorageDep, WriterDep
+from app.deps import SessionDep, SettingsDep, StorageDep, WriterDep
 from app.errors import ApiError
+from app.limits import Limits
 from app.routes.common import IdempotencyKeyHeader, idempotent_write, save_upload
 from app.schemas import CalibrationOut, ErrorOut
 from app.services import calibrations as svc
@@ -39,8 +40,13 @@ def upload_calibration(
     session: SessionDep,
     storage: StorageDep,
     writer: WriterDep,
+    settings: SettingsDep,
     idempotency_key: IdempotencyKeyHeader = None,
 ):
+    """Store a ``stereo-calibration/1`` as the cell's current one.
+
+    A bad file, or an ``image_size`` over the image pixel limit, is refused with 422 naming the field.
+    """
     staging = storage.new_staging_dir()
     created: list[int] = []
 
@@ -51,7 +57,9 @@ def upload_calibration(
 
     def work():
         save_upload(calibration, staging / CALIBRATION_FILE)
-        row = svc.create_calibration(session=session, storage=storage, staging_dir=staging)
+        row = svc.create_calibration(
+            session=session, storage=storage, staging_dir=staging, limits=Limits.from_settings(settings)
+        )
         created.append(row.id)
         return 201, calibration_out(row).model_dump(mode="json"), None
 

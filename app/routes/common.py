@@ -1,40 +1,63 @@
-"""Helpers shared by the routers: path parameters, idempotent writes, response builders."""
+"""Helpers shared by the routers: path and query parameters, idempotent writes, response builders."""
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
 import shutil
+import sys
+from collections.abc import Callable
 from pathlib import Path as FilePath
 from typing import Annotated, Any
 
-from fastapi import Header, Path, Request
+from fastapi import Header, Path, Query, Request
 from fastapi.responses import JSONResponse
+from fastapi.routing import APIRoute
+from pydantic import AfterValidator
 from sqlalchemy.orm import Session
+from starlette.exceptions import HTTPException
 
 from app.deps import Writer
-from app.errors import error_body, known_error, relabel_input_error
+from app.errors import ApiError, error_body, known_error, relabel_input_error
+from app.limits.queue import QueueFullError
 from app.models import Inspection, Target
-from app.schemas import InspectionOut, InspectionSummary, PlateOut, TargetOut
+from app.schemas import PLATE_ID_MAX_LENGTH, PLATE_ID_REGEX, InspectionOut, InspectionSummary, PlateOut, TargetOut
 from app.services import idempotency
 from app.services.inspections import artifact_names
 from app.services.plates import PlateOverview
-from app.storage import PLATE_ID_PATTERN, Storage
+from app.storage import Storage, check_plate_id
 from pipeline.formats import InputError
 
 log = logging.getLogger(__name__)
 
 API_PREFIX = "/api/v1"
 
+#: Largest row id (and list offset) the database holds: SQLite INTEGER is a signed 64-bit integer.
+MAX_ROW_ID = 2**63 - 1
+
+
+def _plate_id(value: str) -> str:
+    try:
+        return check_plate_id(value)
+    except ValueError:
+        raise ValueError(
+            f"expected 1-{PLATE_ID_MAX_LENGTH} letters, digits, '.', '_' or '-', starting with a letter or digit, "
+            f"without '..' (plate ids name folders), got {value!r}"
+        ) from None
+
+
 PlateIdPath = Annotated[
     str,
+    AfterValidator(_plate_id),
     Path(
-        pattern=PLATE_ID_PATTERN.pattern,
-        max_length=64,
-        description="the yard's plate id: letters, digits, '.', '_', '-'",
+        max_length=PLATE_ID_MAX_LENGTH,
+        description="the yard's plate id: letters, digits, '.', '_', '-', starting with a letter or digit, no '..'",
         examples=["H1234-P07"],
+        json_schema_extra={"pattern": PLATE_ID_REGEX},
     ),
 ]
+InspectionIdPath = Annotated[int, Path(ge=1, le=MAX_ROW_ID, description="the inspection's id")]
+LightCalibrationIdPath = Annotated[int, Path(ge=1, le=MAX_ROW_ID, description="the light calibration's id")]
+OffsetQuery = Annotated[int, Query(ge=0, le=MAX_ROW_ID, description="items to skip (newest first)")]
 IdempotencyKeyHeader = Annotated[
     str | None,
     Header(alias="Idempotency-Key", description="a retry with the same key returns the first answer", max_length=255),
@@ -52,15 +75,19 @@ def idempotent_write(
     key: str | None,
     work: Work,
     cleanup: Callable[[], None] = lambda: None,
-    upload_field: str | None = None,
+    upload_field: str | Callable[[InputError], str] | None = None,
     staging: FilePath | None = None,
 ) -> JSONResponse:
     """Run a write once per ``Idempotency-Key`` (per route and token) and answer with JSON.
 
     ``work`` adds rows without committing; this commits them together with the stored answer,
     then calls the after-commit hook. A refused request (4xx) is remembered too, so a retry gets
-    the same refusal; a bug (5xx) forgets the key. ``cleanup`` undoes files ``work`` wrote when its
-    rows are not committed. File errors name files relative to ``staging`` (the upload's folder).
+    the same refusal; a bug (5xx) forgets the key, and so does a full queue
+    (:class:`~app.limits.queue.QueueFullError`, answered 429 with ``Retry-After``): a retry may be
+    admitted. ``cleanup`` undoes files ``work`` wrote when its rows are not committed. File
+    errors name files relative to ``staging`` (the upload's folder); ``upload_field`` is the
+    multipart field they are about, or a function of the (relabelled) error giving it when the
+    upload has several files.
     """
     row_id = None
     if key is not None:
@@ -89,8 +116,17 @@ def idempotent_write(
     except Exception as exc:
         session.rollback()
         cleanup()
+        if isinstance(exc, QueueFullError):  # not final: a retry with the same key may be admitted
+            if row_id is not None:
+                idempotency.release(session=session, row_id=row_id)
+                session.commit()
+            return JSONResponse(
+                error_body(exc.detail, exc.field), status_code=429, headers={"Retry-After": str(exc.retry_after_s)}
+            )
         if isinstance(exc, InputError) and staging is not None:
             exc = relabel_input_error(exc, staging)
+        if callable(upload_field):
+            upload_field = upload_field(exc) if isinstance(exc, InputError) else None
         known = known_error(exc, upload_field=upload_field)
         if known is None:
             if row_id is not None:
@@ -105,6 +141,43 @@ def idempotent_write(
     if after_commit is not None:
         after_commit()
     return JSONResponse(body, status_code=status)
+
+
+class JsonBodyRoute(APIRoute):
+    """A route whose JSON body FastAPI cannot parse answers 422 naming ``body``, not 400.
+
+    FastAPI answers "There was an error parsing the body" (400) when ``json.loads`` fails with
+    something else than a syntax error: a body nested deeper than the interpreter's recursion
+    limit (RecursionError), an integer of more digits than Python converts (ValueError).
+    """
+
+    def get_route_handler(self):
+        handler = super().get_route_handler()
+
+        async def route_handler(request: Request):
+            try:
+                return await handler(request)
+            except HTTPException as exc:
+                reason = _body_parse_failure(exc)
+                if reason is None:
+                    raise
+                raise ApiError(422, f"body: {reason}", field="body") from None
+
+        return route_handler
+
+
+def _body_parse_failure(exc: HTTPException) -> str | None:
+    """What was wrong with a JSON body FastAPI could not parse (its 400), or None for another error."""
+    cause = exc.__cause__
+    if exc.status_code != 400 or not isinstance(cause, (RecursionError, ValueError)):
+        return None
+    if isinstance(cause, RecursionError):
+        return "not usable JSON: objects and lists nested too deeply"
+    if isinstance(cause, UnicodeDecodeError):
+        return f"not UTF-8 text (byte {cause.start})"
+    if "digits" in str(cause):
+        return f"not usable JSON: a number of more than {sys.get_int_max_str_digits()} digits"
+    return f"not usable JSON: {cause}"
 
 
 # ------------------------------------------------------------------ response builders

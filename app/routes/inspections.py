@@ -8,11 +8,15 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, File, Query, Request, UploadFile, status
 from fastapi.responses import FileResponse
 
-from app.deps import JobsDep, SessionDep, StorageDep, WriterDep
+from app.deps import JobsDep, SessionDep, SettingsDep, StorageDep, WriterDep
 from app.errors import ApiError
+from app.limits import Limits
 from app.schemas import ErrorOut, InspectionCreated, InspectionOut, InspectionSummary, Page, SimulatedInspectionIn
 from app.routes.common import (
     IdempotencyKeyHeader,
+    InspectionIdPath,
+    JsonBodyRoute,
+    OffsetQuery,
     PlateIdPath,
     idempotent_write,
     inspection_out,
@@ -22,10 +26,16 @@ from app.routes.common import (
 from app.services import inspections as svc
 from app.services.inspections import CAPTURE_FILE
 from app.services.targets import TARGET_FILE
+from pipeline.formats import InputError
 
-router = APIRouter(tags=["inspections"])
+router = APIRouter(tags=["inspections"], route_class=JsonBodyRoute)
 
-ERRORS = {401: {"model": ErrorOut}, 413: {"model": ErrorOut}, 422: {"model": ErrorOut}}
+ERRORS = {
+    401: {"model": ErrorOut},
+    413: {"model": ErrorOut},
+    422: {"model": ErrorOut},
+    429: {"model": ErrorOut, "description": "the queue is full (per plate or in all); see the Retry-After header"},
+}
 
 
 @router.post(
@@ -43,12 +53,16 @@ def create_inspection(
     storage: StorageDep,
     jobs: JobsDep,
     writer: WriterDep,
+    settings: SettingsDep,
     idempotency_key: IdempotencyKeyHeader = None,
     target: Annotated[UploadFile | None, File(description="plate-target/1 JSON; optional if the plate has a target")] = None,
 ):
-    """Validate the bundle (and target), store them and queue the inspection: 202 ``{"id", "status"}``.
+    """Check the bundle (and target), store them and queue the inspection: 202 ``{"id", "status"}``.
 
-    A bad bundle or target is refused with 422 naming the file and field, and nothing is stored.
+    The bundle is checked from capture.json and the image headers (no image is decoded here;
+    the job decodes them and fails with the reason if a pixel is bad). A bad bundle or target,
+    or one over the request limits (image pixels, lights), is refused with 422 naming the file
+    and field; a full queue with 429 and ``Retry-After``. Nothing is stored then.
     """
     staging = storage.new_staging_dir()
     created: list[int] = []
@@ -63,14 +77,22 @@ def create_inspection(
         if target is not None:
             (staging / "target").mkdir()
             save_upload(target, staging / "target" / TARGET_FILE)
-        row = svc.create_uploaded_inspection(session=session, storage=storage, plate_id=plate_id, staging_dir=staging)
+        row = svc.create_uploaded_inspection(
+            session=session, storage=storage, plate_id=plate_id, staging_dir=staging,
+            limits=Limits.from_settings(settings),
+        )
         created.append(row.id)
         return 202, {"id": row.id, "status": row.status}, lambda: jobs.enqueue(row.id)
 
     return idempotent_write(
         request=request, session=session, writer=writer, key=idempotency_key, work=work, cleanup=cleanup,
-        staging=staging, upload_field="capture",
+        staging=staging, upload_field=_upload_part,
     )
+
+
+def _upload_part(err: InputError) -> str:
+    """The multipart field a refused file of an upload is about: the target (staged in target/) or the capture."""
+    return "target" if err.file.startswith("target/") else "capture"
 
 
 @router.post(
@@ -88,9 +110,13 @@ def create_simulated_inspection(
     storage: StorageDep,
     jobs: JobsDep,
     writer: WriterDep,
+    settings: SettingsDep,
     idempotency_key: IdempotencyKeyHeader = None,
 ):
-    """Queue a job that renders a capture of the described plate, then inspects it."""
+    """Queue a job that renders a capture of the described plate, then inspects it.
+
+    Over the request limits (lights, simulated pixels): 422; a full queue: 429 and ``Retry-After``.
+    """
     created: list[int] = []
 
     def cleanup():
@@ -99,7 +125,8 @@ def create_simulated_inspection(
 
     def work():
         row = svc.create_simulated_inspection(
-            session=session, storage=storage, plate_id=plate_id, simulation=body.model_dump(mode="json")
+            session=session, storage=storage, plate_id=plate_id, simulation=body.model_dump(mode="json"),
+            limits=Limits.from_settings(settings),
         )
         created.append(row.id)
         return 202, {"id": row.id, "status": row.status}, lambda: jobs.enqueue(row.id)
@@ -118,7 +145,7 @@ def list_plate_inspections(
     plate_id: PlateIdPath,
     session: SessionDep,
     limit: Annotated[int, Query(ge=1, le=200)] = 20,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    offset: OffsetQuery = 0,
 ):
     items, total = svc.list_inspections(session=session, plate_id=plate_id, limit=limit, offset=offset)
     return Page[InspectionSummary](
@@ -134,7 +161,7 @@ def list_inspections(
         Query(alias="status", description="only these statuses (repeat the parameter)"),
     ] = None,
     limit: Annotated[int, Query(ge=1, le=200)] = 20,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    offset: OffsetQuery = 0,
 ):
     items, total = svc.list_inspections(
         session=session, statuses=tuple(status_) if status_ else None, limit=limit, offset=offset
@@ -145,7 +172,7 @@ def list_inspections(
 
 
 @router.get("/inspections/{inspection_id}", response_model=InspectionOut, responses={404: {"model": ErrorOut}})
-def get_inspection(inspection_id: int, session: SessionDep, storage: StorageDep):
+def get_inspection(inspection_id: InspectionIdPath, session: SessionDep, storage: StorageDep):
     """Job state (status, progress 0..1, stage), the plate-result/1 object once done, or the error."""
     row = svc.get_inspection(session=session, inspection_id=inspection_id)
     if row is None:
@@ -158,7 +185,7 @@ def get_inspection(inspection_id: int, session: SessionDep, storage: StorageDep)
     response_class=FileResponse,
     responses={404: {"model": ErrorOut}, 422: {"model": ErrorOut}},
 )
-def get_artifact(inspection_id: int, name: str, session: SessionDep, storage: StorageDep):
+def get_artifact(inspection_id: InspectionIdPath, name: str, session: SessionDep, storage: StorageDep):
     """One artifact file of an inspection (result.json, surface.ply, deviation.png, ...)."""
     if svc.get_inspection(session=session, inspection_id=inspection_id) is None:
         raise ApiError(404, f"inspection_id: no inspection {inspection_id}", field="inspection_id")

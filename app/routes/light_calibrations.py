@@ -6,9 +6,10 @@ from fastapi import APIRouter, Request, status
 from fastapi.concurrency import run_in_threadpool
 from starlette.datastructures import UploadFile
 
-from app.deps import SessionDep, StorageDep, WriterDep
+from app.deps import SessionDep, SettingsDep, StorageDep, WriterDep
 from app.errors import ApiError
-from app.routes.common import IdempotencyKeyHeader, idempotent_write
+from app.limits import Limits
+from app.routes.common import IdempotencyKeyHeader, LightCalibrationIdPath, idempotent_write
 from app.schemas import ErrorOut, LightCalibrationOut
 from app.services import light_calibrations as svc
 from app.services.light_calibrations import LIGHT_CALIBRATION_FILE
@@ -53,6 +54,7 @@ async def upload_light_calibration(
     session: SessionDep,
     storage: StorageDep,
     writer: WriterDep,
+    settings: SettingsDep,
     idempotency_key: IdempotencyKeyHeader = None,
 ):
     """Store a ``light-calibration/1`` (from ``plate-inspect calibrate-lights``) as the cell's current one.
@@ -91,7 +93,10 @@ async def upload_light_calibration(
             storage.remove(storage.light_calibration_dir(light_calibration_id))
 
     def work():
-        row = svc.create_light_calibration(session=session, storage=storage, staging_dir=staging, file_name=file_name)
+        row = svc.create_light_calibration(
+            session=session, storage=storage, staging_dir=staging, file_name=file_name,
+            limits=Limits.from_settings(settings),
+        )
         created.append(row.id)
         return 201, light_calibration_out(row).model_dump(mode="json"), None
 
@@ -116,7 +121,7 @@ def current_light_calibration(session: SessionDep):
     responses={404: {"model": ErrorOut}},
     summary="One light calibration (e.g. the one an inspection was run with)",
 )
-def get_light_calibration(light_calibration_id: int, session: SessionDep):
+def get_light_calibration(light_calibration_id: LightCalibrationIdPath, session: SessionDep):
     row = svc.get_light_calibration(session=session, light_calibration_id=light_calibration_id)
     if row is None:
         raise ApiError(404, f"light_calibration_id: no light calibration {light_calibration_id}",

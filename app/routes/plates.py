@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Request
@@ -11,7 +12,15 @@ from starlette.datastructures import UploadFile
 
 from app.deps import SessionDep, StorageDep, WriterDep
 from app.errors import ApiError
-from app.routes.common import IdempotencyKeyHeader, PlateIdPath, idempotent_write, plate_out, save_upload, target_out
+from app.routes.common import (
+    IdempotencyKeyHeader,
+    OffsetQuery,
+    PlateIdPath,
+    idempotent_write,
+    plate_out,
+    save_upload,
+    target_out,
+)
 from app.schemas import ErrorOut, Page, PlateOut, TargetOut
 from app.services import plates as svc
 from app.services.targets import TARGET_FILE, create_target
@@ -26,7 +35,7 @@ MESH_SUFFIXES = (".stl", ".ply", ".obj")
 def list_plates(
     session: SessionDep,
     limit: Annotated[int, Query(ge=1, le=500)] = 50,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    offset: OffsetQuery = 0,
 ):
     views, total = svc.list_plates(session=session, limit=limit, offset=offset)
     return Page[PlateOut](items=[plate_out(v) for v in views], total=total, limit=limit, offset=offset)
@@ -137,7 +146,7 @@ async def _stage_mesh_form(form, staging) -> None:
         try:
             document = json.loads(raw)
             mesh_name = document["shape"]["file"]
-        except (ValueError, KeyError, TypeError):
+        except (ValueError, KeyError, TypeError, RecursionError):  # ValueError: also over-long integers
             raise ApiError(422, "target: expected a plate-target/1 JSON with shape.file naming the mesh",
                            field="target") from None
         if not isinstance(mesh_name, str) or not ARTIFACT_NAME_PATTERN.match(mesh_name) or ".." in mesh_name:
@@ -154,9 +163,12 @@ async def _stage_mesh_form(form, staging) -> None:
             if value is None or isinstance(value, UploadFile):
                 raise ApiError(422, f"{name}: expected a number (mm) with the mesh upload, got none", field=name)
             try:
-                document[name] = float(value)
+                number = float(value)
             except ValueError:
-                raise ApiError(422, f"{name}: expected a number (mm), got {value!r}", field=name) from None
+                raise ApiError(422, f"{name}: expected a number (mm), got {value[:40]!r}", field=name) from None
+            if not math.isfinite(number):
+                raise ApiError(422, f"{name}: expected a finite number (mm), got {value[:40]!r}", field=name)
+            document[name] = number
         document["size_mm"] = [document.pop("size_x_mm"), document.pop("size_y_mm")]
         (staging / TARGET_FILE).write_text(json.dumps(document, indent=2), encoding="utf-8")
     save_upload(mesh, staging / mesh_name)

@@ -8,6 +8,8 @@ from pathlib import Path
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from app.limits import DEFAULT_LIMITS, Limits
+from app.limits.work import check_calibration_size
 from app.models import Calibration
 from app.storage import Storage
 from pipeline import io as pio
@@ -15,16 +17,22 @@ from pipeline import io as pio
 CALIBRATION_FILE = "calibration.json"
 
 
-def create_calibration(*, session: Session, storage: Storage, staging_dir: Path) -> Calibration:
+def create_calibration(
+    *, session: Session, storage: Storage, staging_dir: Path, limits: Limits = DEFAULT_LIMITS
+) -> Calibration:
     """Store the calibration in ``staging_dir/calibration.json`` as the cell's current one.
+
+    Its ``image_size`` is checked against ``limits`` (default: :data:`app.limits.DEFAULT_LIMITS`).
 
     Raises
     ------
     pipeline.formats.InputError
-        Bad calibration file (names the file and the field).
+        Bad calibration file, or an ``image_size`` over the image pixel limit of ``limits``
+        (names the file and the field).
     """
     path = Path(staging_dir) / CALIBRATION_FILE
-    pio.load_calibration(path, file_label=CALIBRATION_FILE)  # validates; raises InputError
+    rig = pio.load_calibration(path, file_label=CALIBRATION_FILE)  # validates; raises InputError
+    check_calibration_size(rig.image_size, limits, label=CALIBRATION_FILE)
     document = json.loads(path.read_text(encoding="utf-8"))
     width, height = (int(x) for x in document["image_size"])
     rms = document.get("rms_px")

@@ -15,13 +15,16 @@ from typing import Any
 from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session
 
+from app.limits import DEFAULT_LIMITS, Limits
+from app.limits.physical import check_lights
+from app.limits.queue import check_queue
+from app.limits.work import check_simulation, read_capture_header
 from app.models import Inspection, utcnow
 from app.services.errors import UnprocessableError
 from app.services.light_calibrations import light_calibration_for_capture
 from app.services.plates import current_target, get_or_create_plate
-from app.services.targets import TARGET_FILE, copy_target_files, create_target
+from app.services.targets import TARGET_FILE, copy_target_files, create_target, validate_target_dir
 from app.storage import Storage
-from pipeline import io as pio
 from pipeline.formats import InputError
 
 CAPTURE_FILE = "capture.zip"
@@ -34,39 +37,51 @@ SIMULATED_BUNDLE_DIR = "bundle"
 
 
 def create_uploaded_inspection(
-    *, session: Session, storage: Storage, plate_id: str, staging_dir: Path
+    *, session: Session, storage: Storage, plate_id: str, staging_dir: Path, limits: Limits = DEFAULT_LIMITS
 ) -> Inspection:
     """A queued inspection of an uploaded bundle.
 
     ``staging_dir`` holds ``capture.zip`` and, optionally, ``target/target.json`` (+ mesh).
-    Both are validated with the pipeline's loaders before anything is added. A target sent
-    with the inspection becomes the plate's current target. A capture whose lights are nominal
-    directions is run with the cell's current light calibration, recorded in the row now (see
+    The bundle is checked without decoding an image (capture.json, calibration, lights, image
+    headers; :func:`app.limits.work.read_capture_header`) and within ``limits`` (default:
+    :data:`app.limits.DEFAULT_LIMITS`), as is the queue; the target is
+    validated with the pipeline's loader. A target sent with the inspection becomes the plate's
+    current target. A capture whose lights are nominal directions is run with the cell's current
+    light calibration, recorded in the row now (see
     :func:`app.services.light_calibrations.light_calibration_for_capture`). Once the row has an
     id, the staging folder becomes the inspection's ``inputs/`` folder.
 
     Raises
     ------
     pipeline.formats.InputError
-        A bad bundle or target (names the file and field); nothing was added.
+        A bad bundle or target, or one over ``limits`` (names the file and field); nothing was added.
     UnprocessableError
         No target sent and the plate has none (field ``target``).
+    app.limits.queue.QueueFullError
+        The plate's queue or the whole queue is full; nothing was added.
     """
     staging_dir = Path(staging_dir)
-    capture = pio.load_capture(staging_dir / CAPTURE_FILE)
+    capture = read_capture_header(staging_dir / CAPTURE_FILE, limits)
+    check_lights(capture.lights, label=capture.label, field="photometric.lights")
     if capture.plate_id != plate_id:
         raise InputError(
             "capture.json", "plate_id", f"expected {plate_id!r} (the plate of the URL), got {capture.plate_id!r}"
         )
     target_staging = staging_dir / "target"
+    new_target_dir = None
     if (target_staging / TARGET_FILE).is_file():
-        # The target keeps its own copy under the plate; the inspection keeps the one it used.
+        # Validated where it was uploaded (errors name target/target.json of the upload), then the
+        # target keeps its own copy under the plate and the inspection keeps the one it used.
+        validated = validate_target_dir(target_staging)
         plate_copy = storage.staging_copy(target_staging)
         try:
-            target = create_target(session=session, storage=storage, plate_id=plate_id, staging_dir=plate_copy)
+            target = create_target(
+                session=session, storage=storage, plate_id=plate_id, staging_dir=plate_copy, validated=validated
+            )
         except BaseException:
             storage.remove(plate_copy)
             raise
+        new_target_dir = storage.absolute(target.path).parent
     else:
         get_or_create_plate(session=session, plate_id=plate_id)
         target = current_target(session=session, plate_id=plate_id)
@@ -75,37 +90,59 @@ def create_uploaded_inspection(
                 f"target: plate {plate_id!r} has no target yet: send a plate-target/1 file as 'target'",
                 field="target",
             )
-    light_calibration = light_calibration_for_capture(session=session, capture=capture)
     row = Inspection(
         plate_id=plate_id,
         target_id=target.id,
-        light_calibration_id=None if light_calibration is None else light_calibration.id,
         source="upload",
         status="queued",
         progress=0.0,
     )
-    session.add(row)
-    session.flush()
-    inputs = storage.adopt(staging_dir, storage.inputs_dir(row.id))
-    if not (inputs / "target" / TARGET_FILE).is_file():
-        copy_target_files(storage=storage, target=target, destination=inputs / "target")
-    row.capture_path = storage.relative(inputs / CAPTURE_FILE)
-    row.target_path = storage.relative(inputs / "target" / TARGET_FILE)
-    row.tolerance_mm = target.tolerance_mm
-    row.target_radius_mm = target.radius_mm
-    session.flush()
+    try:
+        light_calibration = light_calibration_for_capture(session=session, capture=capture)
+        row.light_calibration_id = None if light_calibration is None else light_calibration.id
+        session.add(row)
+        session.flush()
+        check_queue(session=session, plate_id=plate_id, limits=limits)
+        inputs = storage.adopt(staging_dir, storage.inputs_dir(row.id))
+        if not (inputs / "target" / TARGET_FILE).is_file():
+            copy_target_files(storage=storage, target=target, destination=inputs / "target")
+        row.capture_path = storage.relative(inputs / CAPTURE_FILE)
+        row.target_path = storage.relative(inputs / "target" / TARGET_FILE)
+        row.tolerance_mm = target.tolerance_mm
+        row.target_radius_mm = target.radius_mm
+        session.flush()
+    except BaseException:
+        # The caller rolls the rows back: their files go too (the staging folder is the caller's).
+        storage.remove(new_target_dir)
+        if row.id is not None:
+            storage.remove(storage.inspection_dir(row.id))
+        raise
     return row
 
 
 def create_simulated_inspection(
-    *, session: Session, storage: Storage, plate_id: str, simulation: dict[str, Any]
+    *,
+    session: Session,
+    storage: Storage,
+    plate_id: str,
+    simulation: dict[str, Any],
+    limits: Limits = DEFAULT_LIMITS,
 ) -> Inspection:
     """A queued simulated inspection: the job renders the capture from ``simulation`` then inspects it.
 
     ``simulation`` is a validated :class:`app.schemas.SimulatedInspectionIn` as a dict; it is kept
     in the row and in ``inputs/simulation.json``. The simulator writes the lights it rendered
-    with, so no light calibration is applied.
+    with, so no light calibration is applied. The request and the queue are checked against
+    ``limits`` (default: :data:`app.limits.DEFAULT_LIMITS`).
+
+    Raises
+    ------
+    UnprocessableError
+        Over ``limits`` (lights, simulated pixels), or a plate or capture the simulator refuses.
+    app.limits.queue.QueueFullError
+        The plate's queue or the whole queue is full; nothing was added.
     """
+    check_simulation(simulation, limits)
     try:
         simulation_specs(simulation)
     except ValueError as err:
@@ -122,6 +159,7 @@ def create_simulated_inspection(
     )
     session.add(row)
     session.flush()
+    check_queue(session=session, plate_id=plate_id, limits=limits)
     inputs = storage.inputs_dir(row.id)
     inputs.mkdir(parents=True)
     (inputs / SIMULATION_FILE).write_text(json.dumps(simulation, indent=2), encoding="utf-8")

@@ -15,10 +15,13 @@ from pathlib import Path, PurePosixPath
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from app.limits import DEFAULT_LIMITS, Limits
+from app.limits.physical import check_lights
+from app.limits.work import check_light_count
 from app.models import LightCalibration
 from app.storage import Storage
 from pipeline import io as pio
-from pipeline.io import Capture
+from pipeline.io import Capture, CaptureHeader
 from pipeline.lights import Lights
 
 LIGHT_CALIBRATION_FILE = "lights.json"
@@ -40,7 +43,12 @@ def upload_name(raw: str | None) -> str | None:
 
 
 def create_light_calibration(
-    *, session: Session, storage: Storage, staging_dir: Path, file_name: str | None
+    *,
+    session: Session,
+    storage: Storage,
+    staging_dir: Path,
+    file_name: str | None,
+    limits: Limits = DEFAULT_LIMITS,
 ) -> LightCalibration:
     """Store the light calibration in ``staging_dir/lights.json`` as the cell's current one.
 
@@ -49,14 +57,20 @@ def create_light_calibration(
     file_name : str or None
         The uploaded file's name (from :func:`upload_name`): error messages name it. None for
         a JSON request body (messages then say ``body``).
+    limits : Limits, optional
+        Its lights count against ``max_lights`` (default: :data:`app.limits.DEFAULT_LIMITS`).
 
     Raises
     ------
     pipeline.formats.InputError
-        Bad light calibration (names the file and the field); nothing was added.
+        Bad light calibration, more lights than the limit, or a light farther than the cell
+        reaches (names the file and the field); nothing was added.
     """
     path = Path(staging_dir) / LIGHT_CALIBRATION_FILE
-    lights, rms = pio.load_light_calibration(path, file_label=file_name or BODY_LABEL)  # raises InputError
+    label = file_name or BODY_LABEL
+    lights, rms = pio.load_light_calibration(path, file_label=label)  # raises InputError
+    check_light_count(lights.n, limits, label=label, field="lights")
+    check_lights(lights, label=label, field="lights")
     row = LightCalibration(
         file_name=file_name,
         n_lights=lights.n,
@@ -87,7 +101,7 @@ def list_light_calibrations(*, session: Session, limit: int = 20) -> list[LightC
     )
 
 
-def light_calibration_for_capture(*, session: Session, capture: Capture) -> LightCalibration | None:
+def light_calibration_for_capture(*, session: Session, capture: Capture | CaptureHeader) -> LightCalibration | None:
     """The light calibration an inspection of ``capture`` is run with: the current one, or None.
 
     None when no light calibration was uploaded, or when the capture gives point lights of its

@@ -1,4 +1,5 @@
-"""Plate targets (``plate-target/1``): validated with the pipeline's loader, versioned per plate."""
+"""Plate targets (``plate-target/1``): validated with the pipeline's loader and the bounds of a hull
+plate (:mod:`app.limits.physical`), versioned per plate."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from pathlib import Path
 
 from sqlalchemy.orm import Session
 
+from app.limits.physical import check_target
 from app.models import Target
 from app.services.plates import get_or_create_plate
 from app.storage import Storage
@@ -17,7 +19,8 @@ TARGET_FILE = "target.json"
 
 
 def validate_target_dir(folder: Path):
-    """Load ``folder/target.json`` (and its mesh file, if any) with the pipeline's loader.
+    """Load ``folder/target.json`` (and its mesh file, if any) with the pipeline's loader, and
+    check it against the bounds of a hull plate.
 
     Returns
     -------
@@ -27,18 +30,27 @@ def validate_target_dir(folder: Path):
     Raises
     ------
     pipeline.formats.InputError
-        The file or a field of it is wrong (names the file and the field).
+        The file or a field of it is wrong, or no hull plate is like it (names the file and the field).
     """
     path = Path(folder) / TARGET_FILE
     target = pio.load_target(path, base_dir=Path(folder))
+    check_target(target, label=str(path))
     document = json.loads(path.read_text(encoding="utf-8"))
     return target, document
 
 
-def create_target(*, session: Session, storage: Storage, plate_id: str, staging_dir: Path) -> Target:
+def create_target(
+    *,
+    session: Session,
+    storage: Storage,
+    plate_id: str,
+    staging_dir: Path,
+    validated: tuple[pio.Target, dict] | None = None,
+) -> Target:
     """A new current target for a plate from a staging folder holding ``target.json`` (+ mesh).
 
-    The folder is validated first and, once the row has an id, moved to the plate's target
+    The folder is validated first (unless ``validated`` gives :func:`validate_target_dir`'s
+    answer for the same files) and, once the row has an id, moved to the plate's target
     folder. On any error nothing is added and the staging folder is left for the caller to remove.
 
     Raises
@@ -48,7 +60,7 @@ def create_target(*, session: Session, storage: Storage, plate_id: str, staging_
     ValueError
         Bad plate id.
     """
-    loaded, document = validate_target_dir(staging_dir)
+    loaded, document = validate_target_dir(staging_dir) if validated is None else validated
     get_or_create_plate(session=session, plate_id=plate_id)
     row = Target(
         plate_id=plate_id,
