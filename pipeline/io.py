@@ -924,15 +924,12 @@ class InputLimitError(InputError):
     Attributes
     ----------
     limit : {"lights", "image_pixels"}
-        The parameter of :func:`read_capture_header` that refused the input.
-    maximum : int
-        Its value.
+        The parameter of :func:`read_capture_header` that refused the input (``max_<limit>``).
     """
 
-    def __init__(self, file: str, field: str, reason: str, *, limit: str, maximum: int):
+    def __init__(self, file: str, field: str, reason: str, *, limit: str):
         super().__init__(file, field, reason)
         self.limit = limit
-        self.maximum = maximum
 
 
 @dataclass(frozen=True)
@@ -1041,7 +1038,7 @@ def read_capture_header(
         if max_lights is not None and n > max_lights:
             raise InputLimitError(
                 label, "photometric.lights", f"{n} lights (and images), more than the limit of {max_lights}",
-                limit="lights", maximum=max_lights,
+                limit="lights",
             )
         lights = Lights.from_documents(cap.photometric.lights)
         _check_light_positions(lights, rig, cap.working_distance_mm, label=label)
@@ -1070,12 +1067,15 @@ def _image_header(bundle, job: _ImageJob, *, label: str, max_pixels: int | None)
             with Image.open(fh, formats=("PNG", "TIFF")) as img:
                 width, height = img.size
         except Image.DecompressionBombError:
+            bomb = 2 * Image.MAX_IMAGE_PIXELS  # Pillow refuses to open more
             raise InputError(
                 label, job.field,
-                f"{name} ({job.what}): its header declares more than {2 * Image.MAX_IMAGE_PIXELS} px (a decompression bomb?)",
+                f"{name} ({job.what}): its header declares more than {bomb} px (a decompression bomb?)",
             ) from None
         except Image.UnidentifiedImageError:
-            raise InputError(label, job.field, f"{name}: not a PNG or TIFF file (expected an 8- or 16-bit PNG or TIFF)") from None
+            raise InputError(
+                label, job.field, f"{name}: not a PNG or TIFF file (expected an 8- or 16-bit PNG or TIFF)"
+            ) from None
         except Exception as exc:  # noqa: BLE001 - Pillow and the zip stream raise many types on bad files
             raise InputError(label, job.field, f"{name}: cannot read the image header: {exc}") from None
     if (width, height) != job.expected_size:
@@ -1088,7 +1088,7 @@ def _image_header(bundle, job: _ImageJob, *, label: str, max_pixels: int | None)
         raise InputLimitError(
             label, job.field,
             f"{name} ({job.what}) is {width}x{height} px = {width * height} px, more than the limit of {max_pixels} px",
-            limit="image_pixels", maximum=max_pixels,
+            limit="image_pixels",
         )
     return ImageHeader(field=job.field, name=job.rel, what=job.what, width=width, height=height)
 

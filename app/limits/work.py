@@ -91,7 +91,7 @@ def check_simulation(simulation: dict, limits: Limits) -> None:
     width, height = simulation["width"], simulation["height"]
     if width * height > limits.max_simulated_pixels:
         raise UnprocessableError(
-            f"width: {width}x{height} px = {width * height} px, more than the limit of {limits.max_simulated_pixels} px "
-            f"for a simulated capture {_raise_hint('max_simulated_pixels')}",
+            f"width: {width}x{height} px = {width * height} px, more than the limit of "
+            f"{limits.max_simulated_pixels} px for a simulated capture {_raise_hint('max_simulated_pixels')}",
             field="width",
         )

@@ -19,8 +19,9 @@ TARGET_FILE = "target.json"
 
 
 def validate_target_dir(folder: Path):
-    """Load ``folder/target.json`` (and its mesh file, if any) with the pipeline's loader, and
-    check it against the bounds of a hull plate.
+    """Load ``folder/target.json`` (and its mesh file, if any) and check it against a hull plate's bounds.
+
+    The pipeline's loader reads it; :func:`app.limits.physical.check_target` bounds it.
 
     Returns
     -------

@@ -149,7 +149,8 @@ def test_deep_and_long_json_in_uploaded_files_are_422(client, settings, bundle_z
     files = {"capture": ("b.zip", bundle_zip), "target": ("t.json", f'{{"format": {DEEP}}}'.encode())}
     body = _refused(client.post("/api/v1/plates/P-100/inspections", files=files, headers=AUTH), "target")
     assert body["file"] == "target/target.json" and str(settings.data_dir) not in body["detail"]
-    files["target"] = ("t.json", target_json().replace(b'"tolerance_mm": 2.0', f'"tolerance_mm": {LONG_NUMBER}'.encode()))
+    long_tolerance = target_json().replace(b'"tolerance_mm": 2.0', f'"tolerance_mm": {LONG_NUMBER}'.encode())
+    files["target"] = ("t.json", long_tolerance)
     body = _refused(client.post("/api/v1/plates/P-100/inspections", files=files, headers=AUTH),
                     "target: tolerance_mm")
     assert "digits" in body["detail"] and str(settings.data_dir) not in body["detail"]
@@ -161,7 +162,8 @@ def test_deep_and_long_json_in_uploaded_files_are_422(client, settings, bundle_z
     assert "digits" in _refused(r, "lights")["detail"]
     _refused(client.post("/api/v1/light-calibrations", content=f'{{"lights": {DEEP}}}', headers=JSON), None)
     stl = b"solid x\nendsolid x\n"
-    r = client.put("/api/v1/plates/P-1/target", files={"mesh": ("p.stl", stl), "target": ("t.json", DEEP)}, headers=AUTH)
+    r = client.put("/api/v1/plates/P-1/target", files={"mesh": ("p.stl", stl), "target": ("t.json", DEEP)},
+                   headers=AUTH)
     _refused(r, "target")
     assert _count(client, Inspection) == 0 and _count(client, LightCalibration) == 0
 
@@ -251,7 +253,18 @@ def test_light_calibration_lights_out_of_the_cell_are_422(client):
         for a in (0.0, 2.0, 4.0)
     ]
     lights[1]["position_mm"] = [1e300, 0.0, 0.0]
-    r = client.post("/api/v1/light-calibrations", json={"format": "light-calibration/1", "lights": lights}, headers=AUTH)
+    r = client.post("/api/v1/light-calibrations", json={"format": "light-calibration/1", "lights": lights},
+                    headers=AUTH)
     body = _refused(r, "lights[1].position_mm")
     assert "within 50000 mm" in body["detail"]
     assert _count(client, LightCalibration) == 0
+
+
+def test_the_dashboard_cell_form_body_is_still_accepted(client):
+    """What web/static/js/cell.js sends (numbers from number inputs, booleans from the select)."""
+    body = {"shape": "cylinder", "radius_mm": 5000, "convex": True, "n_lights": 12, "lights": "near-field",
+            "light_manifest": "exact", "noise": 0.004, "tolerance_mm": 2, "width": 1224, "height": 1024, "seed": 0,
+            "dents": [{"x_mm": 300, "y_mm": -200, "radius_mm": 150, "depth_mm": 4}], "floor_mm": 600,
+            "cutout_radius_mm": 250}
+    r = client.post("/api/v1/plates/H7-P11/inspections/simulated", json=body, headers=AUTH)
+    assert r.status_code == 202, r.text
