@@ -25,6 +25,7 @@ from app.routes import api_router
 from app.routes.health import router as health_router
 from app.settings import Settings
 from app.storage import Storage
+from app.throttle import TokenThrottle
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +63,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     On start (lifespan) the database is upgraded with Alembic, and the dashboard's viewer hook
     ``app.viewer.attach(app, settings)`` runs if that module exists; what it returns is closed at
     shutdown (an async context manager is exited, else its ``close()`` is called). ``app.state`` holds ``settings``, ``api_token``,
-    ``engine``, ``session_factory``, ``storage`` and ``jobs`` (:class:`app.jobs.JobQueue`).
+    ``engine``, ``session_factory``, ``storage``, ``jobs`` (:class:`app.jobs.JobQueue`) and
+    ``token_throttle`` (:class:`app.throttle.TokenThrottle`).
     """
     settings = resolve_token(settings or Settings())
     storage = Storage(settings.data_dir)
@@ -102,6 +104,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.session_factory = make_session_factory(engine)
     app.state.storage = storage
     app.state.jobs = JobQueue(settings, app.state.session_factory, storage)
+    app.state.token_throttle = TokenThrottle(
+        free_failures=settings.login_free_failures,
+        window_s=settings.login_window_s,
+        max_delay_s=settings.login_max_delay_s,
+    )
 
     install_error_handlers(app)
     app.include_router(health_router)

@@ -2,7 +2,9 @@
 
 ``PLATE_INSPECT_DATA_DIR``, ``PLATE_INSPECT_DATABASE_URL``, ``PLATE_INSPECT_API_TOKEN``,
 ``PLATE_INSPECT_MAX_UPLOAD_MB``, ``PLATE_INSPECT_DEMO``, ``PLATE_INSPECT_PROGRESS_INTERVAL_S``,
-``PLATE_INSPECT_INSPECT_ENTRY``, ``PLATE_INSPECT_VIEWER_IDLE_S``, ``PLATE_INSPECT_VIEWER_MAX_SERVERS``.
+``PLATE_INSPECT_INSPECT_ENTRY``, ``PLATE_INSPECT_VIEWER_IDLE_S``, ``PLATE_INSPECT_VIEWER_MAX_SERVERS``,
+``PLATE_INSPECT_SESSION_HOURS``, ``PLATE_INSPECT_LOGIN_FREE_FAILURES``, ``PLATE_INSPECT_LOGIN_WINDOW_S``,
+``PLATE_INSPECT_LOGIN_MAX_DELAY_S``.
 """
 
 from __future__ import annotations
@@ -42,6 +44,15 @@ class Settings(BaseSettings):
         A 3D view's viser server stops this long after its last browser left, s.
     viewer_max_servers : int
         Most 3D views (one viser server each, on loopback) running at once.
+    session_hours : float
+        Lifetime of a dashboard session from its login, h (a shift by default).
+    login_free_failures : int
+        Wrong tokens one client address may send within ``login_window_s`` before its token
+        checks are spaced out (growing delay, then 429 with ``Retry-After`` for a wrong one).
+    login_window_s : float
+        Failed token checks older than this are forgotten, s.
+    login_max_delay_s : float
+        Longest spacing between two token checks of a throttled address, s.
     """
 
     model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, extra="ignore")
@@ -55,6 +66,10 @@ class Settings(BaseSettings):
     inspect_entry: str = "pipeline.run:inspect"
     viewer_idle_s: float = Field(default=300.0, ge=0)
     viewer_max_servers: int = Field(default=8, ge=1, le=64)
+    session_hours: float = Field(default=12.0, gt=0, le=24 * 31)
+    login_free_failures: int = Field(default=5, ge=1)
+    login_window_s: float = Field(default=900.0, gt=0)
+    login_max_delay_s: float = Field(default=5.0, ge=0, le=600)
 
     @field_validator("inspect_entry")
     @classmethod
