@@ -21,6 +21,7 @@ from app.db import make_engine, make_session_factory, upgrade_database
 from app.errors import install_error_handlers
 from app.jobs import JobQueue
 from app.limits import BodySizeLimit
+from app.openapi import install_openapi
 from app.routes import api_router
 from app.routes.health import router as health_router
 from app.settings import Settings
@@ -111,6 +112,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
 
     install_error_handlers(app)
+    install_openapi(app)
     app.include_router(health_router)
     app.include_router(api_router)
     _include_dashboard(app)

@@ -17,6 +17,7 @@ from fastapi.templating import Jinja2Templates
 
 from app import viewer
 from app.deps import SessionDep, StorageDep, has_dashboard_session, start_dashboard_session
+from app.errors import scrub_paths
 from app.models import Inspection
 from app.services import calibrations as calibration_svc
 from app.services import inspections as inspection_svc
@@ -153,7 +154,7 @@ def _templates_context(storage, row: Inspection, spacing_mm: int) -> dict:
         frame, sections, tolerance = load_sections(folder, spacing_mm=float(spacing_mm))
     except (OSError, ValueError, KeyError) as err:
         logger.warning("inspection %s: no virtual templates: %s", row.id, err)
-        return {"drawings": [], "templates_error": str(err)}
+        return {"drawings": [], "templates_error": scrub_paths(str(err))}
     return {"drawings": section_drawings(sections, tolerance_mm=tolerance), "templates_error": None}
 
 
