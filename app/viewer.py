@@ -47,6 +47,8 @@ from fastapi import APIRouter, FastAPI, Request, WebSocket, WebSocketDisconnect
 from fastapi.responses import HTMLResponse
 from starlette.concurrency import run_in_threadpool
 
+from app.security_headers import FRAMED_HEADERS, viewer_csp
+
 logger = logging.getLogger(__name__)
 
 #: The websocket subprotocol viser's bundled client offers (client and server versions must match).
@@ -586,19 +588,30 @@ def _viewer(app: FastAPI) -> PlateViewer | None:
     return getattr(app.state, "viewer", None)
 
 
+@cache
+def _client_page_csp() -> str:
+    return viewer_csp(_client_page())
+
+
 @router.get("/viewer/{inspection_id}/", response_class=HTMLResponse, include_in_schema=False)
 def viewer_page(inspection_id: int, request: Request) -> HTMLResponse:
-    """viser's bundled client page; its websocket goes to ``/viewer/{inspection_id}`` (the bridge)."""
+    """viser's bundled client page; its websocket goes to ``/viewer/{inspection_id}`` (the bridge).
+
+    Every answer may be framed by the dashboard (same origin only); the client page gets the
+    policy of :func:`app.security_headers.viewer_csp`.
+    """
     viewer = _viewer(request.app)
     if viewer is None:
-        return HTMLResponse("<p>The 3D view is not running on this server.</p>", status_code=503)
+        return HTMLResponse("<p>The 3D view is not running on this server.</p>", status_code=503, headers=FRAMED_HEADERS)
     if not viewer.has_view(inspection_id):
-        return HTMLResponse(f"<p>Inspection {inspection_id} has no surface to show.</p>", status_code=404)
+        return HTMLResponse(
+            f"<p>Inspection {inspection_id} has no surface to show.</p>", status_code=404, headers=FRAMED_HEADERS
+        )
     try:
         viewer.check_capacity(inspection_id)
     except ViewerBusyError as err:
-        return HTMLResponse(f"<p>{html.escape(str(err))}.</p>", status_code=503)
-    return HTMLResponse(_client_page())
+        return HTMLResponse(f"<p>{html.escape(str(err))}.</p>", status_code=503, headers=FRAMED_HEADERS)
+    return HTMLResponse(_client_page(), headers={**FRAMED_HEADERS, "Content-Security-Policy": _client_page_csp()})
 
 
 @router.websocket("/viewer/{inspection_id}")

@@ -1,7 +1,9 @@
-"""The API contract: error bodies as documented, 405's Allow, no server paths."""
+"""The API contract: error bodies as documented, 405's Allow, no server paths, security headers."""
 
 from __future__ import annotations
 
+import base64
+import hashlib
 import re
 
 import jsonschema_rs
@@ -135,6 +137,7 @@ def test_messages_built_from_exceptions_carry_no_server_path(client, settings):
     with TestClient(client.app, raise_server_exceptions=False) as quiet:
         r = quiet.get("/test-only/bug")
     assert r.status_code == 500 and r.json() == {"detail": "internal error: FileNotFoundError", "field": None}
+    assert r.headers["x-content-type-options"] == "nosniff"  # the 500 answer has the headers too
 
 
 @pytest.mark.parametrize(
@@ -149,3 +152,42 @@ def test_messages_built_from_exceptions_carry_no_server_path(client, settings):
 )
 def test_scrub_paths_keeps_file_names_only(text, scrubbed):
     assert scrub_paths(text) == scrubbed
+
+
+# ------------------------------------------------------------------ security headers
+
+
+def test_every_response_has_the_security_headers(client):
+    answers = [
+        client.get("/healthz"),
+        client.get(f"{API}/plates"),
+        client.get(f"{API}/inspections/12345"),
+        client.get("/no/such/page"),
+        client.get("/cell"),
+        client.get("/static/css/app.css"),
+        client.post(f"{API}/session", json={"token": "wrong"}),
+    ]
+    for r in answers:
+        assert r.headers["x-content-type-options"] == "nosniff", r.url
+        assert r.headers["referrer-policy"] == "same-origin", r.url
+        assert r.headers["x-frame-options"] == "DENY", r.url
+        policy = r.headers["content-security-policy"]
+        assert "script-src 'self';" in policy and "frame-ancestors 'none'" in policy and "'unsafe-inline'" not in policy
+
+
+def test_dashboard_pages_have_no_inline_script_or_style(client):
+    """The dashboard's CSP allows no inline script or style: its pages must not need any."""
+    for page in ("/cell", "/calibration", "/login"):
+        html = client.get(page).text
+        assert not re.search(r"<script(?![^>]*\bsrc=)[^>]*>", html), page
+        assert " style=" not in html and "<style" not in html, page
+        assert "frame-src 'self'" in client.get(page).headers["content-security-policy"]  # the 3D view's frame
+
+
+def test_docs_page_allows_its_start_script_by_hash(client):
+    r = client.get("/docs")
+    (script,) = re.findall(rb"<script>(.*?)</script>", r.content, re.DOTALL)
+    digest = base64.b64encode(hashlib.sha256(script).digest()).decode()
+    assert f"'sha256-{digest}'" in r.headers["content-security-policy"]
+    assert r.headers["x-frame-options"] == "DENY"
+    assert client.get("/static-docs/swagger-ui-bundle.js").status_code == 200
