@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import hmac
+import ipaddress
 from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import timedelta
@@ -70,6 +71,15 @@ def token_hash(token: str) -> str:
 def client_address(conn: HTTPConnection) -> str:
     """The peer's address as the token throttle counts it (see :func:`app.throttle.client_key`)."""
     return client_key(conn.client.host if conn.client is not None else None)
+
+
+def is_loopback(conn: HTTPConnection) -> bool:
+    """True for a client on this machine (127.0.0.0/8, ::1)."""
+    host = conn.client.host if conn.client is not None else ""
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 async def check_token(conn: HTTPConnection, presented: str, *, field: str, headers: dict | None = None) -> None:

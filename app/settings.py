@@ -3,6 +3,7 @@
 ``PLATE_INSPECT_DATA_DIR``, ``PLATE_INSPECT_DATABASE_URL``, ``PLATE_INSPECT_API_TOKEN``,
 ``PLATE_INSPECT_MAX_UPLOAD_MB``, ``PLATE_INSPECT_DEMO``, ``PLATE_INSPECT_PROGRESS_INTERVAL_S``,
 ``PLATE_INSPECT_INSPECT_ENTRY``, ``PLATE_INSPECT_VIEWER_IDLE_S``, ``PLATE_INSPECT_VIEWER_MAX_SERVERS``,
+``PLATE_INSPECT_VIEWER_MAX_SOCKETS_PER_CLIENT``, ``PLATE_INSPECT_VIEWER_RESERVED_SERVERS``,
 ``PLATE_INSPECT_SESSION_HOURS``, ``PLATE_INSPECT_LOGIN_FREE_FAILURES``, ``PLATE_INSPECT_LOGIN_WINDOW_S``,
 ``PLATE_INSPECT_LOGIN_MAX_DELAY_S``.
 """
@@ -44,6 +45,12 @@ class Settings(BaseSettings):
         A 3D view's viser server stops this long after its last browser left, s.
     viewer_max_servers : int
         Most 3D views (one viser server each, on loopback) running at once.
+    viewer_max_sockets_per_client : int
+        Most 3D-view websockets one client address without a dashboard session holds at once.
+    viewer_reserved_servers : int
+        3D-view servers kept for the operator: clients with a valid dashboard session, or on
+        loopback (the cell's own screen). Other clients start servers only while fewer than
+        ``viewer_max_servers - viewer_reserved_servers`` have a browser (at most all of them).
     session_hours : float
         Lifetime of a dashboard session from its login, h (a shift by default).
     login_free_failures : int
@@ -66,6 +73,8 @@ class Settings(BaseSettings):
     inspect_entry: str = "pipeline.run:inspect"
     viewer_idle_s: float = Field(default=300.0, ge=0)
     viewer_max_servers: int = Field(default=8, ge=1, le=64)
+    viewer_max_sockets_per_client: int = Field(default=4, ge=1, le=64)
+    viewer_reserved_servers: int = Field(default=2, ge=0, le=64)
     session_hours: float = Field(default=12.0, gt=0, le=24 * 31)
     login_free_failures: int = Field(default=5, ge=1)
     login_window_s: float = Field(default=900.0, gt=0)
