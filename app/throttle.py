@@ -2,10 +2,9 @@
 
 Every check of a presented API token (``POST /api/v1/session`` and ``Authorization: Bearer``)
 goes through :class:`TokenThrottle`. An address may send ``free_failures`` wrong tokens within
-``window_s`` without delay; after that its checks are spaced out, 0.5 s after the first
-failure beyond the allowance, doubling with every further one up to ``max_delay_s``, and one at
-a time (concurrent requests queue for their turn). A wrong token from a throttled address is
-answered 429 with ``Retry-After``.
+``window_s`` without delay; after that its checks are spaced out, one at a time (concurrent
+requests queue for their turn): 0.5 s apart, doubling with every further failure up to
+``max_delay_s``. A wrong token beyond the free ones is answered 429 with ``Retry-After``.
 
 The right token is always accepted, but a throttled address waits for its turn like any other
 check: answering the right token at once would tell a guesser at full speed which guess was
