@@ -1,21 +1,58 @@
 """Error answers: every error is JSON ``{"detail": <message>, "field": <request field or null>}``.
 
-A bad uploaded file adds ``"file"`` (the file inside the upload the message is about).
+A bad uploaded file adds ``"file"`` (the file inside the upload the message is about); a request
+that does not match the operation's parameters or body (422) adds ``"errors"``, every mismatch
+as ``{"type", "loc", "msg"}``. :class:`ErrorBody` is that body; the OpenAPI document names it
+``ErrorOut`` (:mod:`app.openapi`). No message carries a server path: absolute paths are cut to
+their file name (:func:`scrub_paths`), and a bug answers only the exception's type.
 """
 
 from __future__ import annotations
 
 import logging
+import re
+from typing import Any
 
 from fastapi import FastAPI, HTTPException, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match, Mount
 
+from app.schemas import ErrorOut
 from app.services.errors import NotFoundError, ServiceError
 from pipeline.formats import InputError
 
 log = logging.getLogger(__name__)
+
+#: An absolute path of two or more parts, at the start of the text or after a space, quote,
+#: bracket, '=' or ','; group 1 is its last part (URLs such as ``http://host/a/b`` are left alone).
+_ABSOLUTE_PATH = re.compile(r"""(?:^|(?<=[\s'"(\[=,]))/(?:[^/\s'"]+/)+([^/\s'"]*)""")
+#: Methods a 405's ``Allow`` header may list.
+_METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS")
+
+
+class ValidationIssue(BaseModel):
+    """One way a request does not match its operation (pydantic's error, without its context)."""
+
+    type: str
+    loc: list[str | int]
+    msg: str
+
+
+class ErrorBody(ErrorOut):
+    """Every error answer (4xx, 500): ``detail`` and ``field``, plus what some errors add."""
+
+    file: str | None = Field(default=None, description="the file inside an upload the message is about")
+    errors: list[ValidationIssue] | None = Field(
+        default=None, description="every way the request does not match its operation (422 of request validation)"
+    )
+
+
+def scrub_paths(text: str) -> str:
+    """``text`` with every absolute filesystem path cut to its last part (the file's name)."""
+    return _ABSOLUTE_PATH.sub(r"\1", text)
 
 
 class ApiError(HTTPException):
@@ -26,8 +63,27 @@ class ApiError(HTTPException):
         self.field = field
 
 
-def error_body(detail: str, field: str | None = None, **extra) -> dict:
-    return {"detail": detail, "field": field, **extra}
+def error_body(detail: str, field: str | None = None, **extra: Any) -> dict:
+    """An error answer's JSON (:class:`ErrorBody`); server paths in strings are cut to file names."""
+    extra = {k: scrub_paths(v) if isinstance(v, str) else v for k, v in extra.items()}
+    return {"detail": scrub_paths(detail), "field": field, **extra}
+
+
+def allowed_methods(request: Request) -> list[str] | None:
+    """Every method the request's path accepts (for a 405's ``Allow``), or None when a mount decides."""
+    allowed = []
+    # Inside a mount the scope's root_path has grown by the mount's path: match from the app's root.
+    root_path = request.scope.get("app_root_path", request.scope.get("root_path", ""))
+    for method in _METHODS:
+        scope = {**request.scope, "method": method, "root_path": root_path}
+        for route in request.app.router.routes:
+            match, _ = route.matches(scope)
+            if match is Match.FULL:
+                if isinstance(route, Mount):
+                    return None  # the mounted app (static files) sends its own Allow
+                allowed.append(method)
+                break
+    return allowed
 
 
 def known_error(exc: BaseException, *, upload_field: str | None = None) -> tuple[int, dict] | None:
@@ -74,7 +130,14 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException):
         status, body = known_error(exc)
-        return JSONResponse(body, status_code=status, headers=getattr(exc, "headers", None))
+        headers = getattr(exc, "headers", None)
+        if status == 405:
+            allowed = allowed_methods(request)
+            if allowed is not None:
+                # The router stops at the first route of the path; the path may have others.
+                headers = {**(headers or {}), "Allow": ", ".join(allowed)}
+                body = error_body(f"method: {request.method} is not allowed here; allowed: {', '.join(allowed)}", "method")
+        return JSONResponse(body, status_code=status, headers=headers)
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError):
@@ -84,7 +147,8 @@ def install_error_handlers(app: FastAPI) -> None:
         detail = f"{field}: {first.get('msg')}" if field else str(first.get("msg"))
         if len(errors) > 1:
             detail += f" (and {len(errors) - 1} more)"
-        return JSONResponse(error_body(detail, field, errors=jsonable(errors)), status_code=422)
+        issues = [{**e, "msg": scrub_paths(e["msg"])} for e in jsonable(errors)]
+        return JSONResponse(error_body(detail, field, errors=issues), status_code=422)
 
     @app.exception_handler(ServiceError)
     async def _service(request: Request, exc: ServiceError):
@@ -106,5 +170,5 @@ def jsonable(errors: list[dict]) -> list[dict]:
     """Validation errors without the non-JSON bits (exception objects in ``ctx``)."""
     out = []
     for e in errors:
-        out.append({k: v for k, v in e.items() if k in ("type", "loc", "msg")})
+        out.append({k: list(v) if k == "loc" else v for k, v in e.items() if k in ("type", "loc", "msg")})
     return out

@@ -2,7 +2,8 @@
 
 The web process serves the REST API (``/api/v1``, OpenAPI at ``/docs``), ``/healthz``, and the
 operator dashboard (``web.routes.router``, static files at ``/static``) when it is installed. The
-pipeline runs elsewhere (:mod:`app.worker`); this process only queues job ids.
+pipeline runs elsewhere (:mod:`app.worker`); this process only queues job ids. Every response
+carries the security headers of :mod:`app.security_headers`.
 """
 
 from __future__ import annotations
@@ -13,7 +14,9 @@ import secrets
 from contextlib import AsyncExitStack, asynccontextmanager
 from pathlib import Path
 
-from fastapi import FastAPI
+from fastapi import FastAPI, Request
+from fastapi.openapi.docs import get_swagger_ui_html
+from fastapi.responses import HTMLResponse
 from fastapi_offline import FastAPIOffline
 from pydantic import SecretStr
 
@@ -21,10 +24,16 @@ from app.db import make_engine, make_session_factory, upgrade_database
 from app.errors import install_error_handlers
 from app.jobs import JobQueue
 from app.limits import BodySizeLimit
+from app.openapi import install_openapi
 from app.routes import api_router
 from app.routes.health import router as health_router
+from app.security_headers import SecurityHeaders, docs_csp
 from app.settings import Settings
 from app.storage import Storage
+from app.throttle import TokenThrottle
+
+#: Where FastAPIOffline serves Swagger UI's files.
+DOCS_STATIC_URL = "/static-docs"
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +71,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     On start (lifespan) the database is upgraded with Alembic, and the dashboard's viewer hook
     ``app.viewer.attach(app, settings)`` runs if that module exists; what it returns is closed at
     shutdown (an async context manager is exited, else its ``close()`` is called). ``app.state`` holds ``settings``, ``api_token``,
-    ``engine``, ``session_factory``, ``storage`` and ``jobs`` (:class:`app.jobs.JobQueue`).
+    ``engine``, ``session_factory``, ``storage``, ``jobs`` (:class:`app.jobs.JobQueue`) and
+    ``token_throttle`` (:class:`app.throttle.TokenThrottle`).
     """
     settings = resolve_token(settings or Settings())
     storage = Storage(settings.data_dir)
@@ -80,18 +90,23 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             yield
         app.state.engine.dispose()
 
-    # /docs from Swagger UI files shipped in the fastapi-offline wheel: the cell's network is closed
-    # (FastAPI's own /docs page loads them from a CDN). No ReDoc page (it would fetch web fonts).
+    # Swagger UI's files from the fastapi-offline wheel: the cell's network is closed (FastAPI's own
+    # /docs page loads them from a CDN). The /docs page itself is ours (_include_docs: it needs its
+    # CSP). No ReDoc page (it would fetch web fonts).
     app = FastAPIOffline(
         title="plate-inspect",
         version="1",
         summary="Forming inspection of curved hull plates: inspections, results and targets for the MES.",
         lifespan=lifespan,
+        docs_url=None,
         redoc_url=None,
-        static_url="/static-docs",
+        static_url=DOCS_STATIC_URL,
         swagger_ui_parameters={"validatorUrl": None},  # no badge fetched from an outside validator
     )
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_upload_bytes)
+    # Outermost, around Starlette's error middleware: a 500 answer gets the headers too.
+    build_stack = app.build_middleware_stack
+    app.build_middleware_stack = lambda: SecurityHeaders(build_stack())
     # The database is ready before the first request (also under TestClient without lifespan).
     storage.ensure()
     upgrade_database(settings.sqlalchemy_url)
@@ -102,12 +117,37 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.session_factory = make_session_factory(engine)
     app.state.storage = storage
     app.state.jobs = JobQueue(settings, app.state.session_factory, storage)
+    app.state.token_throttle = TokenThrottle(
+        free_failures=settings.login_free_failures,
+        window_s=settings.login_window_s,
+        max_delay_s=settings.login_max_delay_s,
+    )
 
     install_error_handlers(app)
+    install_openapi(app)
     app.include_router(health_router)
     app.include_router(api_router)
+    _include_docs(app)
     _include_dashboard(app)
     return app
+
+
+def _include_docs(app: FastAPI) -> None:
+    """``/docs``: Swagger UI from local files, its inline start script allowed by its hash."""
+
+    @app.get("/docs", include_in_schema=False)
+    def swagger_ui(request: Request) -> HTMLResponse:
+        root = request.scope.get("root_path", "")
+        page = get_swagger_ui_html(
+            openapi_url=f"{root}{app.openapi_url}",
+            title=f"{app.title} - Swagger UI",
+            swagger_js_url=f"{root}{DOCS_STATIC_URL}/swagger-ui-bundle.js",
+            swagger_css_url=f"{root}{DOCS_STATIC_URL}/swagger-ui.css",
+            swagger_favicon_url=f"{root}{DOCS_STATIC_URL}/favicon.png",
+            oauth2_redirect_url=None,
+            swagger_ui_parameters=app.swagger_ui_parameters,
+        )
+        return HTMLResponse(page.body, headers={"Content-Security-Policy": docs_csp(page.body)})
 
 
 def _optional_module(name: str):

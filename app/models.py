@@ -167,3 +167,21 @@ class IdempotencyKey(Base):
     status_code: Mapped[int | None] = mapped_column(Integer)
     body: Mapped[dict[str, Any] | None]
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+
+class DashboardSession(Base):
+    """A dashboard login: the browser holds a random session id, the server only its sha256.
+
+    A session authorises writes until ``expires_at``, unless revoked (logout) first, and only
+    while the API token it was opened with is still the server's (``token_hash``).
+    """
+
+    __tablename__ = "sessions"
+
+    #: sha256 hex of the session id in the cookie (the id itself is never stored).
+    id_hash: Mapped[str] = mapped_column(String(64), primary_key=True)
+    #: sha256 hex of the API token the session was opened under (a new token ends it).
+    token_hash: Mapped[str] = mapped_column(String(64))
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    expires_at: Mapped[datetime] = mapped_column(index=True)
+    revoked_at: Mapped[datetime | None]

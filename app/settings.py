@@ -2,8 +2,10 @@
 
 ``PLATE_INSPECT_DATA_DIR``, ``PLATE_INSPECT_DATABASE_URL``, ``PLATE_INSPECT_API_TOKEN``,
 ``PLATE_INSPECT_MAX_UPLOAD_MB``, ``PLATE_INSPECT_DEMO``, ``PLATE_INSPECT_PROGRESS_INTERVAL_S``,
-``PLATE_INSPECT_INSPECT_ENTRY``, ``PLATE_INSPECT_VIEWER_IDLE_S``, ``PLATE_INSPECT_VIEWER_MAX_SERVERS``;
-request and queue limits: ``PLATE_INSPECT_MAX_IMAGE_PIXELS``, ``PLATE_INSPECT_MAX_LIGHTS``,
+``PLATE_INSPECT_INSPECT_ENTRY``, ``PLATE_INSPECT_VIEWER_IDLE_S``, ``PLATE_INSPECT_VIEWER_MAX_SERVERS``,
+``PLATE_INSPECT_VIEWER_MAX_SOCKETS_PER_CLIENT``, ``PLATE_INSPECT_VIEWER_RESERVED_SERVERS``,
+``PLATE_INSPECT_SESSION_HOURS``, ``PLATE_INSPECT_LOGIN_FREE_FAILURES``, ``PLATE_INSPECT_LOGIN_WINDOW_S``,
+``PLATE_INSPECT_LOGIN_MAX_DELAY_S``; request and queue limits: ``PLATE_INSPECT_MAX_IMAGE_PIXELS``, ``PLATE_INSPECT_MAX_LIGHTS``,
 ``PLATE_INSPECT_MAX_SIMULATED_PIXELS``, ``PLATE_INSPECT_MAX_QUEUED_PER_PLATE``, ``PLATE_INSPECT_MAX_QUEUED``.
 """
 
@@ -44,6 +46,21 @@ class Settings(BaseSettings):
         A 3D view's viser server stops this long after its last browser left, s.
     viewer_max_servers : int
         Most 3D views (one viser server each, on loopback) running at once.
+    viewer_max_sockets_per_client : int
+        Most 3D-view websockets one client address without a dashboard session holds at once.
+    viewer_reserved_servers : int
+        3D-view servers kept for the operator: clients with a valid dashboard session, or on
+        loopback (the cell's own screen). Other clients start servers only while fewer than
+        ``viewer_max_servers - viewer_reserved_servers`` have a browser (at most all of them).
+    session_hours : float
+        Lifetime of a dashboard session from its login, h (a shift by default).
+    login_free_failures : int
+        Wrong tokens one client address may send within ``login_window_s`` before its token
+        checks are spaced out (growing delay, then 429 with ``Retry-After`` for a wrong one).
+    login_window_s : float
+        Failed token checks older than this are forgotten, s.
+    login_max_delay_s : float
+        Longest spacing between two token checks of a throttled address, s.
     max_image_pixels : int
         Most pixels (width x height) of one image of an uploaded capture, and of a stereo
         calibration's ``image_size`` (422 beyond it; read from the image headers).
@@ -70,6 +87,12 @@ class Settings(BaseSettings):
     inspect_entry: str = "pipeline.run:inspect"
     viewer_idle_s: float = Field(default=300.0, ge=0)
     viewer_max_servers: int = Field(default=8, ge=1, le=64)
+    viewer_max_sockets_per_client: int = Field(default=4, ge=1, le=64)
+    viewer_reserved_servers: int = Field(default=2, ge=0, le=64)
+    session_hours: float = Field(default=12.0, gt=0, le=24 * 31)
+    login_free_failures: int = Field(default=5, ge=1)
+    login_window_s: float = Field(default=900.0, gt=0)
+    login_max_delay_s: float = Field(default=5.0, ge=0, le=600)
     # Request and queue limits (app.limits): 422 for too big a request, 429 for a full queue.
     max_image_pixels: int = Field(default=4096 * 3072, ge=64 * 64, le=100_000_000)
     max_lights: int = Field(default=48, ge=3, le=1024)

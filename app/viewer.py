@@ -18,6 +18,13 @@ colour legend in mm. A server with no client left is stopped after
 ``idle_s`` seconds, and at most ``max_servers`` run at once (an idle one makes
 room; when all have browsers the page says so).
 
+Room for the operator: a client without a valid dashboard session that is not on
+loopback (anonymous; reads are open on the cell network) holds at most
+``max_sockets_per_client`` viewer websockets per address, and starts a server only
+while fewer than ``max_servers - reserved_servers`` servers have a browser. The
+operator (a dashboard session, or the cell's own screen on loopback) may use every
+server, so a few anonymous clients cannot take the 3D view from the cell.
+
 Display frame: metres, origin at the centre of the measured surface's bounding
 box, axes ``(x, -y, -z)`` of the left camera frame, so the side of the plate that
 faces the cameras looks up (+z, viser's up direction).
@@ -46,6 +53,10 @@ import websockets
 from fastapi import APIRouter, FastAPI, Request, WebSocket, WebSocketDisconnect
 from fastapi.responses import HTMLResponse
 from starlette.concurrency import run_in_threadpool
+from starlette.requests import HTTPConnection
+
+from app.deps import client_address, has_dashboard_session, is_loopback
+from app.security_headers import FRAMED_HEADERS, viewer_csp
 
 logger = logging.getLogger(__name__)
 
@@ -410,6 +421,10 @@ class PlateViewer:
         longest-idle server without a browser; when every server has a browser,
         :class:`ViewerBusyError` says so.
     max_vertices : int, display meshes are decimated to about this many vertices.
+    max_sockets_per_client : int or None, most bridges one anonymous client address
+        holds at once (None: no limit).
+    reserved_servers : int, servers only the operator may start: an anonymous client
+        starts one only while fewer than ``max_servers - reserved_servers`` have a browser.
     """
 
     def __init__(
@@ -420,16 +435,25 @@ class PlateViewer:
         idle_s: float = 300.0,
         max_servers: int = 8,
         max_vertices: int = 150_000,
+        max_sockets_per_client: int | None = None,
+        reserved_servers: int = 0,
     ):
         if idle_s < 0:
             raise ValueError(f"idle_s: expected >= 0, got {idle_s}")
         if max_servers < 1:
             raise ValueError(f"max_servers: expected >= 1, got {max_servers}")
+        if max_sockets_per_client is not None and max_sockets_per_client < 1:
+            raise ValueError(f"max_sockets_per_client: expected >= 1 or None, got {max_sockets_per_client}")
+        if reserved_servers < 0:
+            raise ValueError(f"reserved_servers: expected >= 0, got {reserved_servers}")
         self._artifacts_dir = artifacts_dir
         self._host = host
         self._idle_s = idle_s
         self._max_servers = max_servers
         self._max_vertices = max_vertices
+        self._max_sockets_per_client = max_sockets_per_client
+        self._reserved_servers = min(reserved_servers, max_servers)
+        self._client_bridges: dict[str, int] = {}
         self._lock = threading.Lock()
         self._load_lock = threading.Lock()
         self._views: dict[int, _InspectionView] = {}
@@ -446,19 +470,44 @@ class PlateViewer:
         with self._lock:
             return sorted(self._views)
 
-    def check_capacity(self, inspection_id: int) -> None:
-        """Raise :class:`ViewerBusyError` if opening this inspection's view would exceed the cap."""
+    def check_capacity(self, inspection_id: int, *, privileged: bool = True) -> None:
+        """Raise :class:`ViewerBusyError` if opening this inspection's view would exceed the cap.
+
+        ``privileged``: the operator (may use every server); otherwise an anonymous client, which
+        may not start a server once ``max_servers - reserved_servers`` have a browser.
+        """
         with self._lock:
-            if inspection_id in self._views or len(self._views) < self._max_servers:
+            if inspection_id in self._views:
                 return
-            if any(self._bridges.get(i, 0) == 0 for i in self._views):
-                return  # an idle server can make room
+            busy = sum(1 for i in self._views if self._bridges.get(i, 0) > 0)
+            room = len(self._views) < self._max_servers or busy < len(self._views)  # an idle server can make room
+            if room and (privileged or busy < self._max_servers - self._reserved_servers):
+                return
+        if room:
+            raise ViewerBusyError(
+                f"3D view: {busy} inspections are being viewed and {self._reserved_servers} views are kept for the "
+                "operator's dashboard; log in (or close another 3D view) and reload this page"
+            )
         raise ViewerBusyError(
             f"3D view: {self._max_servers} inspections are already being viewed (the most this cell runs at once); "
             "close the 3D view of another inspection and reload this page"
         )
 
-    def port_for(self, inspection_id: int) -> int:
+    def check_client(self, client: str | None) -> None:
+        """Raise :class:`ViewerBusyError` if the anonymous ``client`` holds its most bridges (None: exempt)."""
+        with self._lock:
+            self._check_client_locked(client)
+
+    def _check_client_locked(self, client: str | None) -> None:
+        limit = self._max_sockets_per_client
+        if client is None or limit is None or self._client_bridges.get(client, 0) < limit:
+            return
+        raise ViewerBusyError(
+            f"3D view: this computer already has {limit} 3D views open (the most without an operator session); "
+            "close one and reload this page"
+        )
+
+    def port_for(self, inspection_id: int, *, privileged: bool = True) -> int:
         """The loopback port of the inspection's viser server, started (and meshes loaded) if needed.
 
         Blocks while loading (one load at a time); call it from a worker thread in async code.
@@ -468,7 +517,8 @@ class PlateViewer:
         FileNotFoundError
             If the inspection has no result or meshes.
         ViewerBusyError
-            If ``max_servers`` servers run and each has a browser.
+            If ``max_servers`` servers run and each has a browser, or (not ``privileged``)
+            the servers not reserved for the operator all have one.
         """
         with self._lock:
             view = self._views.get(inspection_id)
@@ -479,7 +529,7 @@ class PlateViewer:
                 view = self._views.get(inspection_id)
             if view is not None:
                 return view.port
-            self.check_capacity(inspection_id)
+            self.check_capacity(inspection_id, privileged=privileged)
             self._make_room()
             meshes = load_plate_meshes(Path(self._artifacts_dir(inspection_id)), max_vertices=self._max_vertices)
             view = _InspectionView(inspection_id, meshes, host=self._host)
@@ -519,17 +569,35 @@ class PlateViewer:
             return {}
         return {cid: tuple(view.nodes_of(cid)) for cid in view.server.get_clients()}
 
-    def bridge_opened(self, inspection_id: int) -> None:
-        """Count a browser connection (cancels a pending idle stop)."""
+    def bridge_opened(self, inspection_id: int, client: str | None = None) -> None:
+        """Count a browser connection (cancels a pending idle stop).
+
+        ``client``: the anonymous client's address, counted against ``max_sockets_per_client``
+        (None for the operator); give the same to :meth:`bridge_closed`.
+
+        Raises
+        ------
+        ViewerBusyError
+            If ``client`` holds its most bridges already (nothing is counted then).
+        """
         with self._lock:
+            self._check_client_locked(client)
+            if client is not None:
+                self._client_bridges[client] = self._client_bridges.get(client, 0) + 1
             self._bridges[inspection_id] = self._bridges.get(inspection_id, 0) + 1
             timer = self._idle_timers.pop(inspection_id, None)
         if timer is not None:
             timer.cancel()
 
-    def bridge_closed(self, inspection_id: int) -> None:
+    def bridge_closed(self, inspection_id: int, client: str | None = None) -> None:
         """Uncount a browser connection; the last one out arms the idle stop."""
         with self._lock:
+            if client is not None:
+                left_of_client = self._client_bridges.get(client, 1) - 1
+                if left_of_client > 0:
+                    self._client_bridges[client] = left_of_client
+                else:
+                    self._client_bridges.pop(client, None)
             left = max(self._bridges.get(inspection_id, 1) - 1, 0)
             self._bridges[inspection_id] = left
             if left == 0 and inspection_id in self._views:
@@ -586,19 +654,37 @@ def _viewer(app: FastAPI) -> PlateViewer | None:
     return getattr(app.state, "viewer", None)
 
 
+@cache
+def _client_page_csp() -> str:
+    return viewer_csp(_client_page())
+
+
+def _operator(conn: HTTPConnection) -> bool:
+    """True for the operator: a client on loopback (the cell's screen) or with a valid dashboard session."""
+    return is_loopback(conn) or has_dashboard_session(conn)
+
+
 @router.get("/viewer/{inspection_id}/", response_class=HTMLResponse, include_in_schema=False)
 def viewer_page(inspection_id: int, request: Request) -> HTMLResponse:
-    """viser's bundled client page; its websocket goes to ``/viewer/{inspection_id}`` (the bridge)."""
+    """viser's bundled client page; its websocket goes to ``/viewer/{inspection_id}`` (the bridge).
+
+    Every answer may be framed by the dashboard (same origin only); the client page gets the
+    policy of :func:`app.security_headers.viewer_csp`.
+    """
     viewer = _viewer(request.app)
     if viewer is None:
-        return HTMLResponse("<p>The 3D view is not running on this server.</p>", status_code=503)
+        return HTMLResponse("<p>The 3D view is not running on this server.</p>", status_code=503, headers=FRAMED_HEADERS)
     if not viewer.has_view(inspection_id):
-        return HTMLResponse(f"<p>Inspection {inspection_id} has no surface to show.</p>", status_code=404)
+        return HTMLResponse(
+            f"<p>Inspection {inspection_id} has no surface to show.</p>", status_code=404, headers=FRAMED_HEADERS
+        )
+    operator = _operator(request)
     try:
-        viewer.check_capacity(inspection_id)
+        viewer.check_capacity(inspection_id, privileged=operator)
+        viewer.check_client(None if operator else client_address(request))
     except ViewerBusyError as err:
-        return HTMLResponse(f"<p>{html.escape(str(err))}.</p>", status_code=503)
-    return HTMLResponse(_client_page())
+        return HTMLResponse(f"<p>{html.escape(str(err))}.</p>", status_code=503, headers=FRAMED_HEADERS)
+    return HTMLResponse(_client_page(), headers={**FRAMED_HEADERS, "Content-Security-Policy": _client_page_csp()})
 
 
 @router.websocket("/viewer/{inspection_id}")
@@ -612,11 +698,18 @@ async def viewer_bridge(websocket: WebSocket, inspection_id: int) -> None:
         offered = websocket.scope.get("subprotocols", [])
         await websocket.close(code=1002, reason=f"expected subprotocol {VISER_SUBPROTOCOL}, got {offered}")
         return
+    operator = is_loopback(websocket) or await run_in_threadpool(has_dashboard_session, websocket)
+    client = None if operator else client_address(websocket)
     # Counted before the server starts, so that it is stopped when idle however this ends.
-    viewer.bridge_opened(inspection_id)
+    try:
+        viewer.bridge_opened(inspection_id, client)
+    except ViewerBusyError as err:
+        logger.warning("viewer: inspection %s refused to %s: %s", inspection_id, client, err)
+        await websocket.close(code=CLOSE_TRY_AGAIN_LATER, reason=str(err)[:120])
+        return
     try:
         try:
-            port = await run_in_threadpool(viewer.port_for, inspection_id)
+            port = await run_in_threadpool(viewer.port_for, inspection_id, privileged=operator)
         except ViewerBusyError as err:
             logger.warning("viewer: inspection %s refused: %s", inspection_id, err)
             await websocket.close(code=CLOSE_TRY_AGAIN_LATER, reason=str(err)[:120])
@@ -637,7 +730,7 @@ async def viewer_bridge(websocket: WebSocket, inspection_id: int) -> None:
     except (OSError, websockets.exceptions.WebSocketException) as err:
         logger.warning("viewer: bridge for inspection %s ended: %s", inspection_id, err)
     finally:
-        viewer.bridge_closed(inspection_id)
+        viewer.bridge_closed(inspection_id, client)
         try:
             await websocket.close()
         except (RuntimeError, WebSocketDisconnect):
@@ -679,7 +772,9 @@ def attach(app: FastAPI, settings):
     """Create the app's 3D viewer as ``app.state.viewer``; called in the app's lifespan.
 
     Servers start on demand (the first browser to open an inspection's view), bound to
-    loopback; ``settings.viewer_idle_s`` and ``settings.viewer_max_servers`` bound them. The routes (:data:`router`) are included by :mod:`web.routes`.
+    loopback; ``settings.viewer_idle_s`` and ``settings.viewer_max_servers`` bound them,
+    ``settings.viewer_max_sockets_per_client`` and ``settings.viewer_reserved_servers`` keep
+    room for the operator. The routes (:data:`router`) are included by :mod:`web.routes`.
 
     Parameters
     ----------
@@ -694,7 +789,11 @@ def attach(app: FastAPI, settings):
 
     storage = Storage(settings.data_dir)
     viewer = PlateViewer(
-        storage.artifacts_dir, idle_s=settings.viewer_idle_s, max_servers=settings.viewer_max_servers
+        storage.artifacts_dir,
+        idle_s=settings.viewer_idle_s,
+        max_servers=settings.viewer_max_servers,
+        max_sockets_per_client=settings.viewer_max_sockets_per_client,
+        reserved_servers=settings.viewer_reserved_servers,
     )
     app.state.viewer = viewer
 

@@ -8,7 +8,6 @@ API token (``/login``).
 
 from __future__ import annotations
 
-import hmac
 import logging
 from typing import Annotated
 
@@ -17,7 +16,8 @@ from fastapi.responses import HTMLResponse, RedirectResponse, Response
 from fastapi.templating import Jinja2Templates
 
 from app import viewer
-from app.deps import SESSION_COOKIE, SessionDep, StorageDep, issue_session_cookie, session_cookie_value
+from app.deps import SessionDep, StorageDep, has_dashboard_session, start_dashboard_session
+from app.errors import scrub_paths
 from app.models import Inspection
 from app.routes.common import InspectionIdPath
 from app.services import calibrations as calibration_svc
@@ -55,18 +55,12 @@ templates.env.filters["fmt"] = _fmt
 templates.env.filters["when"] = lambda dt: "—" if dt is None else dt.strftime("%Y-%m-%d %H:%M:%S")
 
 
-def _signed_in(request: Request) -> bool:
-    cookie = request.cookies.get(SESSION_COOKIE)
-    token = request.app.state.api_token
-    return cookie is not None and hmac.compare_digest(cookie, session_cookie_value(token))
-
-
 def _page(request: Request, session, name: str, context: dict, *, status_code: int = 200) -> Response:
     """Render a full page: the side list (plates, jobs) plus the page's own context."""
     settings = request.app.state.settings
     plates, plate_total = plate_svc.list_plates(session=session, limit=40)
     jobs, _ = inspection_svc.list_inspections(session=session, statuses=ACTIVE, limit=20)
-    signed_in = _signed_in(request)
+    signed_in = has_dashboard_session(request, db=session)
     response = templates.TemplateResponse(
         request,
         name,
@@ -81,7 +75,7 @@ def _page(request: Request, session, name: str, context: dict, *, status_code: i
         status_code=status_code,
     )
     if settings.demo and not signed_in:
-        issue_session_cookie(response, request.app.state.api_token, secure=request.url.scheme == "https")
+        start_dashboard_session(response, request, db=session)
     return response
 
 
@@ -161,7 +155,7 @@ def _templates_context(storage, row: Inspection, spacing_mm: int) -> dict:
         frame, sections, tolerance = load_sections(folder, spacing_mm=float(spacing_mm))
     except (OSError, ValueError, KeyError) as err:
         logger.warning("inspection %s: no virtual templates: %s", row.id, err)
-        return {"drawings": [], "templates_error": str(err)}
+        return {"drawings": [], "templates_error": scrub_paths(str(err))}
     return {"drawings": section_drawings(sections, tolerance_mm=tolerance), "templates_error": None}
 
 

@@ -141,7 +141,7 @@ def test_light_calibration_upload_refusals(client, settings):
 
 
 def test_migrated_database_has_the_light_calibration_schema(client):
-    """Alembic's head (0002) matches the models: no difference left for autogenerate."""
+    """Alembic's head (0004) matches the models: no difference left for autogenerate."""
     from alembic.autogenerate import compare_metadata
     from alembic.migration import MigrationContext
 
@@ -149,7 +149,7 @@ def test_migrated_database_has_the_light_calibration_schema(client):
 
     with client.app.state.engine.connect() as connection:
         context = MigrationContext.configure(connection)
-        assert context.get_current_revision() == "0002"
+        assert context.get_current_revision() == "0004"
         assert compare_metadata(context, Base.metadata) == []
 
 

@@ -118,14 +118,31 @@ def _plate_pixels(png: bytes) -> int:
     return int(np.count_nonzero(image.sum(axis=2) < 3 * 235))
 
 
+#: Reports every Content-Security-Policy violation of a document (any frame) on the console.
+REPORT_CSP_VIOLATIONS = """
+document.addEventListener("securitypolicyviolation", (e) =>
+  console.error(`CSP violation: ${e.violatedDirective} blocked ${e.blockedURI || "inline"} in ${e.documentURI}`));
+"""
+
+
+def _watch_csp(page) -> list[str]:
+    """The CSP violations the page and its frames will report (a list filled as they happen)."""
+    violations: list[str] = []
+    page.add_init_script(REPORT_CSP_VIOLATIONS)
+    page.on("console", lambda m: violations.append(m.text) if m.text.startswith("CSP violation") else None)
+    return violations
+
+
 def test_cell_to_result_to_history(live_server, browser):
     SHOTS.mkdir(exist_ok=True)
     base = live_server["base"]
     page = browser.new_page(viewport={"width": 1920, "height": 1080})
     errors = []
     page.on("pageerror", lambda err: errors.append(str(err)))
+    violations = _watch_csp(page)
 
-    page.goto(f"{base}/cell")
+    response = page.goto(f"{base}/cell")
+    assert "script-src 'self'" in response.headers["content-security-policy"]
     page.fill("input[name=plate_id]", "H7-P11")
     page.fill("input[name=width]", "320")
     page.fill("input[name=height]", "256")
@@ -179,6 +196,8 @@ def test_cell_to_result_to_history(live_server, browser):
     page.goto(f"{base}/calibration")
     page.screenshot(path=SHOTS / "calibration.png")
     assert not errors, errors
+    # Pages and the 3D view (viser's client in the frame) run under their Content-Security-Policy.
+    assert not violations, violations
     (SHOTS / "browser-run.json").write_text(json.dumps({"inspect_entry": live_server["entry"], "inspection": inspection_id}))
 
 
@@ -239,6 +258,19 @@ def test_light_calibration_upload_on_the_calibration_page(live_server, browser):
     assert page.locator(".light-plan circle.light").count() == 8
     page.screenshot(path=SHOTS / "calibration-lights.png", full_page=True)
     assert not errors, errors
+
+
+def test_api_docs_run_under_their_csp(live_server, browser):
+    """Swagger UI at /docs: its files and its start script (allowed by hash) run, nothing is blocked."""
+    page = browser.new_page(viewport={"width": 1600, "height": 1000})
+    errors = []
+    page.on("pageerror", lambda err: errors.append(str(err)))
+    violations = _watch_csp(page)
+    response = page.goto(f"{live_server['base']}/docs")
+    assert "'sha256-" in response.headers["content-security-policy"]
+    page.wait_for_selector(".opblock", timeout=20_000)  # the operations, rendered from /openapi.json
+    assert page.locator(".opblock").count() >= 15
+    assert not errors and not violations, (errors, violations)
 
 
 def _token(live_server) -> str:
