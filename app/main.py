@@ -23,7 +23,7 @@ from pydantic import SecretStr
 from app.db import make_engine, make_session_factory, upgrade_database
 from app.errors import install_error_handlers
 from app.jobs import JobQueue
-from app.limits import BodySizeLimit
+from app.limits.body import BodySizeLimit
 from app.openapi import install_openapi
 from app.routes import api_router
 from app.routes.health import router as health_router

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields
 
-from app.limits.body import BodySizeLimit
 from app.settings import ENV_PREFIX, Settings
 
 
@@ -52,4 +51,4 @@ def setting_name(limit: str) -> str:
     return f"{ENV_PREFIX}{limit.upper()}"
 
 
-__all__ = ["DEFAULT_LIMITS", "BodySizeLimit", "Limits", "setting_name"]
+__all__ = ["DEFAULT_LIMITS", "Limits", "setting_name"]
