@@ -126,8 +126,10 @@ def auto_exposure(cameras: list[Camera], *, bit_depth: int, timeout_s: float, st
     :data:`EXPOSURE_FLOOR` and :data:`EXPOSURE_LIMIT` of full scale.
 
     Each round triggers every camera still metering, then scales its exposure towards
-    :data:`EXPOSURE_TARGET` from what it saw (cut by :data:`SATURATED_CUT` when saturated). A camera
-    at the top of its exposure range that is still too dark keeps that exposure.
+    :data:`EXPOSURE_TARGET` from what it saw (cut by :data:`SATURATED_CUT` when saturated); where
+    that leaves the bracket of exposures already seen too dark and too bright (a camera that is not
+    linear), it bisects the bracket instead. A camera at the top of its exposure range that is
+    still too dark keeps that exposure.
 
     Parameters
     ----------
@@ -152,6 +154,8 @@ def auto_exposure(cameras: list[Camera], *, bit_depth: int, timeout_s: float, st
     """
     bounds = {cam.side: cam.exposure_bounds_us() for cam in cameras}
     exposure = {cam.side: float(np.clip(FIRST_PRE_SHOT_US, *bounds[cam.side])) for cam in cameras}
+    too_dark = {cam.side: 0.0 for cam in cameras}  # the longest exposure seen too dark
+    too_bright = {cam.side: np.inf for cam in cameras}  # the shortest seen too bright
     metering, shots = list(cameras), 0
     for _ in range(MAX_PRE_SHOTS):
         for cam in metering:
@@ -160,8 +164,8 @@ def auto_exposure(cameras: list[Camera], *, bit_depth: int, timeout_s: float, st
         shots += len(metering)
         still = []
         for cam in metering:
-            lo, hi = bounds[cam.side]
-            now = exposure[cam.side]
+            side, (lo, hi) = cam.side, bounds[cam.side]
+            now = exposure[side]
             p = brightest_fraction(cam.fetch(step=step, timeout_s=timeout_s + now * 1e-6).image, bit_depth)
             if EXPOSURE_FLOOR <= p <= EXPOSURE_LIMIT or (p < EXPOSURE_FLOOR and now >= hi):
                 continue
@@ -171,8 +175,14 @@ def auto_exposure(cameras: list[Camera], *, bit_depth: int, timeout_s: float, st
                     f"the brightest samples are at {100 * p:.0f} % of full scale even at the shortest exposure "
                     f"({lo:g} us): lower the gain or the lights",
                 )
-            scale = 1 / SATURATED_CUT if p >= SATURATED else EXPOSURE_TARGET / max(p, 1e-3)
-            exposure[cam.side] = float(np.clip(now * scale, lo, hi))
+            if p < EXPOSURE_FLOOR:
+                too_dark[side] = max(too_dark[side], now)
+            else:
+                too_bright[side] = min(too_bright[side], now)
+            proposal = now / SATURATED_CUT if p >= SATURATED else now * EXPOSURE_TARGET / max(p, 1e-3)
+            if not too_dark[side] < proposal < too_bright[side]:  # a camera that is not linear: bisect
+                proposal = float(np.sqrt(max(too_dark[side], lo) * min(too_bright[side], hi)))
+            exposure[side] = float(np.clip(proposal, lo, hi))
             still.append(cam)
         metering = still
         if not metering:

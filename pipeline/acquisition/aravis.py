@@ -7,12 +7,14 @@ IP address, ``VENDOR-SERIAL`` id, or physical id (``arv-tool-0.8`` lists them); 
 
 Frames are taken with the camera in software-trigger mode (TriggerSelector FrameStart, TriggerMode
 On, TriggerSource Software) and acquisition started once; a camera without a software trigger
-takes each frame as a single-frame acquisition. Before each trigger the stream's queue is emptied,
-so a frame exposed before the lights were switched cannot be taken for the next one.
+takes each frame as a single-frame acquisition. A frame exposed before the lights were switched
+must not be taken for the next one: before each trigger the stream's queue is emptied, and a frame
+that Aravis received before the trigger (its system time stamp) is put back, not taken.
 """
 
 from __future__ import annotations
 
+import time
 from contextlib import contextmanager
 
 import numpy as np
@@ -62,8 +64,11 @@ class AravisCamera(Camera):
             self._Aravis.enable_interface("Fake")
         with self._errors("opening"):
             self._cam = self._Aravis.Camera.new(config.device_id)
+            self._format = self._cam.get_pixel_format_as_string()
+            region = self._cam.get_region()
+        self._region = [int(region.x), int(region.y), int(region.width), int(region.height)]
         self._stream = None
-        self._format = ""
+        self._trigger_ns = 0
         self._started = False
         self._can_trigger = False
 
@@ -160,6 +165,7 @@ class AravisCamera(Camera):
     def trigger(self, *, step: str) -> None:
         with self._errors(step):
             self._drain()
+            self._trigger_ns = time.time_ns()  # Aravis' system time stamps are wall-clock ns
             if self._can_trigger:
                 self._cam.software_trigger()
             else:
@@ -167,9 +173,15 @@ class AravisCamera(Camera):
                 self._started = True
 
     def fetch(self, *, step: str, timeout_s: float) -> Frame:
-        buffer = self._stream.timeout_pop_buffer(int(timeout_s * 1e6))
-        if buffer is None:
-            raise AcquisitionError(self.device, step, f"no frame within {timeout_s:.1f} s (camera gone or not triggered?)")
+        deadline = time.monotonic() + timeout_s
+        while True:
+            left_us = int((deadline - time.monotonic()) * 1e6)
+            buffer = self._stream.timeout_pop_buffer(left_us) if left_us > 0 else None
+            if buffer is None:
+                raise AcquisitionError(self.device, step, f"no frame within {timeout_s:.1f} s (camera gone or not triggered?)")
+            if not 0 < buffer.get_system_timestamp() < self._trigger_ns:  # 0: nothing received, a failed frame
+                break
+            self._stream.push_buffer(buffer)  # begun before the trigger: not this frame
         try:
             return self._frame(buffer, step)
         finally:
