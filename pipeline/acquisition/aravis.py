@@ -224,7 +224,7 @@ class AravisCamera(Camera):
             return {
                 "driver": "aravis",
                 "device_id": self.config.device_id,
-                "protocol": "GigE Vision" if cam.is_gv_device() else "USB3 Vision" if cam.is_uv_device() else "other",
+                "protocol": "GigE Vision" if cam.is_gv_device() else "USB3 Vision" if cam.is_uv_device() else "Aravis fake",
                 "vendor": cam.get_vendor_name(),
                 "model": cam.get_model_name(),
                 "serial": cam.get_device_serial_number(),

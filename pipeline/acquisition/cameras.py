@@ -122,12 +122,6 @@ class Camera(ABC):
         self.trigger(step=step)
         return self.fetch(step=step, timeout_s=timeout_s)
 
-    def __enter__(self) -> "Camera":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
 
 def choose_pixel_format(left: Camera, right: Camera) -> str:
     """The first of :data:`PIXEL_FORMATS` that both cameras offer (one bit depth for the bundle).

@@ -105,12 +105,6 @@ class LightController(ABC):
         finally:
             self._disconnect()
 
-    def __enter__(self) -> "LightController":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
     @abstractmethod
     def describe(self) -> dict:
         """The controller for the acquisition record: ``{"driver": ..., ...}`` (JSON-ready)."""
