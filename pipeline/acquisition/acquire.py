@@ -85,15 +85,19 @@ class _Run:
     exposure_us: dict[str, float] = field(default_factory=dict)
     pre_shots: int = 0
 
-    def keep(self, name: str, camera: Camera, frame: Frame, lighting: str | list[int]) -> None:
-        """Record a capture frame and queue it for writing as ``name``."""
+    def elapsed(self) -> float:
+        """Seconds since the acquisition started."""
+        return time.monotonic() - self.t0
+
+    def keep(self, name: str, camera: Camera, frame: Frame, lighting: str | list[int], t_s: float) -> None:
+        """Record a capture frame received ``t_s`` after the start, and queue it for writing as ``name``."""
         self.frames.append(
             {
                 "file": name,
                 "camera": camera.side,
                 "lights": lighting,
                 "exposure_us": self.exposure_us[camera.side],
-                "t_s": round(time.monotonic() - self.t0, 6),
+                "t_s": round(t_s, 6),
                 "device_timestamp_ns": frame.device_timestamp_ns,
                 "frame_id": frame.frame_id,
             }
@@ -384,32 +388,40 @@ def _sequence(run: _Run) -> dict:
 
     t_first = time.monotonic()
     run.expose(left, photometric_us, step="setting the photometric exposure")
+    photometric_us = run.exposure_us["left"]  # as the camera took it
     for k in range(config.lights.n):
         name = f"ps_{k:02d}.png"
         step = f"photometric image {k} ({name})"
         controller.on(k, step=step)
         frame = left.grab(step=step, timeout_s=run.timeout(left))
+        t_s = run.elapsed()
         controller.off(k, step=step)
-        run.keep(name, left, frame, [k])
+        run.keep(name, left, frame, [k], t_s)
 
     step = "dark frame (dark.png)"
-    run.keep("dark.png", left, left.grab(step=step, timeout_s=run.timeout(left)), [])
+    frame = left.grab(step=step, timeout_s=run.timeout(left))
+    run.keep("dark.png", left, frame, [], run.elapsed())
 
     step = "stereo pair (stereo_left.png, stereo_right.png)"
     for cam in (left, right):
         run.expose(cam, stereo_us[cam.side], step=step)
+    stereo_us = dict(run.exposure_us)
     lighting = "stereo light" if controller.has_stereo_light else list(range(config.lights.n))
     _stereo_lighting(run, True, step=step)
     together = left.can_trigger and right.can_trigger
+    pair = []
     if together:
         left.trigger(step=step)
         right.trigger(step=step)
-        pair = [left.fetch(step=step, timeout_s=run.timeout(left)), right.fetch(step=step, timeout_s=run.timeout(right))]
+        for cam in (left, right):
+            pair.append((cam.fetch(step=step, timeout_s=run.timeout(cam)), run.elapsed()))
     else:
-        pair = [cam.grab(step=step, timeout_s=run.timeout(cam)) for cam in (left, right)]
+        for cam in (left, right):
+            pair.append((cam.grab(step=step, timeout_s=run.timeout(cam)), run.elapsed()))
     _stereo_lighting(run, False, step=step)
-    run.keep("stereo_left.png", left, pair[0], lighting)
-    run.keep("stereo_right.png", right, pair[1], lighting)
+    (left_frame, t_left), (right_frame, t_right) = pair
+    run.keep("stereo_left.png", left, left_frame, lighting, t_left)
+    run.keep("stereo_right.png", right, right_frame, lighting, t_right)
     sequence_s = time.monotonic() - t_first
 
     cameras = {}
