@@ -175,6 +175,7 @@ class TcpLightController(LightController):
         self._first_reply_s = first_reply_s
         self._replies: bool | None = None  # unknown until the first command
         self._pending = b""
+        self._sent: set[str] = set()  # commands sent: a line that repeats one is an echo
         host, _, port = config.address.rpartition(":")
         try:
             self._sock = socket.create_connection((host.strip("[]"), int(port)), timeout=connect_timeout_s)
@@ -199,8 +200,8 @@ class TcpLightController(LightController):
         if not line.endswith("\n"):
             line += "\n"
         sent = line.strip()
-        for reply in self._lines(timeout_s=0.0, step=step):  # late answers to earlier commands
-            self._check_reply(reply, "an earlier command", step)
+        while (late := self._answer(0.0, step)) is not None:  # late answers to earlier commands
+            self._check_reply(late, None, step)
         try:
             self._sock.settimeout(self._command_timeout_s)
             self._sock.sendall(line.encode())
@@ -208,45 +209,49 @@ class TcpLightController(LightController):
             raise AcquisitionError(self.device, step, f"{sent!r} not taken within {self._command_timeout_s:g} s") from None
         except OSError as exc:
             raise AcquisitionError(self.device, step, f"sending {sent!r}: {exc.strerror or exc}") from None
+        self._sent.add(sent)
         if self._replies is False:
             return
         wait = self._first_reply_s if self._replies is None else self._command_timeout_s
-        replies = self._lines(timeout_s=wait, step=step, first=True)
-        if not replies:
+        reply = self._answer(wait, step)
+        if reply is None:
             if self._replies is None:
                 self._replies = False  # a silent controller
                 return
             raise AcquisitionError(self.device, step, f"no answer to {sent!r} within {wait:g} s")
         self._replies = True
-        for reply in replies:
-            self._check_reply(reply, repr(sent), step)
+        self._check_reply(reply, sent, step)
 
-    def _check_reply(self, reply: str, what: str, step: str) -> None:
-        words = reply.split()
-        if not words or not words[0].upper().startswith(ACCEPTED):
+    def _check_reply(self, reply: str, sent: str | None, step: str) -> None:
+        """Accept a line beginning with ``OK``/``ACK``; anything else refuses ``sent`` (None: an earlier command)."""
+        if not reply.split()[0].upper().startswith(ACCEPTED):
+            what = repr(sent) if sent is not None else "an earlier command"
             raise AcquisitionError(self.device, step, f"refused {what}: answered {reply!r}")
 
-    def _lines(self, *, timeout_s: float, step: str, first: bool = False) -> list[str]:
-        """Complete lines received within ``timeout_s`` (0: only what has arrived); with ``first``,
-        return as soon as one line is complete."""
+    def _answer(self, timeout_s: float, step: str) -> str | None:
+        """The next line received within ``timeout_s`` (0: only what has arrived) that is not empty and
+        not a command echoed back; None if none."""
         deadline = time.monotonic() + timeout_s
-        while not (first and b"\n" in self._pending):
-            left = deadline - time.monotonic()
-            try:
-                if left <= 0:
-                    self._sock.setblocking(False)
-                else:
-                    self._sock.settimeout(left)
-                chunk = self._sock.recv(4096)
-            except (BlockingIOError, TimeoutError):
-                break
-            except OSError as exc:
-                raise AcquisitionError(self.device, step, f"reading the answer: {exc.strerror or exc}") from None
-            if not chunk:
-                raise AcquisitionError(self.device, step, "the controller closed the connection")
-            self._pending += chunk
-        *lines, self._pending = self._pending.split(b"\n")
-        return [line.decode(errors="replace").strip() for line in lines if line.strip()]
+        while True:
+            while b"\n" not in self._pending:
+                left = deadline - time.monotonic()
+                try:
+                    if left <= 0:
+                        self._sock.setblocking(False)
+                    else:
+                        self._sock.settimeout(left)
+                    chunk = self._sock.recv(4096)
+                except (BlockingIOError, TimeoutError):
+                    return None
+                except OSError as exc:
+                    raise AcquisitionError(self.device, step, f"reading the answer: {exc.strerror or exc}") from None
+                if not chunk:
+                    raise AcquisitionError(self.device, step, "the controller closed the connection")
+                self._pending += chunk
+            raw, self._pending = self._pending.split(b"\n", 1)
+            line = raw.decode(errors="replace").strip()
+            if line and line not in self._sent:
+                return line
 
     def _disconnect(self) -> None:
         self._sock.close()

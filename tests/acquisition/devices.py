@@ -27,6 +27,8 @@ class LightServer:
     ----------
     reply : str or None
         The line sent after each accepted command (None: a silent controller).
+    echo : bool
+        Send each command back first.
     refuse : str or None
         A command (without its line break) answered with ``ERR refused`` instead.
     stall_after : int or None
@@ -35,8 +37,8 @@ class LightServer:
         ``on_command(command)`` before the answer, in the server's thread.
     """
 
-    def __init__(self, *, reply: str | None = "OK", refuse: str | None = None, stall_after: int | None = None,
-                 on_command: Callable[[str], None] | None = None):
+    def __init__(self, *, reply: str | None = "OK", echo: bool = False, refuse: str | None = None,
+                 stall_after: int | None = None, on_command: Callable[[str], None] | None = None):
         self.commands: list[str] = []
         self.connections = 0
         server = self
@@ -51,6 +53,8 @@ class LightServer:
                         on_command(command)
                     if stall_after is not None and len(server.commands) > stall_after:
                         continue
+                    if echo:
+                        self.wfile.write(raw)
                     if command == refuse:
                         self.wfile.write(b"ERR refused\n")
                     elif reply is not None:

@@ -189,6 +189,15 @@ def test_silent_light_controller_is_used_without_answers(tmp_path, light_server)
     assert server.commands == SEQUENCE + _all("ON") + _all("OFF")  # no pre-shots
 
 
+@pytest.mark.parametrize(("reply", "answering"), [("OK", True), (None, False)])
+def test_echoed_commands_are_skipped(tmp_path, light_server, reply, answering):
+    server = light_server(echo=True, reply=reply)  # "L0 ON" back, then "OK" (or nothing)
+    config = write_cell(tmp_path / "cell", left=FIXED_FAKE_1, right=FIXED_SIMULATED, lights=tcp_lights(server))
+    record = json.loads((acquire(config, "P", tmp_path / "bundle") / "capture.json").read_text())["acquisition"]
+    assert record["light_controller"]["replies"] is answering
+    assert server.commands == SEQUENCE + _all("ON") + _all("OFF")
+
+
 @pytest.mark.slow
 def test_camera_vanishing_mid_sequence_leaves_no_bundle(tmp_path, light_server):
     camera = FakeGigECamera()
