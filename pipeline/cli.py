@@ -1,7 +1,8 @@
-"""``plate-inspect``: simulate, calibrate, inspect (and ``serve`` from the service package).
+"""``plate-inspect``: simulate, calibrate, acquire, inspect (and ``serve`` from the service package).
 
 Exit codes (docs/formats.md): 0 done (pass or fail), 2 bad input (a one-line reason
-on stderr naming the file and field), 1 internal error.
+on stderr naming the file and field), 3 capture not measurable, 4 hardware failure
+(``acquire``: a one-line reason naming the device and the step), 1 internal error.
 
 Subcommands that live outside ``pipeline/`` (the service's ``serve``) are found
 through the entry-point group ``plate_inspect.commands``: each entry is a
@@ -20,9 +21,9 @@ from dataclasses import replace
 from importlib.metadata import entry_points
 from pathlib import Path
 
-from .formats import InputError, PipelineError
+from .formats import AcquisitionError, InputError, PipelineError
 
-EXIT_OK, EXIT_INTERNAL, EXIT_BAD_INPUT, EXIT_NOT_MEASURABLE = 0, 1, 2, 3
+EXIT_OK, EXIT_INTERNAL, EXIT_BAD_INPUT, EXIT_NOT_MEASURABLE, EXIT_HARDWARE = 0, 1, 2, 3, 4
 
 
 class BadArgument(ValueError):
@@ -191,6 +192,34 @@ def _cmd_calibrate_lights(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+# --------------------------------------------------------------------------- acquire
+
+
+def _cmd_acquire(args: argparse.Namespace) -> int:
+    from .acquisition import acquire
+
+    if not args.plate_id.strip():
+        raise BadArgument("--plate-id: expected a plate id, got an empty one")
+    timeout = {}
+    if args.frame_timeout is not None:
+        if not args.frame_timeout > 0:
+            raise BadArgument(f"--frame-timeout: expected seconds > 0, got {args.frame_timeout}")
+        timeout["frame_timeout_s"] = args.frame_timeout
+
+    def progress(stage: str, fraction: float) -> None:
+        if args.verbose:
+            print(f"[{100 * fraction:5.1f} %] {stage}", file=sys.stderr)
+
+    out = acquire(args.config, args.plate_id, args.out, progress=progress, **timeout)
+    record = json.loads((out / "capture.json").read_text())["acquisition"]
+    print(
+        f"{args.plate_id}: {len(record['frames'])} frames ({len(record['frames']) - 3} photometric, dark, stereo pair) "
+        f"in {record['total_s']:.2f} s ({record['time_per_image_s'] * 1000:.0f} ms per image)"
+    )
+    print(f"wrote {out}")
+    return EXIT_OK
+
+
 # --------------------------------------------------------------------------- inspect
 
 
@@ -302,6 +331,14 @@ def build_parser() -> argparse.ArgumentParser:
     lc.add_argument("--out", required=True, help="output light-calibration/1 file")
     lc.set_defaults(handler=_cmd_calibrate_lights)
 
+    acq = sub.add_parser("acquire", help="photograph a plate in the cell and write a capture bundle")
+    acq.add_argument("config", help="cell configuration (cell-config/1)")
+    acq.add_argument("--plate-id", required=True, help="the plate's id, written into the bundle")
+    acq.add_argument("--out", required=True, help="bundle folder to write (must not exist)")
+    acq.add_argument("--frame-timeout", type=float, default=None, metavar="S",
+                     help="seconds a frame may take beyond its exposure before the camera counts as gone (default 2)")
+    acq.set_defaults(handler=_cmd_acquire)
+
     ins = sub.add_parser("inspect", help="measure a capture bundle against its target")
     ins.add_argument("capture", help="capture bundle: folder or .zip (plate-capture/1)")
     ins.add_argument("--target", required=True, help="target file (plate-target/1)")
@@ -326,6 +363,9 @@ def main(argv: list[str] | None = None) -> int:
     except (InputError, BadArgument, FileNotFoundError, NotADirectoryError) as err:
         print(f"plate-inspect {args.command}: {_one_line(err)}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except AcquisitionError as err:  # a camera or the light controller failed (acquire left no bundle)
+        print(f"plate-inspect {args.command}: {_one_line(err)}", file=sys.stderr)
+        return EXIT_HARDWARE
     except PipelineError as err:  # valid input that cannot be measured (inspect wrote result.json saying why)
         print(f"plate-inspect {args.command}: {_one_line(err)}", file=sys.stderr)
         return EXIT_NOT_MEASURABLE

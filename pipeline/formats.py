@@ -9,15 +9,16 @@ field) lives in :mod:`pipeline.io`.
 from __future__ import annotations
 
 import math
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, field_validator, model_validator
 
 CALIBRATION_FORMAT = "stereo-calibration/1"
 CAPTURE_FORMAT = "plate-capture/1"
 TARGET_FORMAT = "plate-target/1"
 RESULT_FORMAT = "plate-result/1"
 LIGHT_CALIBRATION_FORMAT = "light-calibration/1"
+CELL_CONFIG_FORMAT = "cell-config/1"
 
 #: Tolerance on |l| - 1 for a light direction to count as a unit vector.
 UNIT_TOLERANCE = 1e-3
@@ -48,6 +49,20 @@ class CalibrationError(PipelineError):
 
 class CaptureError(PipelineError):
     """A well-formed capture that cannot be measured (no plate found, too few lit pixels, ...)."""
+
+
+class AcquisitionError(Exception):
+    """A device of the cell failed while acquiring: names the device and the step.
+
+    ``str(err)`` is one line: ``"<device>: <step>: <reason>"`` (``"left camera 192.168.10.11:
+    photometric image 3: no frame within 2.0 s"``); the CLI prints it and exits 4.
+    """
+
+    def __init__(self, device: str, step: str, reason: str):
+        self.device = device
+        self.step = step
+        self.reason = reason
+        super().__init__(f"{device}: {step}: {reason}")
 
 
 class _Strict(BaseModel):
@@ -105,13 +120,13 @@ class StereoCalibrationFile(_Strict):
 # --------------------------------------------------------------------------- capture
 
 
-def _unit_vector(v, what: str = "a unit vector"):
+def _unit_vector(v, what: str = "a unit vector", tolerance: float = UNIT_TOLERANCE):
     if not _finite(v):
         raise ValueError(f"expected finite numbers, got {v}")
     norm = math.sqrt(sum(x * x for x in v))
     if norm == 0:
         raise ValueError(f"expected {what}, got the zero vector")
-    if abs(norm - 1.0) > UNIT_TOLERANCE:
+    if abs(norm - 1.0) > tolerance:
         raise ValueError(f"expected {what}, got length {norm:.4f}")
     return v
 
@@ -190,6 +205,7 @@ class CaptureFile(_Strict):
     photometric: Photometric
     stereo: StereoPair | None = None
     working_distance_mm: float | None = Field(default=None, gt=0)
+    acquisition: dict[str, Any] | None = None
 
 
 class CalibratedLight(_Strict):
@@ -217,6 +233,142 @@ class LightCalibrationFile(_Strict):
     format: Literal["light-calibration/1"]
     lights: Annotated[list[CalibratedLight], Field(min_length=3)]
     rms: float | None = Field(default=None, ge=0)
+
+
+# --------------------------------------------------------------------------- cell configuration
+
+
+class CellCamera(_Strict):
+    """One camera of the cell: ``aravis`` (GenICam through Aravis) or ``simulated`` (the simulator)."""
+
+    driver: Literal["aravis", "simulated"]
+    device_id: str | None = Field(default=None, min_length=1)
+    exposure_us: float | None = Field(default=None, gt=0)
+    gain_db: float | None = None
+
+    @field_validator("exposure_us", "gain_db")
+    @classmethod
+    def _finite(cls, v):
+        if v is not None and not math.isfinite(v):
+            raise ValueError(f"expected a finite number, got {v}")
+        return v
+
+    @model_validator(mode="after")
+    def _device(self):
+        if self.driver == "aravis" and self.device_id is None:
+            raise ValueError("device_id: missing required key (an aravis camera is opened by its device id)")
+        return self
+
+
+class CellCameras(_Strict):
+    left: CellCamera
+    right: CellCamera
+
+
+def _one_line_command(v: str | None, *, per_light: bool) -> str | None:
+    """A light controller command: one text line (a line break only at its end).
+
+    Per-light commands are ``str.format`` templates whose only field is ``{index}``; the stereo
+    light's commands are sent as they are.
+    """
+    if v is None:
+        return None
+    body = v.removesuffix("\n").removesuffix("\r")
+    if not body.strip():
+        raise ValueError(f"expected a command, got {v!r}")
+    if "\n" in body or "\r" in body:
+        raise ValueError(f"expected one line (a line break only at the end), got {v!r}")
+    if not per_light:
+        if "{index}" in body:
+            raise ValueError(f"expected a command without {{index}} (it switches the stereo light), got {v!r}")
+        return v
+    if "{index}" not in body:
+        raise ValueError(f"expected {{index}} (the 0-based light index) in the command, got {v!r}")
+    try:
+        body.format(index=0)
+    except (KeyError, IndexError, ValueError) as exc:
+        raise ValueError(f"expected text whose only field is {{index}}, got {v!r} ({exc})") from None
+    return v
+
+
+#: Tolerance on |l| - 1 for a cell configuration's light axis or direction; it is then normalised.
+CELL_UNIT_TOLERANCE = 0.01
+
+
+class CellLight(Light):
+    """A capture light as a cell configuration gives it: an axis or direction within
+    :data:`CELL_UNIT_TOLERANCE` of unit length (``[-0.4, 0, 0.92]``, rounded by hand) is normalised."""
+
+    @field_validator("direction", "axis")
+    @classmethod
+    def _unit(cls, v):
+        if v is None:
+            return None
+        _unit_vector(v, tolerance=CELL_UNIT_TOLERANCE)
+        norm = math.sqrt(sum(x * x for x in v))
+        return [x / norm for x in v]
+
+
+_LightList = Annotated[list[CellLight], Field(min_length=3)]
+
+
+def _lights_kind(v) -> str:
+    return "file" if isinstance(v, str) else "list"
+
+
+class CellLights(_Strict):
+    """The light controller and the photometric lights it switches (in image order)."""
+
+    driver: Literal["tcp", "simulated"]
+    address: str | None = None
+    on: str | None = None
+    off: str | None = None
+    stereo_on: str | None = None
+    stereo_off: str | None = None
+    lights: Annotated[
+        Annotated[_LightList, Tag("list")] | Annotated[str, Tag("file"), Field(min_length=1)],
+        Discriminator(_lights_kind),
+    ]
+
+    @field_validator("address")
+    @classmethod
+    def _host_port(cls, v):
+        if v is None:
+            return v
+        host, sep, port = v.rpartition(":")
+        if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+            raise ValueError(f"expected HOST:PORT (port 1-65535), got {v!r}")
+        return v
+
+    @field_validator("on", "off")
+    @classmethod
+    def _per_light(cls, v):
+        return _one_line_command(v, per_light=True)
+
+    @field_validator("stereo_on", "stereo_off")
+    @classmethod
+    def _stereo(cls, v):
+        return _one_line_command(v, per_light=False)
+
+    @model_validator(mode="after")
+    def _complete(self):
+        if self.driver == "tcp":
+            for key in ("address", "on", "off"):
+                if getattr(self, key) is None:
+                    raise ValueError(f"{key}: missing required key (a tcp light controller needs address, on and off)")
+        if (self.stereo_on is None) != (self.stereo_off is None):
+            missing = "stereo_off" if self.stereo_off is None else "stereo_on"
+            raise ValueError(f"{missing}: missing required key (stereo_on and stereo_off go together)")
+        return self
+
+
+class CellConfigFile(_Strict):
+    format: Literal["cell-config/1"]
+    cell_id: str = Field(min_length=1)
+    cameras: CellCameras
+    lights: CellLights
+    calibration: str = Field(min_length=1)
+    working_distance_mm: float = Field(gt=0)
 
 
 # --------------------------------------------------------------------------- target

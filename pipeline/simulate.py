@@ -1045,6 +1045,29 @@ class _Scene:
     conveyor: _Texture  # the conveyor's texture, or the floor's when the plate lies over a floor
 
 
+def _scene(plate: PlateSpec, capture: CaptureSpec, rig: StereoRig, seeds: list[np.random.SeedSequence]) -> _Scene:
+    """The plate posed in front of the rig with its texture and what lies behind it.
+
+    ``seeds`` are the six children of the capture seed (:func:`simulate_capture`); the textures
+    take the last two.
+    """
+    tex_seed = capture.albedo_seed if capture.albedo_seed is not None else int(seeds[4].generate_state(1)[0])
+    conveyor_seed = int(seeds[5].generate_state(1)[0])
+    mm_per_px = plate.distance_mm / rig.left.K[0, 0]
+    return _Scene(
+        plate=plate,
+        T_cam_plate=plate_pose(plate),
+        albedo=_plate_albedo_texture(plate, capture.texture, tex_seed, max(_TEXEL_MM, mm_per_px / 2)).prefiltered(
+            mm_per_px
+        ),
+        conveyor=(
+            _conveyor_texture(plate, conveyor_seed)
+            if plate.floor is None
+            else _floor_texture(plate, conveyor_seed, max(4.0, mm_per_px / 2), _floor_span_mm(plate, rig))
+        ).prefiltered(mm_per_px),
+    )
+
+
 def _render_view(scene: _Scene, origin: np.ndarray, rays: np.ndarray) -> tuple[_Hits, np.ndarray]:
     """Hits and albedo (H, W) float32 for rays (H, W, 3) from ``origin`` (left-camera frame)."""
     hits = _intersect(scene.plate, scene.T_cam_plate, origin, rays)
@@ -1209,23 +1232,8 @@ def simulate_capture(
 
     seeds = np.random.SeedSequence(int(seed)).spawn(6)
     rng_lights, rng_noise, rng_dark, rng_stereo = (np.random.default_rng(s) for s in seeds[:4])
-    tex_seed = capture.albedo_seed if capture.albedo_seed is not None else int(seeds[4].generate_state(1)[0])
-    conveyor_seed = int(seeds[5].generate_state(1)[0])
-
-    T_cam_plate = plate_pose(plate)
-    mm_per_px = plate.distance_mm / rig.left.K[0, 0]
-    scene = _Scene(
-        plate=plate,
-        T_cam_plate=T_cam_plate,
-        albedo=_plate_albedo_texture(plate, capture.texture, tex_seed, max(_TEXEL_MM, mm_per_px / 2)).prefiltered(
-            mm_per_px
-        ),
-        conveyor=(
-            _conveyor_texture(plate, conveyor_seed)
-            if plate.floor is None
-            else _floor_texture(plate, conveyor_seed, max(4.0, mm_per_px / 2), _floor_span_mm(plate, rig))
-        ).prefiltered(mm_per_px),
-    )
+    scene = _scene(plate, capture, rig, seeds)
+    T_cam_plate = scene.T_cam_plate
     spread = capture.intensity_spread
     intensities = rng_lights.uniform(1.0 - spread, 1.0 + spread, capture.n_lights)
     centre = T_cam_plate[:3, 3]
@@ -1340,6 +1348,59 @@ def simulate_capture(
     CaptureFile.model_validate(capture_obj)
     (out / "capture.json").write_text(json.dumps(capture_obj, indent=2))
     return out
+
+
+def render_radiance(
+    plate: PlateSpec,
+    rig: StereoRig,
+    lights: Lights,
+    *,
+    side: Literal["left", "right"],
+    capture: CaptureSpec = CaptureSpec(),
+    seed: int = 0,
+) -> np.ndarray:
+    """What one camera of the rig sees of the plate under each light alone, before the sensor.
+
+    The scene (plate, texture, conveyor or floor) is the one :func:`simulate_capture` renders for the
+    same ``plate``, ``capture`` and ``seed``; the lights are any lights (``capture``'s own are not used).
+    A cell simulator adds the dark level, noise and quantisation of its sensor.
+
+    Parameters
+    ----------
+    plate : PlateSpec
+    rig : StereoRig
+    lights : pipeline.lights.Lights
+        Left-camera frame, mm.
+    side : {"left", "right"}
+    capture : CaptureSpec
+        Its ``exposure``, ``specular``, ``shininess``, ``texture`` and ``albedo_seed`` are used.
+    seed : int
+
+    Returns
+    -------
+    (N, H, W) float32
+        Noise-free radiance of light k on the camera's raw (distorted) pixel grid, in fractions of
+        full scale (``capture.exposure`` for a white plate facing the light head-on), dark not added;
+        ``(W, H)`` is the camera's ``image_size``.
+
+    Raises
+    ------
+    ValueError
+        The camera sees no part of the plate.
+    """
+    if side not in ("left", "right"):
+        raise ValueError(f"side: expected 'left' or 'right', got {side!r}")
+    scene = _scene(plate, capture, rig, np.random.SeedSequence(int(seed)).spawn(6))
+    camera = getattr(rig, side)
+    rays = _raw_pixel_rays(camera)
+    eye = np.zeros(3)
+    if side == "right":
+        rays = rays @ rig.R  # directions into the left frame: R^T r
+        eye = -rig.R.T @ rig.T
+    hits, albedo = _render_view(scene, eye, rays)
+    if not hits.on_plate.any():
+        raise ValueError(f"plate: no pixel of the {side} camera sees the plate (check distance_mm, tilt_deg, size_mm)")
+    return _shade(hits, albedo, eye + hits.s[..., None] * rays, eye, lights, capture)
 
 
 def _target_object(plate: PlateSpec, tolerance_mm: float, out: Path) -> dict:

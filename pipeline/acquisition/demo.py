@@ -1,0 +1,73 @@
+"""The demo cell: a ``cell-config/1`` of simulated cameras and lights, with its calibration and target."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..formats import CELL_CONFIG_FORMAT, TARGET_FORMAT, CellConfigFile, TargetFile
+from ..io import calibration_document
+
+#: Height of the demo cell's LED ring above the plate centre, mm.
+DEMO_LED_HEIGHT_MM = 2000.0
+
+
+def write_demo_cell(
+    folder: str | os.PathLike,
+    *,
+    n_lights: int = 8,
+    width: int = 1224,
+    height: int = 1024,
+    working_distance_mm: float = 3000.0,
+) -> Path:
+    """Write the demo cell's configuration into ``folder``: simulated cameras and lights.
+
+    The lights are LEDs on a ring :data:`DEMO_LED_HEIGHT_MM` above the plate centre, aimed at it
+    (the simulator's near-field lights); the plate the simulated cameras see is the simulator's
+    default plate (a convex cylinder of radius 5000 mm, 3000 x 3000 mm) at the working distance.
+
+    Parameters
+    ----------
+    folder : str or Path
+        Created if missing; ``cell.json``, ``calibration.json`` and ``target.json`` are written
+        (overwritten) there.
+    n_lights : int
+    width, height : int
+        Image size of the simulated head (:func:`pipeline.simulate.default_rig`).
+    working_distance_mm : float
+
+    Returns
+    -------
+    Path
+        ``folder / "cell.json"``.
+    """
+    from ..simulate import CaptureSpec, PlateSpec, default_rig
+
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    spec = CaptureSpec(n_lights=n_lights, near_field_mm=DEMO_LED_HEIGHT_MM, led_mu=1.0)
+    lights = spec.lights(np.array([0.0, 0.0, working_distance_mm]), np.ones(n_lights))
+    (out / "calibration.json").write_text(json.dumps(calibration_document(default_rig(width=width, height=height)), indent=2) + "\n")
+    cell = {
+        "format": CELL_CONFIG_FORMAT,
+        "cell_id": "demo",
+        "cameras": {"left": {"driver": "simulated"}, "right": {"driver": "simulated"}},
+        "lights": {"driver": "simulated", "lights": lights.documents()},
+        "calibration": "calibration.json",
+        "working_distance_mm": working_distance_mm,
+    }
+    CellConfigFile.model_validate(cell)
+    (out / "cell.json").write_text(json.dumps(cell, indent=2) + "\n")
+    plate = PlateSpec()
+    target = {
+        "format": TARGET_FORMAT,
+        "shape": {"type": plate.shape, "radius_mm": plate.radius_mm},
+        "size_mm": list(plate.size_mm),
+        "tolerance_mm": 2.0,
+    }
+    TargetFile.model_validate(target)
+    (out / "target.json").write_text(json.dumps(target, indent=2) + "\n")
+    return out / "cell.json"

@@ -1,0 +1,115 @@
+"""Test devices: a TCP light controller of the tests' own and Aravis' fake GigE Vision camera.
+
+:class:`LightServer` is a real TCP server on loopback that speaks the tcp driver's protocol (one
+command per line, an ``OK`` line per command unless told otherwise) and records every command; it
+can refuse a command, stop answering, or call back on a command (to pull a camera away mid-way).
+:class:`FakeGigECamera` runs ``arv-fake-gv-camera-0.8 -i 127.0.0.1`` (Debian's aravis-tools), a
+separate process that speaks GigE Vision over loopback.
+"""
+
+from __future__ import annotations
+
+import shutil
+import socketserver
+import subprocess
+import threading
+import time
+from collections.abc import Callable
+
+FAKE_GV_CAMERA = "arv-fake-gv-camera-0.8"
+FAKE_GV_ADDRESS = "127.0.0.1"
+
+
+class LightServer:
+    """A light controller on ``127.0.0.1:<free port>``.
+
+    Parameters
+    ----------
+    reply : str or None
+        The line sent after each accepted command (None: a silent controller).
+    echo : bool
+        Send each command back first.
+    refuse : str or None
+        A command (without its line break) answered with ``ERR refused`` instead.
+    stall_after : int or None
+        After this many commands, read but never answer again.
+    on_command : callable, optional
+        ``on_command(command)`` before the answer, in the server's thread.
+    """
+
+    def __init__(self, *, reply: str | None = "OK", echo: bool = False, refuse: str | None = None,
+                 stall_after: int | None = None, on_command: Callable[[str], None] | None = None):
+        self.commands: list[str] = []
+        self.connections = 0
+        server = self
+
+        class Handler(socketserver.StreamRequestHandler):
+            def handle(self) -> None:
+                server.connections += 1
+                for raw in self.rfile:
+                    command = raw.decode().rstrip("\r\n")
+                    server.commands.append(command)
+                    if on_command is not None:
+                        on_command(command)
+                    if stall_after is not None and len(server.commands) > stall_after:
+                        continue
+                    if echo:
+                        self.wfile.write(raw)
+                    if command == refuse:
+                        self.wfile.write(b"ERR refused\n")
+                    elif reply is not None:
+                        self.wfile.write(reply.encode() + b"\n")
+
+        class Server(socketserver.ThreadingTCPServer):
+            daemon_threads = True
+            allow_reuse_address = True
+
+        self._server = Server(("127.0.0.1", 0), Handler)
+        self.address = f"127.0.0.1:{self._server.server_address[1]}"
+        self._thread = threading.Thread(target=self._server.serve_forever, daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        self._server.shutdown()
+        self._server.server_close()
+
+
+class FakeGigECamera:
+    """``arv-fake-gv-camera-0.8 -i 127.0.0.1 -s SERIAL [-r LOST]`` running until :meth:`stop`.
+
+    Waits until Aravis opens the camera at 127.0.0.1 and checks that it is this one (its serial):
+    only one fake GigE camera can answer on the loopback address.
+    """
+
+    def __init__(self, serial: str = "PITEST", *, lost_packets_per_thousand: int = 0):
+        if shutil.which(FAKE_GV_CAMERA) is None:
+            raise RuntimeError(f"{FAKE_GV_CAMERA} not found: scripts/setup.sh installs Debian's aravis-tools")
+        import gi
+
+        gi.require_version("Aravis", "0.8")
+        from gi.repository import Aravis, GLib
+
+        self.serial = serial
+        self.device_id = FAKE_GV_ADDRESS
+        command = [FAKE_GV_CAMERA, "-i", FAKE_GV_ADDRESS, "-s", serial, "-r", str(lost_packets_per_thousand)]
+        self._process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        deadline = time.monotonic() + 15
+        while True:
+            if self._process.poll() is not None:
+                raise RuntimeError(f"{FAKE_GV_CAMERA} exited: {self._process.stdout.read().decode().strip()}")
+            try:
+                found = Aravis.Camera.new(FAKE_GV_ADDRESS).get_device_serial_number()
+            except GLib.Error:
+                found = None
+            if found == serial:
+                return
+            if found is not None or time.monotonic() > deadline:
+                self.stop()
+                raise RuntimeError(f"the fake GigE camera at {FAKE_GV_ADDRESS} is {found!r}, not this test's {serial!r}")
+            time.sleep(0.2)
+
+    def stop(self) -> None:
+        """Stop the camera (it vanishes from the network)."""
+        if self._process.poll() is None:
+            self._process.terminate()
+            self._process.wait(timeout=10)
