@@ -41,8 +41,9 @@ def register(subparsers) -> None:
 class ConsumerProcess:
     """The job consumer (``python -m app.worker``) as a supervised child process.
 
-    It is restarted if it exits while the server runs (its interrupted job is re-queued by
-    the new consumer); :meth:`stop` ends it with SIGTERM, then SIGKILL after a timeout.
+    It is restarted if it exits while the server runs (a job it was running is reclaimed by the
+    new consumer: a worker death, see :mod:`app.jobs`); :meth:`stop` ends it with SIGTERM, then
+    SIGKILL after a timeout.
     """
 
     def __init__(self, settings: Settings):

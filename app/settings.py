@@ -2,7 +2,8 @@
 
 ``PLATE_INSPECT_DATA_DIR``, ``PLATE_INSPECT_DATABASE_URL``, ``PLATE_INSPECT_API_TOKEN``,
 ``PLATE_INSPECT_MAX_UPLOAD_MB``, ``PLATE_INSPECT_DEMO``, ``PLATE_INSPECT_PROGRESS_INTERVAL_S``,
-``PLATE_INSPECT_INSPECT_ENTRY``, ``PLATE_INSPECT_VIEWER_IDLE_S``, ``PLATE_INSPECT_VIEWER_MAX_SERVERS``.
+``PLATE_INSPECT_INSPECT_ENTRY``, ``PLATE_INSPECT_VIEWER_IDLE_S``, ``PLATE_INSPECT_VIEWER_MAX_SERVERS``,
+``PLATE_INSPECT_JOB_LEASE_S``.
 """
 
 from __future__ import annotations
@@ -42,6 +43,10 @@ class Settings(BaseSettings):
         A 3D view's viser server stops this long after its last browser left, s.
     viewer_max_servers : int
         Most 3D views (one viser server each, on loopback) running at once.
+    job_lease_s : float
+        A running job's lease, s: its consumer renews it every third of this; a job whose lease ran
+        out (its consumer hung or died on another host) may be claimed again, which counts as a
+        worker death (the second sets the job aside as failed).
     """
 
     model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, extra="ignore")
@@ -55,6 +60,8 @@ class Settings(BaseSettings):
     inspect_entry: str = "pipeline.run:inspect"
     viewer_idle_s: float = Field(default=300.0, ge=0)
     viewer_max_servers: int = Field(default=8, ge=1, le=64)
+    # -- job consumer (app.worker): job leases
+    job_lease_s: float = Field(default=60.0, ge=3.0)
 
     @field_validator("inspect_entry")
     @classmethod
@@ -88,6 +95,7 @@ class Settings(BaseSettings):
             f"{ENV_PREFIX}DEMO": "1" if self.demo else "0",
             f"{ENV_PREFIX}PROGRESS_INTERVAL_S": repr(self.progress_interval_s),
             f"{ENV_PREFIX}INSPECT_ENTRY": self.inspect_entry,
+            f"{ENV_PREFIX}JOB_LEASE_S": repr(self.job_lease_s),
         }
         if self.api_token is not None:
             env[f"{ENV_PREFIX}API_TOKEN"] = self.api_token.get_secret_value()

@@ -1,9 +1,12 @@
 """The job consumer process: ``python -m app.worker`` (``plate-inspect serve`` starts it as a child).
 
-Reads the same ``PLATE_INSPECT_*`` settings as the web process, upgrades the database, re-queues
-jobs that were running when a previous consumer died, then runs huey's consumer (one worker).
-SIGTERM stops it at once (a job it was running is re-queued at the next start); SIGINT waits
-for the running job.
+Reads the same ``PLATE_INSPECT_*`` settings as the web process, upgrades the database, reclaims
+the jobs that were running when a previous consumer died (each counts a worker death; the second
+sets the job aside as failed), queues every queued row again, oldest first, then runs huey's
+consumer (one worker).
+
+SIGTERM stops it at once: the job it was running goes back to the queue in its place, and that is
+not counted as a worker death. SIGINT waits for the running job.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ import sys
 
 from app.db import make_engine, make_session_factory, upgrade_database
 from app.jobs import JobQueue
+from app.services import inspections as svc
 from app.settings import Settings
 from app.storage import Storage
 
@@ -22,15 +26,23 @@ log = logging.getLogger("app.worker")
 def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s [worker %(process)d] %(name)s: %(message)s")
     settings = Settings()
+    owner = svc.process_lease_owner()
     storage = Storage(settings.data_dir)
     storage.ensure()
     upgrade_database(settings.sqlalchemy_url)
     engine = make_engine(settings.sqlalchemy_url)
-    queue = JobQueue(settings, make_session_factory(engine), storage)
-    queue.requeue_interrupted()
+    session_factory = make_session_factory(engine)
+    queue = JobQueue(settings, session_factory, storage)
+    queue.requeue_interrupted(owner=owner)
     consumer = queue.create_consumer()
-    log.info("consumer ready (data dir %s)", storage.data_dir)
+    log.info("consumer ready (%s)", owner)
     consumer.run()
+    # Stopped (SIGTERM: the worker thread may still be inside a job): give its job back.
+    with session_factory() as session:
+        released = svc.release(session=session, owner=owner)
+        session.commit()
+    if released:
+        log.info("inspections %s back in the queue (stopped, not a worker death)", released)
     engine.dispose()
     return 0
 
