@@ -8,6 +8,8 @@ from __future__ import annotations
 import importlib
 import json
 import logging
+import os
+import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -26,6 +28,8 @@ log = logging.getLogger(__name__)
 
 #: Stage name reported while a simulated capture is rendered (before the pipeline's stages).
 SIMULATE_STAGE = "simulate"
+#: Suffix (then ``-<random>``) of the folders a simulated bundle is rendered into, beside the bundle.
+PARTIAL_SUFFIX = ".partial"
 
 
 class ProgressWriter:
@@ -74,29 +78,39 @@ def resolve_entry(entry: str) -> Callable:
 def render_simulated_bundle(*, bundle_dir: Path, plate_id: str, simulation: dict) -> Path:
     """Render a simulated capture bundle into ``bundle_dir`` with the pipeline's simulator.
 
-    Idempotent: an existing complete bundle (its ``capture.json`` present) is reused; a partial
-    one left by a killed job is rendered again.
+    Idempotent: an existing complete bundle (its ``capture.json`` present) is reused. The bundle is
+    rendered into a new folder of its own beside it (``bundle.partial-<random>``), then renamed
+    into place, so folders left by a killed run (removed first) or a concurrent one never collide
+    with it.
     """
     from pipeline.simulate import simulate_capture
 
+    bundle_dir = Path(bundle_dir)
     if (bundle_dir / "capture.json").is_file():
         return bundle_dir
-    partial = bundle_dir.with_name(bundle_dir.name + ".partial")
-    Storage.remove(partial)
-    partial.mkdir(parents=True)
     try:
         plate, capture = svc.simulation_specs(simulation)
     except ValueError as err:  # the simulator refuses the described plate
         raise InputError(SIMULATION_FILE, "", str(err)) from None
-    simulate_capture(
-        partial,
-        plate=plate,
-        capture=capture,
-        plate_id=plate_id,
-        tolerance_mm=float(simulation["tolerance_mm"]),
-        seed=int(simulation["seed"]),
-    )
-    partial.rename(bundle_dir)
+    bundle_dir.parent.mkdir(parents=True, exist_ok=True)
+    for leftover in bundle_dir.parent.glob(bundle_dir.name + PARTIAL_SUFFIX + "*"):
+        Storage.remove(leftover)
+    partial = Path(tempfile.mkdtemp(prefix=bundle_dir.name + PARTIAL_SUFFIX + "-", dir=bundle_dir.parent))
+    try:
+        simulate_capture(
+            partial,
+            plate=plate,
+            capture=capture,
+            plate_id=plate_id,
+            tolerance_mm=float(simulation["tolerance_mm"]),
+            seed=int(simulation["seed"]),
+        )
+        if bundle_dir.exists() and not (bundle_dir / "capture.json").is_file():
+            Storage.remove(bundle_dir)  # an incomplete bundle: replaced
+        if not bundle_dir.exists():
+            os.rename(partial, bundle_dir)
+    finally:
+        Storage.remove(partial)
     return bundle_dir
 
 
@@ -135,7 +149,8 @@ def execute_inspection(
     -----
     Never raises for a job failure: bad input (:class:`InputError`) and unmeasurable captures
     (:class:`PipelineError`) store their one-line message; anything else stores
-    ``"internal error: <type>: <message>"`` and logs the traceback.
+    ``"internal error: <type>: <message>"`` and logs the traceback. Stored messages name files
+    relative to the inspection's inputs or the data dir, never by server path.
     """
     owner = owner or svc.process_lease_owner()
     with session_factory() as session:
@@ -164,7 +179,7 @@ def execute_inspection(
             log.info("inspection %s: failed: %s", inspection_id, message)
         except Exception as err:  # noqa: BLE001 - stored as failed, never lost
             log.exception("inspection %s: internal error", inspection_id)
-            message = f"internal error: {type(err).__name__}: {err}"
+            message = f"internal error: {type(err).__name__}: {_client_message(str(err), storage, inspection_id)}"
     with session_factory() as session:
         if message is None:
             stored = svc.mark_done(session=session, inspection_id=inspection_id, document=document, owner=owner)
@@ -208,6 +223,8 @@ def _run(
 
 
 def _client_message(text: str, storage: Storage, inspection_id: int) -> str:
-    """``text`` on one line, naming the files as the client knows them (``capture.zip``,
-    ``bundle/...``), not by server path."""
-    return " ".join(text.replace(str(storage.inputs_dir(inspection_id)) + "/", "").split())
+    """``text`` on one line, with server paths made relative: to the inspection's inputs
+    (``capture.zip``, ``bundle/...``, as the client knows them), else to the data dir."""
+    for prefix in (storage.inputs_dir(inspection_id), storage.data_dir):
+        text = text.replace(str(prefix) + "/", "").replace(str(prefix), ".")
+    return " ".join(text.split())

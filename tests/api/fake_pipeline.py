@@ -5,6 +5,8 @@ It validates its inputs with the real loaders, reports progress through stages, 
 mid-job), and writes a ``plate-result/1`` document whose numbers come from the target (it does
 not measure anything: the tests using it check the service, not the measurement). A plate id
 containing ``UNMEASURABLE`` raises :class:`CaptureError`; ``CRASH`` raises a RuntimeError;
+``PATHERROR`` raises the ``FileExistsError`` of a leftover ``bundle.partial`` folder beside the
+capture, with its server path (as an unguarded render did);
 ``KILLSELF`` kills its own process with SIGKILL in the ``normals`` stage (a job that kills its
 worker).
 With ``PLATE_INSPECT_TEST_INVOCATIONS`` set to a file, each call appends ``start <inspection id>
@@ -17,6 +19,7 @@ nominal lights of the same count, else a warning why not); its count of lights g
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import signal
@@ -48,6 +51,9 @@ def inspect(capture, target, *, out_dir: Path, progress=None, light_calibration=
         raise CaptureError(f"{cap.plate_id}: no plate found in the photometric images")
     if "CRASH" in cap.plate_id:
         raise RuntimeError("simulated bug")
+    if "PATHERROR" in cap.plate_id:
+        leftover = Path(capture).resolve().parent / "bundle.partial"
+        raise FileExistsError(errno.EEXIST, os.strerror(errno.EEXIST), str(leftover))
     for i, stage in enumerate(STAGES):
         if progress is not None:
             progress(stage, i / len(STAGES))

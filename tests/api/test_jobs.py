@@ -100,6 +100,8 @@ def test_consumer_killed_mid_job_is_requeued_and_completes(client, consumer_fact
     [
         ("P-UNMEASURABLE", "P-UNMEASURABLE: no plate found in the photometric images"),
         ("P-CRASH", "internal error: RuntimeError: simulated bug"),
+        # the server path of the file is not given away: named relative to the inspection's inputs
+        ("P-PATHERROR", "internal error: FileExistsError: [Errno 17] File exists: 'bundle.partial'"),
     ],
 )
 def test_failed_job_keeps_inputs_and_error(client, settings, consumer_factory, bundle_zip, plate_id, message):
@@ -140,6 +142,28 @@ def test_a_job_delivered_twice_runs_once(client, settings):
     assert execute_inspection(inspection_id, **kw) == "done"
     assert execute_inspection(inspection_id, **kw) == "skipped"
     assert client.get(f"/api/v1/inspections/{inspection_id}").json()["status"] == "done"
+
+
+def test_simulated_bundle_rendered_over_leftovers_of_dead_runs(client, settings):
+    from app.jobs import execute_inspection
+
+    r = client.post("/api/v1/plates/SIM-3/inspections/simulated",
+                    json={"n_lights": 3, "width": 160, "height": 128}, headers=AUTH)
+    inspection_id = r.json()["id"]
+    inputs = settings.data_dir / "inspections" / str(inspection_id) / "inputs"
+    # A run killed while rendering (the old fixed name, and a newer random one), and a bundle
+    # folder without its capture.json.
+    for leftover in ("bundle.partial", "bundle.partial-k2j4x9"):
+        (inputs / leftover).mkdir()
+        (inputs / leftover / "ps_00.png").write_bytes(b"half an image")
+    (inputs / "bundle").mkdir()
+    (inputs / "bundle" / "ps_00.png").write_bytes(b"half an image")
+    state = client.app.state
+    status = execute_inspection(inspection_id, settings=settings, session_factory=state.session_factory,
+                                storage=state.storage)
+    assert status == "done", client.get(f"/api/v1/inspections/{inspection_id}").json()
+    assert sorted(p.name for p in inputs.iterdir()) == ["bundle", "simulation.json"]
+    assert (inputs / "bundle" / "capture.json").is_file()
 
 
 def test_real_pipeline_inspection(tmp_path, consumer_factory, bundle_zip):
