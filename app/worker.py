@@ -1,9 +1,11 @@
 """The job consumer process: ``python -m app.worker`` (``plate-inspect serve`` starts it as a child).
 
-Reads the same ``PLATE_INSPECT_*`` settings as the web process, upgrades the database, reclaims
-the jobs that were running when a previous consumer died (each counts a worker death; the second
-sets the job aside as failed), queues every queued row again, oldest first, then runs huey's
-consumer (one worker).
+Reads the same ``PLATE_INSPECT_*`` settings as the web process, upgrades the database, opens the
+queue (a corrupt queue file is moved aside and rebuilt), reclaims the jobs that were running when
+a previous consumer died (each counts a worker death; the second sets the job aside as failed),
+queues every queued row again, oldest first, then runs huey's consumer (one worker), and a thread
+that queues again, every 30 s, queued rows whose message was lost
+(:meth:`app.jobs.queue.JobQueue.sweep`).
 
 SIGTERM stops it at once: the job it was running goes back to the queue in its place, and that is
 not counted as a worker death. SIGINT waits for the running job.
@@ -13,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import sys
+import threading
 
 from app.db import make_engine, make_session_factory, upgrade_database
 from app.jobs import JobQueue
@@ -34,9 +37,12 @@ def main(argv: list[str] | None = None) -> int:
     session_factory = make_session_factory(engine)
     queue = JobQueue(settings, session_factory, storage)
     queue.requeue_interrupted(owner=owner)
+    stop_sweeping = threading.Event()
+    threading.Thread(target=queue.sweep_until, args=(stop_sweeping,), name="queue-sweep", daemon=True).start()
     consumer = queue.create_consumer()
     log.info("consumer ready (%s)", owner)
     consumer.run()
+    stop_sweeping.set()
     # Stopped (SIGTERM: the worker thread may still be inside a job): give its job back.
     with session_factory() as session:
         released = svc.release(session=session, owner=owner)
