@@ -1,24 +1,33 @@
-"""The job consumer process: ``python -m app.worker`` (``plate-inspect serve`` starts it as a child).
+"""The job consumer process: ``python -m app.worker [--parent-pid PID]`` (``plate-inspect serve`` starts it).
 
-Reads the same ``PLATE_INSPECT_*`` settings as the web process, upgrades the database, opens the
-queue (a corrupt queue file is moved aside and rebuilt), reclaims the jobs that were running when
-a previous consumer died (each counts a worker death; the second sets the job aside as failed),
-queues every queued row again, oldest first, then runs huey's consumer (one worker), and a thread
-that queues again, every 30 s, queued rows whose message was lost
-(:meth:`app.jobs.queue.JobQueue.sweep`).
+Reads the same ``PLATE_INSPECT_*`` settings as the web process. In order, it:
 
-SIGTERM stops it at once: the job it was running goes back to the queue in its place, and that is
-not counted as a worker death. SIGINT waits for the running job.
+1. with ``--parent-pid`` (given by ``serve``), arranges to stop when that server dies
+   (:func:`app.jobs.guards.exit_with_parent`);
+2. takes the data dir's consumer lock, waiting while another consumer holds it
+   (:class:`app.jobs.guards.ConsumerLock`);
+3. upgrades the database, opens the queue (a corrupt queue file is moved aside and rebuilt),
+   reclaims the jobs that were running when a previous consumer died (each counts a worker death;
+   the second sets the job aside as failed) and queues every queued row again, oldest first;
+4. runs huey's consumer (one worker thread), and a thread that queues again, every 30 s, queued
+   rows whose message was lost (:meth:`app.jobs.queue.JobQueue.sweep`).
+
+SIGTERM (also what a dying server sends) stops it at once: the job it was running goes back to
+the queue in its place, and that is not counted as a worker death. SIGINT waits for the job.
+
+Exit status: 0 after a stop, 1 when its server was gone before it started.
 """
 
 from __future__ import annotations
 
+import argparse
 import logging
 import sys
 import threading
 
 from app.db import make_engine, make_session_factory, upgrade_database
 from app.jobs import JobQueue
+from app.jobs.guards import ConsumerLock, exit_with_parent
 from app.services import inspections as svc
 from app.settings import Settings
 from app.storage import Storage
@@ -27,11 +36,18 @@ log = logging.getLogger("app.worker")
 
 
 def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m app.worker", description="The inspection job consumer.")
+    parser.add_argument("--parent-pid", type=int, default=None,
+                        help="stop when this process (the server that started the consumer) dies")
+    args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s [worker %(process)d] %(name)s: %(message)s")
+    if args.parent_pid is not None:
+        exit_with_parent(args.parent_pid)
     settings = Settings()
     owner = svc.process_lease_owner()
     storage = Storage(settings.data_dir)
     storage.ensure()
+    ConsumerLock(storage.data_dir, owner=owner).acquire()  # held until this process ends
     upgrade_database(settings.sqlalchemy_url)
     engine = make_engine(settings.sqlalchemy_url)
     session_factory = make_session_factory(engine)

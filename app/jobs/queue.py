@@ -122,7 +122,7 @@ class JobQueue:
     # ------------------------------------------------------------ consumer
 
     def requeue_interrupted(self, *, owner: str) -> list[int]:
-        """Consumer start (the only consumer): reclaim jobs of dead consumers, rebuild the queue.
+        """Consumer start (holding the consumer lock): reclaim jobs of dead consumers, rebuild the queue.
 
         Jobs left running lost their consumer: each counts a worker death and is queued again at the
         back, or set aside as failed at the second (:func:`app.services.inspections.reclaim_expired`).
