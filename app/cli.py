@@ -16,6 +16,7 @@ import threading
 from pathlib import Path
 
 from app.settings import Settings
+from app.worker import EXIT_CONFIG
 
 log = logging.getLogger("app.serve")
 
@@ -42,9 +43,10 @@ class ConsumerProcess:
     """The job consumer (``python -m app.worker --parent-pid <this pid>``) as a supervised child process.
 
     It is restarted if it exits while the server runs (a job it was running is reclaimed by the
-    new consumer: a worker death, see :mod:`app.jobs`). :meth:`stop` ends it with SIGTERM, then
-    SIGKILL after a timeout. It stops by itself when this process dies, even by SIGKILL
-    (:func:`app.jobs.guards.exit_with_parent`).
+    new consumer: a worker death, see :mod:`app.jobs`), except when it exits with
+    :data:`app.worker.EXIT_CONFIG` (a setting it cannot run with: logged, not retried).
+    :meth:`stop` ends it with SIGTERM, then SIGKILL after a timeout. It stops by itself when this
+    process dies, even by SIGKILL (:func:`app.jobs.guards.exit_with_parent`).
     """
 
     def __init__(self, settings: Settings):
@@ -69,6 +71,10 @@ class ConsumerProcess:
             code = self.proc.poll()
             if code is None or self._stopping.is_set():
                 continue
+            if code == EXIT_CONFIG:
+                log.error("job consumer refused its settings (exit %s, see its log above); not restarted: jobs stay "
+                          "queued until the settings are fixed and the service restarted", code)
+                return
             log.warning("job consumer exited with %s; restarting it", code)
             self._spawn()
 

@@ -1,6 +1,7 @@
 """One inspection job: claim the row under a lease, (render,) inspect, store done or failed.
 
-Runs in the consumer (:mod:`app.worker`); see :mod:`app.jobs.lease` for the lease.
+Runs in the consumer (:mod:`app.worker`); see :mod:`app.jobs.lease` for the lease and
+:mod:`app.jobs.memory` for the memory bound.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from pathlib import Path
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.jobs.lease import LeaseKeeper
+from app.jobs.memory import is_out_of_memory, out_of_memory_message
 from app.services import inspections as svc
 from app.services import light_calibrations
 from app.services.inspections import SIMULATION_FILE
@@ -148,7 +150,8 @@ def execute_inspection(
     Notes
     -----
     Never raises for a job failure: bad input (:class:`InputError`) and unmeasurable captures
-    (:class:`PipelineError`) store their one-line message; anything else stores
+    (:class:`PipelineError`) store their one-line message; running out of memory stores
+    :func:`app.jobs.memory.out_of_memory_message`; anything else stores
     ``"internal error: <type>: <message>"`` and logs the traceback. Stored messages name files
     relative to the inspection's inputs or the data dir, never by server path.
     """
@@ -178,8 +181,13 @@ def execute_inspection(
             message = _client_message(str(err), storage, inspection_id) or type(err).__name__
             log.info("inspection %s: failed: %s", inspection_id, message)
         except Exception as err:  # noqa: BLE001 - stored as failed, never lost
-            log.exception("inspection %s: internal error", inspection_id)
-            message = f"internal error: {type(err).__name__}: {_client_message(str(err), storage, inspection_id)}"
+            if is_out_of_memory(err):
+                message = out_of_memory_message(settings.worker_memory_mb)
+                log.error("inspection %s: %s", inspection_id, message)
+            else:
+                log.exception("inspection %s: internal error", inspection_id)
+                text = _client_message(str(err), storage, inspection_id)
+                message = f"internal error: {type(err).__name__}: {text}"
     with session_factory() as session:
         if message is None:
             stored = svc.mark_done(session=session, inspection_id=inspection_id, document=document, owner=owner)

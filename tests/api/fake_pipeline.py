@@ -8,7 +8,8 @@ containing ``UNMEASURABLE`` raises :class:`CaptureError`; ``CRASH`` raises a Run
 ``PATHERROR`` raises the ``FileExistsError`` of a leftover ``bundle.partial`` folder beside the
 capture, with its server path (as an unguarded render did);
 ``KILLSELF`` kills its own process with SIGKILL in the ``normals`` stage (a job that kills its
-worker).
+worker); ``HOG`` asks numpy for ``PLATE_INSPECT_TEST_ALLOCATE_MB`` MiB (default 2048; the pages are
+not touched, so without a memory limit it succeeds and the job completes).
 With ``PLATE_INSPECT_TEST_INVOCATIONS`` set to a file, each call appends ``start <inspection id>
 <pid>`` to it when it begins and ``end <inspection id> <pid>`` when it returns a result, so a test
 can count how often each job ran and completed.
@@ -54,6 +55,11 @@ def inspect(capture, target, *, out_dir: Path, progress=None, light_calibration=
     if "PATHERROR" in cap.plate_id:
         leftover = Path(capture).resolve().parent / "bundle.partial"
         raise FileExistsError(errno.EEXIST, os.strerror(errno.EEXIST), str(leftover))
+    if "HOG" in cap.plate_id:
+        import numpy as np
+
+        hog = np.empty(int(os.environ.get("PLATE_INSPECT_TEST_ALLOCATE_MB", "2048")) << 20, dtype=np.uint8)
+        del hog
     for i, stage in enumerate(STAGES):
         if progress is not None:
             progress(stage, i / len(STAGES))
