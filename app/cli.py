@@ -16,6 +16,7 @@ import threading
 from pathlib import Path
 
 from app.settings import Settings
+from app.worker import EXIT_CONFIG
 
 log = logging.getLogger("app.serve")
 
@@ -39,10 +40,13 @@ def register(subparsers) -> None:
 
 
 class ConsumerProcess:
-    """The job consumer (``python -m app.worker``) as a supervised child process.
+    """The job consumer (``python -m app.worker --parent-pid <this pid>``) as a supervised child process.
 
-    It is restarted if it exits while the server runs (its interrupted job is re-queued by
-    the new consumer); :meth:`stop` ends it with SIGTERM, then SIGKILL after a timeout.
+    It is restarted if it exits while the server runs (a job it was running is reclaimed by the
+    new consumer: a worker death, see :mod:`app.jobs`), except when it exits with
+    :data:`app.worker.EXIT_CONFIG` (a setting it cannot run with: logged, not retried).
+    :meth:`stop` ends it with SIGTERM, then SIGKILL after a timeout. It stops by itself when this
+    process dies, even by SIGKILL (:func:`app.jobs.guards.exit_with_parent`).
     """
 
     def __init__(self, settings: Settings):
@@ -57,15 +61,22 @@ class ConsumerProcess:
         self._watchdog.start()
 
     def _spawn(self) -> None:
-        self.proc = subprocess.Popen([sys.executable, "-m", "app.worker"], env=self.env)
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "app.worker", "--parent-pid", str(os.getpid())], env=self.env
+        )
         log.info("job consumer started (pid %s)", self.proc.pid)
 
     def _watch(self) -> None:
         while not self._stopping.wait(1.0):
             code = self.proc.poll()
-            if code is not None and not self._stopping.is_set():
-                log.warning("job consumer exited with %s; restarting it", code)
-                self._spawn()
+            if code is None or self._stopping.is_set():
+                continue
+            if code == EXIT_CONFIG:
+                log.error("job consumer refused its settings (exit %s, see its log above); not restarted: jobs stay "
+                          "queued until the settings are fixed and the service restarted", code)
+                return
+            log.warning("job consumer exited with %s; restarting it", code)
+            self._spawn()
 
     def stop(self) -> None:
         self._stopping.set()

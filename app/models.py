@@ -122,8 +122,18 @@ class Inspection(Base):
     status: Mapped[str] = mapped_column(String(16), default="queued", index=True)
     progress: Mapped[float] = mapped_column(Float, default=0.0)
     stage: Mapped[str | None] = mapped_column(String(32))
+    #: Runs started (claims), whatever their end.
     attempts: Mapped[int] = mapped_column(Integer, default=0)
     error: Mapped[str | None] = mapped_column(Text)
+    #: When the job (last) entered the queue: jobs are claimed oldest first. A job queued again
+    #: after its worker died goes to the back; one released by a graceful stop keeps its place.
+    queued_at: Mapped[datetime] = mapped_column(default=utcnow, index=True)
+    #: The consumer running the job (``host:pid:nonce``) and when its lease ends unless renewed;
+    #: both set while ``running`` only (see :mod:`app.services.inspections`).
+    lease_owner: Mapped[str | None] = mapped_column(String(128))
+    lease_expires_at: Mapped[datetime | None]
+    #: Times a worker died (or lost its lease) while running this job; the second sets it aside.
+    deaths: Mapped[int] = mapped_column(Integer, default=0)
 
     #: Input paths relative to the data dir: the bundle (.zip or folder) and the target.json used.
     capture_path: Mapped[str | None] = mapped_column(String(512))

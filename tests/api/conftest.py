@@ -44,17 +44,32 @@ def client(settings):
 
 
 class Consumer:
-    """``python -m app.worker`` in a child process, with the test's settings."""
+    """``python -m app.worker`` in a child process, with the test's settings.
 
-    def __init__(self, settings: Settings, *, stage_delay_s: float = 0.0):
+    ``invocations`` (a file) is where the test double of the pipeline records its calls
+    (:func:`invocations`); ``args`` are extra command-line arguments (e.g. ``--parent-pid``).
+    """
+
+    def __init__(self, settings: Settings, *, stage_delay_s: float = 0.0, invocations: Path | None = None,
+                 args: tuple[str, ...] = (), log_name: str = "consumer.log"):
         self.env = {**os.environ, **settings.to_env(), "PLATE_INSPECT_TEST_STAGE_DELAY_S": str(stage_delay_s)}
-        self.log = settings.data_dir / "consumer.log"
+        if invocations is not None:
+            self.env["PLATE_INSPECT_TEST_INVOCATIONS"] = str(invocations)
+        self.args = tuple(args)
+        self.log = settings.data_dir / log_name
         self.proc: subprocess.Popen | None = None
 
     def start(self) -> Consumer:
+        self.log.parent.mkdir(parents=True, exist_ok=True)
         fh = open(self.log, "ab")
-        self.proc = subprocess.Popen([sys.executable, "-m", "app.worker"], env=self.env, cwd=ROOT, stdout=fh, stderr=fh)
+        self.proc = subprocess.Popen([sys.executable, "-m", "app.worker", *self.args], env=self.env, cwd=ROOT,
+                                     stdout=fh, stderr=fh)
         fh.close()
+        return self
+
+    def wait_ready(self, timeout_s: float = 60.0) -> Consumer:
+        """Wait until the consumer logs that it runs its queue (it holds the consumer lock)."""
+        wait_until(lambda: "consumer ready" in self.output(), timeout_s, lambda: f"consumer not ready\n{self.output()}")
         return self
 
     def kill(self) -> None:
@@ -72,6 +87,38 @@ class Consumer:
 
     def output(self) -> str:
         return self.log.read_text(errors="replace") if self.log.exists() else ""
+
+
+def wait_until(condition, timeout_s: float, message=lambda: "condition not met"):
+    """Poll ``condition()`` every 50 ms until it is truthy (returned); AssertionError with ``message()`` after the timeout."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        value = condition()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"after {timeout_s} s: {message()}")
+        time.sleep(0.05)
+
+
+def invocations(path: Path) -> list[tuple[str, int, int]]:
+    """The test double's calls recorded in ``path``: ``(event, inspection id, pid)``, event ``start`` or ``end``."""
+    if not path.exists():
+        return []
+    rows = []
+    for line in path.read_text(encoding="ascii").splitlines():
+        event, inspection_id, pid = line.split()
+        rows.append((event, int(inspection_id), int(pid)))
+    return rows
+
+
+def pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` exists and is not a zombie."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
 
 
 @pytest.fixture
@@ -145,7 +192,7 @@ def target_json(**over) -> bytes:
 
 def stored_files(data_dir: Path) -> list[str]:
     """Every file under the data dir except the database and queue files."""
-    skip = ("plate_inspect.db", "huey.db", "consumer.log")
+    skip = ("plate_inspect.db", "huey.db", "consumer.")
     return sorted(
         str(p.relative_to(data_dir)) for p in data_dir.rglob("*")
         if p.is_file() and not p.name.startswith(skip)

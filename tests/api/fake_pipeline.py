@@ -4,7 +4,15 @@ It validates its inputs with the real loaders, reports progress through stages, 
 ``PLATE_INSPECT_TEST_STAGE_DELAY_S`` seconds per stage (so a test can kill the consumer
 mid-job), and writes a ``plate-result/1`` document whose numbers come from the target (it does
 not measure anything: the tests using it check the service, not the measurement). A plate id
-containing ``UNMEASURABLE`` raises :class:`CaptureError`; ``CRASH`` raises a RuntimeError.
+containing ``UNMEASURABLE`` raises :class:`CaptureError`; ``CRASH`` raises a RuntimeError;
+``PATHERROR`` raises the ``FileExistsError`` of a leftover ``bundle.partial`` folder beside the
+capture, with its server path (as an unguarded render did);
+``KILLSELF`` kills its own process with SIGKILL in the ``normals`` stage (a job that kills its
+worker); ``HOG`` asks numpy for ``PLATE_INSPECT_TEST_ALLOCATE_MB`` MiB (default 2048; the pages are
+not touched, so without a memory limit it succeeds and the job completes).
+With ``PLATE_INSPECT_TEST_INVOCATIONS`` set to a file, each call appends ``start <inspection id>
+<pid>`` to it when it begins and ``end <inspection id> <pid>`` when it returns a result, so a test
+can count how often each job ran and completed.
 A ``light_calibration`` is handled as the real one does for the result's ``warnings`` (applied to
 nominal lights of the same count, else a warning why not); its count of lights goes in
 ``details.json`` so a test can tell which calibration the job passed.
@@ -12,8 +20,10 @@ nominal lights of the same count, else a warning why not); its count of lights g
 
 from __future__ import annotations
 
+import errno
 import json
 import os
+import signal
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,15 +44,27 @@ def inspect(capture, target, *, out_dir: Path, progress=None, light_calibration=
     delay = float(os.environ.get("PLATE_INSPECT_TEST_STAGE_DELAY_S", "0"))
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    inspection_id = out_dir.parent.name  # <data dir>/inspections/<id>/artifacts
+    _record("start", inspection_id)
     cap = load_capture(capture)
     tgt = load_target(target)
     if "UNMEASURABLE" in cap.plate_id:
         raise CaptureError(f"{cap.plate_id}: no plate found in the photometric images")
     if "CRASH" in cap.plate_id:
         raise RuntimeError("simulated bug")
+    if "PATHERROR" in cap.plate_id:
+        leftover = Path(capture).resolve().parent / "bundle.partial"
+        raise FileExistsError(errno.EEXIST, os.strerror(errno.EEXIST), str(leftover))
+    if "HOG" in cap.plate_id:
+        import numpy as np
+
+        hog = np.empty(int(os.environ.get("PLATE_INSPECT_TEST_ALLOCATE_MB", "2048")) << 20, dtype=np.uint8)
+        del hog
     for i, stage in enumerate(STAGES):
         if progress is not None:
             progress(stage, i / len(STAGES))
+        if stage == "normals" and "KILLSELF" in cap.plate_id:
+            os.kill(os.getpid(), signal.SIGKILL)
         time.sleep(delay)
     (out_dir / "deviation.png").write_bytes(b"\x89PNG fake")
     warnings = _light_warnings(cap.lights, light_calibration)
@@ -68,7 +90,15 @@ def inspect(capture, target, *, out_dir: Path, progress=None, light_calibration=
     (out_dir / "result.json").write_text(json.dumps(document), encoding="utf-8")
     if progress is not None:
         progress(STAGES[-1], 1.0)
+    _record("end", inspection_id)
     return FakeResult(document=document, out_dir=out_dir)
+
+
+def _record(event: str, inspection_id: str) -> None:
+    path = os.environ.get("PLATE_INSPECT_TEST_INVOCATIONS")
+    if path:
+        with open(path, "a", encoding="ascii") as fh:
+            fh.write(f"{event} {inspection_id} {os.getpid()}\n")
 
 
 def _light_warnings(lights, calibration) -> list[str]:

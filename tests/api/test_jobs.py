@@ -9,7 +9,7 @@ import zipfile
 
 import pytest
 
-from tests.api.conftest import AUTH, rezip, target_json, wait_for
+from tests.api.conftest import AUTH, invocations, rezip, target_json, wait_for
 
 
 def _post_bundle(client, plate_id, bundle, *, target=True, headers=None):
@@ -63,9 +63,10 @@ def test_simulated_inspection_is_rendered_in_the_consumer(client, settings, cons
     assert body["result"]["target_radius_mm"] == 8000.0
 
 
-def test_consumer_killed_mid_job_is_requeued_and_completes(client, consumer_factory, bundle_zip):
+def test_consumer_killed_mid_job_is_requeued_and_completes(client, consumer_factory, bundle_zip, tmp_path):
     # 0.4 s per stage: the job runs ~2.4 s, so the kill lands mid-job.
-    first = consumer_factory(stage_delay_s=0.4).start()
+    calls = tmp_path / "invocations.txt"
+    first = consumer_factory(stage_delay_s=0.4, invocations=calls).start()
     inspection_id = _post_bundle(client, "P-100", bundle_zip).json()["id"]
     deadline = time.monotonic() + 30
     while True:
@@ -79,16 +80,19 @@ def test_consumer_killed_mid_job_is_requeued_and_completes(client, consumer_fact
     body = client.get(f"/api/v1/inspections/{inspection_id}").json()
     assert body["status"] == "running"  # the row still says so: its consumer is gone
 
-    second = consumer_factory(stage_delay_s=0.0).start()
+    second = consumer_factory(stage_delay_s=0.0, invocations=calls, log_name="consumer-2.log").start()
     body = wait_for(client, inspection_id, consumer=second)
     assert body["status"] == "done", body
-    assert body["result"]["verdict"] == "pass"
-    from sqlalchemy import select
-
+    assert body["result"]["verdict"] == "pass" and body["error"] is None
+    # Run again once (one worker death, below the limit) and completed once.
+    events = [(event, i, pid) for event, i, pid in invocations(calls)]
+    assert events == [("start", inspection_id, first.proc.pid), ("start", inspection_id, second.proc.pid),
+                      ("end", inspection_id, second.proc.pid)]
     from app.models import Inspection
 
     with client.app.state.session_factory() as s:
-        assert s.scalar(select(Inspection.attempts).where(Inspection.id == inspection_id)) == 2
+        row = s.get(Inspection, inspection_id)
+        assert (row.attempts, row.deaths, row.lease_owner) == (2, 1, None)
 
 
 @pytest.mark.parametrize(
@@ -96,6 +100,8 @@ def test_consumer_killed_mid_job_is_requeued_and_completes(client, consumer_fact
     [
         ("P-UNMEASURABLE", "P-UNMEASURABLE: no plate found in the photometric images"),
         ("P-CRASH", "internal error: RuntimeError: simulated bug"),
+        # the server path of the file is not given away: named relative to the inspection's inputs
+        ("P-PATHERROR", "internal error: FileExistsError: [Errno 17] File exists: 'bundle.partial'"),
     ],
 )
 def test_failed_job_keeps_inputs_and_error(client, settings, consumer_factory, bundle_zip, plate_id, message):
@@ -136,6 +142,28 @@ def test_a_job_delivered_twice_runs_once(client, settings):
     assert execute_inspection(inspection_id, **kw) == "done"
     assert execute_inspection(inspection_id, **kw) == "skipped"
     assert client.get(f"/api/v1/inspections/{inspection_id}").json()["status"] == "done"
+
+
+def test_simulated_bundle_rendered_over_leftovers_of_dead_runs(client, settings):
+    from app.jobs import execute_inspection
+
+    r = client.post("/api/v1/plates/SIM-3/inspections/simulated",
+                    json={"n_lights": 3, "width": 160, "height": 128}, headers=AUTH)
+    inspection_id = r.json()["id"]
+    inputs = settings.data_dir / "inspections" / str(inspection_id) / "inputs"
+    # A run killed while rendering (the old fixed name, and a newer random one), and a bundle
+    # folder without its capture.json.
+    for leftover in ("bundle.partial", "bundle.partial-k2j4x9"):
+        (inputs / leftover).mkdir()
+        (inputs / leftover / "ps_00.png").write_bytes(b"half an image")
+    (inputs / "bundle").mkdir()
+    (inputs / "bundle" / "ps_00.png").write_bytes(b"half an image")
+    state = client.app.state
+    status = execute_inspection(inspection_id, settings=settings, session_factory=state.session_factory,
+                                storage=state.storage)
+    assert status == "done", client.get(f"/api/v1/inspections/{inspection_id}").json()
+    assert sorted(p.name for p in inputs.iterdir()) == ["bundle", "simulation.json"]
+    assert (inputs / "bundle" / "capture.json").is_file()
 
 
 def test_real_pipeline_inspection(tmp_path, consumer_factory, bundle_zip):

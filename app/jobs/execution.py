@@ -1,0 +1,238 @@
+"""One inspection job: claim the row under a lease, (render,) inspect, store done or failed.
+
+Runs in the consumer (:mod:`app.worker`); see :mod:`app.jobs.lease` for the lease and
+:mod:`app.jobs.memory` for the memory bound.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import logging
+import os
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from sqlalchemy.orm import Session, sessionmaker
+
+from app.jobs.lease import LeaseKeeper
+from app.jobs.memory import is_out_of_memory, out_of_memory_message
+from app.services import inspections as svc
+from app.services import light_calibrations
+from app.services.inspections import SIMULATION_FILE
+from app.settings import Settings
+from app.storage import Storage
+from pipeline.formats import InputError, PipelineError
+
+log = logging.getLogger(__name__)
+
+#: Stage name reported while a simulated capture is rendered (before the pipeline's stages).
+SIMULATE_STAGE = "simulate"
+#: Suffix (then ``-<random>``) of the folders a simulated bundle is rendered into, beside the bundle.
+PARTIAL_SUFFIX = ".partial"
+
+
+class ProgressWriter:
+    """The pipeline's progress callback: writes stage and fraction to the row, throttled.
+
+    A write happens when the stage changes, at the end (fraction 1), or when
+    ``interval_s`` has passed since the last write; it is a no-op once ``owner`` no longer holds
+    the job's lease. A failed write (database busy) is logged and skipped: progress is
+    informative, the job goes on.
+    """
+
+    def __init__(
+        self, session_factory: sessionmaker[Session], inspection_id: int, *, interval_s: float, owner: str | None = None
+    ):
+        self.session_factory = session_factory
+        self.inspection_id = inspection_id
+        self.interval_s = interval_s
+        self.owner = owner or svc.process_lease_owner()
+        self._last_stage: str | None = None
+        self._last_time = float("-inf")
+
+    def __call__(self, stage: str, fraction: float) -> None:
+        now = time.monotonic()
+        if stage == self._last_stage and fraction < 1.0 and now - self._last_time < self.interval_s:
+            return
+        try:
+            with self.session_factory() as session:
+                svc.record_progress(
+                    session=session, inspection_id=self.inspection_id, stage=stage, progress=fraction, owner=self.owner
+                )
+                session.commit()
+        except ValueError:
+            raise
+        except Exception:  # noqa: BLE001 - a progress write must not fail the job
+            log.warning("inspection %s: progress write skipped", self.inspection_id, exc_info=True)
+            return
+        self._last_stage, self._last_time = stage, now
+
+
+def resolve_entry(entry: str) -> Callable:
+    """The function named by ``"module:function"``."""
+    module_name, _, attr = entry.partition(":")
+    return getattr(importlib.import_module(module_name), attr)
+
+
+def render_simulated_bundle(*, bundle_dir: Path, plate_id: str, simulation: dict) -> Path:
+    """Render a simulated capture bundle into ``bundle_dir`` with the pipeline's simulator.
+
+    Idempotent: an existing complete bundle (its ``capture.json`` present) is reused. The bundle is
+    rendered into a new folder of its own beside it (``bundle.partial-<random>``), then renamed
+    into place, so folders left by a killed run (removed first) or a concurrent one never collide
+    with it.
+    """
+    from pipeline.simulate import simulate_capture
+
+    bundle_dir = Path(bundle_dir)
+    if (bundle_dir / "capture.json").is_file():
+        return bundle_dir
+    try:
+        plate, capture = svc.simulation_specs(simulation)
+    except ValueError as err:  # the simulator refuses the described plate
+        raise InputError(SIMULATION_FILE, "", str(err)) from None
+    bundle_dir.parent.mkdir(parents=True, exist_ok=True)
+    for leftover in bundle_dir.parent.glob(bundle_dir.name + PARTIAL_SUFFIX + "*"):
+        Storage.remove(leftover)
+    partial = Path(tempfile.mkdtemp(prefix=bundle_dir.name + PARTIAL_SUFFIX + "-", dir=bundle_dir.parent))
+    try:
+        simulate_capture(
+            partial,
+            plate=plate,
+            capture=capture,
+            plate_id=plate_id,
+            tolerance_mm=float(simulation["tolerance_mm"]),
+            seed=int(simulation["seed"]),
+        )
+        if bundle_dir.exists() and not (bundle_dir / "capture.json").is_file():
+            Storage.remove(bundle_dir)  # an incomplete bundle: replaced
+        if not bundle_dir.exists():
+            os.rename(partial, bundle_dir)
+    finally:
+        Storage.remove(partial)
+    return bundle_dir
+
+
+def execute_inspection(
+    inspection_id: int,
+    *,
+    settings: Settings,
+    session_factory: sessionmaker[Session],
+    storage: Storage,
+    owner: str | None = None,
+) -> str:
+    """Run one inspection job: claim the row under a lease, (render,) inspect, store done or failed.
+
+    The light calibration recorded in the row at submission (if any) is read from its file and
+    passed to the pipeline as ``light_calibration``; the result's ``warnings`` say whether it
+    was applied. The lease (``settings.job_lease_s``) is renewed while the job runs; the result
+    is stored only if it is still held.
+
+    Parameters
+    ----------
+    inspection_id : int
+    settings : Settings
+    session_factory : sessionmaker
+    storage : Storage
+    owner : str, optional
+        Lease owner; default :func:`app.services.inspections.process_lease_owner`.
+
+    Returns
+    -------
+    str
+        The row's final status (``"done"``, ``"failed"``); ``"skipped"`` when the row was not
+        claimable (done, failed, or run by another consumer: a duplicate delivery); ``"lost"`` when
+        the lease was lost while the job ran (another consumer or a stop took it over).
+
+    Notes
+    -----
+    Never raises for a job failure: bad input (:class:`InputError`) and unmeasurable captures
+    (:class:`PipelineError`) store their one-line message; running out of memory stores
+    :func:`app.jobs.memory.out_of_memory_message`; anything else stores
+    ``"internal error: <type>: <message>"`` and logs the traceback. Stored messages name files
+    relative to the inspection's inputs or the data dir, never by server path.
+    """
+    owner = owner or svc.process_lease_owner()
+    with session_factory() as session:
+        if not svc.claim(session=session, inspection_id=inspection_id, owner=owner, lease_s=settings.job_lease_s):
+            session.rollback()
+            log.info("inspection %s: not claimable (done, failed or taken), skipped", inspection_id)
+            return "skipped"
+        session.commit()
+        row = svc.get_inspection(session=session, inspection_id=inspection_id)
+        source, plate_id, simulation = row.source, row.plate_id, row.simulation
+        capture_path, target_path = storage.absolute(row.capture_path), storage.absolute(row.target_path)
+        light_calibration = row.light_calibration  # recorded at submission: a re-run uses the same lights
+        attempt, deaths = row.attempts, row.deaths
+
+    progress = ProgressWriter(session_factory, inspection_id, interval_s=settings.progress_interval_s, owner=owner)
+    log.info("inspection %s: running (%s, plate %s, attempt %s%s)", inspection_id, source, plate_id, attempt,
+             f", after {deaths} worker death(s)" if deaths else "")
+    message = None
+    with LeaseKeeper(session_factory, inspection_id, owner=owner, lease_s=settings.job_lease_s) as lease:
+        try:
+            document = _run(inspection_id, settings, storage, progress, source=source, plate_id=plate_id,
+                            simulation=simulation, capture_path=capture_path, target_path=target_path,
+                            light_calibration=light_calibration)
+        except (InputError, PipelineError) as err:
+            message = _client_message(str(err), storage, inspection_id) or type(err).__name__
+            log.info("inspection %s: failed: %s", inspection_id, message)
+        except Exception as err:  # noqa: BLE001 - stored as failed, never lost
+            if is_out_of_memory(err):
+                message = out_of_memory_message(settings.worker_memory_mb)
+                log.error("inspection %s: %s", inspection_id, message)
+            else:
+                log.exception("inspection %s: internal error", inspection_id)
+                text = _client_message(str(err), storage, inspection_id)
+                message = f"internal error: {type(err).__name__}: {text}"
+    with session_factory() as session:
+        if message is None:
+            stored = svc.mark_done(session=session, inspection_id=inspection_id, document=document, owner=owner)
+        else:
+            stored = svc.mark_failed(session=session, inspection_id=inspection_id, error=message, owner=owner)
+        session.commit()
+    if not stored:
+        log.warning("inspection %s: lease lost while it ran%s; its result is not stored by this consumer",
+                    inspection_id, " (renewal refused)" if lease.lost.is_set() else "")
+        return "lost"
+    if message is not None:
+        return "failed"
+    log.info("inspection %s: done, verdict %s", inspection_id, document.get("verdict"))
+    return "done"
+
+
+def _run(
+    inspection_id: int,
+    settings: Settings,
+    storage: Storage,
+    progress: ProgressWriter,
+    *,
+    source: str,
+    plate_id: str,
+    simulation: dict | None,
+    capture_path: Path,
+    target_path: Path,
+    light_calibration,
+) -> dict:
+    """The job's work: render a simulated capture, load the lights, call the pipeline; the result document."""
+    out_dir = storage.clear_artifacts(inspection_id)
+    if source == "simulated":
+        progress(SIMULATE_STAGE, 0.0)
+        render_simulated_bundle(bundle_dir=capture_path, plate_id=plate_id, simulation=simulation)
+    lights = None
+    if light_calibration is not None:
+        lights = light_calibrations.load_lights(storage=storage, calibration=light_calibration)
+    inspect = resolve_entry(settings.inspect_entry)
+    result = inspect(capture_path, target_path, out_dir=out_dir, progress=progress, light_calibration=lights)
+    return json.loads(json.dumps(result.document))  # plain JSON types only
+
+
+def _client_message(text: str, storage: Storage, inspection_id: int) -> str:
+    """``text`` on one line, with server paths made relative: to the inspection's inputs
+    (``capture.zip``, ``bundle/...``, as the client knows them), else to the data dir."""
+    for prefix in (storage.inputs_dir(inspection_id), storage.data_dir):
+        text = text.replace(str(prefix) + "/", "").replace(str(prefix), ".")
+    return " ".join(text.split())
