@@ -202,8 +202,9 @@ class FormingTarget:
             raise InputError(rec, "material", f"expected a Material, got {type(self.material).__name__}")
         if self.surface not in SURFACES:
             raise InputError(rec, "surface", f"expected one of {', '.join(SURFACES)}, got {self.surface!r}")
-        if self.mid_radius_mm(self.radius_mm) <= 0:
-            raise InputError(rec, "radius_mm", f"expected more than half the thickness, got {self.radius_mm:g}")
+        if self.mid_radius_mm(self.radius_mm) <= 0.5 * self.material.thickness_mm:
+            raise InputError(rec, "radius_mm", f"expected a radius whose inner surface is more than 0 "
+                             f"(thickness {self.material.thickness_mm:g} mm), got {self.radius_mm:g}")
 
     def mid_radius_mm(self, surface_radius_mm: float) -> float:
         """The mid-surface radius of a plate whose ``surface`` has this radius (``inf`` stays ``inf``)."""

@@ -190,4 +190,5 @@ def curvatures_after_passes(loaded_curvatures, yield_stress_mpa, modulus_mpa: fl
     """
     k = np.asarray(loaded_curvatures, dtype=np.float64).reshape(-1)
     peak = np.maximum.accumulate(np.maximum(k, initial_loaded)) if k.size else k
-    return np.asarray(unloaded_curvature(peak, yield_stress_mpa, modulus_mpa, thickness_mm), dtype=np.float64).reshape(-1)
+    after = unloaded_curvature(peak, yield_stress_mpa, modulus_mpa, thickness_mm)
+    return np.asarray(after, dtype=np.float64).reshape(-1)
