@@ -119,16 +119,18 @@ class Advice:
     basis: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready (an infinite radius becomes None)."""
-        out = asdict(self)
-        if self.expected_radius_range_mm is not None:
-            out["expected_radius_range_mm"] = [_json_radius(r) for r in self.expected_radius_range_mm]
-        out["expected_radius_mm"] = _json_radius(self.expected_radius_mm)
-        return out
+        """JSON-ready: tuples become lists, an infinite radius (a flat plate) None."""
+        return _jsonable(asdict(self))
 
 
-def _json_radius(r: float | None) -> float | None:
-    return None if r is None or not math.isfinite(r) else float(r)
+def _jsonable(value):
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
 
 
 def curvature_band(target: FormingTarget) -> float:
@@ -276,7 +278,7 @@ def advise(plate: PlateRecord, machines: Mapping[str, Machine], *, history: Sequ
     basis: dict[str, Any] = {
         "target_radius_mm": target.radius_mm,
         "tolerance_band_radius_mm": [_surface_radius(target, kt + band), _surface_radius(target, kt - band)],
-        "measured_radius_mm": _json_radius(plate.passes[-1].measured_radius_mm) if plate.passes else None,
+        "measured_radius_mm": plate.passes[-1].measured_radius_mm if plate.passes else None,
     }
     decided = state_action(plate)
     if decided is not None:
@@ -284,12 +286,15 @@ def advise(plate: PlateRecord, machines: Mapping[str, Machine], *, history: Sequ
         return Advice(decided[0], machine_id, None, None, None, basis)
 
     others = _history_for(plate, machine_id, history, priors.max_plates)
-    others = [h for h in others if all(q.machine_id in machines for q in h.passes)]
-    fitted = fit([plate, *others], machines, priors, also_machines=[machine_id])
+    known = [h for h in others if all(q.machine_id in machines for q in h.passes)]
+    fitted = fit([plate, *known], machines, priors, also_machines=[machine_id])
     aimed = aim(fitted, plate, machines[machine_id], settings)
     pred = aimed["prediction"]
     k_lo, k_hi = pred.quantile(0.025), pred.quantile(0.975)
-    basis.update(_data_basis(plate, others, machine_id, fitted, settings))
+    basis.update(_data_basis(plate, known, machine_id, fitted, settings))
+    if len(known) < len(others):
+        basis["warnings"].append(f"{len(others) - len(known)} plates of the history left out: they passed through "
+                                 "machines not given")
     basis["aim"] = {
         "loaded_radius_mm": _surface_radius(target, pred.loaded_curvature),
         "probability_over_band": aimed["safe_prediction"].probability_above(kt + band),

@@ -42,13 +42,21 @@ def test_nominal_first_pass_says_so_and_never_over_bends():
         assert advice.basis["aim"]["yield_factor_aimed"] == 1.0  # the nominal yield is a guaranteed minimum
         lo, hi = advice.expected_radius_range_mm
         assert lo < advice.expected_radius_mm < hi
-        json.dumps(advice.to_dict())  # JSON-ready for the service
+        json.dumps(advice.to_dict(), allow_nan=False)  # JSON-ready for the service
         # whatever the plate's real yield (>= nominal) and the machine's give (>= 0), no over-bending
         for factor in (1.0, 1.2, 1.4):
             for compliance in (0.0, 2.0, 6.0):
                 after = rolled(plate, advice.top_roll_displacement_mm, factor=factor, compliance=compliance)
                 k = 1 / target(radius, t).mid_radius_mm(after.passes[-1].measured_radius_mm)
                 assert k <= target_curvature(plate.target) + 0.95 * curvature_band(plate.target)
+
+
+def test_narrow_plate_band_reaches_flat():
+    # a 400 mm wide plate, 2 mm: any radius above ~10 m passes; the band's open end is flat (null in JSON)
+    plate = PlateRecord("strip", FormingTarget(15000.0, 2.0, 400.0, 3000.0, Material("AH36", 20.0, 355.0)))
+    advice = advise(plate, MACHINES, machine_id="R3-01").to_dict()
+    assert advice["basis"]["tolerance_band_radius_mm"][1] is None
+    json.dumps(advice, allow_nan=False)
 
 
 def test_second_pass_reaches_the_band():
