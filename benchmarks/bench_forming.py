@@ -1,7 +1,7 @@
 """Passes per plate of simulated roll-bending campaigns, with the advice learning from the history and without.
 
 Run from the project root:  .venv/bin/python benchmarks/bench_forming.py [--plates 20] [--seeds 0 1 2]
-                            [--compliance 2.0] [--scatter 0.1]
+                            [--compliance 2.0] [--scatter 0.1] [--yield-scatter 0]
 
 Each seed draws a batch (``pipeline.forming.campaign.random_batch``: radii 3-15 m, thickness 10-30 mm,
 AH36/DH36, hidden yield 1.05-1.35 x nominal) and rolls it plate after plate on issue 14's machine against
@@ -38,8 +38,11 @@ def main():
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--compliance", type=float, default=2.0, help="the machine's hidden compliance, mm/MN")
     ap.add_argument("--scatter", type=float, default=0.1, help="hidden displacement scatter of a pass, mm")
+    ap.add_argument("--yield-scatter", type=float, default=0.0,
+                    help="hidden relative scatter of the yield a pass sees (not in the advice's model)")
     args = ap.parse_args()
-    physics = TruePhysics(compliance_mm_per_mn=args.compliance, displacement_scatter_mm=args.scatter)
+    physics = TruePhysics(compliance_mm_per_mn=args.compliance, displacement_scatter_mm=args.scatter,
+                          yield_scatter=args.yield_scatter)
     rows = []
     for k, seed in enumerate(args.seeds):
         plates = random_batch(args.plates, np.random.default_rng(seed))
@@ -50,7 +53,8 @@ def main():
                                       learning=mode == "learning")
             rows.append((seed, mode, summary(runs[mode]), time.perf_counter() - t0))
         if k == 0:
-            print(f"seed {seed}: compliance {args.compliance:g} mm/MN, scatter {args.scatter:g} mm\n")
+            print(f"seed {seed}: compliance {args.compliance:g} mm/MN, scatter {args.scatter:g} mm, "
+                  f"yield scatter {args.yield_scatter:g}\n")
             print("| plate | grade | t mm | target R mm | yield x | passes learning | passes alone "
                   "| radii after each pass (learning) |")
             print("|---|---|---|---|---|---|---|---|")

@@ -14,8 +14,7 @@ Each inspected pass gives the plate's mid-surface curvature. Passes that do not 
 earlier one do not change it (the history rule), so inspections of one state are averaged into one row.
 A row's variance is the inspection's noise (relative radius noise and an absolute sagitta noise over the
 plate's width), divided by the inspections averaged, plus the pass's own scatter: a displacement scatter
-``sigma_d`` (mm; repeatability of the roll, the plate's feed, its local yield) times the row's
-sensitivity ``d k / d d``.
+``sigma_d`` (mm; repeatability of the roll, the plate's feed) times the row's sensitivity ``g = d k / d d``.
 
 Fit
 ---
@@ -24,7 +23,7 @@ estimate of the hierarchical model), with ``scipy.optimize.least_squares``; the 
 inverse of ``J^T J`` at the optimum (Laplace). ``sigma_d`` and ``tau`` are then updated as conjugate
 variance estimates, each weighted with its prior as pseudo-observations::
 
-    sigma_d^2 = (nu0 sigma0^2 + sum_rows r^2 / g^2) / (nu0 + n_rows - n_plates)
+    sigma_d^2 = (nu0 sigma0^2 + sum_rows max(r^2 - v_inspection, 0) / g^2) / (nu0 + n_rows - n_plates)
     tau^2     = (nu_t tau0^2 + sum_plates [(f_p - mu_g)^2 + var(f_p - mu_g)]) / (nu_t + n_plates)
 
 and the fit repeated (three rounds). Predictions use Student's t with the corresponding degrees of freedom

@@ -7,8 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.forming import bender
-from pipeline.forming.records import Machine
+from pipeline.forming import bender, springback
+from pipeline.forming.records import FormingTarget, Machine, Material, PlateRecord
+from pipeline.forming.rolling import PassSetup
 
 MACHINE = Machine("R3-01", bottom_roll_spacing_mm=1400.0, bottom_roll_diameter_mm=420.0, top_roll_diameter_mm=500.0)
 
@@ -84,3 +85,19 @@ def test_roll_force_three_point_limit_and_free_body():
     N = M / (R * math.sin(phi))  # moment of N about the mid-surface under the top roll
     assert bender.roll_force_n(M, R, MACHINE, t) == pytest.approx(2 * N * math.cos(phi), rel=1e-12)
     assert bender.roll_force_n(M, math.inf, MACHINE, t) == 0.0
+
+
+def test_vectorised_pass_model_agrees():
+    # rolling.PassSetup writes the geometry and the force in curvature form for whole campaigns
+    plate = PlateRecord("p", FormingTarget(5000.0, 2.0, 3000.0, 4000.0, Material("AH36", 20.0, 355.0)))
+    setup = PassSetup.of([MACHINE, MACHINE], [plate, plate])
+    d = np.array([40.0, 120.0])
+    R = bender.loaded_radius_mm(d, MACHINE, 20.0)
+    np.testing.assert_allclose(setup.geometric_curvature(d), 1 / R, rtol=1e-12)
+    S = springback.plane_strain_yield(355.0) * 1.2
+    E = springback.plane_strain_modulus(206000.0, 0.3)
+    moment = springback.bending_moment(1 / R, S, E, 20.0) * 4000.0
+    np.testing.assert_allclose(setup.force_n(1 / R, 1.2), bender.roll_force_n(moment, R, MACHINE, 20.0), rtol=1e-12)
+    # a rigid machine loads to the geometric curvature; a compliant one less
+    np.testing.assert_allclose(setup.loaded_curvature(d, 1.2, 0.0), 1 / R, rtol=1e-12)
+    assert np.all(setup.loaded_curvature(d, 1.2, 2.0) < 1 / R)
