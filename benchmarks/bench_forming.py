@@ -1,0 +1,75 @@
+"""Passes per plate of simulated roll-bending campaigns, with the advice learning from the history and without.
+
+Run from the project root:  .venv/bin/python benchmarks/bench_forming.py [--plates 20] [--seeds 0 1 2]
+                            [--compliance 2.0] [--scatter 0.1] [--yield-scatter 0]
+
+Each seed draws a batch (``pipeline.forming.campaign.random_batch``: radii 3-15 m, thickness 10-30 mm,
+AH36/DH36, hidden yield 1.05-1.35 x nominal) and rolls it plate after plate on issue 14's machine against
+the hidden physics (compliance, displacement scatter per pass, 0.05 % radius noise). "learning": the
+advice sees the finished plates; "alone": each plate from the nominal model and its own passes only.
+Prints the passes of every plate of the first seed, then a summary per seed and mode.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pipeline.forming.campaign import TruePhysics, random_batch, run_campaign, summary  # noqa: E402
+from pipeline.forming.records import Machine  # noqa: E402
+
+MACHINE = Machine("R3-01", bottom_roll_spacing_mm=1400.0, bottom_roll_diameter_mm=420.0, top_roll_diameter_mm=500.0)
+
+
+def radii(outcome) -> str:
+    return " ".join("flat" if not np.isfinite(p.measured_radius_mm) else f"{p.measured_radius_mm:.0f}"
+                    for p in outcome.record.passes)
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--plates", type=int, default=20)
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument("--compliance", type=float, default=2.0, help="the machine's hidden compliance, mm/MN")
+    ap.add_argument("--scatter", type=float, default=0.1, help="hidden displacement scatter of a pass, mm")
+    ap.add_argument("--yield-scatter", type=float, default=0.0,
+                    help="hidden relative scatter of the yield a pass sees (not in the advice's model)")
+    args = ap.parse_args()
+    physics = TruePhysics(compliance_mm_per_mn=args.compliance, displacement_scatter_mm=args.scatter,
+                          yield_scatter=args.yield_scatter)
+    rows = []
+    for k, seed in enumerate(args.seeds):
+        plates = random_batch(args.plates, np.random.default_rng(seed))
+        runs = {}
+        for mode in ("learning", "alone"):
+            t0 = time.perf_counter()
+            runs[mode] = run_campaign(plates, MACHINE, physics, np.random.default_rng(seed + 100),
+                                      learning=mode == "learning")
+            rows.append((seed, mode, summary(runs[mode]), time.perf_counter() - t0))
+        if k == 0:
+            print(f"seed {seed}: compliance {args.compliance:g} mm/MN, scatter {args.scatter:g} mm, "
+                  f"yield scatter {args.yield_scatter:g}\n")
+            print("| plate | grade | t mm | target R mm | yield x | passes learning | passes alone "
+                  "| radii after each pass (learning) |")
+            print("|---|---|---|---|---|---|---|---|")
+            for sim, a, b in zip(plates, runs["learning"], runs["alone"]):
+                tg = sim.record.target
+                flag = lambda o: "" if o.final == "done" else f" ({o.final})"  # noqa: E731
+                print(f"| {a.plate_id} | {tg.material.grade} | {tg.material.thickness_mm:g} | {tg.radius_mm:.0f} "
+                      f"| {sim.yield_factor:.3f} | {a.passes}{flag(a)} | {b.passes}{flag(b)} | {radii(a)} |")
+            print()
+    print("| seed | advice | plates | done | over-bent | max passes | mean passes | mean after the first | s |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for seed, mode, s, t in rows:
+        print(f"| {seed} | {mode} | {s['plates']} | {s['done']} | {s['over_bent']} | {s['max_passes']} "
+              f"| {s['mean_passes']:.2f} | {s['mean_passes_after_first']:.2f} | {t:.0f} |")
+
+
+if __name__ == "__main__":
+    main()

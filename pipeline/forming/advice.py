@@ -1,0 +1,352 @@
+"""The advice after an inspection: done, reverse, or bend with the next top-roll displacement.
+
+Tolerance band
+--------------
+The inspection registers the target (its radius fixed) on the measured plate with a robust fit that
+lays the plate's middle on the target; a curvature error ``dk`` then shows at the plate's edges as the
+difference of the two sagittas over the width ``w``: ``|dk| w^2 / 8``. The plate passes while that is
+within the tolerance::
+
+    |k - k_target| <= band = 8 tol / w^2
+
+(for a 3 m plate and 2 mm: 1.8e-6 / mm, i.e. 0.9 % of a 5 m radius, 2.7 % of a 15 m one). Checked
+against :func:`pipeline.deviation.judge` on ray-cast cylinders in the tests: it passes up to about 0.95
+of that band.
+
+Actions
+-------
+- ``done``: the latest inspection passes (its verdict; without a verdict, the measured radius within the band).
+- ``reverse``: the latest inspection fails with the plate bent tighter than its target (without a verdict,
+  tighter than the band): rolling further cannot open it.
+- ``bend`` otherwise, also for a plate without passes, with the displacement from :func:`aim`.
+
+Aim
+---
+Over-bending costs a reverse pass or the plate; under-bending one more pass. The next displacement is
+the smallest of
+
+- the one whose predicted curvature (median) is the target's,
+- the one whose probability of ending tighter than ``target + over_band * band`` is ``over_probability``,
+
+(:class:`AimSettings`): with a sharp prediction the plate is aimed at the target, with a wide one at the
+open side of the band, by as much as the uncertainty asks. For a plate without inspected passes of its
+own the second rule is applied to the plate at a low yield factor: the ``first_pass_quantile`` of its
+group's distribution, or the nominal minimum if that is higher (a plate's factor is never below 1). How
+much plates differ is the least known part of the model, and the first pass is then a probe that ends
+under-bent; the second pass has the plate's own measurement.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Any, Literal, Mapping, Sequence
+
+import numpy as np
+from scipy import optimize
+
+from ..formats import InputError, PipelineError
+from . import bender
+from .learning import Fit, Priors, fit, measured_curvature
+from .records import FormingTarget, Machine, PlateRecord
+
+Action = Literal["bend", "done", "reverse"]
+
+
+class FormingError(PipelineError):
+    """Valid input the bender cannot serve (a target tighter than the machine can roll)."""
+
+
+@dataclass(frozen=True)
+class AimSettings:
+    """How cautiously the advice aims.
+
+    Attributes
+    ----------
+    over_probability : float
+        Allowed probability of ending tighter than ``target + over_band * band``.
+    over_band : float
+        The share of the band the aim may use on the tight side (0.8: the inspection's pass limit sits at
+        ~0.95 of the band, and the band's derivation is approximate).
+    first_pass_quantile : float
+        A plate without inspected passes of its own is aimed for its yield factor at this quantile of its
+        group's distribution, or at the nominal minimum (``Priors.yield_factor_floor``) if that is higher:
+        the spread of plates is the least known part of the model.
+    min_rows : int
+        Inspected states of the plate, its group (same machine, grade, thickness) and its machine below
+        which the advice says it has little data.
+    """
+
+    over_probability: float = 0.005
+    over_band: float = 0.8
+    first_pass_quantile: float = 0.01
+    min_rows: int = 3
+
+    def __post_init__(self) -> None:
+        if not 0 < self.over_probability < 0.5:
+            raise ValueError(f"over_probability: expected a number in (0, 0.5), got {self.over_probability!r}")
+        if not 0 < self.first_pass_quantile < 0.5:
+            raise ValueError(f"first_pass_quantile: expected a number in (0, 0.5), got {self.first_pass_quantile!r}")
+        if not 0 < self.over_band <= 1:
+            raise ValueError(f"over_band: expected a number in (0, 1], got {self.over_band!r}")
+        if not (isinstance(self.min_rows, int) and self.min_rows >= 0):
+            raise ValueError(f"min_rows: expected a non-negative integer, got {self.min_rows!r}")
+
+
+@dataclass(frozen=True)
+class Advice:
+    """What to do with the plate next.
+
+    Attributes
+    ----------
+    action : {"bend", "done", "reverse"}
+    machine_id : str
+    top_roll_displacement_mm : float or None
+        The next pass's setting (``bend`` only).
+    expected_radius_mm : float or None
+        Predicted radius (median) of the target's surface after that pass (``bend`` only).
+    expected_radius_range_mm : (float, float) or None
+        Central 95 % interval of that radius (``inf``: the plate may stay flat).
+    basis : dict
+        What the advice rests on (JSON-ready): data used, parameters with their sd, the aim, warnings.
+    """
+
+    action: Action
+    machine_id: str
+    top_roll_displacement_mm: float | None
+    expected_radius_mm: float | None
+    expected_radius_range_mm: tuple[float, float] | None
+    basis: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready: tuples become lists, an infinite radius (a flat plate) None."""
+        return _jsonable(asdict(self))
+
+
+def _jsonable(value):
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def curvature_band(target: FormingTarget) -> float:
+    """Half-width of the curvature band the inspection passes, ``8 tol / w^2``, 1/mm (module docstring)."""
+    return 8.0 * target.tolerance_mm / target.width_mm**2
+
+
+def target_curvature(target: FormingTarget) -> float:
+    """The target's mid-surface curvature, 1/mm."""
+    return 1.0 / target.mid_radius_mm(target.radius_mm)
+
+
+def _surface_radius(target: FormingTarget, curvature: float) -> float:
+    return math.inf if curvature <= 0 else target.surface_radius_mm(1.0 / curvature)
+
+
+def state_action(plate: PlateRecord) -> tuple[Action, str] | None:
+    """``done`` or ``reverse`` with the reason, from the latest inspection; None when the plate needs bending.
+
+    Raises
+    ------
+    InputError
+        The latest pass was not inspected.
+    """
+    if not plate.passes:
+        return None
+    last = plate.passes[-1]
+    if not last.inspected:
+        raise InputError("plate", f"passes[{len(plate.passes) - 1}].measured_radius_mm",
+                         "missing: inspect the plate after its latest pass before asking for the next")
+    k, kt, band = measured_curvature(plate, last.measured_radius_mm), target_curvature(plate.target), \
+        curvature_band(plate.target)
+    if last.verdict == "pass":
+        return "done", "the latest inspection passes"
+    if last.verdict == "fail" and k > kt:
+        return "reverse", "the latest inspection fails with the plate bent tighter than its target"
+    if last.verdict is None and k > kt + band:
+        return "reverse", "the measured radius is tighter than the tolerance band"
+    if last.verdict is None and abs(k - kt) <= band:
+        return "done", "the measured radius is within the tolerance band (no verdict given)"
+    return None
+
+
+def aim(fitted: Fit, plate: PlateRecord, machine: Machine, settings: AimSettings = AimSettings()) -> dict:
+    """The next displacement of a plate that needs bending (module docstring), with its prediction.
+
+    Returns
+    -------
+    dict
+        ``displacement_mm``; ``prediction`` there (:class:`~.learning.Prediction`); ``yield_factor``: the
+        factor the safe side was aimed for (None: its whole distribution, the plate has passes of its
+        own) and ``safe_prediction`` for it; ``warnings`` (list of str).
+
+    Raises
+    ------
+    FormingError
+        The target cannot be reached on this machine even at its deepest setting.
+    """
+    target = plate.target
+    t = target.material.thickness_mm
+    kt, band = target_curvature(target), curvature_band(target)
+    limit = kt + settings.over_band * band
+    p_hi = 1.0 - settings.over_probability
+    d_max = bender.max_displacement_mm(machine, t)
+    factor = None
+    if fitted.rows_per_plate.get(plate.plate_id, 0) == 0:
+        factor = max(fitted.priors.yield_factor_floor,
+                     fitted.yield_factor_quantile(plate.plate_id, settings.first_pass_quantile))
+    predict = lambda d: fitted.predict(plate, machine.machine_id, d)  # noqa: E731
+    predict_safe = lambda d: fitted.predict(plate, machine.machine_id, d, yield_factor=factor)  # noqa: E731
+    warnings: list[str] = []
+    # the least displacement that loads the plate beyond its earlier passes
+    peak = float(np.max(fitted.curvatures(plate)[0], initial=0.0))
+    d_lo = 1e-3
+    if peak > 0:
+        if predict(d_max).loaded_curvature <= peak:
+            raise FormingError(f"the plate was loaded beyond what {machine.machine_id} reaches at its deepest "
+                               f"setting ({d_max:.1f} mm)")
+        d_lo = optimize.brentq(lambda d: predict(d).loaded_curvature - peak, 1e-3, d_max, xtol=1e-4)
+    if predict_safe(d_max).quantile(p_hi) < limit and predict(d_max).mean < kt:
+        raise FormingError(f"radius {target.radius_mm:g} mm needs more than {machine.machine_id}'s deepest setting "
+                           f"({d_max:.1f} mm, loaded radius {bender.min_loaded_radius_mm(machine, t):.0f} mm)")
+    safe = lambda d: predict_safe(d).quantile(p_hi) - limit  # noqa: E731
+    centre = lambda d: predict(d).mean - kt  # noqa: E731
+    candidates = []
+    for g in (safe, centre):
+        if g(d_lo) >= 0:
+            candidates.append(d_lo)
+        elif g(d_max) > 0:
+            candidates.append(optimize.brentq(g, d_lo, d_max, xtol=1e-3))
+    d = min(candidates)
+    if safe(d_lo) >= 0:
+        warnings.append("too uncertain to bend further safely: the advice repeats the deepest setting so far; "
+                        "inspect again")
+    return {"displacement_mm": float(d), "prediction": predict(d), "safe_prediction": predict_safe(d),
+            "yield_factor": factor, "warnings": warnings}
+
+
+def _history_for(plate: PlateRecord, machine_id: str, history: Sequence[PlateRecord], limit: int) -> list[PlateRecord]:
+    used = [h for h in history if h.plate_id != plate.plate_id
+            and any(q.inspected and q.machine_id == machine_id for q in h.passes)]
+    return used[-limit:] if limit else []
+
+
+def advise(plate: PlateRecord, machines: Mapping[str, Machine], *, history: Sequence[PlateRecord] = (),
+           machine_id: str | None = None, priors: Priors = Priors(),
+           settings: AimSettings = AimSettings()) -> Advice:
+    """Advice for a plate's next step: done, reverse, or bend with the next top-roll displacement.
+
+    Parameters
+    ----------
+    plate : PlateRecord
+        The plate, its target and its passes so far (the latest inspected).
+    machines : mapping of machine id to Machine
+        The machine of the next pass and every machine the passes name.
+    history : sequence of PlateRecord
+        Other plates, oldest first. Those with inspected passes on the next pass's machine are fitted
+        with this plate (the ``priors.max_plates`` most recent); a plate of the same id is ignored.
+    machine_id : str, optional
+        The next pass's machine; default the latest pass's. Required for a plate without passes.
+    priors : Priors
+    settings : AimSettings
+
+    Returns
+    -------
+    Advice
+
+    Raises
+    ------
+    InputError
+        No machine for the next pass, an unknown machine, the latest pass not inspected.
+    FormingError
+        The target cannot be rolled on the machine.
+    """
+    if machine_id is None:
+        if not plate.passes:
+            raise InputError("advice", "machine_id", "missing: a plate without passes needs the machine of its "
+                             "first pass")
+        machine_id = plate.passes[-1].machine_id
+    for name in {machine_id} | {q.machine_id for q in plate.passes}:
+        if name not in machines:
+            raise InputError("advice", "machine_id", f"unknown machine {name!r} (known: {', '.join(sorted(machines))})")
+    target = plate.target
+    kt, band = target_curvature(target), curvature_band(target)
+    basis: dict[str, Any] = {
+        "target_radius_mm": target.radius_mm,
+        "tolerance_band_radius_mm": [_surface_radius(target, kt + band), _surface_radius(target, kt - band)],
+        "measured_radius_mm": plate.passes[-1].measured_radius_mm if plate.passes else None,
+    }
+    decided = state_action(plate)
+    if decided is not None:
+        basis["reason"] = decided[1]
+        return Advice(decided[0], machine_id, None, None, None, basis)
+
+    others = _history_for(plate, machine_id, history, priors.max_plates)
+    known = [h for h in others if all(q.machine_id in machines for q in h.passes)]
+    fitted = fit([plate, *known], machines, priors, also_machines=[machine_id])
+    aimed = aim(fitted, plate, machines[machine_id], settings)
+    pred = aimed["prediction"]
+    k_lo, k_hi = pred.quantile(0.025), pred.quantile(0.975)
+    basis.update(_data_basis(plate, known, machine_id, fitted, settings))
+    if len(known) < len(others):
+        basis["warnings"].append(f"{len(others) - len(known)} plates of the history left out: they passed through "
+                                 "machines not given")
+    basis["aim"] = {
+        "loaded_radius_mm": _surface_radius(target, pred.loaded_curvature),
+        "probability_over_band": aimed["safe_prediction"].probability_above(kt + band),
+        "probability_within_band": pred.probability_above(kt - band) - pred.probability_above(kt + band),
+        "over_probability": settings.over_probability,
+        "over_band": settings.over_band,
+        "yield_factor_aimed": aimed["yield_factor"],
+    }
+    basis["warnings"] = basis["warnings"] + aimed["warnings"]
+    basis["reason"] = "first pass" if not plate.passes else "the latest inspection is under-bent"
+    return Advice("bend", machine_id, aimed["displacement_mm"], _surface_radius(target, pred.mean),
+                  (_surface_radius(target, k_hi), _surface_radius(target, k_lo)), basis)
+
+
+def _data_basis(plate: PlateRecord, others: Sequence[PlateRecord], machine_id: str, fitted: Fit,
+                settings: AimSettings) -> dict[str, Any]:
+    rows = fitted.rows_per_plate
+    own = rows.get(plate.plate_id, 0)
+    same = [h for h in others if h.group == plate.group]
+    group_rows = sum(rows.get(h.plate_id, 0) for h in same)
+    machine_rows = sum(rows.get(h.plate_id, 0) for h in others)
+    warnings = []
+    if own == 0 and machine_rows == 0:
+        data = "nominal only: no history"
+        warnings.append("no inspected pass of this plate or of this machine: the advice rests on the nominal "
+                        "model and its priors; expect an under-bent plate and a correction pass")
+    elif own == 0 and group_rows < settings.min_rows:
+        data = "machine history only" if group_rows == 0 else "little history of this grade and thickness"
+        warnings.append(f"{group_rows} inspected passes of {plate.group[0]} {plate.group[1]:g} mm on {machine_id}: "
+                        "its yield is mostly the prior's; expect a correction pass")
+    elif own == 0:
+        data = "history of this machine, grade and thickness"
+    else:
+        data = "this plate's passes" + (" and history of this machine" if machine_rows else "")
+        if machine_rows == 0 and own < settings.min_rows:
+            warnings.append("no history of this machine: its compliance is the prior's")
+    c, c_sd = fitted.parameter("machine", machine_id)
+    f, f_sd = fitted.parameter("plate", plate.plate_id)
+    g, g_sd = fitted.parameter("group", plate.group)
+    return {
+        "data": data,
+        "enough_data": not warnings,
+        "plate_passes_inspected": own,
+        "group_plates": len(same),
+        "group_passes_inspected": group_rows,
+        "machine_plates": len(others),
+        "machine_passes_inspected": machine_rows,
+        "parameters": {
+            "yield_factor": {"mean": f, "sd": f_sd},
+            "group_yield_factor": {"mean": g, "sd": g_sd, "plate_spread": fitted.plate_spread},
+            "compliance_mm_per_mn": {"mean": c, "sd": c_sd},
+            "scatter_mm": fitted.scatter_mm,
+        },
+        "warnings": warnings,
+    }

@@ -1,0 +1,408 @@
+"""The model's uncertain parameters fitted to the forming history, with their uncertainty.
+
+Parameters
+----------
+- ``c_m``: each machine's compliance, mm/MN (:mod:`.rolling`); prior ``N(c0, sc^2)``.
+- ``mu_g``: the mean yield factor of a group of plates of one grade and thickness (plates of a heat, of a
+  mill, of a thickness behave alike); prior ``N(f0, sf^2)``. ``f0 - 2 sf`` lies near 1 (nominal yield is a
+  minimum) and ``f0`` near mill plates' typical 15 % above it.
+- ``f_p``: each plate's yield factor, ``N(mu_g, tau^2)`` about its group's mean: real plates differ.
+
+Data
+----
+Each inspected pass gives the plate's mid-surface curvature. Passes that do not load the plate beyond an
+earlier one do not change it (the history rule), so inspections of one state are averaged into one row.
+A row's variance is the inspection's noise (relative radius noise and an absolute sagitta noise over the
+plate's width), divided by the inspections averaged, plus the pass's own scatter: a displacement scatter
+``sigma_d`` (mm; repeatability of the roll, the plate's feed) times the row's sensitivity ``g = d k / d d``.
+
+Fit
+---
+Weighted non-linear least squares on the data rows and the priors together (the maximum a posteriori
+estimate of the hierarchical model), with ``scipy.optimize.least_squares``; the covariance is the
+inverse of ``J^T J`` at the optimum (Laplace). ``sigma_d`` and ``tau`` are then updated as conjugate
+variance estimates, each weighted with its prior as pseudo-observations::
+
+    sigma_d^2 = (nu0 sigma0^2 + sum_rows max(r^2 - v_inspection, 0) / g^2) / (nu0 + n_rows - n_plates)
+    tau^2     = (nu_t tau0^2 + sum_plates [(f_p - mu_g)^2 + var(f_p - mu_g)]) / (nu_t + n_plates)
+
+and the fit repeated (three rounds). Predictions use Student's t with the corresponding degrees of freedom
+(:meth:`Fit.predict`): with little data the tails are wide, and the advice aims further to the safe side.
+
+A plate's own passes pin its factor; passes of other plates on the same machine pin the machine's
+compliance, and those of the same grade and thickness the group's mean factor and spread. A plate with
+no history of its own gets its group's distribution; a group with no plates gets the prior.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping, Sequence
+
+import numpy as np
+from scipy import optimize, stats
+
+from .records import Machine, PlateRecord, RollPass
+from .rolling import PassSetup, plate_curvatures
+
+#: Rounds of (least squares, variance update).
+_ROUNDS = 3
+#: Finite-difference steps: compliance (mm/MN), yield factor, displacement (mm).
+_H_C, _H_F, _H_D = 1e-3, 1e-5, 1e-3
+
+
+@dataclass(frozen=True)
+class Priors:
+    """What the model assumes before any history (all documented in docs/forming.md).
+
+    Attributes
+    ----------
+    yield_factor, yield_factor_sd : float
+        Prior mean and sd of a grade/thickness group's mean yield factor.
+    yield_factor_floor : float
+        The least factor a plate can have: the nominal yield is a guaranteed minimum (1). The first pass
+        of a plate is never aimed for a factor below it (:func:`.advice.aim`).
+    plate_spread : float
+        Prior guess of the sd of plates' factors about their group's mean (``tau0``).
+    plate_spread_weight : float
+        How many plates that guess is worth (``nu_t``).
+    compliance_mm_per_mn, compliance_sd_mm_per_mn : float
+        Prior mean and sd of a machine's compliance.
+    scatter_mm : float
+        Prior guess of a pass's displacement scatter (``sigma0``).
+    scatter_weight : float
+        How many rows that guess is worth (``nu0``).
+    radius_noise : float
+        The inspection's relative radius noise (sd).
+    sagitta_noise_mm : float
+        The inspection's absolute noise, as a sagitta over the plate's width (mm; ``k w^2 / 8``).
+    max_plates : int
+        Most recent plates of the machine a fit uses besides the plate itself.
+    """
+
+    yield_factor: float = 1.17
+    yield_factor_sd: float = 0.06
+    yield_factor_floor: float = 1.0
+    plate_spread: float = 0.09
+    plate_spread_weight: float = 4.0
+    compliance_mm_per_mn: float = 1.0
+    compliance_sd_mm_per_mn: float = 1.0
+    scatter_mm: float = 0.1
+    scatter_weight: float = 4.0
+    radius_noise: float = 5e-4
+    sagitta_noise_mm: float = 0.1
+    max_plates: int = 40
+
+    def __post_init__(self) -> None:
+        for name in ("yield_factor", "yield_factor_sd", "yield_factor_floor", "plate_spread", "plate_spread_weight",
+                     "compliance_sd_mm_per_mn", "scatter_mm", "scatter_weight", "radius_noise", "sagitta_noise_mm"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"{name}: expected a positive finite number, got {v!r}")
+        if not np.isfinite(self.compliance_mm_per_mn):
+            raise ValueError(f"compliance_mm_per_mn: expected a finite number, got {self.compliance_mm_per_mn!r}")
+        if not (isinstance(self.max_plates, int) and self.max_plates >= 0):
+            raise ValueError(f"max_plates: expected a non-negative integer, got {self.max_plates!r}")
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """The plate's mid-surface curvature after a next pass, as a Student-t distribution.
+
+    Attributes
+    ----------
+    loaded_curvature : float
+        The pass's loaded mid-surface curvature at the fitted parameters, 1/mm.
+    mean, sd : float
+        Location and scale of the curvature after springback, 1/mm.
+    dof : float
+        Degrees of freedom.
+    """
+
+    loaded_curvature: float
+    mean: float
+    sd: float
+    dof: float
+
+    def quantile(self, p: float) -> float:
+        return float(self.mean + self.sd * stats.t.ppf(p, self.dof))
+
+    def probability_above(self, curvature: float) -> float:
+        return float(stats.t.sf((curvature - self.mean) / self.sd, self.dof))
+
+
+@dataclass(frozen=True)
+class Fit:
+    """Fitted parameters and their covariance (module docstring).
+
+    Attributes
+    ----------
+    machine_ids, groups, plate_ids : tuple
+        The parameters' order: compliances, group means, plate factors.
+    mean : (n,) ndarray
+    cov : (n, n) ndarray
+    scatter_mm : float
+        Fitted displacement scatter of a pass, mm.
+    plate_spread : float
+        Fitted sd of plates' factors about their group's mean.
+    n_rows : int
+        Inspected states used.
+    rows_per_plate : dict
+        Inspected states per plate id.
+    scatter_dof, spread_dof : float
+        Degrees of freedom of the two variance estimates (prior weight included).
+    machines : dict
+        The machines of the fitted passes.
+    priors : Priors
+    """
+
+    machine_ids: tuple[str, ...]
+    groups: tuple[tuple[str, float], ...]
+    plate_ids: tuple[str, ...]
+    mean: np.ndarray
+    cov: np.ndarray
+    scatter_mm: float
+    plate_spread: float
+    n_rows: int
+    rows_per_plate: dict
+    scatter_dof: float
+    spread_dof: float
+    machines: dict
+    priors: Priors
+
+    def _index(self, kind: str, key) -> int:
+        if kind == "machine":
+            return self.machine_ids.index(key)
+        if kind == "group":
+            return len(self.machine_ids) + self.groups.index(key)
+        return len(self.machine_ids) + len(self.groups) + self.plate_ids.index(key)
+
+    def parameter(self, kind: str, key) -> tuple[float, float]:
+        """(mean, sd) of a machine's compliance, a group's mean factor, or a plate's factor.
+
+        Parameters
+        ----------
+        kind : {"machine", "group", "plate"}
+        key : machine id, (grade, thickness) or plate id
+        """
+        i = self._index(kind, key)
+        return float(self.mean[i]), float(np.sqrt(max(self.cov[i, i], 0.0)))
+
+    def curvatures(self, plate: PlateRecord, theta: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Loaded and unloaded curvature after each of the plate's passes at the fitted parameters (or ``theta``).
+
+        ``plate`` (its id) must be in the fit, and its passes' machines.
+        """
+        th = self.mean if theta is None else theta
+        comp = {m: float(th[self._index("machine", m)]) for m in {p.machine_id for p in plate.passes}}
+        return plate_curvatures(plate, self.machines, yield_factor=float(th[self._index("plate", plate.plate_id)]),
+                                compliance_mm_per_mn=comp)
+
+    def predict(self, plate: PlateRecord, machine_id: str, displacement_mm: float, *,
+                yield_factor: float | None = None) -> Prediction:
+        """Distribution of the plate's curvature after one more pass (``plate`` must be in the fit).
+
+        The parameters' uncertainty is propagated to first order (numerical gradient), the new pass adds
+        its scatter and the inspection its noise. Degrees of freedom: the scatter's when the plate has
+        inspected passes of its own or its factor is given, else the fewer of the scatter's and the
+        plates' spread's.
+
+        Parameters
+        ----------
+        plate : PlateRecord
+        machine_id : str
+        displacement_mm : float
+        yield_factor : float, optional
+            Predict for the plate's factor fixed at this value (the other parameters conditioned on it).
+        """
+        machines_used = sorted({p.machine_id for p in plate.passes} | {machine_id})
+        i_plate = self._index("plate", plate.plate_id)
+        idx = [self._index("machine", m) for m in machines_used] + [i_plate]
+        theta, cov = self.mean, self.cov
+        if yield_factor is not None:  # condition the Gaussian posterior on the plate's factor
+            col = cov[:, i_plate] / max(cov[i_plate, i_plate], 1e-300)
+            theta = theta + col * (yield_factor - theta[i_plate])
+            cov = cov - np.outer(col, cov[i_plate, :])
+
+        def model(th: np.ndarray, d_shift: float = 0.0) -> tuple[float, float]:
+            trial = plate.with_pass(RollPass(machine_id, displacement_mm + d_shift))
+            kl, ku = self.curvatures(trial, th)
+            return float(kl[-1]), float(ku[-1])
+
+        k_loaded, mean = model(theta)
+        grad = np.zeros(len(idx))
+        for j, i in enumerate(idx):
+            step = _H_C if j < len(idx) - 1 else _H_F
+            th = theta.copy()
+            th[i] += step
+            grad[j] = (model(th)[1] - mean) / step
+        var_par = max(float(grad @ cov[np.ix_(idx, idx)] @ grad), 0.0)
+        g_d = (model(theta, _H_D)[1] - mean) / _H_D
+        var = var_par + (g_d * self.scatter_mm) ** 2 + _inspection_variance(mean, plate, self.priors)
+        own = self.rows_per_plate.get(plate.plate_id, 0) > 0 or yield_factor is not None
+        dof = self.scatter_dof if own else min(self.scatter_dof, self.spread_dof)
+        return Prediction(k_loaded, mean, float(np.sqrt(var)), dof)
+
+    def yield_factor_quantile(self, plate_id: str, p: float) -> float:
+        """Quantile of a plate's factor (Student-t: the plates' spread's degrees of freedom when it has no
+        inspected passes, else the scatter's)."""
+        mean, sd = self.parameter("plate", plate_id)
+        dof = self.scatter_dof if self.rows_per_plate.get(plate_id, 0) else self.spread_dof
+        return float(mean + sd * stats.t.ppf(p, dof))
+
+
+def measured_curvature(plate: PlateRecord, radius_mm: float) -> float:
+    """Mid-surface curvature of the plate from an inspected radius of its target's surface (``inf``: 0)."""
+    if np.isinf(radius_mm):
+        return 0.0
+    r_mid = plate.target.mid_radius_mm(radius_mm)
+    return 1.0 / r_mid if r_mid > 0 else np.inf
+
+
+def _peaks(loaded: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """Each pass's plate's largest loaded curvature so far (plates' passes contiguous from ``starts``)."""
+    peak = [np.maximum.accumulate(loaded[a:b]) for a, b in zip(starts[:-1], starts[1:])]
+    return np.concatenate(peak) if peak else loaded
+
+
+def _inspection_variance(curvature: float, plate: PlateRecord, priors: Priors) -> float:
+    w = plate.target.width_mm
+    return (priors.radius_noise * curvature) ** 2 + (8.0 * priors.sagitta_noise_mm / (w * w)) ** 2
+
+
+def fit(plates: Sequence[PlateRecord], machines: Mapping[str, Machine], priors: Priors = Priors(), *,
+        also_machines: Sequence[str] = ()) -> Fit:
+    """Fit compliances, group yield factors and plate yield factors to the plates' inspected passes.
+
+    Parameters
+    ----------
+    plates : sequence of PlateRecord
+        Distinct plate ids. Plates without passes still get a factor (their group's distribution).
+    machines : mapping of machine id to Machine
+        Every machine the passes name.
+    priors : Priors
+    also_machines : sequence of str
+        Machines to give a compliance even if no pass names them (the next pass's machine).
+
+    Returns
+    -------
+    Fit
+
+    Raises
+    ------
+    ValueError
+        Duplicate plate ids, an unknown machine, an inspected radius tighter than half the thickness.
+    """
+    ids = [p.plate_id for p in plates]
+    if len(set(ids)) != len(ids):
+        raise ValueError("plates: expected distinct plate ids")
+    machine_ids = tuple(sorted({q.machine_id for p in plates for q in p.passes} | set(also_machines)))
+    unknown = [m for m in machine_ids if m not in machines]
+    if unknown:
+        raise ValueError(f"machine_id: no machine {unknown[0]!r} among {sorted(machines)}")
+    groups = tuple(sorted({p.group for p in plates}))
+    M, G, P = len(machine_ids), len(groups), len(plates)
+
+    # one row per pass, plates contiguous
+    pass_plate = np.array([i for i, p in enumerate(plates) for _ in p.passes], dtype=int)
+    pass_machine = np.array([machine_ids.index(q.machine_id) for p in plates for q in p.passes], dtype=int)
+    d = np.array([q.top_roll_displacement_mm for p in plates for q in p.passes], dtype=np.float64)
+    setup = PassSetup.of([machines[q.machine_id] for p in plates for q in p.passes],
+                         [p for p in plates for _ in p.passes])
+    starts = np.concatenate([[0], np.cumsum([len(p.passes) for p in plates])])
+    plate_group = np.array([M + groups.index(p.group) for p in plates], dtype=int)
+
+    x0 = np.concatenate([np.full(M, priors.compliance_mm_per_mn), np.full(G, priors.yield_factor),
+                         np.full(P, priors.yield_factor)])
+
+    def curvatures(theta: np.ndarray, d_shift: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each pass's loaded curvature, the largest so far, the curvature after it."""
+        f = theta[M + G + pass_plate]
+        kl = setup.loaded_curvature(d + d_shift, f, theta[pass_machine])
+        peak = _peaks(kl, starts)
+        return kl, peak, setup.unloaded_curvature(peak, f)
+
+    # states: the passes after which an inspection saw a new shape (nominal parameters decide which pass
+    # raised the peak), with the mean of their inspections
+    kl0 = curvatures(x0)[0]
+    state_pass, state_obs, state_n, state_plate = [], [], [], []
+    for i, p in enumerate(plates):
+        peak, current, seen = 0.0, -1, {}
+        for j, q in enumerate(p.passes):
+            n = starts[i] + j
+            if kl0[n] > peak * (1 + 1e-9):
+                peak, current = kl0[n], n
+            if q.inspected:
+                k = measured_curvature(p, q.measured_radius_mm)
+                if not np.isfinite(k):
+                    raise ValueError(f"measured_radius_mm: expected more than half the thickness, "
+                                     f"got {q.measured_radius_mm!r} (plate {p.plate_id})")
+                seen.setdefault(current, []).append(k)
+        for n, ks in seen.items():
+            state_pass.append(n)
+            state_obs.append(float(np.mean(ks)))
+            state_n.append(len(ks))
+            state_plate.append(i)
+    state_pass = np.array(state_pass, dtype=int)
+    state_obs = np.array(state_obs)
+    state_n = np.array(state_n)
+    state_plate = np.array(state_plate, dtype=int)
+    meas_var = np.array([_inspection_variance(k, plates[i], priors) for k, i in zip(state_obs, state_plate)]) / \
+        np.maximum(state_n, 1)
+    n_rows = len(state_pass)
+    plates_with_rows = np.unique(state_plate)
+    dof_rows = max(n_rows - len(plates_with_rows), 0)
+
+    scatter, spread = priors.scatter_mm, priors.plate_spread
+    theta = x0
+    for round_ in range(_ROUNDS):
+        ku = curvatures(theta)[2]
+        g = (curvatures(theta, _H_D)[2] - ku)[state_pass] / _H_D
+        sd_row = np.sqrt(meas_var + (g * scatter) ** 2)
+        prior_sd = np.concatenate([np.full(M, priors.compliance_sd_mm_per_mn), np.full(G, priors.yield_factor_sd)])
+        prior_mu = np.concatenate([np.full(M, priors.compliance_mm_per_mn), np.full(G, priors.yield_factor)])
+
+        def residuals(th: np.ndarray) -> np.ndarray:
+            k = curvatures(th)[2]
+            return np.concatenate([(k[state_pass] - state_obs) / sd_row, (th[:M + G] - prior_mu) / prior_sd,
+                                   (th[M + G:] - th[plate_group]) / spread])
+
+        def jacobian(th: np.ndarray) -> np.ndarray:
+            J = np.zeros((n_rows + M + G + P, M + G + P))
+            k = curvatures(th)[2]
+            for m in range(M):
+                t2 = th.copy()
+                t2[m] += _H_C
+                J[:n_rows, m] = (curvatures(t2)[2] - k)[state_pass] / _H_C / sd_row
+            t2 = th.copy()
+            t2[M + G:] += _H_F
+            dk = (curvatures(t2)[2] - k)[state_pass] / _H_F / sd_row
+            J[np.arange(n_rows), M + G + state_plate] = dk
+            J[n_rows + np.arange(M + G), np.arange(M + G)] = 1.0 / prior_sd
+            J[n_rows + M + G + np.arange(P), M + G + np.arange(P)] = 1.0 / spread
+            J[n_rows + M + G + np.arange(P), plate_group] = -1.0 / spread
+            return J
+
+        sol = optimize.least_squares(residuals, theta, jac=jacobian, method="trf", x_scale=1.0,
+                                     bounds=(np.concatenate([np.full(M, -np.inf), np.full(G + P, 0.3)]),
+                                             np.concatenate([np.full(M, np.inf), np.full(G + P, 3.0)])))
+        theta = sol.x
+        J = jacobian(theta)
+        cov = np.linalg.pinv(J.T @ J)
+        if round_ == _ROUNDS - 1:
+            break
+        # variance updates (module docstring)
+        r2 = (curvatures(theta)[2][state_pass] - state_obs) ** 2
+        excess = np.maximum(r2 - meas_var, 0.0) / np.maximum(g * g, 1e-300)
+        scatter = float(np.sqrt((priors.scatter_weight * priors.scatter_mm**2 + excess.sum())
+                                / (priors.scatter_weight + dof_rows)))
+        dev = [(theta[M + G + i] - theta[plate_group[i]]) ** 2
+               + cov[M + G + i, M + G + i] + cov[plate_group[i], plate_group[i]]
+               - 2 * cov[M + G + i, plate_group[i]] for i in plates_with_rows]
+        spread = float(np.sqrt((priors.plate_spread_weight * priors.plate_spread**2 + float(np.sum(dev)))
+                               / (priors.plate_spread_weight + len(plates_with_rows))))
+    rows_per_plate = {plates[i].plate_id: int(np.sum(state_plate == i)) for i in range(P)}
+    return Fit(machine_ids, groups, tuple(ids), theta, cov, scatter, spread, n_rows, rows_per_plate,
+               priors.scatter_weight + dof_rows,
+               priors.plate_spread_weight + len(plates_with_rows),
+               {m: machines[m] for m in machine_ids}, priors)

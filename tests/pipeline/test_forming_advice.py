@@ -1,0 +1,134 @@
+"""Advice: done, reverse, the nominal first pass, the basis, and the tolerance band against the inspection's verdict."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+from pipeline.deviation import deviation_map, judge, register_to_target
+from pipeline.forming import (FormingError, FormingTarget, Machine, Material, PlateRecord, RollPass, advise,
+                              curvature_band)
+from pipeline.forming.advice import target_curvature
+from pipeline.forming.rolling import plate_curvatures
+from pipeline.io import Target
+from tests.pipeline.test_curvature import cylinder, plate_grid
+
+MACHINE = Machine("R3-01", 1400.0, 420.0, 500.0)
+MACHINES = {"R3-01": MACHINE}
+
+
+def target(radius=5000.0, t=20.0, width=3000.0):
+    return FormingTarget(radius, 2.0, width, 4000.0, Material("AH36", t, 355.0))
+
+
+def rolled(plate: PlateRecord, d: float, *, factor: float, compliance: float, verdict: bool = True) -> PlateRecord:
+    """The plate after one more pass on the true physics (no scatter), inspected exactly."""
+    trial = plate.with_pass(RollPass("R3-01", d))
+    k = plate_curvatures(trial, MACHINES, yield_factor=factor, compliance_mm_per_mn={"R3-01": compliance})[1][-1]
+    radius = math.inf if k <= 0 else plate.target.surface_radius_mm(1 / k)
+    ok = abs(k - target_curvature(plate.target)) <= 0.95 * curvature_band(plate.target)
+    return plate.with_pass(RollPass("R3-01", d, radius, ("pass" if ok else "fail") if verdict else None))
+
+
+def test_nominal_first_pass_says_so_and_never_over_bends():
+    for radius, t in ((3000.0, 10.0), (5000.0, 20.0), (15000.0, 30.0)):
+        plate = PlateRecord("new", target(radius, t))
+        advice = advise(plate, MACHINES, machine_id="R3-01")
+        assert advice.action == "bend"
+        assert advice.basis["data"] == "nominal only: no history"
+        assert advice.basis["enough_data"] is False and advice.basis["warnings"]
+        assert advice.basis["aim"]["yield_factor_aimed"] == 1.0  # the nominal yield is a guaranteed minimum
+        lo, hi = advice.expected_radius_range_mm
+        assert lo < advice.expected_radius_mm < hi
+        json.dumps(advice.to_dict(), allow_nan=False)  # JSON-ready for the service
+        # whatever the plate's real yield (>= nominal) and the machine's give (>= 0), no over-bending
+        for factor in (1.0, 1.2, 1.4):
+            for compliance in (0.0, 2.0, 6.0):
+                after = rolled(plate, advice.top_roll_displacement_mm, factor=factor, compliance=compliance)
+                k = 1 / target(radius, t).mid_radius_mm(after.passes[-1].measured_radius_mm)
+                assert k <= target_curvature(plate.target) + 0.95 * curvature_band(plate.target)
+
+
+def test_narrow_plate_band_reaches_flat():
+    # a 400 mm wide plate, 2 mm: any radius above ~10 m passes; the band's open end is flat (null in JSON)
+    plate = PlateRecord("strip", FormingTarget(15000.0, 2.0, 400.0, 3000.0, Material("AH36", 20.0, 355.0)))
+    advice = advise(plate, MACHINES, machine_id="R3-01").to_dict()
+    assert advice["basis"]["tolerance_band_radius_mm"][1] is None
+    json.dumps(advice, allow_nan=False)
+
+
+def test_second_pass_reaches_the_band():
+    plate = PlateRecord("p", target(6000.0, 15.0))
+    first = advise(plate, MACHINES, machine_id="R3-01")
+    plate = rolled(plate, first.top_roll_displacement_mm, factor=1.25, compliance=2.0)
+    assert plate.passes[-1].verdict == "fail" and plate.passes[-1].measured_radius_mm > 6000.0  # under-bent probe
+    second = advise(plate, MACHINES)
+    assert second.action == "bend" and second.top_roll_displacement_mm > first.top_roll_displacement_mm
+    assert second.basis["plate_passes_inspected"] == 1
+    assert second.basis["data"] == "this plate's passes"
+    plate = rolled(plate, second.top_roll_displacement_mm, factor=1.25, compliance=2.0)
+    assert plate.passes[-1].verdict == "pass"
+    assert advise(plate, MACHINES).action == "done"
+
+
+def test_over_bent_on_purpose_is_told_reverse():
+    plate = PlateRecord("p", target(5000.0, 20.0))
+    deep = rolled(plate, 130.0, factor=1.2, compliance=1.0)
+    assert deep.passes[-1].measured_radius_mm < 4000.0  # over-bent far beyond the band
+    advice = advise(deep, MACHINES)
+    assert advice.action == "reverse" and advice.top_roll_displacement_mm is None
+    assert "tighter" in advice.basis["reason"]
+    # without a verdict the measured radius decides
+    assert advise(rolled(plate, 130.0, factor=1.2, compliance=1.0, verdict=False), MACHINES).action == "reverse"
+
+
+def test_done_by_verdict_or_by_the_band():
+    plate = PlateRecord("p", target(5000.0, 20.0))
+    band_lo, band_hi = advise(plate, MACHINES, machine_id="R3-01").basis["tolerance_band_radius_mm"]
+    assert band_lo < 5000.0 < band_hi
+    inside = plate.with_pass(RollPass("R3-01", 100.0, 0.5 * (band_hi + 5000.0)))
+    assert advise(inside, MACHINES).action == "done"
+    assert advise(plate.with_pass(RollPass("R3-01", 100.0, 5050.0, "pass")), MACHINES).action == "done"
+    under = advise(plate.with_pass(RollPass("R3-01", 100.0, 1.05 * band_hi)), MACHINES)
+    assert under.action == "bend" and under.top_roll_displacement_mm > 100.0
+
+
+def test_group_history_is_used_and_reported():
+    history = []
+    for i, factor in enumerate((1.18, 1.22, 1.2)):
+        plate = PlateRecord(f"h{i}", target(5000.0 + 500 * i, 20.0))
+        for _ in range(3):
+            advice = advise(plate, MACHINES, history=history, machine_id="R3-01")
+            if advice.action != "bend":
+                break
+            plate = rolled(plate, advice.top_roll_displacement_mm, factor=factor, compliance=2.0)
+        history.append(plate)
+    new = advise(PlateRecord("new", target(7000.0, 20.0)), MACHINES, history=history, machine_id="R3-01")
+    assert new.basis["data"] == "history of this machine, grade and thickness"
+    assert new.basis["group_plates"] == 3 and new.basis["group_passes_inspected"] >= 6
+    group = new.basis["parameters"]["group_yield_factor"]
+    assert group["mean"] == pytest.approx(1.2, abs=0.03)  # learnt from the three plates
+    assert group["sd"] < 0.06  # tighter than the prior
+    other = advise(PlateRecord("thin", target(7000.0, 10.0)), MACHINES, history=history, machine_id="R3-01")
+    assert other.basis["data"] == "machine history only" and other.basis["warnings"]
+
+
+@pytest.mark.parametrize("radius", [3000.0, 8000.0])
+def test_band_matches_the_inspection_verdict(radius):
+    # curvature_band (8 tol / w^2) against pipeline.deviation on ray-cast cylinders: inside at 0.8 of it,
+    # out at 1.3 of it, on both sides
+    w, tol = 3000.0, 2.0
+    tgt = Target("cylinder", radius, (w, w), tol)
+    band = curvature_band(FormingTarget(radius, tol, w, w, Material("AH36", 20.0, 355.0), "mid"))
+    for share, verdict in ((0.8, "pass"), (-0.8, "pass"), (1.3, "fail"), (-1.3, "fail")):
+        pts, mask, _, _ = plate_grid(cylinder(1 / (1 / radius + share * band)))
+        dev = deviation_map(pts, mask, tgt, register_to_target(pts, mask, tgt))
+        assert judge(dev, mask, tol, pixel_area_mm2=w * w / mask.sum()).verdict == verdict, share
+
+
+def test_unreachable_target_raises():
+    big_top_roll = Machine("R3-09", 1400.0, 420.0, 1300.0)  # loaded radius >= 660 mm for 20 mm plates
+    with pytest.raises(FormingError, match="deepest setting"):
+        advise(PlateRecord("p", target(500.0, 20.0)), {"R3-09": big_top_roll}, machine_id="R3-09")

@@ -1,0 +1,60 @@
+"""Learning on simulated campaigns: every plate done within 4 passes, none over-bent, few passes after the first
+plate, honest prediction intervals, and fewer passes than without the history.
+
+Seeds differ from ``benchmarks/bench_forming.py``'s.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.forming.campaign import TruePhysics, random_batch, run_campaign, summary
+from pipeline.forming.records import Machine
+
+MACHINE = Machine("R3-01", 1400.0, 420.0, 500.0)
+CAMPAIGNS = [  # (seed of the batch and the passes' scatter, the machine's hidden compliance)
+    (2024, 2.0),
+    (2025, 0.5),
+]
+
+
+@pytest.fixture(scope="module")
+def campaigns():
+    out = []
+    for seed, compliance in CAMPAIGNS:
+        plates = random_batch(20, np.random.default_rng(seed))
+        out.append(run_campaign(plates, MACHINE, TruePhysics(compliance_mm_per_mn=compliance),
+                                np.random.default_rng(seed + 1)))
+    return out
+
+
+def test_every_plate_done_within_four_passes_never_over_bent(campaigns):
+    for outcomes in campaigns:
+        s = summary(outcomes)
+        assert s["done"] == s["plates"] == 20
+        assert s["max_passes"] <= 4
+        assert s["over_bent"] == 0 and s["reverse"] == 0
+        assert s["mean_passes_after_first"] <= 2.2
+
+
+def test_prediction_intervals_are_honest(campaigns):
+    # after a plate's own first pass, the measured radius falls in the advised 95 % range about as often
+    inside = [lo <= p.measured_radius_mm <= (np.inf if hi is None else hi)
+              for outcomes in campaigns for o in outcomes
+              for a, p in zip(o.advice, o.record.passes) if a["basis"]["plate_passes_inspected"] > 0
+              for lo, hi in [a["expected_radius_range_mm"]]]
+    assert len(inside) >= 20
+    assert np.mean(inside) >= 0.85
+
+
+def test_learning_saves_passes(campaigns):
+    seed, compliance = CAMPAIGNS[0]
+    plates = random_batch(20, np.random.default_rng(seed))
+    alone = run_campaign(plates, MACHINE, TruePhysics(compliance_mm_per_mn=compliance),
+                         np.random.default_rng(seed + 1), learning=False)
+    assert summary(alone)["over_bent"] == 0
+    assert summary(campaigns[0])["mean_passes"] < summary(alone)["mean_passes"]
+    # later plates rest on the history and say so
+    last = campaigns[0][-1].advice[0]["basis"]
+    assert last["machine_plates"] == 19 and last["data"] != "nominal only: no history"
