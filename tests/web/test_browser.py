@@ -223,7 +223,7 @@ def test_two_browsers_see_their_own_plates(live_server, browser):
         p.goto(f"{base}/viewer/{inspection_id}/?hideViserLogo")
         pages.append(p)
     for p, inspection_id in zip(pages, ids):
-        p.locator(f"text=Inspection {inspection_id}").wait_for(timeout=30_000)
+        p.locator(f"text=Inspection {inspection_id}").wait_for(timeout=90_000)
     # Software WebGL on a loaded 2-core machine can take a while to settle a frame.
     pages[0].screenshot(path=SHOTS / "viewer-a.png", timeout=90_000)
     pages[1].screenshot(path=SHOTS / "viewer-b.png", timeout=90_000)
