@@ -21,7 +21,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match, Mount
 
 from app.schemas import ErrorOut
-from app.services.errors import NotFoundError, ServiceError
+from app.services.errors import ConflictError, NotFoundError, ServiceError
 from pipeline.formats import InputError
 
 log = logging.getLogger(__name__)
@@ -96,6 +96,8 @@ def known_error(exc: BaseException, *, upload_field: str | None = None) -> tuple
         return 422, error_body(str(exc), field, file=exc.file)
     if isinstance(exc, NotFoundError):
         return 404, error_body(exc.detail, exc.field)
+    if isinstance(exc, ConflictError):
+        return 409, error_body(exc.detail, exc.field)
     if isinstance(exc, ServiceError):
         return 422, error_body(exc.detail, exc.field)
     if isinstance(exc, ApiError):

@@ -118,6 +118,9 @@ class Inspection(Base):
     #: "upload" (a bundle .zip) or "simulated" (rendered by the job from ``simulation``).
     source: Mapped[str] = mapped_column(String(16))
     simulation: Mapped[dict[str, Any] | None]
+    #: The forming pass that produced the inspected shape (issue 14), e.g. ``{"method": "roll-bending",
+    #: "machine_id": "R3-01", "top_roll_displacement_mm": 97.0}``; None when not given.
+    process: Mapped[dict[str, Any] | None] = mapped_column(JSON(none_as_null=True))
 
     status: Mapped[str] = mapped_column(String(16), default="queued", index=True)
     progress: Mapped[float] = mapped_column(Float, default=0.0)
@@ -158,6 +161,21 @@ class Inspection(Base):
     plate: Mapped[Plate] = relationship(back_populates="inspections")
     target: Mapped[Target | None] = relationship()
     light_calibration: Mapped[LightCalibration | None] = relationship()
+
+
+class Machine(Base):
+    """A roll bender the forming advice knows (issue 14); ``PUT /machines/{id}`` replaces its geometry."""
+
+    __tablename__ = "machines"
+
+    id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    #: Only ``"three-roll-pyramid"`` (:data:`pipeline.forming.records.MACHINE_KIND`).
+    kind: Mapped[str] = mapped_column(String(32))
+    bottom_roll_spacing_mm: Mapped[float] = mapped_column(Float)
+    bottom_roll_diameter_mm: Mapped[float] = mapped_column(Float)
+    top_roll_diameter_mm: Mapped[float] = mapped_column(Float)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    updated_at: Mapped[datetime] = mapped_column(default=utcnow)
 
 
 class IdempotencyKey(Base):

@@ -50,6 +50,55 @@ class Page(BaseModel, Generic[T]):
     offset: int
 
 
+# ------------------------------------------------------------------ forming (issue 14)
+
+#: A machine id: the same characters as a plate id.
+MACHINE_ID_REGEX = PLATE_ID_REGEX
+MACHINE_ID_MAX_LENGTH = 64
+
+
+class MachineIn(BaseModel):
+    """A three-roll pyramid bender's geometry (mm); ``PUT /machines/{machine_id}``."""
+
+    model_config = STRICT_BODY
+
+    kind: Literal["three-roll-pyramid"]
+    bottom_roll_spacing_mm: float = Field(gt=0, le=SIZE_MM[1], description="between the bottom rolls' axes")
+    bottom_roll_diameter_mm: float = Field(gt=0, le=SIZE_MM[1])
+    top_roll_diameter_mm: float = Field(gt=0, le=SIZE_MM[1])
+
+
+class MachineOut(MachineIn):
+    model_config = ConfigDict(extra="forbid")
+
+    id: str
+    created_at: datetime
+    updated_at: datetime
+
+
+class ProcessIn(BaseModel):
+    """The forming pass that produced the inspected shape: a roll-bending pass on a known machine."""
+
+    model_config = STRICT_BODY
+
+    method: Literal["roll-bending"]
+    machine_id: str = Field(min_length=1, max_length=MACHINE_ID_MAX_LENGTH, pattern=MACHINE_ID_REGEX)
+    top_roll_displacement_mm: float = Field(gt=0, le=SIZE_MM[1], description="down from touching the flat plate")
+
+
+class AdviceOut(BaseModel):
+    """The next forming step of a plate (see docs/forming.md, "Actions and aim")."""
+
+    action: Literal["bend", "done", "reverse"]
+    machine_id: str
+    top_roll_displacement_mm: float | None
+    expected_radius_mm: float | None
+    expected_radius_range_mm: tuple[float | None, float | None] | None = Field(
+        description="central 95 % interval; null for an open end (the plate may stay flat)"
+    )
+    basis: dict[str, Any]
+
+
 # ------------------------------------------------------------------ inspections
 
 
@@ -65,7 +114,11 @@ class DentIn(BaseModel):
 
 
 class SimulatedInspectionIn(BaseModel):
-    """The demo cell: a formed plate to render with the simulator and inspect."""
+    """The demo cell: a formed plate to render with the simulator and inspect.
+
+    A plate with a current target is judged against it (``radius_mm`` is then the formed radius,
+    and the target's tolerance applies); a plate without one against the rendered shape.
+    """
 
     model_config = STRICT_BODY
 
@@ -100,7 +153,10 @@ class SimulatedInspectionIn(BaseModel):
     seed: int = Field(default=0, ge=0, le=2**31 - 1)
     width: int = Field(default=1224, ge=64, le=4096, description="image width, px")
     height: int = Field(default=1024, ge=64, le=4096, description="image height, px")
-    tolerance_mm: float = Field(default=2.0, gt=0, le=MAX_TOLERANCE_MM)
+    tolerance_mm: float = Field(
+        default=2.0, gt=0, le=MAX_TOLERANCE_MM, description="used when the plate has no target"
+    )
+    process: ProcessIn | None = Field(default=None, description="the forming pass that produced this shape")
 
     @field_validator("radius_mm")
     @classmethod
@@ -133,6 +189,8 @@ class InspectionOut(BaseModel):
     error: str | None
     source: str
     verdict: Verdict | None
+    #: The forming pass that produced the inspected shape (``process`` of the request), or null.
+    process: dict[str, Any] | None
     #: The light calibration the inspection is run with (see GET /light-calibrations/{id}), or null.
     light_calibration_id: int | None
     created_at: datetime
@@ -160,6 +218,7 @@ class InspectionSummary(BaseModel):
     p95_mm: float | None
     within_tolerance_pct: float | None
     tolerance_mm: float | None
+    process: dict[str, Any] | None
     error: str | None
     created_at: datetime
     started_at: datetime | None

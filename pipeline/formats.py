@@ -396,11 +396,28 @@ class MeshShape(_Strict):
 TargetShape = Annotated[PlaneShape | CylinderShape | SphereShape | MeshShape, Field(discriminator="type")]
 
 
+class TargetMaterial(_Strict):
+    """The plate's nominal material (optional; roll-bending advice needs it, see docs/forming.md)."""
+
+    grade: str = Field(min_length=1, max_length=32)
+    thickness_mm: float = Field(gt=0, allow_inf_nan=False)
+    yield_mpa: float = Field(gt=0, allow_inf_nan=False)
+    youngs_mpa: float = Field(default=206000.0, gt=0, allow_inf_nan=False)
+    poisson: float = Field(default=0.3, ge=0, lt=0.5)
+
+    @model_validator(mode="after")
+    def _yield_below_modulus(self):
+        if self.yield_mpa >= self.youngs_mpa:
+            raise ValueError(f"yield_mpa: expected less than youngs_mpa ({self.youngs_mpa:g}), got {self.yield_mpa:g}")
+        return self
+
+
 class TargetFile(_Strict):
     format: Literal["plate-target/1"]
     shape: TargetShape
     size_mm: Annotated[list[float], Field(min_length=2, max_length=2)]
     tolerance_mm: float = Field(gt=0)
+    material: TargetMaterial | None = None
 
     @field_validator("size_mm")
     @classmethod

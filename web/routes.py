@@ -20,13 +20,16 @@ from app.deps import SessionDep, StorageDep, has_dashboard_session, start_dashbo
 from app.errors import scrub_paths
 from app.models import Inspection
 from app.routes.common import InspectionIdPath
+from app.services.errors import ServiceError
 from app.services import calibrations as calibration_svc
+from app.services import forming as forming_svc
 from app.services import inspections as inspection_svc
 from app.services import light_calibrations as light_calibration_svc
 from app.services import plates as plate_svc
 from web import TEMPLATES_DIR
 from web.charts import section_drawings, trend_chart
 from web.lights import light_plan, light_rows
+from pipeline.formats import InputError
 from web.sections import load_sections
 
 logger = logging.getLogger(__name__)
@@ -127,6 +130,7 @@ def result_page(
         "artifacts": names,
         "spacing_mm": spacing_mm,
         "spacings": SPACINGS_MM,
+        "next_pass": next_pass(session, row.plate_id),
         **_templates_context(storage, row, spacing_mm),
     }
     return _page(request, session, "result.html", context)
@@ -175,8 +179,28 @@ def plate_page(request: Request, plate_id: str, session: SessionDep) -> Response
         request,
         session,
         "plate.html",
-        {"page": "plate", "overview": overview, "rows": rows, "total": total, "chart": chart, "plate_id": plate_id},
+        {"page": "plate", "overview": overview, "rows": rows, "total": total, "chart": chart, "plate_id": plate_id,
+         "next_pass": next_pass(session, plate_id)},
     )
+
+
+def next_pass(session, plate_id: str) -> dict:
+    """The "Next pass" panel: ``{"advice": Advice.to_dict()}``, or ``{"reason": ...}`` when there is none.
+
+    The machine is the latest pass's; before the first pass, the only machine when there is one.
+    """
+    machine_id = None
+    if not forming_svc.plate_passes(session=session, plate_id=plate_id):
+        machines = forming_svc.list_machines(session=session)
+        if len(machines) != 1:
+            return {"reason": "No roll-bending pass of this plate yet"
+                              + ("" if machines else ", and no machine known") + ": ask "
+                              f"/api/v1/plates/{plate_id}/advice?machine_id=... for the first pass."}
+        machine_id = machines[0].id
+    try:
+        return {"advice": forming_svc.advise(session=session, plate_id=plate_id, machine_id=machine_id).to_dict()}
+    except (ServiceError, InputError) as err:
+        return {"reason": f"No advice: {err.detail if isinstance(err, ServiceError) else err}"}
 
 
 @router.get("/calibration", response_class=HTMLResponse)

@@ -2,7 +2,7 @@
 
 from fastapi import APIRouter
 
-from app.routes import calibrations, inspections, light_calibrations, plates, session
+from app.routes import calibrations, forming, inspections, light_calibrations, plates, session
 from app.routes.common import API_PREFIX
 
 api_router = APIRouter(prefix=API_PREFIX)
@@ -11,5 +11,6 @@ api_router.include_router(plates.router)
 api_router.include_router(calibrations.router)
 api_router.include_router(light_calibrations.router)
 api_router.include_router(session.router)
+api_router.include_router(forming.router)
 
 __all__ = ["api_router"]

@@ -205,6 +205,7 @@ def inspection_out(row: Inspection, *, storage: Storage) -> InspectionOut:
         error=row.error,
         source=row.source,
         verdict=row.verdict,
+        process=row.process,
         light_calibration_id=row.light_calibration_id,
         created_at=row.created_at,
         started_at=row.started_at,

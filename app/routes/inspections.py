@@ -5,13 +5,23 @@ from __future__ import annotations
 import mimetypes
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, File, Query, Request, UploadFile, status
+from fastapi import APIRouter, File, Form, Query, Request, UploadFile, status
 from fastapi.responses import FileResponse
 
 from app.deps import JobsDep, SessionDep, SettingsDep, StorageDep, WriterDep
 from app.errors import ApiError
 from app.limits import Limits
-from app.schemas import ErrorOut, InspectionCreated, InspectionOut, InspectionSummary, Page, SimulatedInspectionIn
+from pydantic import ValidationError
+
+from app.schemas import (
+    ErrorOut,
+    InspectionCreated,
+    InspectionOut,
+    InspectionSummary,
+    Page,
+    ProcessIn,
+    SimulatedInspectionIn,
+)
 from app.routes.common import (
     IdempotencyKeyHeader,
     InspectionIdPath,
@@ -56,13 +66,20 @@ def create_inspection(
     settings: SettingsDep,
     idempotency_key: IdempotencyKeyHeader = None,
     target: Annotated[UploadFile | None, File(description="plate-target/1 JSON; optional if the plate has a target")] = None,
+    process: Annotated[
+        str | None,
+        Form(description='the forming pass that produced the shape, JSON: {"method": "roll-bending", '
+                         '"machine_id": "R3-01", "top_roll_displacement_mm": 97.0}'),
+    ] = None,
 ):
     """Check the bundle (and target), store them and queue the inspection: 202 ``{"id", "status"}``.
 
     The bundle is checked from capture.json and the image headers (no image is decoded here;
     the job decodes them and fails with the reason if a pixel is bad). A bad bundle or target,
     or one over the request limits (image pixels, lights), is refused with 422 naming the file
-    and field; a full queue with 429 and ``Retry-After``. Nothing is stored then.
+    and field; a full queue with 429 and ``Retry-After``. Nothing is stored then. ``process`` (JSON)
+    is stored with the inspection; a bad one, or one naming an unknown machine, is refused with 422
+    naming ``process`` or its field (``process.machine_id``).
     """
     staging = storage.new_staging_dir()
     created: list[int] = []
@@ -73,13 +90,14 @@ def create_inspection(
             storage.remove(storage.inspection_dir(inspection_id))
 
     def work():
+        pass_ = None if process is None else parse_process(process)
         save_upload(capture, staging / CAPTURE_FILE)
         if target is not None:
             (staging / "target").mkdir()
             save_upload(target, staging / "target" / TARGET_FILE)
         row = svc.create_uploaded_inspection(
             session=session, storage=storage, plate_id=plate_id, staging_dir=staging,
-            limits=Limits.from_settings(settings),
+            limits=Limits.from_settings(settings), process=pass_,
         )
         created.append(row.id)
         return 202, {"id": row.id, "status": row.status}, lambda: jobs.enqueue(row.id)
@@ -88,6 +106,23 @@ def create_inspection(
         request=request, session=session, writer=writer, key=idempotency_key, work=work, cleanup=cleanup,
         staging=staging, upload_field=_upload_part,
     )
+
+
+def parse_process(text: str) -> dict:
+    """The multipart field ``process`` (JSON) checked as :class:`ProcessIn`, as a dict.
+
+    Raises
+    ------
+    ApiError
+        422 naming ``process`` (not JSON) or the field of it that is wrong (``process.machine_id``).
+    """
+    try:
+        return ProcessIn.model_validate_json(text).model_dump(mode="json")
+    except ValidationError as err:
+        first = err.errors()[0]
+        loc = ".".join(str(p) for p in first["loc"])
+        field = f"process.{loc}" if loc and first["type"] != "json_invalid" else "process"
+        raise ApiError(422, f"{field}: {first['msg']}", field=field) from None
 
 
 def _upload_part(err: InputError) -> str:

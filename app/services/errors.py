@@ -18,3 +18,8 @@ class NotFoundError(ServiceError):
 
 class UnprocessableError(ServiceError):
     """A well-formed request that cannot be accepted as it is (422)."""
+
+
+class ConflictError(ServiceError):
+    """A request the resource's current state does not allow (409): e.g. advice for a plate whose target
+    is not a cylinder with its material."""

@@ -27,6 +27,7 @@ from app.limits.queue import check_queue
 from app.limits.work import check_simulation, read_capture_header
 from app.models import Inspection, utcnow
 from app.services.errors import UnprocessableError
+from app.services.forming import check_process
 from app.services.light_calibrations import light_calibration_for_capture
 from app.services.plates import current_target, get_or_create_plate
 from app.services.targets import TARGET_FILE, copy_target_files, create_target, validate_target_dir
@@ -43,7 +44,13 @@ SIMULATED_BUNDLE_DIR = "bundle"
 
 
 def create_uploaded_inspection(
-    *, session: Session, storage: Storage, plate_id: str, staging_dir: Path, limits: Limits = DEFAULT_LIMITS
+    *,
+    session: Session,
+    storage: Storage,
+    plate_id: str,
+    staging_dir: Path,
+    limits: Limits = DEFAULT_LIMITS,
+    process: dict[str, Any] | None = None,
 ) -> Inspection:
     """A queued inspection of an uploaded bundle.
 
@@ -55,17 +62,21 @@ def create_uploaded_inspection(
     current target. A capture whose lights are nominal directions is run with the cell's current
     light calibration, recorded in the row now (see
     :func:`app.services.light_calibrations.light_calibration_for_capture`). Once the row has an
-    id, the staging folder becomes the inspection's ``inputs/`` folder.
+    id, the staging folder becomes the inspection's ``inputs/`` folder. ``process`` (a validated
+    :class:`app.schemas.ProcessIn` as a dict) is the forming pass that produced the shape; its
+    machine must be known (:func:`app.services.forming.check_process`).
 
     Raises
     ------
     pipeline.formats.InputError
         A bad bundle or target, or one over ``limits`` (names the file and field); nothing was added.
     UnprocessableError
-        No target sent and the plate has none (field ``target``).
+        No target sent and the plate has none (field ``target``); an unknown machine in ``process``
+        (field ``process.machine_id``).
     app.limits.queue.QueueFullError
         The plate's queue or the whole queue is full; nothing was added.
     """
+    check_process(session=session, process=process)
     staging_dir = Path(staging_dir)
     capture = read_capture_header(staging_dir / CAPTURE_FILE, limits)
     check_lights(capture.lights, label=capture.label, field="photometric.lights")
@@ -100,6 +111,7 @@ def create_uploaded_inspection(
         plate_id=plate_id,
         target_id=target.id,
         source="upload",
+        process=process,
         status="queued",
         progress=0.0,
     )
@@ -141,10 +153,17 @@ def create_simulated_inspection(
     with, so no light calibration is applied. The request and the queue are checked against
     ``limits`` (default: :data:`app.limits.DEFAULT_LIMITS`).
 
+    The inspection is judged against the plate's current target, copied to ``inputs/target/``
+    (the rendered shape is then what the pass formed: an under-bent plate fails); a plate without
+    a target is judged against the rendered shape (the simulator's ``target.json`` in the bundle).
+    ``simulation["process"]``, when given, is stored as the inspection's ``process``; its machine
+    must be known (:func:`app.services.forming.check_process`).
+
     Raises
     ------
     UnprocessableError
-        Over ``limits`` (lights, simulated pixels), or a plate or capture the simulator refuses.
+        Over ``limits`` (lights, simulated pixels), a plate or capture the simulator refuses, or an
+        unknown machine in ``process`` (field ``process.machine_id``).
     app.limits.queue.QueueFullError
         The plate's queue or the whole queue is full; nothing was added.
     """
@@ -153,26 +172,43 @@ def create_simulated_inspection(
         simulation_specs(simulation)
     except ValueError as err:
         raise UnprocessableError(f"simulation: {err}", field="body") from None
+    process = simulation.get("process")
+    check_process(session=session, process=process)
     get_or_create_plate(session=session, plate_id=plate_id)
+    target = current_target(session=session, plate_id=plate_id)
     row = Inspection(
         plate_id=plate_id,
+        target_id=None if target is None else target.id,
         source="simulated",
         simulation=simulation,
+        process=process,
         status="queued",
         progress=0.0,
-        tolerance_mm=float(simulation["tolerance_mm"]),
-        target_radius_mm=None if simulation["shape"] == "plane" else simulation.get("radius_mm"),
     )
+    if target is None:
+        row.tolerance_mm = float(simulation["tolerance_mm"])
+        row.target_radius_mm = None if simulation["shape"] == "plane" else simulation.get("radius_mm")
+    else:
+        row.tolerance_mm, row.target_radius_mm = target.tolerance_mm, target.radius_mm
     session.add(row)
     session.flush()
     check_queue(session=session, plate_id=plate_id, limits=limits)
     inputs = storage.inputs_dir(row.id)
-    inputs.mkdir(parents=True)
-    (inputs / SIMULATION_FILE).write_text(json.dumps(simulation, indent=2), encoding="utf-8")
-    bundle = inputs / SIMULATED_BUNDLE_DIR
-    row.capture_path = storage.relative(bundle)
-    row.target_path = storage.relative(bundle / TARGET_FILE)
-    session.flush()
+    try:
+        inputs.mkdir(parents=True)
+        (inputs / SIMULATION_FILE).write_text(json.dumps(simulation, indent=2), encoding="utf-8")
+        bundle = inputs / SIMULATED_BUNDLE_DIR
+        row.capture_path = storage.relative(bundle)
+        if target is None:
+            row.target_path = storage.relative(bundle / TARGET_FILE)
+        else:
+            row.target_path = storage.relative(
+                copy_target_files(storage=storage, target=target, destination=inputs / "target")
+            )
+        session.flush()
+    except BaseException:
+        storage.remove(storage.inspection_dir(row.id))
+        raise
     return row
 
 

@@ -1,0 +1,68 @@
+"""The "Next pass" panel (issue 14) on the plate and inspection pages, and the passes in the plate's history."""
+
+from __future__ import annotations
+
+import json
+
+from fastapi.testclient import TestClient
+
+from tests.api.conftest import target_json
+from tests.api.test_forming import MACHINE, MATERIAL, process
+
+
+def _seed(app, *, plate_id: str, passes: list[tuple[float, float, str]], material=MATERIAL) -> int | None:
+    """A machine, the plate's cylinder target and its done passes ``(setting, measured radius, verdict)``."""
+    from app.schemas import SimulatedInspectionIn
+    from app.services import forming as forming_svc
+    from app.services import inspections as svc
+    from app.services.targets import TARGET_FILE, create_target
+
+    storage = app.state.storage
+    last = None
+    with app.state.session_factory() as session:
+        forming_svc.put_machine(session=session, machine_id="R3-01", spec={k: float(v) if k != "kind" else v
+                                                                          for k, v in MACHINE.items()})
+        staging = storage.new_staging_dir()
+        (staging / TARGET_FILE).write_bytes(target_json(material=material))
+        create_target(session=session, storage=storage, plate_id=plate_id, staging_dir=staging)
+        session.commit()
+        for setting, radius, verdict in passes:
+            simulation = SimulatedInspectionIn(process=process(setting)).model_dump(mode="json")
+            row = svc.create_simulated_inspection(session=session, storage=storage, plate_id=plate_id,
+                                                  simulation=simulation)
+            session.commit()
+            assert svc.claim(session=session, inspection_id=row.id)
+            document = {"format": "plate-result/1", "plate_id": plate_id, "radius_mm": radius,
+                        "target_radius_mm": 5000.0, "verdict": verdict}
+            assert svc.mark_done(session=session, inspection_id=row.id, document=document)
+            session.commit()
+            last = row.id
+    return last
+
+
+def test_plate_page_advises_the_next_pass_and_lists_settings(demo_app):
+    last = _seed(demo_app, plate_id="P-W1", passes=[(97.0, 6200.0, "fail")])
+    with TestClient(demo_app) as client:
+        html = client.get("/plates/P-W1").text
+        assert 'id="next-pass"' in html and 'data-action="bend"' in html
+        assert "this plate&#39;s passes" in html or "this plate's passes" in html
+        assert "1 inspected pass of this plate" in html
+        assert "97.0 mm" in html and "6200.0 mm" in html  # the setting beside the radius after it
+        assert 'data-action="bend"' in client.get(f"/inspections/{last}").text
+
+
+def test_panel_says_why_there_is_no_advice(demo_app):
+    _seed(demo_app, plate_id="P-W2", passes=[], material=None)
+    _seed(demo_app, plate_id="P-W3", passes=[(101.0, 5004.0, "pass")])
+    with TestClient(demo_app) as client:
+        html = client.get("/plates/P-W2").text
+        assert 'id="next-pass"' in html and "has no material" in html
+        assert 'data-action="done"' in client.get("/plates/P-W3").text
+
+
+def test_first_pass_without_history_says_the_data_is_nominal(demo_app):
+    _seed(demo_app, plate_id="P-W4", passes=[])
+    with TestClient(demo_app) as client:
+        html = client.get("/plates/P-W4").text
+        assert 'data-action="bend"' in html and "nominal only: no history" in html
+        assert "no inspected pass of this plate or of this machine" in html
