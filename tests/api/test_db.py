@@ -38,3 +38,18 @@ def test_processes_upgrading_one_new_file_at_once_all_succeed(tmp_path):
         engine.dispose()
         assert versions == _heads()
         assert {"inspections", "light_calibrations"} <= tables
+
+
+def test_migrated_database_is_at_the_single_head_and_matches_the_models(client):
+    """One Alembic head, the database migrated to it, and no difference left for autogenerate."""
+    from alembic.autogenerate import compare_metadata
+    from alembic.migration import MigrationContext
+
+    from app.models import Base
+
+    heads = _heads()
+    assert len(heads) == 1, f"migrations have several heads: {sorted(heads)}"
+    with client.app.state.engine.connect() as connection:
+        context = MigrationContext.configure(connection)
+        assert {context.get_current_revision()} == heads
+        assert compare_metadata(context, Base.metadata) == []
