@@ -11,7 +11,6 @@ never both move it (the second finds the new file sound).
 
 from __future__ import annotations
 
-import fcntl
 import logging
 import os
 import sqlite3
@@ -19,6 +18,8 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from datetime import datetime, timezone
 from pathlib import Path
+
+from app.locks import file_lock
 
 log = logging.getLogger(__name__)
 
@@ -30,13 +31,8 @@ CHECK_TIMEOUT_S = 10.0
 def queue_file_lock(path: Path) -> Iterator[None]:
     """Hold the exclusive lock of the queue file ``path`` (``<path>.lock``; freed by the kernel if the holder dies)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path.with_name(path.name + ".lock"), "a") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(lock, fcntl.LOCK_UN)
+    with file_lock(path.with_name(path.name + ".lock")):
+        yield
 
 
 def queue_file_problem(path: Path) -> str | None:
