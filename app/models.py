@@ -115,12 +115,15 @@ class Inspection(Base):
     #: with nominal (direction-only) lights was submitted; None otherwise. Fixed at submission,
     #: so a re-run (or a job queued before a new upload) measures with the same lights.
     light_calibration_id: Mapped[int | None] = mapped_column(ForeignKey("light_calibrations.id"))
-    #: "upload" (a bundle .zip) or "simulated" (rendered by the job from ``simulation``).
+    #: "upload" (a bundle .zip), "simulated" (rendered by the job from ``simulation``) or
+    #: "acquired" (photographed by the job with the cell's cameras and lights).
     source: Mapped[str] = mapped_column(String(16))
     simulation: Mapped[dict[str, Any] | None]
     #: The forming pass that produced the inspected shape (issue 14), e.g. ``{"method": "roll-bending",
     #: "machine_id": "R3-01", "top_roll_displacement_mm": 97.0}``; None when not given.
     process: Mapped[dict[str, Any] | None] = mapped_column(JSON(none_as_null=True))
+    #: The cell (its configuration's ``cell_id``) an acquired inspection is photographed in; None otherwise.
+    cell_id: Mapped[str | None] = mapped_column(String(64), index=True)
 
     status: Mapped[str] = mapped_column(String(16), default="queued", index=True)
     progress: Mapped[float] = mapped_column(Float, default=0.0)

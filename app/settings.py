@@ -7,7 +7,8 @@
 ``PLATE_INSPECT_SESSION_HOURS``, ``PLATE_INSPECT_LOGIN_FREE_FAILURES``, ``PLATE_INSPECT_LOGIN_WINDOW_S``,
 ``PLATE_INSPECT_LOGIN_MAX_DELAY_S``; request and queue limits: ``PLATE_INSPECT_MAX_IMAGE_PIXELS``, ``PLATE_INSPECT_MAX_LIGHTS``,
 ``PLATE_INSPECT_MAX_SIMULATED_PIXELS``, ``PLATE_INSPECT_MAX_QUEUED_PER_PLATE``, ``PLATE_INSPECT_MAX_QUEUED``;
-job consumer: ``PLATE_INSPECT_WORKER_MEMORY_MB``, ``PLATE_INSPECT_JOB_LEASE_S``.
+job consumer: ``PLATE_INSPECT_WORKER_MEMORY_MB``, ``PLATE_INSPECT_JOB_LEASE_S``; the cell:
+``PLATE_INSPECT_CELL_CONFIG``.
 """
 
 from __future__ import annotations
@@ -89,6 +90,11 @@ class Settings(BaseSettings):
         A running job's lease, s: its consumer renews it every third of this; a job whose lease ran
         out (its consumer hung or died on another host) may be claimed again, which counts as a
         worker death (the second sets the job aside as failed).
+    cell_config : Path or None
+        The cell's ``cell-config/1`` file (docs/acquisition.md): acquisition jobs
+        (``POST /plates/{plate_id}/inspections/acquire``) photograph the plate with the cameras and
+        lights it names. None: in demo mode, the demo cell of simulated cameras and lights, written
+        under the data dir (:mod:`app.services.cell`); otherwise the server acquires nothing.
     """
 
     model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, extra="ignore")
@@ -117,6 +123,8 @@ class Settings(BaseSettings):
     # -- job consumer (app.worker): memory bound and job leases
     worker_memory_mb: int = Field(default=8192, ge=0)
     job_lease_s: float = Field(default=60.0, ge=3.0)
+    # -- the cell (app.services.cell)
+    cell_config: Path | None = None
 
     @field_validator("inspect_entry")
     @classmethod
@@ -124,6 +132,11 @@ class Settings(BaseSettings):
         if v.count(":") != 1 or not all(v.split(":")):
             raise ValueError(f"expected 'module:function', got {v!r}")
         return v
+
+    @field_validator("cell_config", mode="before")
+    @classmethod
+    def _unset_when_empty(cls, v):
+        return None if isinstance(v, str) and not v.strip() else v
 
     @property
     def sqlalchemy_url(self) -> str:
@@ -153,6 +166,8 @@ class Settings(BaseSettings):
             f"{ENV_PREFIX}WORKER_MEMORY_MB": str(self.worker_memory_mb),
             f"{ENV_PREFIX}JOB_LEASE_S": repr(self.job_lease_s),
         }
+        if self.cell_config is not None:
+            env[f"{ENV_PREFIX}CELL_CONFIG"] = str(self.cell_config.resolve())
         if self.api_token is not None:
             env[f"{ENV_PREFIX}API_TOKEN"] = self.api_token.get_secret_value()
         return env
