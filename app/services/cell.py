@@ -1,0 +1,483 @@
+"""The cell: its configuration, who holds its cameras, and their state for the dashboard and ``/healthz``.
+
+The cell is named by ``PLATE_INSPECT_CELL_CONFIG`` (a ``cell-config/1`` file, docs/acquisition.md).
+In demo mode without one, the demo cell of simulated cameras and lights is written under the data
+dir (:data:`DEMO_CELL_DIR`) and used instead, so that the demo goes through the same acquisition as
+a real cell. The web process and the consumer read the configuration each time they need it (an
+edited file is taken up without a restart).
+
+The cameras are used by one process at a time: ``<data dir>/cell/lock`` (:class:`CellLock`, an
+exclusive ``flock``) is held by the consumer while a job acquires and by the web process while it
+checks the cameras (:class:`CameraMonitor`). A GigE Vision camera gives control to one
+application only, so a check must never overlap a capture; and while a capture runs, the dashboard
+reports the last known state instead of checking. After each capture the consumer records the
+cameras' description and a thumbnail of their last frames (:func:`record_capture`).
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import logging
+import os
+import shutil
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field, replace
+from datetime import datetime, timezone
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from app.limits import Limits
+from app.limits.work import check_calibration_size, check_light_count
+from app.services.errors import ServiceError
+from app.settings import ENV_PREFIX, Settings
+from pipeline.acquisition import CellConfig, SimulatedCell, SimulatedLightController, load_cell_config, open_camera
+from pipeline.acquisition import write_demo_cell as _write_demo_cell
+from pipeline.formats import AcquisitionError, InputError
+
+log = logging.getLogger(__name__)
+
+#: Folder (under the data dir) of the demo cell written in demo mode without a cell config.
+DEMO_CELL_DIR = "demo-cell"
+#: Demo cell: its size (the demo's simulated plate as the simulated cell's default form shows it).
+DEMO_CELL = {"n_lights": 8, "width": 1224, "height": 1024}
+#: Folder (under the data dir) of the cell's lock, its last capture's record and thumbnails.
+CELL_DIR = "cell"
+#: Seconds a camera check may take before the cameras it has not reached are reported unreachable.
+PROBE_TIMEOUT_S = 3.0
+#: Seconds a camera check's answer is reused.
+STATE_TTL_S = 5.0
+#: Width of a camera's last-frame thumbnail, px.
+THUMBNAIL_WIDTH = 320
+#: Longest cell id (the column ``inspections.cell_id``).
+MAX_CELL_ID = 64
+#: The setting that names the cell's configuration, for messages.
+CELL_SETTING = f"{ENV_PREFIX}CELL_CONFIG"
+
+SIDES = ("left", "right")
+
+
+class CellUnavailable(ServiceError):
+    """The server has no usable cell: none configured, or a configuration it cannot use (answered 409)."""
+
+
+# ------------------------------------------------------------------ configuration
+
+
+def cell_config_path(settings: Settings) -> Path | None:
+    """The cell's configuration file: ``PLATE_INSPECT_CELL_CONFIG``, the demo cell's in demo mode, or None."""
+    if settings.cell_config is not None:
+        return settings.cell_config
+    if settings.demo:
+        return settings.data_dir / DEMO_CELL_DIR / "cell.json"
+    return None
+
+
+def ensure_demo_cell(settings: Settings) -> None:
+    """In demo mode without a cell config, write the demo cell under the data dir unless it is there.
+
+    Written into a folder of its own and renamed into place, so that the web process and the
+    consumer starting together never read a half-written one; an existing one is kept (a test
+    may write a smaller one first).
+    """
+    if settings.cell_config is not None or not settings.demo:
+        return
+    folder = settings.data_dir / DEMO_CELL_DIR
+    if (folder / "cell.json").is_file():
+        return
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    partial = Path(tempfile.mkdtemp(prefix=DEMO_CELL_DIR + ".partial-", dir=folder.parent))
+    try:
+        _write_demo_cell(partial, **DEMO_CELL)
+        os.rename(partial, folder)
+    except OSError:
+        if not (folder / "cell.json").is_file():  # not another process's demo cell: a real failure
+            raise
+    finally:
+        shutil.rmtree(partial, ignore_errors=True)
+
+
+def demo_target(settings: Settings) -> Path | None:
+    """The demo cell's ``target.json`` (the target of a plate that has none, in demo mode), or None."""
+    if settings.cell_config is not None or not settings.demo:
+        return None
+    path = settings.data_dir / DEMO_CELL_DIR / "target.json"
+    return path if path.is_file() else None
+
+
+def load_cell(settings: Settings) -> CellConfig:
+    """The cell's configuration, read and checked (no device is touched).
+
+    Besides what :func:`pipeline.acquisition.load_cell_config` checks, the cell must be within the
+    request limits of an uploaded capture (its lights, its calibration's image size) and its id
+    fit :data:`MAX_CELL_ID` characters.
+
+    Raises
+    ------
+    CellUnavailable
+        No cell configured (the message names :data:`CELL_SETTING`), or the configuration is not
+        usable (the message names the file and the field, relative to the configuration's folder).
+    """
+    path = cell_config_path(settings)
+    if path is None:
+        raise CellUnavailable(
+            f"{CELL_SETTING}: no cell is configured on this server: set {CELL_SETTING} to the cell's "
+            "cell-config/1 file (docs/acquisition.md), or run in demo mode for the simulated demo cell"
+        )
+    try:
+        config = load_cell_config(path)
+        limits = Limits.from_settings(settings)
+        check_light_count(config.lights.n, limits, label=path.name, field="lights.lights")
+        check_calibration_size(config.rig.image_size, limits, label=config.calibration_path.name)
+        if len(config.cell_id) > MAX_CELL_ID:
+            raise InputError(path.name, "cell_id", f"expected at most {MAX_CELL_ID} characters, got {len(config.cell_id)}")
+    except InputError as err:
+        raise CellUnavailable(f"{CELL_SETTING}: the cell's configuration is not usable: {cell_message(str(err), path)}") from None
+    return config
+
+
+def cell_message(text: str, config_path: Path) -> str:
+    """``text`` with the configuration's folder cut from the paths in it (``cell.json: ...``)."""
+    for folder in {str(config_path.parent), str(config_path.resolve().parent)}:
+        if folder not in ("", "."):
+            text = text.replace(folder.rstrip("/") + "/", "")
+    return text
+
+
+def light_controller_label(config: CellConfig) -> str:
+    """The light controller as the dashboard names it: ``tcp 10.0.0.5:5000`` or ``simulated``."""
+    lights = config.light_controller
+    return f"{lights.driver} {lights.address}" if lights.address else lights.driver
+
+
+# ------------------------------------------------------------------ the cameras' lock
+
+
+class CellLock:
+    """Exclusive use of the cell's cameras, between processes (``<data dir>/cell/lock``, ``flock``).
+
+    Parameters
+    ----------
+    data_dir : Path
+    """
+
+    def __init__(self, data_dir: Path):
+        self.path = Path(data_dir) / CELL_DIR / "lock"
+        self._fd: int | None = None
+
+    def acquire(self, holder: str, *, timeout_s: float = 0.0) -> bool:
+        """Take the lock, waiting up to ``timeout_s`` for another holder; ``holder`` is written into it.
+
+        Returns
+        -------
+        bool
+            False when another process (or another :class:`CellLock` of this one) held it throughout.
+        """
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() >= deadline:
+                    os.close(fd)
+                    return False
+                time.sleep(0.1)
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, holder.encode("utf-8"), 0)
+        self._fd = fd
+        return True
+
+    def release(self) -> None:
+        """Give the lock back (closing the descriptor frees it)."""
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+    def holder(self) -> str:
+        """Who holds (or last held) the lock, as it wrote it."""
+        try:
+            return self.path.read_text(encoding="utf-8").strip()
+        except OSError:
+            return ""
+
+
+# ------------------------------------------------------------------ the last capture
+
+
+def record_capture(data_dir: Path, bundle: Path, *, inspection_id: int) -> None:
+    """After a capture: its cameras' description (``cell/state.json``) and their last frames' thumbnails.
+
+    The last frame of each camera is its image of the stereo pair; the thumbnail is
+    :data:`THUMBNAIL_WIDTH` px wide, 8-bit, its brightest samples (99.5th percentile) white.
+    Every file is written beside its place and renamed into it (the web process reads them).
+    """
+    doc = json.loads((bundle / "capture.json").read_text(encoding="utf-8"))
+    record = doc["acquisition"]
+    folder = Path(data_dir) / CELL_DIR
+    folder.mkdir(parents=True, exist_ok=True)
+    for side in SIDES:
+        image = cv2.imread(str(bundle / doc["stereo"][side]), cv2.IMREAD_UNCHANGED)
+        ok, png = cv2.imencode(".png", _thumbnail(image))
+        if not ok:
+            raise OSError(f"{side} thumbnail: could not encode it")
+        _write_atomic(folder / f"{side}.png", png.tobytes())
+    state = {
+        "cell_id": record["cell_id"],
+        "inspection_id": inspection_id,
+        "plate_id": doc["plate_id"],
+        "captured_at": doc["captured_at"],
+        "cameras": {
+            side: {key: record["cameras"][side].get(key) for key in ("driver", "device_id", "vendor", "model", "serial")}
+            for side in SIDES
+        },
+    }
+    _write_atomic(folder / "state.json", json.dumps(state, indent=2).encode("utf-8"))
+
+
+def last_capture(data_dir: Path) -> dict | None:
+    """What :func:`record_capture` recorded last (``cell_id``, ``inspection_id``, ``plate_id``,
+    ``captured_at``, ``cameras``), or None."""
+    try:
+        return json.loads((Path(data_dir) / CELL_DIR / "state.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+
+
+def thumbnail_path(data_dir: Path, side: str) -> Path | None:
+    """The last-frame thumbnail of camera ``side`` (``left``/``right``), or None before the first capture."""
+    if side not in SIDES:
+        raise ValueError(f"side: expected 'left' or 'right', got {side!r}")
+    path = Path(data_dir) / CELL_DIR / f"{side}.png"
+    return path if path.is_file() else None
+
+
+def _thumbnail(image: np.ndarray) -> np.ndarray:
+    grey = image.astype(np.float32)
+    top = max(float(np.percentile(grey[::4, ::4], 99.5)), 1.0)
+    height = max(1, round(grey.shape[0] * THUMBNAIL_WIDTH / grey.shape[1]))
+    small = cv2.resize(grey, (THUMBNAIL_WIDTH, height), interpolation=cv2.INTER_AREA)
+    return np.clip(small * (255.0 / top), 0, 255).astype(np.uint8)
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+# ------------------------------------------------------------------ the cameras' state
+
+
+@dataclass(frozen=True)
+class CameraState:
+    """One camera as the dashboard and ``/healthz`` report it.
+
+    Attributes
+    ----------
+    side : {"left", "right"}
+    driver : str
+        ``aravis`` or ``simulated``.
+    device_id : str or None
+    state : {"connected", "unreachable", "error", "unknown"}
+        Opened and described; not found or not answering (within :data:`PROBE_TIMEOUT_S`);
+        another failure (e.g. Aravis not installed); not checked yet.
+    vendor, model, serial : str or None
+        As the camera gives them (when connected, or at the last capture).
+    detail : str or None
+        Why it is not connected, or where a state comes from that is not a check of now.
+    """
+
+    side: str
+    driver: str
+    device_id: str | None
+    state: str
+    vendor: str | None = None
+    model: str | None = None
+    serial: str | None = None
+    detail: str | None = None
+
+
+@dataclass(frozen=True)
+class CellState:
+    """The cell as the dashboard and ``/healthz`` report it.
+
+    Attributes
+    ----------
+    configured : bool
+        A cell config is set (or the demo cell is in use).
+    ready : bool
+        Acquisitions can be queued: the configuration is usable (the cameras may still be unreachable).
+    reason : str or None
+        Why not ready (names :data:`CELL_SETTING`, or the file and field).
+    cell_id, config, light_controller : str or None
+        The configuration's cell id, its file name, its light controller (:func:`light_controller_label`).
+    demo : bool
+        The demo cell of simulated cameras and lights.
+    cameras : tuple of CameraState
+    in_use : str or None
+        Who holds the cameras now (an acquisition job): the cameras' state is then the last known one.
+    checked_at : datetime or None
+        When the cameras were last checked.
+    last_capture : dict or None
+        :func:`last_capture`.
+    """
+
+    configured: bool
+    ready: bool
+    reason: str | None = None
+    cell_id: str | None = None
+    config: str | None = None
+    light_controller: str | None = None
+    demo: bool = False
+    cameras: tuple[CameraState, ...] = ()
+    in_use: str | None = None
+    checked_at: datetime | None = None
+    last_capture: dict | None = None
+
+
+@dataclass
+class _Probe:
+    """One check of the cameras, run in a thread of its own; ``results`` fills as cameras answer."""
+
+    key: tuple
+    results: dict[str, CameraState] = field(default_factory=dict)
+    finished: threading.Event = field(default_factory=threading.Event)
+    started_at: datetime = field(default_factory=lambda: datetime.now(timezone.utc))
+
+
+class CameraMonitor:
+    """The cameras' state, checked lazily in a thread, cached briefly, never blocking for long.
+
+    :meth:`state` answers from a check less than ``ttl_s`` old; else it starts one (unless one is
+    still running) and waits for it at most ``timeout_s``: a camera that has not answered by then
+    (a GigE camera that vanished takes Aravis about 15 s to give up on) is reported
+    ``unreachable``, and later calls do not start another check until that one has returned. No
+    check runs while another process holds the cell's lock (a capture): the last known state is
+    reported, with who holds the cameras.
+
+    Parameters
+    ----------
+    settings : Settings
+    ttl_s, timeout_s : float
+        See :data:`STATE_TTL_S`, :data:`PROBE_TIMEOUT_S`.
+    """
+
+    def __init__(self, settings: Settings, *, ttl_s: float = STATE_TTL_S, timeout_s: float = PROBE_TIMEOUT_S):
+        self.settings = settings
+        self.ttl_s = ttl_s
+        self.timeout_s = timeout_s
+        self._mutex = threading.Lock()
+        self._probe: _Probe | None = None
+        self._known: tuple[tuple, tuple[CameraState, ...], datetime] | None = None
+        self._known_at = float("-inf")
+
+    def state(self) -> CellState:
+        """The cell and its cameras now (see the class docstring)."""
+        path = cell_config_path(self.settings)
+        demo = path is not None and self.settings.cell_config is None
+        capture = last_capture(self.settings.data_dir)
+        try:
+            config = load_cell(self.settings)
+        except CellUnavailable as err:
+            return CellState(configured=path is not None, ready=False, reason=err.detail, demo=demo,
+                             config=None if path is None else path.name, last_capture=capture)
+        cameras, checked_at, in_use = self._cameras(config, capture)
+        return CellState(
+            configured=True, ready=True, cell_id=config.cell_id, config=config.path.name,
+            light_controller=light_controller_label(config), demo=demo, cameras=cameras, in_use=in_use,
+            checked_at=checked_at, last_capture=capture,
+        )
+
+    def _cameras(self, config: CellConfig, capture: dict | None) -> tuple[tuple[CameraState, ...], datetime | None, str | None]:
+        key = _config_key(config)
+        with self._mutex:
+            if self._known is not None and self._known[0] == key and time.monotonic() - self._known_at < self.ttl_s:
+                return self._known[1], self._known[2], None
+            probe = self._probe
+            if probe is None or probe.finished.is_set():
+                lock = CellLock(self.settings.data_dir)
+                if not lock.acquire(f"the web server's camera check (pid {os.getpid()})"):
+                    return self._last_known(config, key, capture), self._known_at_time(key), lock.holder()
+                probe = self._probe = _Probe(key)
+                threading.Thread(target=_run_probe, args=(config, probe, lock), name="camera-check", daemon=True).start()
+        probe.finished.wait(self.timeout_s)
+        with self._mutex:
+            cameras = tuple(probe.results.get(side) or _no_answer(config, side, self.timeout_s) for side in SIDES)
+            if probe.finished.is_set() and (self._known is None or self._known[2] <= probe.started_at):
+                self._known, self._known_at = (key, cameras, probe.started_at), time.monotonic()
+            return cameras, probe.started_at, None
+
+    def _last_known(self, config: CellConfig, key: tuple, capture: dict | None) -> tuple[CameraState, ...]:
+        """The cameras as last checked, else as the last capture described them, else unknown."""
+        if self._known is not None and self._known[0] == key:
+            return self._known[1]
+        cameras = []
+        for side in SIDES:
+            cam_config = getattr(config, side)
+            seen = (capture or {}).get("cameras", {}).get(side) if (capture or {}).get("cell_id") == config.cell_id else None
+            if seen is not None and seen.get("device_id") == cam_config.device_id:
+                cameras.append(CameraState(
+                    side, cam_config.driver, cam_config.device_id, "connected", seen.get("vendor"), seen.get("model"),
+                    seen.get("serial"), detail=f"at the last capture ({capture['captured_at']})",
+                ))
+            else:
+                cameras.append(CameraState(side, cam_config.driver, cam_config.device_id, "unknown", detail="not checked yet"))
+        return tuple(cameras)
+
+    def _known_at_time(self, key: tuple) -> datetime | None:
+        return self._known[2] if self._known is not None and self._known[0] == key else None
+
+
+def _config_key(config: CellConfig) -> tuple:
+    """What a check's answer depends on: the cameras as configured."""
+    return (config.path.resolve(), config.left, config.right)
+
+
+def _no_answer(config: CellConfig, side: str, timeout_s: float) -> CameraState:
+    cam_config = getattr(config, side)
+    return CameraState(side, cam_config.driver, cam_config.device_id, "unreachable",
+                       detail=f"no answer within {timeout_s:g} s")
+
+
+def _run_probe(config: CellConfig, probe: _Probe, lock: CellLock) -> None:
+    """Open each camera, describe it, close it (in a thread; the lock is held throughout)."""
+    try:
+        cell = None
+        if "simulated" in (config.left.driver, config.right.driver):
+            controller = SimulatedLightController(config.lights.n, False)
+            cell = SimulatedCell(config.rig, config.lights, config.working_distance_mm, controller, "camera-check")
+        for side in SIDES:
+            probe.results[side] = _check_camera(side, getattr(config, side), cell)
+    finally:
+        lock.release()
+        probe.finished.set()
+
+
+def _check_camera(side: str, cam_config, cell: SimulatedCell | None) -> CameraState:
+    base = CameraState(side, cam_config.driver, cam_config.device_id, "unknown")
+    try:
+        camera = open_camera(side, cam_config, cell=cell)
+        try:
+            described = camera.describe()
+        finally:
+            camera.close()
+    except AcquisitionError as err:
+        state = "unreachable" if err.step == "opening" else "error"
+        return replace(base, state=state, detail=f"{err.step}: {err.reason}")
+    except Exception as err:  # noqa: BLE001 - a check reports, it never takes the server down
+        log.exception("%s camera check failed", side)
+        return replace(base, state="error", detail=f"{type(err).__name__}: {err}")
+    return replace(base, state="connected", vendor=described.get("vendor"), model=described.get("model"),
+                   serial=described.get("serial"))
