@@ -21,6 +21,7 @@ from app.jobs.lease import LeaseKeeper
 from app.jobs.memory import is_out_of_memory, out_of_memory_message
 from app.services import inspections as svc
 from app.services import light_calibrations
+from app.services.acquisitions import ACQUIRED_SOURCE, capture_for_job
 from app.services.inspections import SIMULATION_FILE
 from app.settings import Settings
 from app.storage import Storage
@@ -217,11 +218,16 @@ def _run(
     target_path: Path,
     light_calibration,
 ) -> dict:
-    """The job's work: render a simulated capture, load the lights, call the pipeline; the result document."""
+    """The job's work: render a simulated capture or acquire one, load the lights, call the pipeline; the result
+    document (empty for a capture only)."""
     out_dir = storage.clear_artifacts(inspection_id)
     if source == "simulated":
         progress(SIMULATE_STAGE, 0.0)
         render_simulated_bundle(bundle_dir=capture_path, plate_id=plate_id, simulation=simulation)
+    elif source == ACQUIRED_SOURCE:
+        if not capture_for_job(inspection_id, settings=settings, storage=storage, plate_id=plate_id,
+                               bundle_dir=capture_path, progress=progress):
+            return {}  # a capture only (the request's process false): nothing to inspect
     lights = None
     if light_calibration is not None:
         lights = light_calibrations.load_lights(storage=storage, calibration=light_calibration)
