@@ -28,6 +28,7 @@ from app.openapi import install_openapi
 from app.routes import api_router
 from app.routes.health import router as health_router
 from app.security_headers import SecurityHeaders, docs_csp
+from app.services.cell import CameraMonitor, ensure_demo_cell
 from app.settings import Settings
 from app.storage import Storage
 from app.throttle import TokenThrottle
@@ -71,8 +72,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     On start (lifespan) the database is upgraded with Alembic, and the dashboard's viewer hook
     ``app.viewer.attach(app, settings)`` runs if that module exists; what it returns is closed at
     shutdown (an async context manager is exited, else its ``close()`` is called). ``app.state`` holds ``settings``, ``api_token``,
-    ``engine``, ``session_factory``, ``storage``, ``jobs`` (:class:`app.jobs.JobQueue`) and
-    ``token_throttle`` (:class:`app.throttle.TokenThrottle`).
+    ``engine``, ``session_factory``, ``storage``, ``jobs`` (:class:`app.jobs.JobQueue`),
+    ``token_throttle`` (:class:`app.throttle.TokenThrottle`) and ``cell``
+    (:class:`app.services.cell.CameraMonitor`). In demo mode without a cell config the demo cell is
+    written under the data dir (:func:`app.services.cell.ensure_demo_cell`).
     """
     settings = resolve_token(settings or Settings())
     storage = Storage(settings.data_dir)
@@ -109,6 +112,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.build_middleware_stack = lambda: SecurityHeaders(build_stack())
     # The database is ready before the first request (also under TestClient without lifespan).
     storage.ensure()
+    ensure_demo_cell(settings)
     upgrade_database(settings.sqlalchemy_url)
     engine = make_engine(settings.sqlalchemy_url)
     app.state.settings = settings
@@ -117,6 +121,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.session_factory = make_session_factory(engine)
     app.state.storage = storage
     app.state.jobs = JobQueue(settings, app.state.session_factory, storage)
+    app.state.cell = CameraMonitor(settings)
     app.state.token_throttle = TokenThrottle(
         free_failures=settings.login_free_failures,
         window_s=settings.login_window_s,

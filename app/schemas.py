@@ -172,6 +172,23 @@ class SimulatedInspectionIn(BaseModel):
         return self
 
 
+class AcquireInspectionIn(BaseModel):
+    """The cell photographs the plate, then the bundle is inspected (``process`` false: only photographed)."""
+
+    model_config = STRICT_BODY
+
+    target: dict[str, Any] | None = Field(
+        default=None,
+        description="a plate-target/1 object (plane, cylinder or sphere) that becomes the plate's target; "
+        "default: the plate's current target",
+    )
+    process: bool = Field(
+        default=True,
+        description="inspect the bundle once acquired; false: a capture only (the job ends done without a result, "
+        "the bundle is its artifact capture.zip)",
+    )
+
+
 class InspectionCreated(BaseModel):
     id: int
     status: Status
@@ -193,6 +210,8 @@ class InspectionOut(BaseModel):
     process: dict[str, Any] | None
     #: The light calibration the inspection is run with (see GET /light-calibrations/{id}), or null.
     light_calibration_id: int | None
+    #: The cell an acquired inspection is photographed in (its configuration's cell_id), or null.
+    cell_id: str | None
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
@@ -266,8 +285,33 @@ class LightCalibrationOut(BaseModel):
     created_at: datetime
 
 
+class CameraHealth(BaseModel):
+    """One camera of the cell: connected (opened and described), unreachable, error, or unknown (not checked yet)."""
+
+    side: Literal["left", "right"]
+    driver: str
+    device_id: str | None
+    state: Literal["connected", "unreachable", "error", "unknown"]
+    vendor: str | None
+    model: str | None
+    serial: str | None
+    detail: str | None = Field(description="why not connected, or where a state that is not of now comes from")
+
+
+class CellHealth(BaseModel):
+    """The cell: whether acquisitions can be queued, and its cameras (checked at most every few seconds)."""
+
+    ready: bool
+    reason: str | None = Field(description="why acquisitions cannot be queued")
+    cell_id: str | None
+    demo: bool
+    in_use: str | None = Field(description="who holds the cameras now (the cameras' state is then the last known)")
+    cameras: list[CameraHealth]
+
+
 class Health(BaseModel):
     status: Literal["ok"]
     database: Literal["ok"]
     queued: int
     running: int
+    cell: CellHealth | None = Field(description="null: no cell on this server (PLATE_INSPECT_CELL_CONFIG unset)")

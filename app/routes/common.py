@@ -207,6 +207,7 @@ def inspection_out(row: Inspection, *, storage: Storage) -> InspectionOut:
         verdict=row.verdict,
         process=row.process,
         light_calibration_id=row.light_calibration_id,
+        cell_id=row.cell_id,
         created_at=row.created_at,
         started_at=row.started_at,
         finished_at=row.finished_at,

@@ -1,7 +1,8 @@
-"""Inspections: start one (uploaded bundle or simulated cell), follow it, fetch its artifacts."""
+"""Inspections: start one (uploaded bundle, simulated cell, or the cell's cameras), follow it, fetch its artifacts."""
 
 from __future__ import annotations
 
+import json
 import mimetypes
 from typing import Annotated, Literal
 
@@ -14,6 +15,7 @@ from app.limits import Limits
 from pydantic import ValidationError
 
 from app.schemas import (
+    AcquireInspectionIn,
     ErrorOut,
     InspectionCreated,
     InspectionOut,
@@ -34,6 +36,8 @@ from app.routes.common import (
     save_upload,
 )
 from app.services import inspections as svc
+from app.services.acquisitions import create_acquired_inspection
+from app.services.cell import CELL_SETTING, CellUnavailable, demo_target, load_cell
 from app.services.inspections import CAPTURE_FILE
 from app.services.targets import TARGET_FILE
 from pipeline.formats import InputError
@@ -169,6 +173,72 @@ def create_simulated_inspection(
     return idempotent_write(
         request=request, session=session, writer=writer, key=idempotency_key, work=work, cleanup=cleanup
     )
+
+
+@router.post(
+    "/plates/{plate_id}/inspections/acquire",
+    status_code=status.HTTP_202_ACCEPTED,
+    response_model=InspectionCreated,
+    responses={
+        **ERRORS,
+        409: {
+            "model": ErrorOut,
+            "description": f"no usable cell on this server ({CELL_SETTING} unset, or its file refused: named), "
+            "or the first request with this Idempotency-Key is still in progress",
+        },
+    },
+    summary="Photograph the plate with the cell's cameras and lights, then inspect it",
+)
+def acquire_inspection(
+    request: Request,
+    plate_id: PlateIdPath,
+    session: SessionDep,
+    storage: StorageDep,
+    jobs: JobsDep,
+    writer: WriterDep,
+    settings: SettingsDep,
+    body: AcquireInspectionIn | None = None,
+    idempotency_key: IdempotencyKeyHeader = None,
+):
+    """Queue a job that photographs the plate in the cell (``PLATE_INSPECT_CELL_CONFIG``), then inspects it.
+
+    The job's stages: ``capture`` (progress per image taken), then the pipeline's. A device that
+    fails ends the job ``failed`` with the device and the step. The body is optional: ``target``
+    (default: the plate's current target; in demo mode, the demo cell's for a plate without one),
+    ``process`` (false: a capture only). Without a usable cell: 409 naming the setting or the
+    file and field; a bad target: 422; a full queue: 429 and ``Retry-After``.
+    """
+    body = body or AcquireInspectionIn()
+    try:
+        cell = load_cell(settings)
+    except CellUnavailable as err:  # checked first, never remembered under an Idempotency-Key
+        raise ApiError(409, err.detail) from None
+    staging = None
+    if body.target is not None:
+        staging = storage.new_staging_dir()
+        (staging / TARGET_FILE).write_text(json.dumps(body.target), encoding="utf-8")
+    created: list[int] = []
+
+    def cleanup():
+        for inspection_id in created:
+            storage.remove(storage.inspection_dir(inspection_id))
+
+    def work():
+        row = create_acquired_inspection(
+            session=session, storage=storage, plate_id=plate_id, cell=cell, process=body.process,
+            target_dir=staging, default_target=demo_target(settings),
+            limits=Limits.from_settings(settings),
+        )
+        created.append(row.id)
+        return 202, {"id": row.id, "status": row.status}, lambda: jobs.enqueue(row.id)
+
+    try:
+        return idempotent_write(
+            request=request, session=session, writer=writer, key=idempotency_key, work=work, cleanup=cleanup,
+            staging=staging, upload_field="target",
+        )
+    finally:
+        storage.remove(staging)
 
 
 @router.get(
