@@ -9,10 +9,10 @@ API token (``/login``).
 from __future__ import annotations
 
 import logging
-from typing import Annotated
+from typing import Annotated, Literal
 
 from fastapi import APIRouter, HTTPException, Query, Request
-from fastapi.responses import HTMLResponse, RedirectResponse, Response
+from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse, Response
 from fastapi.templating import Jinja2Templates
 
 from app import viewer
@@ -22,6 +22,7 @@ from app.models import Inspection
 from app.routes.common import InspectionIdPath
 from app.services.errors import ServiceError
 from app.services import calibrations as calibration_svc
+from app.services import cell as cell_svc
 from app.services import forming as forming_svc
 from app.services import inspections as inspection_svc
 from app.services import light_calibrations as light_calibration_svc
@@ -96,9 +97,32 @@ def home() -> RedirectResponse:
 
 @router.get("/cell", response_class=HTMLResponse)
 def cell_page(request: Request, session: SessionDep) -> Response:
-    """Start an inspection; the queue with live progress."""
+    """Start an inspection (simulated, uploaded, or captured by the cell); the cameras; the queue with live progress."""
     recent, _ = inspection_svc.list_inspections(session=session, limit=12)
-    return _page(request, session, "cell.html", {"page": "cell", "queue": recent})
+    return _page(request, session, "cell.html", {"page": "cell", "queue": recent, **_cameras_context(request)})
+
+
+@router.get("/cell/cameras", response_class=HTMLResponse)
+def cell_cameras(request: Request) -> Response:
+    """The cameras panel (polled by cell.js)."""
+    return templates.TemplateResponse(request, "_cameras.html", _cameras_context(request))
+
+
+@router.get("/cell/cameras/{side}.png", response_class=FileResponse)
+def camera_thumbnail(request: Request, side: Literal["left", "right"]) -> Response:
+    """The last frame of a camera (its image of the last capture's stereo pair), reduced."""
+    path = cell_svc.thumbnail_path(request.app.state.settings.data_dir, side)
+    if path is None:
+        raise HTTPException(404, f"side: the {side} camera has taken no frame yet")
+    return FileResponse(path, media_type="image/png", headers={"Cache-Control": "no-cache"})
+
+
+def _cameras_context(request: Request) -> dict:
+    """The cell's state, and whether its last capture's thumbnails are of this cell's cameras."""
+    cell = request.app.state.cell.state()
+    last = cell.last_capture or {}
+    thumbnails = cell.ready and last.get("cell_id") == cell.cell_id
+    return {"cell": cell, "thumbnails_of": last.get("inspection_id") if thumbnails else None}
 
 
 @router.get("/cell/queue", response_class=HTMLResponse)
@@ -152,7 +176,7 @@ def templates_partial(
 
 
 def _templates_context(storage, row: Inspection, spacing_mm: int) -> dict:
-    if row.status != "done":
+    if row.status != "done" or row.result is None:  # not done, or a capture only
         return {"drawings": [], "templates_error": None}
     folder = storage.artifacts_dir(row.id)
     try:
@@ -170,7 +194,7 @@ def plate_page(request: Request, plate_id: str, session: SessionDep) -> Response
     if overview is None:
         raise HTTPException(404, f"plate {plate_id!r} not found")
     rows, total = inspection_svc.list_inspections(session=session, plate_id=plate_id, limit=200)
-    done = [r for r in reversed(rows) if r.status == "done"]
+    done = [r for r in reversed(rows) if r.status == "done" and r.result is not None]  # not the captures only
     tolerance = overview.target.tolerance_mm if overview.target is not None else (done[-1].tolerance_mm if done else None)
     chart = trend_chart(
         [(r.id, f"#{r.id}", r.radius_error_pct, r.max_abs_mm) for r in done], tolerance_mm=tolerance

@@ -1,10 +1,17 @@
-// Cell page: start an inspection (simulated or uploaded bundle) and keep the queue live.
+// Cell page: start an inspection (simulated, uploaded bundle, or captured by the cell's cameras) and keep
+// the queue and the cameras' state live.
 import { postForm, postJSON, refreshPartial, say } from "./api.js";
 
 const form = document.getElementById("start-form");
 const message = document.getElementById("start-message");
 const queue = document.getElementById("queue");
+const cameras = document.getElementById("cameras");
+const captureButton = document.getElementById("capture");
+const captureReason = document.getElementById("capture-reason");
 const POLL_MS = 1000;
+// The server checks the cameras at most every few seconds: no use asking more often.
+const CAMERAS_POLL_MS = 5000;
+let capturing = false;
 
 function showSource() {
   const source = form.elements.source.value;
@@ -76,6 +83,45 @@ async function start(event) {
   }
 }
 
+async function capture() {
+  const plateField = form.elements.plate_id;
+  if (!plateField.reportValidity()) return;
+  const plateId = plateField.value.trim();
+  capturing = true;
+  captureButton.disabled = true;
+  say(message, "Sending…", "ok");
+  try {
+    const created = await postJSON(`/api/v1/plates/${encodeURIComponent(plateId)}/inspections/acquire`, {});
+    say(message, `Inspection #${created.id} queued: the cell photographs plate ${plateId}.`, "ok");
+    await refresh();
+  } catch (err) {
+    say(message, err.message, "error");
+  } finally {
+    capturing = false;
+    showCellStatus();
+  }
+}
+
+// The Capture button follows the cell's state in the cameras panel (a cell config fixed or broken meanwhile).
+function showCellStatus() {
+  const status = cameras.querySelector(".cell-status");
+  if (!status || capturing) return;
+  const ready = status.dataset.ready === "true";
+  captureButton.disabled = !ready;
+  captureButton.title = ready ? "" : status.dataset.reason;
+  captureReason.textContent = ready ? captureReason.dataset.help : `Capture unavailable: ${status.dataset.reason}`;
+}
+
+async function refreshCameras() {
+  try {
+    await refreshPartial(cameras, cameras.dataset.src);
+    cameras.dataset.updated = String(Date.now());
+    showCellStatus();
+  } catch (err) {
+    console.warn("cameras refresh failed:", err);
+  }
+}
+
 async function refresh() {
   try {
     await refreshPartial(queue, queue.dataset.src);
@@ -89,5 +135,7 @@ form.addEventListener("change", (event) => {
   if (event.target.name === "source") showSource();
 });
 form.addEventListener("submit", start);
+captureButton.addEventListener("click", capture);
 showSource();
 setInterval(refresh, POLL_MS);
+setInterval(refreshCameras, CAMERAS_POLL_MS);
