@@ -1,8 +1,9 @@
 """Real-browser tests: Debian's Chromium (Playwright) against a live server with a real job consumer.
 
 Start an inspection on the Cell page, watch it complete in the queue, open the result,
-check that the 3D view connects and shows the plate, open the history page. Screenshots
-of each page are kept in ``test-artifacts/``.
+check that the 3D view connects and shows the plate, open the history page; capture a plate
+with the demo cell's cameras from the Cell page. Screenshots of each page are kept in
+``test-artifacts/``.
 
 The consumer runs the production entry point ``pipeline.run:inspect`` (the real simulator
 and pipeline on small images); there is no stand-in: if the pipeline fails, the test fails.
@@ -13,6 +14,7 @@ from __future__ import annotations
 import importlib
 import json
 import os
+import re
 import socket
 import subprocess
 import sys
@@ -62,6 +64,11 @@ def live_server(tmp_path_factory):
     }
     logs = data / "logs"
     logs.mkdir()
+    # The demo cell demo mode uses, written first at a smaller size (the service keeps it): captures
+    # of 612x512 px, 6 lights, inspected by the real pipeline in seconds.
+    from pipeline.acquisition import write_demo_cell
+
+    write_demo_cell(data / "demo-cell", n_lights=6, width=612, height=512)
     web = subprocess.Popen(
         [sys.executable, "-m", "uvicorn", "app.main:create_app", "--factory", "--host", "127.0.0.1", "--port", str(port)],
         env=env, cwd=ROOT, stdout=open(logs / "web.log", "wb"), stderr=subprocess.STDOUT,
@@ -258,6 +265,48 @@ def test_light_calibration_upload_on_the_calibration_page(live_server, browser):
     assert page.locator(".light-plan circle.light").count() == 8
     page.screenshot(path=SHOTS / "calibration-lights.png", full_page=True)
     assert not errors, errors
+
+
+def test_capture_button_photographs_and_inspects_with_the_demo_cell(live_server, browser):
+    """The Cell page's Capture button in demo mode: the demo cell's cameras photograph the plate, the job
+    inspects it, and the cameras panel shows both cameras connected with their last frames."""
+    SHOTS.mkdir(exist_ok=True)
+    page = browser.new_page(viewport={"width": 1920, "height": 1080})
+    errors = []
+    page.on("pageerror", lambda err: errors.append(str(err)))
+    violations = _watch_csp(page)
+    page.goto(f"{live_server['base']}/cell")
+    cameras = page.locator("#cameras figure.camera")
+    assert cameras.count() == 2
+    assert [cameras.nth(k).get_attribute("data-state") for k in range(2)] == ["connected", "connected"]
+    assert "simulated camera" in page.locator("#cameras").inner_text()
+    assert page.locator("#capture").is_enabled()
+
+    page.fill("input[name=plate_id]", "H9-CAP")
+    page.click("#capture")
+    page.wait_for_selector("#start-message[data-kind=ok]:has-text('queued')", timeout=10_000)
+    inspection_id = int(re.search(r"#(\d+)", page.locator("#start-message").inner_text()).group(1))
+    row = f"#queue tr[data-id='{inspection_id}']"
+    page.wait_for_selector(f"{row}[data-status='done'], {row}[data-status='failed']", timeout=120_000)
+    page.screenshot(path=SHOTS / "cell-captured.png")
+    assert page.locator(row).get_attribute("data-status") == "done", (live_server["logs"] / "worker.log").read_text()[-3000:]
+    assert page.locator(f"{row} td").nth(2).inner_text() == "acquired"
+
+    # the cameras panel (polled) shows this capture's last frames, decoded by the browser
+    thumbnails = f"#cameras img[src$='inspection={inspection_id}']"
+    page.wait_for_function(f"document.querySelectorAll(\"{thumbnails}\").length == 2", timeout=30_000)
+    page.wait_for_function(
+        f"[...document.querySelectorAll(\"{thumbnails}\")].every((img) => img.complete && img.naturalWidth == 320)",
+        timeout=10_000,
+    )
+    page.screenshot(path=SHOTS / "cell-cameras.png")
+
+    page.click(f"{row} a[href='/inspections/{inspection_id}']")
+    page.wait_for_selector("#verdict")
+    assert page.locator(".verdict-word").inner_text() in ("PASS", "FAIL")
+    assert page.locator("a[href$='/artifacts/capture.json']").count() == 1
+    assert not errors, errors
+    assert not violations, violations
 
 
 def test_api_docs_run_under_their_csp(live_server, browser):

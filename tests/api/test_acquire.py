@@ -1,0 +1,319 @@
+"""POST /plates/{plate_id}/inspections/acquire end to end: the web app, a real consumer process, real devices.
+
+The cells: the demo cell (simulated cameras and lights, as demo mode writes it, smaller), and the
+acceptance cell (left camera Aravis' ``arv-fake-gv-camera-0.8`` over loopback, right camera
+Aravis' in-process ``Fake_1``, the tests' TCP light controller). SQLite migrated by Alembic,
+the consumer as in tests/api/test_jobs.py.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+
+from app.main import create_app
+from app.models import Inspection
+from app.services.cell import CELL_DIR, DEMO_CELL_DIR, CellLock
+from app.settings import Settings
+from pipeline.acquisition import write_demo_cell
+from pipeline.io import load_capture
+from tests.acquisition.conftest import HEIGHT, WIDTH, fake_gv, light_server, tcp_lights, write_cell  # noqa: F401 (fixtures)
+from tests.api.conftest import AUTH, FAKE_INSPECT, TOKEN, Consumer, invocations, target_json, wait_for
+
+N = 6
+FAKE_1 = {"driver": "aravis", "device_id": "Fake_1"}
+#: Configured exposures: no auto-exposure pre-shots.
+FIXED_FAKE_1 = {**FAKE_1, "exposure_us": 5000.0}
+FIXED_SIMULATED = {"driver": "simulated", "exposure_us": 5000.0}
+#: Light by light in image order: on, frame, off.
+SEQUENCE = [c for k in range(N) for c in (f"L{k} ON", f"L{k} OFF")]
+ALL_ON = [f"L{k} ON" for k in range(N)]
+ALL_OFF = [f"L{k} OFF" for k in range(N)]
+CYLINDER = json.loads(target_json())
+
+
+@pytest.fixture
+def service(tmp_path):
+    """A factory: ``service(**settings)`` -> TestClient of create_app on ``tmp_path/data`` (token, fake pipeline)."""
+    apps = []
+
+    def make(**overrides) -> TestClient:
+        settings = Settings(**{"data_dir": tmp_path / "data", "api_token": TOKEN, "progress_interval_s": 0.05,
+                               "inspect_entry": FAKE_INSPECT, **overrides})
+        app = create_app(settings)
+        apps.append(app)
+        return TestClient(app)
+
+    yield make
+    for app in apps:
+        app.state.engine.dispose()
+
+
+@pytest.fixture
+def consumers():
+    """A factory of started consumers (tests/api/conftest.py's Consumer), all stopped after the test."""
+    started = []
+
+    def start(settings: Settings, **kw) -> Consumer:
+        started.append(Consumer(settings, **kw).start())
+        return started[-1]
+
+    yield start
+    for consumer in started:
+        consumer.stop()
+
+
+def _demo_service(service, tmp_path, **overrides) -> TestClient:
+    """Demo mode with a demo cell written first, smaller than the default one (kept by the service)."""
+    write_demo_cell(tmp_path / "data" / DEMO_CELL_DIR, n_lights=N, width=WIDTH, height=HEIGHT)
+    return service(demo=True, **overrides)
+
+
+def _acquire(client, plate_id, headers=AUTH, **body):
+    return client.post(f"/api/v1/plates/{plate_id}/inspections/acquire", json=body or None, headers=headers)
+
+
+def _inputs(client, inspection_id) -> Path:
+    return client.app.state.storage.inputs_dir(inspection_id)
+
+
+def _row(client, inspection_id) -> Inspection:
+    with client.app.state.session_factory() as session:
+        return session.get(Inspection, inspection_id)
+
+
+# ------------------------------------------------------------------ the demo cell
+
+
+def test_demo_cell_acquires_then_inspects(service, consumers, tmp_path):
+    calls = tmp_path / "invocations.txt"
+    client = _demo_service(service, tmp_path)
+    health = client.get("/healthz").json()["cell"]
+    assert (health["ready"], health["cell_id"], health["demo"]) == (True, "demo", True)
+    assert [(c["side"], c["state"], c["model"], c["serial"]) for c in health["cameras"]] == [
+        ("left", "connected", "simulated camera", "SIM-LEFT"), ("right", "connected", "simulated camera", "SIM-RIGHT")]
+    consumer = consumers(client.app.state.settings, invocations=calls)
+
+    r = _acquire(client, "DEMO-7")  # no body: the plate's target, here the demo cell's
+    assert r.status_code == 202, r.text
+    body = wait_for(client, r.json()["id"], consumer=consumer)
+
+    assert body["status"] == "done", body
+    assert (body["source"], body["cell_id"], body["stage"]) == ("acquired", "demo", "done")
+    assert body["result"]["plate_id"] == "DEMO-7" and body["result"]["target_radius_mm"] == 5000.0
+    assert client.get("/api/v1/plates/DEMO-7/target").json()["radius_mm"] == 5000.0
+    # the bundle the cell took is what the pipeline ran on (the test double loads it), once
+    capture = load_capture(_inputs(client, body["id"]) / "bundle")
+    assert (capture.plate_id, capture.n_lights, capture.images.shape) == ("DEMO-7", N, (N, HEIGHT, WIDTH))
+    assert [event for event, *_ in invocations(calls)] == ["start", "end"]
+    record = client.get(body["artifacts"]["capture.json"]).json()["acquisition"]
+    assert record["cell_id"] == "demo" and record["light_controller"] == {"driver": "simulated", "n_lights": N}
+    assert [f["file"] for f in record["frames"]] == (
+        [f"ps_{k:02d}.png" for k in range(N)] + ["dark.png", "stereo_left.png", "stereo_right.png"])
+    assert json.loads((_inputs(client, body["id"]) / "acquisition.json").read_text()) == {
+        "cell_id": "demo", "config": "cell.json", "process": True}
+    # the cameras' last frames, for the Cell page
+    for side in ("left", "right"):
+        thumb = client.get(f"/cell/cameras/{side}.png")
+        assert thumb.status_code == 200 and thumb.content.startswith(b"\x89PNG")
+    assert f'src="/cell/cameras/left.png?inspection={body["id"]}"' in client.get("/cell/cameras").text
+
+
+def test_capture_only_keeps_the_bundle_and_runs_no_inspection(service, consumers, tmp_path):
+    calls = tmp_path / "invocations.txt"
+    client = _demo_service(service, tmp_path)
+    consumer = consumers(client.app.state.settings, invocations=calls)
+    r = _acquire(client, "DEMO-8", process=False, target=CYLINDER)
+    assert r.status_code == 202, r.text
+    body = wait_for(client, r.json()["id"], consumer=consumer)
+
+    assert (body["status"], body["result"], body["verdict"], body["error"]) == ("done", None, None, None)
+    assert set(body["artifacts"]) == {"capture.json", "capture.zip"}
+    assert invocations(calls) == []
+    bundle = tmp_path / "bundle.zip"
+    bundle.write_bytes(client.get(body["artifacts"]["capture.zip"]).content)
+    assert load_capture(bundle).n_lights == N
+    assert "CAPTURED" in client.get(f"/inspections/{body['id']}").text
+
+
+# ------------------------------------------------------------------ the acceptance cell: Aravis' fake cameras, TCP lights
+
+
+def test_acceptance_cell_gige_and_fake_cameras_tcp_lights(service, consumers, tmp_path, fake_gv, light_server):
+    """Left camera arv-fake-gv-camera (GigE Vision over loopback), right Fake_1, the tests' TCP lights, the real pipeline."""
+    seen = []  # the job's stage and status when the first light is switched on
+    client_box = []
+
+    def on_command(command: str) -> None:
+        if command == "L0 ON" and not seen:
+            row = _row(client_box[0], 1)
+            seen.append((row.status, row.stage))
+
+    server = light_server(on_command=on_command)
+    left = {"driver": "aravis", "device_id": fake_gv.device_id}
+    config = write_cell(tmp_path / "cell", left=left, right=FAKE_1, lights=tcp_lights(server), n_lights=N)
+    client = service(cell_config=config, inspect_entry="pipeline.run:inspect")
+    client_box.append(client)
+
+    health = client.get("/healthz").json()["cell"]
+    assert (health["ready"], health["cell_id"], health["demo"], health["in_use"]) == (True, "cell-test", False, None)
+    cams = {c["side"]: c for c in health["cameras"]}
+    assert (cams["left"]["state"], cams["left"]["model"], cams["left"]["serial"]) == ("connected", "Fake", fake_gv.serial)
+    assert (cams["right"]["state"], cams["right"]["model"], cams["right"]["device_id"]) == ("connected", "Fake", "Fake_1")
+    consumer = consumers(client.app.state.settings)
+
+    r = _acquire(client, "ACC-0001", target=CYLINDER)
+    assert r.status_code == 202, r.text
+    body = wait_for(client, r.json()["id"], timeout_s=180, consumer=consumer)
+
+    assert seen == [("running", "capture")]  # the capture stage while the lights are switched
+    # a fake pattern is no plate: measured or refused as not measurable, never a capture or internal failure
+    assert body["status"] == "done" or not body["error"].startswith(("acquisition failed", "internal error")), body
+    assert body["stage"] not in (None, "capture")  # the pipeline's stages ran after the capture
+    capture = load_capture(_inputs(client, body["id"]) / "bundle")
+    assert (capture.plate_id, capture.n_lights, capture.bit_depth) == ("ACC-0001", N, 16)
+    assert capture.images.shape == (N, HEIGHT, WIDTH) and capture.stereo_right.shape == (HEIGHT, WIDTH)
+    record = json.loads((_inputs(client, body["id"]) / "bundle" / "capture.json").read_text())["acquisition"]
+    assert record["cell_id"] == "cell-test" and record["config"] == "cell.json"
+    gv, fake = record["cameras"]["left"], record["cameras"]["right"]
+    assert (gv["model"], gv["serial"], gv["protocol"]) == ("Fake", fake_gv.serial, "GigE Vision")
+    assert (fake["model"], fake["device_id"]) == ("Fake", "Fake_1")
+    assert record["light_controller"]["address"] == server.address and record["light_controller"]["replies"] is True
+    assert len(record["frames"]) == N + 3
+    # auto-exposure pre-shots under all lights, light by light, the stereo pair under all lights
+    assert server.commands == ALL_ON + ALL_OFF + SEQUENCE + ALL_ON + ALL_OFF
+    assert client.get(f"/api/v1/inspections/{body['id']}/artifacts/capture.json").json()["acquisition"] == record
+    last = json.loads((tmp_path / "data" / CELL_DIR / "state.json").read_text())
+    assert last["inspection_id"] == body["id"] and last["cameras"]["left"]["serial"] == fake_gv.serial
+
+
+def test_controller_refusing_fails_the_job_naming_device_and_step(service, consumers, tmp_path, light_server):
+    calls = tmp_path / "invocations.txt"
+    server = light_server(refuse="L2 ON")
+    config = write_cell(tmp_path / "cell", left=FIXED_FAKE_1, right=FIXED_SIMULATED, lights=tcp_lights(server))
+    client = service(cell_config=config)
+    consumer = consumers(client.app.state.settings, invocations=calls)
+
+    r = _acquire(client, "P-REFUSED", target=CYLINDER)
+    assert r.status_code == 202, r.text
+    body = wait_for(client, r.json()["id"], consumer=consumer)
+
+    assert (body["status"], body["verdict"], body["stage"]) == ("failed", "error", "capture")
+    assert body["error"] == (
+        f"acquisition failed: light controller {server.address}: photometric image 2 (ps_02.png): "
+        "refused 'L2 ON': answered 'ERR refused'")
+    assert server.commands == SEQUENCE[:6]  # light 2 switched off again
+    assert invocations(calls) == []  # nothing to inspect
+    inputs = _inputs(client, body["id"])
+    assert sorted(p.name for p in inputs.iterdir()) == ["acquisition.json", "target"]  # kept; no partial bundle
+
+
+def test_consumer_of_another_cell_fails_the_job(service, tmp_path):
+    from app.jobs import execute_inspection
+
+    client = _demo_service(service, tmp_path)
+    inspection_id = _acquire(client, "P-OTHER", target=CYLINDER).json()["id"]
+    other = write_cell(tmp_path / "other", left=FIXED_SIMULATED, right=FIXED_SIMULATED, lights={"driver": "simulated"})
+    settings = client.app.state.settings.model_copy(update={"cell_config": other})
+    state = client.app.state
+    assert execute_inspection(inspection_id, settings=settings, session_factory=state.session_factory,
+                              storage=state.storage) == "failed"
+    assert client.get(f"/api/v1/inspections/{inspection_id}").json()["error"] == (
+        "cell_id: the job was queued for cell 'demo', this consumer's cell (cell.json) is 'cell-test'")
+
+
+# ------------------------------------------------------------------ refusals
+
+
+def test_no_cell_outside_demo_is_409_naming_the_setting(service):
+    client = service()
+    r = _acquire(client, "P-1", target=CYLINDER)
+    assert r.status_code == 409, r.text
+    assert r.json()["detail"].startswith("PLATE_INSPECT_CELL_CONFIG: no cell is configured on this server")
+    assert client.get("/api/v1/inspections").json()["total"] == 0
+    assert client.get("/healthz").json()["cell"] is None
+    page = client.get("/cell").text
+    assert re.search(r'<button type="button" id="capture" disabled title="PLATE_INSPECT_CELL_CONFIG: no cell', page)
+    assert "Capture unavailable: PLATE_INSPECT_CELL_CONFIG" in page
+
+
+def test_a_bad_cell_config_is_409_naming_file_and_field(service, tmp_path):
+    config = write_cell(tmp_path / "cell", left={"driver": "aravis"}, right=FIXED_SIMULATED, lights={"driver": "simulated"})
+    client = service(cell_config=config)
+    r = _acquire(client, "P-1")
+    assert r.status_code == 409, r.text
+    assert r.json()["detail"] == (
+        "PLATE_INSPECT_CELL_CONFIG: the cell's configuration is not usable: cell.json: cameras.left.device_id: "
+        "missing required key (an aravis camera is opened by its device id)")
+    health = client.get("/healthz").json()["cell"]
+    assert (health["ready"], health["reason"], health["cameras"]) == (False, r.json()["detail"], [])
+
+
+def test_a_cell_over_the_light_limit_is_409_naming_the_setting(service, tmp_path):
+    config = write_cell(tmp_path / "cell", left=FIXED_SIMULATED, right=FIXED_SIMULATED, lights={"driver": "simulated"})
+    r = _acquire(service(cell_config=config, max_lights=4), "P-1")
+    assert r.status_code == 409, r.text
+    assert "cell.json: lights.lights: 6 lights, more than the limit of 4 (the server setting PLATE_INSPECT_MAX_LIGHTS" \
+        in r.json()["detail"]
+
+
+def test_writes_need_the_token(service, tmp_path):
+    client = _demo_service(service, tmp_path)
+    assert _acquire(client, "P-1", headers={}).status_code == 401
+    assert _acquire(client, "P-1", headers={"Authorization": "Bearer wrong"}).status_code == 401
+    assert client.get("/api/v1/inspections").json()["total"] == 0
+
+
+def test_target_and_process_are_checked(service, tmp_path):
+    client = _demo_service(service, tmp_path)
+    r = _acquire(client, "P-1", target={**CYLINDER, "shape": {"type": "cylinder", "radius_mm": 5.0}})
+    assert r.status_code == 422 and r.json()["field"] == "target: shape.radius_mm", r.text
+    assert r.json()["file"] == "target.json"
+    r = _acquire(client, "P-1", process=1)  # strict: 1 is no boolean
+    assert r.status_code == 422 and r.json()["field"] == "process", r.text
+    assert client.get("/api/v1/inspections").json()["total"] == 0
+    assert client.get("/api/v1/plates/P-1/target").status_code == 404
+
+    r = _acquire(client, "P-1", target={**CYLINDER, "shape": {"type": "sphere", "radius_mm": 7000.0}})
+    assert r.status_code == 202, r.text
+    assert client.get("/api/v1/plates/P-1/target").json()["shape"] == "sphere"  # the plate's target now
+
+
+def test_no_target_outside_demo_is_422(service, tmp_path):
+    config = write_cell(tmp_path / "cell", left=FIXED_SIMULATED, right=FIXED_SIMULATED, lights={"driver": "simulated"})
+    r = _acquire(service(cell_config=config), "P-1")
+    assert r.status_code == 422 and r.json()["field"] == "target", r.text
+
+
+def test_queue_cap_applies(service, tmp_path):
+    client = _demo_service(service, tmp_path, max_queued_per_plate=1)
+    assert _acquire(client, "P-1").status_code == 202
+    r = _acquire(client, "P-1")
+    assert r.status_code == 429 and int(r.headers["Retry-After"]) >= 1, r.text
+    assert client.get("/api/v1/inspections").json()["total"] == 1
+
+
+# ------------------------------------------------------------------ the cameras' state
+
+
+def test_cameras_are_not_checked_while_a_capture_holds_them(service, tmp_path):
+    missing = {"driver": "aravis", "device_id": "Nobody-0000"}
+    config = write_cell(tmp_path / "cell", left=missing, right=FIXED_SIMULATED, lights={"driver": "simulated"})
+    client = service(cell_config=config)
+    lock = CellLock(tmp_path / "data")
+    assert lock.acquire("inspection 41 (acquiring)")  # as the consumer holds it during a capture
+    try:
+        health = client.get("/healthz").json()["cell"]
+    finally:
+        lock.release()
+    assert health["in_use"] == "inspection 41 (acquiring)"
+    assert [(c["side"], c["state"]) for c in health["cameras"]] == [("left", "unknown"), ("right", "unknown")]
+
+    health = client.get("/healthz").json()["cell"]  # free again: checked
+    cams = {c["side"]: c for c in health["cameras"]}
+    assert health["in_use"] is None
+    assert cams["left"]["state"] == "unreachable" and cams["right"]["state"] == "connected"
