@@ -43,8 +43,6 @@ log = logging.getLogger(__name__)
 
 #: Folder (under the data dir) of the demo cell written in demo mode without a cell config.
 DEMO_CELL_DIR = "demo-cell"
-#: Demo cell: its size (the demo's simulated plate as the simulated cell's default form shows it).
-DEMO_CELL = {"n_lights": 8, "width": 1224, "height": 1024}
 #: Folder (under the data dir) of the cell's lock, its last capture's record and thumbnails.
 CELL_DIR = "cell"
 #: Seconds a camera check may take before the cameras it has not reached are reported unreachable.
@@ -92,7 +90,7 @@ def ensure_demo_cell(settings: Settings) -> None:
     folder.parent.mkdir(parents=True, exist_ok=True)
     partial = Path(tempfile.mkdtemp(prefix=DEMO_CELL_DIR + ".partial-", dir=folder.parent))
     try:
-        _write_demo_cell(partial, **DEMO_CELL)
+        _write_demo_cell(partial)  # 8 lights, 1224 x 1024: the size of the Cell page's simulated plates
         os.rename(partial, folder)
     except OSError:
         if not (folder / "cell.json").is_file():  # not another process's demo cell: a real failure
@@ -351,21 +349,36 @@ class CellState:
 class _Probe:
     """One check of the cameras, run in a thread of its own; ``results`` fills as cameras answer."""
 
-    key: tuple
+    config: CellConfig
     results: dict[str, CameraState] = field(default_factory=dict)
     finished: threading.Event = field(default_factory=threading.Event)
     started_at: datetime = field(default_factory=lambda: datetime.now(timezone.utc))
+    started: float = field(default_factory=time.monotonic)
+
+    @property
+    def key(self) -> tuple:
+        return _config_key(self.config)
+
+
+@dataclass(frozen=True)
+class _Known:
+    """The answer of the last finished check: its cameras' configuration, the cameras, when it started."""
+
+    key: tuple
+    cameras: tuple[CameraState, ...]
+    checked_at: datetime
+    finished: float
 
 
 class CameraMonitor:
     """The cameras' state, checked lazily in a thread, cached briefly, never blocking for long.
 
-    :meth:`state` answers from a check less than ``ttl_s`` old; else it starts one (unless one is
-    still running) and waits for it at most ``timeout_s``: a camera that has not answered by then
-    (a GigE camera that vanished takes Aravis about 15 s to give up on) is reported
-    ``unreachable``, and later calls do not start another check until that one has returned. No
-    check runs while another process holds the cell's lock (a capture): the last known state is
-    reported, with who holds the cameras.
+    :meth:`state` answers from a check that finished less than ``ttl_s`` ago; else it starts one
+    (unless one is still running) and waits for it until ``timeout_s`` after it started: a camera
+    that has not answered by then (a GigE camera that vanished takes Aravis about 15 s to give up
+    on) is reported ``unreachable``, and later calls neither wait nor start another check until
+    that one has returned. No check runs while another process holds the cell's lock (a capture):
+    the last known state is reported, with who holds the cameras.
 
     Parameters
     ----------
@@ -380,8 +393,7 @@ class CameraMonitor:
         self.timeout_s = timeout_s
         self._mutex = threading.Lock()
         self._probe: _Probe | None = None
-        self._known: tuple[tuple, tuple[CameraState, ...], datetime] | None = None
-        self._known_at = float("-inf")
+        self._known: _Known | None = None
 
     def state(self) -> CellState:
         """The cell and its cameras now (see the class docstring)."""
@@ -401,43 +413,58 @@ class CameraMonitor:
         )
 
     def _cameras(self, config: CellConfig, capture: dict | None) -> tuple[tuple[CameraState, ...], datetime | None, str | None]:
+        """(cameras, when they were checked, who holds them instead)."""
         key = _config_key(config)
         with self._mutex:
-            if self._known is not None and self._known[0] == key and time.monotonic() - self._known_at < self.ttl_s:
-                return self._known[1], self._known[2], None
+            self._take_finished()
+            known = self._known if self._known is not None and self._known.key == key else None
+            if known is not None and time.monotonic() - known.finished < self.ttl_s:
+                return known.cameras, known.checked_at, None
             probe = self._probe
             if probe is None or probe.finished.is_set():
                 lock = CellLock(self.settings.data_dir)
                 if not lock.acquire(f"the web server's camera check (pid {os.getpid()})"):
-                    return self._last_known(config, key, capture), self._known_at_time(key), lock.holder()
-                probe = self._probe = _Probe(key)
-                threading.Thread(target=_run_probe, args=(config, probe, lock), name="camera-check", daemon=True).start()
-        probe.finished.wait(self.timeout_s)
+                    cameras = known.cameras if known is not None else _last_seen(config, capture)
+                    return cameras, None if known is None else known.checked_at, lock.holder()
+                probe = self._probe = _Probe(config)
+                threading.Thread(target=_run_probe, args=(probe, lock), name="camera-check", daemon=True).start()
+        probe.finished.wait(max(0.0, self.timeout_s - (time.monotonic() - probe.started)))  # a hung check: no wait
         with self._mutex:
-            cameras = tuple(probe.results.get(side) or _no_answer(config, side, self.timeout_s) for side in SIDES)
-            if probe.finished.is_set() and (self._known is None or self._known[2] <= probe.started_at):
-                self._known, self._known_at = (key, cameras, probe.started_at), time.monotonic()
-            return cameras, probe.started_at, None
+            self._take_finished()
+            if self._known is not None and self._known.key == key and probe.finished.is_set():
+                return self._known.cameras, self._known.checked_at, None
+            return tuple(probe.results.get(side) or _no_answer(config, side, self.timeout_s) for side in SIDES), \
+                probe.started_at, None
 
-    def _last_known(self, config: CellConfig, key: tuple, capture: dict | None) -> tuple[CameraState, ...]:
-        """The cameras as last checked, else as the last capture described them, else unknown."""
-        if self._known is not None and self._known[0] == key:
-            return self._known[1]
-        cameras = []
-        for side in SIDES:
-            cam_config = getattr(config, side)
-            seen = (capture or {}).get("cameras", {}).get(side) if (capture or {}).get("cell_id") == config.cell_id else None
-            if seen is not None and seen.get("device_id") == cam_config.device_id:
-                cameras.append(CameraState(
-                    side, cam_config.driver, cam_config.device_id, "connected", seen.get("vendor"), seen.get("model"),
-                    seen.get("serial"), detail=f"at the last capture ({capture['captured_at']})",
-                ))
-            else:
-                cameras.append(CameraState(side, cam_config.driver, cam_config.device_id, "unknown", detail="not checked yet"))
-        return tuple(cameras)
+    def _take_finished(self) -> None:
+        """Keep the answer of a check that has finished (hold the mutex)."""
+        probe = self._probe
+        if probe is None or not probe.finished.is_set():
+            return
+        if self._known is None or self._known.checked_at < probe.started_at:
+            failed = "the check failed (see the server log)"
+            cameras = tuple(
+                probe.results.get(side) or replace(_no_answer(probe.config, side, 0.0), state="error", detail=failed)
+                for side in SIDES
+            )
+            self._known = _Known(probe.key, cameras, probe.started_at, time.monotonic())
 
-    def _known_at_time(self, key: tuple) -> datetime | None:
-        return self._known[2] if self._known is not None and self._known[0] == key else None
+
+def _last_seen(config: CellConfig, capture: dict | None) -> tuple[CameraState, ...]:
+    """The cameras as the last capture of this cell described them (connected then), else unknown."""
+    cameras = []
+    seen_by_side = (capture or {}).get("cameras", {}) if (capture or {}).get("cell_id") == config.cell_id else {}
+    for side in SIDES:
+        cam_config = getattr(config, side)
+        seen = seen_by_side.get(side)
+        if seen is not None and seen.get("device_id") == cam_config.device_id:
+            cameras.append(CameraState(
+                side, cam_config.driver, cam_config.device_id, "connected", seen.get("vendor"), seen.get("model"),
+                seen.get("serial"), detail=f"at the last capture ({capture['captured_at']})",
+            ))
+        else:
+            cameras.append(CameraState(side, cam_config.driver, cam_config.device_id, "unknown", detail="not checked yet"))
+    return tuple(cameras)
 
 
 def _config_key(config: CellConfig) -> tuple:
@@ -451,8 +478,9 @@ def _no_answer(config: CellConfig, side: str, timeout_s: float) -> CameraState:
                        detail=f"no answer within {timeout_s:g} s")
 
 
-def _run_probe(config: CellConfig, probe: _Probe, lock: CellLock) -> None:
+def _run_probe(probe: _Probe, lock: CellLock) -> None:
     """Open each camera, describe it, close it (in a thread; the lock is held throughout)."""
+    config = probe.config
     try:
         cell = None
         if "simulated" in (config.left.driver, config.right.driver):
@@ -460,6 +488,8 @@ def _run_probe(config: CellConfig, probe: _Probe, lock: CellLock) -> None:
             cell = SimulatedCell(config.rig, config.lights, config.working_distance_mm, controller, "camera-check")
         for side in SIDES:
             probe.results[side] = _check_camera(side, getattr(config, side), cell)
+    except Exception:  # noqa: BLE001 - reported as the cameras' error, never lost in a thread
+        log.exception("the camera check failed")
     finally:
         lock.release()
         probe.finished.set()

@@ -22,7 +22,7 @@ from app.settings import Settings
 from pipeline.acquisition import write_demo_cell
 from pipeline.io import load_capture
 from tests.acquisition.conftest import HEIGHT, WIDTH, fake_gv, light_server, tcp_lights, write_cell  # noqa: F401 (fixtures)
-from tests.api.conftest import AUTH, FAKE_INSPECT, TOKEN, Consumer, invocations, target_json, wait_for
+from tests.api.conftest import AUTH, FAKE_INSPECT, TOKEN, Consumer, invocations, target_json, wait_for, wait_until
 
 N = 6
 FAKE_1 = {"driver": "aravis", "device_id": "Fake_1"}
@@ -317,3 +317,19 @@ def test_cameras_are_not_checked_while_a_capture_holds_them(service, tmp_path):
     cams = {c["side"]: c for c in health["cameras"]}
     assert health["in_use"] is None
     assert cams["left"]["state"] == "unreachable" and cams["right"]["state"] == "connected"
+
+
+def test_a_camera_that_does_not_answer_in_time_is_reported_unreachable_without_waiting_for_it(tmp_path):
+    """Aravis looks for a missing camera for about a second; the check is waited for 0.1 s, then not at all."""
+    from app.services.cell import CameraMonitor
+
+    missing = {"driver": "aravis", "device_id": "Nobody-0000"}
+    config = write_cell(tmp_path / "cell", left=missing, right=FIXED_SIMULATED, lights={"driver": "simulated"})
+    monitor = CameraMonitor(Settings(data_dir=tmp_path / "data", cell_config=config), timeout_s=0.1)
+
+    for _ in range(2):  # the first call starts the check, the second finds it still running
+        cameras = monitor.state().cameras
+        assert [(c.state, c.detail) for c in cameras] == [("unreachable", "no answer within 0.1 s")] * 2
+    cameras = wait_until(lambda: (c := monitor.state().cameras)[0].detail != "no answer within 0.1 s" and c, 30)
+    assert (cameras[0].state, cameras[0].detail) == ("unreachable", "opening: Device 'Nobody-0000' not found")
+    assert (cameras[1].state, cameras[1].serial) == ("connected", "SIM-RIGHT")
