@@ -173,7 +173,7 @@ class SimulatedInspectionIn(BaseModel):
 
 
 class AcquireInspectionIn(BaseModel):
-    """The cell photographs the plate, then the bundle is inspected (``process`` false: only photographed)."""
+    """The cell photographs the plate, then the bundle is inspected."""
 
     model_config = STRICT_BODY
 
@@ -182,11 +182,7 @@ class AcquireInspectionIn(BaseModel):
         description="a plate-target/1 object (plane, cylinder or sphere) that becomes the plate's target; "
         "default: the plate's current target",
     )
-    process: bool = Field(
-        default=True,
-        description="inspect the bundle once acquired; false: a capture only (the job ends done without a result, "
-        "the bundle is its artifact capture.zip)",
-    )
+    process: ProcessIn | None = Field(default=None, description="the forming pass that produced this shape")
 
 
 class InspectionCreated(BaseModel):

@@ -176,7 +176,7 @@ def templates_partial(
 
 
 def _templates_context(storage, row: Inspection, spacing_mm: int) -> dict:
-    if row.status != "done" or row.result is None:  # not done, or a capture only
+    if row.status != "done":
         return {"drawings": [], "templates_error": None}
     folder = storage.artifacts_dir(row.id)
     try:
@@ -194,7 +194,7 @@ def plate_page(request: Request, plate_id: str, session: SessionDep) -> Response
     if overview is None:
         raise HTTPException(404, f"plate {plate_id!r} not found")
     rows, total = inspection_svc.list_inspections(session=session, plate_id=plate_id, limit=200)
-    done = [r for r in reversed(rows) if r.status == "done" and r.result is not None]  # not the captures only
+    done = [r for r in reversed(rows) if r.status == "done"]
     tolerance = overview.target.tolerance_mm if overview.target is not None else (done[-1].tolerance_mm if done else None)
     chart = trend_chart(
         [(r.id, f"#{r.id}", r.radius_error_pct, r.max_abs_mm) for r in done], tolerance_mm=tolerance

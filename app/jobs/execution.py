@@ -219,15 +219,14 @@ def _run(
     light_calibration,
 ) -> dict:
     """The job's work: render a simulated capture or acquire one, load the lights, call the pipeline; the result
-    document (empty for a capture only)."""
+    document."""
     out_dir = storage.clear_artifacts(inspection_id)
     if source == "simulated":
         progress(SIMULATE_STAGE, 0.0)
         render_simulated_bundle(bundle_dir=capture_path, plate_id=plate_id, simulation=simulation)
     elif source == ACQUIRED_SOURCE:
-        if not capture_for_job(inspection_id, settings=settings, storage=storage, plate_id=plate_id,
-                               bundle_dir=capture_path, progress=progress):
-            return {}  # a capture only (the request's process false): nothing to inspect
+        capture_for_job(inspection_id, settings=settings, storage=storage, plate_id=plate_id,
+                        bundle_dir=capture_path, progress=progress)
     lights = None
     if light_calibration is not None:
         lights = light_calibrations.load_lights(storage=storage, calibration=light_calibration)

@@ -204,9 +204,10 @@ def acquire_inspection(
 
     The job's stages: ``capture`` (progress per image taken), then the pipeline's. A device that
     fails ends the job ``failed`` with the device and the step. The body is optional: ``target``
-    (default: the plate's current target; in demo mode, the demo cell's for a plate without one),
-    ``process`` (false: a capture only). Without a usable cell: 409 naming the setting or the
-    file and field; a bad target: 422; a full queue: 429 and ``Retry-After``.
+    (default: the plate's current target; in demo mode, the demo cell's for a plate without one)
+    and ``process`` (the forming pass, as for an upload). Without a usable cell: 409 naming the
+    setting or the file and field; a bad target or process: 422; a full queue: 429 and
+    ``Retry-After``.
     """
     body = body or AcquireInspectionIn()
     try:
@@ -225,7 +226,8 @@ def acquire_inspection(
 
     def work():
         row = create_acquired_inspection(
-            session=session, storage=storage, plate_id=plate_id, cell=cell, process=body.process,
+            session=session, storage=storage, plate_id=plate_id, cell=cell,
+            process=None if body.process is None else body.process.model_dump(mode="json"),
             target_dir=staging, default_target=demo_target(settings),
             limits=Limits.from_settings(settings),
         )

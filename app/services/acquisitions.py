@@ -2,17 +2,17 @@
 
 The request is checked and queued in the web process (:func:`create_acquired_inspection`); the
 consumer photographs the plate with the cell's cameras and lights
-(:func:`pipeline.acquisition.acquire`) into the inspection's ``inputs/bundle`` and then inspects
-it like any other bundle (:func:`capture_for_job`, called by :mod:`app.jobs.execution`).
+(:func:`pipeline.acquisition.acquire`) into the inspection's ``inputs/bundle`` (:func:`capture_for_job`,
+called by :mod:`app.jobs.execution`) and then inspects it like any other bundle.
 """
 
 from __future__ import annotations
 
 import json
 import shutil
-import zipfile
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from sqlalchemy.orm import Session
 
@@ -21,6 +21,7 @@ from app.limits.queue import check_queue
 from app.models import Inspection
 from app.services.cell import CellLock, CellUnavailable, cell_message, ensure_demo_cell, load_cell, record_capture
 from app.services.errors import UnprocessableError
+from app.services.forming import check_process
 from app.services.plates import current_target, get_or_create_plate
 from app.services.targets import TARGET_FILE, copy_target_files, create_target, validate_target_dir
 from app.settings import Settings
@@ -30,14 +31,12 @@ from pipeline.formats import AcquisitionError, InputError, PipelineError
 
 #: ``Inspection.source`` of an inspection photographed in the cell.
 ACQUIRED_SOURCE = "acquired"
-#: The request (cell id, configuration file, ``process``), under the inspection's inputs.
+#: The request (the cell's id and configuration file), under the inspection's inputs.
 ACQUISITION_FILE = "acquisition.json"
 #: Folder (under inputs/) the job writes the bundle into.
 ACQUIRED_BUNDLE_DIR = "bundle"
 #: Stage reported while the cell photographs the plate (before the pipeline's stages).
 CAPTURE_STAGE = "capture"
-#: Artifact of a capture-only job (``process`` false): the bundle, zipped.
-CAPTURE_ZIP = "capture.zip"
 #: Seconds a job waits for the cameras while the web server checks them.
 CAMERAS_WAIT_S = 30.0
 
@@ -53,42 +52,47 @@ def create_acquired_inspection(
     storage: Storage,
     plate_id: str,
     cell: CellConfig,
-    process: bool,
+    process: dict[str, Any] | None = None,
     target_dir: Path | None = None,
     default_target: Path | None = None,
     limits: Limits = DEFAULT_LIMITS,
 ) -> Inspection:
-    """A queued inspection that the job photographs in ``cell``, then inspects unless ``process`` is false.
+    """A queued inspection that the job photographs in ``cell``, then inspects.
 
     The target: the one in ``target_dir`` (``target.json``, validated; it becomes the plate's
-    current target), else the plate's current one, else ``default_target`` (the demo cell's,
-    likewise made the plate's). The queue is checked against ``limits``. ``inputs/`` gets
-    :data:`ACQUISITION_FILE` and ``target/target.json``; the job writes ``bundle/``.
+    current target), else the plate's current one, else ``default_target`` (a ``target.json``:
+    the demo cell's, likewise made the plate's). ``process`` (a validated
+    :class:`app.schemas.ProcessIn` as a dict) is the forming pass that produced the shape; its
+    machine must be known (:func:`app.services.forming.check_process`). The queue is checked
+    against ``limits``. ``inputs/`` gets :data:`ACQUISITION_FILE` and ``target/target.json``; the
+    job writes ``bundle/``.
 
     Raises
     ------
     pipeline.formats.InputError
         A bad target (names the file and the field); nothing was added.
     UnprocessableError
-        No target sent and the plate has none (field ``target``).
+        No target sent and the plate has none (field ``target``); an unknown machine in ``process``
+        (field ``process.machine_id``).
     app.limits.queue.QueueFullError
         The plate's queue or the whole queue is full; nothing was added.
     """
+    check_process(session=session, process=process)
     new_targets: list[Path] = []
     row = None
     try:
         target = _target(session=session, storage=storage, plate_id=plate_id, target_dir=target_dir,
                          default_target=default_target, created=new_targets)
         row = Inspection(
-            plate_id=plate_id, target_id=target.id, source=ACQUIRED_SOURCE, cell_id=cell.cell_id, status="queued",
-            progress=0.0, tolerance_mm=target.tolerance_mm, target_radius_mm=target.radius_mm,
+            plate_id=plate_id, target_id=target.id, source=ACQUIRED_SOURCE, cell_id=cell.cell_id, process=process,
+            status="queued", progress=0.0, tolerance_mm=target.tolerance_mm, target_radius_mm=target.radius_mm,
         )
         session.add(row)
         session.flush()
         check_queue(session=session, plate_id=plate_id, limits=limits)
         inputs = storage.inputs_dir(row.id)
         inputs.mkdir(parents=True)
-        request = {"cell_id": cell.cell_id, "config": cell.path.name, "process": process}
+        request = {"cell_id": cell.cell_id, "config": cell.path.name}
         (inputs / ACQUISITION_FILE).write_text(json.dumps(request, indent=2), encoding="utf-8")
         copy_target_files(storage=storage, target=target, destination=inputs / "target")
         row.capture_path = storage.relative(inputs / ACQUIRED_BUNDLE_DIR)
@@ -147,19 +151,14 @@ def capture_for_job(
     plate_id: str,
     bundle_dir: Path,
     progress: Callable[[str, float], None],
-) -> bool:
+) -> None:
     """The capture of an acquired job, in the consumer: photograph the plate into ``bundle_dir``.
 
     A complete bundle already there (the job runs again after its worker died or was stopped) is
     kept: the plate photographed then is the one inspected. Progress is reported as stage
     :data:`CAPTURE_STAGE`, its fraction the frames taken. The bundle's ``capture.json`` (with
-    the acquisition record) is copied into the artifacts; for a capture only, the whole bundle
-    as :data:`CAPTURE_ZIP`. The cameras' state and thumbnails are recorded for the dashboard.
-
-    Returns
-    -------
-    bool
-        Whether the bundle is to be inspected (the request's ``process``).
+    the acquisition record) is copied into the artifacts. The cameras' state and thumbnails are
+    recorded for the dashboard.
 
     Raises
     ------
@@ -177,16 +176,13 @@ def capture_for_job(
         storage.remove(bundle_dir)  # nothing complete: acquire writes it anew
         _capture(inspection_id, settings=settings, storage=storage, plate_id=plate_id, bundle_dir=bundle_dir,
                  cell_id=request["cell_id"], progress=progress)
-    artifacts = storage.artifacts_dir(inspection_id)
-    shutil.copyfile(bundle_dir / "capture.json", artifacts / "capture.json")
-    if not request["process"]:
-        _zip_bundle(bundle_dir, artifacts / CAPTURE_ZIP)
+    shutil.copyfile(bundle_dir / "capture.json", storage.artifacts_dir(inspection_id) / "capture.json")
     progress(CAPTURE_STAGE, 1.0)
-    return bool(request["process"])
 
 
 def _capture(inspection_id: int, *, settings: Settings, storage: Storage, plate_id: str, bundle_dir: Path,
              cell_id: str, progress: Callable[[str, float], None]) -> None:
+    """Photograph the plate into ``bundle_dir`` with the cell ``cell_id``, holding the cameras' lock."""
     ensure_demo_cell(settings)
     try:
         config = load_cell(settings)
@@ -210,12 +206,3 @@ def _capture(inspection_id: int, *, settings: Settings, storage: Storage, plate_
         lock.release()
     record_capture(storage.data_dir, bundle_dir, inspection_id=inspection_id)
 
-
-def _zip_bundle(bundle_dir: Path, path: Path) -> None:
-    """The bundle's files at the root of a zip (stored: PNGs are compressed already)."""
-    partial = path.with_name(path.name + ".partial")
-    with zipfile.ZipFile(partial, "w", zipfile.ZIP_STORED) as zf:
-        for member in sorted(bundle_dir.iterdir()):
-            if member.is_file():
-                zf.write(member, member.name)
-    partial.replace(path)

@@ -420,8 +420,7 @@ def record_progress(
 def mark_done(
     *, session: Session, inspection_id: int, document: dict[str, Any], owner: str | None = None
 ) -> bool:
-    """running -> done with the ``plate-result/1`` document and its summary numbers (an empty
-    document, a capture only: no result).
+    """running -> done with the ``plate-result/1`` document and its summary numbers.
 
     Only while ``owner`` (default :func:`process_lease_owner`) holds the lease; returns whether it did.
     """
@@ -436,7 +435,7 @@ def mark_done(
             finished_at=utcnow(),
             lease_owner=None,
             lease_expires_at=None,
-            result=document or None,
+            result=document,
             timings_s=document.get("timings_s"),
             radius_mm=document.get("radius_mm"),
             target_radius_mm=document.get("target_radius_mm"),

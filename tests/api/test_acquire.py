@@ -34,6 +34,10 @@ SEQUENCE = [c for k in range(N) for c in (f"L{k} ON", f"L{k} OFF")]
 ALL_ON = [f"L{k} ON" for k in range(N)]
 ALL_OFF = [f"L{k} OFF" for k in range(N)]
 CYLINDER = json.loads(target_json())
+#: A forming pass (the ``process`` of the inspection routes) on machine R3-01.
+PASS = {"method": "roll-bending", "machine_id": "R3-01", "top_roll_displacement_mm": 97.0}
+MACHINE = {"kind": "three-roll-pyramid", "bottom_roll_spacing_mm": 1400, "bottom_roll_diameter_mm": 420,
+           "top_roll_diameter_mm": 500}
 
 
 @pytest.fixture
@@ -77,6 +81,11 @@ def _acquire(client, plate_id, headers=AUTH, **body):
     return client.post(f"/api/v1/plates/{plate_id}/inspections/acquire", json=body or None, headers=headers)
 
 
+def _put_machine(client) -> None:
+    r = client.put("/api/v1/machines/R3-01", json=MACHINE, headers=AUTH)
+    assert r.status_code in (200, 201), r.text
+
+
 def _inputs(client, inspection_id) -> Path:
     return client.app.state.storage.inputs_dir(inspection_id)
 
@@ -115,29 +124,12 @@ def test_demo_cell_acquires_then_inspects(service, consumers, tmp_path):
     assert [f["file"] for f in record["frames"]] == (
         [f"ps_{k:02d}.png" for k in range(N)] + ["dark.png", "stereo_left.png", "stereo_right.png"])
     assert json.loads((_inputs(client, body["id"]) / "acquisition.json").read_text()) == {
-        "cell_id": "demo", "config": "cell.json", "process": True}
+        "cell_id": "demo", "config": "cell.json"}
     # the cameras' last frames, for the Cell page
     for side in ("left", "right"):
         thumb = client.get(f"/cell/cameras/{side}.png")
         assert thumb.status_code == 200 and thumb.content.startswith(b"\x89PNG")
     assert f'src="/cell/cameras/left.png?inspection={body["id"]}"' in client.get("/cell/cameras").text
-
-
-def test_capture_only_keeps_the_bundle_and_runs_no_inspection(service, consumers, tmp_path):
-    calls = tmp_path / "invocations.txt"
-    client = _demo_service(service, tmp_path)
-    consumer = consumers(client.app.state.settings, invocations=calls)
-    r = _acquire(client, "DEMO-8", process=False, target=CYLINDER)
-    assert r.status_code == 202, r.text
-    body = wait_for(client, r.json()["id"], consumer=consumer)
-
-    assert (body["status"], body["result"], body["verdict"], body["error"]) == ("done", None, None, None)
-    assert set(body["artifacts"]) == {"capture.json", "capture.zip"}
-    assert invocations(calls) == []
-    bundle = tmp_path / "bundle.zip"
-    bundle.write_bytes(client.get(body["artifacts"]["capture.zip"]).content)
-    assert load_capture(bundle).n_lights == N
-    assert "CAPTURED" in client.get(f"/inspections/{body['id']}").text
 
 
 # ------------------------------------------------------------------ the acceptance cell: Aravis' fake cameras, TCP lights
@@ -268,19 +260,36 @@ def test_writes_need_the_token(service, tmp_path):
     assert client.get("/api/v1/inspections").json()["total"] == 0
 
 
-def test_target_and_process_are_checked(service, tmp_path):
+@pytest.mark.parametrize(
+    ("body", "field"),
+    [
+        ({"target": {**CYLINDER, "shape": {"type": "cylinder", "radius_mm": 5.0}}}, "target: shape.radius_mm"),
+        ({"target": {**CYLINDER, "tolerance_mm": -1.0}}, "target: tolerance_mm"),
+        ({"process": PASS | {"machine_id": "R9"}}, "process.machine_id"),  # no such machine
+        ({"process": PASS | {"top_roll_displacement_mm": 0}}, "process.top_roll_displacement_mm"),
+        ({"process": PASS | {"method": "press"}}, "process.method"),
+        ({"process": True}, "process"),
+        ({"cell": "demo"}, "cell"),  # unknown keys are refused
+    ],
+)
+def test_bad_target_or_process_is_422_and_stores_nothing(service, tmp_path, body, field):
     client = _demo_service(service, tmp_path)
-    r = _acquire(client, "P-1", target={**CYLINDER, "shape": {"type": "cylinder", "radius_mm": 5.0}})
-    assert r.status_code == 422 and r.json()["field"] == "target: shape.radius_mm", r.text
-    assert r.json()["file"] == "target.json"
-    r = _acquire(client, "P-1", process=1)  # strict: 1 is no boolean
-    assert r.status_code == 422 and r.json()["field"] == "process", r.text
+    _put_machine(client)
+    r = _acquire(client, "P-1", **body)
+    assert r.status_code == 422 and r.json()["field"] == field, r.text
     assert client.get("/api/v1/inspections").json()["total"] == 0
     assert client.get("/api/v1/plates/P-1/target").status_code == 404
 
-    r = _acquire(client, "P-1", target={**CYLINDER, "shape": {"type": "sphere", "radius_mm": 7000.0}})
+
+def test_target_and_process_are_kept(service, tmp_path):
+    client = _demo_service(service, tmp_path)
+    _put_machine(client)
+    r = _acquire(client, "P-1", target={**CYLINDER, "shape": {"type": "sphere", "radius_mm": 7000.0}}, process=PASS)
     assert r.status_code == 202, r.text
     assert client.get("/api/v1/plates/P-1/target").json()["shape"] == "sphere"  # the plate's target now
+    body = client.get(f"/api/v1/inspections/{r.json()['id']}").json()
+    assert (body["process"], body["cell_id"], body["source"]) == (PASS, "demo", "acquired")
+    assert json.loads((_inputs(client, body["id"]) / "target" / "target.json").read_text())["shape"]["radius_mm"] == 7000.0
 
 
 def test_no_target_outside_demo_is_422(service, tmp_path):
