@@ -293,12 +293,12 @@ def test_capture_button_photographs_and_inspects_with_the_demo_cell(live_server,
     assert page.locator(f"{row} td").nth(2).inner_text() == "acquired"
 
     # the cameras panel (polled) shows this capture's last frames, decoded by the browser
-    thumbnails = f"#cameras img[src$='inspection={inspection_id}']"
-    page.wait_for_function(f"document.querySelectorAll(\"{thumbnails}\").length == 2", timeout=30_000)
-    page.wait_for_function(
-        f"[...document.querySelectorAll(\"{thumbnails}\")].every((img) => img.complete && img.naturalWidth == 320)",
-        timeout=10_000,
-    )
+    thumbnails = page.locator(f"#cameras img[src$='inspection={inspection_id}']")
+    thumbnails.nth(1).wait_for(timeout=30_000)
+    deadline = time.monotonic() + 10
+    while (widths := thumbnails.evaluate_all("(imgs) => imgs.map((img) => img.complete ? img.naturalWidth : 0)")) != [320, 320]:
+        assert time.monotonic() < deadline, f"the thumbnails did not load: {widths}"
+        time.sleep(0.2)
     page.screenshot(path=SHOTS / "cell-cameras.png")
 
     page.click(f"{row} a[href='/inspections/{inspection_id}']")
