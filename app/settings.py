@@ -135,7 +135,8 @@ class Settings(BaseSettings):
 
     @field_validator("cell_config", mode="before")
     @classmethod
-    def _unset_when_empty(cls, v):
+    def _unset_when_empty(cls, v: object) -> object:
+        """``PLATE_INSPECT_CELL_CONFIG=`` (empty) is no cell config, not the current folder."""
         return None if isinstance(v, str) and not v.strip() else v
 
     @property

@@ -9,6 +9,7 @@ called by :mod:`app.jobs.execution`) and then inspects it like any other bundle.
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -28,6 +29,8 @@ from app.settings import Settings
 from app.storage import Storage
 from pipeline.acquisition import CellConfig, acquire
 from pipeline.formats import AcquisitionError, InputError, PipelineError
+
+log = logging.getLogger(__name__)
 
 #: ``Inspection.source`` of an inspection photographed in the cell.
 ACQUIRED_SOURCE = "acquired"
@@ -204,5 +207,8 @@ def _capture(inspection_id: int, *, settings: Settings, storage: Storage, plate_
         raise InputError(cell_message(err.file, config.path), err.field, cell_message(err.reason, config.path)) from None
     finally:
         lock.release()
-    record_capture(storage.data_dir, bundle_dir, inspection_id=inspection_id)
+    try:
+        record_capture(storage.data_dir, bundle_dir, inspection_id=inspection_id)
+    except Exception:  # noqa: BLE001 - the dashboard's record of the cameras must not fail the inspection
+        log.warning("inspection %s: the cameras' last frames were not recorded", inspection_id, exc_info=True)
 
