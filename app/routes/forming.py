@@ -49,7 +49,11 @@ def machine_out(row) -> MachineOut:
 @router.put(
     "/machines/{machine_id}",
     response_model=MachineOut,
-    responses={401: {"model": ErrorOut}, 422: {"model": ErrorOut}},
+    responses={
+        201: {"model": MachineOut, "description": "The machine was new"},
+        401: {"model": ErrorOut},
+        422: {"model": ErrorOut},
+    },
     summary="Add or replace a roll bender (three-roll pyramid)",
 )
 def put_machine(
