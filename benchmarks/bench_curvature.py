@@ -17,6 +17,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from pipeline.parallel import configure_process  # noqa: E402
 from pipeline.curvature import principal_curvatures  # noqa: E402
 from pipeline.deviation import deviation_map, fitted_target_radius, judge, register_to_target  # noqa: E402
 from pipeline.io import Target  # noqa: E402
@@ -43,6 +44,7 @@ def mesh_target(height, half=1650.0, n=67):
 
 
 def main():
+    configure_process()  # the thread policy of the CLI's process, so that timings compare
     ap = argparse.ArgumentParser()
     ap.add_argument("--sizes", default="1224x1024,2448x2048")
     ap.add_argument("--repeat", type=int, default=3)

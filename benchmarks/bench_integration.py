@@ -22,6 +22,7 @@ import scipy.io
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from pipeline.parallel import configure_process  # noqa: E402
 from pipeline.integration import integrate_gradient, integrate_normals  # noqa: E402
 from tests.pipeline.test_integration import (  # noqa: E402
     BINI,
@@ -158,6 +159,7 @@ def vase_table():
 
 
 def main():
+    configure_process()  # the thread policy of the CLI's process, so that timings compare
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="skip the 2448x2048 size")
     args = ap.parse_args()

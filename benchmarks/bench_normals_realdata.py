@@ -24,6 +24,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the project root, for tests.realdata
 
+from pipeline.parallel import configure_process  # noqa: E402
 from pipeline.normals import estimate_normals  # noqa: E402
 from tests import realdata as rd  # noqa: E402
 
@@ -110,6 +111,7 @@ def speed_table(repeat: int) -> None:
 
 
 def main() -> None:
+    configure_process()  # the thread policy of the CLI's process, so that timings compare
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--no-speed", action="store_true", help="skip the full-size timing")
     parser.add_argument("--repeat", type=int, default=3)

@@ -21,6 +21,7 @@ from importlib.metadata import entry_points
 from pathlib import Path
 
 from .formats import InputError, PipelineError
+from .parallel import configure_process
 
 EXIT_OK, EXIT_INTERNAL, EXIT_BAD_INPUT, EXIT_NOT_MEASURABLE = 0, 1, 2, 3
 
@@ -318,6 +319,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run ``plate-inspect`` with ``argv`` (default: the command line); returns the exit code."""
+    configure_process()  # the process's thread policy, before any kernel runs
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")

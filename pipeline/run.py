@@ -22,6 +22,7 @@ from . import artifacts, curvature, deviation, normals, reconstruct, segmentatio
 from .formats import RESULT_FORMAT, CaptureError, PipelineError, ResultFile
 from .io import Capture, Target, load_capture, load_target
 from .lights import Lights
+from .parallel import default_workers
 from .preprocess import preprocess
 
 #: Stage names in the order they run; ``progress`` reports these.
@@ -75,6 +76,10 @@ class InspectOptions:
         :func:`pipeline.integration.integrate_normals`). Measured on a simulated plate at
         2448x2048 against a solve to 1e-8: 1e-4 changes no depth by more than 1 um
         (1e-3: 20 um), in 4 iterations instead of 6 for 1e-6 (0.11 s less).
+    workers : int or None
+        Threads for the work that runs beside the main line (stereo, curvature, artifact
+        writing) and for preprocessing; None: :func:`pipeline.parallel.default_workers`. The
+        result does not depend on it.
     """
 
     normals_method: str = "robust"
@@ -83,6 +88,7 @@ class InspectOptions:
     min_stereo_pct: float = 20.0
     stereo_max_width: int = 1600
     depth_tol: float = 1e-4
+    workers: int | None = None
 
 
 @dataclass(frozen=True)
@@ -195,7 +201,7 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, li
     clock.end("load")
 
     clock.begin("preprocess")
-    pre = preprocess(cap)
+    pre = preprocess(cap, workers=opts.workers)
     # what may be plate: not dark. Over a dark conveyor that is the plate; over a lit floor, most of the
     # image. The stereo pair is matched over it (the segmentation needs the surroundings' depth too) and,
     # under distant lights, the normals are estimated over it while the pair is matched.
@@ -214,12 +220,12 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, li
         "depth": "depth.npy",
         "details": "details.json",
     }
-    # Two cores: work that does not need the main line's next result runs beside it. The stereo pair
+    # Work that does not need the main line's next result runs beside it. The stereo pair
     # needs only the plate mask (matched while the normals are estimated); curvature and the pixel
     # areas run beside the registration; the artifacts (image encoding and file writing release the
     # GIL) as soon as they are known.
     # numba's parallel kernels (normals, depth) run on this thread only: never two at once.
-    with ThreadPoolExecutor(max_workers=2) as pool:
+    with ThreadPoolExecutor(max_workers=opts.workers or default_workers()) as pool:
         stereo_job = pool.submit(_stereo_depth, cap, region, opts) if cap.has_stereo else None
         rays_job = pool.submit(cap.rig.left.pixel_rays)  # (H, W, 3) float64, for the surface and the areas
         K = cap.rig.left.K

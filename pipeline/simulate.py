@@ -53,6 +53,7 @@ from .formats import (
 )
 from .io import calibration_document
 from .lights import Lights
+from .parallel import default_workers
 
 # Reference head: fx = 900 px at 1224 px width (a 3000 mm plate at 3000 mm fills ~74 % of the width).
 _FX_PER_WIDTH_PX = 900.0 / 1224.0
@@ -1143,6 +1144,7 @@ def simulate_capture(
     plate_id: str = "SIM-0001",
     tolerance_mm: float = 2.0,
     seed: int = 0,
+    workers: int | None = None,
 ) -> Path:
     """Render a capture bundle of a plate with known truth.
 
@@ -1160,6 +1162,9 @@ def simulate_capture(
     seed : int
         Seeds the texture (unless ``capture.albedo_seed``), light intensities and all noise; the
         output is the same for the same arguments.
+    workers : int, optional
+        Threads that encode and write the images while the next ones render (None:
+        :func:`pipeline.parallel.default_workers`); the output does not depend on it.
 
     Returns
     -------
@@ -1234,8 +1239,8 @@ def simulate_capture(
     if lights.any_point and capture.manifest_lights == "nominal":
         written = written.nominal_directions(centre)
 
-    # PNG encoding (cv2 releases the GIL) overlaps with rendering on a second thread.
-    pool = ThreadPoolExecutor(max_workers=2)
+    # PNG encoding (cv2 releases the GIL) overlaps with rendering on other threads.
+    pool = ThreadPoolExecutor(max_workers=workers or default_workers())
     writes = []
     try:
         # ---- left camera, raw grid: photometric images and dark frame
