@@ -41,17 +41,14 @@ def estimate_normals(
         Usable samples (False = saturated, shadowed or known bad); None = all usable.
         Unusable samples may hold any value, NaN included.
     method : {"robust", "lstsq"}
-        ``"lstsq"``: Woodham's least squares for b = rho n over all valid samples.
-        ``"robust"``: the same model fitted to the samples left after rejecting attached
-        and cast shadows and specular highlights (see Notes).
+        ``"lstsq"``: Woodham's least squares for b = rho n over all valid samples. ``"robust"``:
+        the same model on the samples left after rejecting shadows and highlights (see Notes).
     min_samples : int
-        A pixel with fewer usable samples than this (>= 3) is a hole, filled from its
-        neighbours.
+        A pixel with fewer usable samples than this (>= 3) is a hole, filled from its neighbours.
     view_dirs : (3,) float, optional
-        A distant (orthographic) camera: the unit vector from the surface towards it,
-        left-camera frame (v_z < 0), e.g. (0, 0, -1). With ``method="robust"`` it switches
-        on the specular stage (see Notes); ``method="lstsq"`` ignores it (it is the plain
-        Lambertian baseline).
+        A distant (orthographic) camera: the unit vector from the surface towards it, left-camera
+        frame (v_z < 0), e.g. (0, 0, -1). With ``method="robust"`` it switches on the specular
+        stage (see Notes); ``method="lstsq"`` ignores it (the plain Lambertian baseline).
     camera_matrix : (3, 3) float, optional
         A pinhole camera instead (the undistorted grid's K): the view direction of pixel
         (u, v) is ``-normalize(K^-1 (u, v, 1))``, computed where the specular stage needs
@@ -64,9 +61,8 @@ def estimate_normals(
     Raises
     ------
     ValueError
-        Bad shapes or dtypes, non-unit or non-finite lights, lights not on the camera
-        side or not spanning 3D, unknown method, bad min_samples, non-finite images at
-        used samples.
+        Bad shapes or dtypes, non-unit or non-finite lights, lights not on the camera side or not
+        spanning 3D, unknown method, bad min_samples, non-finite images at used samples.
     CaptureError
         Not one mask pixel gave a normal (images dark, or inconsistent with the lights).
 
