@@ -411,7 +411,8 @@ def test_vase_plain_least_squares_rmse():
 def test_multigrid_preconditioner_is_symmetric_and_positive():
     # conjugate gradients needs a symmetric positive preconditioner: the V-cycle must be its own
     # adjoint (pre-smoothing red-black, post-smoothing black-red, restriction = prolongation^T)
-    from pipeline.integration import _fine_system, _Multigrid
+    from pipeline.integration import _fine_system
+    from pipeline.solvers import Multigrid
 
     rng = np.random.default_rng(4)
     hw = (70, 90)
@@ -421,7 +422,7 @@ def test_multigrid_preconditioner_is_symmetric_and_positive():
     b = np.zeros((h + 2, w + 2))
     wd = np.where(rng.random(hw) < 0.05, 0.01, 0.0).astype(np.float32)
     _fine_system(mask, np.zeros(hw), np.zeros(hw), wd, np.zeros(hw), 0.0, ex, ey, wdp, dg, idg, b)
-    mg = _Multigrid(ex, ey, wdp, dg, idg)
+    mg = Multigrid(ex, ey, wdp, dg, idg)
     u, v = (np.zeros((h + 2, w + 2)) for _ in range(2))
     u[1:-1, 1:-1][mask] = rng.normal(size=mask.sum())
     v[1:-1, 1:-1][mask] = rng.normal(size=mask.sum())
