@@ -37,17 +37,11 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from .curvature import (
-    MAX_FIT_POINTS,
-    _fit_curved,
-    _pca_frame,
-    _robust_gauss_newton,
-    _robust_scale,
-    check_grid,
-    fit_cylinder,
-    grid_sample,
-    fit_sphere,
-)
+from .solvers import robust_gauss_newton as _robust_gauss_newton
+from .solvers import robust_scale as _robust_scale
+from .surface_fits import MAX_FIT_POINTS, check_grid, fit_cylinder, fit_sphere, grid_sample
+from .surface_fits import fit_curved as _fit_curved
+from .surface_fits import pca_frame as _pca_frame
 from .io import Target
 
 #: Default smallest out-of-tolerance region (mm^2) that fails a plate: 100 mm^2 = 1 cm^2, i.e. tens of

@@ -48,7 +48,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from . import stereo
-from .curvature import fit_plane
+from .surface_fits import fit_plane
 from .formats import CaptureError, InputError
 from .io import Capture
 from .lights import REFERENCE_DISTANCE_MM, Lights

@@ -1,5 +1,9 @@
 """Generic numerical solvers that the method's problems share (no knowledge of cameras or surfaces).
 
+- :mod:`~pipeline.solvers.pcg` and :mod:`~pipeline.solvers.multigrid`: grid systems (below);
+- :mod:`~pipeline.solvers.robust_lm`: robust nonlinear least squares of a few parameters
+  (Levenberg-Marquardt, soft-L1 loss), for the geometric fits and the mesh registration.
+
 A *grid system* is a symmetric linear system on an (H, W) grid: a masked graph Laplacian over
 4-neighbour edges plus a diagonal term. It lives on arrays padded with one cell of zeros on every
 side (interior cells 1..H, 1..W), so that the stencils need no bounds checks:
@@ -24,5 +28,6 @@ float32; ``np.float64(x)`` is used where it matters.
 
 from .multigrid import Multigrid
 from .pcg import pcg, solve_grid_system
+from .robust_lm import robust_gauss_newton, robust_scale
 
-__all__ = ["Multigrid", "pcg", "solve_grid_system"]
+__all__ = ["Multigrid", "pcg", "robust_gauss_newton", "robust_scale", "solve_grid_system"]

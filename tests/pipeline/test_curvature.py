@@ -13,15 +13,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.curvature import (
-    CylinderFit,
-    PlaneFit,
-    SphereFit,
-    fit_cylinder,
-    fit_plane,
-    fit_sphere,
-    principal_curvatures,
-)
+from pipeline.curvature import principal_curvatures
+from pipeline.surface_fits import CylinderFit, PlaneFit, SphereFit, fit_cylinder, fit_plane, fit_sphere
 
 #: Tilt of the plate (Euler xyz, deg) relative to facing the camera: off-axis and rotated in-plane.
 TILT_DEG = (8.0, -5.0, 20.0)
