@@ -19,7 +19,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.parallel import configure_process  # noqa: E402
 from pipeline.curvature import principal_curvatures  # noqa: E402
-from pipeline.deviation import deviation_map, fitted_target_radius, judge, register_to_target  # noqa: E402
+from pipeline.deviation import deviation_map  # noqa: E402
+from pipeline.registration import fitted_target_radius, register_to_target  # noqa: E402
+from pipeline.verdict import judge  # noqa: E402
 from pipeline.io import Target  # noqa: E402
 from tests.pipeline.test_curvature import cylinder, dented, plate_grid, saddle, sphere  # noqa: E402
 

@@ -18,7 +18,18 @@ import cv2
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from . import artifacts, curvature, deviation, normals, reconstruct, segmentation, stereo
+from . import (
+    artifacts,
+    curvature,
+    deviation,
+    normals,
+    reconstruct,
+    registration,
+    segmentation,
+    stereo,
+    target_geometry,
+    verdict,
+)
 from .formats import RESULT_FORMAT, CaptureError, PipelineError, ResultFile
 from .io import Capture, Target, load_capture, load_target
 from .lights import Lights
@@ -314,8 +325,8 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, li
         if not normals_written:
             writes.append(pool.submit(artifacts.write_normals_png, out / names["normals"], field.normals, field.mask))
         clock.begin("deviation")
-        registration = deviation.register_to_target(points, surface_mask, tgt)
-        dev = deviation.deviation_map(points, surface_mask, tgt, registration)
+        pose = registration.register_to_target(points, surface_mask, tgt)
+        dev = deviation.deviation_map(points, surface_mask, tgt, pose)
         writes += [
             pool.submit(artifacts.write_surface_ply, out / names["surface"], points, surface_mask, dev,
                         tolerance_mm=tgt.tolerance_mm),
@@ -323,23 +334,23 @@ def _inspect(capture, target, out: Path, clock: _Clock, opts: InspectOptions, li
                         tolerance_mm=tgt.tolerance_mm),
         ]
         pixel_area = area_job.result()
-        judgement = deviation.judge(
+        judgement = verdict.judge(
             dev, surface_mask, tgt.tolerance_mm, pixel_area_mm2=pixel_area,
-            edge_artefacts=None if seg is None else deviation.EdgeArtefacts(seg.surroundings_step_mm),
+            edge_artefacts=None if seg is None else verdict.EdgeArtefacts(seg.surroundings_step_mm),
         )
         clock.end("deviation")
         clock.begin("artifacts")
-        verts, faces = deviation.target_surface(tgt)
+        verts, faces = target_geometry.target_surface(tgt)
         writes.append(pool.submit(artifacts.write_target_ply, out / names["target_surface"], verts, faces,
-                                  registration.T_cam_target))
+                                  pose.T_cam_target))
         curv, clock.timings["curvature"] = curvature_job.result()
-        # the registration fits the target's shape radius-free on its way (= deviation.fitted_target_radius)
-        fitted_radius = registration.fitted_radius_mm
+        # the registration fits the target's shape radius-free on its way (= registration.fitted_target_radius)
+        fitted_radius = pose.fitted_radius_mm
         for write in writes:
             write.result()
     details = {
-        "T_cam_target": registration.T_cam_target.tolist(),
-        "registration_rms_mm": float(registration.rms_mm),
+        "T_cam_target": pose.T_cam_target.tolist(),
+        "registration_rms_mm": float(pose.rms_mm),
         "principal_directions": np.asarray(curv.principal_directions).tolist(),
         "defects": [
             {"centroid_px": list(map(float, d.centroid_px)), "area_mm2": float(d.area_mm2),

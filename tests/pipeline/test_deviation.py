@@ -10,15 +10,10 @@ import trimesh
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
-from pipeline.deviation import (
-    EdgeArtefacts,
-    Registration,
-    deviation_map,
-    fitted_target_radius,
-    judge,
-    register_to_target,
-    target_surface,
-)
+from pipeline.deviation import deviation_map
+from pipeline.registration import Registration, fitted_target_radius, register_to_target
+from pipeline.target_geometry import target_surface
+from pipeline.verdict import EdgeArtefacts, judge
 from pipeline.io import Target
 from tests.pipeline.test_curvature import cylinder, dented, plate_grid, saddle, sphere
 
