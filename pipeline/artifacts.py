@@ -1,4 +1,4 @@
-"""Result artifacts of an inspection: the measured surface mesh, the deviation map, normals, depth.
+"""Result artifacts of an inspection: the measured surface mesh, the deviation map, normals, depth; their file names.
 
 All coordinates are millimetres in the left camera frame (OpenCV: x right,
 y down, z forward into the scene). Deviation is signed: positive where the
@@ -15,11 +15,22 @@ everything out of tolerance is drawn in the darker half of the scale.
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import cv2
 import numba
 import numpy as np
+
+#: File names of an inspection's artifacts in its output folder, keyed as ``plate-result/1``'s ``artifacts``.
+ARTIFACT_FILES = {
+    "surface": "surface.ply",
+    "target_surface": "target.ply",
+    "deviation_map": "deviation.png",
+    "normals": "normals.png",
+    "depth": "depth.npy",
+    "details": "details.json",
+}
+#: File name of the ``plate-result/1`` document beside them.
+RESULT_FILE = "result.json"
 
 #: Colour stops (RGB) at t = -1, -1/2, 0, 1/2, 1 of ``deviation / limit_mm``; the viewer uses the same.
 COLOUR_STOPS = ((33, 102, 172), (146, 197, 222), (247, 247, 247), (244, 165, 130), (178, 24, 43))
