@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from . import reconstruct, segmentation
+from . import reconstruct
 from .artifacts import ARTIFACT_FILES, RESULT_FILE
 from .details import (
     Details,
@@ -44,6 +44,7 @@ from .stages import (
     measure,
     preprocess_scene,
 )
+from .target_geometry import target_area_mm2
 
 __all__ = [
     "AREA_WARNING_RATIO", "STAGES", "InspectOptions", "InspectionResult", "ProgressCallback", "inspect", "warm_up",
@@ -164,7 +165,7 @@ def _details(m: Measurement, pre: Preprocessed, tgt: Target, *, near_field: bool
         defects=[region_details(d) for d in judgement.defects],
         reasons=list(judgement.reasons),
         excluded_regions=[excluded_region_details(r) for r in judgement.excluded],
-        segmentation=segmentation_details(plate.seg, segmentation.target_area_mm2(tgt), plain=plate.plain,
+        segmentation=segmentation_details(plate.seg, target_area_mm2(tgt), plain=plate.plain,
                                           measured_area_mm2=measured_area),
         normals_filled=int(surface.field.n_filled),
         normals_facing_away=surface.normals_facing_away,

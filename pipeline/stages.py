@@ -399,7 +399,7 @@ def _segment(pre, depth_mm, K, candidates, depth_scale, field, tgt):
     return segmentation.segment_plate(
         pre.brightest, depth_mm, K, seen=pre.seen, candidates=candidates, depth_scale_px=depth_scale,
         normals=None if field is None else field.normals,  # NaN off the field's mask (NormalField)
-        target_area_mm2=segmentation.target_area_mm2(tgt),
+        target_area_mm2=target_geometry.target_area_mm2(tgt),
     )
 
 
