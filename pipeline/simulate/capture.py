@@ -22,6 +22,9 @@ plate; on the RAW grid ``depth_raw_mm`` float32 and ``mask_raw``; and ``radius_m
 int8, what each pixel sees (:data:`~pipeline.simulate.geometry.SURFACE_PLATE`, ``SURFACE_CONVEYOR``,
 ``SURFACE_FLOOR``, ``SURFACE_SUPPORT + k`` for support k) and ``scene_depth_mm`` (H, W) float32, the
 depth of whatever it sees. ``mask`` is exactly ``surface == SURFACE_PLATE``.
+
+Kept as one module (~520 lines) on purpose: :class:`CaptureSpec` and the rendering that reads it change
+together; the scene, its geometry and textures, the rig, the target and the boards are apart.
 """
 
 from __future__ import annotations
