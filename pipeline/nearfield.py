@@ -9,8 +9,8 @@ again a linear problem in b = rho n, with its own light vectors: the samples are
 ``a_k(X)`` and fitted against ``l_k(X)`` with the same per-pixel estimators as distant lights
 (:func:`pipeline.normals.estimate_normals`'s robust fit, or plain least squares). The surface
 itself comes from integrating these normals, so the two are solved alternately
-(:func:`pipeline.run.inspect` starts from the stereo depth and iterates until the depth stops
-moving; Queau et al. 2018, section 4, and Mecca et al. 2014 solve the same coupled problem).
+(:func:`pipeline.reconstruct.near_field_surface` starts from the stereo depth and iterates until the
+depth stops moving; Queau et al. 2018, section 4, and Mecca et al. 2014 solve the same coupled problem).
 
 Distant lights may be mixed in: their direction is the same everywhere and ``a_k = 1``.
 

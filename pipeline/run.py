@@ -248,8 +248,8 @@ def warm_up() -> float:
     """Load the compiled kernels and start the thread pools before the first real inspection.
 
     The numba kernels are compiled once per installation and cached on disk, but each process
-    loads them (and OpenMP starts its threads) on their first call: ~0.5 s that would otherwise
-    land in the first inspection's timings. This runs one small simulated glossy inspection
+    loads them (and OpenMP starts its threads) on their first call: time that would otherwise
+    land in the first inspection's timings (README: *Command line*). This runs one small simulated glossy inspection
     (320x256, 12 lights, stereo: every kernel of the usual path and of the specular stage) in a
     temporary folder. Returns its run time, seconds.
     """

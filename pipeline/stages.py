@@ -83,7 +83,7 @@ class InspectOptions:
         Relative residual at which the depth solve stops (``tol`` of
         :func:`pipeline.integration.integrate_normals`). Measured on a simulated plate at
         2448x2048 against a solve to 1e-8: 1e-4 changes no depth by more than 1 um
-        (1e-3: 20 um), in 4 iterations instead of 6 for 1e-6 (0.11 s less).
+        (1e-3: 20 um), in 4 iterations instead of 6 for 1e-6.
     workers : int or None
         Threads for the work that runs beside the main line (stereo, curvature, artifact
         writing) and for preprocessing; None: :func:`pipeline.parallel.default_workers`. The

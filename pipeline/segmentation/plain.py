@@ -69,7 +69,7 @@ def plain_depth(bright_mask, depth_mm, camera_matrix, *, depth_band_mm: float = 
     bool
         True when at most PLAIN_OFF_SURFACE_SHARE of the matched mask pixels lie off the smooth
         surface fitted to them. With :func:`plain_outline`, the brightness mask is then the plate
-        and :func:`segment_plate` (~0.5 s at 2448 x 2048) is not needed.
+        and :func:`segment_plate` is not needed (README: what it costs).
     """
     mask = check_bool_image("bright_mask", bright_mask, np.shape(bright_mask))
     depth = np.asarray(depth_mm, dtype=np.float64)

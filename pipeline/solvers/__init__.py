@@ -22,8 +22,8 @@ masked domain, not a periodic (Fourier) approximation. The normal integration
 (:mod:`pipeline.integration`) assembles such systems.
 
 The parallel kernels must not run concurrently from two threads (numba's workqueue layer aborts):
-:mod:`pipeline.run` calls them from its main thread only. In numba, ``float(x)`` of a float32 stays
-float32; ``np.float64(x)`` is used where it matters.
+:mod:`pipeline.stages` calls them from its main thread only. In numba, ``float(x)`` of a float32
+stays float32; ``np.float64(x)`` is used where it matters.
 """
 
 from .multigrid import Multigrid
