@@ -2,7 +2,7 @@
 
 Run from the project root:  .venv/bin/python benchmarks/bench_curvature.py [--sizes 1224x1024,2448x2048] [--repeat 3]
 
-Plates: ray-cast analytic surfaces (tests/pipeline/test_curvature.plate_grid), 3000 x 3000 mm at 3000 mm,
+Plates: ray-cast analytic surfaces (tests/pipeline/surfaces.plate_grid), 3000 x 3000 mm at 3000 mm,
 tilted, 0.2 mm noise along the rays. Times are the best of ``--repeat`` runs (the machine is shared).
 """
 
@@ -23,7 +23,7 @@ from pipeline.deviation import deviation_map  # noqa: E402
 from pipeline.registration import fitted_target_radius, register_to_target  # noqa: E402
 from pipeline.verdict import judge  # noqa: E402
 from pipeline.io import Target  # noqa: E402
-from tests.pipeline.test_curvature import cylinder, dented, plate_grid, saddle, sphere  # noqa: E402
+from tests.pipeline.surfaces import cylinder, dented, plate_grid, saddle, sphere  # noqa: E402
 
 
 def best_time(fn, repeat):

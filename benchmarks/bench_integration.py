@@ -22,17 +22,10 @@ import scipy.io
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipeline.parallel import configure_process  # noqa: E402
 from pipeline.integration import integrate_gradient, integrate_normals  # noqa: E402
-from tests.pipeline.test_integration import (  # noqa: E402
-    BINI,
-    VASE,
-    load_bini,
-    made_after_median_scale,
-    plate_camera,
-    render_cylinder,
-    sparse_least_squares,
-)
+from pipeline.parallel import configure_process  # noqa: E402
+from tests.pipeline.surfaces import plate_camera, render_cylinder, sparse_least_squares  # noqa: E402
+from tests.realdata import BINI, VASE, load_bini, made_after_median_scale  # noqa: E402
 
 #: BiNI (k=2, perspective) MADE in mm, from the data's SOURCE.txt.
 BINI_MADE_MM = {"bear": 0.334, "buddha": 1.098, "cat": 0.074, "cow": 0.058, "goblet": 9.018,

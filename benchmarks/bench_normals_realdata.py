@@ -6,7 +6,7 @@ Run from the project root:
 
 Prints (1) mean angular error of ``estimate_normals`` (lstsq and robust) on DiLiGenT
 ball16 / crop8 ball, cat, pot1 and the UW grey sphere next to the published figures
-(``../shared/data/*/SOURCE.txt``), and (2) the time of each method at 2448x2048 with
+(each dataset's SOURCE.txt under ``tests.realdata.DATA_ROOT``, docs/data.md), and (2) the time of each method at 2448x2048 with
 12 lights on a synthetic curved plate (best of ``--repeat`` runs; numba compiled first).
 """
 
