@@ -56,7 +56,6 @@ class CurvatureResult:
     fit_rms_mm: float
 
 
-
 def _choose_degree(rho: float) -> int:
     """Polynomial degree for a height field whose worst ``|k| * half-extent`` is rho.
 

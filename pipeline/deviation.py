@@ -22,6 +22,7 @@ from .surface_fits import check_grid
 from .target_geometry import check_target, mesh_grid
 
 def _check_registration(registration) -> np.ndarray:
+    """``registration.T_cam_target`` checked as a finite rigid (4, 4) transform."""
     if not isinstance(registration, Registration):
         raise TypeError(f"registration: expected a Registration, got {type(registration).__name__}")
     T = np.asarray(registration.T_cam_target, dtype=np.float64)
@@ -31,7 +32,6 @@ def _check_registration(registration) -> np.ndarray:
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
         raise ValueError("registration.T_cam_target: expected a rigid transform (rotation + translation)")
     return T
-
 
 
 def deviation_map(points_mm, mask, target, registration) -> np.ndarray:
@@ -113,6 +113,3 @@ def _analytic_deviation(x: np.ndarray, tgt: Target, cam: np.ndarray) -> np.ndarr
             outward = num / (np.sqrt(np.maximum(num + Rt * Rt, 0.0)) + Rt)
     # "outward" is the -z side at the plate centre; the camera is on it when its z < 0.
     return outward if cam[2] < 0 else -outward
-
-
-# --------------------------------------------------------------------------- verdict

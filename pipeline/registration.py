@@ -56,7 +56,6 @@ class Registration:
     fitted_radius_mm: float | None = None
 
 
-
 def _pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3] = R
@@ -74,7 +73,6 @@ def _in_plane_x(points: np.ndarray, z: np.ndarray, size_mm) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- registration
-
 
 
 def fitted_target_radius(points_mm, mask, target) -> float | None:
@@ -172,8 +170,6 @@ def register_to_target(points_mm, mask, target) -> Registration:
     free_radius = None if convex is None else (abs(1.0 / k_free) if k_free != 0 else math.inf)
     return Registration(T_cam_target=_pose(R, origin), shape=tgt.shape, rms_mm=float(rms),
                         convex_towards_camera=convex, fitted_radius_mm=free_radius)
-
-
 
 
 def _register_mesh(sample: np.ndarray, target: Target) -> Registration:

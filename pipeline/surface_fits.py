@@ -123,7 +123,6 @@ class CylinderFit:
         return self.curvature_per_mm > 0
 
 
-
 class CurvedFit(NamedTuple):
     """What :func:`fit_curved` found, left-camera frame.
 
@@ -272,7 +271,6 @@ def _orthonormal_pair(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     u1 = np.cross(v, a)
     u1 /= np.linalg.norm(u1)
     return u1, np.cross(v, u1)
-
 
 
 def _signed_distance(w: np.ndarray, n: np.ndarray, k: float, axis: np.ndarray | None) -> np.ndarray:
@@ -458,7 +456,6 @@ class _CurvedModel:
                     best = (xs, k_try, cost)
         xs, _ = self.solve(best[0], best[1], f_scale)
         return np.append(xs, best[1])
-
 
 
 def fit_sphere(points_mm, *, radius_mm: float | None = None, max_points: int = MAX_FIT_POINTS) -> SphereFit:

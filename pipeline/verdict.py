@@ -141,9 +141,6 @@ class Judgement:
     excluded: tuple[ExcludedRegion, ...] = ()
 
 
-# --------------------------------------------------------------------------- checks and helpers
-
-
 def judge(deviation_mm, mask, tolerance_mm: float, *, pixel_area_mm2, min_defect_area_mm2: float = MIN_DEFECT_AREA_MM2,
           max_outside_pct: float = MAX_OUTSIDE_PCT, edge_artefacts: EdgeArtefacts | None = None) -> Judgement:
     """Deviation statistics and the pass/fail verdict of a plate.
@@ -323,6 +320,3 @@ def _edge_artefacts(dev: np.ndarray, mask: np.ndarray, judged: np.ndarray, toler
         ))
     regions.sort(key=lambda r: -r.area_mm2)
     return artefact[labels] & out_map, tuple(regions)
-
-
-# --------------------------------------------------------------------------- target surface for display

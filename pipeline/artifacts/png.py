@@ -145,7 +145,7 @@ def _scale_panel(height: int, *, limit_mm: float, tolerance_mm: float) -> np.nda
     return panel
 
 
-# =========================================================================== normals, depth
+# =========================================================================== normals
 
 
 def write_normals_png(path, normals, mask) -> None:

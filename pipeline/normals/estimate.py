@@ -96,7 +96,6 @@ def estimate_normals(
     return field_from_fit(b, status, mask, specular=fitted)
 
 
-
 def _check_inputs(images, light_dirs, mask, valid, method, min_samples):
     """The inputs of :func:`estimate_normals` checked: (images float32, light_dirs float64, mask, valid)."""
     if method not in METHODS:

@@ -98,7 +98,6 @@ def _lookup(table, c):
     return table[i] + f * (table[i + 1] - table[i])
 
 
-
 def specular(
     images: np.ndarray, valid: np.ndarray | None, status: np.ndarray, L: np.ndarray, view_map: np.ndarray,
     b: np.ndarray,

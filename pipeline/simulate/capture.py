@@ -194,6 +194,8 @@ class CaptureSpec:
 
 @dataclass(frozen=True)
 class _Scene:
+    """The plate posed in front of the rig, its texture, and the texture of what lies behind it."""
+
     plate: PlateSpec
     T_cam_plate: np.ndarray
     albedo: Texture

@@ -77,6 +77,7 @@ def outline_polygon(plate: PlateSpec, *, step_mm: float = 20.0) -> np.ndarray:
 
 
 def inside_outline(plate: PlateSpec, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Whether plate-frame points lie inside the plate's outline (its openings not considered)."""
     half_w, half_h = plate.size_mm[0] / 2, plate.size_mm[1] / 2
     box = (np.abs(x) <= half_w) & (np.abs(y) <= half_h)
     if plate.outline == "rectangle":
@@ -313,6 +314,7 @@ def _surroundings(plate: PlateSpec, o: np.ndarray, d: np.ndarray) -> tuple[np.nd
 
 
 def conveyor_z(plate: PlateSpec) -> float:
+    """z_p (mm) of the conveyor plane: CONVEYOR_GAP_MM behind the plate's farthest point."""
     half_w, half_h = plate.size_mm[0] / 2, plate.size_mm[1] / 2
     gx, gy = np.meshgrid(np.linspace(-half_w, half_w, 121), np.linspace(-half_h, half_h, 121))
     h, _, _ = plate_height(plate, gx, gy)
