@@ -34,6 +34,7 @@ from app.jobs.memory import MemoryLimitError, apply_memory_limit
 from app.services import inspections as svc
 from app.settings import Settings
 from app.storage import Storage
+from pipeline.parallel import configure_process
 
 log = logging.getLogger("app.worker")
 
@@ -46,6 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--parent-pid", type=int, default=None,
                         help="stop when this process (the server that started the consumer) dies")
     args = parser.parse_args(argv)
+    configure_process()  # the inspections' thread policy, before any kernel runs
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s [worker %(process)d] %(name)s: %(message)s")
     if args.parent_pid is not None:
         exit_with_parent(args.parent_pid)

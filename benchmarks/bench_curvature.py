@@ -2,7 +2,7 @@
 
 Run from the project root:  .venv/bin/python benchmarks/bench_curvature.py [--sizes 1224x1024,2448x2048] [--repeat 3]
 
-Plates: ray-cast analytic surfaces (tests/pipeline/test_curvature.plate_grid), 3000 x 3000 mm at 3000 mm,
+Plates: ray-cast analytic surfaces (tests/pipeline/surfaces.plate_grid), 3000 x 3000 mm at 3000 mm,
 tilted, 0.2 mm noise along the rays. Times are the best of ``--repeat`` runs (the machine is shared).
 """
 
@@ -17,10 +17,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from pipeline.parallel import configure_process  # noqa: E402
 from pipeline.curvature import principal_curvatures  # noqa: E402
-from pipeline.deviation import deviation_map, fitted_target_radius, judge, register_to_target  # noqa: E402
+from pipeline.deviation import deviation_map  # noqa: E402
+from pipeline.registration import fitted_target_radius, register_to_target  # noqa: E402
+from pipeline.verdict import judge  # noqa: E402
 from pipeline.io import Target  # noqa: E402
-from tests.pipeline.test_curvature import cylinder, dented, plate_grid, saddle, sphere  # noqa: E402
+from tests.pipeline.surfaces import cylinder, dented, plate_grid, saddle, sphere  # noqa: E402
 
 
 def best_time(fn, repeat):
@@ -43,6 +46,7 @@ def mesh_target(height, half=1650.0, n=67):
 
 
 def main():
+    configure_process()  # the thread policy of the CLI's process, so that timings compare
     ap = argparse.ArgumentParser()
     ap.add_argument("--sizes", default="1224x1024,2448x2048")
     ap.add_argument("--repeat", type=int, default=3)

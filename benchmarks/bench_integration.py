@@ -23,15 +23,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from pipeline.integration import integrate_gradient, integrate_normals  # noqa: E402
-from tests.pipeline.test_integration import (  # noqa: E402
-    BINI,
-    VASE,
-    load_bini,
-    made_after_median_scale,
-    plate_camera,
-    render_cylinder,
-    sparse_least_squares,
-)
+from pipeline.parallel import configure_process  # noqa: E402
+from tests.pipeline.surfaces import plate_camera, render_cylinder, sparse_least_squares  # noqa: E402
+from tests.realdata import BINI, VASE, load_bini, made_after_median_scale  # noqa: E402
 
 #: BiNI (k=2, perspective) MADE in mm, from the data's SOURCE.txt.
 BINI_MADE_MM = {"bear": 0.334, "buddha": 1.098, "cat": 0.074, "cow": 0.058, "goblet": 9.018,
@@ -158,6 +152,7 @@ def vase_table():
 
 
 def main():
+    configure_process()  # the thread policy of the CLI's process, so that timings compare
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="skip the 2448x2048 size")
     args = ap.parse_args()

@@ -19,10 +19,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "pipeline"))
 from bundles import write_bundle, zip_folder  # noqa: E402
 
+from pipeline.parallel import configure_process  # noqa: E402
 from pipeline.io import load_capture  # noqa: E402
 
 
 def main() -> None:
+    configure_process()  # the thread policy of the CLI's process, so that timings compare
     ap = argparse.ArgumentParser()
     ap.add_argument("--width", type=int, default=2448)
     ap.add_argument("--height", type=int, default=2048)

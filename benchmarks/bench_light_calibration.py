@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.parallel import configure_process
 from pipeline.io import load_capture
 from pipeline.light_calibration import calibrate_lights
 from pipeline.simulate import CaptureSpec, PlateSpec, simulate_capture
@@ -31,6 +32,7 @@ INTENSITY_TOL = 0.03
 
 
 def main() -> None:
+    configure_process()  # the thread policy of the CLI's process, so that timings compare
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", nargs="+", default=["1224x1024", "2448x2048"])
     parser.add_argument("--seeds", nargs="+", type=int, default=[101, 102, 103])

@@ -23,6 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from pipeline.parallel import configure_process
 from pipeline.run import inspect
 from pipeline.simulate import CaptureSpec, PlateSpec, simulate_capture
 
@@ -71,6 +72,7 @@ def _cell(r: dict) -> str:
 
 
 def main() -> None:
+    configure_process()  # the thread policy of the CLI's process, so that timings compare
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--size", default="1224x1024", help="image size WIDTHxHEIGHT px")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])

@@ -6,7 +6,7 @@ Run from the project root:
 
 Prints (1) mean angular error of ``estimate_normals`` (lstsq and robust) on DiLiGenT
 ball16 / crop8 ball, cat, pot1 and the UW grey sphere next to the published figures
-(``../shared/data/*/SOURCE.txt``), and (2) the time of each method at 2448x2048 with
+(each dataset's SOURCE.txt under ``tests.realdata.DATA_ROOT``, docs/data.md), and (2) the time of each method at 2448x2048 with
 12 lights on a synthetic curved plate (best of ``--repeat`` runs; numba compiled first).
 """
 
@@ -24,6 +24,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the project root, for tests.realdata
 
+from pipeline.parallel import configure_process  # noqa: E402
 from pipeline.normals import estimate_normals  # noqa: E402
 from tests import realdata as rd  # noqa: E402
 
@@ -110,6 +111,7 @@ def speed_table(repeat: int) -> None:
 
 
 def main() -> None:
+    configure_process()  # the thread policy of the CLI's process, so that timings compare
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--no-speed", action="store_true", help="skip the full-size timing")
     parser.add_argument("--repeat", type=int, default=3)

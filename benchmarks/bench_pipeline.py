@@ -19,6 +19,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from pipeline.parallel import configure_process
 from pipeline.run import STAGES, inspect
 from pipeline.simulate import CaptureSpec, PlateSpec, simulate_capture
 
@@ -70,6 +71,7 @@ def timing_table(root: Path, sizes: list[tuple[int, int]], repeat: int) -> None:
 
 
 def main() -> None:
+    configure_process()  # the thread policy of the CLI's process, so that timings compare
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     parser.add_argument("--repeat", type=int, default=3)

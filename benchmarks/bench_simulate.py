@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 from scipy.ndimage import map_coordinates
 
+from pipeline.parallel import configure_process
 from pipeline.io import load_capture
 from pipeline.simulate import CaptureSpec, Dent, PlateSpec, default_rig, render_calibration_pairs, simulate_capture
 
@@ -54,6 +55,7 @@ def _check(bundle: Path, rig) -> tuple[float, float, float]:
 
 
 def main() -> None:
+    configure_process()  # the thread policy of the CLI's process, so that timings compare
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", nargs="+", default=["1224x1024", "2448x2048"])
     parser.add_argument("--boards", action="store_true", help="also time 12 calibration pairs per size")

@@ -2,7 +2,7 @@
 working-distance hint) and Middlebury Aloe (bad pixels).
 
 Run: ``.venv/bin/python benchmarks/bench_stereo.py [--sizes 1224 2448] [--seeds 0 1 2]``
-Prints tables; no assertions. The depth range passed is what ``pipeline/run.py`` passes: hint / 2 .. hint * 2,
+Prints tables; no assertions. The depth range passed is what ``pipeline/stages.py`` passes: hint / 2 .. hint * 2,
 3500 mm without a hint (the coarse pass searches it all; the fine pass only the plate's span).
 """
 
@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -17,9 +18,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline import simulate
-from pipeline.camera import CameraModel, StereoRig
-from pipeline.stereo import stereo_depth
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the project root, for tests.realdata
+
+from pipeline import simulate  # noqa: E402
+from pipeline.camera import CameraModel, StereoRig  # noqa: E402
+from pipeline.parallel import configure_process  # noqa: E402
+from pipeline.stereo import stereo_depth  # noqa: E402
+from tests.realdata import ALOE  # noqa: E402
 
 HINTS = (None, 2600.0, 3000.0, 3400.0)
 
@@ -27,8 +32,6 @@ HINTS = (None, 2600.0, 3000.0, 3400.0)
 def coarse_range(hint_mm: float | None) -> tuple[float, float]:
     z = 3500.0 if hint_mm is None else hint_mm
     return z / 2.0, z * 2.0
-
-ALOE = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "middlebury_aloe"
 
 
 def simulated(sizes: list[int], seeds: list[int]) -> None:
@@ -101,6 +104,7 @@ def aloe() -> None:
 
 
 def main() -> None:
+    configure_process()  # the thread policy of the CLI's process, so that timings compare
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--sizes", type=int, nargs="+", default=[1224, 2448])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])

@@ -300,6 +300,47 @@ def calibrate_stereo(
     pairs, rejected = _scan_board_dir(directory)
     object_pts = _board_points(board, square)
 
+    image_size, keys, left_pts, right_pts = _detected_pairs(pairs, board, rejected)
+
+    if len(keys) < min_pairs:
+        reasons = "; ".join(f"{k}: {r}" for k, r in rejected) or "no left<KEY>/right<KEY> image pairs in the folder"
+        raise CalibrationError(
+            f"{directory}: expected at least {min_pairs} usable board pairs, got {len(keys)} "
+            f"of {len(pairs)} pairs ({reasons})"
+        )
+
+    rms_l, rms_r, rms, K_l, dist_l, K_r, dist_r, R, T, per_view = _calibrate(
+        directory, object_pts, left_pts, right_pts, image_size
+    )
+
+    board_doc = {"inner_corners": [board[0], board[1]], "square_mm": square}
+    rig = StereoRig(
+        left=CameraModel(K_l, dist_l.ravel()[:5], image_size),
+        right=CameraModel(K_r, dist_r.ravel()[:5], image_size),
+        R=R,
+        T=T.ravel(),
+        rms_px=float(rms),
+        board=board_doc,
+    )
+    per_view = np.asarray(per_view, dtype=np.float64).reshape(len(keys), 2)
+    views = [ViewReport(k, float(e[0]), float(e[1])) for k, e in zip(keys, per_view)]
+    return CalibrationReport(
+        rig=rig,
+        rms_px=float(rms),
+        left_rms_px=float(rms_l),
+        right_rms_px=float(rms_r),
+        views=views,
+        rejected=rejected,
+    )
+
+
+def _detected_pairs(pairs, board: tuple[int, int], rejected: list[tuple[str, str]]):
+    """The board's inner corners in every pair where both images show it whole.
+
+    Returns the image size (the first pair's), the pairs' keys and the corners (N, 1, 2) float32 of
+    each, left and right, in the same order; a pair that cannot be used is appended to ``rejected``
+    with the reason.
+    """
     image_size: tuple[int, int] | None = None
     keys: list[str] = []
     left_pts: list[np.ndarray] = []
@@ -334,15 +375,16 @@ def calibrate_stereo(
         keys.append(key)
         left_pts.append(corners_l.reshape(-1, 1, 2))
         right_pts.append(corners_r.reshape(-1, 1, 2))
+    return image_size, keys, left_pts, right_pts
 
-    if len(keys) < min_pairs:
-        reasons = "; ".join(f"{k}: {r}" for k, r in rejected) or "no left<KEY>/right<KEY> image pairs in the folder"
-        raise CalibrationError(
-            f"{directory}: expected at least {min_pairs} usable board pairs, got {len(keys)} "
-            f"of {len(pairs)} pairs ({reasons})"
-        )
 
-    objects = [object_pts.reshape(-1, 1, 3)] * len(keys)
+def _calibrate(directory, object_pts: np.ndarray, left_pts: list, right_pts: list, image_size: tuple[int, int]):
+    """Zhang's calibration of each camera, then the stereo calibration from the corners of the pairs.
+
+    Returns the left, right and stereo RMS (px), ``K_l, dist_l, K_r, dist_r, R, T`` and the per-view
+    errors; CalibrationError naming ``directory`` when OpenCV fails.
+    """
+    objects = [object_pts.reshape(-1, 1, 3)] * len(left_pts)
     try:
         rms_l, K_l, dist_l, _, _ = cv2.calibrateCamera(objects, left_pts, image_size, None, None, criteria=_TERM)
         rms_r, K_r, dist_r, _, _ = cv2.calibrateCamera(objects, right_pts, image_size, None, None, criteria=_TERM)
@@ -361,27 +403,8 @@ def calibrate_stereo(
             criteria=_TERM,
         )
     except cv2.error as err:
-        raise CalibrationError(f"{directory}: OpenCV calibration failed on {len(keys)} pairs: {err.msg}") from None
-
-    board_doc = {"inner_corners": [board[0], board[1]], "square_mm": square}
-    rig = StereoRig(
-        left=CameraModel(K_l, dist_l.ravel()[:5], image_size),
-        right=CameraModel(K_r, dist_r.ravel()[:5], image_size),
-        R=R,
-        T=T.ravel(),
-        rms_px=float(rms),
-        board=board_doc,
-    )
-    per_view = np.asarray(per_view, dtype=np.float64).reshape(len(keys), 2)
-    views = [ViewReport(k, float(e[0]), float(e[1])) for k, e in zip(keys, per_view)]
-    return CalibrationReport(
-        rig=rig,
-        rms_px=float(rms),
-        left_rms_px=float(rms_l),
-        right_rms_px=float(rms_r),
-        views=views,
-        rejected=rejected,
-    )
+        raise CalibrationError(f"{directory}: OpenCV calibration failed on {len(left_pts)} pairs: {err.msg}") from None
+    return rms_l, rms_r, rms, K_l, dist_l, K_r, dist_r, R, T, per_view
 
 
 def calibration_document(report: CalibrationReport) -> dict:

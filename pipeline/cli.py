@@ -22,6 +22,7 @@ from importlib.metadata import entry_points
 from pathlib import Path
 
 from .formats import AcquisitionError, InputError, PipelineError
+from .parallel import configure_process
 
 EXIT_OK, EXIT_INTERNAL, EXIT_BAD_INPUT, EXIT_NOT_MEASURABLE, EXIT_HARDWARE = 0, 1, 2, 3, 4
 
@@ -257,13 +258,24 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The parser of ``plate-inspect`` with its subcommands, the service's ones from the entry points."""
     parser = argparse.ArgumentParser(
         prog="plate-inspect",
         description="Forming inspection of ship hull plates (photometric stereo + binocular depth).",
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="print progress and warnings")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    _add_simulate(sub)
+    _add_calibrate(sub)
+    _add_acquire(sub)
+    _add_inspect(sub)
+    for entry in entry_points(group="plate_inspect.commands"):
+        entry.load()(sub)
+    return parser
 
+
+def _add_simulate(sub: argparse._SubParsersAction) -> None:
+    """``plate-inspect simulate capture | boards``."""
     sim = sub.add_parser("simulate", help="render simulated captures or calibration boards")
     sim_sub = sim.add_subparsers(dest="what", required=True, metavar="WHAT")
     cap = sim_sub.add_parser("capture", help="render a capture bundle of a plate (+ target.json, truth.npz)")
@@ -317,6 +329,9 @@ def build_parser() -> argparse.ArgumentParser:
     boards.add_argument("--seed", type=int, default=0)
     boards.set_defaults(handler=_cmd_simulate_boards)
 
+
+def _add_calibrate(sub: argparse._SubParsersAction) -> None:
+    """``plate-inspect calibrate`` and ``plate-inspect calibrate-lights``."""
     cal = sub.add_parser("calibrate", help="stereo calibration from checkerboard pairs (Zhang)")
     cal.add_argument("dir", help="folder of left<KEY>.<ext> / right<KEY>.<ext> pairs")
     cal.add_argument("--board", required=True, help="inner corners COLSxROWS, e.g. 9x6")
@@ -331,6 +346,10 @@ def build_parser() -> argparse.ArgumentParser:
     lc.add_argument("--out", required=True, help="output light-calibration/1 file")
     lc.set_defaults(handler=_cmd_calibrate_lights)
 
+
+
+def _add_acquire(sub: argparse._SubParsersAction) -> None:
+    """``plate-inspect acquire``."""
     acq = sub.add_parser("acquire", help="photograph a plate in the cell and write a capture bundle")
     acq.add_argument("config", help="cell configuration (cell-config/1)")
     acq.add_argument("--plate-id", required=True, help="the plate's id, written into the bundle")
@@ -339,6 +358,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="seconds a frame may take beyond its exposure before the camera counts as gone (default 2)")
     acq.set_defaults(handler=_cmd_acquire)
 
+
+def _add_inspect(sub: argparse._SubParsersAction) -> None:
+    """``plate-inspect inspect``."""
     ins = sub.add_parser("inspect", help="measure a capture bundle against its target")
     ins.add_argument("capture", help="capture bundle: folder or .zip (plate-capture/1)")
     ins.add_argument("--target", required=True, help="target file (plate-target/1)")
@@ -349,12 +371,10 @@ def build_parser() -> argparse.ArgumentParser:
                           "the first inspection of a process then includes that loading in its timings")
     ins.set_defaults(handler=_cmd_inspect)
 
-    for entry in entry_points(group="plate_inspect.commands"):
-        entry.load()(sub)
-    return parser
-
 
 def main(argv: list[str] | None = None) -> int:
+    """Run ``plate-inspect`` with ``argv`` (default: the command line); returns the exit code."""
+    configure_process()  # the process's thread policy, before any kernel runs
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")

@@ -148,6 +148,38 @@ def fuse_low_frequencies(
         Bad shapes, a photometric depth that is not finite and positive on the mask, too few
         stereo pixels for the coarsest correction.
     """
+    z, zs, mask = _check_inputs(depth_ps_mm, stereo_depth_mm, mask, knot_fraction)
+    rows = np.flatnonzero(mask.any(axis=1))
+    cols = np.flatnonzero(mask.any(axis=0))
+    box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+    zb, zsb, mb = z[box], zs[box], mask[box]
+    if np.any(mb & ~((zb > 0) & (zb < np.inf))):
+        raise ValueError("depth_ps_mm: expected finite depths > 0 mm on the mask")
+    sparse = max(1, int(np.sqrt(mb.size / 100_000)))
+    z_typ = float(np.median(zb[::sparse, ::sparse][mb[::sparse, ::sparse]]))
+    blocks = _Blocks.of(zb, zsb, mb)
+    rung, grid, coef, _, sigma_pix = _chosen(_ladder_fits(blocks, mb.shape, knot_fraction, resolve_mm), blocks,
+                                             resolve_mm, z_typ)
+    fraction = rung if rung not in _POLYNOMIAL else None
+    fused = np.full(z.shape, np.nan)
+    correction = np.full(z.shape, np.nan, np.float32)
+    _compose(zb, grid.evaluate(coef), mb, fused[box], correction[box])
+    cells = max((grid.nv - 3) * (grid.nu - 3), 1) if fraction is not None else 1
+    per_cell = max(float(blocks.samples.sum()) / cells, 1.0)
+    return Fusion(
+        depth_mm=fused,
+        correction_mm=correction,
+        disagreement_mm=_disagreement(zb, correction[box], mb),
+        stereo_noise_mm=float(sigma_pix * z_typ),
+        noise_floor_mm=float(3.0 * sigma_pix / np.sqrt(per_cell) * z_typ),
+        n_stereo=int(blocks.n_pixels),
+        knot_spacing_px=None if fraction is None else float(grid.spacing),
+        model=rung if rung in _POLYNOMIAL else "spline",
+    )
+
+
+def _check_inputs(depth_ps_mm, stereo_depth_mm, mask, knot_fraction) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The arrays of :func:`fuse_low_frequencies` checked: photometric and stereo depth float64, mask."""
     z = np.asarray(depth_ps_mm, dtype=np.float64)
     zs = np.asarray(stereo_depth_mm, dtype=np.float64)
     mask = np.asarray(mask)
@@ -160,40 +192,39 @@ def fuse_low_frequencies(
         raise ValueError(f"knot_fraction: expected in (0, 1], got {knot_fraction}")
     if not mask.any():
         raise ValueError("mask: expected at least one surface pixel, got none")
-    rows = np.flatnonzero(mask.any(axis=1))
-    cols = np.flatnonzero(mask.any(axis=0))
-    box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
-    zb, zsb, mb = z[box], zs[box], mask[box]
-    if np.any(mb & ~((zb > 0) & (zb < np.inf))):
-        raise ValueError("depth_ps_mm: expected finite depths > 0 mm on the mask")
-    sparse = max(1, int(np.sqrt(mb.size / 100_000)))
-    z_typ = float(np.median(zb[::sparse, ::sparse][mb[::sparse, ::sparse]]))
+    return z, zs, mask
 
-    blocks = _Blocks.of(zb, zsb, mb)
-    extent = float(max(mb.shape))
-    ladder = [PLANE, QUADRIC, *(f for f in KNOT_LADDER if f >= knot_fraction)]
+
+def _ladder_fits(blocks: "_Blocks", shape: tuple[int, int], knot_fraction: float, resolve_mm: float | None) -> list:
+    """The fits ``(rung, grid, coef, rms, sigma_pix)`` of every rung of the ladder that the blocks can carry
+    (``resolve_mm`` None: only the spline of ``knot_fraction``, or the finest rung the blocks carry)."""
+    extent = float(max(shape))
 
     def fit(rung):
-        grid = _Grid.over(mb.shape, extent * (1.0 if rung in _POLYNOMIAL else rung))
+        grid = _Grid.over(shape, extent * (1.0 if rung in _POLYNOMIAL else rung))
         if blocks.n_used < 4 * _POLYNOMIAL.get(rung, grid.size):
             return None
         return (rung, grid) + _fit(grid, blocks, degree=_DEGREE.get(rung))
 
-    # every rung that the blocks can carry; each is scored by its residual plus what its coefficients
-    # would take out of pure noise (an information criterion), and the coarsest within resolve_mm RMS
-    # of the best score is taken
-    if resolve_mm is None:  # the spline of knot_fraction, or the finest rung the blocks carry
+    if resolve_mm is None:
         for rung in [knot_fraction, *(f for f in KNOT_LADDER[::-1] if f > knot_fraction), QUADRIC, PLANE]:
             fits = [f for f in (fit(rung),) if f is not None]
             if fits:
                 break
     else:
-        fits = [f for f in map(fit, ladder) if f is not None]
+        fits = [f for f in map(fit, [PLANE, QUADRIC, *(f for f in KNOT_LADDER if f >= knot_fraction)]) if f is not None]
     if not fits:
         raise ValueError(
             f"stereo_depth_mm: expected stereo depth over at least {4 * _POLYNOMIAL[PLANE]} blocks of {blocks.size} px of "
             f"the surface, got {blocks.n_used}"
         )
+    return fits
+
+
+def _chosen(fits: list, blocks: "_Blocks", resolve_mm: float | None, z_typ: float) -> tuple:
+    """The fit taken: each is scored by its residual plus what its coefficients would take out of pure noise
+    (an information criterion); the best if it is the plane, else the coarsest from the quadric on within
+    ``resolve_mm`` RMS of the best score."""
     noise2 = min(f[3] for f in fits) ** 2
     slack = 0.0 if resolve_mm is None else (resolve_mm / z_typ) ** 2
 
@@ -203,34 +234,18 @@ def fuse_low_frequencies(
     best = min(fits, key=score)
     # the slack applies between the bend and the finer corrections: the bend itself needs no more than
     # its score (a bent plate must get the stereo pair's radius)
-    chosen = best if best[0] == PLANE else next(
-        f for f in fits if f[0] != PLANE and score(f) <= score(best) + slack)
-    rung, grid, coef, rms, sigma_pix = chosen
-    fraction = rung if rung not in _POLYNOMIAL else None
+    return best if best[0] == PLANE else next(f for f in fits if f[0] != PLANE and score(f) <= score(best) + slack)
 
-    fused = np.full(z.shape, np.nan)
-    correction = np.full(z.shape, np.nan, np.float32)
-    _compose(zb, grid.evaluate(coef), mb, fused[box], correction[box])
-    corr_b = correction[box]
 
-    # disagreement of shape: the log correction without its best plane in (u, v) (a scale and tilt), in mm
+def _disagreement(zb: np.ndarray, corr_b: np.ndarray, mb: np.ndarray) -> float:
+    """Disagreement of shape (mm, 95th percentile): the log correction without its best plane in (u, v)
+    (a scale and tilt), on every 4th pixel of the box."""
     r_i, c_i = np.nonzero(mb[::4, ::4])
     z_s = zb[::4, ::4][r_i, c_i]
     log_corr = np.log1p(corr_b[::4, ::4][r_i, c_i].astype(np.float64) / z_s)
     A = np.column_stack([np.ones(r_i.size), c_i, r_i]).astype(np.float64)
     plane, *_ = np.linalg.lstsq(A, log_corr, rcond=None)
-    cells = max((grid.nv - 3) * (grid.nu - 3), 1) if fraction is not None else 1
-    per_cell = max(float(blocks.samples.sum()) / cells, 1.0)
-    return Fusion(
-        depth_mm=fused,
-        correction_mm=correction,
-        disagreement_mm=float(np.percentile(np.abs(log_corr - A @ plane) * z_s, 95)),
-        stereo_noise_mm=float(sigma_pix * z_typ),
-        noise_floor_mm=float(3.0 * sigma_pix / np.sqrt(per_cell) * z_typ),
-        n_stereo=int(blocks.n_pixels),
-        knot_spacing_px=None if fraction is None else float(grid.spacing),
-        model=rung if rung in _POLYNOMIAL else "spline",
-    )
+    return float(np.percentile(np.abs(log_corr - A @ plane) * z_s, 95))
 
 
 def smooth_stereo_depth(stereo_depth_mm: np.ndarray, mask: np.ndarray, *, knot_fraction: float = 1.0 / 8.0

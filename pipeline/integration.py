@@ -1,18 +1,40 @@
 """Normal integration: from a field of surface normals to metric depth.
 
-Stage 5 of the method (README: How a plate is measured): every 4-neighbour pair of pixels inside the
-mask gives one linear equation on the depth, and the overdetermined system is
+Step 6 of the method (README: How a plate is measured, *Depth*): every 4-neighbour pair of pixels
+inside the mask gives one linear equation on the depth, and the overdetermined system is
 solved by least squares over the masked domain. We integrate in *log depth*
 under the pinhole camera (perspective, not orthographic), and optionally fuse a
 sparse or noisy metric depth prior from binocular stereo (Nehab et al. 2005,
 linearised in log depth): the stereo depth gives the scale and the low
 frequencies, the normals the detail.
 
-The normal equations are a masked graph Laplacian plus a diagonal prior term.
-They are solved by conjugate gradients preconditioned with one geometric
-multigrid V-cycle (2x2 aggregation, red-black Gauss-Seidel smoothing), written
-with numba; this is the exact least-squares solution on the masked domain, not a
-periodic (Fourier) approximation.
+For a pixel ``(u, v)`` with ray ``r = K^-1 (u, v, 1)`` the surface point is ``X = z r``. Its
+tangents ``X_u = z_u r + z K^-1 e_1`` and ``X_v = z_v r + z K^-1 e_2`` are orthogonal to the normal
+``n``, so
+
+    d(log z)/du = -(n . K^-1 e_1) / (n . r),    d(log z)/dv = -(n . K^-1 e_2) / (n . r)
+
+(for ``K`` without skew: ``-n_x / (fx n . r)`` and ``-n_y / (fy n . r)``). These are independent of
+the length of ``n`` and exact for any surface.
+
+The normal equations are a masked graph Laplacian plus a diagonal prior term: a grid system,
+assembled here on padded grids and solved by :func:`pipeline.solvers.solve_grid_system`
+(conjugate gradients preconditioned with a geometric multigrid V-cycle;
+``benchmarks/bench_integration.py`` measures its speed). The first call in a fresh installation
+compiles the numba kernels; they are cached on disk.
+
+References
+----------
+.. [1] J.-D. Durou, J.-F. Aujol, F. Courteille, "Integrating the normal field of a surface in the
+   presence of discontinuities", EMMCVPR 2009.
+.. [2] Y. Queau, J.-D. Durou, J.-F. Aujol, "Normal integration: a survey", J. Math. Imaging Vis.
+   60, 2018 (perspective case, log depth).
+.. [3] D. Nehab, S. Rusinkiewicz, J. Davis, R. Ramamoorthi, "Efficiently combining positions and
+   normals for precise 3D geometry", SIGGRAPH 2005.
+
+Kept as one module (~540 lines) on purpose: the equations, their prior terms and the scaling of the
+parts without a prior are one problem, and its public functions share every kernel; the generic
+solver is already apart (:mod:`pipeline.solvers`).
 """
 
 from __future__ import annotations
@@ -23,17 +45,12 @@ import numba as nb
 import numpy as np
 import scipy.ndimage
 
+from .solvers import solve_grid_system
+
 __all__ = ["DepthResult", "HeightResult", "integrate_normals", "integrate_gradient"]
 
-#: LLVM fast-math flags for the solver kernels: reassociation lets sums and dot products
-#: vectorise; NaN/Inf semantics are kept (inputs are checked before).
-_FAST = {"reassoc", "contract", "arcp"}
 #: Tolerance on the length of a normal inside the mask (normals are unit vectors).
 _UNIT_TOL = 1e-2
-#: Coarsest multigrid level: at most this many cells, solved by Gauss-Seidel sweeps.
-_COARSEST_CELLS = 64
-#: Symmetric Gauss-Seidel sweeps that solve the coarsest level (<= 64 cells: error / 1e5 or better).
-_COARSEST_SWEEPS = 100
 
 
 @dataclass(frozen=True)
@@ -84,22 +101,8 @@ class HeightResult:
     residual: float
 
 
-# --------------------------------------------------------------------------------------------
-# numba kernels. A level of the problem lives on a grid padded with one cell of zeros on every
-# side (interior cells 1..h, 1..w), so that the stencils need no bounds checks:
-#   ex[i, j]  weight of the edge (i, j) - (i, j + 1)   (0 on edges that leave the system)
-#   ey[i, j]  weight of the edge (i, j) - (i + 1, j)
-#   wd[i, j]  weight of the prior (diagonal) term
-#   dg[i, j]  diagonal of A = wd + the weights of the 4 edges; idg = 1 / dg, or 0 for a cell that
-#             is not in the system (its value stays 0)
-# A x = dg * x - sum over the 4 edges of weight * x_neighbour.
-# Red cells have (i + j) even. The multigrid kernels are single-threaded and fuse several sweeps
-# into one pass over memory (a row wavefront; the solve is memory-bound); the per-cell kernels
-# (assembly, matrix-vector product, vector updates) are parallel over rows (numba prange).
-# Parallel kernels must not run concurrently from two threads (numba's workqueue layer aborts):
-# pipeline.run calls them from its main thread only.
-# Note: in numba, float(x) of a float32 stays float32; np.float64(x) is used where it matters.
-# --------------------------------------------------------------------------------------------
+# The kernels below assemble the problem; the grid system's layout (padded grids, ex, ey, wd, dg,
+# idg, b) is described in pipeline.solvers. Parallel kernels run on the caller's thread only.
 
 
 @nb.njit(cache=True, parallel=True)
@@ -172,297 +175,6 @@ def _fine_system(mask, p, q, wd, prior, shift, ex, ey, wdp, dg, idg, b):
                 idg[i + 1, j + 1] = 1.0 / d
 
 
-@nb.njit(cache=True, fastmath=_FAST, parallel=True)
-def _residual_norm2(ex, ey, wd, x, b, r):
-    """r = b - A x with the diagonal summed in float64 from the weights; returns ||r||^2."""
-    h, w = wd.shape[0] - 2, wd.shape[1] - 2
-    acc = 0.0
-    for i in nb.prange(1, h + 1):
-        for j in range(1, w + 1):
-            e, wst, s_, n_ = ex[i, j], ex[i, j - 1], ey[i, j], ey[i - 1, j]
-            d = np.float64(wd[i, j]) + e + wst + s_ + n_
-            s = b[i, j] - d * x[i, j] + e * x[i, j + 1] + wst * x[i, j - 1] + s_ * x[i + 1, j] + n_ * x[i - 1, j]
-            r[i, j] = s
-            acc += s * s
-    return acc
-
-
-@nb.njit(cache=True, fastmath=_FAST)
-def _presmooth_restrict(ex, ey, dg, idg, x, b, bc, zero_start):
-    """Red then black Gauss-Seidel half-sweeps on A x = b, then bc = P^T (b - A x).
-
-    One pass over the rows: at step t, red row t, black row t - 1, residual of row t - 2.
-    With ``zero_start`` the initial guess is x = 0 (x is overwritten), else x is the guess.
-    A half-sweep computes the update of the whole row into a buffer (a contiguous loop that
-    vectorises) and copies back the cells of its colour.
-    """
-    h, w = dg.shape[0] - 2, dg.shape[1] - 2
-    tmp = np.empty(w + 2, x.dtype)
-    for t in range(1, h + 3):
-        for phase in range(2):  # 0: red half-sweep of row t, 1: black half-sweep of row t - 1
-            i = t - phase
-            if i < 1 or i > h:
-                continue
-            j0 = 1 + (i + 1 + phase) % 2
-            if zero_start and phase == 0:
-                for j in range(1, w + 1):
-                    tmp[j] = b[i, j] * idg[i, j]
-                    x[i, j] = 0.0
-            else:
-                for j in range(1, w + 1):
-                    tmp[j] = (b[i, j] + ex[i, j] * x[i, j + 1] + ex[i, j - 1] * x[i, j - 1]
-                              + ey[i, j] * x[i + 1, j] + ey[i - 1, j] * x[i - 1, j]) * idg[i, j]
-            for j in range(j0, w + 1, 2):
-                x[i, j] = tmp[j]
-        i = t - 2
-        if i < 1:
-            continue
-        for j in range(1, w + 1):
-            tmp[j] = (b[i, j] - dg[i, j] * x[i, j] + ex[i, j] * x[i, j + 1] + ex[i, j - 1] * x[i, j - 1]
-                      + ey[i, j] * x[i + 1, j] + ey[i - 1, j] * x[i - 1, j])
-        tmp[w + 1] = 0.0
-        ic = (i + 1) // 2
-        if i % 2 == 1:
-            for jc in range(1, (w + 1) // 2 + 1):
-                bc[ic, jc] = tmp[2 * jc - 1] + tmp[2 * jc]
-        else:
-            for jc in range(1, (w + 1) // 2 + 1):
-                bc[ic, jc] += tmp[2 * jc - 1] + tmp[2 * jc]
-
-
-@nb.njit(cache=True, fastmath=_FAST)
-def _prolong_postsmooth(ex, ey, idg, x, b, xc):
-    """x += P xc, then black then red Gauss-Seidel half-sweeps; returns b . x (final x).
-
-    One pass over the rows: at step t, prolongation into row t, black row t - 1, red row t - 2.
-    The prolongation also writes cells outside the system; the sweeps reset them to 0 (idg = 0),
-    and their edges have weight 0 in between. Half-sweeps as in :func:`_presmooth_restrict`.
-    """
-    h, w = idg.shape[0] - 2, idg.shape[1] - 2
-    tmp = np.empty(w + 2, x.dtype)
-    acc = 0.0
-    for t in range(1, h + 3):
-        if t <= h:
-            ic = (t + 1) // 2
-            for j in range(1, w + 1):
-                x[t, j] += xc[ic, (j + 1) // 2]
-        for phase in (1, 2):  # 1: black half-sweep of row t - 1, 2: red half-sweep of row t - 2
-            i = t - phase
-            if i < 1 or i > h:
-                continue
-            for j in range(1, w + 1):
-                tmp[j] = (b[i, j] + ex[i, j] * x[i, j + 1] + ex[i, j - 1] * x[i, j - 1]
-                          + ey[i, j] * x[i + 1, j] + ey[i - 1, j] * x[i - 1, j]) * idg[i, j]
-            for j in range(1 + (i + 1 + phase) % 2, w + 1, 2):
-                x[i, j] = tmp[j]
-        i = t - 2
-        if i >= 1:
-            for j in range(1, w + 1):
-                acc += np.float64(b[i, j]) * np.float64(x[i, j])
-    return acc
-
-
-@nb.njit(cache=True, fastmath=_FAST, parallel=True)
-def _direction_matvec(z, beta, pdir, ex, ey, wd, ap):
-    """p = z + beta p, then ap = A p (diagonal summed in float64 from the weights); returns p . A p."""
-    h, w = wd.shape[0] - 2, wd.shape[1] - 2
-    for i in nb.prange(1, h + 1):
-        for j in range(1, w + 1):
-            pdir[i, j] = z[i, j] + beta * pdir[i, j]
-    acc = 0.0
-    for i in nb.prange(1, h + 1):
-        for j in range(1, w + 1):
-            e, wst, s_, n_ = ex[i, j], ex[i, j - 1], ey[i, j], ey[i - 1, j]
-            d = np.float64(wd[i, j]) + e + wst + s_ + n_
-            s = d * pdir[i, j] - (e * pdir[i, j + 1] + wst * pdir[i, j - 1] + s_ * pdir[i + 1, j] + n_ * pdir[i - 1, j])
-            ap[i, j] = s
-            acc += s * pdir[i, j]
-    return acc
-
-
-@nb.njit(cache=True, fastmath=_FAST, parallel=True)
-def _norm2(a):
-    h, w = a.shape
-    acc = 0.0
-    for i in nb.prange(h):
-        for j in range(w):
-            acc += a[i, j] * a[i, j]
-    return acc
-
-
-@nb.njit(cache=True, fastmath=_FAST, parallel=True)
-def _cg_step(alpha, pdir, ap, x, r):
-    """x += alpha p, r -= alpha A p; returns ||r||^2."""
-    h, w = x.shape
-    acc = 0.0
-    for i in nb.prange(h):
-        for j in range(w):
-            x[i, j] += alpha * pdir[i, j]
-            s = r[i, j] - alpha * ap[i, j]
-            r[i, j] = s
-            acc += s * s
-    return acc
-
-
-@nb.njit(cache=True, fastmath=_FAST)
-def _coarsen(ex, ey, wd, edge_scale, exc, eyc, wdc, dgc, idgc):
-    """Operator of the next level by 2x2 aggregation: coarse cell (I, J) is the block of fine cells
-    2I - 1, 2I by 2J - 1, 2J (padded indices); fine edges between two blocks are summed. The
-    coarse arrays must be zero on the padding."""
-    hc, wc = wdc.shape[0] - 2, wdc.shape[1] - 2
-    for ic in range(1, hc + 1):
-        i0, i1 = 2 * ic - 1, 2 * ic
-        for jc in range(1, wc + 1):
-            j0, j1 = 2 * jc - 1, 2 * jc
-            wdc[ic, jc] = wd[i0, j0] + wd[i0, j1] + wd[i1, j0] + wd[i1, j1]
-            exc[ic, jc] = edge_scale * (ex[i0, j1] + ex[i1, j1])
-            eyc[ic, jc] = edge_scale * (ey[i1, j0] + ey[i1, j1])
-    for ic in range(1, hc + 1):
-        for jc in range(1, wc + 1):
-            d = wdc[ic, jc] + exc[ic, jc] + exc[ic, jc - 1] + eyc[ic, jc] + eyc[ic - 1, jc]
-            dgc[ic, jc] = d
-            idgc[ic, jc] = 1.0 / d if d > 0.0 else 0.0
-
-
-@nb.njit(cache=True, fastmath=_FAST)
-def _restrict(r, rc):
-    """rc = P^T r: sums over the 2x2 blocks (padded grids)."""
-    hc, wc = rc.shape[0] - 2, rc.shape[1] - 2
-    for ic in range(1, hc + 1):
-        for jc in range(1, wc + 1):
-            rc[ic, jc] = r[2 * ic - 1, 2 * jc - 1] + r[2 * ic - 1, 2 * jc] + r[2 * ic, 2 * jc - 1] + r[2 * ic, 2 * jc]
-
-
-@nb.njit(cache=True, fastmath=_FAST)
-def _interpolate(xc, dgc, idg, x):
-    """x = bilinear interpolation of the coarse cells in the system (cell-centred: a fine cell lies
-    1/4 of a coarse cell from its block's centre); cells outside the system get 0. Used for the
-    nested-iteration start only (the V-cycle uses piecewise-constant prolongation)."""
-    h, w = x.shape[0] - 2, x.shape[1] - 2
-    for i in range(1, h + 1):
-        ic0 = (i + 1) // 2
-        ic1 = ic0 - 1 if i % 2 == 1 else ic0 + 1
-        for j in range(1, w + 1):
-            if idg[i, j] == 0.0:
-                x[i, j] = 0.0
-                continue
-            jc0 = (j + 1) // 2
-            jc1 = jc0 - 1 if j % 2 == 1 else jc0 + 1
-            s = 0.0
-            sw = 0.0
-            for ic, wi in ((ic0, 0.75), (ic1, 0.25)):
-                for jc, wj in ((jc0, 0.75), (jc1, 0.25)):
-                    if dgc[ic, jc] != 0.0:
-                        s += wi * wj * xc[ic, jc]
-                        sw += wi * wj
-            x[i, j] = s / sw if sw > 0.0 else xc[ic0, jc0]
-
-
-@nb.njit(cache=True, fastmath=_FAST)
-def _coarsest_solve(ex, ey, idg, x, b, sweeps):
-    """x ~ A^-1 b on the coarsest grid by ``sweeps`` symmetric red-black Gauss-Seidel sweeps from
-    zero, in the palindromic order red, black, red, ..., black, red (a symmetric operator);
-    returns b . x."""
-    h, w = idg.shape[0] - 2, idg.shape[1] - 2
-    x[:, :] = 0.0
-    for k in range(2 * sweeps + 1):
-        for i in range(1, h + 1):
-            for j in range(1 + (i + 1 + k) % 2, w + 1, 2):
-                x[i, j] = (b[i, j] + ex[i, j] * x[i, j + 1] + ex[i, j - 1] * x[i, j - 1]
-                           + ey[i, j] * x[i + 1, j] + ey[i - 1, j] * x[i - 1, j]) * idg[i, j]
-    acc = 0.0
-    for i in range(1, h + 1):
-        for j in range(1, w + 1):
-            acc += np.float64(b[i, j]) * np.float64(x[i, j])
-    return acc
-
-
-class _Level:
-    """One level of the multigrid hierarchy: its operator and work buffers (padded grids)."""
-
-    def __init__(self, ex, ey, wd, dg, idg, *, with_rhs=True):
-        self.ex, self.ey, self.wd, self.dg, self.idg = ex, ey, wd, dg, idg
-        self.x = np.zeros(dg.shape, dg.dtype)
-        # the finest level's right-hand side is always given by the caller
-        self.b = np.zeros(dg.shape, dg.dtype) if with_rhs else None
-
-
-class _Multigrid:
-    """Symmetric V(1,1)-cycle for the masked Laplacian + diagonal, in float32.
-
-    Coarse operators are Galerkin products with piecewise-constant 2x2 prolongation, with the
-    edge part scaled by ``edge_scale`` (1/2 corrects the energy overestimate of piecewise-constant
-    interpolation of a smooth field in 2-D); the prior part is kept exact. Smoothing is red-black
-    Gauss-Seidel (red then black before, black then red after), so one cycle from a zero guess
-    is a symmetric positive (semi)definite operator and can precondition conjugate gradients.
-    """
-
-    def __init__(self, ex, ey, wd, dg, idg, *, edge_scale=0.5):
-        lv = _Level(ex, ey, wd, dg, idg, with_rhs=False)
-        self.levels = [lv]
-        while (lv.dg.shape[0] - 2) * (lv.dg.shape[1] - 2) > _COARSEST_CELLS:
-            hc, wc = (lv.dg.shape[0] - 1) // 2, (lv.dg.shape[1] - 1) // 2  # ceil(h / 2), ceil(w / 2)
-            arrs = [np.zeros((hc + 2, wc + 2), np.float32) for _ in range(5)]
-            _coarsen(lv.ex, lv.ey, lv.wd, np.float32(edge_scale), *arrs)
-            lv = _Level(*arrs)
-            self.levels.append(lv)
-
-    def apply(self, r: np.ndarray) -> tuple[np.ndarray, float]:
-        """z = M^-1 r (one V-cycle from a zero guess) and r . z; z is a float32 padded grid, a
-        buffer that the next call overwrites."""
-        rz = self._vcycle(0, r, zero_start=True)
-        return self.levels[0].x, rz
-
-    def full_multigrid(self, b: np.ndarray) -> np.ndarray:
-        """Approximate solution of A x = b by nested iteration (coarse solve, interpolated, one
-        V-cycle per level); float32 padded grid, a buffer that the next call overwrites."""
-        lv = self.levels
-        rhs = [b] + [lv[k].b for k in range(1, len(lv))]
-        for k in range(len(lv) - 1):
-            _restrict(rhs[k], rhs[k + 1])
-        self._vcycle(len(lv) - 1, rhs[-1], zero_start=True)
-        for k in range(len(lv) - 2, -1, -1):
-            _interpolate(lv[k + 1].x, lv[k + 1].dg, lv[k].idg, lv[k].x)
-            # lv[k].b is overwritten below level k only, so it still holds the restricted b.
-            self._vcycle(k, rhs[k], zero_start=False)
-        return lv[0].x
-
-    def _vcycle(self, k: int, b: np.ndarray, *, zero_start: bool) -> float:
-        lv = self.levels[k]
-        if k == len(self.levels) - 1:
-            return _coarsest_solve(lv.ex, lv.ey, lv.idg, lv.x, b, _COARSEST_SWEEPS)
-        nxt = self.levels[k + 1]
-        _presmooth_restrict(lv.ex, lv.ey, lv.dg, lv.idg, lv.x, b, nxt.b, zero_start)
-        self._vcycle(k + 1, nxt.b, zero_start=True)
-        return _prolong_postsmooth(lv.ex, lv.ey, lv.idg, lv.x, b, nxt.x)
-
-
-def _pcg(ex, ey, wd, b, x, precond, *, tol, max_iter):
-    """Preconditioned conjugate gradients on the padded grid (cells outside the system stay 0).
-
-    Returns (iterations, relative residual ||b - A x|| / ||b||).
-    """
-    bnorm = float(np.sqrt(_norm2(b)))  # not np.dot: BLAS threads would spin beside the solve
-    if bnorm == 0.0:
-        x[...] = 0.0
-        return 0, 0.0
-    r = np.zeros(b.shape)
-    rel = np.sqrt(_residual_norm2(ex, ey, wd, x, b, r)) / bnorm
-    it = 0
-    pdir = np.zeros(b.shape)
-    ap = np.zeros(b.shape)
-    rz_old = 1.0
-    while rel > tol and it < max_iter:
-        z, rz = precond.apply(r)
-        pap = _direction_matvec(z, rz / rz_old if it else 0.0, pdir, ex, ey, wd, ap)
-        if not pap > 0.0:  # the direction lies in the null space (constants of a part): nothing left to do
-            break
-        it += 1
-        rel = np.sqrt(_cg_step(rz / pap, pdir, ap, x, r)) / bnorm
-        rz_old = rz
-    return it, float(rel)
-
-
 def _assemble(mask, p, q, wd, log_prior, shift):
     """The normal equations on the padded grid: (ex, ey, wd, dg, idg) float32 and b float64."""
     h, w = mask.shape
@@ -470,15 +182,6 @@ def _assemble(mask, p, q, wd, log_prior, shift):
     b = np.zeros((h + 2, w + 2))
     _fine_system(mask, p, q, wd, log_prior, shift, ex, ey, wdp, dg, idg, b)
     return ex, ey, wdp, dg, idg, b
-
-
-def _solve(system, *, tol, max_iter):
-    """Solve the assembled system; returns (x (H, W) float64 view, iterations, residual)."""
-    ex, ey, wdp, dg, idg, b = system
-    mg = _Multigrid(ex, ey, wdp, dg, idg)
-    x = mg.full_multigrid(b).astype(np.float64)
-    it, rel = _pcg(ex, ey, wdp, b, x, mg, tol=tol, max_iter=max_iter)
-    return x[1:-1, 1:-1], it, rel
 
 
 def _check_mask(mask, shape_hw, name="mask") -> np.ndarray:
@@ -512,98 +215,78 @@ def integrate_normals(
 ) -> DepthResult:
     """Integrate a normal field seen by a pinhole camera into metric depth.
 
-    Every pair of 4-neighbour pixels inside ``mask`` gives one equation on the
-    log depth ``t = log z``: ``t_b - t_a = (g_a + g_b) / 2`` where ``g`` is the
-    derivative of ``t`` along the pair (pixel units) computed from the normal and
-    the pixel's ray; optional prior equations ``sqrt(w) (t - log z_prior) = 0``
-    fuse a metric depth. The overdetermined system is solved by least squares
-    over the masked domain.
+    Every pair of 4-neighbour pixels inside ``mask`` gives one equation on the log depth
+    ``t = log z``: ``t_b - t_a = (g_a + g_b) / 2`` where ``g`` is the derivative of ``t`` along the
+    pair (pixel units) computed from the normal and the pixel's ray (see the module docstring);
+    optional prior equations ``sqrt(w) (t - log z_prior) = 0`` fuse a metric depth. The
+    overdetermined system is solved by least squares over the masked domain.
 
     Parameters
     ----------
     normals : (H, W, 3) float32 or float64
-        Unit normals in the left-camera frame (OpenCV: x right, y down, z
-        forward), pointing out of the surface towards the camera (``n . ray < 0``),
-        on the *undistorted* left image grid. Values outside ``mask`` are ignored
-        (may be NaN).
+        Unit normals in the left-camera frame (OpenCV: x right, y down, z forward), pointing out
+        of the surface towards the camera (``n . ray < 0``), on the *undistorted* left image grid.
+        Values outside ``mask`` are ignored (may be NaN).
     mask : (H, W) bool
         Pixels to integrate (True = valid).
     K : (3, 3) array_like
-        Intrinsics of the undistorted left image, pixels (``fx`` may differ
-        from ``fy``).
+        Intrinsics of the undistorted left image, pixels (``fx`` may differ from ``fy``).
     prior_depth_mm : (H, W) float, optional
-        Metric depth along the optical axis (mm, > 0), NaN where unknown, e.g.
-        from binocular stereo. Fixes the scale; with a large weight it also
-        fixes the low frequencies. A connected part of the mask without any
-        prior pixel gets its scale from ``reference_depth_mm``, or, without
-        it, NaN depth and is left out of the result's ``mask``.
+        Metric depth along the optical axis (mm, > 0), NaN where unknown, e.g. from binocular
+        stereo. Fixes the scale; with a large weight it also fixes the low frequencies. A
+        connected part of the mask without any prior pixel gets its scale from
+        ``reference_depth_mm``, or, without it, NaN depth and is left out of the result's ``mask``.
     prior_weight : float or (H, W) float, optional
-        Weight ``w >= 0`` of each prior equation relative to a neighbour
-        equation (both are in log depth). ``w`` sets the length scale
-        ``~ 1 / sqrt(w)`` pixels below which the normals dominate.
+        Weight ``w >= 0`` of each prior equation relative to a neighbour equation (both are in
+        log depth). ``w`` sets the length scale ``~ 1 / sqrt(w)`` pixels below which the normals
+        dominate. Used in float32 (the solution is the exact least-squares one for those weights).
     reference_depth_mm : float, optional
-        Without a prior the solution is known only up to a scale: it is fixed
-        so that the median depth over the mask equals this value (mm). Each
-        connected part of the mask that has no prior pixel is scaled on its
-        own this way (its relative scale is not observable).
+        Without a prior the solution is known only up to a scale: it is fixed so that the median
+        depth over the mask equals this value (mm). Each connected part of the mask that has no
+        prior pixel is scaled on its own this way (its relative scale is not observable).
     tol : float, optional
-        Relative residual ``||b - A x|| / ||b||`` of the normal equations at
-        which the conjugate-gradient solve stops (each iteration divides it by
-        about 8, independently of the image size).
+        Relative residual ``||b - A x|| / ||b||`` of the normal equations at which the solve stops
+        (:func:`pipeline.solvers.solve_grid_system`).
     max_iter : int, optional
-        Maximum number of conjugate-gradient iterations. If it is reached
-        first, the result carries its larger ``residual``: compare with ``tol``.
+        Maximum number of conjugate-gradient iterations. If it is reached first, the result
+        carries its larger ``residual``: compare with ``tol``.
 
     Returns
     -------
     DepthResult
-        ``depth_mm`` (H, W) float64, mm along the left optical axis, NaN
-        outside ``mask``.
+        ``depth_mm`` (H, W) float64, mm along the left optical axis, NaN outside ``mask``.
 
     Raises
     ------
     ValueError
-        On bad shapes or values: normals inside the mask that are not finite,
-        not unit, or not facing the camera; a prior that is not positive;
-        negative weights; neither ``prior_depth_mm`` nor ``reference_depth_mm``.
-
-    Notes
-    -----
-    For a pixel ``(u, v)`` with ray ``r = K^-1 (u, v, 1)`` the surface point is
-    ``X = z r``. Its tangents ``X_u = z_u r + z K^-1 e_1`` and
-    ``X_v = z_v r + z K^-1 e_2`` are orthogonal to the normal ``n``, so
-
-    ``d(log z)/du = -(n . K^-1 e_1) / (n . r)``,
-    ``d(log z)/dv = -(n . K^-1 e_2) / (n . r)``
-
-    (for ``K`` without skew: ``-n_x / (fx n . r)`` and ``-n_y / (fy n . r)``).
-    These are independent of the length of ``n`` and exact for any surface.
-
-    The normal equations are a masked graph Laplacian plus the diagonal prior
-    weights; they are solved by conjugate gradients preconditioned by a
-    multigrid V-cycle; the multigrid sweeps are single-threaded, the other
-    kernels parallel over rows (about 0.1 s at 1224 x 1024 and 0.4 s at
-    2448 x 2048 to ``tol=1e-4`` on this project's 2-core machine). The first call in a fresh
-    installation compiles the numba kernels (~10 s); they are cached on disk.
-    Prior weights are used in float32 (the solution is the exact least-squares
-    solution for those weights).
-
-    References
-    ----------
-    .. [1] J.-D. Durou, J.-F. Aujol, F. Courteille, "Integrating the normal
-       field of a surface in the presence of discontinuities", EMMCVPR 2009.
-    .. [2] Y. Queau, J.-D. Durou, J.-F. Aujol, "Normal integration: a survey",
-       J. Math. Imaging Vis. 60, 2018 (perspective case, log depth).
-    .. [3] D. Nehab, S. Rusinkiewicz, J. Davis, R. Ramamoorthi, "Efficiently
-       combining positions and normals for precise 3D geometry", SIGGRAPH 2005.
+        On bad shapes or values: normals inside the mask that are not finite, not unit, or not
+        facing the camera; a prior that is not positive; negative weights; neither
+        ``prior_depth_mm`` nor ``reference_depth_mm``.
     """
+    normals, mask, K = _check_normals_inputs(normals, mask, K, prior_depth_mm, reference_depth_mm, tol, max_iter)
+    wd, log_prior, shift, n_prior = _prior_terms(prior_depth_mm, prior_weight, mask)
+    if n_prior == 0 and reference_depth_mm is None:
+        raise ValueError(
+            "prior_depth_mm: expected at least one depth with a weight > 0 inside the mask to fix the scale, "
+            "got none (give reference_depth_mm to integrate without a prior)"
+        )
+    p, q = _gradients(normals, mask, K)
+    system = _assemble(mask, p, q, wd, log_prior, shift)
+    del p, q, log_prior  # the largest inputs are not needed by the solve
+    x, it, rel, floating = _integrate(mask, system, wd, tol=tol, max_iter=max_iter)
+    del system
+    depth, result_mask = _metric_depth(x, mask, shift, floating, reference_depth_mm)
+    return DepthResult(depth_mm=depth, mask=result_mask, iterations=it, residual=rel)
+
+
+def _check_normals_inputs(normals, mask, K, prior_depth_mm, reference_depth_mm, tol, max_iter):
+    """The arguments of :func:`integrate_normals` checked: (normals, mask, K) as contiguous arrays."""
     normals = np.asarray(normals)
     if normals.ndim != 3 or normals.shape[2] != 3:
         raise ValueError(f"normals: expected shape (H, W, 3), got {normals.shape}")
     if normals.dtype not in (np.float32, np.float64):
         raise ValueError(f"normals: expected dtype float32 or float64, got {normals.dtype}")
-    hw = normals.shape[:2]
-    mask = _check_mask(mask, hw)
+    mask = _check_mask(mask, normals.shape[:2])
     K = np.asarray(K, dtype=np.float64)
     if K.shape != (3, 3) or not np.all(np.isfinite(K)):
         raise ValueError(f"K: expected a finite (3, 3) matrix, got shape {K.shape}")
@@ -612,44 +295,44 @@ def integrate_normals(
     _check_options(tol, max_iter)
     if reference_depth_mm is not None and not (np.isfinite(reference_depth_mm) and reference_depth_mm > 0):
         raise ValueError(f"reference_depth_mm: expected a positive depth in mm, got {reference_depth_mm}")
-
     if prior_depth_mm is None and reference_depth_mm is None:
         raise ValueError(
             "prior_depth_mm, reference_depth_mm: expected at least one to fix the scale of the depth, got neither"
         )
-    wd, log_prior, shift, n_prior = _prior_terms(prior_depth_mm, prior_weight, mask)
-    if n_prior == 0 and reference_depth_mm is None:
-        raise ValueError(
-            "prior_depth_mm: expected at least one depth with a weight > 0 inside the mask to fix the scale, "
-            "got none (give reference_depth_mm to integrate without a prior)"
-        )
+    return np.ascontiguousarray(normals), np.ascontiguousarray(mask), K
 
-    normals = np.ascontiguousarray(normals)
-    mask_c = np.ascontiguousarray(mask)
-    p = np.empty(hw)
-    q = np.empty(hw)
-    bad = _log_depth_gradients(normals, mask_c, np.linalg.inv(K), _UNIT_TOL, p, q)
+
+def _gradients(normals, mask, K):
+    """The log-depth gradients p = d(log z)/du, q = d(log z)/dv (H, W) float64 of the normals on the mask."""
+    p = np.empty(mask.shape)
+    q = np.empty(mask.shape)
+    bad = _log_depth_gradients(normals, mask, np.linalg.inv(K), _UNIT_TOL, p, q)
     if bad:
         raise ValueError(
             f"normals: expected finite unit vectors facing the camera (n . ray < 0) inside the mask, "
             f"got {bad} pixel(s) that are not"
         )
-    system = _assemble(mask_c, p, q, wd, log_prior, shift)
-    del p, q, log_prior  # the largest inputs are not needed by the solve
-    x, it, rel, floating = _integrate(mask_c, system, wd, tol=tol, max_iter=max_iter)
-    del system
-    depth = np.empty(hw)
-    _exp_depth(x, mask_c, shift, depth)
-    result_mask = mask_c.copy()
+    return p, q
+
+
+def _metric_depth(x, mask, shift, floating, reference_depth_mm):
+    """The depth (mm) of the solved log depth ``x`` and the mask of the pixels that have one.
+
+    Parts of the mask without a prior pixel (``floating``, see :func:`_integrate`) are scaled to
+    ``reference_depth_mm`` when given, else left out (NaN).
+    """
+    depth = np.empty(mask.shape)
+    _exp_depth(x, mask, shift, depth)
+    result_mask = mask.copy()
     if floating is not None:
         if reference_depth_mm is not None:
-            _scale_to_median(depth, mask_c, *floating, float(reference_depth_mm))
+            _scale_to_median(depth, mask, *floating, float(reference_depth_mm))
         else:  # only with a prior: parts it does not reach have no metric depth
             labels, has_prior = floating[0], floating[3]
             unscaled = ~has_prior[labels]
             depth[unscaled] = np.nan
             result_mask &= ~unscaled
-    return DepthResult(depth_mm=depth, mask=result_mask, iterations=it, residual=rel)
+    return depth, result_mask
 
 
 def integrate_gradient(
@@ -785,7 +468,7 @@ def _integrate(mask, system, wd, *, tol, max_iter):
     """Solve and find the parts without prior; returns (x, iterations, residual, floating) with
     ``x`` (H, W) float64 (a view) and ``floating = (labels, n, n_floating, has_prior)`` describing
     the connected parts of the mask that have no prior pixel, or None when every part has one."""
-    x, it, rel = _solve(system, tol=tol, max_iter=max_iter)
+    x, it, rel = solve_grid_system(*system, tol=tol, max_iter=max_iter)
     labels, n = scipy.ndimage.label(mask)
     has_prior = _parts_with_prior(labels, wd, n)
     has_prior[0] = True

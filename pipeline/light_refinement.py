@@ -12,7 +12,7 @@ Two models of the lights are fitted to block samples with the albedo eliminated 
   to fix a component of ``g_k`` (a cylinder bends one way only), a weak pull towards the given light
   keeps it (Tikhonov);
 - **point**: position, LED axis and profile, intensity per light, the joint fit of
-  :mod:`pipeline.light_calibration` started on the given directions from the plate's centre.
+  :mod:`pipeline.light_fit` started on the given directions from the plate's centre.
 
 The point model is taken when it explains the samples clearly better than any distant model
 (nominal directions of what really are near-field LEDs); else the refined distant lights.
@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from . import light_calibration as lc
+from . import light_fit
 from .lights import Lights
 
 #: At most this many sample blocks enter the fits.
@@ -124,7 +124,7 @@ def refine_lights(
         rms_given = _rms(data, lights)
         distant = _refine_distant(data, lights)
         rms_distant = _rms(data, distant)
-        point, rms_point = _fit_points(data, lights, lc.PlatePose(normal, centre, 0.0, 0))
+        point, rms_point = _fit_points(data, lights, light_fit.PlatePose(normal, centre, 0.0, 0))
     model = "point" if point is not None and rms_point < POINT_MODEL_GAIN * rms_distant else "distant"
     chosen = point if model == "point" else distant
     # the given scale: the same mean irradiance at the plate's centre, facing the light
@@ -196,12 +196,12 @@ def _samples(images, valid, mask, lights, depth_mm, K, *, max_samples, seed):
     flip = np.einsum("pc,pc->p", normals, points) > 0  # towards the camera
     normals[flip] *= -1.0
     ok = np.all(np.isfinite(normals), axis=1) & np.all(intensity > 0, axis=1)
-    return lc.Samples(intensity=intensity[ok], points=points[ok], normals=normals[ok])
+    return light_fit.Samples(intensity=intensity[ok], points=points[ok], normals=normals[ok])
 
 
 def _rms(data, lights: Lights) -> float:
     E = lights.irradiance(data.points, data.normals).T  # (P, N)
-    _, _, r = lc.albedo_projected(data.intensity, E)
+    _, _, r = light_fit.albedo_projected(data.intensity, E)
     return float(np.sqrt(np.mean(r * r)) / np.mean(data.intensity))
 
 
@@ -228,9 +228,9 @@ def _refine_distant(data, lights: Lights) -> Lights:
 def _fit_points(data, lights: Lights, pose) -> tuple[Lights | None, float]:
     """Point lights fitted from the given ones (directions: along them from the plate's centre)."""
     try:
-        start = lc.initial_point_lights(lights, pose, data, initial_mu=1.0)
-        fit = lc.joint_fit(start, data, fixed_mu=True)
-        fit = lc.joint_fit(fit.lights, data)
+        start = light_fit.initial_point_lights(lights, pose, data, initial_mu=1.0)
+        fit = light_fit.joint_fit(start, data, fixed_mu=True)
+        fit = light_fit.joint_fit(fit.lights, data)
     except (np.linalg.LinAlgError, ValueError, FloatingPointError):
         return None, float("nan")
     behind = (fit.lights.positions_mm - pose.centre_mm) @ pose.normal <= 0

@@ -9,8 +9,8 @@ again a linear problem in b = rho n, with its own light vectors: the samples are
 ``a_k(X)`` and fitted against ``l_k(X)`` with the same per-pixel estimators as distant lights
 (:func:`pipeline.normals.estimate_normals`'s robust fit, or plain least squares). The surface
 itself comes from integrating these normals, so the two are solved alternately
-(:func:`pipeline.run.inspect` starts from the stereo depth and iterates until the depth stops
-moving; Queau et al. 2018, section 4, and Mecca et al. 2014 solve the same coupled problem).
+(:func:`pipeline.reconstruct.near_field_surface` starts from the stereo depth and iterates until the
+depth stops moving; Queau et al. 2018, section 4, and Mecca et al. 2014 solve the same coupled problem).
 
 Distant lights may be mixed in: their direction is the same everywhere and ``a_k = 1``.
 
@@ -27,10 +27,12 @@ from __future__ import annotations
 import numpy as np
 
 from .lights import Lights
-from .normals import METHODS, NormalField, _field_from_fit, _robust_kernel, _robust_params, _sorting_network
+from .normals import METHODS, NormalField
+from .normals.field import field_from_fit
+from .normals.robust import robust_kernel, robust_params, sorting_network
 
 #: The robust fit's parameters that make it plain least squares over the usable samples: no shadow
-#: level, no highlight trim, no re-selection (see pipeline.normals._robust_params for the order).
+#: level, no highlight trim, no re-selection (see pipeline.normals.robust.robust_params for the order).
 _PLAIN_PARAMS = np.array([0.0, 0.9, 0.0, -np.inf, np.inf, 0.0, 0.0, np.inf])
 
 #: A sample whose attenuation a_k(X) is below this fraction of the pixel's largest one is left out
@@ -127,10 +129,10 @@ def estimate_normals_near(
     v = valid if use_valid else np.ones((1, 1, 1), dtype=bool)
     b = np.empty((3, h, w), dtype=np.float32)
     status = np.empty((h, w), dtype=np.int8)
-    params = _robust_params() if method == "robust" else _PLAIN_PARAMS
-    _robust_kernel(
+    params = robust_params() if method == "robust" else _PLAIN_PARAMS
+    robust_kernel(
         np.ascontiguousarray(images), np.ascontiguousarray(v), use_valid, np.ascontiguousarray(mask),
         np.ascontiguousarray(depth), np.linalg.inv(K), geometry, axes, kind, lights.mu.astype(np.float64),
-        float(MIN_RELATIVE_ATTENUATION), int(min_samples), params, _sorting_network(n), b, status,
+        float(MIN_RELATIVE_ATTENUATION), int(min_samples), params, sorting_network(n), b, status,
     )
-    return _field_from_fit(b, status, mask, specular=None)
+    return field_from_fit(b, status, mask, specular=None)

@@ -15,6 +15,7 @@ import numpy as np
 
 from .formats import CaptureError
 from .io import Capture
+from .parallel import default_workers
 
 #: A raw sample at or above this fraction of full scale counts as saturated.
 SATURATION_FRACTION = 0.98
@@ -54,7 +55,9 @@ class Preprocessed:
     seen: np.ndarray | None = None
 
 
-def preprocess(capture: Capture, *, shadow_fraction: float = 0.05, erode_px: int = 3) -> Preprocessed:
+def preprocess(
+    capture: Capture, *, shadow_fraction: float = 0.05, erode_px: int = 3, workers: int | None = None
+) -> Preprocessed:
     """Dark-subtract, normalise, undistort and mask a capture's photometric images.
 
     Parameters
@@ -67,6 +70,8 @@ def preprocess(capture: Capture, *, shadow_fraction: float = 0.05, erode_px: int
     erode_px : int
         The plate mask is eroded by this many pixels so that mixed pixels at the
         plate's edge do not enter the solve.
+    workers : int, optional
+        Threads that prepare the images (None: :func:`pipeline.parallel.default_workers`).
 
     Returns
     -------
@@ -110,7 +115,7 @@ def preprocess(capture: Capture, *, shadow_fraction: float = 0.05, erode_px: int
             return True
         return False
 
-    with ThreadPoolExecutor(max_workers=2) as pool:
+    with ThreadPoolExecutor(max_workers=workers or default_workers()) as pool:
         any_saturated = any(list(pool.map(one, range(n))))  # list: every image must be done
 
     brightest = np.empty((h, w), np.float32)

@@ -88,7 +88,7 @@ def integrate_and_fuse(
     working_distance_mm : float or None
         Depth (mm) on the optical axis; needed without a prior.
     stereo_weight : float
-        Weight of the stereo depth in the integration (see :class:`pipeline.run.InspectOptions`).
+        Weight of the stereo depth in the integration (see :class:`pipeline.stages.InspectOptions`).
     tol : float
         Relative residual of the depth solve.
 

@@ -1,4 +1,4 @@
-"""Loaders of the real photometric datasets in ``../shared/data`` for tests and benchmarks.
+"""Where the real datasets are (docs/data.md), and loaders of them for tests and benchmarks.
 
 Each loader converts the dataset's conventions to the project's AT LOADING, so the
 algorithms never see a foreign convention:
@@ -10,8 +10,9 @@ algorithms never see a foreign convention:
   dataset's published baseline did (see each SOURCE.txt), so that the published
   least-squares figures can be reproduced.
 
-The data are read-only and not part of the repository; :data:`DATA_ROOT` is
-``<project>/../shared/data``, or the folder ``$PLATE_INSPECT_DATA`` names (docs/data.md). Callers skip when :func:`data_available` is False.
+The data are read-only and not part of the repository: :data:`DATA_ROOT` is the folder
+``$PLATE_INSPECT_DATA`` names, else ``shared/data`` beside the checkout (docs/data.md); every test and
+benchmark finds the data through it. Callers skip when :func:`data_available` is False.
 """
 
 from __future__ import annotations
@@ -37,6 +38,15 @@ _BALL16_ROWS = slice(177, 351)
 _BALL16_COLS = slice(221, 395)
 
 CROP8_OBJECTS = ("ball", "cat", "pot1")
+
+#: BiNI's DiLiGenT normal maps, masks, intrinsics and depth (one folder per object).
+BINI = DATA_ROOT / "bini_diligent_normals" / "Fig7_diligent"
+#: Queau's synthetic vase gradient field.
+VASE = DATA_ROOT / "queau_vase" / "vase.mat"
+#: The Middlebury 2006 Aloe stereo pair.
+ALOE = DATA_ROOT / "middlebury_aloe"
+#: OpenCV's 13 chessboard pairs.
+OPENCV_BOARDS = DATA_ROOT / "opencv_stereo_calib"
 
 
 @dataclass(frozen=True)
@@ -244,3 +254,21 @@ def uw_sphere_disc(data: PhotometricSet, fraction: float) -> np.ndarray:
     n = data.normals_gt
     r2 = n[..., 0] ** 2 + n[..., 1] ** 2
     return data.mask & (r2 <= fraction**2)
+
+
+def load_bini(obj: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """BiNI's DiLiGenT ``obj``: normals (H, W, 3) in our frame (BGR->RGB, n = c / 65535 * 2 - 1 in DiLiGenT
+    axes, converted to OpenCV's), mask (H, W) bool, K (3, 3) and the true depth (H, W) mm."""
+    root = BINI / obj
+    rgb = cv2.cvtColor(cv2.imread(str(root / "normal_map.png"), cv2.IMREAD_UNCHANGED), cv2.COLOR_BGR2RGB)
+    n = (rgb.astype(np.float64) / 65535.0 * 2.0 - 1.0) * np.array([1.0, -1.0, -1.0])
+    mask = cv2.imread(str(root / "mask.png"), cv2.IMREAD_GRAYSCALE) > 0
+    K = np.loadtxt(root / "K.txt")
+    depth = np.load(root / "depth_gt.npz")["depth_gt"].astype(np.float64)
+    return n, mask, K, depth
+
+
+def made_after_median_scale(est: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:
+    """BiNI's protocol (evaluation_diligent.py): scale = median(gt / est); mean |scale est - gt|, mm."""
+    scale = np.nanmedian(gt[mask] / est[mask])
+    return float(np.nanmean(np.abs(scale * est[mask] - gt[mask])))

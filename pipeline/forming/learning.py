@@ -293,23 +293,11 @@ def fit(plates: Sequence[PlateRecord], machines: Mapping[str, Machine], priors: 
     ValueError
         Duplicate plate ids, an unknown machine, an inspected radius tighter than half the thickness.
     """
-    ids = [p.plate_id for p in plates]
-    if len(set(ids)) != len(ids):
-        raise ValueError("plates: expected distinct plate ids")
-    machine_ids = tuple(sorted({q.machine_id for p in plates for q in p.passes} | set(also_machines)))
-    unknown = [m for m in machine_ids if m not in machines]
-    if unknown:
-        raise ValueError(f"machine_id: no machine {unknown[0]!r} among {sorted(machines)}")
+    ids, machine_ids = _checked_ids(plates, machines, also_machines)
     groups = tuple(sorted({p.group for p in plates}))
     M, G, P = len(machine_ids), len(groups), len(plates)
 
-    # one row per pass, plates contiguous
-    pass_plate = np.array([i for i, p in enumerate(plates) for _ in p.passes], dtype=int)
-    pass_machine = np.array([machine_ids.index(q.machine_id) for p in plates for q in p.passes], dtype=int)
-    d = np.array([q.top_roll_displacement_mm for p in plates for q in p.passes], dtype=np.float64)
-    setup = PassSetup.of([machines[q.machine_id] for p in plates for q in p.passes],
-                         [p for p in plates for _ in p.passes])
-    starts = np.concatenate([[0], np.cumsum([len(p.passes) for p in plates])])
+    pass_plate, pass_machine, d, setup, starts = _pass_rows(plates, machines, machine_ids)
     plate_group = np.array([M + groups.index(p.group) for p in plates], dtype=int)
 
     x0 = np.concatenate([np.full(M, priors.compliance_mm_per_mn), np.full(G, priors.yield_factor),
@@ -324,29 +312,7 @@ def fit(plates: Sequence[PlateRecord], machines: Mapping[str, Machine], priors: 
 
     # states: the passes after which an inspection saw a new shape (nominal parameters decide which pass
     # raised the peak), with the mean of their inspections
-    kl0 = curvatures(x0)[0]
-    state_pass, state_obs, state_n, state_plate = [], [], [], []
-    for i, p in enumerate(plates):
-        peak, current, seen = 0.0, -1, {}
-        for j, q in enumerate(p.passes):
-            n = starts[i] + j
-            if kl0[n] > peak * (1 + 1e-9):
-                peak, current = kl0[n], n
-            if q.inspected:
-                k = measured_curvature(p, q.measured_radius_mm)
-                if not np.isfinite(k):
-                    raise ValueError(f"measured_radius_mm: expected more than half the thickness, "
-                                     f"got {q.measured_radius_mm!r} (plate {p.plate_id})")
-                seen.setdefault(current, []).append(k)
-        for n, ks in seen.items():
-            state_pass.append(n)
-            state_obs.append(float(np.mean(ks)))
-            state_n.append(len(ks))
-            state_plate.append(i)
-    state_pass = np.array(state_pass, dtype=int)
-    state_obs = np.array(state_obs)
-    state_n = np.array(state_n)
-    state_plate = np.array(state_plate, dtype=int)
+    state_pass, state_obs, state_n, state_plate = _inspected_states(plates, starts, curvatures(x0)[0])
     meas_var = np.array([_inspection_variance(k, plates[i], priors) for k, i in zip(state_obs, state_plate)]) / \
         np.maximum(state_n, 1)
     n_rows = len(state_pass)
@@ -393,16 +359,85 @@ def fit(plates: Sequence[PlateRecord], machines: Mapping[str, Machine], priors: 
             break
         # variance updates (module docstring)
         r2 = (curvatures(theta)[2][state_pass] - state_obs) ** 2
-        excess = np.maximum(r2 - meas_var, 0.0) / np.maximum(g * g, 1e-300)
-        scatter = float(np.sqrt((priors.scatter_weight * priors.scatter_mm**2 + excess.sum())
-                                / (priors.scatter_weight + dof_rows)))
-        dev = [(theta[M + G + i] - theta[plate_group[i]]) ** 2
-               + cov[M + G + i, M + G + i] + cov[plate_group[i], plate_group[i]]
-               - 2 * cov[M + G + i, plate_group[i]] for i in plates_with_rows]
-        spread = float(np.sqrt((priors.plate_spread_weight * priors.plate_spread**2 + float(np.sum(dev)))
-                               / (priors.plate_spread_weight + len(plates_with_rows))))
+        scatter, spread = _updated_variances(r2, meas_var, g, theta, cov, plate_group, plates_with_rows,
+                                             M + G, dof_rows, priors)
     rows_per_plate = {plates[i].plate_id: int(np.sum(state_plate == i)) for i in range(P)}
     return Fit(machine_ids, groups, tuple(ids), theta, cov, scatter, spread, n_rows, rows_per_plate,
                priors.scatter_weight + dof_rows,
                priors.plate_spread_weight + len(plates_with_rows),
                {m: machines[m] for m in machine_ids}, priors)
+
+
+def _inspected_states(plates: Sequence[PlateRecord], starts: np.ndarray,
+                      kl0: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The passes after which an inspection saw a new shape, with the mean of their inspections.
+
+    The nominal loaded curvatures ``kl0`` (one per pass, plates contiguous from ``starts``) decide
+    which pass raised a plate's peak. Returns the state's pass index, mean measured curvature,
+    number of inspections and plate index (arrays of one length).
+    """
+    state_pass, state_obs, state_n, state_plate = [], [], [], []
+    for i, p in enumerate(plates):
+        peak, current, seen = 0.0, -1, {}
+        for j, q in enumerate(p.passes):
+            n = starts[i] + j
+            if kl0[n] > peak * (1 + 1e-9):
+                peak, current = kl0[n], n
+            if q.inspected:
+                k = measured_curvature(p, q.measured_radius_mm)
+                if not np.isfinite(k):
+                    raise ValueError(f"measured_radius_mm: expected more than half the thickness, "
+                                     f"got {q.measured_radius_mm!r} (plate {p.plate_id})")
+                seen.setdefault(current, []).append(k)
+        for n, ks in seen.items():
+            state_pass.append(n)
+            state_obs.append(float(np.mean(ks)))
+            state_n.append(len(ks))
+            state_plate.append(i)
+    return (np.array(state_pass, dtype=int), np.array(state_obs), np.array(state_n),
+            np.array(state_plate, dtype=int))
+
+
+def _updated_variances(r2: np.ndarray, meas_var: np.ndarray, g: np.ndarray, theta: np.ndarray, cov: np.ndarray,
+                       plate_group: np.ndarray, plates_with_rows: np.ndarray, offset: int, dof_rows: int,
+                       priors: Priors) -> tuple[float, float]:
+    """The pass scatter and the plates' spread re-estimated with their priors (module docstring).
+
+    ``r2`` are the squared residuals of the states, ``g`` their curvature per mm of displacement,
+    ``offset`` the index of the first plate factor in ``theta``.
+    """
+    excess = np.maximum(r2 - meas_var, 0.0) / np.maximum(g * g, 1e-300)
+    scatter = float(np.sqrt((priors.scatter_weight * priors.scatter_mm**2 + excess.sum())
+                            / (priors.scatter_weight + dof_rows)))
+    dev = [(theta[offset + i] - theta[plate_group[i]]) ** 2
+           + cov[offset + i, offset + i] + cov[plate_group[i], plate_group[i]]
+           - 2 * cov[offset + i, plate_group[i]] for i in plates_with_rows]
+    spread = float(np.sqrt((priors.plate_spread_weight * priors.plate_spread**2 + float(np.sum(dev)))
+                           / (priors.plate_spread_weight + len(plates_with_rows))))
+    return scatter, spread
+
+
+def _pass_rows(plates: Sequence[PlateRecord], machines: Mapping[str, Machine],
+               machine_ids: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, PassSetup, np.ndarray]:
+    """One row per pass, plates contiguous: its plate index, machine index, top-roll displacement,
+    the passes' setup, and where each plate's rows start (``len(plates) + 1`` offsets)."""
+    pass_plate = np.array([i for i, p in enumerate(plates) for _ in p.passes], dtype=int)
+    pass_machine = np.array([machine_ids.index(q.machine_id) for p in plates for q in p.passes], dtype=int)
+    d = np.array([q.top_roll_displacement_mm for p in plates for q in p.passes], dtype=np.float64)
+    setup = PassSetup.of([machines[q.machine_id] for p in plates for q in p.passes],
+                         [p for p in plates for _ in p.passes])
+    starts = np.concatenate([[0], np.cumsum([len(p.passes) for p in plates])])
+    return pass_plate, pass_machine, d, setup, starts
+
+
+def _checked_ids(plates: Sequence[PlateRecord], machines: Mapping[str, Machine],
+                 also_machines: Sequence[str]) -> tuple[list[str], tuple[str, ...]]:
+    """The plates' ids (distinct) and the machines to fit (sorted, each known); ValueError otherwise."""
+    ids = [p.plate_id for p in plates]
+    if len(set(ids)) != len(ids):
+        raise ValueError("plates: expected distinct plate ids")
+    machine_ids = tuple(sorted({q.machine_id for p in plates for q in p.passes} | set(also_machines)))
+    unknown = [m for m in machine_ids if m not in machines]
+    if unknown:
+        raise ValueError(f"machine_id: no machine {unknown[0]!r} among {sorted(machines)}")
+    return ids, machine_ids

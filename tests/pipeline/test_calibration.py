@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import shutil
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -17,9 +16,8 @@ from pipeline.calibration import (
     find_board_pairs,
 )
 from pipeline.formats import CalibrationError, StereoCalibrationFile
-
-DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
-BOARDS = DATA / "opencv_stereo_calib"
+from pipeline.simulate import default_rig, render_calibration_pairs
+from tests.realdata import OPENCV_BOARDS as BOARDS
 
 
 def _rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
@@ -130,9 +128,8 @@ def test_missing_folder_is_refused(tmp_path):
 
 @pytest.mark.parametrize("seed", [7, 12])
 def test_simulated_boards_recover_the_rig(tmp_path, seed):
-    simulate = pytest.importorskip("pipeline.simulate", reason="pipeline/simulate.py (the simulator) is not there yet")
-    rig = simulate.default_rig(width=640, height=512)
-    simulate.render_calibration_pairs(tmp_path, rig=rig, n_pairs=15, inner_corners=(9, 6), square_mm=60.0, seed=seed)
+    rig = default_rig(width=640, height=512)
+    render_calibration_pairs(tmp_path, rig=rig, n_pairs=15, inner_corners=(9, 6), square_mm=60.0, seed=seed)
     report = calibrate_stereo(tmp_path, inner_corners=(9, 6), square_mm=60.0)
     assert report.rejected == []
     # issue 4: fx within 0.1 %, |T| within 0.5 %, R within 0.05 deg of the rig that rendered the boards

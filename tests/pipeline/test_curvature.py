@@ -11,85 +11,10 @@ import math
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
-from pipeline.curvature import (
-    CylinderFit,
-    PlaneFit,
-    SphereFit,
-    fit_cylinder,
-    fit_plane,
-    fit_sphere,
-    principal_curvatures,
-)
-
-#: Tilt of the plate (Euler xyz, deg) relative to facing the camera: off-axis and rotated in-plane.
-TILT_DEG = (8.0, -5.0, 20.0)
-
-
-def plate_grid(height, *, shape=(128, 160), size_mm=(3000.0, 3000.0), distance_mm=3000.0, tilt_deg=TILT_DEG,
-               noise_mm=0.0, rng=None):
-    """Ray-cast a plate ``z_p = height(x_p, y_p)`` (mm, z_p away from the camera) into a camera grid.
-
-    Returns
-    -------
-    points : (H, W, 3) float64, left-camera frame, mm; NaN outside the plate.
-    mask : (H, W) bool, pixels whose ray meets the plate inside ``|x_p| <= size/2``, ``|y_p| <= size/2``.
-    xy : (H, W, 2) float64, plate-frame (x_p, y_p) of each pixel's hit, mm.
-    R_cam_plate : (3, 3) float64; the plate centre is at ``(30, -20, distance_mm)``.
-    """
-    H, W = shape
-    f = (W / 2) * distance_mm / (0.6 * max(size_mm))  # the plate fills ~5/6 of the width
-    K = np.array([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1.0]])
-    R = Rotation.from_euler("xyz", tilt_deg, degrees=True).as_matrix()
-    t = np.array([30.0, -20.0, distance_mm])
-    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
-    rays = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(K).T
-    n = R[:, 2]
-    s = (t @ n) / (rays @ n)  # start on the plane z_p = 0
-
-    def g(s):
-        p = (s[..., None] * rays - t) @ R
-        with np.errstate(invalid="ignore"):
-            return p[..., 2] - height(p[..., 0], p[..., 1]), p
-
-    for _ in range(50):
-        g0, _ = g(s)
-        if np.nanmax(np.abs(g0)) < 1e-10:
-            break
-        g1, _ = g(s + 1e-3)
-        s = s - g0 / ((g1 - g0) / 1e-3)
-    g0, p = g(s)
-    mask = (np.abs(p[..., 0]) <= size_mm[0] / 2) & (np.abs(p[..., 1]) <= size_mm[1] / 2) & (np.abs(g0) < 1e-6)
-    if noise_mm:
-        s = s + rng.normal(0.0, noise_mm, s.shape) / np.linalg.norm(rays, axis=-1)
-    points = s[..., None] * rays
-    points[~mask] = np.nan
-    return points, mask, p[..., :2], R
-
-
-def cylinder(R, sign=1):
-    """Cylinder with its axis along y_p; sign +1 convex towards the camera (centre behind the plate)."""
-    return lambda x, y: sign * (R - np.sqrt(R * R - x * x))
-
-
-def sphere(R, sign=1):
-    return lambda x, y: sign * (R - np.sqrt(R * R - x * x - y * y))
-
-
-def saddle(R1, R2):
-    """Convex towards the camera along x_p (radius R1), concave along y_p (radius R2)."""
-    return lambda x, y: (R1 - np.sqrt(R1 * R1 - x * x)) - (R2 - np.sqrt(R2 * R2 - y * y))
-
-
-def dented(height, depth_mm=6.0, radius_mm=100.0, at=(300.0, -200.0)):
-    """Adds a smooth dent ``depth (1 - r^2/rho^2)^3`` pushed away from the camera."""
-
-    def h(x, y):
-        q = ((x - at[0]) ** 2 + (y - at[1]) ** 2) / radius_mm**2
-        return height(x, y) + depth_mm * np.where(q < 1, 1 - q, 0.0) ** 3
-
-    return h
+from pipeline.curvature import principal_curvatures
+from pipeline.surface_fits import CylinderFit, PlaneFit, SphereFit, fit_cylinder, fit_plane, fit_sphere
+from tests.pipeline.surfaces import cylinder, dented, plate_grid, saddle, sphere
 
 
 def rel_err(value, truth):

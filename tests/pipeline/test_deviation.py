@@ -10,17 +10,12 @@ import trimesh
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
-from pipeline.deviation import (
-    EdgeArtefacts,
-    Registration,
-    deviation_map,
-    fitted_target_radius,
-    judge,
-    register_to_target,
-    target_surface,
-)
+from pipeline.deviation import deviation_map
+from pipeline.registration import Registration, fitted_target_radius, register_to_target
+from pipeline.target_geometry import target_surface
+from pipeline.verdict import EdgeArtefacts, judge
 from pipeline.io import Target
-from tests.pipeline.test_curvature import cylinder, dented, plate_grid, saddle, sphere
+from tests.pipeline.surfaces import cylinder, dented, plate_grid, saddle, sphere
 
 PLATE_CENTRE = np.array([30.0, -20.0, 3000.0])  # where plate_grid puts the plate frame's origin
 

@@ -7,7 +7,9 @@ import math
 
 import pytest
 
-from pipeline.deviation import deviation_map, judge, register_to_target
+from pipeline.deviation import deviation_map
+from pipeline.registration import register_to_target
+from pipeline.verdict import judge
 from pipeline.forming import (FormingError, FormingTarget, Machine, Material, PlateRecord, RollPass, advise,
                               curvature_band)
 from pipeline.forming.advice import target_curvature

@@ -1,74 +1,14 @@
 """Normal integration (pipeline.integration) against analytic surfaces, an independent sparse
 least-squares solve, and two public datasets (BiNI's DiLiGenT depth maps, Queau's vase)."""
 
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
 import scipy.io
-import scipy.sparse
-import scipy.sparse.linalg
 
 from pipeline.integration import _log_depth_gradients, integrate_gradient, integrate_normals
-
-DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
-BINI = DATA / "bini_diligent_normals" / "Fig7_diligent"
-VASE = DATA / "queau_vase" / "vase.mat"
-
-
-# ------------------------------------------------------------------------------ synthetic plates
-
-
-def rotation_xy(ax_rad: float, ay_rad: float) -> np.ndarray:
-    """R = Rx(ax) @ Ry(ay)."""
-    cx, sx, cy, sy = np.cos(ax_rad), np.sin(ax_rad), np.cos(ay_rad), np.sin(ay_rad)
-    rx = np.array([[1.0, 0, 0], [0, cx, -sx], [0, sx, cx]])
-    ry = np.array([[cy, 0, sy], [0, 1.0, 0], [-sy, 0, cy]])
-    return rx @ ry
-
-
-def plate_camera(width: int, height: int, f_px: float) -> np.ndarray:
-    """K with fx != fy and a principal point off the centre."""
-    return np.array([[f_px, 0.0, width / 2 + 3.3], [0.0, 1.013 * f_px, height / 2 - 2.1], [0.0, 0.0, 1.0]])
-
-
-def render_cylinder(K, hw, *, radius_mm=5000.0, plate_mm=(3000.0, 3000.0), distance_mm=3000.0,
-                    tilt_rad=(0.05, 0.08), convex=False):
-    """Ray-trace a cylindrical plate (axis along the plate's second axis).
-
-    The plate frame is the camera frame at zero tilt, its origin on the surface at the plate centre,
-    ``distance_mm`` in front of the camera: ``X_cam = R_cam_plate X_plate + (0, 0, distance_mm)``.
-
-    Returns
-    -------
-    normals : (H, W, 3) float64, unit, towards the camera; mask : (H, W) bool (the plate);
-    depth_mm : (H, W) float64, z of the hit point, NaN off the plate.
-    """
-    h, w = hw
-    u, v = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
-    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T
-    r_cam_plate = rotation_xy(*tilt_rad)
-    s = -1.0 if convex else 1.0  # axis behind (concave towards camera) or in front of the plate
-    a = rays @ r_cam_plate  # ray directions in the plate frame
-    c = r_cam_plate.T @ np.array([0.0, 0.0, distance_mm])  # X_plate = lam * a - c
-    cz = c[2] + s * radius_mm
-    qa = a[..., 0] ** 2 + a[..., 2] ** 2
-    qb = -2.0 * (a[..., 0] * c[0] + a[..., 2] * cz)
-    qc = c[0] ** 2 + cz**2 - radius_mm**2
-    disc = qb * qb - 4.0 * qa * qc
-    root = np.sqrt(np.maximum(disc, 0.0))
-    big = -0.5 * (qb + np.sign(qb) * root)
-    lam1, lam2 = big / qa, qc / big
-    near1 = np.abs(lam1 * a[..., 2] - c[2]) < np.abs(lam2 * a[..., 2] - c[2])
-    lam = np.where(near1, lam1, lam2)  # the sheet through the plate origin
-    xp = lam[..., None] * a - c
-    grad = np.stack([xp[..., 0], np.zeros_like(lam), xp[..., 2] - s * radius_mm], -1)
-    n = grad @ r_cam_plate.T
-    n /= np.linalg.norm(n, axis=-1, keepdims=True)
-    n *= -np.sign(np.sum(n * rays, -1))[..., None]
-    mask = (disc > 0) & (np.abs(xp[..., 0]) <= plate_mm[0] / 2) & (np.abs(xp[..., 1]) <= plate_mm[1] / 2)
-    return n, mask, np.where(mask, lam * rays[..., 2], np.nan)
+from tests.pipeline.surfaces import plate_camera, render_cylinder, sparse_least_squares
+from tests.realdata import BINI, VASE, load_bini, made_after_median_scale
 
 
 @pytest.fixture(scope="module")
@@ -165,45 +105,6 @@ def test_noisy_normals_degrade_gracefully(plate):
 
 
 # ------------------------------------------------------------------------------ it is the least-squares solution
-
-
-def sparse_least_squares(n, mask, K, log_prior=None, weight=0.0):
-    """Independent reference: the equations written out as a sparse matrix, solved directly."""
-    h, w = mask.shape
-    kinv = np.linalg.inv(K)
-    v, u = np.mgrid[0:h, 0:w].astype(float)
-    rays = np.stack([u, v, np.ones_like(u)], -1) @ kinv.T
-    nr = np.sum(n * rays, -1)
-    gu = -(n @ kinv[:, 0]) / nr
-    gv = -(n @ kinv[:, 1]) / nr
-    index = -np.ones((h, w), int)
-    index[mask] = np.arange(mask.sum())
-    rows, cols, vals, rhs = [], [], [], []
-    eq = 0
-    for (a_sl, b_sl, g) in (((slice(None), slice(0, -1)), (slice(None), slice(1, None)), gu),
-                            ((slice(0, -1), slice(None)), (slice(1, None), slice(None)), gv)):
-        both = mask[a_sl] & mask[b_sl]
-        ia, ib = index[a_sl][both], index[b_sl][both]
-        m = ia.size
-        rows += [np.arange(eq, eq + m)] * 2
-        cols += [ib, ia]
-        vals += [np.ones(m), -np.ones(m)]
-        rhs.append(0.5 * (g[a_sl][both] + g[b_sl][both]))
-        eq += m
-    if log_prior is not None:
-        known = mask & np.isfinite(log_prior)
-        m = int(known.sum())
-        rows.append(np.arange(eq, eq + m))
-        cols.append(index[known])
-        vals.append(np.full(m, np.sqrt(weight)))
-        rhs.append(np.sqrt(weight) * log_prior[known])
-        eq += m
-    a = scipy.sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                                shape=(eq, int(mask.sum())))
-    x = scipy.sparse.linalg.spsolve((a.T @ a).tocsc(), a.T @ np.concatenate(rhs))
-    out = np.full((h, w), np.nan)
-    out[mask] = x
-    return out
 
 
 def irregular_mask(rng, hw):
@@ -367,24 +268,6 @@ def test_integrate_gradient_recovers_a_quadratic_on_an_irregular_mask():
 # ------------------------------------------------------------------------------ real data
 
 
-def load_bini(obj: str):
-    """BiNI's DiLiGenT normal map in our frame: BGR->RGB, n = c / 65535 * 2 - 1 in DiLiGenT axes
-    (x right, y up, z towards the camera), converted to OpenCV axes (x, -y, -z)."""
-    root = BINI / obj
-    rgb = cv2.cvtColor(cv2.imread(str(root / "normal_map.png"), cv2.IMREAD_UNCHANGED), cv2.COLOR_BGR2RGB)
-    n = (rgb.astype(np.float64) / 65535.0 * 2.0 - 1.0) * np.array([1.0, -1.0, -1.0])
-    mask = cv2.imread(str(root / "mask.png"), cv2.IMREAD_GRAYSCALE) > 0
-    K = np.loadtxt(root / "K.txt")
-    depth = np.load(root / "depth_gt.npz")["depth_gt"].astype(np.float64)
-    return n, mask, K, depth
-
-
-def made_after_median_scale(est, gt, mask):
-    """BiNI's protocol (evaluation_diligent.py): scale = median(gt / est); mean |scale est - gt|, mm."""
-    scale = np.nanmedian(gt[mask] / est[mask])
-    return float(np.nanmean(np.abs(scale * est[mask] - gt[mask])))
-
-
 @pytest.mark.skipif(not BINI.is_dir(), reason=f"BiNI DiLiGenT data not found at {BINI}")
 def test_bini_cat_and_pot2_depth_error():
     # plain least squares smooths over depth discontinuities (BiNI handles them): on cat it is
@@ -411,7 +294,8 @@ def test_vase_plain_least_squares_rmse():
 def test_multigrid_preconditioner_is_symmetric_and_positive():
     # conjugate gradients needs a symmetric positive preconditioner: the V-cycle must be its own
     # adjoint (pre-smoothing red-black, post-smoothing black-red, restriction = prolongation^T)
-    from pipeline.integration import _fine_system, _Multigrid
+    from pipeline.integration import _fine_system
+    from pipeline.solvers import Multigrid
 
     rng = np.random.default_rng(4)
     hw = (70, 90)
@@ -421,7 +305,7 @@ def test_multigrid_preconditioner_is_symmetric_and_positive():
     b = np.zeros((h + 2, w + 2))
     wd = np.where(rng.random(hw) < 0.05, 0.01, 0.0).astype(np.float32)
     _fine_system(mask, np.zeros(hw), np.zeros(hw), wd, np.zeros(hw), 0.0, ex, ey, wdp, dg, idg, b)
-    mg = _Multigrid(ex, ey, wdp, dg, idg)
+    mg = Multigrid(ex, ey, wdp, dg, idg)
     u, v = (np.zeros((h + 2, w + 2)) for _ in range(2))
     u[1:-1, 1:-1][mask] = rng.normal(size=mask.sum())
     v[1:-1, 1:-1][mask] = rng.normal(size=mask.sum())

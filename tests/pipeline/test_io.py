@@ -25,8 +25,8 @@ from pipeline.io import (
 )
 
 from tests.pipeline.bundles import DELETE, HEIGHT, WIDTH, calibration_doc, light_ring, target_doc, write_bundle, zip_folder
+from tests.realdata import DATA_ROOT
 
-DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 
 
 def _err(*parts: str) -> str:
@@ -115,7 +115,7 @@ def test_colour_images_become_bt601_grey(tmp_path):
 
 
 def test_real_diligent_16bit_rgb_frames(tmp_path):
-    src = DATA / "diligent" / "ball16"
+    src = DATA_ROOT / "diligent" / "ball16"
     if not src.is_dir():
         pytest.skip(f"real data folder absent: {src}")
     crops = sorted((src / "images_crop16").glob("*.png"))[:3]

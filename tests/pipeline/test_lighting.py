@@ -60,6 +60,7 @@ def test_a_light_bumped_by_one_degree_is_corrected(tmp_path):
     assert 0.2 < max(c["turn_deg"] for c in refit["corrections"]) < 3.0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("manifest", ["nominal", "exact"])
 def test_glare_with_18_leds_does_not_crash_or_bend_the_radius(tmp_path, manifest):
     """At 1224 x 1024: at 612 x 512 highlights that move between the two views bias the stereo pair
@@ -95,6 +96,7 @@ def test_normals_facing_away_are_filled_and_counted_not_fatal():
     np.testing.assert_allclose(depth, 3000.0, rtol=1e-6)  # a flat plate facing the camera, filled smoothly
 
 
+@pytest.mark.slow
 def test_lights_calibrated_on_a_flat_plate_measure_a_curved_one(tmp_path):
     """calibrate-lights on a flat reference, then a plate whose bundle gives only nominal directions,
     measured with those lights as the service applies them (same LEDs: the same seed draws the same

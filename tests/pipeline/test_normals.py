@@ -1,4 +1,4 @@
-"""Photometric normals (pipeline/normals.py) against analytic truth and real benchmark data."""
+"""Photometric normals (pipeline/normals/) against analytic truth and real benchmark data."""
 
 from __future__ import annotations
 

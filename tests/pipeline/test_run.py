@@ -46,6 +46,7 @@ def test_cylinder_radius_within_the_product_figures(tmp_path, radius_mm, convex,
     assert doc["verdict"] == "pass", doc
 
 
+@pytest.mark.slow
 def test_specular_highlights_do_not_spoil_the_radius(tmp_path):
     # issue 3: a specular lobe must not push the radius error past 0.3 % (robust normals)
     plate = PlateSpec(shape="cylinder", radius_mm=5000.0, tilt_deg=(1.0, 2.0))

@@ -8,13 +8,12 @@ import cv2
 import numpy as np
 import pytest
 
+from pipeline import simulate
 from pipeline.camera import CameraModel, StereoRig
 from pipeline.stereo import COARSE_PERCENTILES, FINE_MARGIN_PX, StereoDepth, rectification, stereo_depth
+from tests.realdata import ALOE
 
-DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
-ALOE = DATA / "middlebury_aloe"
 
-simulate = pytest.importorskip("pipeline.simulate", reason="pipeline/simulate.py (the simulator) is not there yet")
 
 
 def _capture(tmp_path: Path, *, width: int, seed: int, plate=None):

@@ -1,0 +1,88 @@
+"""Plain scenes: a plate alone over a dark conveyor, whose brightness mask is the plate (no segmentation needed)."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+from .checks import check_bool_image, check_camera_matrix
+from .surface import DEPTH_BAND_MM, FIT_SAMPLES, design, fit_surface, normalised_coords
+
+#: plain_outline / plain_depth: the shares of the brightness mask's area that may be dark inside it (an opening), lit
+#: outside it (a floor, supports) and off its smooth surface in depth. Measured at 1224x1024: plain
+#: plates 0 dark inside, 0.06-0.4 % lit outside (more with LEDs); a 60 mm round hole 0.13 % dark
+#: inside; a lit floor 34-400 % lit outside.
+PLAIN_OPENING_SHARE = 0.0005
+PLAIN_LIT_SHARE = 0.02
+PLAIN_OFF_SURFACE_SHARE = 0.002
+#: ... lit pixels within this many pixels of the mask are its own (mixed) edge.
+PLAIN_MARGIN_PX = 5
+
+
+def plain_outline(bright_mask, candidates) -> bool:
+    """Whether the plate looks alone in the image: nothing lit around the brightness mask, no opening in it.
+
+    The usual cell: a plate over a dark conveyor. Then the stereo pair and the normals need only the
+    brightness mask, and :func:`plain_depth` decides from the stereo depth whether the mask is one sheet.
+
+    Parameters
+    ----------
+    bright_mask : (H, W) bool
+        The brightness mask (:func:`pipeline.preprocess.plate_mask`: Otsu, holes filled, eroded).
+    candidates : (H, W) bool
+        :func:`candidate_mask`.
+
+    Returns
+    -------
+    bool
+        True when at most PLAIN_OPENING_SHARE of the mask's area is dark inside it (an opening) and at
+        most PLAIN_LIT_SHARE is lit outside it beyond PLAIN_MARGIN_PX (a floor, supports).
+    """
+    mask = check_bool_image("bright_mask", bright_mask, np.shape(bright_mask))
+    cand = check_bool_image("candidates", candidates, mask.shape)
+    n = int(np.count_nonzero(mask))
+    if n == 0 or np.count_nonzero(mask & ~cand) > PLAIN_OPENING_SHARE * n:
+        return False
+    size = 2 * PLAIN_MARGIN_PX + 1
+    grown = cv2.dilate(mask.view(np.uint8), np.ones((size, size), np.uint8)).view(bool)
+    return bool(np.count_nonzero(cand & ~grown) <= PLAIN_LIT_SHARE * n)
+
+
+def plain_depth(bright_mask, depth_mm, camera_matrix, *, depth_band_mm: float = DEPTH_BAND_MM) -> bool:
+    """Whether the stereo depth over the brightness mask is one smooth sheet (no floor taken in).
+
+    Parameters
+    ----------
+    bright_mask : (H, W) bool
+        The brightness mask.
+    depth_mm : (H, W) float
+        Stereo depth (mm, NaN where unmatched).
+    camera_matrix : (3, 3) float
+        Intrinsics of the grid, pixels.
+    depth_band_mm : float
+        Half width of the band around the fitted smooth surface that counts as the plate, mm.
+
+    Returns
+    -------
+    bool
+        True when at most PLAIN_OFF_SURFACE_SHARE of the matched mask pixels lie off the smooth
+        surface fitted to them. With :func:`plain_outline`, the brightness mask is then the plate
+        and :func:`segment_plate` is not needed (README: what it costs).
+    """
+    mask = check_bool_image("bright_mask", bright_mask, np.shape(bright_mask))
+    depth = np.asarray(depth_mm, dtype=np.float64)
+    K = check_camera_matrix(camera_matrix)
+    surface = fit_surface(depth, mask, K, depth_band_mm)
+    if surface is None:
+        return False
+    stride = max(1, int(round(math.sqrt(depth.size / FIT_SAMPLES))))
+    z = depth[::stride, ::stride]
+    inside = mask[::stride, ::stride] & np.isfinite(z) & (z > 0)
+    x, y = normalised_coords(K, depth.shape, stride)
+    x, y = x[: z.shape[0], : z.shape[1]], y[: z.shape[0], : z.shape[1]]
+    X = design(x[inside], y[inside], surface.degree, surface.scale)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        off = np.abs(z[inside] - 1.0 / (X @ surface.coef)) > depth_band_mm
+    return bool(np.count_nonzero(off) <= PLAIN_OFF_SURFACE_SHARE * max(np.count_nonzero(inside), 1))

@@ -1,0 +1,430 @@
+"""The stages of one inspection, from the files to the judged plate, and the clock that times them.
+
+:func:`pipeline.run.inspect` calls :func:`load_inputs`, :func:`preprocess_scene` and :func:`measure` in
+that order, then writes details.json and result.json from the :class:`Measurement`. Each stage is a
+module of the method (README: *How a plate is measured*); this module only chains them, decides what
+runs beside the main line, and times them.
+"""
+
+from __future__ import annotations
+
+import time
+from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from . import (
+    artifacts,
+    curvature,
+    deviation,
+    normals,
+    reconstruct,
+    registration,
+    segmentation,
+    stereo,
+    target_geometry,
+    verdict,
+)
+from .artifacts import ARTIFACT_FILES
+from .formats import CaptureError
+from .io import Capture, Target, load_capture, load_target
+from .lights import Lights
+from .preprocess import Preprocessed, preprocess
+
+#: Stage names in the order they run; ``progress`` reports these.
+STAGES = ("load", "preprocess", "normals", "stereo", "depth", "curvature", "deviation", "artifacts")
+
+ProgressCallback = Callable[[str, float], None]
+
+#: Without a working-distance hint the stereo pair is searched around this depth (mm):
+#: with the default ``depth_margin`` of 1.0 that is 1750-7000 mm, the cell's whole range.
+NOMINAL_DISTANCE_MM = 3500.0
+#: The lights are refitted, and the result warns that the photometric and stereo shapes disagree, when the
+#: disagreement (see :class:`pipeline.fusion.Fusion`) exceeds both the noise floor and this fraction of the
+#: tolerance.
+DISAGREEMENT_FRACTION = 0.25
+
+
+@dataclass(frozen=True)
+class InspectOptions:
+    """Knobs of the measurement; the defaults are the product's settings.
+
+    Attributes
+    ----------
+    normals_method : {"robust", "lstsq"}
+        Per-pixel photometric estimator (see :func:`pipeline.normals.estimate_normals`).
+    stereo_weight : float
+        Weight of the stereo depth against the normal equations in the fusion
+        (dimensionless, per pixel, log-depth units). The normals win above the
+        wavelength ``2 pi / sqrt(stereo_weight)`` pixels (~630 px at 1e-4): the
+        stereo pair sets scale, position and tilt, the normals the shape. Measured
+        on simulated plates (1224x1024): 1e-2 lets stereo noise through
+        (deviation RMS 0.15 mm on a perfect cylinder), 1e-4 gives 0.03 mm, 1e-5
+        starts to lose the scale (+0.05 % radius).
+    depth_margin : float
+        The stereo pair's coarse search covers ``working distance / (1 + depth_margin)``
+        .. ``working distance * (1 + depth_margin)`` (1500-6000 mm for a 3000 mm hint at 1.0;
+        1750-7000 mm without a hint). It only bounds where the plate is looked for: the fine
+        search range comes from the plate's disparities found by the coarse pass, so a wrong
+        hint that still brackets the plate changes nothing (see :func:`pipeline.stereo.stereo_depth`).
+    min_stereo_pct : float
+        Below this share of the plate matched (percent), the stereo depth is not
+        trusted (a plate outside the searched range gives a few wrong matches): the
+        working distance sets the scale instead, or the capture is refused without one.
+    stereo_max_width : int
+        A stereo pair wider than this (px) is matched reduced by the smallest whole
+        factor that fits: its depth only anchors the scale and the lowest frequencies
+        of the fused surface.
+    depth_tol : float
+        Relative residual at which the depth solve stops (``tol`` of
+        :func:`pipeline.integration.integrate_normals`). Measured on a simulated plate at
+        2448x2048 against a solve to 1e-8: 1e-4 changes no depth by more than 1 um
+        (1e-3: 20 um), in 4 iterations instead of 6 for 1e-6.
+    workers : int or None
+        Threads for the work that runs beside the main line (stereo, curvature, artifact
+        writing) and for preprocessing; None: :func:`pipeline.parallel.default_workers`. The
+        result does not depend on it.
+    """
+
+    normals_method: str = "robust"
+    stereo_weight: float = 1e-4
+    depth_margin: float = 1.0
+    min_stereo_pct: float = 20.0
+    stereo_max_width: int = 1600
+    depth_tol: float = 1e-4
+    workers: int | None = None
+
+
+class StageClock:
+    """Times the stages (``timings``, seconds, rounded to 0.1 ms) and reports progress.
+
+    Parameters
+    ----------
+    progress : callable(stage, fraction) or None
+        Called when each stage of :data:`STAGES` begins, with the fraction of the stages done.
+    """
+
+    def __init__(self, progress: ProgressCallback | None):
+        self.progress = progress
+        self.timings: dict[str, float] = {}
+        self.start = time.perf_counter()
+        self._t = self.start
+
+    def begin(self, stage: str) -> None:
+        """A stage of :data:`STAGES` begins: its timer starts and progress is reported."""
+        self._t = time.perf_counter()
+        if self.progress is not None:
+            self.progress(stage, STAGES.index(stage) / len(STAGES))
+
+    def end(self, stage: str) -> None:
+        """The stage ends: its time since :meth:`begin` is recorded."""
+        self.timings[stage] = round(time.perf_counter() - self._t, 4)
+
+    def total(self) -> float:
+        """Seconds since the clock was made."""
+        return round(time.perf_counter() - self.start, 4)
+
+
+@dataclass(frozen=True)
+class Scene:
+    """What preprocessing found: the images, where the plate may be, and whether the scene is plain.
+
+    ``candidates``: what may be plate, i.e. not dark (over a dark conveyor, the plate; over a lit floor,
+    most of the image): the stereo pair is matched over it and, under distant lights, the normals are
+    estimated over it. ``plain_outline``: a plate alone over a dark conveyor (the usual cell), whose
+    brightness mask is all the stereo pair and the normals need (``region``).
+    """
+
+    pre: Preprocessed
+    candidates: np.ndarray
+    plain_outline: bool
+    region: np.ndarray
+
+
+@dataclass
+class Plate:
+    """The plate among its surroundings and its stereo prior (updated if the lights are refitted)."""
+
+    mask: np.ndarray
+    seg: segmentation.Segmentation | None
+    plain: bool
+    prior: np.ndarray | None
+    matched_pct: float | None
+    depth_mm: np.ndarray | None
+    depth_scale: int
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """What the measurement stages gave, for the result and details.json."""
+
+    surface: reconstruct.Surface
+    plate: Plate
+    pose: registration.Registration
+    judgement: verdict.Judgement
+    curv: curvature.CurvatureResult
+    pixel_area: np.ndarray
+
+
+def load_inputs(capture, target, light_calibration, warnings: list[str],
+                clock: StageClock) -> tuple[Capture, Target]:
+    """Stage *load*: the capture (with ``light_calibration`` applied, see :func:`pipeline.run.inspect`) and the target.
+
+    A warning about the light calibration is appended to ``warnings``. CaptureError when the capture
+    has neither a stereo pair nor a working distance (no metric scale).
+    """
+    clock.begin("load")
+    cap = capture if isinstance(capture, Capture) else load_capture(capture)
+    tgt = target if isinstance(target, Target) else load_target(target)
+    cap = _apply_light_calibration(cap, light_calibration, warnings)
+    if not cap.has_stereo and cap.working_distance_mm is None:
+        raise CaptureError(
+            f"{cap.source}: stereo, working_distance_mm: a metric result needs a stereo pair or a working distance"
+        )
+    clock.end("load")
+    return cap, tgt
+
+
+def preprocess_scene(cap: Capture, opts: InspectOptions, clock: StageClock) -> Scene:
+    """Stage *preprocess*: the images ready for the normals, and where the plate may be (see :class:`Scene`)."""
+    clock.begin("preprocess")
+    pre = preprocess(cap, workers=opts.workers)
+    candidates = segmentation.candidate_mask(pre.brightest, seen=pre.seen) if cap.has_stereo else pre.mask
+    plain_outline = cap.has_stereo and segmentation.plain_outline(pre.mask, candidates)
+    region = pre.mask if plain_outline else candidates
+    clock.end("preprocess")
+    return Scene(pre=pre, candidates=candidates, plain_outline=plain_outline, region=region)
+
+
+def measure(cap: Capture, tgt: Target, scene: Scene, opts: InspectOptions, out: Path, pool: ThreadPoolExecutor,
+             clock: StageClock) -> Measurement:
+    """Stages *normals* to *artifacts* (details.json and result.json excepted), work beside the main line on ``pool``."""
+    pre, K = scene.pre, cap.rig.left.K
+    stereo_job = pool.submit(_stereo_depth, cap, scene.region, opts) if cap.has_stereo else None
+    rays_job = pool.submit(cap.rig.left.pixel_rays)  # (H, W, 3) float64, for the surface and the areas
+    field = None
+    clock.begin("normals")
+    if not cap.lights.any_point:
+        # distant lights: the normals do not depend on the surface, estimated while stereo matches
+        field = normals.estimate_normals(
+            pre.images, cap.light_dirs, scene.region, valid=pre.valid, method=opts.normals_method, camera_matrix=K,
+        )
+        clock.end("normals")
+    clock.begin("stereo")
+    plate, field = _plate(stereo_job, scene, field, K, tgt, clock)
+    writes = []
+    if field is not None:
+        # normals.png now, while the depth is solved on this thread (the few normals dropped later as facing
+        # away are then shown as estimated)
+        writes.append(pool.submit(artifacts.write_normals_png, out / ARTIFACT_FILES["normals"], field.normals,
+                                  field.mask))
+    _check_stereo_share(plate, cap, opts)
+    surface = _surface(cap, tgt, scene, plate, field, opts, clock)
+    rays = rays_job.result()
+    points = surface.depth_mm[..., None] * rays
+    clock.end("depth")
+    return _judge(points, rays, surface, plate, tgt, K, out, pool, writes, clock)
+
+
+def _plate(stereo_job, scene: Scene, field: normals.NormalField | None, K: np.ndarray, tgt: Target,
+           clock: StageClock) -> tuple[Plate, normals.NormalField | None]:
+    """The stereo depth, and the plate among its surroundings (#17): the near, smooth sheet of the stereo
+    depth; openings stay holes, supports beside the plate and an edge band are left out. A plain scene (a
+    plate over a dark conveyor, no opening), or no stereo pair: the brightness mask. The distant normal
+    field comes back restricted to the plate."""
+    pre = scene.pre
+    depth_c, stereo_s, depth_scale = stereo_job.result() if stereo_job is not None else (None, 0.0, 1)
+    clock.timings["stereo"] = stereo_s
+    t_seg = time.perf_counter()
+    seg = None
+    plain = scene.plain_outline and depth_c is not None and segmentation.plain_depth(pre.mask, depth_c, K)
+    if depth_c is not None and not plain:
+        seg = _segment(pre, depth_c, K, scene.candidates, depth_scale, field, tgt)
+    mask = pre.mask if seg is None else seg.mask
+    if seg is not None:
+        prior = seg.stereo_prior(depth_c)
+    else:
+        prior = None if depth_c is None else np.where(mask, depth_c, np.nan)
+    if field is not None:
+        field = _restricted(field, mask)
+    clock.timings["segmentation"] = round(time.perf_counter() - t_seg, 4)
+    matched_pct = None if prior is None else 100.0 * np.count_nonzero(np.isfinite(prior) & mask) / mask.sum()
+    return Plate(mask=mask, seg=seg, plain=plain, prior=prior, matched_pct=matched_pct, depth_mm=depth_c,
+                  depth_scale=depth_scale), field
+
+
+def _check_stereo_share(plate: Plate, cap: Capture, opts: InspectOptions) -> None:
+    """Too little of the plate matched in the stereo pair to trust it: the working distance sets the scale
+    (the prior is dropped; details.json says so), or the capture cannot be measured without one."""
+    if plate.prior is not None and plate.matched_pct < opts.min_stereo_pct:
+        if cap.working_distance_mm is None:
+            raise CaptureError(
+                f"{cap.source}: stereo: {plate.matched_pct:.1f} % of the plate matched in the stereo pair, expected "
+                f"at least {opts.min_stereo_pct:.0f} %, and there is no working_distance_mm to fall back on"
+            )
+        plate.prior = None
+
+
+def _surface(cap: Capture, tgt: Target, scene: Scene, plate: Plate, field: normals.NormalField | None,
+             opts: InspectOptions, clock: StageClock) -> reconstruct.Surface:
+    """Stages *normals* (point lights) and *depth*: the metric surface, with the lights refitted on the stereo
+    geometry when they bend it away from the stereo pair's (``plate`` then holds the segmented plate)."""
+    pre, K = scene.pre, cap.rig.left.K
+    solve = dict(prior_mm=plate.prior, working_distance_mm=cap.working_distance_mm, stereo_weight=opts.stereo_weight,
+                 tol=opts.depth_tol)
+    if cap.lights.any_point:
+        # point lights: normals and surface alternate; "normals" times the whole alternation (with its
+        # integrations), "depth" what follows
+        t_near = time.perf_counter()
+        surface = reconstruct.near_field_surface(
+            pre.images, cap.lights, K, plate.mask, valid=pre.valid, method=opts.normals_method, **solve
+        )
+        clock.timings["normals"] = round(time.perf_counter() - t_near, 4)
+        clock.begin("depth")
+        return surface
+    clock.begin("depth")
+    surface = reconstruct.distant_surface(field, K, **solve)
+    if plate.prior is None or not reconstruct.disagrees(surface, tgt.tolerance_mm, DISAGREEMENT_FRACTION):
+        return surface
+    # the given lights bend the surface away from the stereo pair's: refit them on its geometry
+    t_refit = time.perf_counter()
+    if plate.seg is None and plate.depth_mm is not None:
+        # so far on the brightness mask: lights that do not fit light the plate unevenly, and the
+        # mask follows its darker edges; measured again on the segmented plate
+        plate.seg = _segment(pre, plate.depth_mm, K, scene.candidates, plate.depth_scale, field, tgt)
+        plate.plain, plate.mask = False, plate.seg.mask
+        solve["prior_mm"] = plate.seg.stereo_prior(plate.depth_mm)
+    surface = reconstruct.remeasure_with_refined_lights(
+        surface, pre.images, cap.lights, K, plate.mask, valid=pre.valid, method=opts.normals_method, **solve,
+    )
+    clock.timings["light_refinement"] = round(time.perf_counter() - t_refit, 4)
+    return surface
+
+
+def _judge(points: np.ndarray, rays: np.ndarray, surface: reconstruct.Surface, plate: Plate, tgt: Target,
+           K: np.ndarray, out: Path, pool: ThreadPoolExecutor, writes: list, clock: StageClock) -> Measurement:
+    """Stages *curvature*, *deviation* and *artifacts* (its files but details.json): curvature and the pixel
+    areas beside the registration, each artifact written beside the main line as soon as it is known.
+    ``writes``: the artifact writes under way (normals.png when the distant normals were written already)."""
+    field, surface_mask = surface.field, surface.mask
+    normals_written = bool(writes)
+    clock.begin("curvature")
+    curvature_job = pool.submit(_curvature, points, surface_mask)
+    area_job = pool.submit(_pixel_area_mm2, surface.depth_mm, field.normals, rays, K)
+    writes.append(pool.submit(artifacts.save_depth, out / ARTIFACT_FILES["depth"], surface.depth_mm))
+    if not normals_written:
+        writes.append(pool.submit(artifacts.write_normals_png, out / ARTIFACT_FILES["normals"], field.normals,
+                                  field.mask))
+    clock.begin("deviation")
+    pose = registration.register_to_target(points, surface_mask, tgt)
+    dev = deviation.deviation_map(points, surface_mask, tgt, pose)
+    writes += [
+        pool.submit(artifacts.write_surface_ply, out / ARTIFACT_FILES["surface"], points, surface_mask, dev,
+                    tolerance_mm=tgt.tolerance_mm),
+        pool.submit(artifacts.write_deviation_png, out / ARTIFACT_FILES["deviation_map"], dev, surface_mask,
+                    tolerance_mm=tgt.tolerance_mm),
+    ]
+    pixel_area = area_job.result()
+    judgement = verdict.judge(
+        dev, surface_mask, tgt.tolerance_mm, pixel_area_mm2=pixel_area,
+        edge_artefacts=None if plate.seg is None else verdict.EdgeArtefacts(plate.seg.surroundings_step_mm),
+    )
+    clock.end("deviation")
+    clock.begin("artifacts")
+    verts, faces = target_geometry.target_surface(tgt)
+    writes.append(pool.submit(artifacts.write_target_ply, out / ARTIFACT_FILES["target_surface"], verts, faces,
+                              pose.T_cam_target))
+    curv, clock.timings["curvature"] = curvature_job.result()
+    for write in writes:
+        write.result()
+    return Measurement(surface=surface, plate=plate, pose=pose, judgement=judgement, curv=curv,
+                        pixel_area=pixel_area)
+
+
+def _apply_light_calibration(cap: Capture, calibration: Lights | None, warnings: list[str]) -> Capture:
+    """The capture with the calibrated lights in place of nominal ones (see :func:`inspect`)."""
+    if calibration is None or cap.lights.any_point:
+        return cap
+    if calibration.n != cap.n_lights:
+        warnings.append(
+            f"the light calibration was not applied: it has {calibration.n} lights, the capture "
+            f"{cap.n_lights} images; nominal light directions were used"
+        )
+        return cap
+    warnings.append("a light calibration was applied to the capture's nominal light directions")
+    return replace(cap, lights=calibration)
+
+
+def _curvature(points: np.ndarray, mask: np.ndarray):
+    """Principal curvatures and their run time (s)."""
+    t = time.perf_counter()
+    curv = curvature.principal_curvatures(points, mask)
+    return curv, round(time.perf_counter() - t, 4)
+
+
+def _stereo_depth(cap: Capture, mask: np.ndarray, opts: InspectOptions) -> tuple[np.ndarray, float, int]:
+    """Stereo depth (mm, left undistorted grid, NaN where unmatched or outside ``mask``), its run time (s) and
+    the reduction the pair was matched at (1: full size)."""
+    t = time.perf_counter()
+    z_nominal = cap.working_distance_mm or NOMINAL_DISTANCE_MM
+    left, right, rig, stereo_mask = cap.stereo_left, cap.stereo_right, cap.rig, mask
+    width, height = rig.image_size
+    step = -(-width // opts.stereo_max_width)  # the smallest whole reduction that fits
+    if step > 1:
+        # the stereo depth only anchors scale and the lowest frequencies: a reduced pair is plenty, and cheaper
+        small = (width // step, height // step)
+        left, right = (cv2.resize(im, small, interpolation=cv2.INTER_AREA) for im in (left, right))
+        rig = replace(rig, left=rig.left.resized(small), right=rig.right.resized(small))
+        stereo_mask = cv2.resize(mask.view(np.uint8), small, interpolation=cv2.INTER_NEAREST).astype(bool)
+    sd = stereo.stereo_depth(
+        left,
+        right,
+        rig,
+        z_min_mm=z_nominal / (1 + opts.depth_margin),
+        z_max_mm=z_nominal * (1 + opts.depth_margin),
+        mask=stereo_mask,
+    )
+    depth = sd.depth_mm
+    if step > 1:  # back onto the full grid; a hole spreads to the pixels that interpolate from it
+        depth = cv2.resize(depth, (width, height), interpolation=cv2.INTER_LINEAR)
+    return np.where(mask, depth, np.nan), round(time.perf_counter() - t, 4), step
+
+
+def _segment(pre, depth_mm, K, candidates, depth_scale, field, tgt):
+    """The plate told from its surroundings (:func:`pipeline.segmentation.segment_plate`)."""
+    return segmentation.segment_plate(
+        pre.brightest, depth_mm, K, seen=pre.seen, candidates=candidates, depth_scale_px=depth_scale,
+        normals=None if field is None else field.normals,  # NaN off the field's mask (NormalField)
+        target_area_mm2=target_geometry.target_area_mm2(tgt),
+    )
+
+
+def _restricted(field: normals.NormalField, mask: np.ndarray) -> normals.NormalField:
+    """The normal field on ``mask`` only (estimated over the candidates, measured on the plate).
+
+    The field's arrays are this inspection's own: the pixels left out are set to NaN in place.
+    """
+    drop = field.mask & ~mask
+    if not drop.any():
+        return field
+    field.normals[drop] = np.nan
+    field.albedo[drop] = np.nan
+    keep = field.mask & ~drop
+    filled = field.filled & keep
+    return replace(field, mask=keep, filled=filled, n_filled=int(np.count_nonzero(filled)))
+
+
+def _pixel_area_mm2(depth_mm: np.ndarray, normals: np.ndarray, rays: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(H, W) area (mm^2) of the surface patch each pixel sees.
+
+    A pixel spans the solid angle ``cos^3(a) / (fx fy)`` (``a``: its ray's angle to
+    the optical axis); at distance ``z / cos(a)`` on a surface tilted by ``t``
+    against the ray that is ``z^2 / (fx fy |n . r|)`` with ``r = K^-1 (u, v, 1)``.
+    """
+    n_dot_r = np.abs(np.einsum("hwc,hwc->hw", normals, rays))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return depth_mm**2 / (K[0, 0] * K[1, 1] * n_dot_r)

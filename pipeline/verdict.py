@@ -1,0 +1,322 @@
+"""The pass/fail verdict of a plate from its deviation map, and the edge artefacts left out of it."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+
+#: Default smallest out-of-tolerance region (mm^2) that fails a plate: 100 mm^2 = 1 cm^2, i.e. tens of
+#: pixels at 1.2-3.5 mm/pixel, far more than a noisy pixel, far less than a real dent (a 6 mm dent of
+#: radius 100 mm is out of a 2 mm tolerance over ~13 000 mm^2).
+MIN_DEFECT_AREA_MM2 = 100.0
+#: Default largest share (%) of the measured area allowed out of tolerance in total, scattered or not.
+MAX_OUTSIDE_PCT = 1.0
+
+
+@dataclass(frozen=True)
+class DefectRegion:
+    """A connected region (8-neighbour) of pixels out of tolerance.
+
+    Attributes
+    ----------
+    centroid_px : (float, float)
+        ``(u, v)`` = (column, row) of the region's centroid, pixels.
+    area_mm2 : float
+        Surface area of the region, mm^2.
+    peak_deviation_mm : float
+        Signed deviation of largest magnitude in the region, mm.
+    n_pixels : int
+    """
+
+    centroid_px: tuple[float, float]
+    area_mm2: float
+    peak_deviation_mm: float
+    n_pixels: int
+
+
+@dataclass(frozen=True)
+class EdgeArtefacts:
+    """How :func:`judge` tells segmentation artefacts at the plate's edge from edge defects (issue 17).
+
+    An out-of-tolerance region is an *edge artefact*, excluded from the verdict and the statistics,
+    when all three hold:
+
+    - it touches the measured mask's boundary (an outline or an opening; not the image frame);
+    - it is thin along that boundary: ``share`` of its pixels lie within ``max_depth_px`` of it (mixed
+      pixels and what the integration makes of them; a bent edge or a flange reaches further in);
+    - what lies beside it is floor-like: the median of ``step_mm`` over its pixels is at least
+      ``min_step_mm`` (``+inf``, a dark background, counts as a step; NaN, unknown, does not count).
+
+    Attributes
+    ----------
+    step_mm : (H, W) array_like of float
+        Depth step from the plate to its surroundings near the boundary, mm, positive behind the plate
+        (``pipeline.segmentation.Segmentation.surroundings_step_mm``); NaN where unknown.
+    min_step_mm : float
+        Least step (mm) typical of the floor or the supports beside the plate.
+    max_depth_px : float
+        How far into the plate (px) an artefact reaches.
+    share : float
+        Share of the region's pixels that must lie within ``max_depth_px`` of the boundary (0..1].
+    """
+
+    step_mm: np.ndarray
+    min_step_mm: float = 100.0
+    max_depth_px: float = 6.0
+    share: float = 0.9
+
+    def __post_init__(self) -> None:
+        step = np.asarray(self.step_mm, dtype=np.float32)
+        if step.ndim != 2:
+            raise ValueError(f"EdgeArtefacts.step_mm: expected an (H, W) array, got shape {step.shape}")
+        object.__setattr__(self, "step_mm", step)
+        if not (math.isfinite(self.min_step_mm) and self.min_step_mm > 0):
+            raise ValueError(f"EdgeArtefacts.min_step_mm: expected a step > 0 mm, got {self.min_step_mm}")
+        if not (math.isfinite(self.max_depth_px) and self.max_depth_px > 0):
+            raise ValueError(f"EdgeArtefacts.max_depth_px: expected > 0 px, got {self.max_depth_px}")
+        if not 0 < self.share <= 1:
+            raise ValueError(f"EdgeArtefacts.share: expected in (0, 1], got {self.share}")
+
+
+@dataclass(frozen=True)
+class ExcludedRegion:
+    """An out-of-tolerance region left out of the verdict, and why.
+
+    Attributes
+    ----------
+    centroid_px : (float, float)
+        ``(u, v)`` of its centroid, pixels.
+    area_mm2 : float
+    peak_deviation_mm : float
+        Signed deviation of largest magnitude in it, mm.
+    n_pixels : int
+    reason : str
+    """
+
+    centroid_px: tuple[float, float]
+    area_mm2: float
+    peak_deviation_mm: float
+    n_pixels: int
+    reason: str
+
+
+@dataclass(frozen=True)
+class Judgement:
+    """Deviation statistics and the verdict (see :func:`judge` for the rule).
+
+    Attributes
+    ----------
+    rms_mm, max_abs_mm, p95_mm : float
+        RMS, maximum and 95th percentile of ``|deviation|`` over the judged pixels, mm.
+    within_tolerance_pct : float
+        Share of the judged surface area with ``|deviation| <= tolerance_mm``, percent.
+    verdict : {"pass", "fail"}
+    defects : tuple of DefectRegion
+        Out-of-tolerance regions of at least ``min_defect_area_mm2``, largest first.
+    outside_area_mm2 : float
+        Total out-of-tolerance area, mm^2 (regions of any size).
+    n_pixels : int
+        Pixels judged (in the mask, with a finite deviation).
+    reasons : tuple of str
+        Why the plate failed (empty when it passed).
+    excluded : tuple of ExcludedRegion
+        Out-of-tolerance regions left out of the verdict and of every statistic above (only with
+        ``edge_artefacts``), each with its reason.
+    """
+
+    rms_mm: float
+    max_abs_mm: float
+    p95_mm: float
+    within_tolerance_pct: float
+    verdict: str
+    defects: tuple[DefectRegion, ...]
+    outside_area_mm2: float
+    n_pixels: int
+    reasons: tuple[str, ...]
+    excluded: tuple[ExcludedRegion, ...] = ()
+
+
+def judge(deviation_mm, mask, tolerance_mm: float, *, pixel_area_mm2, min_defect_area_mm2: float = MIN_DEFECT_AREA_MM2,
+          max_outside_pct: float = MAX_OUTSIDE_PCT, edge_artefacts: EdgeArtefacts | None = None) -> Judgement:
+    """Deviation statistics and the pass/fail verdict of a plate.
+
+    Parameters
+    ----------
+    deviation_mm : (H, W) array_like of float
+        Signed deviation, mm (from :func:`deviation_map`); NaN pixels are not judged.
+    mask : (H, W) bool
+        Measured pixels.
+    tolerance_mm : float
+        Allowed ``|deviation|``, mm, > 0.
+    pixel_area_mm2 : float or (H, W) array_like of float
+        Surface area one pixel covers, mm^2 (one value, or per pixel).
+    min_defect_area_mm2 : float
+        Smallest connected out-of-tolerance region that fails the plate, mm^2 (default 100 mm^2).
+    max_outside_pct : float
+        Largest share of the judged area allowed out of tolerance in total, percent (default 1 %).
+    edge_artefacts : EdgeArtefacts, optional
+        Leave out-of-tolerance regions that are segmentation artefacts at the plate's edge (see
+        :class:`EdgeArtefacts`) out of the verdict and the statistics, each listed in
+        ``Judgement.excluded`` with its reason. None (default): every region is judged.
+
+    Returns
+    -------
+    Judgement
+
+    Raises
+    ------
+    ValueError
+        Bad shapes, non-positive tolerance or areas, or no pixel with a finite deviation in the mask.
+
+    Notes
+    -----
+    Rule: the plate **fails** when some 8-connected region of pixels with ``|deviation| > tolerance_mm``
+    covers at least ``min_defect_area_mm2``, or when the out-of-tolerance pixels together cover more than
+    ``max_outside_pct`` of the judged area; otherwise it passes. So isolated noisy pixels do not fail a
+    good plate, while a real local defect (a dent, a kink) or a plate wrong all over does. Statistics are
+    over the judged pixels (mask and finite deviation); ``within_tolerance_pct`` is area-weighted.
+    """
+    dev, m, area = _check_inputs(deviation_mm, mask, tolerance_mm, pixel_area_mm2, min_defect_area_mm2,
+                                 max_outside_pct)
+    judged = m & np.isfinite(dev)
+    excluded: tuple[ExcludedRegion, ...] = ()
+    if edge_artefacts is not None:
+        if not isinstance(edge_artefacts, EdgeArtefacts):
+            raise TypeError(f"edge_artefacts: expected an EdgeArtefacts or None, got {type(edge_artefacts).__name__}")
+        if edge_artefacts.step_mm.shape != dev.shape:
+            raise ValueError(
+                f"edge_artefacts.step_mm: expected shape {dev.shape} to match deviation_mm, got {edge_artefacts.step_mm.shape}"
+            )
+        left_out, excluded = _edge_artefacts(dev, m, judged, tolerance_mm, area, edge_artefacts)
+        judged &= ~left_out
+    n = int(np.count_nonzero(judged))
+    if n == 0:
+        raise ValueError("deviation_mm: expected finite deviations inside the mask, got none")
+    area_judged = area[judged] if area.ndim == 2 else None
+    if area_judged is not None and not np.all(np.isfinite(area_judged) & (area_judged > 0)):
+        raise ValueError("pixel_area_mm2: expected positive finite areas at every judged pixel")
+
+    a = np.abs(dev[judged])
+    rms = float(np.sqrt(np.mean(a * a)))
+    max_abs = float(a.max())
+    p95 = float(np.percentile(a, 95))
+    w = np.full(n, float(area)) if area.ndim == 0 else area_judged
+    outside = a > tolerance_mm
+    total_area = float(w.sum())
+    outside_area = float(w[outside].sum())
+    within_pct = 100.0 * (1.0 - outside_area / total_area)
+    defects = _defect_regions(dev, judged, outside, area, min_defect_area_mm2) if outside.any() else []
+    reasons = []
+    if defects:
+        reasons.append(f"{len(defects)} region(s) out of the {tolerance_mm:g} mm tolerance over "
+                       f"{min_defect_area_mm2:g} mm^2 (largest {defects[0].area_mm2:.0f} mm^2)")
+    if 100.0 - within_pct > max_outside_pct:
+        reasons.append(f"{100.0 - within_pct:.2f} % of the area out of tolerance (over {max_outside_pct:g} %)")
+    return Judgement(rms_mm=rms, max_abs_mm=max_abs, p95_mm=p95, within_tolerance_pct=within_pct,
+                     verdict="fail" if reasons else "pass", defects=tuple(defects), outside_area_mm2=outside_area,
+                     n_pixels=n, reasons=tuple(reasons), excluded=excluded)
+
+
+def _check_inputs(deviation_mm, mask, tolerance_mm, pixel_area_mm2, min_defect_area_mm2,
+                  max_outside_pct) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The arguments of :func:`judge` checked: deviation (H, W) float64, mask, pixel area (scalar or (H, W))."""
+    dev = np.asarray(deviation_mm, dtype=np.float64)
+    if dev.ndim != 2:
+        raise ValueError(f"deviation_mm: expected shape (H, W), got {dev.shape}")
+    m = np.asarray(mask)
+    if m.dtype != np.bool_ or m.shape != dev.shape:
+        raise ValueError(f"mask: expected a bool array of shape {dev.shape}, got {m.dtype} {m.shape}")
+    if not (math.isfinite(tolerance_mm) and tolerance_mm > 0):
+        raise ValueError(f"tolerance_mm: expected a positive number of mm, got {tolerance_mm}")
+    if not (math.isfinite(min_defect_area_mm2) and min_defect_area_mm2 > 0):
+        raise ValueError(f"min_defect_area_mm2: expected a positive area in mm^2, got {min_defect_area_mm2}")
+    if not (math.isfinite(max_outside_pct) and 0 <= max_outside_pct <= 100):
+        raise ValueError(f"max_outside_pct: expected a percentage in [0, 100], got {max_outside_pct}")
+    area = np.asarray(pixel_area_mm2, dtype=np.float64)
+    if area.ndim == 0:
+        if not (math.isfinite(float(area)) and area > 0):
+            raise ValueError(f"pixel_area_mm2: expected a positive area in mm^2, got {float(area)}")
+    elif area.shape != dev.shape:
+        raise ValueError(f"pixel_area_mm2: expected a number or shape {dev.shape}, got shape {area.shape}")
+    return dev, m, area
+
+
+def _defect_regions(dev: np.ndarray, judged: np.ndarray, outside: np.ndarray, area: np.ndarray,
+                    min_defect_area_mm2: float) -> list[DefectRegion]:
+    """The 8-connected regions of the out-of-tolerance judged pixels that cover at least
+    ``min_defect_area_mm2``, largest first (``outside``: per judged pixel)."""
+    defects: list[DefectRegion] = []
+    out_map = np.zeros(dev.shape, dtype=bool)
+    out_map[judged] = outside
+    labels, n_lab = ndimage.label(out_map, structure=np.ones((3, 3), dtype=bool))
+    rows, cols = np.nonzero(out_map)  # few pixels: per-region sums by bincount over them only
+    lab = labels[rows, cols]
+    px_area = np.full(lab.size, float(area)) if area.ndim == 0 else area[rows, cols]
+    reg_area = np.bincount(lab, weights=px_area, minlength=n_lab + 1)
+    reg_count = np.bincount(lab, minlength=n_lab + 1)
+    reg_row = np.bincount(lab, weights=rows, minlength=n_lab + 1)
+    reg_col = np.bincount(lab, weights=cols, minlength=n_lab + 1)
+    vals = dev[rows, cols]
+    for k in np.nonzero(reg_area >= min_defect_area_mm2)[0]:
+        if k == 0:
+            continue
+        v = vals[lab == k]
+        peak = float(v[np.argmax(np.abs(v))])
+        defects.append(DefectRegion(centroid_px=(float(reg_col[k] / reg_count[k]), float(reg_row[k] / reg_count[k])),
+                                    area_mm2=float(reg_area[k]), peak_deviation_mm=peak, n_pixels=int(reg_count[k])))
+    defects.sort(key=lambda d: -d.area_mm2)
+    return defects
+
+
+def _edge_artefacts(dev: np.ndarray, mask: np.ndarray, judged: np.ndarray, tolerance_mm: float, area: np.ndarray,
+                    rule: EdgeArtefacts) -> tuple[np.ndarray, tuple[ExcludedRegion, ...]]:
+    """The pixels of out-of-tolerance regions that are edge artefacts under ``rule``, and those regions."""
+    out_map = judged & (np.abs(np.where(judged, dev, 0.0)) > tolerance_mm)
+    if not out_map.any():
+        return np.zeros_like(mask), ()
+    # distance (px) to the mask's boundary; beyond the image frame counts as inside (the plate goes on)
+    pad = int(math.ceil(rule.max_depth_px)) + 2
+    framed = cv2.copyMakeBorder(mask.view(np.uint8), pad, pad, pad, pad, cv2.BORDER_REPLICATE)
+    depth_px = cv2.distanceTransform(framed, cv2.DIST_L2, 3)[pad:-pad, pad:-pad]
+    labels, n_lab = ndimage.label(out_map, structure=np.ones((3, 3), dtype=bool))
+    rows, cols = np.nonzero(out_map)
+    lab = labels[rows, cols]
+    d = depth_px[rows, cols]
+    step = rule.step_mm[rows, cols]
+    touches = np.bincount(lab, weights=(d <= 1.5).astype(np.float64), minlength=n_lab + 1) > 0
+    count = np.bincount(lab, minlength=n_lab + 1)
+    shallow = np.bincount(lab, weights=(d <= rule.max_depth_px).astype(np.float64), minlength=n_lab + 1)
+    thin = shallow >= rule.share * np.maximum(count, 1)
+    # median of the step over the region's pixels where it is known (inf included) >= min_step_mm
+    known = ~np.isnan(step)
+    n_known = np.bincount(lab[known], minlength=n_lab + 1)
+    n_deep = np.bincount(lab[known], weights=(step[known] >= rule.min_step_mm).astype(np.float64), minlength=n_lab + 1)
+    floorish = (n_known > 0) & (n_deep > 0.5 * n_known)
+    artefact = touches & thin & floorish
+    artefact[0] = False
+    if not artefact.any():
+        return np.zeros_like(mask), ()
+    px_area = np.full(lab.size, float(area)) if area.ndim == 0 else area[rows, cols]
+    reg_area = np.bincount(lab, weights=px_area, minlength=n_lab + 1)
+    reg_row = np.bincount(lab, weights=rows, minlength=n_lab + 1)
+    reg_col = np.bincount(lab, weights=cols, minlength=n_lab + 1)
+    vals = dev[rows, cols]
+    regions = []
+    for k in np.nonzero(artefact)[0]:
+        v = vals[lab == k]
+        steps = step[(lab == k) & known]
+        typical = float(np.median(steps))
+        beside = "dark surroundings without stereo depth" if math.isinf(typical) else f"surroundings {typical:.0f} mm behind"
+        regions.append(ExcludedRegion(
+            centroid_px=(float(reg_col[k] / count[k]), float(reg_row[k] / count[k])), area_mm2=float(reg_area[k]),
+            peak_deviation_mm=float(v[np.argmax(np.abs(v))]), n_pixels=int(count[k]),
+            reason=(f"edge artefact: along the plate's edge, within {rule.max_depth_px:g} px of it, beside "
+                    f"{beside}: pixels that mix plate and surroundings, not a forming defect"),
+        ))
+    regions.sort(key=lambda r: -r.area_mm2)
+    return artefact[labels] & out_map, tuple(regions)

@@ -1,0 +1,45 @@
+"""Process policy (pipeline/parallel.py): worker counts and the OpenMP wait policy are set by entry points."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from pipeline.parallel import WORKERS_ENV, configure_process, default_workers
+
+
+def test_default_workers_is_the_cpus_of_the_process(monkeypatch):
+    monkeypatch.delenv(WORKERS_ENV, raising=False)
+    expected = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    assert default_workers() == expected >= 1
+
+
+def test_default_workers_env_override(monkeypatch):
+    monkeypatch.setenv(WORKERS_ENV, " 3 ")
+    assert default_workers() == 3
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "two", "1.5"])
+def test_default_workers_refuses_a_bad_override(monkeypatch, value):
+    monkeypatch.setenv(WORKERS_ENV, value)
+    with pytest.raises(ValueError, match=WORKERS_ENV):
+        default_workers()
+
+
+def test_importing_the_pipeline_sets_no_process_policy():
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    code = "import os, pipeline.run, pipeline.cli; print(os.environ.get('OMP_WAIT_POLICY'))"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "None"
+
+
+def test_configure_process_sets_passive_waiting_unless_the_user_chose(monkeypatch):
+    monkeypatch.delenv("OMP_WAIT_POLICY", raising=False)
+    configure_process()
+    assert os.environ["OMP_WAIT_POLICY"] == "PASSIVE"
+    monkeypatch.setenv("OMP_WAIT_POLICY", "ACTIVE")
+    configure_process()
+    assert os.environ["OMP_WAIT_POLICY"] == "ACTIVE"
