@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import re
+import sys
 from typing import Any
 
 from fastapi import FastAPI, HTTPException, Request
@@ -103,8 +104,31 @@ def known_error(exc: BaseException, *, upload_field: str | None = None) -> tuple
     if isinstance(exc, ApiError):
         return exc.status_code, error_body(str(exc.detail), exc.field)
     if isinstance(exc, StarletteHTTPException):
+        reason = body_parse_failure(exc)
+        if reason is not None:
+            return 422, error_body(f"body: {reason}", "body")
         return exc.status_code, error_body(str(exc.detail))
     return None
+
+
+def body_parse_failure(exc: StarletteHTTPException) -> str | None:
+    """What was wrong with a JSON body FastAPI could not parse (its 400), or None for another error.
+
+    FastAPI answers "There was an error parsing the body" (400) when ``json.loads`` fails with
+    something else than a syntax error: a body nested deeper than the interpreter's recursion
+    limit (RecursionError), an integer of more digits than Python converts, bytes that are not
+    UTF-8 (ValueError). Such a body is answered 422 naming ``body`` on every route.
+    """
+    cause = exc.__cause__
+    if exc.status_code != 400 or not isinstance(cause, (RecursionError, ValueError)):
+        return None
+    if isinstance(cause, RecursionError):
+        return "not usable JSON: objects and lists nested too deeply"
+    if isinstance(cause, UnicodeDecodeError):
+        return f"not UTF-8 text (byte {cause.start})"
+    if "digits" in str(cause):
+        return f"not usable JSON: a number of more than {sys.get_int_max_str_digits()} digits"
+    return f"not usable JSON: {cause}"
 
 
 def relabel_input_error(err: InputError, base) -> InputError:

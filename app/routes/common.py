@@ -4,20 +4,17 @@ from __future__ import annotations
 
 import logging
 import shutil
-import sys
 from collections.abc import Callable
 from pathlib import Path as FilePath
 from typing import Annotated, Any
 
 from fastapi import Header, Path, Query, Request
 from fastapi.responses import JSONResponse
-from fastapi.routing import APIRoute
 from pydantic import AfterValidator
 from sqlalchemy.orm import Session
-from starlette.exceptions import HTTPException
 
 from app.deps import Writer
-from app.errors import ApiError, error_body, known_error, relabel_input_error
+from app.errors import error_body, known_error, relabel_input_error
 from app.limits.queue import QueueFullError
 from app.models import Inspection, Target
 from app.schemas import PLATE_ID_MAX_LENGTH, PLATE_ID_REGEX, InspectionOut, InspectionSummary, PlateOut, TargetOut
@@ -141,43 +138,6 @@ def idempotent_write(
     if after_commit is not None:
         after_commit()
     return JSONResponse(body, status_code=status)
-
-
-class JsonBodyRoute(APIRoute):
-    """A route whose JSON body FastAPI cannot parse answers 422 naming ``body``, not 400.
-
-    FastAPI answers "There was an error parsing the body" (400) when ``json.loads`` fails with
-    something else than a syntax error: a body nested deeper than the interpreter's recursion
-    limit (RecursionError), an integer of more digits than Python converts (ValueError).
-    """
-
-    def get_route_handler(self):
-        handler = super().get_route_handler()
-
-        async def route_handler(request: Request):
-            try:
-                return await handler(request)
-            except HTTPException as exc:
-                reason = _body_parse_failure(exc)
-                if reason is None:
-                    raise
-                raise ApiError(422, f"body: {reason}", field="body") from None
-
-        return route_handler
-
-
-def _body_parse_failure(exc: HTTPException) -> str | None:
-    """What was wrong with a JSON body FastAPI could not parse (its 400), or None for another error."""
-    cause = exc.__cause__
-    if exc.status_code != 400 or not isinstance(cause, (RecursionError, ValueError)):
-        return None
-    if isinstance(cause, RecursionError):
-        return "not usable JSON: objects and lists nested too deeply"
-    if isinstance(cause, UnicodeDecodeError):
-        return f"not UTF-8 text (byte {cause.start})"
-    if "digits" in str(cause):
-        return f"not usable JSON: a number of more than {sys.get_int_max_str_digits()} digits"
-    return f"not usable JSON: {cause}"
 
 
 # ------------------------------------------------------------------ response builders

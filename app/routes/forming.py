@@ -12,12 +12,12 @@ from pydantic import AfterValidator
 
 from app.deps import SessionDep, WriterDep
 from app.errors import ApiError
-from app.routes.common import IdempotencyKeyHeader, JsonBodyRoute, PlateIdPath, idempotent_write
+from app.routes.common import IdempotencyKeyHeader, PlateIdPath, idempotent_write
 from app.schemas import MACHINE_ID_MAX_LENGTH, MACHINE_ID_REGEX, AdviceOut, ErrorOut, MachineIn, MachineOut
 from app.services import forming as svc
 from app.storage import check_plate_id
 
-router = APIRouter(tags=["forming"], route_class=JsonBodyRoute)
+router = APIRouter(tags=["forming"])
 
 
 def _machine_id(value: str) -> str:

@@ -27,7 +27,6 @@ from app.schemas import (
 from app.routes.common import (
     IdempotencyKeyHeader,
     InspectionIdPath,
-    JsonBodyRoute,
     OffsetQuery,
     PlateIdPath,
     idempotent_write,
@@ -42,7 +41,7 @@ from app.services.inspections import CAPTURE_FILE
 from app.services.targets import TARGET_FILE
 from pipeline.formats import InputError
 
-router = APIRouter(tags=["inspections"], route_class=JsonBodyRoute)
+router = APIRouter(tags=["inspections"])
 
 ERRORS = {
     401: {"model": ErrorOut},

@@ -268,3 +268,10 @@ def test_the_dashboard_cell_form_body_is_still_accepted(client):
             "cutout_radius_mm": 250}
     r = client.post("/api/v1/plates/H7-P11/inspections/simulated", json=body, headers=AUTH)
     assert r.status_code == 202, r.text
+
+
+def test_a_json_body_json_cannot_parse_is_422_on_every_route(client):
+    # The session route has no special handling: the error handler itself turns FastAPI's 400 into 422.
+    r = client.post("/api/v1/session", content=f'{{"token": {DEEP}}}', headers=JSON)
+    body = _refused(r, "body")
+    assert "nested too deeply" in body["detail"]
