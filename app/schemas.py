@@ -15,16 +15,10 @@ from app.limits.physical import (
     SIZE_MM,
     radius_reason,
 )
+from app.storage import PLATE_ID_MAX_LENGTH, PLATE_ID_REGEX  # the one plate-id rule (folder names)
 
 T = TypeVar("T")
 
-#: A plate id as a regular expression: letters, digits, '.', '_', '-', starting with a letter or
-#: digit, never '..' (plate ids become folder names). The same rule as
-#: :func:`app.storage.check_plate_id`, written without look-ahead so that OpenAPI clients
-#: (and the Rust regex engine of pydantic) read it; length 1..64 apart (``max_length``).
-PLATE_ID_REGEX = r"^[A-Za-z0-9](?:\.?[A-Za-z0-9_-])*\.?$"
-#: Longest plate id.
-PLATE_ID_MAX_LENGTH = 64
 
 #: Request bodies: unknown keys refused, integers and booleans strict (``false`` is not 0, ``1``
 #: is not true, ``"5"`` is not a number), finite numbers only (no NaN, no Infinity).

@@ -24,17 +24,23 @@ import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
-#: Plate ids become folder names: letters, digits, '.', '_', '-'; 1..64 characters.
-PLATE_ID_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
+#: A plate id as a regular expression: letters, digits, '.', '_', '-', starting with a letter or
+#: digit, never '..' (plate ids become folder names). Written without look-ahead so that OpenAPI
+#: clients (and the Rust regex engine of pydantic) read it; the length apart (``PLATE_ID_MAX_LENGTH``).
+PLATE_ID_REGEX = r"^[A-Za-z0-9](?:\.?[A-Za-z0-9_-])*\.?$"
+#: Longest plate id.
+PLATE_ID_MAX_LENGTH = 64
+_PLATE_ID = re.compile(PLATE_ID_REGEX)
 #: Artifact names served over HTTP: one plain file name, no folders.
 ARTIFACT_NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 
 
 def check_plate_id(plate_id: str) -> str:
     """``plate_id`` if it is a valid plate id, else ValueError naming what is allowed."""
-    if not isinstance(plate_id, str) or not PLATE_ID_PATTERN.match(plate_id) or ".." in plate_id:
+    if not isinstance(plate_id, str) or len(plate_id) > PLATE_ID_MAX_LENGTH or not _PLATE_ID.match(plate_id):
         raise ValueError(
-            f"plate_id: expected 1-64 letters, digits, '.', '_' or '-' (starting with a letter or digit), got {plate_id!r}"
+            f"plate_id: expected 1-{PLATE_ID_MAX_LENGTH} letters, digits, '.', '_' or '-' (starting with a letter or "
+            f"digit, no '..'), got {plate_id!r}"
         )
     return plate_id
 
