@@ -34,8 +34,17 @@ def register(subparsers) -> None:
     )
     p.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
     p.add_argument("--port", type=int, default=8000, help="port (default 8000)")
-    p.add_argument("--data-dir", type=Path, default=None, help="data directory (default: PLATE_INSPECT_DATA_DIR or ./var)")
-    p.add_argument("--demo", action="store_true", help="demo cell: generate and print an API token if none is set")
+    p.add_argument(
+        "--data-dir",
+        type=Path,
+        default=None,
+        help="data directory (default: PLATE_INSPECT_DATA_DIR or ./var)",
+    )
+    p.add_argument(
+        "--demo",
+        action="store_true",
+        help="demo cell: generate and print an API token if none is set",
+    )
     p.set_defaults(handler=serve_command)
 
 
@@ -72,8 +81,11 @@ class ConsumerProcess:
             if code is None or self._stopping.is_set():
                 continue
             if code == EXIT_CONFIG:
-                log.error("job consumer refused its settings (exit %s, see its log above); not restarted: jobs stay "
-                          "queued until the settings are fixed and the service restarted", code)
+                log.error(
+                    "job consumer refused its settings (exit %s, see its log above); not restarted: jobs stay "
+                    "queued until the settings are fixed and the service restarted",
+                    code,
+                )
                 return
             log.warning("job consumer exited with %s; restarting it", code)
             self._spawn()
@@ -109,7 +121,9 @@ def serve_command(args: argparse.Namespace) -> int:
         overrides["demo"] = True
     settings = Settings(**overrides)
     generated_token = settings.api_token is None
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s", force=True)
+    logging.basicConfig(
+        level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s", force=True
+    )
     try:
         app = create_app(settings)
     except ValueError as err:
@@ -118,8 +132,10 @@ def serve_command(args: argparse.Namespace) -> int:
     settings = app.state.settings
     if generated_token:
         print(f"plate-inspect serve: demo mode, API token: {app.state.api_token}", flush=True)
-    print(f"plate-inspect serve: http://{args.host}:{args.port}/ (API docs at /docs), data in {settings.data_dir.resolve()}",
-          flush=True)
+    print(
+        f"plate-inspect serve: http://{args.host}:{args.port}/ (API docs at /docs), data in {settings.data_dir.resolve()}",
+        flush=True,
+    )
     consumer = ConsumerProcess(settings)
     # uvicorn shuts down gracefully on SIGTERM, then raises the signal again with the handler
     # that was installed before it started: the default one would end this process before the

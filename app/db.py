@@ -30,7 +30,9 @@ def make_engine(url: str) -> Engine:
     is_sqlite = url.startswith("sqlite")
     engine = create_engine(
         url,
-        connect_args={"timeout": SQLITE_BUSY_TIMEOUT_S, "check_same_thread": False} if is_sqlite else {},
+        connect_args={"timeout": SQLITE_BUSY_TIMEOUT_S, "check_same_thread": False}
+        if is_sqlite
+        else {},
     )
     if is_sqlite:
 

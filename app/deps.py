@@ -82,7 +82,9 @@ def is_loopback(conn: HTTPConnection) -> bool:
         return False
 
 
-async def check_token(conn: HTTPConnection, presented: str, *, field: str, headers: dict | None = None) -> None:
+async def check_token(
+    conn: HTTPConnection, presented: str, *, field: str, headers: dict | None = None
+) -> None:
     """Check a presented API token, throttled per client address.
 
     The right token always passes (after the address's turn when it is throttled).
@@ -131,9 +133,15 @@ def has_dashboard_session(conn: HTTPConnection, *, db: Session | None = None) ->
         return False
     current = token_hash(conn.app.state.api_token)
     if db is not None:
-        return session_svc.find_session(session=db, session_id=session_id, token_hash=current) is not None
+        return (
+            session_svc.find_session(session=db, session_id=session_id, token_hash=current)
+            is not None
+        )
     with factory() as own:
-        return session_svc.find_session(session=own, session_id=session_id, token_hash=current) is not None
+        return (
+            session_svc.find_session(session=own, session_id=session_id, token_hash=current)
+            is not None
+        )
 
 
 def start_dashboard_session(response: Response, conn: HTTPConnection, *, db: Session) -> None:
@@ -144,7 +152,9 @@ def start_dashboard_session(response: Response, conn: HTTPConnection, *, db: Ses
     """
     settings: Settings = conn.app.state.settings
     lifetime = timedelta(hours=settings.session_hours)
-    session_id = session_svc.open_session(session=db, token_hash=token_hash(conn.app.state.api_token), lifetime=lifetime)
+    session_id = session_svc.open_session(
+        session=db, token_hash=token_hash(conn.app.state.api_token), lifetime=lifetime
+    )
     db.commit()
     response.set_cookie(
         SESSION_COOKIE,
@@ -175,7 +185,9 @@ class Writer:
 
 _bearer = HTTPBearer(auto_error=False, description="the API token (PLATE_INSPECT_API_TOKEN)")
 _session_cookie = APIKeyCookie(
-    name=SESSION_COOKIE, auto_error=False, description="a dashboard session (POST /api/v1/session), same-origin only"
+    name=SESSION_COOKIE,
+    auto_error=False,
+    description="a dashboard session (POST /api/v1/session), same-origin only",
 )
 
 
@@ -197,17 +209,35 @@ async def require_writer(
     challenge = {"WWW-Authenticate": "Bearer"}
     if request.headers.get("authorization") is not None:
         if bearer is None or not bearer.credentials.strip():
-            raise ApiError(401, "Authorization: expected 'Bearer <token>'", field="Authorization", headers=challenge)
-        await check_token(request, bearer.credentials.strip(), field="Authorization", headers=challenge)
+            raise ApiError(
+                401,
+                "Authorization: expected 'Bearer <token>'",
+                field="Authorization",
+                headers=challenge,
+            )
+        await check_token(
+            request, bearer.credentials.strip(), field="Authorization", headers=challenge
+        )
         return Writer(token_hash=token_hash(token), via="bearer")
     if cookie is not None:
         if not await run_in_threadpool(has_dashboard_session, request):
-            raise ApiError(401, f"{SESSION_COOKIE}: session expired, ended or unknown, log in again", field=SESSION_COOKIE)
+            raise ApiError(
+                401,
+                f"{SESSION_COOKIE}: session expired, ended or unknown, log in again",
+                field=SESSION_COOKIE,
+            )
         origin = request.headers.get("origin")
         if origin is not None and origin.split("://", 1)[-1] != request.headers.get("host", ""):
-            raise ApiError(403, f"Origin: cross-site write refused (origin {origin})", field="Origin")
+            raise ApiError(
+                403, f"Origin: cross-site write refused (origin {origin})", field="Origin"
+            )
         return Writer(token_hash=token_hash(token), via="cookie")
-    raise ApiError(401, "Authorization: a write needs 'Authorization: Bearer <token>'", field="Authorization", headers=challenge)
+    raise ApiError(
+        401,
+        "Authorization: a write needs 'Authorization: Bearer <token>'",
+        field="Authorization",
+        headers=challenge,
+    )
 
 
 WriterDep = Annotated[Writer, Depends(require_writer)]

@@ -45,9 +45,12 @@ class ValidationIssue(BaseModel):
 class ErrorBody(ErrorOut):
     """Every error answer (4xx, 500): ``detail`` and ``field``, plus what some errors add."""
 
-    file: str | None = Field(default=None, description="the file inside an upload the message is about")
+    file: str | None = Field(
+        default=None, description="the file inside an upload the message is about"
+    )
     errors: list[ValidationIssue] | None = Field(
-        default=None, description="every way the request does not match its operation (422 of request validation)"
+        default=None,
+        description="every way the request does not match its operation (422 of request validation)",
     )
 
 
@@ -59,7 +62,14 @@ def scrub_paths(text: str) -> str:
 class ApiError(HTTPException):
     """An HTTP error naming the request field it is about."""
 
-    def __init__(self, status_code: int, detail: str, *, field: str | None = None, headers: dict | None = None):
+    def __init__(
+        self,
+        status_code: int,
+        detail: str,
+        *,
+        field: str | None = None,
+        headers: dict | None = None,
+    ):
         super().__init__(status_code=status_code, detail=detail, headers=headers)
         self.field = field
 
@@ -93,7 +103,11 @@ def known_error(exc: BaseException, *, upload_field: str | None = None) -> tuple
     ``upload_field`` is the multipart field whose file an :class:`InputError` is about.
     """
     if isinstance(exc, InputError):
-        field = f"{upload_field}: {exc.field}" if upload_field and exc.field else (exc.field or upload_field)
+        field = (
+            f"{upload_field}: {exc.field}"
+            if upload_field and exc.field
+            else (exc.field or upload_field)
+        )
         return 422, error_body(str(exc), field, file=exc.file)
     if isinstance(exc, NotFoundError):
         return 404, error_body(exc.detail, exc.field)
@@ -162,7 +176,10 @@ def install_error_handlers(app: FastAPI) -> None:
             if allowed is not None:
                 # The router stops at the first route of the path; the path may have others.
                 headers = {**(headers or {}), "Allow": ", ".join(allowed)}
-                body = error_body(f"method: {request.method} is not allowed here; allowed: {', '.join(allowed)}", "method")
+                body = error_body(
+                    f"method: {request.method} is not allowed here; allowed: {', '.join(allowed)}",
+                    "method",
+                )
         return JSONResponse(body, status_code=status, headers=headers)
 
     @app.exception_handler(RequestValidationError)
@@ -196,5 +213,7 @@ def jsonable(errors: list[dict]) -> list[dict]:
     """Validation errors without the non-JSON bits (exception objects in ``ctx``)."""
     out = []
     for e in errors:
-        out.append({k: list(v) if k == "loc" else v for k, v in e.items() if k in ("type", "loc", "msg")})
+        out.append(
+            {k: list(v) if k == "loc" else v for k, v in e.items() if k in ("type", "loc", "msg")}
+        )
     return out

@@ -49,7 +49,9 @@ def resolve_token(settings: Settings) -> Settings:
     """
     if settings.api_token is not None:
         if not settings.api_token.get_secret_value().strip():
-            raise ValueError("PLATE_INSPECT_API_TOKEN: expected a non-empty token, got an empty string")
+            raise ValueError(
+                "PLATE_INSPECT_API_TOKEN: expected a non-empty token, got an empty string"
+            )
         return settings
     if not settings.demo:
         raise ValueError(

@@ -7,10 +7,20 @@ of truth for its job: ``queued -> running -> done | failed``.
 
 from __future__ import annotations
 
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from typing import Any
 
-from sqlalchemy import JSON, DateTime, Float, ForeignKey, Integer, String, Text, TypeDecorator, UniqueConstraint
+from sqlalchemy import (
+    JSON,
+    DateTime,
+    Float,
+    ForeignKey,
+    Integer,
+    String,
+    Text,
+    TypeDecorator,
+    UniqueConstraint,
+)
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 
 #: Job states of an inspection.
@@ -20,7 +30,7 @@ VERDICTS = ("pass", "fail", "error")
 
 
 def utcnow() -> datetime:
-    return datetime.now(timezone.utc)
+    return datetime.now(UTC)
 
 
 class UTCDateTime(TypeDecorator):
@@ -34,10 +44,10 @@ class UTCDateTime(TypeDecorator):
             return None
         if value.tzinfo is None:
             raise ValueError(f"datetime: expected a timezone-aware value, got naive {value!r}")
-        return value.astimezone(timezone.utc).replace(tzinfo=None)
+        return value.astimezone(UTC).replace(tzinfo=None)
 
     def process_result_value(self, value, dialect):
-        return None if value is None else value.replace(tzinfo=timezone.utc)
+        return None if value is None else value.replace(tzinfo=UTC)
 
 
 class Base(DeclarativeBase):
@@ -51,7 +61,9 @@ class Plate(Base):
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
 
     targets: Mapped[list[Target]] = relationship(back_populates="plate", order_by="Target.id")
-    inspections: Mapped[list[Inspection]] = relationship(back_populates="plate", order_by="Inspection.id")
+    inspections: Mapped[list[Inspection]] = relationship(
+        back_populates="plate", order_by="Inspection.id"
+    )
 
 
 class Target(Base):
@@ -185,7 +197,9 @@ class IdempotencyKey(Base):
     """The first answer to a write sent with an ``Idempotency-Key`` (per route and token)."""
 
     __tablename__ = "idempotency_keys"
-    __table_args__ = (UniqueConstraint("key", "scope", "token_hash", name="uq_idempotency_key_scope_token"),)
+    __table_args__ = (
+        UniqueConstraint("key", "scope", "token_hash", name="uq_idempotency_key_scope_token"),
+    )
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     key: Mapped[str] = mapped_column(String(255))

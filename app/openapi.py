@@ -38,8 +38,12 @@ _AUTH_ERRORS = {
     "403": "a write with the session cookie from another origin",
     "429": "a wrong token from an address that sent too many (Retry-After says when to try again)",
 }
-_VALIDATION_ERROR = {"422": "the request does not match the operation's parameters or body (`errors` lists how)"}
-_IDEMPOTENCY_ERROR = {"409": "the first request with this Idempotency-Key is still in progress; retry later"}
+_VALIDATION_ERROR = {
+    "422": "the request does not match the operation's parameters or body (`errors` lists how)"
+}
+_IDEMPOTENCY_ERROR = {
+    "409": "the first request with this Idempotency-Key is still in progress; retry later"
+}
 
 
 def install_openapi(app: FastAPI) -> None:
@@ -70,7 +74,10 @@ def document_errors(schema: dict[str, Any]) -> dict[str, Any]:
                 _add(responses, _BODY_ERRORS)
             if operation.get("security"):
                 _add(responses, _AUTH_ERRORS)
-            if any(p.get("in") == "header" and p.get("name") == "Idempotency-Key" for p in operation.get("parameters", ())):
+            if any(
+                p.get("in") == "header" and p.get("name") == "Idempotency-Key"
+                for p in operation.get("parameters", ())
+            ):
                 _add(responses, _IDEMPOTENCY_ERROR)
     for name in _FASTAPI_VALIDATION:
         components.pop(name, None)

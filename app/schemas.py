@@ -15,7 +15,7 @@ from app.limits.physical import (
     SIZE_MM,
     radius_reason,
 )
-from app.storage import PLATE_ID_MAX_LENGTH, PLATE_ID_REGEX  # the one plate-id rule (folder names)
+from app.storage import PLATE_ID_REGEX  # the one plate-id rule (folder names)
 
 T = TypeVar("T")
 
@@ -57,7 +57,9 @@ class MachineIn(BaseModel):
     model_config = STRICT_BODY
 
     kind: Literal["three-roll-pyramid"]
-    bottom_roll_spacing_mm: float = Field(gt=0, le=SIZE_MM[1], description="between the bottom rolls' axes")
+    bottom_roll_spacing_mm: float = Field(
+        gt=0, le=SIZE_MM[1], description="between the bottom rolls' axes"
+    )
     bottom_roll_diameter_mm: float = Field(gt=0, le=SIZE_MM[1])
     top_roll_diameter_mm: float = Field(gt=0, le=SIZE_MM[1])
 
@@ -76,8 +78,12 @@ class ProcessIn(BaseModel):
     model_config = STRICT_BODY
 
     method: Literal["roll-bending"]
-    machine_id: str = Field(min_length=1, max_length=MACHINE_ID_MAX_LENGTH, pattern=MACHINE_ID_REGEX)
-    top_roll_displacement_mm: float = Field(gt=0, le=SIZE_MM[1], description="down from touching the flat plate")
+    machine_id: str = Field(
+        min_length=1, max_length=MACHINE_ID_MAX_LENGTH, pattern=MACHINE_ID_REGEX
+    )
+    top_roll_displacement_mm: float = Field(
+        gt=0, le=SIZE_MM[1], description="down from touching the flat plate"
+    )
 
 
 class AdviceOut(BaseModel):
@@ -124,24 +130,42 @@ class SimulatedInspectionIn(BaseModel):
     )
     convex: bool = True
     n_lights: int = Field(default=12, ge=3, le=64)
-    noise: float = Field(default=0.004, ge=0, le=0.5, description="image noise, fraction of full scale")
+    noise: float = Field(
+        default=0.004, ge=0, le=0.5, description="image noise, fraction of full scale"
+    )
     bit_depth: Literal[8, 12, 16] = 16
     specular: float = Field(default=0.0, ge=0, le=1)
     lights: Literal["near-field", "distant"] = Field(
-        default="near-field", description="LED point lights above the plate (a real cell), or distant lights"
+        default="near-field",
+        description="LED point lights above the plate (a real cell), or distant lights",
     )
-    light_height_mm: float = Field(default=2800.0, gt=100, le=20000, description="near-field: LEDs above the plate, mm")
-    light_elevation_deg: float = Field(default=30.0, gt=0, lt=80, description="lights' angle from the optical axis")
-    led_mu: float = Field(default=1.5, ge=0, le=20, description="near-field: LED beam profile exponent cos^mu")
+    light_height_mm: float = Field(
+        default=2800.0, gt=100, le=20000, description="near-field: LEDs above the plate, mm"
+    )
+    light_elevation_deg: float = Field(
+        default=30.0, gt=0, lt=80, description="lights' angle from the optical axis"
+    )
+    led_mu: float = Field(
+        default=1.5, ge=0, le=20, description="near-field: LED beam profile exponent cos^mu"
+    )
     light_manifest: Literal["exact", "nominal"] = Field(
-        default="exact", description="near-field: the bundle gives positions (exact) or only directions (nominal)"
+        default="exact",
+        description="near-field: the bundle gives positions (exact) or only directions (nominal)",
     )
-    light_error_deg: float = Field(default=0.0, ge=0, lt=30, description="lights written off by this angle")
+    light_error_deg: float = Field(
+        default=0.0, ge=0, lt=30, description="lights written off by this angle"
+    )
     floor_mm: float | None = Field(
-        default=None, gt=50, le=2000, description="a lit shop floor this far below the plate, on 3 rails (null: dark)"
+        default=None,
+        gt=50,
+        le=2000,
+        description="a lit shop floor this far below the plate, on 3 rails (null: dark)",
     )
     cutout_radius_mm: float | None = Field(
-        default=None, gt=10, le=1000, description="a round opening this big, 400 mm right and 300 mm up of the centre"
+        default=None,
+        gt=10,
+        le=1000,
+        description="a round opening this big, 400 mm right and 300 mm up of the centre",
     )
     dents: list[DentIn] = Field(default_factory=list, max_length=32)
     seed: int = Field(default=0, ge=0, le=2**31 - 1)
@@ -150,7 +174,9 @@ class SimulatedInspectionIn(BaseModel):
     tolerance_mm: float = Field(
         default=2.0, gt=0, le=MAX_TOLERANCE_MM, description="used when the plate has no target"
     )
-    process: ProcessIn | None = Field(default=None, description="the forming pass that produced this shape")
+    process: ProcessIn | None = Field(
+        default=None, description="the forming pass that produced this shape"
+    )
 
     @field_validator("radius_mm")
     @classmethod
@@ -176,7 +202,9 @@ class AcquireInspectionIn(BaseModel):
         description="a plate-target/1 object (plane, cylinder or sphere) that becomes the plate's target; "
         "default: the plate's current target",
     )
-    process: ProcessIn | None = Field(default=None, description="the forming pass that produced this shape")
+    process: ProcessIn | None = Field(
+        default=None, description="the forming pass that produced this shape"
+    )
 
 
 class InspectionCreated(BaseModel):
@@ -285,7 +313,9 @@ class CameraHealth(BaseModel):
     vendor: str | None
     model: str | None
     serial: str | None
-    detail: str | None = Field(description="why not connected, or where a state that is not of now comes from")
+    detail: str | None = Field(
+        description="why not connected, or where a state that is not of now comes from"
+    )
 
 
 class CellHealth(BaseModel):
@@ -295,7 +325,9 @@ class CellHealth(BaseModel):
     reason: str | None = Field(description="why acquisitions cannot be queued")
     cell_id: str | None
     demo: bool
-    in_use: str | None = Field(description="who holds the cameras now (the cameras' state is then the last known)")
+    in_use: str | None = Field(
+        description="who holds the cameras now (the cameras' state is then the last known)"
+    )
     cameras: list[CameraHealth]
 
 
@@ -304,4 +336,6 @@ class Health(BaseModel):
     database: Literal["ok"]
     queued: int
     running: int
-    cell: CellHealth | None = Field(description="null: no cell on this server (PLATE_INSPECT_CELL_CONFIG unset)")
+    cell: CellHealth | None = Field(
+        description="null: no cell on this server (PLATE_INSPECT_CELL_CONFIG unset)"
+    )

@@ -60,7 +60,9 @@ DEFAULT_HEADERS = {
     "Referrer-Policy": "same-origin",
 }
 
-_INLINE_SCRIPT = re.compile(rb"<script(?![^>]*\bsrc=)[^>]*>(.*?)</script>", re.DOTALL | re.IGNORECASE)
+_INLINE_SCRIPT = re.compile(
+    rb"<script(?![^>]*\bsrc=)[^>]*>(.*?)</script>", re.DOTALL | re.IGNORECASE
+)
 
 
 def inline_script_hashes(html: bytes) -> list[str]:

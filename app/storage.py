@@ -37,7 +37,11 @@ ARTIFACT_NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 
 def check_plate_id(plate_id: str) -> str:
     """``plate_id`` if it is a valid plate id, else ValueError naming what is allowed."""
-    if not isinstance(plate_id, str) or len(plate_id) > PLATE_ID_MAX_LENGTH or not _PLATE_ID.match(plate_id):
+    if (
+        not isinstance(plate_id, str)
+        or len(plate_id) > PLATE_ID_MAX_LENGTH
+        or not _PLATE_ID.match(plate_id)
+    ):
         raise ValueError(
             f"plate_id: expected 1-{PLATE_ID_MAX_LENGTH} letters, digits, '.', '_' or '-' (starting with a letter or "
             f"digit, no '..'), got {plate_id!r}"
@@ -101,7 +105,9 @@ class Storage:
             ``name`` is not a plain file name (folders and ``..`` are refused).
         """
         if not ARTIFACT_NAME_PATTERN.match(name) or ".." in name:
-            raise ValueError(f"name: expected a plain file name (letters, digits, '.', '_', '-'), got {name!r}")
+            raise ValueError(
+                f"name: expected a plain file name (letters, digits, '.', '_', '-'), got {name!r}"
+            )
         path = self.artifacts_dir(inspection_id) / name
         return path if path.is_file() else None
 

@@ -163,7 +163,11 @@ class TokenThrottle:
         """Keep at most :data:`MAX_CLIENTS` addresses: expired ones go first, then the oldest."""
         if len(self._clients) < MAX_CLIENTS:
             return
-        for key in [k for k, s in self._clients.items() if not s.failures or s.failures[-1] <= now - self.window_s]:
+        for key in [
+            k
+            for k, s in self._clients.items()
+            if not s.failures or s.failures[-1] <= now - self.window_s
+        ]:
             del self._clients[key]
         while len(self._clients) >= MAX_CLIENTS:
             del self._clients[next(iter(self._clients))]

@@ -40,11 +40,11 @@ import html
 import json
 import logging
 import threading
+from collections.abc import Callable
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import trimesh
@@ -75,7 +75,12 @@ CLOSE_TRY_AGAIN_LATER = 1013
 _CAM_TO_DISPLAY = np.diag([1.0, -1.0, -1.0])
 _TARGET_COLOUR = (176, 180, 188)
 # Scene background: a vertical gradient from light grey-blue (top) to a darker one (bottom).
-_BACKGROUND = np.linspace((236, 240, 245), (196, 205, 216), 64).round().astype(np.uint8)[:, None, :].repeat(4, axis=1)
+_BACKGROUND = (
+    np.linspace((236, 240, 245), (196, 205, 216), 64)
+    .round()
+    .astype(np.uint8)[:, None, :]
+    .repeat(4, axis=1)
+)
 _LAYOUTS = ("Side by side", "Overlaid")
 
 
@@ -109,7 +114,9 @@ class PlateMeshes:
     @property
     def floor_z_m(self) -> float:
         """Height of a floor just below both meshes (display frame), m."""
-        low = min(float(self.measured_vertices[:, 2].min()), float(self.target_vertices[:, 2].min()))
+        low = min(
+            float(self.measured_vertices[:, 2].min()), float(self.target_vertices[:, 2].min())
+        )
         return low - 0.02 * self.extent_m
 
     @property
@@ -149,9 +156,13 @@ def decimate_mesh(
     if vertices.ndim != 2 or vertices.shape[1] != 3:
         raise ValueError(f"vertices: expected shape (V, 3), got {vertices.shape}")
     if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
-        raise ValueError(f"faces: expected an integer array of shape (F, 3), got {faces.dtype} {faces.shape}")
+        raise ValueError(
+            f"faces: expected an integer array of shape (F, 3), got {faces.dtype} {faces.shape}"
+        )
     if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
-        raise ValueError(f"faces: expected indices in [0, {len(vertices) - 1}], got [{faces.min()}, {faces.max()}]")
+        raise ValueError(
+            f"faces: expected indices in [0, {len(vertices) - 1}], got [{faces.min()}, {faces.max()}]"
+        )
     if values is not None:
         values = np.asarray(values, dtype=np.float64)
         if values.shape != (len(vertices),):
@@ -176,11 +187,17 @@ def decimate_mesh(
             break
         cell *= 1.15
     counts = np.bincount(inverse, minlength=len(cells)).astype(np.float64)
-    out_vertices = np.stack([np.bincount(inverse, vertices[:, k], len(cells)) for k in range(3)], axis=1)
+    out_vertices = np.stack(
+        [np.bincount(inverse, vertices[:, k], len(cells)) for k in range(3)], axis=1
+    )
     out_vertices /= counts[:, None]
     out_values = None if values is None else np.bincount(inverse, values, len(cells)) / counts
     out_faces = inverse[faces]
-    keep = (out_faces[:, 0] != out_faces[:, 1]) & (out_faces[:, 1] != out_faces[:, 2]) & (out_faces[:, 0] != out_faces[:, 2])
+    keep = (
+        (out_faces[:, 0] != out_faces[:, 1])
+        & (out_faces[:, 1] != out_faces[:, 2])
+        & (out_faces[:, 0] != out_faces[:, 2])
+    )
     out_faces = out_faces[keep]
     # Faces that collapsed onto the same three cells: keep the first (with its winding).
     _, first = np.unique(np.sort(out_faces, axis=1), axis=0, return_index=True)
@@ -254,10 +271,16 @@ def read_surface_ply(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     names = () if raw is None or raw.dtype.names is None else raw.dtype.names
     found = next((n for n in DEVIATION_PROPERTIES if n in names), None)
     if found is None:
-        raise ValueError(f"{path.name}: vertex: expected a property among {DEVIATION_PROPERTIES}, got {names}")
+        raise ValueError(
+            f"{path.name}: vertex: expected a property among {DEVIATION_PROPERTIES}, got {names}"
+        )
     if len(mesh.faces) == 0:
         raise ValueError(f"{path.name}: face: expected a triangle mesh, got no faces")
-    return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces), np.asarray(raw[found], dtype=np.float64)
+    return (
+        np.asarray(mesh.vertices, dtype=np.float64),
+        np.asarray(mesh.faces),
+        np.asarray(raw[found], dtype=np.float64),
+    )
 
 
 def load_plate_meshes(artifact_dir: Path, *, max_vertices: int = 150_000) -> PlateMeshes:
@@ -291,7 +314,9 @@ def load_plate_meshes(artifact_dir: Path, *, max_vertices: int = 150_000) -> Pla
         return ((v_mm - centre) @ _CAM_TO_DISPLAY.T / 1000.0).astype(np.float32)
 
     mv, mf, md = decimate_mesh(vertices, faces, deviation, max_vertices=max_vertices)
-    tv, tf, _ = decimate_mesh(np.asarray(target.vertices), np.asarray(target.faces), max_vertices=max_vertices)
+    tv, tf, _ = decimate_mesh(
+        np.asarray(target.vertices), np.asarray(target.faces), max_vertices=max_vertices
+    )
     mv, tv = to_display(mv), to_display(tv)
     return PlateMeshes(
         measured_vertices=mv,
@@ -317,9 +342,9 @@ def _facing_up(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 class _OfflineViserServer(viser.ViserServer):
     """A viser server that refuses share requests (the share tunnel reaches an outside host)."""
 
-    def request_share_url(self, verbose: bool = True) -> None:  # noqa: ARG002 - viser's signature
+    def request_share_url(self, verbose: bool = True) -> None:
         logger.warning("viewer: a client asked for a share URL; refused, sharing is disabled")
-        return None
+        return
 
 
 class _InspectionView:
@@ -329,8 +354,12 @@ class _InspectionView:
         self.inspection_id = inspection_id
         self.meshes = meshes
         self._glb = _measured_glb(meshes)
-        self.server = _OfflineViserServer(host=host, port=0, label=f"Inspection {inspection_id}", verbose=False)
-        self.server.gui.configure_theme(show_share_button=False, show_logo=False, control_width="medium")
+        self.server = _OfflineViserServer(
+            host=host, port=0, label=f"Inspection {inspection_id}", verbose=False
+        )
+        self.server.gui.configure_theme(
+            show_share_button=False, show_logo=False, control_width="medium"
+        )
         extent = max(meshes.extent_m, 0.1)
         # Far enough back that both plates side by side (about 2.2 extents wide) fit a
         # landscape panel (viser's vertical field of view is 75 deg), seen from the front, above.
@@ -338,7 +367,9 @@ class _InspectionView:
         self.server.initial_camera.look_at = (0.0, 0.0, 0.0)
         self._client_nodes: dict[int, tuple[str, ...]] = {}
         self.server.on_client_connect(self._build_client_scene)
-        self.server.on_client_disconnect(lambda client: self._client_nodes.pop(client.client_id, None))
+        self.server.on_client_disconnect(
+            lambda client: self._client_nodes.pop(client.client_id, None)
+        )
 
     @property
     def port(self) -> int:
@@ -398,7 +429,9 @@ class _InspectionView:
 
 def _measured_glb(meshes: PlateMeshes) -> bytes:
     mesh = trimesh.Trimesh(meshes.measured_vertices, meshes.measured_faces, process=False)
-    mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=deviation_colours(meshes.deviation_mm, meshes.scale_mm))
+    mesh.visual = trimesh.visual.ColorVisuals(
+        mesh, vertex_colors=deviation_colours(meshes.deviation_mm, meshes.scale_mm)
+    )
     return mesh.export(file_type="glb")
 
 
@@ -443,7 +476,9 @@ class PlateViewer:
         if max_servers < 1:
             raise ValueError(f"max_servers: expected >= 1, got {max_servers}")
         if max_sockets_per_client is not None and max_sockets_per_client < 1:
-            raise ValueError(f"max_sockets_per_client: expected >= 1 or None, got {max_sockets_per_client}")
+            raise ValueError(
+                f"max_sockets_per_client: expected >= 1 or None, got {max_sockets_per_client}"
+            )
         if reserved_servers < 0:
             raise ValueError(f"reserved_servers: expected >= 0, got {reserved_servers}")
         self._artifacts_dir = artifacts_dir
@@ -480,7 +515,9 @@ class PlateViewer:
             if inspection_id in self._views:
                 return
             busy = sum(1 for i in self._views if self._bridges.get(i, 0) > 0)
-            room = len(self._views) < self._max_servers or busy < len(self._views)  # an idle server can make room
+            room = len(self._views) < self._max_servers or busy < len(
+                self._views
+            )  # an idle server can make room
             if room and (privileged or busy < self._max_servers - self._reserved_servers):
                 return
         if room:
@@ -531,7 +568,9 @@ class PlateViewer:
                 return view.port
             self.check_capacity(inspection_id, privileged=privileged)
             self._make_room()
-            meshes = load_plate_meshes(Path(self._artifacts_dir(inspection_id)), max_vertices=self._max_vertices)
+            meshes = load_plate_meshes(
+                Path(self._artifacts_dir(inspection_id)), max_vertices=self._max_vertices
+            )
             view = _InspectionView(inspection_id, meshes, host=self._host)
             with self._lock:
                 self._views[inspection_id] = view
@@ -544,7 +583,11 @@ class PlateViewer:
             if len(self._views) < self._max_servers:
                 return
             # Longest idle first: timers are kept in the order they were armed.
-            idle = [i for i in [*self._idle_timers, *self._views] if i in self._views and self._bridges.get(i, 0) == 0]
+            idle = [
+                i
+                for i in [*self._idle_timers, *self._views]
+                if i in self._views and self._bridges.get(i, 0) == 0
+            ]
             if not idle:
                 return
             oldest = idle[0]
@@ -673,18 +716,28 @@ def viewer_page(inspection_id: int, request: Request) -> HTMLResponse:
     """
     viewer = _viewer(request.app)
     if viewer is None:
-        return HTMLResponse("<p>The 3D view is not running on this server.</p>", status_code=503, headers=FRAMED_HEADERS)
+        return HTMLResponse(
+            "<p>The 3D view is not running on this server.</p>",
+            status_code=503,
+            headers=FRAMED_HEADERS,
+        )
     if not viewer.has_view(inspection_id):
         return HTMLResponse(
-            f"<p>Inspection {inspection_id} has no surface to show.</p>", status_code=404, headers=FRAMED_HEADERS
+            f"<p>Inspection {inspection_id} has no surface to show.</p>",
+            status_code=404,
+            headers=FRAMED_HEADERS,
         )
     operator = _operator(request)
     try:
         viewer.check_capacity(inspection_id, privileged=operator)
         viewer.check_client(None if operator else client_address(request))
     except ViewerBusyError as err:
-        return HTMLResponse(f"<p>{html.escape(str(err))}.</p>", status_code=503, headers=FRAMED_HEADERS)
-    return HTMLResponse(_client_page(), headers={**FRAMED_HEADERS, "Content-Security-Policy": _client_page_csp()})
+        return HTMLResponse(
+            f"<p>{html.escape(str(err))}.</p>", status_code=503, headers=FRAMED_HEADERS
+        )
+    return HTMLResponse(
+        _client_page(), headers={**FRAMED_HEADERS, "Content-Security-Policy": _client_page_csp()}
+    )
 
 
 @router.websocket("/viewer/{inspection_id}")
@@ -696,7 +749,9 @@ async def viewer_bridge(websocket: WebSocket, inspection_id: int) -> None:
         return
     if VISER_SUBPROTOCOL not in websocket.scope.get("subprotocols", []):
         offered = websocket.scope.get("subprotocols", [])
-        await websocket.close(code=1002, reason=f"expected subprotocol {VISER_SUBPROTOCOL}, got {offered}")
+        await websocket.close(
+            code=1002, reason=f"expected subprotocol {VISER_SUBPROTOCOL}, got {offered}"
+        )
         return
     operator = is_loopback(websocket) or await run_in_threadpool(has_dashboard_session, websocket)
     client = None if operator else client_address(websocket)
@@ -764,7 +819,9 @@ async def _pump(browser: WebSocket, upstream) -> None:
         await asyncio.gather(*tasks, return_exceptions=True)
     for task in done:
         err = task.exception()
-        if err is not None and not isinstance(err, (WebSocketDisconnect, websockets.exceptions.ConnectionClosed)):
+        if err is not None and not isinstance(
+            err, (WebSocketDisconnect, websockets.exceptions.ConnectionClosed)
+        ):
             raise err
 
 

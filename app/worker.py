@@ -43,12 +43,21 @@ EXIT_CONFIG = 78
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m app.worker", description="The inspection job consumer.")
-    parser.add_argument("--parent-pid", type=int, default=None,
-                        help="stop when this process (the server that started the consumer) dies")
+    parser = argparse.ArgumentParser(
+        prog="python -m app.worker", description="The inspection job consumer."
+    )
+    parser.add_argument(
+        "--parent-pid",
+        type=int,
+        default=None,
+        help="stop when this process (the server that started the consumer) dies",
+    )
     args = parser.parse_args(argv)
     configure_process()  # the inspections' thread policy, before any kernel runs
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s [worker %(process)d] %(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.INFO,
+        format="%(asctime)s %(levelname)s [worker %(process)d] %(name)s: %(message)s",
+    )
     if args.parent_pid is not None:
         exit_with_parent(args.parent_pid)
     settings = Settings()
@@ -67,10 +76,15 @@ def main(argv: list[str] | None = None) -> int:
     queue = JobQueue(settings, session_factory, storage)
     queue.requeue_interrupted(owner=owner)
     stop_sweeping = threading.Event()
-    threading.Thread(target=queue.sweep_until, args=(stop_sweeping,), name="queue-sweep", daemon=True).start()
+    threading.Thread(
+        target=queue.sweep_until, args=(stop_sweeping,), name="queue-sweep", daemon=True
+    ).start()
     consumer = queue.create_consumer()
-    log.info("consumer ready (%s, memory limit %s)", owner,
-             f"{settings.worker_memory_mb} MiB" if settings.worker_memory_mb else "none")
+    log.info(
+        "consumer ready (%s, memory limit %s)",
+        owner,
+        f"{settings.worker_memory_mb} MiB" if settings.worker_memory_mb else "none",
+    )
     consumer.run()
     stop_sweeping.set()
     # Stopped (SIGTERM: the worker thread may still be inside a job): give its job back.

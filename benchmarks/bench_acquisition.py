@@ -18,10 +18,9 @@ import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from tests.acquisition.conftest import tcp_lights, write_cell  # noqa: E402
-from tests.acquisition.devices import FakeGigECamera, LightServer  # noqa: E402
-
-from pipeline.acquisition import acquire  # noqa: E402
+from pipeline.acquisition import acquire
+from tests.acquisition.conftest import tcp_lights, write_cell
+from tests.acquisition.devices import FakeGigECamera, LightServer
 
 
 def main() -> None:
@@ -36,12 +35,19 @@ def main() -> None:
     try:
         with tempfile.TemporaryDirectory() as tmp:
             n_images = args.lights + 3
-            print(f"{n_images} images ({args.lights} photometric, dark, stereo pair) of {args.width}x{args.height} "
-                  f"Mono16; left {camera.device_id} (fake GigE Vision), right Fake_1, TCP lights; best of {args.repeat}")
-            print(f"{'exposure':<16}{'total s':>9}{'per image ms':>14}{'sequence s':>12}{'per image ms':>14}{'pre-shots':>11}")
+            print(
+                f"{n_images} images ({args.lights} photometric, dark, stereo pair) of {args.width}x{args.height} "
+                f"Mono16; left {camera.device_id} (fake GigE Vision), right Fake_1, TCP lights; best of {args.repeat}"
+            )
+            print(
+                f"{'exposure':<16}{'total s':>9}{'per image ms':>14}{'sequence s':>12}{'per image ms':>14}{'pre-shots':>11}"
+            )
             for case, exposure in (("configured 5 ms", {"exposure_us": 5000.0}), ("auto", {})):
                 config = write_cell(
-                    Path(tmp) / case, size=(args.width, args.height), n_lights=args.lights, lights=tcp_lights(server),
+                    Path(tmp) / case,
+                    size=(args.width, args.height),
+                    n_lights=args.lights,
+                    lights=tcp_lights(server),
                     left={"driver": "aravis", "device_id": camera.device_id, **exposure},
                     right={"driver": "aravis", "device_id": "Fake_1", **exposure},
                 )
@@ -51,8 +57,10 @@ def main() -> None:
                     records.append(json.loads((out / "capture.json").read_text())["acquisition"])
                 total = min(r["total_s"] for r in records)
                 sequence = min(r["sequence_s"] for r in records)
-                print(f"{case:<16}{total:>9.3f}{1000 * total / n_images:>14.1f}{sequence:>12.3f}"
-                      f"{1000 * sequence / n_images:>14.1f}{records[0]['pre_shots']:>11}")
+                print(
+                    f"{case:<16}{total:>9.3f}{1000 * total / n_images:>14.1f}{sequence:>12.3f}"
+                    f"{1000 * sequence / n_images:>14.1f}{records[0]['pre_shots']:>11}"
+                )
     finally:
         camera.stop()
         server.close()

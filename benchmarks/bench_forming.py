@@ -21,54 +21,87 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.forming.campaign import TruePhysics, random_batch, run_campaign, summary  # noqa: E402
-from pipeline.forming.records import Machine  # noqa: E402
+from pipeline.forming.campaign import TruePhysics, random_batch, run_campaign, summary
+from pipeline.forming.records import Machine
 
-MACHINE = Machine("R3-01", bottom_roll_spacing_mm=1400.0, bottom_roll_diameter_mm=420.0, top_roll_diameter_mm=500.0)
+MACHINE = Machine(
+    "R3-01",
+    bottom_roll_spacing_mm=1400.0,
+    bottom_roll_diameter_mm=420.0,
+    top_roll_diameter_mm=500.0,
+)
 
 
 def radii(outcome) -> str:
-    return " ".join("flat" if not np.isfinite(p.measured_radius_mm) else f"{p.measured_radius_mm:.0f}"
-                    for p in outcome.record.passes)
+    return " ".join(
+        "flat" if not np.isfinite(p.measured_radius_mm) else f"{p.measured_radius_mm:.0f}"
+        for p in outcome.record.passes
+    )
 
 
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--plates", type=int, default=20)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    ap.add_argument("--compliance", type=float, default=2.0, help="the machine's hidden compliance, mm/MN")
-    ap.add_argument("--scatter", type=float, default=0.1, help="hidden displacement scatter of a pass, mm")
-    ap.add_argument("--yield-scatter", type=float, default=0.0,
-                    help="hidden relative scatter of the yield a pass sees (not in the advice's model)")
+    ap.add_argument(
+        "--compliance", type=float, default=2.0, help="the machine's hidden compliance, mm/MN"
+    )
+    ap.add_argument(
+        "--scatter", type=float, default=0.1, help="hidden displacement scatter of a pass, mm"
+    )
+    ap.add_argument(
+        "--yield-scatter",
+        type=float,
+        default=0.0,
+        help="hidden relative scatter of the yield a pass sees (not in the advice's model)",
+    )
     args = ap.parse_args()
-    physics = TruePhysics(compliance_mm_per_mn=args.compliance, displacement_scatter_mm=args.scatter,
-                          yield_scatter=args.yield_scatter)
+    physics = TruePhysics(
+        compliance_mm_per_mn=args.compliance,
+        displacement_scatter_mm=args.scatter,
+        yield_scatter=args.yield_scatter,
+    )
     rows = []
     for k, seed in enumerate(args.seeds):
         plates = random_batch(args.plates, np.random.default_rng(seed))
         runs = {}
         for mode in ("learning", "alone"):
             t0 = time.perf_counter()
-            runs[mode] = run_campaign(plates, MACHINE, physics, np.random.default_rng(seed + 100),
-                                      learning=mode == "learning")
+            runs[mode] = run_campaign(
+                plates,
+                MACHINE,
+                physics,
+                np.random.default_rng(seed + 100),
+                learning=mode == "learning",
+            )
             rows.append((seed, mode, summary(runs[mode]), time.perf_counter() - t0))
         if k == 0:
-            print(f"seed {seed}: compliance {args.compliance:g} mm/MN, scatter {args.scatter:g} mm, "
-                  f"yield scatter {args.yield_scatter:g}\n")
-            print("| plate | grade | t mm | target R mm | yield x | passes learning | passes alone "
-                  "| radii after each pass (learning) |")
+            print(
+                f"seed {seed}: compliance {args.compliance:g} mm/MN, scatter {args.scatter:g} mm, "
+                f"yield scatter {args.yield_scatter:g}\n"
+            )
+            print(
+                "| plate | grade | t mm | target R mm | yield x | passes learning | passes alone "
+                "| radii after each pass (learning) |"
+            )
             print("|---|---|---|---|---|---|---|---|")
             for sim, a, b in zip(plates, runs["learning"], runs["alone"]):
                 tg = sim.record.target
                 flag = lambda o: "" if o.final == "done" else f" ({o.final})"  # noqa: E731
-                print(f"| {a.plate_id} | {tg.material.grade} | {tg.material.thickness_mm:g} | {tg.radius_mm:.0f} "
-                      f"| {sim.yield_factor:.3f} | {a.passes}{flag(a)} | {b.passes}{flag(b)} | {radii(a)} |")
+                print(
+                    f"| {a.plate_id} | {tg.material.grade} | {tg.material.thickness_mm:g} | {tg.radius_mm:.0f} "
+                    f"| {sim.yield_factor:.3f} | {a.passes}{flag(a)} | {b.passes}{flag(b)} | {radii(a)} |"
+                )
             print()
-    print("| seed | advice | plates | done | over-bent | max passes | mean passes | mean after the first | s |")
+    print(
+        "| seed | advice | plates | done | over-bent | max passes | mean passes | mean after the first | s |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     for seed, mode, s, t in rows:
-        print(f"| {seed} | {mode} | {s['plates']} | {s['done']} | {s['over_bent']} | {s['max_passes']} "
-              f"| {s['mean_passes']:.2f} | {s['mean_passes_after_first']:.2f} | {t:.0f} |")
+        print(
+            f"| {seed} | {mode} | {s['plates']} | {s['done']} | {s['over_bent']} | {s['max_passes']} "
+            f"| {s['mean_passes']:.2f} | {s['mean_passes_after_first']:.2f} | {t:.0f} |"
+        )
 
 
 if __name__ == "__main__":

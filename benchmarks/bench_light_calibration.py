@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.parallel import configure_process
 from pipeline.io import load_capture
 from pipeline.light_calibration import calibrate_lights
+from pipeline.parallel import configure_process
 from pipeline.simulate import CaptureSpec, PlateSpec, simulate_capture
 
 #: (plate distance from the camera, LED height above the plate), mm
@@ -39,8 +39,10 @@ def main() -> None:
     parser.add_argument("--keep", type=Path, default=None, help="write bundles under this folder")
     args = parser.parse_args()
 
-    print(f"{'size':>10} {'plate m':>7} {'LEDs m':>6} {'seed':>5} {'load s':>6} {'fit s':>6} {'rms':>8} "
-          f"{'max mm':>7} {'med mm':>7} {'std mm':>7} {'int %':>6} {'mu':>6}  position error per light, mm")
+    print(
+        f"{'size':>10} {'plate m':>7} {'LEDs m':>6} {'seed':>5} {'load s':>6} {'fit s':>6} {'rms':>8} "
+        f"{'max mm':>7} {'med mm':>7} {'std mm':>7} {'int %':>6} {'mu':>6}  position error per light, mm"
+    )
     worst_pos, worst_int, failures = 0.0, 0.0, 0
     with tempfile.TemporaryDirectory() as tmp:
         root = args.keep or Path(tmp)
@@ -52,10 +54,18 @@ def main() -> None:
                     out = root / f"{size}_{int(distance)}_{int(height)}_{seed}"
                     simulate_capture(
                         out,
-                        plate=PlateSpec(shape="plane", radius_mm=None, distance_mm=distance, tilt_deg=tilt),
+                        plate=PlateSpec(
+                            shape="plane", radius_mm=None, distance_mm=distance, tilt_deg=tilt
+                        ),
                         capture=CaptureSpec(
-                            near_field_mm=height, light_elevation_deg=30.0, led_mu=1.5, manifest_lights="nominal",
-                            light_error_deg=5.0, working_distance_mm=distance, width=w, height=h,
+                            near_field_mm=height,
+                            light_elevation_deg=30.0,
+                            led_mu=1.5,
+                            manifest_lights="nominal",
+                            light_error_deg=5.0,
+                            working_distance_mm=distance,
+                            width=w,
+                            height=h,
                         ),
                         seed=seed,
                     )
@@ -66,9 +76,15 @@ def main() -> None:
                     cal = calibrate_lights([cap])
                     fit_s = time.perf_counter() - t0
                     with np.load(out / "truth.npz") as z:
-                        pos, e_true, mu_true = z["light_positions_mm"], z["light_intensity"], z["light_mu"]
+                        pos, e_true, mu_true = (
+                            z["light_positions_mm"],
+                            z["light_intensity"],
+                            z["light_mu"],
+                        )
                     err = np.linalg.norm(cal.lights.positions_mm - pos, axis=1)
-                    rel = (cal.lights.intensity / cal.lights.intensity.mean()) / (e_true / e_true.mean()) - 1
+                    rel = (cal.lights.intensity / cal.lights.intensity.mean()) / (
+                        e_true / e_true.mean()
+                    ) - 1
                     int_err = float(np.abs(rel).max())
                     worst_pos, worst_int = max(worst_pos, float(err.max())), max(worst_int, int_err)
                     failures += int(err.max() > POSITION_TOL_MM or int_err > INTENSITY_TOL)
@@ -79,8 +95,10 @@ def main() -> None:
                         + " ".join(f"{e:.0f}" for e in err),
                         flush=True,
                     )
-    print(f"worst position error {worst_pos:.1f} mm (acceptance {POSITION_TOL_MM:.0f}), worst relative intensity "
-          f"error {100 * worst_int:.2f} % (acceptance {100 * INTENSITY_TOL:.0f} %), {failures} run(s) outside")
+    print(
+        f"worst position error {worst_pos:.1f} mm (acceptance {POSITION_TOL_MM:.0f}), worst relative intensity "
+        f"error {100 * worst_int:.2f} % (acceptance {100 * INTENSITY_TOL:.0f} %), {failures} run(s) outside"
+    )
 
 
 if __name__ == "__main__":

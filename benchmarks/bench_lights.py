@@ -53,14 +53,23 @@ except Exception as exc:  # the old code's crash is the figure
 def _after(bundle: Path) -> tuple[dict, float]:
     t = time.perf_counter()
     d = inspect(bundle, bundle / "target.json", out_dir=bundle / "after").document
-    return {"radius_error_pct": d["radius_error_pct"], "rms": d["deviation_mm"]["rms"],
-            "max": d["deviation_mm"]["max_abs"], "verdict": d["verdict"]}, time.perf_counter() - t
+    return {
+        "radius_error_pct": d["radius_error_pct"],
+        "rms": d["deviation_mm"]["rms"],
+        "max": d["deviation_mm"]["max_abs"],
+        "verdict": d["verdict"],
+    }, time.perf_counter() - t
 
 
 def _before(bundle: Path, checkout: Path) -> dict:
     env = dict(os.environ, PYTHONPATH=str(checkout))
-    out = subprocess.run([sys.executable, "-c", _BEFORE, str(bundle), str(bundle / "before")], env=env,
-                         capture_output=True, text=True, cwd=checkout)
+    out = subprocess.run(
+        [sys.executable, "-c", _BEFORE, str(bundle), str(bundle / "before")],
+        env=env,
+        capture_output=True,
+        text=True,
+        cwd=checkout,
+    )
     lines = out.stdout.strip().splitlines()
     return json.loads(lines[-1]) if lines else {"crash": f"exit {out.returncode}"}
 
@@ -76,17 +85,29 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--size", default="1224x1024", help="image size WIDTHxHEIGHT px")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    parser.add_argument("--before", type=Path, default=None, help="another checkout to compare with")
-    parser.add_argument("--only", default=None, help="comma-separated case numbers (1-based) to run")
+    parser.add_argument(
+        "--before", type=Path, default=None, help="another checkout to compare with"
+    )
+    parser.add_argument(
+        "--only", default=None, help="comma-separated case numbers (1-based) to run"
+    )
     args = parser.parse_args()
     width, height = (int(v) for v in args.size.split("x"))
     cases = CASES if args.only is None else [CASES[int(i) - 1] for i in args.only.split(",")]
 
     inspect_warm = None
-    print(f"\n## Lights of a real cell: cylinder R5000 convex, 3 x 3 m at 3 m, {width}x{height}, seeds "
-          f"{args.seeds}\n")
-    print("Each cell: radius error, verdict (right: pass), deviation RMS / max. Time: median inspect, s.\n")
-    head = "| capture | " + ("before | " if args.before else "") + "after | max abs radius err % | time s |"
+    print(
+        f"\n## Lights of a real cell: cylinder R5000 convex, 3 x 3 m at 3 m, {width}x{height}, seeds "
+        f"{args.seeds}\n"
+    )
+    print(
+        "Each cell: radius error, verdict (right: pass), deviation RMS / max. Time: median inspect, s.\n"
+    )
+    head = (
+        "| capture | "
+        + ("before | " if args.before else "")
+        + "after | max abs radius err % | time s |"
+    )
     print(head)
     print("|---" * (head.count("|") - 1) + "|")
     with tempfile.TemporaryDirectory(prefix="bench-lights-") as tmp:
@@ -94,8 +115,12 @@ def main() -> None:
         for name, spec in cases:
             befores, afters, times, errs = [], [], [], []
             for seed in args.seeds:
-                bundle = simulate_capture(root / f"{name[:12].replace(' ', '_')}-{seed}", plate=PlateSpec(),
-                                          capture=CaptureSpec(width=width, height=height, **spec), seed=100 + seed)
+                bundle = simulate_capture(
+                    root / f"{name[:12].replace(' ', '_')}-{seed}",
+                    plate=PlateSpec(),
+                    capture=CaptureSpec(width=width, height=height, **spec),
+                    seed=100 + seed,
+                )
                 if inspect_warm is None:  # load the compiled kernels once, outside the timings
                     inspect(bundle, bundle / "target.json", out_dir=root / "warm")
                     inspect_warm = True
@@ -106,7 +131,12 @@ def main() -> None:
                 errs.append(abs(after["radius_error_pct"]))
                 times.append(seconds)
             row = f"| {name} | " + ("<br>".join(befores) + " | " if args.before else "")
-            print(row + "<br>".join(afters) + f" | {max(errs):.3f} | {statistics.median(times):.1f} |", flush=True)
+            print(
+                row
+                + "<br>".join(afters)
+                + f" | {max(errs):.3f} | {statistics.median(times):.1f} |",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

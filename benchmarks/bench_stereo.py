@@ -20,11 +20,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the project root, for tests.realdata
 
-from pipeline import simulate  # noqa: E402
-from pipeline.camera import CameraModel, StereoRig  # noqa: E402
-from pipeline.parallel import configure_process  # noqa: E402
-from pipeline.stereo import stereo_depth  # noqa: E402
-from tests.realdata import ALOE  # noqa: E402
+from pipeline import simulate
+from pipeline.camera import CameraModel, StereoRig
+from pipeline.parallel import configure_process
+from pipeline.stereo import stereo_depth
+from tests.realdata import ALOE
 
 HINTS = (None, 2600.0, 3000.0, 3400.0)
 
@@ -35,11 +35,17 @@ def coarse_range(hint_mm: float | None) -> tuple[float, float]:
 
 
 def simulated(sizes: list[int], seeds: list[int]) -> None:
-    print("simulated cylinder plate R 5 m, 3 x 3 m at 3 m, default rig (baseline 800 mm, toe-in 10 deg), 16-bit")
-    print("depth range: no hint (1750-7000 mm); 'same' = identical depth map for hints 2600/3000/3400 mm and none")
-    print(f"{'width':>6} {'seed':>4} {'refine':>6} {'search px':>10} {'valid%':>7} {'med err':>8} {'med|err|':>9} "
-          f"{'p95|err|':>9} {'coarse':>7} {'rectify':>8} {'match':>6} {'refine':>7} {'resample':>8} {'total s':>8} "
-          f"{'same':>5}")
+    print(
+        "simulated cylinder plate R 5 m, 3 x 3 m at 3 m, default rig (baseline 800 mm, toe-in 10 deg), 16-bit"
+    )
+    print(
+        "depth range: no hint (1750-7000 mm); 'same' = identical depth map for hints 2600/3000/3400 mm and none"
+    )
+    print(
+        f"{'width':>6} {'seed':>4} {'refine':>6} {'search px':>10} {'valid%':>7} {'med err':>8} {'med|err|':>9} "
+        f"{'p95|err|':>9} {'coarse':>7} {'rectify':>8} {'match':>6} {'refine':>7} {'resample':>8} {'total s':>8} "
+        f"{'same':>5}"
+    )
     for width in sizes:
         height = int(round(width * 1024 / 1224))
         rig = simulate.default_rig(width=width, height=height)
@@ -56,18 +62,25 @@ def simulated(sizes: list[int], seeds: list[int]) -> None:
                 for hint in HINTS:
                     z_min, z_max = coarse_range(hint)
                     t0 = time.perf_counter()
-                    sd = stereo_depth(left, right, rig, z_min_mm=z_min, z_max_mm=z_max, mask=mask, refine=refine)
+                    sd = stereo_depth(
+                        left, right, rig, z_min_mm=z_min, z_max_mm=z_max, mask=mask, refine=refine
+                    )
                     runs.append((sd, time.perf_counter() - t0))
-                same = all(np.array_equal(sd.depth_mm, runs[0][0].depth_mm, equal_nan=True) for sd, _ in runs[1:])
+                same = all(
+                    np.array_equal(sd.depth_mm, runs[0][0].depth_mm, equal_nan=True)
+                    for sd, _ in runs[1:]
+                )
                 # timings: the fastest of the runs (the machine is shared; all runs do the same work)
                 sd, total = min(runs, key=lambda r: r[1])
                 err = (sd.depth_mm - depth_true)[sd.valid]
                 t = sd.timings
                 lo, hi = sd.search_disparity_px
-                print(f"{width:>6} {seed:>4} {str(refine):>6} {f'{lo}..{hi}':>10} {100 * sd.valid.sum() / mask.sum():>7.2f} "
-                      f"{np.median(err):>8.3f} {np.median(np.abs(err)):>9.3f} {np.percentile(np.abs(err), 95):>9.2f} "
-                      f"{t['coarse']:>7.3f} {t['rectify']:>8.3f} {t['match']:>6.3f} {t['refine']:>7.3f} "
-                      f"{t['resample']:>8.3f} {total:>8.3f} {str(same):>5}")
+                print(
+                    f"{width:>6} {seed:>4} {refine!s:>6} {f'{lo}..{hi}':>10} {100 * sd.valid.sum() / mask.sum():>7.2f} "
+                    f"{np.median(err):>8.3f} {np.median(np.abs(err)):>9.3f} {np.percentile(np.abs(err), 95):>9.2f} "
+                    f"{t['coarse']:>7.3f} {t['rectify']:>8.3f} {t['match']:>6.3f} {t['refine']:>7.3f} "
+                    f"{t['resample']:>8.3f} {total:>8.3f} {same!s:>5}"
+                )
 
 
 def aloe() -> None:
@@ -83,13 +96,23 @@ def aloe() -> None:
     rig = StereoRig(cam, cam, np.eye(3), np.array([-baseline, 0.0, 0.0]))
     known = gt > 0
     d_lo, d_hi = gt[known].min(), gt[known].max()
-    print(f"\nMiddlebury Aloe {w}x{h}, GT disparity {d_lo:.0f}..{d_hi:.0f} px, {known.sum()} known pixels")
-    print(f"{'refine':>6} {'matched% of known':>18} {'bad>1px % of matched':>21} {'bad>1px % (holes bad)':>22} "
-          f"{'bad>0.5px %':>12} {'med|err| px':>12} {'time s':>7}")
+    print(
+        f"\nMiddlebury Aloe {w}x{h}, GT disparity {d_lo:.0f}..{d_hi:.0f} px, {known.sum()} known pixels"
+    )
+    print(
+        f"{'refine':>6} {'matched% of known':>18} {'bad>1px % of matched':>21} {'bad>1px % (holes bad)':>22} "
+        f"{'bad>0.5px %':>12} {'med|err| px':>12} {'time s':>7}"
+    )
     for refine in (False, True):
         t0 = time.perf_counter()
-        sd = stereo_depth(left, right, rig, z_min_mm=f * baseline / (d_hi + 2), z_max_mm=f * baseline / (d_lo - 2),
-                          refine=refine)
+        sd = stereo_depth(
+            left,
+            right,
+            rig,
+            z_min_mm=f * baseline / (d_hi + 2),
+            z_max_mm=f * baseline / (d_lo - 2),
+            refine=refine,
+        )
         total = time.perf_counter() - t0
         x0, y0 = sd.disparity_origin_px
         disp = np.full((h, w), np.nan, np.float32)
@@ -98,9 +121,11 @@ def aloe() -> None:
         disp[ys, xs] = sd.disparity_px[ys.start - y0 : ys.stop - y0, xs.start - x0 : xs.stop - x0]
         ok = known & np.isfinite(disp)
         err = np.abs(disp - gt)
-        print(f"{str(refine):>6} {100 * ok.sum() / known.sum():>18.1f} {100 * np.mean(err[ok] > 1):>21.2f} "
-              f"{100 * np.mean(~(err[known] <= 1)):>22.2f} {100 * np.mean(err[ok] > 0.5):>12.2f} "
-              f"{np.median(err[ok]):>12.3f} {total:>7.2f}")
+        print(
+            f"{refine!s:>6} {100 * ok.sum() / known.sum():>18.1f} {100 * np.mean(err[ok] > 1):>21.2f} "
+            f"{100 * np.mean(~(err[known] <= 1)):>22.2f} {100 * np.mean(err[ok] > 0.5):>12.2f} "
+            f"{np.median(err[ok]):>12.3f} {total:>7.2f}"
+        )
 
 
 def main() -> None:

@@ -32,9 +32,17 @@ SCENES = (
     ("dark background, cut-out", PlateSpec(cutouts=CUT), 5000.0, {}, "pass"),
     ("under-bent R4600, lit floor", PlateSpec(radius_mm=4600.0, floor=FLOOR), 5000.0, {}, "fail"),
     ("LEDs, lit floor, cut-out", PlateSpec(cutouts=CUT, floor=FLOOR), 5000.0, NEAR, "pass"),
-    ("concave R3500, floor 400 mm", PlateSpec(convex=False, radius_mm=3500.0,
-                                              floor=Floor(gap_mm=400.0, supports=rail_supports((3000.0, 3000.0), 400.0, 3))),
-     3500.0, {}, "pass"),
+    (
+        "concave R3500, floor 400 mm",
+        PlateSpec(
+            convex=False,
+            radius_mm=3500.0,
+            floor=Floor(gap_mm=400.0, supports=rail_supports((3000.0, 3000.0), 400.0, 3)),
+        ),
+        3500.0,
+        {},
+        "pass",
+    ),
 )
 
 
@@ -46,8 +54,10 @@ def main() -> None:
     args = parser.parse_args()
     width, height = (int(v) for v in args.size.split("x"))
     print(f"\n## The plate among its surroundings ({width}x{height}, seeds {args.seeds})\n")
-    print("Each cell: radius error against the target, verdict, deviation RMS / max, measured area / target "
-          "area, edge regions left out. Time: median inspect, s.\n")
+    print(
+        "Each cell: radius error against the target, verdict, deviation RMS / max, measured area / target "
+        "area, edge regions left out. Time: median inspect, s.\n"
+    )
     print("| scene | right | result per seed | time s |")
     print("|---|---|---|---|")
     with tempfile.TemporaryDirectory(prefix="bench-surroundings-") as tmp:
@@ -56,10 +66,18 @@ def main() -> None:
         for name, plate, radius, capture, right in SCENES:
             cells, times = [], []
             for seed in args.seeds:
-                bundle = simulate_capture(root / f"{len(times)}-{name[:10].replace(' ', '_')}-{seed}", plate=plate,
-                                          capture=CaptureSpec(width=width, height=height, **capture), seed=200 + seed)
-                target = {"format": "plate-target/1", "shape": {"type": "cylinder", "radius_mm": radius},
-                          "size_mm": [3000.0, 3000.0], "tolerance_mm": 2.0}
+                bundle = simulate_capture(
+                    root / f"{len(times)}-{name[:10].replace(' ', '_')}-{seed}",
+                    plate=plate,
+                    capture=CaptureSpec(width=width, height=height, **capture),
+                    seed=200 + seed,
+                )
+                target = {
+                    "format": "plate-target/1",
+                    "shape": {"type": "cylinder", "radius_mm": radius},
+                    "size_mm": [3000.0, 3000.0],
+                    "tolerance_mm": 2.0,
+                }
                 if not warm:
                     inspect(bundle, target, out_dir=root / "warm")
                     warm = True
@@ -73,7 +91,12 @@ def main() -> None:
                     f"{doc['deviation_mm']['max_abs']:.1f} mm, area {ratio:.3f}, "
                     f"{len(details['excluded_regions'])} left out)"
                 )
-            print(f"| {name} | {right} | " + "<br>".join(cells) + f" | {statistics.median(times):.1f} |", flush=True)
+            print(
+                f"| {name} | {right} | "
+                + "<br>".join(cells)
+                + f" | {statistics.median(times):.1f} |",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

@@ -90,7 +90,9 @@ def _natural_key(text: str):
 def _scan_board_dir(directory) -> tuple[list[tuple[str, Path, Path]], list[tuple[str, str]]]:
     folder = Path(directory)
     if not folder.is_dir():
-        raise ValueError(f"directory: expected a folder of board images, got {str(folder)!r} (not a folder)")
+        raise ValueError(
+            f"directory: expected a folder of board images, got {str(folder)!r} (not a folder)"
+        )
     sides: dict[str, dict[str, list[Path]]] = {"left": {}, "right": {}}
     for path in folder.iterdir():
         if not path.is_file() or path.suffix.lower() not in IMAGE_EXTENSIONS:
@@ -205,7 +207,9 @@ def _detect(grey: np.ndarray, inner_corners: tuple[int, int]) -> np.ndarray | No
     if not found:
         return None
     half = _subpix_half_window(corners.reshape(-1, 2), inner_corners)
-    corners = cv2.cornerSubPix(grey, corners.astype(np.float32), (half, half), (-1, -1), _SUBPIX_TERM)
+    corners = cv2.cornerSubPix(
+        grey, corners.astype(np.float32), (half, half), (-1, -1), _SUBPIX_TERM
+    )
     return corners.reshape(-1, 2).astype(np.float32)
 
 
@@ -220,9 +224,13 @@ def _check_board(inner_corners, square_mm, min_pairs) -> tuple[tuple[int, int], 
     try:
         cols, rows = (int(v) for v in inner_corners)
     except (TypeError, ValueError):
-        raise ValueError(f"inner_corners: expected two integers (columns, rows), got {inner_corners!r}") from None
+        raise ValueError(
+            f"inner_corners: expected two integers (columns, rows), got {inner_corners!r}"
+        ) from None
     if len(tuple(inner_corners)) != 2 or cols < 3 or rows < 3:
-        raise ValueError(f"inner_corners: expected (columns, rows) with both >= 3, got {tuple(inner_corners)}")
+        raise ValueError(
+            f"inner_corners: expected (columns, rows) with both >= 3, got {tuple(inner_corners)}"
+        )
     if cols == rows:
         raise ValueError(
             f"inner_corners: expected a non-square board (columns != rows) so the corner order is "
@@ -230,9 +238,13 @@ def _check_board(inner_corners, square_mm, min_pairs) -> tuple[tuple[int, int], 
         )
     square = float(square_mm)
     if not np.isfinite(square) or square <= 0:
-        raise ValueError(f"square_mm: expected a positive finite square size in mm, got {square_mm!r}")
+        raise ValueError(
+            f"square_mm: expected a positive finite square size in mm, got {square_mm!r}"
+        )
     if int(min_pairs) != min_pairs or min_pairs < 3:
-        raise ValueError(f"min_pairs: expected an integer >= 3 (Zhang needs >= 3 views), got {min_pairs!r}")
+        raise ValueError(
+            f"min_pairs: expected an integer >= 3 (Zhang needs >= 3 views), got {min_pairs!r}"
+        )
     return (cols, rows), square, int(min_pairs)
 
 
@@ -303,7 +315,10 @@ def calibrate_stereo(
     image_size, keys, left_pts, right_pts = _detected_pairs(pairs, board, rejected)
 
     if len(keys) < min_pairs:
-        reasons = "; ".join(f"{k}: {r}" for k, r in rejected) or "no left<KEY>/right<KEY> image pairs in the folder"
+        reasons = (
+            "; ".join(f"{k}: {r}" for k, r in rejected)
+            or "no left<KEY>/right<KEY> image pairs in the folder"
+        )
         raise CalibrationError(
             f"{directory}: expected at least {min_pairs} usable board pairs, got {len(keys)} "
             f"of {len(pairs)} pairs ({reasons})"
@@ -355,20 +370,34 @@ def _detected_pairs(pairs, board: tuple[int, int], rejected: list[tuple[str, str
         size_l = (grey_l.shape[1], grey_l.shape[0])
         size_r = (grey_r.shape[1], grey_r.shape[0])
         if size_l != size_r:
-            rejected.append((key, f"left image is {size_l[0]}x{size_l[1]}, right image is {size_r[0]}x{size_r[1]}"))
+            rejected.append(
+                (
+                    key,
+                    f"left image is {size_l[0]}x{size_l[1]}, right image is {size_r[0]}x{size_r[1]}",
+                )
+            )
             continue
         if image_size is None:
             image_size = size_l
         elif size_l != image_size:
             rejected.append(
-                (key, f"image size {size_l[0]}x{size_l[1]} differs from the first pair's {image_size[0]}x{image_size[1]}")
+                (
+                    key,
+                    f"image size {size_l[0]}x{size_l[1]} differs from the first pair's {image_size[0]}x{image_size[1]}",
+                )
             )
             continue
         corners_l = _detect(grey_l, board)
         corners_r = _detect(grey_r, board)
-        missing = [name for name, c in ((left_path.name, corners_l), (right_path.name, corners_r)) if c is None]
+        missing = [
+            name
+            for name, c in ((left_path.name, corners_l), (right_path.name, corners_r))
+            if c is None
+        ]
         if missing:
-            rejected.append((key, f"no {board[0]}x{board[1]} chessboard found in {' and '.join(missing)}"))
+            rejected.append(
+                (key, f"no {board[0]}x{board[1]} chessboard found in {' and '.join(missing)}")
+            )
             continue
         if np.dot(corners_l[-1] - corners_l[0], corners_r[-1] - corners_r[0]) < 0:
             corners_r = corners_r[::-1].copy()
@@ -378,7 +407,9 @@ def _detected_pairs(pairs, board: tuple[int, int], rejected: list[tuple[str, str
     return image_size, keys, left_pts, right_pts
 
 
-def _calibrate(directory, object_pts: np.ndarray, left_pts: list, right_pts: list, image_size: tuple[int, int]):
+def _calibrate(
+    directory, object_pts: np.ndarray, left_pts: list, right_pts: list, image_size: tuple[int, int]
+):
     """Zhang's calibration of each camera, then the stereo calibration from the corners of the pairs.
 
     Returns the left, right and stereo RMS (px), ``K_l, dist_l, K_r, dist_r, R, T`` and the per-view
@@ -386,8 +417,12 @@ def _calibrate(directory, object_pts: np.ndarray, left_pts: list, right_pts: lis
     """
     objects = [object_pts.reshape(-1, 1, 3)] * len(left_pts)
     try:
-        rms_l, K_l, dist_l, _, _ = cv2.calibrateCamera(objects, left_pts, image_size, None, None, criteria=_TERM)
-        rms_r, K_r, dist_r, _, _ = cv2.calibrateCamera(objects, right_pts, image_size, None, None, criteria=_TERM)
+        rms_l, K_l, dist_l, _, _ = cv2.calibrateCamera(
+            objects, left_pts, image_size, None, None, criteria=_TERM
+        )
+        rms_r, K_r, dist_r, _, _ = cv2.calibrateCamera(
+            objects, right_pts, image_size, None, None, criteria=_TERM
+        )
         rms, K_l, dist_l, K_r, dist_r, R, T, _, _, _, _, per_view = cv2.stereoCalibrateExtended(
             objects,
             left_pts,
@@ -403,7 +438,9 @@ def _calibrate(directory, object_pts: np.ndarray, left_pts: list, right_pts: lis
             criteria=_TERM,
         )
     except cv2.error as err:
-        raise CalibrationError(f"{directory}: OpenCV calibration failed on {len(left_pts)} pairs: {err.msg}") from None
+        raise CalibrationError(
+            f"{directory}: OpenCV calibration failed on {len(left_pts)} pairs: {err.msg}"
+        ) from None
     return rms_l, rms_r, rms, K_l, dist_l, K_r, dist_r, R, T, per_view
 
 

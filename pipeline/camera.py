@@ -42,15 +42,26 @@ class CameraModel:
 
     def __post_init__(self) -> None:
         K = _as_matrix("K", self.K, (3, 3))
-        if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1.0 or K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0:
-            raise ValueError(f"K: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, got {K.tolist()}")
+        if (
+            K[0, 0] <= 0
+            or K[1, 1] <= 0
+            or K[2, 2] != 1.0
+            or K[1, 0] != 0
+            or K[2, 0] != 0
+            or K[2, 1] != 0
+        ):
+            raise ValueError(
+                f"K: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, got {K.tolist()}"
+            )
         dist = np.asarray(self.dist, dtype=np.float64).ravel()
         if dist.shape != (5,):
             raise ValueError(f"dist: expected 5 coefficients k1 k2 p1 p2 k3, got {dist.shape[0]}")
         dist = _as_matrix("dist", dist, (5,))
         w, h = (int(v) for v in self.image_size)
         if w <= 0 or h <= 0:
-            raise ValueError(f"image_size: expected positive (width, height), got {self.image_size}")
+            raise ValueError(
+                f"image_size: expected positive (width, height), got {self.image_size}"
+            )
         object.__setattr__(self, "K", K)
         object.__setattr__(self, "dist", dist)
         object.__setattr__(self, "image_size", (w, h))
@@ -63,7 +74,7 @@ class CameraModel:
     def height(self) -> int:
         return self.image_size[1]
 
-    def resized(self, image_size: tuple[int, int]) -> "CameraModel":
+    def resized(self, image_size: tuple[int, int]) -> CameraModel:
         """The same camera seen on its image resized to ``(width, height)`` px (as ``cv2.resize`` does).
 
         Pixel centres map as ``u' = sx (u + 0.5) - 0.5`` with ``sx = width' / width``
@@ -91,7 +102,9 @@ class CameraModel:
         """
         return undistorted_rays(self.K, self.image_size)
 
-    def undistort_image(self, image: np.ndarray, *, interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
+    def undistort_image(
+        self, image: np.ndarray, *, interpolation: int = cv2.INTER_LINEAR
+    ) -> np.ndarray:
         """Resample a distorted image onto the undistorted grid with the same K.
 
         Parameters
@@ -104,11 +117,15 @@ class CameraModel:
         sees the ray ``K^-1 (u, v, 1)``.
         """
         map1, map2 = self.undistort_maps()
-        return cv2.remap(image, map1, map2, interpolation, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        return cv2.remap(
+            image, map1, map2, interpolation, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+        )
 
     def undistort_maps(self) -> tuple[np.ndarray, np.ndarray]:
         """``cv2.remap`` maps from the undistorted grid (same K) to the raw image."""
-        return cv2.initUndistortRectifyMap(self.K, self.dist, np.eye(3), self.K, self.image_size, cv2.CV_32FC1)
+        return cv2.initUndistortRectifyMap(
+            self.K, self.dist, np.eye(3), self.K, self.image_size, cv2.CV_32FC1
+        )
 
     def project(self, points_mm: np.ndarray) -> np.ndarray:
         """Project points of this camera's frame into its raw (distorted) image.
@@ -137,7 +154,9 @@ def undistorted_rays(K: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
     K = np.asarray(K, dtype=np.float64)
     fx, skew, cx, fy, cy = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
     rays = np.empty((h, w, 3), dtype=np.float64)
-    y = (np.arange(h, dtype=np.float64) - cy) / fy  # K is upper triangular: solve from the bottom row up
+    y = (
+        np.arange(h, dtype=np.float64) - cy
+    ) / fy  # K is upper triangular: solve from the bottom row up
     rays[..., 1] = y[:, None]
     rays[..., 0] = (np.arange(w, dtype=np.float64)[None, :] - cx - skew * y[:, None]) / fx
     rays[..., 2] = 1.0

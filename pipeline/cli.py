@@ -103,7 +103,9 @@ def _cmd_simulate_capture(args: argparse.Namespace) -> int:
     )
     try:
         plate = replace(plate, floor=_floor(args, plate.size_mm))
-    except ValueError as err:  # a spec the simulator refuses (Floor, Support): bad input, not a defect
+    except (
+        ValueError
+    ) as err:  # a spec the simulator refuses (Floor, Support): bad input, not a defect
         raise BadArgument(str(err)) from None
     capture = CaptureSpec(
         n_lights=args.lights,
@@ -122,7 +124,12 @@ def _cmd_simulate_capture(args: argparse.Namespace) -> int:
         texture=args.texture,
     )
     out = simulate_capture(
-        args.out, plate=plate, capture=capture, plate_id=args.plate_id, tolerance_mm=args.tolerance, seed=args.seed
+        args.out,
+        plate=plate,
+        capture=capture,
+        plate_id=args.plate_id,
+        tolerance_mm=args.tolerance,
+        seed=args.seed,
     )
     print(out)
     return EXIT_OK
@@ -176,7 +183,9 @@ def _cmd_calibrate_lights(args: argparse.Namespace) -> int:
     from .light_calibration import calibrate_lights
 
     captures = [load_capture(path) for path in args.bundles]
-    cal = calibrate_lights(captures)  # a CaptureError: valid bundles that give no light calibration (exit 3)
+    cal = calibrate_lights(
+        captures
+    )  # a CaptureError: valid bundles that give no light calibration (exit 3)
     for k in range(cal.lights.n):
         p, a = cal.lights.positions_mm[k], cal.lights.axes[k]
         print(
@@ -188,7 +197,9 @@ def _cmd_calibrate_lights(args: argparse.Namespace) -> int:
         f"{cal.lights.n} lights from {len(captures)} bundle(s): rms {cal.rms:.5f} (of the mean sample), "
         f"{cal.n_samples} samples of {cal.block_px} x {cal.block_px} px, {cal.iterations} iterations, {cal.seconds:.1f} s"
     )
-    Path(args.out).write_text(json.dumps(light_calibration_document(cal.lights, cal.rms), indent=2) + "\n")
+    Path(args.out).write_text(
+        json.dumps(light_calibration_document(cal.lights, cal.rms), indent=2) + "\n"
+    )
     print(f"wrote {args.out}")
     return EXIT_OK
 
@@ -246,7 +257,11 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
     dev = doc["deviation_mm"]
     print(
         f"{doc['plate_id']}: {doc['verdict'].upper()}"
-        + (f"  radius {radius:.1f} mm ({doc['radius_error_pct']:+.3f} %)" if radius is not None else "")
+        + (
+            f"  radius {radius:.1f} mm ({doc['radius_error_pct']:+.3f} %)"
+            if radius is not None
+            else ""
+        )
         + f"  deviation rms {dev['rms']:.2f} mm, max {dev['max_abs']:.2f} mm, {doc['within_tolerance_pct']:.2f} % within"
         f" {doc['tolerance_mm']} mm  ({doc['timings_s']['total']:.2f} s)"
     )
@@ -278,49 +293,122 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:
     """``plate-inspect simulate capture | boards``."""
     sim = sub.add_parser("simulate", help="render simulated captures or calibration boards")
     sim_sub = sim.add_subparsers(dest="what", required=True, metavar="WHAT")
-    cap = sim_sub.add_parser("capture", help="render a capture bundle of a plate (+ target.json, truth.npz)")
+    cap = sim_sub.add_parser(
+        "capture", help="render a capture bundle of a plate (+ target.json, truth.npz)"
+    )
     cap.add_argument("out", help="output folder")
-    cap.add_argument("--shape", choices=["plane", "cylinder", "sphere", "saddle"], default="cylinder")
+    cap.add_argument(
+        "--shape", choices=["plane", "cylinder", "sphere", "saddle"], default="cylinder"
+    )
     cap.add_argument("--radius", type=float, default=5000.0, help="radius, mm (default 5000)")
     cap.add_argument("--radius2", type=float, default=None, help="saddle: second radius, mm")
-    cap.add_argument("--concave", action="store_true", help="bent away from the cameras (default: convex)")
-    cap.add_argument("--dent", action="append", default=[], metavar="X,Y,R,D",
-                     help="local dent at plate coordinates X,Y mm, radius R mm, depth D mm (negative: bump); repeatable")
-    cap.add_argument("--outline", choices=["rectangle", "trapezoid", "curved"], default="rectangle",
-                     help="plate outline (not a rectangle: the target is written as a mesh, target.stl)")
-    cap.add_argument("--cutout", action="append", default=[], metavar="X,Y,R",
-                     help="opening through the plate at plate coordinates X,Y mm: radius R mm, or X,Y,W,H[,CORNER] "
-                          "for a rounded rectangle; repeatable (the target is then written as a mesh); "
-                          "a negative X needs the = form: --cutout=-500,200,150")
-    cap.add_argument("--floor", type=float, default=None, metavar="MM",
-                     help="a lit, textured shop floor this far below the plate's lowest point, mm "
-                          "(default: a dark conveyor 40 mm behind the plate)")
-    cap.add_argument("--floor-albedo", type=float, default=0.55, help="mean albedo of the floor (default 0.55)")
-    cap.add_argument("--supports", type=int, default=0, metavar="N",
-                     help="with --floor: N rails 200-400 mm high (at most the floor's distance) across the plate")
-    cap.add_argument("--lights", type=int, default=12, help="number of light directions (default 12)")
-    cap.add_argument("--noise", type=float, default=0.004, help="sensor noise, fraction of full scale (default 0.004)")
+    cap.add_argument(
+        "--concave", action="store_true", help="bent away from the cameras (default: convex)"
+    )
+    cap.add_argument(
+        "--dent",
+        action="append",
+        default=[],
+        metavar="X,Y,R,D",
+        help="local dent at plate coordinates X,Y mm, radius R mm, depth D mm (negative: bump); repeatable",
+    )
+    cap.add_argument(
+        "--outline",
+        choices=["rectangle", "trapezoid", "curved"],
+        default="rectangle",
+        help="plate outline (not a rectangle: the target is written as a mesh, target.stl)",
+    )
+    cap.add_argument(
+        "--cutout",
+        action="append",
+        default=[],
+        metavar="X,Y,R",
+        help="opening through the plate at plate coordinates X,Y mm: radius R mm, or X,Y,W,H[,CORNER] "
+        "for a rounded rectangle; repeatable (the target is then written as a mesh); "
+        "a negative X needs the = form: --cutout=-500,200,150",
+    )
+    cap.add_argument(
+        "--floor",
+        type=float,
+        default=None,
+        metavar="MM",
+        help="a lit, textured shop floor this far below the plate's lowest point, mm "
+        "(default: a dark conveyor 40 mm behind the plate)",
+    )
+    cap.add_argument(
+        "--floor-albedo", type=float, default=0.55, help="mean albedo of the floor (default 0.55)"
+    )
+    cap.add_argument(
+        "--supports",
+        type=int,
+        default=0,
+        metavar="N",
+        help="with --floor: N rails 200-400 mm high (at most the floor's distance) across the plate",
+    )
+    cap.add_argument(
+        "--lights", type=int, default=12, help="number of light directions (default 12)"
+    )
+    cap.add_argument(
+        "--noise",
+        type=float,
+        default=0.004,
+        help="sensor noise, fraction of full scale (default 0.004)",
+    )
     cap.add_argument("--bit-depth", type=int, choices=[8, 12, 16], default=16)
-    cap.add_argument("--specular", type=float, default=0.0, help="specular lobe strength (default 0: Lambertian)")
-    cap.add_argument("--size", default="1224x1024", help="image size WIDTHxHEIGHT px (default 1224x1024)")
-    cap.add_argument("--distance", type=float, default=3000.0, help="working distance, mm (default 3000)")
-    cap.add_argument("--elevation", type=float, default=45.0,
-                     help="angle of the lights from the optical axis, seen from the plate centre, deg (default 45)")
-    cap.add_argument("--near-field", type=float, default=None, metavar="MM",
-                     help="point lights (LEDs) this high above the plate, mm (default: distant lights)")
-    cap.add_argument("--led-mu", type=float, default=0.0, help="LED beam profile exponent cos^mu (default 0)")
-    cap.add_argument("--light-error-deg", type=float, default=0.0,
-                     help="write the lights turned by this angle about the plate centre (a bumped light)")
-    cap.add_argument("--nominal-lights", action="store_true",
-                     help="with --near-field: write only each light's direction from the plate centre")
-    cap.add_argument("--texture", choices=["rusty", "painted", "uniform"], default="rusty", help="plate albedo")
+    cap.add_argument(
+        "--specular", type=float, default=0.0, help="specular lobe strength (default 0: Lambertian)"
+    )
+    cap.add_argument(
+        "--size", default="1224x1024", help="image size WIDTHxHEIGHT px (default 1224x1024)"
+    )
+    cap.add_argument(
+        "--distance", type=float, default=3000.0, help="working distance, mm (default 3000)"
+    )
+    cap.add_argument(
+        "--elevation",
+        type=float,
+        default=45.0,
+        help="angle of the lights from the optical axis, seen from the plate centre, deg (default 45)",
+    )
+    cap.add_argument(
+        "--near-field",
+        type=float,
+        default=None,
+        metavar="MM",
+        help="point lights (LEDs) this high above the plate, mm (default: distant lights)",
+    )
+    cap.add_argument(
+        "--led-mu", type=float, default=0.0, help="LED beam profile exponent cos^mu (default 0)"
+    )
+    cap.add_argument(
+        "--light-error-deg",
+        type=float,
+        default=0.0,
+        help="write the lights turned by this angle about the plate centre (a bumped light)",
+    )
+    cap.add_argument(
+        "--nominal-lights",
+        action="store_true",
+        help="with --near-field: write only each light's direction from the plate centre",
+    )
+    cap.add_argument(
+        "--texture", choices=["rusty", "painted", "uniform"], default="rusty", help="plate albedo"
+    )
     cap.add_argument("--no-stereo", action="store_true", help="omit the stereo pair")
-    cap.add_argument("--no-working-distance", action="store_true", help="omit working_distance_mm from the bundle")
-    cap.add_argument("--tolerance", type=float, default=2.0, help="tolerance written to target.json, mm")
+    cap.add_argument(
+        "--no-working-distance",
+        action="store_true",
+        help="omit working_distance_mm from the bundle",
+    )
+    cap.add_argument(
+        "--tolerance", type=float, default=2.0, help="tolerance written to target.json, mm"
+    )
     cap.add_argument("--plate-id", default="SIM-0001")
     cap.add_argument("--seed", type=int, default=0)
     cap.set_defaults(handler=_cmd_simulate_capture)
-    boards = sim_sub.add_parser("boards", help="render checkerboard pairs for `plate-inspect calibrate`")
+    boards = sim_sub.add_parser(
+        "boards", help="render checkerboard pairs for `plate-inspect calibrate`"
+    )
     boards.add_argument("out", help="output folder")
     boards.add_argument("--pairs", type=int, default=12)
     boards.add_argument("--board", default="9x6", help="inner corners COLSxROWS (default 9x6)")
@@ -339,23 +427,35 @@ def _add_calibrate(sub: argparse._SubParsersAction) -> None:
     cal.add_argument("--out", default="calibration.json", help="output stereo-calibration/1 file")
     cal.set_defaults(handler=_cmd_calibrate)
 
-    lc = sub.add_parser("calibrate-lights", help="measure the point lights (LEDs) on a flat reference plate")
-    lc.add_argument("bundles", nargs="+", metavar="BUNDLE",
-                    help="capture bundle(s) of a flat, matte plate with a stereo pair (plate-capture/1); "
-                         "several (the plate at other heights) are fitted jointly")
+    lc = sub.add_parser(
+        "calibrate-lights", help="measure the point lights (LEDs) on a flat reference plate"
+    )
+    lc.add_argument(
+        "bundles",
+        nargs="+",
+        metavar="BUNDLE",
+        help="capture bundle(s) of a flat, matte plate with a stereo pair (plate-capture/1); "
+        "several (the plate at other heights) are fitted jointly",
+    )
     lc.add_argument("--out", required=True, help="output light-calibration/1 file")
     lc.set_defaults(handler=_cmd_calibrate_lights)
 
 
-
 def _add_acquire(sub: argparse._SubParsersAction) -> None:
     """``plate-inspect acquire``."""
-    acq = sub.add_parser("acquire", help="photograph a plate in the cell and write a capture bundle")
+    acq = sub.add_parser(
+        "acquire", help="photograph a plate in the cell and write a capture bundle"
+    )
     acq.add_argument("config", help="cell configuration (cell-config/1)")
     acq.add_argument("--plate-id", required=True, help="the plate's id, written into the bundle")
     acq.add_argument("--out", required=True, help="bundle folder to write (must not exist)")
-    acq.add_argument("--frame-timeout", type=float, default=None, metavar="S",
-                     help="seconds a frame may take beyond its exposure before the camera counts as gone (default 2)")
+    acq.add_argument(
+        "--frame-timeout",
+        type=float,
+        default=None,
+        metavar="S",
+        help="seconds a frame may take beyond its exposure before the camera counts as gone (default 2)",
+    )
     acq.set_defaults(handler=_cmd_acquire)
 
 
@@ -365,10 +465,15 @@ def _add_inspect(sub: argparse._SubParsersAction) -> None:
     ins.add_argument("capture", help="capture bundle: folder or .zip (plate-capture/1)")
     ins.add_argument("--target", required=True, help="target file (plate-target/1)")
     ins.add_argument("--out", required=True, help="output folder for result.json and artifacts")
-    ins.add_argument("--normals", choices=["robust", "lstsq"], default="robust", help="photometric estimator")
-    ins.add_argument("--no-warm-up", action="store_true",
-                     help="skip loading the compiled kernels on a small simulated plate first (~0.8 s); "
-                          "the first inspection of a process then includes that loading in its timings")
+    ins.add_argument(
+        "--normals", choices=["robust", "lstsq"], default="robust", help="photometric estimator"
+    )
+    ins.add_argument(
+        "--no-warm-up",
+        action="store_true",
+        help="skip loading the compiled kernels on a small simulated plate first (~0.8 s); "
+        "the first inspection of a process then includes that loading in its timings",
+    )
     ins.set_defaults(handler=_cmd_inspect)
 
 
@@ -377,21 +482,28 @@ def main(argv: list[str] | None = None) -> int:
     configure_process()  # the process's thread policy, before any kernel runs
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.INFO if args.verbose else logging.WARNING,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
     try:
         return int(args.handler(args) or EXIT_OK)
     except (InputError, BadArgument, FileNotFoundError, NotADirectoryError) as err:
         print(f"plate-inspect {args.command}: {_one_line(err)}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    except AcquisitionError as err:  # a camera or the light controller failed (acquire left no bundle)
+    except (
+        AcquisitionError
+    ) as err:  # a camera or the light controller failed (acquire left no bundle)
         print(f"plate-inspect {args.command}: {_one_line(err)}", file=sys.stderr)
         return EXIT_HARDWARE
-    except PipelineError as err:  # valid input that cannot be measured (inspect wrote result.json saying why)
+    except (
+        PipelineError
+    ) as err:  # valid input that cannot be measured (inspect wrote result.json saying why)
         print(f"plate-inspect {args.command}: {_one_line(err)}", file=sys.stderr)
         return EXIT_NOT_MEASURABLE
     except KeyboardInterrupt:
         return EXIT_INTERNAL
-    except Exception as err:  # noqa: BLE001 - the CLI's last line of defence
+    except Exception as err:
         traceback.print_exc()
         print(f"plate-inspect {args.command}: internal error: {_one_line(err)}", file=sys.stderr)
         return EXIT_INTERNAL

@@ -105,7 +105,9 @@ class _HeightPoly:
         """Second fundamental form in an orthonormal tangent basis (e1 along r_x), (M, 3): B11, B12, B22.
         Normal is the graph's upward normal (+h)."""
         xn, yn = self._norm(x, y)
-        hx, hy, hxx, hxy, hyy = (leg.legval2d(xn, yn, self.d[key]) for key in ("x", "y", "xx", "xy", "yy"))
+        hx, hy, hxx, hxy, hyy = (
+            leg.legval2d(xn, yn, self.d[key]) for key in ("x", "y", "xx", "xy", "yy")
+        )
         E, F, G = 1 + hx * hx, hx * hy, 1 + hy * hy
         w = np.sqrt(1 + hx * hx + hy * hy)
         L, M, N = hxx / w, hxy / w, hyy / w
@@ -129,8 +131,9 @@ def _eig_sym2(b: np.ndarray) -> np.ndarray:
     return lam
 
 
-def principal_curvatures(points_mm, mask, *, flat_sagitta_mm: float = FLAT_SAGITTA_MM,
-                         max_points: int = MAX_FIT_POINTS) -> CurvatureResult:
+def principal_curvatures(
+    points_mm, mask, *, flat_sagitta_mm: float = FLAT_SAGITTA_MM, max_points: int = MAX_FIT_POINTS
+) -> CurvatureResult:
     """Principal radii and a per-pixel principal-curvature map of the measured surface.
 
     Parameters
@@ -170,7 +173,9 @@ def principal_curvatures(points_mm, mask, *, flat_sagitta_mm: float = FLAT_SAGIT
     """
     pts, m = check_grid(points_mm, mask, min_points=50)
     if not (math.isfinite(flat_sagitta_mm) and flat_sagitta_mm > 0):
-        raise ValueError(f"flat_sagitta_mm: expected a positive number of mm, got {flat_sagitta_mm}")
+        raise ValueError(
+            f"flat_sagitta_mm: expected a positive number of mm, got {flat_sagitta_mm}"
+        )
     sub = grid_sample(pts, m, max_points)
     c, frame, q, deg = _height_frame(sub)
     poly = _HeightPoly(q, deg)
@@ -204,8 +209,9 @@ def _height_frame(sub: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
     return c, frame, q, deg
 
 
-def _plate_curvature(poly: _HeightPoly, q: np.ndarray, frame: np.ndarray,
-                     flat_sagitta_mm: float) -> tuple[np.ndarray, np.ndarray, list[float | None]]:
+def _plate_curvature(
+    poly: _HeightPoly, q: np.ndarray, frame: np.ndarray, flat_sagitta_mm: float
+) -> tuple[np.ndarray, np.ndarray, list[float | None]]:
     """The plate's principal curvatures (2,), directions (2, 3) and radii (None where flat): the
     eigen-decomposition of the median curvature tensor over the points ``q`` (plate frame)."""
     # The graph normal points towards the camera, so a surface convex towards the camera has negative II;
@@ -216,7 +222,7 @@ def _plate_curvature(poly: _HeightPoly, q: np.ndarray, frame: np.ndarray,
     lam, vec = np.linalg.eigh(tens)
     order = np.argsort(-np.abs(lam))
     lam, vec = lam[order], vec[:, order]
-    directions = (vec.T @ frame[:2])
+    directions = vec.T @ frame[:2]
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     radii: list[float | None] = []
     for i in range(2):
@@ -227,7 +233,9 @@ def _plate_curvature(poly: _HeightPoly, q: np.ndarray, frame: np.ndarray,
     return lam, directions, radii
 
 
-def _curvature_map(pts: np.ndarray, m: np.ndarray, c: np.ndarray, frame: np.ndarray, poly: _HeightPoly) -> np.ndarray:
+def _curvature_map(
+    pts: np.ndarray, m: np.ndarray, c: np.ndarray, frame: np.ndarray, poly: _HeightPoly
+) -> np.ndarray:
     """The (H, W, 2) float32 per-pixel principal curvatures (1/mm), NaN outside the mask ``m``.
 
     Evaluated at every valid pixel of small grids; on large grids at every step-th pixel (step odd, at
@@ -256,7 +264,11 @@ def _curvature_map(pts: np.ndarray, m: np.ndarray, c: np.ndarray, frame: np.ndar
         hc, wc = coarse_mask.shape
         kmap = cv2.resize(kmap_c, (wc * step, hc * step), interpolation=cv2.INTER_LINEAR)
         if kmap.shape[0] < H or kmap.shape[1] < W:
-            kmap = np.pad(kmap, ((0, max(0, H - kmap.shape[0])), (0, max(0, W - kmap.shape[1])), (0, 0)), mode="edge")
+            kmap = np.pad(
+                kmap,
+                ((0, max(0, H - kmap.shape[0])), (0, max(0, W - kmap.shape[1])), (0, 0)),
+                mode="edge",
+            )
         kmap = kmap[:H, :W]
     kmap = np.asarray(kmap, dtype=np.float32)
     np.copyto(kmap, np.float32(np.nan), where=~m[..., None])

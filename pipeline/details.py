@@ -136,18 +136,26 @@ class Details:
 
 def region_details(region) -> RegionDetails:
     """A :class:`pipeline.verdict.DefectRegion` for details.json."""
-    return RegionDetails(centroid_px=list(map(float, region.centroid_px)), area_mm2=float(region.area_mm2),
-                         peak_deviation_mm=float(region.peak_deviation_mm))
+    return RegionDetails(
+        centroid_px=list(map(float, region.centroid_px)),
+        area_mm2=float(region.area_mm2),
+        peak_deviation_mm=float(region.peak_deviation_mm),
+    )
 
 
 def excluded_region_details(region) -> ExcludedRegionDetails:
     """A :class:`pipeline.verdict.ExcludedRegion` for details.json."""
-    return ExcludedRegionDetails(centroid_px=list(map(float, region.centroid_px)), area_mm2=float(region.area_mm2),
-                                 peak_deviation_mm=float(region.peak_deviation_mm), reason=region.reason)
+    return ExcludedRegionDetails(
+        centroid_px=list(map(float, region.centroid_px)),
+        area_mm2=float(region.area_mm2),
+        peak_deviation_mm=float(region.peak_deviation_mm),
+        reason=region.reason,
+    )
 
 
-def segmentation_details(seg, target_area_mm2: float, *, plain: bool,
-                         measured_area_mm2: float) -> SegmentationDetails | BrightnessSegmentationDetails:
+def segmentation_details(
+    seg, target_area_mm2: float, *, plain: bool, measured_area_mm2: float
+) -> SegmentationDetails | BrightnessSegmentationDetails:
     """How the plate was told from its surroundings, and its area against the target's.
 
     Parameters
@@ -161,12 +169,19 @@ def segmentation_details(seg, target_area_mm2: float, *, plain: bool,
         Without a segmentation: the measured surface's area (the brightness mask is eroded by 3 px).
     """
     if seg is None:
-        why = ("a plain scene: nothing lit around the plate, no opening in it, one smooth sheet in the stereo "
-               "depth; the brightness mask (Otsu) is the plate" if plain else
-               "no stereo pair: the plate was told from its surroundings by brightness (Otsu, holes filled)")
+        why = (
+            "a plain scene: nothing lit around the plate, no opening in it, one smooth sheet in the stereo "
+            "depth; the brightness mask (Otsu) is the plate"
+            if plain
+            else "no stereo pair: the plate was told from its surroundings by brightness (Otsu, holes filled)"
+        )
         return BrightnessSegmentationDetails(
-            method="brightness", plate_area_mm2=round(measured_area_mm2, 0), target_area_mm2=round(target_area_mm2, 0),
-            area_ratio=round(measured_area_mm2 / target_area_mm2, 4), reasons=[why])
+            method="brightness",
+            plate_area_mm2=round(measured_area_mm2, 0),
+            target_area_mm2=round(target_area_mm2, 0),
+            area_ratio=round(measured_area_mm2 / target_area_mm2, 4),
+            reasons=[why],
+        )
     measured = seg.plate_area_mm2 + seg.edge_band_area_mm2
     return SegmentationDetails(
         method=seg.method,

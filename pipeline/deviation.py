@@ -21,16 +21,21 @@ from .registration import Registration
 from .surface_fits import check_grid
 from .target_geometry import check_target, mesh_grid
 
+
 def _check_registration(registration) -> np.ndarray:
     """``registration.T_cam_target`` checked as a finite rigid (4, 4) transform."""
     if not isinstance(registration, Registration):
         raise TypeError(f"registration: expected a Registration, got {type(registration).__name__}")
     T = np.asarray(registration.T_cam_target, dtype=np.float64)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise ValueError(f"registration.T_cam_target: expected a finite (4, 4) matrix, got shape {T.shape}")
+        raise ValueError(
+            f"registration.T_cam_target: expected a finite (4, 4) matrix, got shape {T.shape}"
+        )
     R = T[:3, :3]
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
-        raise ValueError("registration.T_cam_target: expected a rigid transform (rotation + translation)")
+        raise ValueError(
+            "registration.T_cam_target: expected a rigid transform (rotation + translation)"
+        )
     return T
 
 
@@ -72,14 +77,18 @@ def deviation_map(points_mm, mask, target, registration) -> np.ndarray:
         out = np.empty(m.size, dtype=np.float32)
         flat = pts.reshape(-1, 3)
         for start in range(0, flat.shape[0], _CHUNK):
-            x = cv2.transform(flat[start : start + _CHUNK].reshape(-1, 1, 3), T_target_cam).reshape(-1, 3)
+            x = cv2.transform(flat[start : start + _CHUNK].reshape(-1, 1, 3), T_target_cam).reshape(
+                -1, 3
+            )
             out[start : start + _CHUNK] = _analytic_deviation(x, tgt, cam)
         out = out.reshape(m.shape)
         out[~m] = np.nan
         return out
     # Mesh: camera frame -> plate coordinates of the mesh grid in one transform, in chunks as above.
     grid = mesh_grid(tgt)
-    to_plate = grid.frame @ np.hstack([T_target_cam[:, :3], (T_target_cam[:, 3] - grid.origin)[:, None]])
+    to_plate = grid.frame @ np.hstack(
+        [T_target_cam[:, :3], (T_target_cam[:, 3] - grid.origin)[:, None]]
+    )
     q_cam = grid.frame @ (cam - grid.origin)
     h0, _ = grid.sample(q_cam[None, :], filled=True)
     side = 1.0 if q_cam[2] > h0[0] else -1.0
@@ -87,7 +96,9 @@ def deviation_map(points_mm, mask, target, registration) -> np.ndarray:
     flat = pts.reshape(-1, 3)
     with np.errstate(invalid="ignore"):  # NaN points outside the mask
         for start in range(0, flat.shape[0], _MESH_CHUNK):
-            q = cv2.transform(flat[start : start + _MESH_CHUNK].reshape(-1, 1, 3), to_plate).reshape(-1, 3)
+            q = cv2.transform(
+                flat[start : start + _MESH_CHUNK].reshape(-1, 1, 3), to_plate
+            ).reshape(-1, 3)
             h, slope = grid.sample(q)
             out[start : start + _MESH_CHUNK] = side * (q[:, 2] - h) * slope
     out = out.reshape(m.shape)

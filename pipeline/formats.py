@@ -11,7 +11,15 @@ from __future__ import annotations
 import math
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Discriminator,
+    Field,
+    Tag,
+    field_validator,
+    model_validator,
+)
 
 CALIBRATION_FORMAT = "stereo-calibration/1"
 CAPTURE_FORMAT = "plate-capture/1"
@@ -171,7 +179,9 @@ class Light(_Strict):
                 + ("both" if self.direction is not None else "neither")
             )
         if self.direction is not None and (self.axis is not None or self.mu is not None):
-            raise ValueError("axis, mu: only a point light (position_mm) has an LED axis and profile, got a distant light")
+            raise ValueError(
+                "axis, mu: only a point light (position_mm) has an LED axis and profile, got a distant light"
+            )
         return self
 
 
@@ -256,7 +266,9 @@ class CellCamera(_Strict):
     @model_validator(mode="after")
     def _device(self):
         if self.driver == "aravis" and self.device_id is None:
-            raise ValueError("device_id: missing required key (an aravis camera is opened by its device id)")
+            raise ValueError(
+                "device_id: missing required key (an aravis camera is opened by its device id)"
+            )
         return self
 
 
@@ -280,14 +292,18 @@ def _one_line_command(v: str | None, *, per_light: bool) -> str | None:
         raise ValueError(f"expected one line (a line break only at the end), got {v!r}")
     if not per_light:
         if "{index}" in body:
-            raise ValueError(f"expected a command without {{index}} (it switches the stereo light), got {v!r}")
+            raise ValueError(
+                f"expected a command without {{index}} (it switches the stereo light), got {v!r}"
+            )
         return v
     if "{index}" not in body:
         raise ValueError(f"expected {{index}} (the 0-based light index) in the command, got {v!r}")
     try:
         body.format(index=0)
     except (KeyError, IndexError, ValueError) as exc:
-        raise ValueError(f"expected text whose only field is {{index}}, got {v!r} ({exc})") from None
+        raise ValueError(
+            f"expected text whose only field is {{index}}, got {v!r} ({exc})"
+        ) from None
     return v
 
 
@@ -355,10 +371,14 @@ class CellLights(_Strict):
         if self.driver == "tcp":
             for key in ("address", "on", "off"):
                 if getattr(self, key) is None:
-                    raise ValueError(f"{key}: missing required key (a tcp light controller needs address, on and off)")
+                    raise ValueError(
+                        f"{key}: missing required key (a tcp light controller needs address, on and off)"
+                    )
         if (self.stereo_on is None) != (self.stereo_off is None):
             missing = "stereo_off" if self.stereo_off is None else "stereo_on"
-            raise ValueError(f"{missing}: missing required key (stereo_on and stereo_off go together)")
+            raise ValueError(
+                f"{missing}: missing required key (stereo_on and stereo_off go together)"
+            )
         return self
 
 
@@ -393,7 +413,9 @@ class MeshShape(_Strict):
     file: str = Field(min_length=1)
 
 
-TargetShape = Annotated[PlaneShape | CylinderShape | SphereShape | MeshShape, Field(discriminator="type")]
+TargetShape = Annotated[
+    PlaneShape | CylinderShape | SphereShape | MeshShape, Field(discriminator="type")
+]
 
 
 class TargetMaterial(_Strict):
@@ -408,7 +430,9 @@ class TargetMaterial(_Strict):
     @model_validator(mode="after")
     def _yield_below_modulus(self):
         if self.yield_mpa >= self.youngs_mpa:
-            raise ValueError(f"yield_mpa: expected less than youngs_mpa ({self.youngs_mpa:g}), got {self.yield_mpa:g}")
+            raise ValueError(
+                f"yield_mpa: expected less than youngs_mpa ({self.youngs_mpa:g}), got {self.yield_mpa:g}"
+            )
         return self
 
 

@@ -158,8 +158,9 @@ def fuse_low_frequencies(
     sparse = max(1, int(np.sqrt(mb.size / 100_000)))
     z_typ = float(np.median(zb[::sparse, ::sparse][mb[::sparse, ::sparse]]))
     blocks = _Blocks.of(zb, zsb, mb)
-    rung, grid, coef, _, sigma_pix = _chosen(_ladder_fits(blocks, mb.shape, knot_fraction, resolve_mm), blocks,
-                                             resolve_mm, z_typ)
+    rung, grid, coef, _, sigma_pix = _chosen(
+        _ladder_fits(blocks, mb.shape, knot_fraction, resolve_mm), blocks, resolve_mm, z_typ
+    )
     fraction = rung if rung not in _POLYNOMIAL else None
     fused = np.full(z.shape, np.nan)
     correction = np.full(z.shape, np.nan, np.float32)
@@ -178,7 +179,9 @@ def fuse_low_frequencies(
     )
 
 
-def _check_inputs(depth_ps_mm, stereo_depth_mm, mask, knot_fraction) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _check_inputs(
+    depth_ps_mm, stereo_depth_mm, mask, knot_fraction
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The arrays of :func:`fuse_low_frequencies` checked: photometric and stereo depth float64, mask."""
     z = np.asarray(depth_ps_mm, dtype=np.float64)
     zs = np.asarray(stereo_depth_mm, dtype=np.float64)
@@ -195,7 +198,9 @@ def _check_inputs(depth_ps_mm, stereo_depth_mm, mask, knot_fraction) -> tuple[np
     return z, zs, mask
 
 
-def _ladder_fits(blocks: "_Blocks", shape: tuple[int, int], knot_fraction: float, resolve_mm: float | None) -> list:
+def _ladder_fits(
+    blocks: _Blocks, shape: tuple[int, int], knot_fraction: float, resolve_mm: float | None
+) -> list:
     """The fits ``(rung, grid, coef, rms, sigma_pix)`` of every rung of the ladder that the blocks can carry
     (``resolve_mm`` None: only the spline of ``knot_fraction``, or the finest rung the blocks carry)."""
     extent = float(max(shape))
@@ -207,12 +212,21 @@ def _ladder_fits(blocks: "_Blocks", shape: tuple[int, int], knot_fraction: float
         return (rung, grid) + _fit(grid, blocks, degree=_DEGREE.get(rung))
 
     if resolve_mm is None:
-        for rung in [knot_fraction, *(f for f in KNOT_LADDER[::-1] if f > knot_fraction), QUADRIC, PLANE]:
+        for rung in [
+            knot_fraction,
+            *(f for f in KNOT_LADDER[::-1] if f > knot_fraction),
+            QUADRIC,
+            PLANE,
+        ]:
             fits = [f for f in (fit(rung),) if f is not None]
             if fits:
                 break
     else:
-        fits = [f for f in map(fit, [PLANE, QUADRIC, *(f for f in KNOT_LADDER if f >= knot_fraction)]) if f is not None]
+        fits = [
+            f
+            for f in map(fit, [PLANE, QUADRIC, *(f for f in KNOT_LADDER if f >= knot_fraction)])
+            if f is not None
+        ]
     if not fits:
         raise ValueError(
             f"stereo_depth_mm: expected stereo depth over at least {4 * _POLYNOMIAL[PLANE]} blocks of {blocks.size} px of "
@@ -221,7 +235,7 @@ def _ladder_fits(blocks: "_Blocks", shape: tuple[int, int], knot_fraction: float
     return fits
 
 
-def _chosen(fits: list, blocks: "_Blocks", resolve_mm: float | None, z_typ: float) -> tuple:
+def _chosen(fits: list, blocks: _Blocks, resolve_mm: float | None, z_typ: float) -> tuple:
     """The fit taken: each is scored by its residual plus what its coefficients would take out of pure noise
     (an information criterion); the best if it is the plane, else the coarsest from the quadric on within
     ``resolve_mm`` RMS of the best score."""
@@ -229,12 +243,19 @@ def _chosen(fits: list, blocks: "_Blocks", resolve_mm: float | None, z_typ: floa
     slack = 0.0 if resolve_mm is None else (resolve_mm / z_typ) ** 2
 
     def score(f):
-        return f[3] ** 2 + 2.0 * NOISE_CORRELATION * noise2 * _POLYNOMIAL.get(f[0], f[1].size) / blocks.n_used
+        return (
+            f[3] ** 2
+            + 2.0 * NOISE_CORRELATION * noise2 * _POLYNOMIAL.get(f[0], f[1].size) / blocks.n_used
+        )
 
     best = min(fits, key=score)
     # the slack applies between the bend and the finer corrections: the bend itself needs no more than
     # its score (a bent plate must get the stereo pair's radius)
-    return best if best[0] == PLANE else next(f for f in fits if f[0] != PLANE and score(f) <= score(best) + slack)
+    return (
+        best
+        if best[0] == PLANE
+        else next(f for f in fits if f[0] != PLANE and score(f) <= score(best) + slack)
+    )
 
 
 def _disagreement(zb: np.ndarray, corr_b: np.ndarray, mb: np.ndarray) -> float:
@@ -248,8 +269,9 @@ def _disagreement(zb: np.ndarray, corr_b: np.ndarray, mb: np.ndarray) -> float:
     return float(np.percentile(np.abs(log_corr - A @ plane) * z_s, 95))
 
 
-def smooth_stereo_depth(stereo_depth_mm: np.ndarray, mask: np.ndarray, *, knot_fraction: float = 1.0 / 8.0
-                        ) -> np.ndarray:
+def smooth_stereo_depth(
+    stereo_depth_mm: np.ndarray, mask: np.ndarray, *, knot_fraction: float = 1.0 / 8.0
+) -> np.ndarray:
     """A complete, smooth surface through the stereo depth: (H, W) float64 mm on ``mask``, NaN elsewhere.
 
     The robust spline of :func:`fuse_low_frequencies` (``knot_fraction``, no ladder) fitted to
@@ -257,7 +279,9 @@ def smooth_stereo_depth(stereo_depth_mm: np.ndarray, mask: np.ndarray, *, knot_f
     has holes and noise.
     """
     ones = np.where(mask, 1.0, np.nan)
-    return fuse_low_frequencies(ones, stereo_depth_mm, mask, knot_fraction=knot_fraction, resolve_mm=None).depth_mm
+    return fuse_low_frequencies(
+        ones, stereo_depth_mm, mask, knot_fraction=knot_fraction, resolve_mm=None
+    ).depth_mm
 
 
 @dataclass(frozen=True)
@@ -285,7 +309,7 @@ class _Blocks:
         return int(self.count.sum())
 
     @classmethod
-    def of(cls, z: np.ndarray, zs: np.ndarray, mask: np.ndarray) -> "_Blocks":
+    def of(cls, z: np.ndarray, zs: np.ndarray, mask: np.ndarray) -> _Blocks:
         h, w = mask.shape
         b = max(MIN_BLOCK_PX, int(round(np.sqrt(h * w / TARGET_BLOCKS))))
         stride = max(1, b // 4)  # a median of up to 16 samples per block is plenty
@@ -295,7 +319,9 @@ class _Blocks:
         padded = np.full((nbv * b, nbu * b), np.inf)
         with np.errstate(invalid="ignore", divide="ignore"):
             r = np.log(zs[::stride, ::stride]) - np.log(z[::stride, ::stride])
-        padded[:h:stride, :w:stride] = np.where(mask[::stride, ::stride] & np.isfinite(r), r, np.inf)
+        padded[:h:stride, :w:stride] = np.where(
+            mask[::stride, ::stride] & np.isfinite(r), r, np.inf
+        )
         tiles = padded[::stride, ::stride].reshape(nbv, k, nbu, k)
         tiles = tiles.transpose(0, 2, 1, 3).reshape(nbv, nbu, k * k)
         have = np.isfinite(tiles)
@@ -305,14 +331,18 @@ class _Blocks:
         with np.errstate(invalid="ignore", divide="ignore"):
             off_r = (have.reshape(nbv, nbu, k, k).sum(axis=3) @ offsets) / count
             off_c = (have.reshape(nbv, nbu, k, k).sum(axis=2) @ offsets) / count
-        centred = (np.abs(off_r) <= MAX_CENTROID_OFFSET * k) & (np.abs(off_c) <= MAX_CENTROID_OFFSET * k)
+        centred = (np.abs(off_r) <= MAX_CENTROID_OFFSET * k) & (
+            np.abs(off_c) <= MAX_CENTROID_OFFSET * k
+        )
         tiles.sort(axis=2)  # +inf (no data) last
         lo = np.take_along_axis(tiles, np.maximum((count - 1) // 2, 0)[..., None], axis=2)[..., 0]
         hi = np.take_along_axis(tiles, np.maximum(count // 2, 0)[..., None], axis=2)[..., 0]
         med = 0.5 * (lo + hi)
         used = (count >= max(1, int(MIN_BLOCK_FILL * k * k))) & centred
         samples = np.where(used, count, 0).astype(np.float64)
-        centre = stride * (k - 1) / 2.0  # the centre of a block's samples (every stride-th pixel from its corner)
+        centre = (
+            stride * (k - 1) / 2.0
+        )  # the centre of a block's samples (every stride-th pixel from its corner)
         return cls(
             size=b,
             value=np.where(used, med, 0.0),
@@ -333,7 +363,7 @@ class _Grid:
         self.nu = int(np.ceil(shape[1] / self.spacing)) + 3
 
     @classmethod
-    def over(cls, shape: tuple[int, int], spacing: float) -> "_Grid":
+    def over(cls, shape: tuple[int, int], spacing: float) -> _Grid:
         return cls(shape, max(4.0, spacing))
 
     @property
@@ -345,7 +375,13 @@ class _Grid:
         t = np.asarray(x, dtype=np.float64) / self.spacing
         i = np.clip(np.floor(t).astype(np.int64), 0, n - 4)
         f = t - i
-        w = np.stack([(1 - f) ** 3, 3 * f**3 - 6 * f**2 + 4, -3 * f**3 + 3 * f**2 + 3 * f + 1, f**3], axis=1) / 6.0
+        w = (
+            np.stack(
+                [(1 - f) ** 3, 3 * f**3 - 6 * f**2 + 4, -3 * f**3 + 3 * f**2 + 3 * f + 1, f**3],
+                axis=1,
+            )
+            / 6.0
+        )
         B = np.zeros((t.size, n))
         for a in range(4):
             B[np.arange(t.size), i + a] = w[:, a]
@@ -359,9 +395,11 @@ class _Grid:
 
     def penalty(self) -> np.ndarray:
         """P^T P of the second differences of the coefficients along both grid directions (dense)."""
+
         def dtd(n):
             d = np.diff(np.eye(n), 2, axis=0)
             return d.T @ d
+
         return np.kron(dtd(self.nv), np.eye(self.nu)) + np.kron(np.eye(self.nv), dtd(self.nu))
 
 
@@ -379,10 +417,17 @@ def _fit(grid: _Grid, blocks: _Blocks, *, degree: int | None):
     Q = None
     if degree is not None:
         # a polynomial in the coefficients' indices is one in (u, v): cubic B-splines reproduce it
-        gv, gu = np.meshgrid(np.arange(grid.nv, dtype=np.float64), np.arange(grid.nu, dtype=np.float64), indexing="ij")
+        gv, gu = np.meshgrid(
+            np.arange(grid.nv, dtype=np.float64),
+            np.arange(grid.nu, dtype=np.float64),
+            indexing="ij",
+        )
         gv, gu = gv.ravel() - gv.mean(), gu.ravel() - gu.mean()
-        Q = np.column_stack([np.ones(grid.size), gv, gu, gv * gv, gv * gu, gu * gu][: _POLYNOMIAL[PLANE] if degree == 1
-                                                                                  else _POLYNOMIAL[QUADRIC]])
+        Q = np.column_stack(
+            [np.ones(grid.size), gv, gu, gv * gv, gv * gu, gu * gu][
+                : _POLYNOMIAL[PLANE] if degree == 1 else _POLYNOMIAL[QUADRIC]
+            ]
+        )
     PtP = grid.penalty()
     lam = SMOOTHING * W0.sum() / grid.size
     w = W0.copy()
@@ -392,7 +437,9 @@ def _fit(grid: _Grid, blocks: _Blocks, *, degree: int | None):
         # normal equations of sum_ij w_ij (R_ij - (Bv C Bu^T)_ij)^2, separably
         inner = Bu.T @ (w[:, :, None] * Bu[None])  # (nbv, nu, nu): Bu^T diag(w_i) Bu per block row
         outer = Bv[:, :, None] * Bv[:, None, :]  # (nbv, nv, nv)
-        N = (outer.reshape(len(Bv), -1).T @ inner.reshape(len(Bv), -1)).reshape(grid.nv, grid.nv, grid.nu, grid.nu)
+        N = (outer.reshape(len(Bv), -1).T @ inner.reshape(len(Bv), -1)).reshape(
+            grid.nv, grid.nv, grid.nu, grid.nu
+        )
         N = N.transpose(0, 2, 1, 3).reshape(grid.size, grid.size)
         rhs = (Bv.T @ (w * R) @ Bu).ravel()
         if Q is not None:
@@ -404,7 +451,9 @@ def _fit(grid: _Grid, blocks: _Blocks, *, degree: int | None):
         # per-sample units: a median of n samples ~ 1.25 sigma / sqrt(n)
         scaled = (res * np.sqrt(blocks.samples))[used] / 1.2533
         sigma_pix = 1.4826 * float(np.median(np.abs(scaled)))
-        rms = float(np.sqrt(np.sum(W0[used] * res[used] ** 2 * (w[used] / W0[used])) / np.sum(w[used])))
+        rms = float(
+            np.sqrt(np.sum(W0[used] * res[used] ** 2 * (w[used] / W0[used])) / np.sum(w[used]))
+        )
         if not sigma_pix > 0:
             break
         a = np.abs(res) * np.sqrt(W0) / (HUBER_K * sigma_pix)

@@ -47,7 +47,7 @@ import scipy.ndimage
 
 from .solvers import solve_grid_system
 
-__all__ = ["DepthResult", "HeightResult", "integrate_normals", "integrate_gradient"]
+__all__ = ["DepthResult", "HeightResult", "integrate_gradient", "integrate_normals"]
 
 #: Tolerance on the length of a normal inside the mask (normals are unit vectors).
 _UNIT_TOL = 1e-2
@@ -124,7 +124,11 @@ def _log_depth_gradients(normals, mask, kinv, unit_tol, p, q):
             ny = np.float64(normals[i, j, 1])
             nz = np.float64(normals[i, j, 2])
             u = np.float64(j)
-            nr = nx * (a0 * u + a1 * v + a2) + ny * (b0 * u + b1 * v + b2) + nz * (c0 * u + c1 * v + c2)
+            nr = (
+                nx * (a0 * u + a1 * v + a2)
+                + ny * (b0 * u + b1 * v + b2)
+                + nz * (c0 * u + c1 * v + c2)
+            )
             nn = nx * nx + ny * ny + nz * nz
             # NaN fails both comparisons and is counted as bad.
             if not (nr < 0.0 and abs(nn - 1.0) <= unit_tol):
@@ -263,7 +267,9 @@ def integrate_normals(
         facing the camera; a prior that is not positive; negative weights; neither
         ``prior_depth_mm`` nor ``reference_depth_mm``.
     """
-    normals, mask, K = _check_normals_inputs(normals, mask, K, prior_depth_mm, reference_depth_mm, tol, max_iter)
+    normals, mask, K = _check_normals_inputs(
+        normals, mask, K, prior_depth_mm, reference_depth_mm, tol, max_iter
+    )
     wd, log_prior, shift, n_prior = _prior_terms(prior_depth_mm, prior_weight, mask)
     if n_prior == 0 and reference_depth_mm is None:
         raise ValueError(
@@ -291,10 +297,16 @@ def _check_normals_inputs(normals, mask, K, prior_depth_mm, reference_depth_mm, 
     if K.shape != (3, 3) or not np.all(np.isfinite(K)):
         raise ValueError(f"K: expected a finite (3, 3) matrix, got shape {K.shape}")
     if K[0, 0] <= 0 or K[1, 1] <= 0 or K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
-        raise ValueError(f"K: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, got {K.tolist()}")
+        raise ValueError(
+            f"K: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, got {K.tolist()}"
+        )
     _check_options(tol, max_iter)
-    if reference_depth_mm is not None and not (np.isfinite(reference_depth_mm) and reference_depth_mm > 0):
-        raise ValueError(f"reference_depth_mm: expected a positive depth in mm, got {reference_depth_mm}")
+    if reference_depth_mm is not None and not (
+        np.isfinite(reference_depth_mm) and reference_depth_mm > 0
+    ):
+        raise ValueError(
+            f"reference_depth_mm: expected a positive depth in mm, got {reference_depth_mm}"
+        )
     if prior_depth_mm is None and reference_depth_mm is None:
         raise ValueError(
             "prior_depth_mm, reference_depth_mm: expected at least one to fix the scale of the depth, got neither"
@@ -383,7 +395,9 @@ def integrate_gradient(
     for name, g in (("grad_u", grad_u), ("grad_v", grad_v)):
         n_bad = int(np.count_nonzero(~np.isfinite(g[mask])))
         if n_bad:
-            raise ValueError(f"{name}: expected finite values inside the mask, got {n_bad} that are not")
+            raise ValueError(
+                f"{name}: expected finite values inside the mask, got {n_bad} that are not"
+            )
     p = np.where(mask, grad_u, 0.0)
     q = np.where(mask, grad_v, 0.0)
     wd = np.zeros(grad_u.shape, np.float32)
@@ -418,9 +432,13 @@ def _prior_terms(prior_depth_mm, prior_weight, mask):
         raise ValueError(f"prior_weight: expected a scalar or shape {hw}, got {weight.shape}")
     wd = np.empty(hw, np.float32)
     log_prior = np.empty(hw)
-    bad_prior, bad_weight, n_used = _prior_arrays(np.ascontiguousarray(mask), prior, weight, wd, log_prior)
+    bad_prior, bad_weight, n_used = _prior_arrays(
+        np.ascontiguousarray(mask), prior, weight, wd, log_prior
+    )
     if bad_prior:
-        raise ValueError(f"prior_depth_mm: expected depths > 0 mm or NaN, got {bad_prior} pixel(s) infinite or <= 0")
+        raise ValueError(
+            f"prior_depth_mm: expected depths > 0 mm or NaN, got {bad_prior} pixel(s) infinite or <= 0"
+        )
     if bad_weight:
         raise ValueError(
             f"prior_weight: expected finite weights >= 0 where the prior is known, got {bad_weight} that are not"

@@ -43,18 +43,18 @@ from PIL import Image
 from pydantic import BaseModel
 
 from .camera import CameraModel, StereoRig
-from .lights import CAMERA_HEAD_RADIUS_MM, Lights
 from .formats import (
     CALIBRATION_FORMAT,
     CAPTURE_FORMAT,
-    TARGET_FORMAT,
     LIGHT_CALIBRATION_FORMAT,
+    TARGET_FORMAT,
     CaptureFile,
     InputError,
     LightCalibrationFile,
     StereoCalibrationFile,
     TargetFile,
 )
+from .lights import CAMERA_HEAD_RADIUS_MM, Lights
 
 #: Default limit on the summed uncompressed size of all members of a capture zip (bytes).
 MAX_ZIP_TOTAL_BYTES = 2 * 1024**3
@@ -201,9 +201,13 @@ def _parse_json(data: bytes, label: str) -> dict:
     try:
         doc = json.loads(text, parse_int=_parse_int)
     except json.JSONDecodeError as exc:
-        raise InputError(label, "", f"not valid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}") from None
+        raise InputError(
+            label, "", f"not valid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}"
+        ) from None
     except RecursionError:
-        raise InputError(label, "", f"objects and lists nested deeper than {MAX_JSON_DEPTH} levels") from None
+        raise InputError(
+            label, "", f"objects and lists nested deeper than {MAX_JSON_DEPTH} levels"
+        ) from None
     if not isinstance(doc, dict):
         raise InputError(label, "", f"expected a JSON object, got {_json_type(doc)}")
     _check_json_tree(doc, label)
@@ -234,7 +238,11 @@ def _check_json_tree(doc: dict, label: str) -> None:
         value, field, depth = stack.pop()
         if isinstance(value, _LongInteger):
             limit = sys.get_int_max_str_digits()
-            raise InputError(label, field, f"expected a number of at most {limit} digits, got one of {value.digits}")
+            raise InputError(
+                label,
+                field,
+                f"expected a number of at most {limit} digits, got one of {value.digits}",
+            )
         if isinstance(value, dict):
             items = [(f"{field}.{key}" if field else str(key), item) for key, item in value.items()]
         elif isinstance(value, list):
@@ -242,14 +250,23 @@ def _check_json_tree(doc: dict, label: str) -> None:
         else:
             continue
         if depth > MAX_JSON_DEPTH:
-            raise InputError(label, field, f"objects and lists nested deeper than {MAX_JSON_DEPTH} levels")
+            raise InputError(
+                label, field, f"objects and lists nested deeper than {MAX_JSON_DEPTH} levels"
+            )
         stack.extend((item, name, depth + 1) for name, item in items)
 
 
 def _json_type(value) -> str:
     if value is None:
         return "null"
-    names = {bool: "a boolean", int: "a number", float: "a number", str: "a string", list: "a list", dict: "an object"}
+    names = {
+        bool: "a boolean",
+        int: "a number",
+        float: "a number",
+        str: "a string",
+        list: "a list",
+        dict: "an object",
+    }
     return names.get(type(value), type(value).__name__)
 
 
@@ -328,7 +345,11 @@ def _walk_loc(model, loc) -> tuple[str, Any, Any]:
 
 
 def _short(value, limit: int = 60) -> str:
-    text = json.dumps(value) if isinstance(value, (dict, list, str, int, float, bool, type(None))) else repr(value)
+    text = (
+        json.dumps(value)
+        if isinstance(value, (dict, list, str, int, float, bool, type(None)))
+        else repr(value)
+    )
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
@@ -366,7 +387,11 @@ def _validate(model, doc: dict, *, label: str, expected_format: str, prefix: str
     if "format" not in doc:
         raise InputError(label, fmt_field, f"missing required key, expected {expected_format!r}")
     if doc["format"] != expected_format:
-        raise InputError(label, fmt_field, f"unknown format {_short(doc['format'])}, expected {expected_format!r}")
+        raise InputError(
+            label,
+            fmt_field,
+            f"unknown format {_short(doc['format'])}, expected {expected_format!r}",
+        )
     _reject_non_finite(doc, label, prefix.rstrip("."))
     try:
         return model.model_validate(doc)
@@ -416,7 +441,9 @@ def load_calibration(source, *, file_label: str | None = None) -> StereoRig:
 
 
 def _calibration_from_doc(doc: dict, *, label: str, prefix: str = "") -> StereoRig:
-    cal = _validate(StereoCalibrationFile, doc, label=label, expected_format=CALIBRATION_FORMAT, prefix=prefix)
+    cal = _validate(
+        StereoCalibrationFile, doc, label=label, expected_format=CALIBRATION_FORMAT, prefix=prefix
+    )
     size = (int(cal.image_size[0]), int(cal.image_size[1]))
     cams = {}
     for side in ("left", "right"):
@@ -428,7 +455,12 @@ def _calibration_from_doc(doc: dict, *, label: str, prefix: str = "") -> StereoR
     board = cal.board.model_dump() if cal.board is not None else None
     try:
         return StereoRig(
-            left=cams["left"], right=cams["right"], R=np.array(cal.R), T=np.array(cal.T), rms_px=cal.rms_px, board=board
+            left=cams["left"],
+            right=cams["right"],
+            R=np.array(cal.R),
+            T=np.array(cal.T),
+            rms_px=cal.rms_px,
+            board=board,
         )
     except ValueError as exc:
         raise _value_error_to_input(exc, label, prefix.rstrip(".")) from None
@@ -488,9 +520,15 @@ def _check_relative(name: str, *, label: str, field: str, what: str = "path") ->
     if "\x00" in name:
         raise InputError(label, field, f"{what} {_short(name)} contains a NUL character")
     if "\\" in name:
-        raise InputError(label, field, f"{what} {_short(name)} contains '\\'; use '/' as the separator")
+        raise InputError(
+            label, field, f"{what} {_short(name)} contains '\\'; use '/' as the separator"
+        )
     if name.startswith("/") or re.match(r"^[A-Za-z]:", name):
-        raise InputError(label, field, f"{what} {_short(name)} is absolute; expected a path relative to the bundle")
+        raise InputError(
+            label,
+            field,
+            f"{what} {_short(name)} is absolute; expected a path relative to the bundle",
+        )
     if ".." in name.split("/"):
         raise InputError(label, field, f"{what} {_short(name)} leaves the bundle ('..')")
     norm = posixpath.normpath(name)
@@ -505,7 +543,11 @@ class _FolderBundle:
         self._real_root = root.resolve()
         self.capture_label = str(root / "capture.json")
         if not (root / "capture.json").is_file():
-            raise InputError(self.capture_label, "", "file not found (a capture bundle folder must hold capture.json)")
+            raise InputError(
+                self.capture_label,
+                "",
+                "file not found (a capture bundle folder must hold capture.json)",
+            )
 
     def label(self, rel: str) -> str:
         return str(self.root / rel)
@@ -519,15 +561,23 @@ class _FolderBundle:
         path = self.root / rel
         real = path.resolve()
         if not real.is_relative_to(self._real_root):
-            raise InputError(self.capture_label, field, f"{rel!r} leaves the bundle folder (through a symlink)")
+            raise InputError(
+                self.capture_label, field, f"{rel!r} leaves the bundle folder (through a symlink)"
+            )
         try:
             return open(real, "rb")
         except FileNotFoundError:
-            raise InputError(self.capture_label, field, f"{rel!r}: file not found in the bundle") from None
+            raise InputError(
+                self.capture_label, field, f"{rel!r}: file not found in the bundle"
+            ) from None
         except IsADirectoryError:
-            raise InputError(self.capture_label, field, f"{rel!r}: expected a file, got a folder") from None
+            raise InputError(
+                self.capture_label, field, f"{rel!r}: expected a file, got a folder"
+            ) from None
         except OSError as exc:
-            raise InputError(self.capture_label, field, f"{rel!r}: cannot read: {exc.strerror or exc}") from None
+            raise InputError(
+                self.capture_label, field, f"{rel!r}: cannot read: {exc.strerror or exc}"
+            ) from None
 
     def close(self) -> None:
         pass
@@ -543,7 +593,9 @@ class _ZipBundle:
         except OSError as exc:
             raise InputError(str(path), "", f"cannot read: {exc.strerror or exc}") from None
         try:
-            self._members = self._check_members(max_total_bytes=max_total_bytes, max_ratio=max_ratio)
+            self._members = self._check_members(
+                max_total_bytes=max_total_bytes, max_ratio=max_ratio
+            )
             self.prefix = self._find_prefix()
         except BaseException:
             self._zf.close()
@@ -551,7 +603,9 @@ class _ZipBundle:
         self.capture_label = self.label("capture.json")
         self._lock = threading.Lock()
 
-    def _check_members(self, *, max_total_bytes: int, max_ratio: float) -> dict[str, zipfile.ZipInfo]:
+    def _check_members(
+        self, *, max_total_bytes: int, max_ratio: float
+    ) -> dict[str, zipfile.ZipInfo]:
         """Check every member before anything is read; the map of file members by name."""
         where = str(self.path)
         members: dict[str, zipfile.ZipInfo] = {}
@@ -562,7 +616,9 @@ class _ZipBundle:
             if "\\" in name:
                 # Not a separator in zip names, but one on Windows: treat it as one for the checks.
                 if ".." in re.split(r"[\\/]", name):
-                    raise InputError(where, field, "refused: the member path leaves the bundle ('..')")
+                    raise InputError(
+                        where, field, "refused: the member path leaves the bundle ('..')"
+                    )
             if name.startswith(("/", "\\")) or re.match(r"^[A-Za-z]:", name):
                 raise InputError(where, field, "refused: absolute member path")
             if ".." in name.split("/"):
@@ -579,7 +635,9 @@ class _ZipBundle:
             total += info.file_size
             if total > max_total_bytes:
                 raise InputError(
-                    where, "", f"refused: uncompressed size exceeds the limit of {max_total_bytes} bytes (zip bomb?)"
+                    where,
+                    "",
+                    f"refused: uncompressed size exceeds the limit of {max_total_bytes} bytes (zip bomb?)",
                 )
             if info.file_size > ZIP_RATIO_EXEMPT_BYTES:
                 ratio = info.file_size / info.compress_size if info.compress_size else math.inf
@@ -618,7 +676,9 @@ class _ZipBundle:
             with self._lock:
                 return self._zf.read(info)
         except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError) as exc:
-            raise InputError(self.capture_label, field, f"{rel!r}: corrupt zip member: {exc}") from None
+            raise InputError(
+                self.capture_label, field, f"{rel!r}: corrupt zip member: {exc}"
+            ) from None
 
     def open(self, rel: str, *, field: str):
         """The member ``rel`` as a binary stream (decompressed as it is read; seeking forward reads on)."""
@@ -628,7 +688,9 @@ class _ZipBundle:
         try:
             return self._zf.open(info)
         except (zipfile.BadZipFile, NotImplementedError) as exc:
-            raise InputError(self.capture_label, field, f"{rel!r}: corrupt zip member: {exc}") from None
+            raise InputError(
+                self.capture_label, field, f"{rel!r}: corrupt zip member: {exc}"
+            ) from None
 
     def close(self) -> None:
         self._zf.close()
@@ -642,10 +704,14 @@ def _open_bundle(path: Path, *, max_total_bytes: int, max_ratio: float):
     if path.is_file() and zipfile.is_zipfile(path):
         return _ZipBundle(path, max_total_bytes=max_total_bytes, max_ratio=max_ratio)
     if not path.exists():
-        raise InputError(str(path), "", "not found: expected a capture bundle folder or a .zip of one")
+        raise InputError(
+            str(path), "", "not found: expected a capture bundle folder or a .zip of one"
+        )
     if path.suffix.lower() == ".zip":
         raise InputError(str(path), "", "not a valid zip file")
-    raise InputError(str(path), "", "expected a capture bundle folder holding capture.json, or a .zip of one")
+    raise InputError(
+        str(path), "", "expected a capture bundle folder holding capture.json, or a .zip of one"
+    )
 
 
 # =========================================================================== images
@@ -685,7 +751,9 @@ def _header_size(data: bytes) -> tuple[int, int] | None:
     return None
 
 
-def _decode_into(data: bytes, job: _ImageJob, out: np.ndarray, *, bit_depth: int, label: str) -> None:
+def _decode_into(
+    data: bytes, job: _ImageJob, out: np.ndarray, *, bit_depth: int, label: str
+) -> None:
     """Check one image file's header, decode it, check it, and write it as grey float32 into ``out`` (H, W).
 
     The size is read from the header first, so a small file claiming a huge
@@ -693,7 +761,11 @@ def _decode_into(data: bytes, job: _ImageJob, out: np.ndarray, *, bit_depth: int
     """
     name = repr(job.rel)
     if not (data.startswith(_PNG_MAGIC) or data[:4] in _TIFF_MAGICS):
-        raise InputError(label, job.field, f"{name}: not a PNG or TIFF file (expected an 8- or 16-bit PNG or TIFF)")
+        raise InputError(
+            label,
+            job.field,
+            f"{name}: not a PNG or TIFF file (expected an 8- or 16-bit PNG or TIFF)",
+        )
     header = _header_size(data)
     if header is not None and header != job.expected_size:
         ew, eh = job.expected_size
@@ -703,17 +775,31 @@ def _decode_into(data: bytes, job: _ImageJob, out: np.ndarray, *, bit_depth: int
             f"{name} ({job.what}) is {header[0]}x{header[1]} px, expected {ew}x{eh} (calibration image_size, width x height)",
         )
     try:
-        img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED) if data else None
+        img = (
+            cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+            if data
+            else None
+        )
     except cv2.error:
         img = None
     if img is None:
-        raise InputError(label, job.field, f"{name}: cannot decode as an image (expected an 8- or 16-bit PNG or TIFF)")
+        raise InputError(
+            label,
+            job.field,
+            f"{name}: cannot decode as an image (expected an 8- or 16-bit PNG or TIFF)",
+        )
     if img.dtype not in (np.uint8, np.uint16):
-        raise InputError(label, job.field, f"{name}: expected 8- or 16-bit unsigned pixels, got {img.dtype}")
+        raise InputError(
+            label, job.field, f"{name}: expected 8- or 16-bit unsigned pixels, got {img.dtype}"
+        )
     if img.ndim == 3 and img.shape[2] == 1:
         img = img[:, :, 0]
     if img.ndim == 3 and img.shape[2] not in (3, 4):
-        raise InputError(label, job.field, f"{name}: expected grey, BGR or BGRA pixels, got {img.shape[2]} channels")
+        raise InputError(
+            label,
+            job.field,
+            f"{name}: expected grey, BGR or BGRA pixels, got {img.shape[2]} channels",
+        )
     h, w = img.shape[:2]
     if (w, h) != job.expected_size:
         ew, eh = job.expected_size
@@ -724,12 +810,18 @@ def _decode_into(data: bytes, job: _ImageJob, out: np.ndarray, *, bit_depth: int
         )
     file_bits = 8 if img.dtype == np.uint8 else 16
     if bit_depth > file_bits:
-        raise InputError(label, job.field, f"{name}: an {file_bits}-bit file cannot hold bit_depth {bit_depth} values")
+        raise InputError(
+            label,
+            job.field,
+            f"{name}: an {file_bits}-bit file cannot hold bit_depth {bit_depth} values",
+        )
     limit = 2**bit_depth - 1
     peak = int(img.max())
     if peak > limit:
         raise InputError(
-            label, job.field, f"{name}: pixel value {peak} exceeds {limit} = 2^{bit_depth} - 1 (bit_depth {bit_depth})"
+            label,
+            job.field,
+            f"{name}: pixel value {peak} exceeds {limit} = 2^{bit_depth} - 1 (bit_depth {bit_depth})",
         )
     if img.ndim == 2:
         np.copyto(out, img, casting="unsafe")
@@ -738,7 +830,9 @@ def _decode_into(data: bytes, job: _ImageJob, out: np.ndarray, *, bit_depth: int
         cv2.cvtColor(img.astype(np.float32), code, dst=out)
 
 
-def _load_images(bundle, jobs: list[_ImageJob], outs: list[np.ndarray], *, bit_depth: int, workers: int | None) -> None:
+def _load_images(
+    bundle, jobs: list[_ImageJob], outs: list[np.ndarray], *, bit_depth: int, workers: int | None
+) -> None:
     """Read and decode ``jobs`` into ``outs`` (float32 (H, W) each) in a thread pool.
 
     The first failure in job order is raised.
@@ -834,17 +928,27 @@ def _read_capture_json(bundle) -> tuple[CaptureFile, StereoRig, list[tuple[str |
     # The calibration first: a dict or a file name, never the union's error noise.
     cal = doc.get("calibration")
     if isinstance(cal, dict):
-        _validate(StereoCalibrationFile, cal, label=label, expected_format=CALIBRATION_FORMAT, prefix="calibration.")
+        _validate(
+            StereoCalibrationFile,
+            cal,
+            label=label,
+            expected_format=CALIBRATION_FORMAT,
+            prefix="calibration.",
+        )
     elif "calibration" in doc and not isinstance(cal, str):
         raise InputError(
-            label, "calibration", f"expected a file name in the bundle or a calibration object, got {_json_type(cal)}"
+            label,
+            "calibration",
+            f"expected a file name in the bundle or a calibration object, got {_json_type(cal)}",
         )
     cap = _validate(CaptureFile, doc, label=label, expected_format=CAPTURE_FORMAT)
 
     if isinstance(cap.calibration, str):
         rel = _check_relative(cap.calibration, label=label, field="calibration")
         cal_label = bundle.label(rel)
-        rig = _calibration_from_doc(_parse_json(bundle.read(rel, field="calibration"), cal_label), label=cal_label)
+        rig = _calibration_from_doc(
+            _parse_json(bundle.read(rel, field="calibration"), cal_label), label=cal_label
+        )
     else:
         rig = _calibration_from_doc(doc["calibration"], label=label, prefix="calibration.")
 
@@ -859,11 +963,23 @@ def _read_capture_json(bundle) -> tuple[CaptureFile, StereoRig, list[tuple[str |
     if cap.stereo is not None:
         for side in ("left", "right"):
             cam_size = getattr(rig, side).image_size
-            wanted.append((side, getattr(cap.stereo, side), f"stereo.{side}", cam_size, f"stereo {side} image"))
-    return cap, rig, [
-        (key, _ImageJob(_check_relative(name, label=label, field=field), field, sz, what))
-        for key, name, field, sz, what in wanted
-    ]
+            wanted.append(
+                (
+                    side,
+                    getattr(cap.stereo, side),
+                    f"stereo.{side}",
+                    cam_size,
+                    f"stereo {side} image",
+                )
+            )
+    return (
+        cap,
+        rig,
+        [
+            (key, _ImageJob(_check_relative(name, label=label, field=field), field, sz, what))
+            for key, name, field, sz, what in wanted
+        ],
+    )
 
 
 def _load_capture(bundle, source: Path, *, workers: int | None) -> Capture:
@@ -872,7 +988,10 @@ def _load_capture(bundle, source: Path, *, workers: int | None) -> Capture:
     size = rig.image_size
     n = len(cap.photometric.images)
     images = np.empty((n, size[1], size[0]), dtype=np.float32)
-    named = {key: np.empty((job.expected_size[1], job.expected_size[0]), np.float32) for key, job in wanted[n:]}
+    named = {
+        key: np.empty((job.expected_size[1], job.expected_size[0]), np.float32)
+        for key, job in wanted[n:]
+    }
     jobs = [job for _, job in wanted]
     _load_images(bundle, jobs, [*images, *named.values()], bit_depth=cap.bit_depth, workers=workers)
 
@@ -893,7 +1012,9 @@ def _load_capture(bundle, source: Path, *, workers: int | None) -> Capture:
     )
 
 
-def _check_light_positions(lights: Lights, rig: StereoRig, working_distance_mm: float | None, *, label: str) -> None:
+def _check_light_positions(
+    lights: Lights, rig: StereoRig, working_distance_mm: float | None, *, label: str
+) -> None:
     """Point lights must lie between the camera head and the plate: not inside the head, not behind the plate."""
     centres = {"left": np.zeros(3), "right": -rig.R.T @ rig.T}
     for k in np.flatnonzero(lights.is_point):
@@ -902,14 +1023,16 @@ def _check_light_positions(lights: Lights, rig: StereoRig, working_distance_mm: 
         for side, c in centres.items():
             if np.linalg.norm(p - c) < CAMERA_HEAD_RADIUS_MM:
                 raise InputError(
-                    label, field,
+                    label,
+                    field,
                     f"a light {np.linalg.norm(p - c):.0f} mm from the {side} camera's centre is inside the camera head "
                     f"(expected at least {CAMERA_HEAD_RADIUS_MM:.0f} mm; positions are mm in the left camera frame), "
                     f"got {[round(float(v), 1) for v in p]}",
                 )
         if working_distance_mm is not None and p[2] >= working_distance_mm:
             raise InputError(
-                label, field,
+                label,
+                field,
                 f"a light at z = {p[2]:.0f} mm is behind the plate (working_distance_mm {working_distance_mm:.0f}; "
                 f"positions are mm in the left camera frame, z forward), got {[round(float(v), 1) for v in p]}",
             )
@@ -1037,13 +1160,16 @@ def read_capture_header(
         n = len(cap.photometric.lights)
         if max_lights is not None and n > max_lights:
             raise InputLimitError(
-                label, "photometric.lights", f"{n} lights (and images), more than the limit of {max_lights}",
+                label,
+                "photometric.lights",
+                f"{n} lights (and images), more than the limit of {max_lights}",
                 limit="lights",
             )
         lights = Lights.from_documents(cap.photometric.lights)
         _check_light_positions(lights, rig, cap.working_distance_mm, label=label)
         headers = tuple(
-            _image_header(bundle, job, label=label, max_pixels=max_image_pixels) for _, job in wanted
+            _image_header(bundle, job, label=label, max_pixels=max_image_pixels)
+            for _, job in wanted
         )
     finally:
         bundle.close()
@@ -1069,24 +1195,31 @@ def _image_header(bundle, job: _ImageJob, *, label: str, max_pixels: int | None)
         except Image.DecompressionBombError:
             bomb = 2 * Image.MAX_IMAGE_PIXELS  # Pillow refuses to open more
             raise InputError(
-                label, job.field,
+                label,
+                job.field,
                 f"{name} ({job.what}): its header declares more than {bomb} px (a decompression bomb?)",
             ) from None
         except Image.UnidentifiedImageError:
             raise InputError(
-                label, job.field, f"{name}: not a PNG or TIFF file (expected an 8- or 16-bit PNG or TIFF)"
+                label,
+                job.field,
+                f"{name}: not a PNG or TIFF file (expected an 8- or 16-bit PNG or TIFF)",
             ) from None
-        except Exception as exc:  # noqa: BLE001 - Pillow and the zip stream raise many types on bad files
-            raise InputError(label, job.field, f"{name}: cannot read the image header: {exc}") from None
+        except Exception as exc:
+            raise InputError(
+                label, job.field, f"{name}: cannot read the image header: {exc}"
+            ) from None
     if (width, height) != job.expected_size:
         ew, eh = job.expected_size
         raise InputError(
-            label, job.field,
+            label,
+            job.field,
             f"{name} ({job.what}) is {width}x{height} px, expected {ew}x{eh} (calibration image_size, width x height)",
         )
     if max_pixels is not None and width * height > max_pixels:
         raise InputLimitError(
-            label, job.field,
+            label,
+            job.field,
             f"{name} ({job.what}) is {width}x{height} px = {width * height} px, more than the limit of {max_pixels} px",
             limit="image_pixels",
         )
@@ -1125,7 +1258,9 @@ def load_light_calibration(source, *, file_label: str | None = None) -> tuple[Li
         doc = read_json(source, label=label)
     else:
         raise TypeError(f"source: expected a path or a dict, got {type(source).__name__}")
-    cal = _validate(LightCalibrationFile, doc, label=label, expected_format=LIGHT_CALIBRATION_FORMAT)
+    cal = _validate(
+        LightCalibrationFile, doc, label=label, expected_format=LIGHT_CALIBRATION_FORMAT
+    )
     return Lights.from_documents(cal.lights), cal.rms
 
 
@@ -1133,15 +1268,21 @@ def light_calibration_document(lights: Lights, rms: float | None) -> dict:
     """Point lights as a ``light-calibration/1`` object (inverse of :func:`load_light_calibration`)."""
     if not lights.is_point.all():
         raise ValueError("lights: a light calibration holds point lights only, got distant ones")
-    doc = {"format": LIGHT_CALIBRATION_FORMAT, "lights": [], "rms": None if rms is None else float(rms)}
+    doc = {
+        "format": LIGHT_CALIBRATION_FORMAT,
+        "lights": [],
+        "rms": None if rms is None else float(rms),
+    }
     for k in range(lights.n):
         axis = lights.axes[k] if np.isfinite(lights.axes[k]).all() else np.array([0.0, 0.0, 1.0])
-        doc["lights"].append({
-            "position_mm": [float(v) for v in lights.positions_mm[k]],
-            "axis": [float(v) for v in axis],
-            "mu": float(lights.mu[k]),
-            "intensity": float(lights.intensity[k]),
-        })
+        doc["lights"].append(
+            {
+                "position_mm": [float(v) for v in lights.positions_mm[k]],
+                "axis": [float(v) for v in axis],
+                "mu": float(lights.mu[k]),
+                "intensity": float(lights.intensity[k]),
+            }
+        )
     if rms is None:
         doc.pop("rms")
     LightCalibrationFile.model_validate(doc)
@@ -1215,7 +1356,11 @@ def _load_mesh(base_dir: Path, name: str, *, label: str) -> tuple[np.ndarray, np
     rel = _check_relative(name, label=label, field=field)
     suffix = Path(rel).suffix.lower()
     if suffix not in MESH_SUFFIXES:
-        raise InputError(label, field, f"{name!r}: expected an STL, PLY or OBJ file, got {suffix or 'no extension'!r}")
+        raise InputError(
+            label,
+            field,
+            f"{name!r}: expected an STL, PLY or OBJ file, got {suffix or 'no extension'!r}",
+        )
     path = base_dir / rel
     if not path.resolve().is_relative_to(base_dir.resolve()):
         raise InputError(label, field, f"{name!r} leaves the target's folder (through a symlink)")

@@ -22,8 +22,8 @@ without the samples whose residual exceeds 6 robust standard deviations.
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Sequence
 
 import cv2
 import numpy as np
@@ -157,15 +157,26 @@ def calibrate_lights(
     """
     t0 = time.perf_counter()
     captures = list(captures)
-    _check_arguments(captures, max_samples, block_px, min_lit_fraction, min_plate_fraction, max_position_std_mm,
-                     initial_mu)
+    _check_arguments(
+        captures,
+        max_samples,
+        block_px,
+        min_lit_fraction,
+        min_plate_fraction,
+        max_position_std_mm,
+        initial_mu,
+    )
     per_capture = max(100, max_samples // len(captures))
     rng = np.random.default_rng(seed)
     samples, plates, lit, blocks = [], [], [], []
     for cap in captures:
         s, pose, lit_fraction, b = _capture_samples(
-            cap, block_px=block_px, min_lit_fraction=min_lit_fraction, min_plate_fraction=min_plate_fraction,
-            max_samples=per_capture, rng=rng,
+            cap,
+            block_px=block_px,
+            min_lit_fraction=min_lit_fraction,
+            min_plate_fraction=min_plate_fraction,
+            max_samples=per_capture,
+            rng=rng,
         )
         samples.append(s)
         plates.append(pose)
@@ -178,7 +189,9 @@ def calibrate_lights(
     )
     fit, data, iterations = _fit(captures[0].lights, plates[0], data, initial_mu)
     _check_fit(fit, captures, plates, max_position_std_mm)
-    lights = fit.lights.with_intensity(fit.lights.intensity * _intensity_scale(captures, plates, fit.lights))
+    lights = fit.lights.with_intensity(
+        fit.lights.intensity * _intensity_scale(captures, plates, fit.lights)
+    )
     return LightCalibration(
         lights=lights,
         rms=fit.rms,
@@ -186,7 +199,7 @@ def calibrate_lights(
         intensity_std=fit.intensity_std,
         mu_std=fit.mu_std,
         lit_fraction=np.min(np.stack(lit), axis=0),
-        n_samples=int(len(data.intensity)),
+        n_samples=len(data.intensity),
         block_px=int(blocks[0]),
         iterations=int(iterations),
         plates=tuple(plates),
@@ -194,8 +207,15 @@ def calibrate_lights(
     )
 
 
-def _check_arguments(captures: list[Capture], max_samples, block_px, min_lit_fraction, min_plate_fraction,
-                     max_position_std_mm, initial_mu) -> None:
+def _check_arguments(
+    captures: list[Capture],
+    max_samples,
+    block_px,
+    min_lit_fraction,
+    min_plate_fraction,
+    max_position_std_mm,
+    initial_mu,
+) -> None:
     """ValueError (InputError for captures of different cells) naming what :func:`calibrate_lights` cannot use."""
     if not captures:
         raise ValueError("captures: expected at least one capture")
@@ -203,7 +223,10 @@ def _check_arguments(captures: list[Capture], max_samples, block_px, min_lit_fra
         raise ValueError(f"max_samples: expected an integer >= 100, got {max_samples}")
     if block_px is not None and not (isinstance(block_px, (int, np.integer)) and block_px >= 1):
         raise ValueError(f"block_px: expected a whole number of pixels >= 1, got {block_px}")
-    for name, value in (("min_lit_fraction", min_lit_fraction), ("min_plate_fraction", min_plate_fraction)):
+    for name, value in (
+        ("min_lit_fraction", min_lit_fraction),
+        ("min_plate_fraction", min_plate_fraction),
+    ):
         if not 0.0 <= value < 1.0:
             raise ValueError(f"{name}: expected a fraction in [0, 1), got {value}")
     if not max_position_std_mm > 0:
@@ -214,7 +237,8 @@ def _check_arguments(captures: list[Capture], max_samples, block_px, min_lit_fra
     for cap in captures[1:]:
         if cap.n_lights != n:
             raise InputError(
-                str(cap.source), "photometric.lights",
+                str(cap.source),
+                "photometric.lights",
                 f"expected {n} lights like {captures[0].source} (the same cell, same order), got {cap.n_lights}",
             )
 
@@ -224,7 +248,9 @@ def _fit(given: Lights, pose: PlatePose, data: Samples, initial_mu: float):
 
     Returns the fit, the samples it used and the Jacobian evaluations of all rounds.
     """
-    with threadpool_limits(limits=1, user_api="blas"):  # small products: a second BLAS thread only spins
+    with threadpool_limits(
+        limits=1, user_api="blas"
+    ):  # small products: a second BLAS thread only spins
         start = initial_point_lights(given, pose, data, initial_mu=initial_mu)
         # mu held first: a light aimed far from where the start has it would otherwise run mu down to 0,
         # where its axis no longer changes anything and stays wrong
@@ -236,7 +262,7 @@ def _fit(given: Lights, pose: PlatePose, data: Samples, initial_mu: float):
     r = fit.residuals
     sigma = 1.4826 * np.median(np.abs(r)) + 1e-12
     keep = np.all(np.abs(r) <= 6.0 * sigma, axis=1)
-    if 0 < np.count_nonzero(~keep) and np.count_nonzero(keep) >= 0.5 * len(keep):
+    if np.count_nonzero(~keep) > 0 and np.count_nonzero(keep) >= 0.5 * len(keep):
         data = Samples(data.intensity[keep], data.points[keep], data.normals[keep])
         with threadpool_limits(limits=1, user_api="blas"):
             fit = joint_fit(fit.lights, data)
@@ -244,7 +270,9 @@ def _fit(given: Lights, pose: PlatePose, data: Samples, initial_mu: float):
     return fit, data, iterations
 
 
-def _check_fit(fit, captures: list[Capture], plates: list[PlatePose], max_position_std_mm: float) -> None:
+def _check_fit(
+    fit, captures: list[Capture], plates: list[PlatePose], max_position_std_mm: float
+) -> None:
     """CaptureError when a light's position is not determined, the fit did not converge, or a light was
     fitted behind the reference plate."""
     where = ", ".join(str(c.source) for c in captures)
@@ -254,12 +282,18 @@ def _check_fit(fit, captures: list[Capture], plates: list[PlatePose], max_positi
     if not std <= max_position_std_mm:  # the first question even when not converged
         raise CaptureError(
             f"{where}: lights[{worst}]: position not determined: standard error "
-            + (f"{std:.1f} mm, " if np.isfinite(std) else "unbounded (the data do not constrain it), ")
+            + (
+                f"{std:.1f} mm, "
+                if np.isfinite(std)
+                else "unbounded (the data do not constrain it), "
+            )
             + f"expected at most {max_position_std_mm:.1f} mm (a larger reference plate, or a second bundle with "
             f"the plate at another height, determines it better)"
         )
     if not fit.success:
-        raise CaptureError(f"{where}: light calibration: the joint fit did not converge ({fit.message})")
+        raise CaptureError(
+            f"{where}: light calibration: the joint fit did not converge ({fit.message})"
+        )
     for cap, pose in zip(captures, plates):
         behind = np.flatnonzero((lights.positions_mm - pose.centre_mm) @ pose.normal <= 0)
         if len(behind):
@@ -293,7 +327,9 @@ def plate_pose(capture: Capture, mask: np.ndarray) -> PlatePose:
         No stereo pair, or fewer than ``MIN_STEREO_POINTS`` matched points on the plate.
     """
     if not capture.has_stereo:
-        raise CaptureError(f"{capture.source}: stereo: a light calibration needs the stereo pair (the plate's pose)")
+        raise CaptureError(
+            f"{capture.source}: stereo: a light calibration needs the stereo pair (the plate's pose)"
+        )
     rig = capture.rig
     left, right, stereo_mask = capture.stereo_left, capture.stereo_right, mask
     width, height = rig.image_size
@@ -302,10 +338,17 @@ def plate_pose(capture: Capture, mask: np.ndarray) -> PlatePose:
         small = (width // step, height // step)
         left, right = (cv2.resize(im, small, interpolation=cv2.INTER_AREA) for im in (left, right))
         rig = replace(rig, left=rig.left.resized(small), right=rig.right.resized(small))
-        stereo_mask = cv2.resize(mask.view(np.uint8), small, interpolation=cv2.INTER_NEAREST).astype(bool)
+        stereo_mask = cv2.resize(
+            mask.view(np.uint8), small, interpolation=cv2.INTER_NEAREST
+        ).astype(bool)
     z = capture.working_distance_mm or NOMINAL_DISTANCE_MM
     sd = stereo.stereo_depth(
-        left, right, rig, z_min_mm=z / (1 + DEPTH_MARGIN), z_max_mm=z * (1 + DEPTH_MARGIN), mask=stereo_mask
+        left,
+        right,
+        rig,
+        z_min_mm=z / (1 + DEPTH_MARGIN),
+        z_max_mm=z * (1 + DEPTH_MARGIN),
+        mask=stereo_mask,
     )
     ok = stereo_mask & np.isfinite(sd.depth_mm)
     if np.count_nonzero(ok) < MIN_STEREO_POINTS:
@@ -330,14 +373,21 @@ def plate_pose(capture: Capture, mask: np.ndarray) -> PlatePose:
     rays = np.stack([(4.0 * us - K[0, 2] - K[0, 1] * y) / K[0, 0], y, np.ones_like(y)], axis=1)
     along = (plane.point_mm @ plane.normal) / (rays @ plane.normal)
     centre = (rays * along[:, None]).mean(axis=0)
-    return PlatePose(normal=plane.normal, centre_mm=centre, rms_mm=plane.rms_mm, stereo_points=int(keep.sum()))
+    return PlatePose(
+        normal=plane.normal, centre_mm=centre, rms_mm=plane.rms_mm, stereo_points=int(keep.sum())
+    )
 
 
 # =========================================================================== samples
 
 
 def _capture_samples(
-    cap: Capture, *, block_px: int | None, min_lit_fraction: float, min_plate_fraction: float, max_samples: int,
+    cap: Capture,
+    *,
+    block_px: int | None,
+    min_lit_fraction: float,
+    min_plate_fraction: float,
+    max_samples: int,
     rng: np.random.Generator,
 ) -> tuple[Samples, PlatePose, np.ndarray, int]:
     """Block-mean samples of one capture, its plate pose, each light's lit fraction of the plate, the block side (px)."""
@@ -351,7 +401,9 @@ def _capture_samples(
             f"{cap.source}: the plate covers {100 * plate_fraction:.1f} % of the image, expected at least "
             f"{100 * min_plate_fraction:.0f} % for a light calibration"
         )
-    images = pre.images  # ours: back to fractions of full scale (dark subtracted, undistorted) in place
+    images = (
+        pre.images
+    )  # ours: back to fractions of full scale (dark subtracted, undistorted) in place
     for k in range(cap.n_lights):
         images[k] *= np.float32(cap.lights.intensity[k])
     threshold = np.float32(SHADOW_FRACTION) * images.max(axis=0)
@@ -359,7 +411,9 @@ def _capture_samples(
     usable = mask.copy()
     lit = np.empty(cap.n_lights)
     for k in range(cap.n_lights):
-        valid = pre.valid[k] & (images[k] >= threshold)  # not saturated, seen, not in an attached shadow
+        valid = pre.valid[k] & (
+            images[k] >= threshold
+        )  # not saturated, seen, not in an attached shadow
         lit[k] = np.count_nonzero(valid & mask) / n_plate
         usable &= valid
     worst = int(np.argmin(lit))
@@ -411,7 +465,9 @@ def _capture_samples(
     return Samples(intensity=intensity, points=points, normals=normals), pose, lit, block_px
 
 
-def _intensity_scale(captures: Sequence[Capture], plates: Sequence[PlatePose], lights: Lights) -> float:
+def _intensity_scale(
+    captures: Sequence[Capture], plates: Sequence[PlatePose], lights: Lights
+) -> float:
     """The common factor of the fitted intensities (see the module docstring)."""
     given, fitted = [], []
     for cap, pose in zip(captures, plates):

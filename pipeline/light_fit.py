@@ -77,7 +77,7 @@ class _Param:
     tangents: np.ndarray  # (N, 2, 3) orthonormal, across axis0
 
     @classmethod
-    def around(cls, axes: np.ndarray) -> "_Param":
+    def around(cls, axes: np.ndarray) -> _Param:
         """The parametrisation about ``axes`` (N, 3): a tangent basis across each."""
         tangents = np.empty((len(axes), 2, 3))
         for k, a in enumerate(axes):
@@ -115,7 +115,9 @@ def _irradiance_of(lights: Lights, points: np.ndarray, normals: np.ndarray) -> n
     return _irradiance(param.vector(lights), param, points, normals, jac=False)[0]
 
 
-def _irradiance(x: np.ndarray, param: _Param, points: np.ndarray, normals: np.ndarray, *, jac: bool):
+def _irradiance(
+    x: np.ndarray, param: _Param, points: np.ndarray, normals: np.ndarray, *, jac: bool
+):
     """E (P, N) of every light at every sample and, with ``jac``, dE/d(parameters of its light) (P, N, 7)."""
     p = x.reshape(-1, _N_PARAMS)
     axes, length = param.axes(x)
@@ -129,7 +131,14 @@ def _irradiance(x: np.ndarray, param: _Param, points: np.ndarray, normals: np.nd
     cos_c = np.where(lit, cos, 1.0)
     facing_c = np.where(lit, facing, 1.0)
     log_cos = np.log(cos_c)
-    E = np.where(lit, np.exp(p[None, :, 6] + mu[None, :] * log_cos) * REFERENCE_DISTANCE_MM**2 * facing_c / (d2 * d), 0.0)
+    E = np.where(
+        lit,
+        np.exp(p[None, :, 6] + mu[None, :] * log_cos)
+        * REFERENCE_DISTANCE_MM**2
+        * facing_c
+        / (d2 * d),
+        0.0,
+    )
     if not jac:
         return E, None
     G = np.empty(E.shape + (_N_PARAMS,))
@@ -179,7 +188,9 @@ def albedo_projected(I: np.ndarray, E: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return rho, S, I - rho[:, None] * E
 
 
-def joint_fit(start: Lights, data: Samples, *, fixed_mu: bool = False, max_iter: int = 100) -> JointFit:
+def joint_fit(
+    start: Lights, data: Samples, *, fixed_mu: bool = False, max_iter: int = 100
+) -> JointFit:
     """All lights at once: Levenberg-Marquardt on the variable-projection residuals.
 
     The 7 N parameters (position mm, two axis offsets, mu, log intensity per light) are solved on
@@ -276,8 +287,9 @@ class _Problem:
         return A, g
 
 
-def _levenberg_marquardt(problem: _Problem, x: np.ndarray, free: np.ndarray,
-                         max_iter: int) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
+def _levenberg_marquardt(
+    problem: _Problem, x: np.ndarray, free: np.ndarray, max_iter: int
+) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
     """Levenberg-Marquardt steps over the ``free`` parameters from ``x`` (mu kept >= 0 by projection).
 
     Returns the parameters, the residuals there, the Jacobian evaluations, whether it converged and how.
@@ -337,7 +349,9 @@ def _diagonal_of_inverse(A: np.ndarray) -> np.ndarray:
     return out
 
 
-def initial_point_lights(given: Lights, pose: PlatePose, data: Samples, *, initial_mu: float) -> Lights:
+def initial_point_lights(
+    given: Lights, pose: PlatePose, data: Samples, *, initial_mu: float
+) -> Lights:
     """Point lights to start the joint fit from.
 
     Point lights the capture gives are taken as they are (an axis towards the plate's centre and
@@ -353,7 +367,9 @@ def initial_point_lights(given: Lights, pose: PlatePose, data: Samples, *, initi
     axes = given.axes.copy()
     mu = given.mu.copy()
     distant = ~given.is_point
-    at_centre = given.intensity * given.attenuation_at(c)  # irradiance at the centre, facing the light
+    at_centre = given.intensity * given.attenuation_at(
+        c
+    )  # irradiance at the centre, facing the light
     for k in range(n):
         if not np.isfinite(axes[k]).all():
             towards = c - positions[k] if given.is_point[k] else -dirs[k]

@@ -125,27 +125,38 @@ def refine_lights(
         distant = _refine_distant(data, lights)
         rms_distant = _rms(data, distant)
         point, rms_point = _fit_points(data, lights, light_fit.PlatePose(normal, centre, 0.0, 0))
-    model = "point" if point is not None and rms_point < POINT_MODEL_GAIN * rms_distant else "distant"
+    model = (
+        "point" if point is not None and rms_point < POINT_MODEL_GAIN * rms_distant else "distant"
+    )
     chosen = point if model == "point" else distant
     # the given scale: the same mean irradiance at the plate's centre, facing the light
     given_at_c = lights.intensity * lights.attenuation_at(centre)
     chosen_at_c = chosen.intensity * chosen.attenuation_at(centre)
-    chosen = chosen.with_intensity(chosen.intensity * float(np.mean(given_at_c) / np.mean(chosen_at_c)))
+    chosen = chosen.with_intensity(
+        chosen.intensity * float(np.mean(given_at_c) / np.mean(chosen_at_c))
+    )
     chosen_at_c = chosen.intensity * chosen.attenuation_at(centre)
     before, after = lights.directions_at(centre), chosen.directions_at(centre)
     corrections = []
     for k in range(lights.n):
         item = {
             "light": k,
-            "turn_deg": round(float(np.degrees(np.arccos(np.clip(before[k] @ after[k], -1.0, 1.0)))), 3),
+            "turn_deg": round(
+                float(np.degrees(np.arccos(np.clip(before[k] @ after[k], -1.0, 1.0)))), 3
+            ),
             "intensity_ratio": round(float(chosen_at_c[k] / given_at_c[k]), 4),
         }
         if model == "point":
             item["position_mm"] = [round(float(v), 1) for v in chosen.positions_mm[k]]
         corrections.append(item)
     return LightRefinement(
-        lights=chosen, model=model, rms_given=rms_given, rms_distant=rms_distant, rms_point=rms_point,
-        corrections=corrections, n_samples=len(data.intensity),
+        lights=chosen,
+        model=model,
+        rms_given=rms_given,
+        rms_distant=rms_distant,
+        rms_point=rms_point,
+        corrections=corrections,
+        n_samples=len(data.intensity),
     )
 
 
@@ -162,7 +173,11 @@ def _samples(images, valid, mask, lights, depth_mm, K, *, max_samples, seed):
     hb, wb = h // block, w // block
 
     def blocks(img):
-        return cv2.resize(np.ascontiguousarray(img[: hb * block, : wb * block]), (wb, hb), interpolation=cv2.INTER_AREA)
+        return cv2.resize(
+            np.ascontiguousarray(img[: hb * block, : wb * block]),
+            (wb, hb),
+            interpolation=cv2.INTER_AREA,
+        )
 
     full = blocks(usable.astype(np.float32)) >= 1.0 - 1e-6
     ii, jj = np.nonzero(full)
@@ -220,7 +235,9 @@ def _refine_distant(data, lights: Lights) -> Lights:
             M = a.T @ a
             lam = DISTANT_PRIOR * np.trace(M) / 3.0
             g[k] = np.linalg.solve(M + lam * np.eye(3), a.T @ I[lit, k] + lam * g0[k])
-        g *= np.mean(np.linalg.norm(g0, axis=1)) / np.mean(np.linalg.norm(g, axis=1))  # the gauge of rho
+        g *= np.mean(np.linalg.norm(g0, axis=1)) / np.mean(
+            np.linalg.norm(g, axis=1)
+        )  # the gauge of rho
     e = np.linalg.norm(g, axis=1)
     return Lights.distant(g / e[:, None], e)
 

@@ -86,7 +86,7 @@ class Lights:
     # ------------------------------------------------------------------ construction
 
     @classmethod
-    def distant(cls, directions, intensity=None) -> "Lights":
+    def distant(cls, directions, intensity=None) -> Lights:
         """Distant lights from (N, 3) unit directions (surface -> light) and (N,) intensities (default 1)."""
         d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
         n = len(d)
@@ -95,17 +95,21 @@ class Lights:
         return cls(directions=d, positions_mm=nan, axes=nan.copy(), mu=np.zeros(n), intensity=e)
 
     @classmethod
-    def points(cls, positions_mm, intensity=None, *, axes=None, mu=None) -> "Lights":
+    def points(cls, positions_mm, intensity=None, *, axes=None, mu=None) -> Lights:
         """Point lights at (N, 3) positions (mm), with optional (N, 3) unit axes and (N,) exponents."""
         p = np.asarray(positions_mm, dtype=np.float64).reshape(-1, 3)
         n = len(p)
         e = np.ones(n) if intensity is None else np.asarray(intensity, dtype=np.float64).reshape(n)
-        a = np.full((n, 3), np.nan) if axes is None else np.asarray(axes, dtype=np.float64).reshape(n, 3)
+        a = (
+            np.full((n, 3), np.nan)
+            if axes is None
+            else np.asarray(axes, dtype=np.float64).reshape(n, 3)
+        )
         m = np.zeros(n) if mu is None else np.asarray(mu, dtype=np.float64).reshape(n)
         return cls(directions=np.full((n, 3), np.nan), positions_mm=p, axes=a, mu=m, intensity=e)
 
     @classmethod
-    def from_documents(cls, lights: list) -> "Lights":
+    def from_documents(cls, lights: list) -> Lights:
         """From the ``lights`` entries of a capture (``pipeline.formats.Light``) or a light calibration."""
         n = len(lights)
         out = {k: np.full((n, 3), np.nan) for k in ("directions", "positions_mm", "axes")}
@@ -144,7 +148,7 @@ class Lights:
 
     @property
     def n(self) -> int:
-        return int(len(self.intensity))
+        return len(self.intensity)
 
     @property
     def is_point(self) -> np.ndarray:
@@ -155,8 +159,14 @@ class Lights:
     def any_point(self) -> bool:
         return bool(self.is_point.any())
 
-    def with_intensity(self, intensity) -> "Lights":
-        return Lights(self.directions, self.positions_mm, self.axes, self.mu, np.asarray(intensity, np.float64))
+    def with_intensity(self, intensity) -> Lights:
+        return Lights(
+            self.directions,
+            self.positions_mm,
+            self.axes,
+            self.mu,
+            np.asarray(intensity, np.float64),
+        )
 
     def kernel_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Arrays for compiled kernels: ``geometry`` (N, 3) float64 (position for point lights,
@@ -221,9 +231,13 @@ class Lights:
         """``e_k a_k(X) max(0, n . l_k(X))`` for every light: (N, ...) float64 (see the module docstring)."""
         n = np.asarray(normals, dtype=np.float64)
         shading = np.maximum(np.einsum("k...c,...c->k...", self.directions_at(points_mm), n), 0.0)
-        return self.intensity.reshape((-1,) + (1,) * (shading.ndim - 1)) * self.attenuation_at(points_mm) * shading
+        return (
+            self.intensity.reshape((-1,) + (1,) * (shading.ndim - 1))
+            * self.attenuation_at(points_mm)
+            * shading
+        )
 
-    def nominal_directions(self, centre_mm) -> "Lights":
+    def nominal_directions(self, centre_mm) -> Lights:
         """Distant lights pointing where these lights are seen from ``centre_mm`` (3,), mm.
 
         Point lights become distant ones with the direction from the centre; the intensity is the
@@ -236,7 +250,9 @@ class Lights:
 
 
 @numba.njit(cache=True, fastmath={"nsz", "arcp", "contract", "reassoc"})
-def light_vectors_block(depth, kinv, geometry, axes, kind, mu, min_attenuation, i, j0, samples, usable, m, L):
+def light_vectors_block(
+    depth, kinv, geometry, axes, kind, mu, min_attenuation, i, j0, samples, usable, m, L
+):
     """Per pixel (i, j0 + j) of a row block: the light model from the surface point it sees.
 
     ``depth`` (H, W) mm and ``kinv`` (3, 3) give the point X = depth * K^-1 (u, v, 1); ``geometry``,

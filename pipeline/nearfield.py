@@ -101,25 +101,37 @@ def estimate_normals_near(
         raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
     images = np.asarray(images)
     if images.ndim != 3 or images.dtype != np.float32:
-        raise ValueError(f"images: expected a float32 array of shape (N, H, W), got {images.dtype} {images.shape}")
+        raise ValueError(
+            f"images: expected a float32 array of shape (N, H, W), got {images.dtype} {images.shape}"
+        )
     n, h, w = images.shape
     if not isinstance(lights, Lights) or lights.n != n:
-        raise ValueError(f"lights: expected Lights for {n} images, got {getattr(lights, 'n', type(lights).__name__)}")
+        raise ValueError(
+            f"lights: expected Lights for {n} images, got {getattr(lights, 'n', type(lights).__name__)}"
+        )
     mask = np.asarray(mask)
     if mask.shape != (h, w) or mask.dtype != bool:
-        raise ValueError(f"mask: expected a bool array of shape ({h}, {w}), got {mask.dtype} {mask.shape}")
+        raise ValueError(
+            f"mask: expected a bool array of shape ({h}, {w}), got {mask.dtype} {mask.shape}"
+        )
     depth = np.asarray(depth_mm, dtype=np.float64)
     if depth.shape != (h, w):
         raise ValueError(f"depth_mm: expected shape ({h}, {w}), got {depth.shape}")
     on = depth[mask]
     if not (np.all(np.isfinite(on)) and np.all(on > 0)):
         raise ValueError("depth_mm: expected finite depths > 0 mm on the mask")
-    if isinstance(min_samples, bool) or not isinstance(min_samples, (int, np.integer)) or not 3 <= min_samples <= n:
+    if (
+        isinstance(min_samples, bool)
+        or not isinstance(min_samples, (int, np.integer))
+        or not 3 <= min_samples <= n
+    ):
         raise ValueError(f"min_samples: expected an integer in [3, {n}], got {min_samples!r}")
     if valid is not None:
         valid = np.asarray(valid)
         if valid.shape != images.shape or valid.dtype != bool:
-            raise ValueError(f"valid: expected a bool array of shape {images.shape}, got {valid.dtype} {valid.shape}")
+            raise ValueError(
+                f"valid: expected a bool array of shape {images.shape}, got {valid.dtype} {valid.shape}"
+            )
     K = np.asarray(K, dtype=np.float64)
     if K.shape != (3, 3) or not np.all(np.isfinite(K)):
         raise ValueError(f"K: expected a finite (3, 3) matrix, got shape {K.shape}")
@@ -131,8 +143,21 @@ def estimate_normals_near(
     status = np.empty((h, w), dtype=np.int8)
     params = robust_params() if method == "robust" else _PLAIN_PARAMS
     robust_kernel(
-        np.ascontiguousarray(images), np.ascontiguousarray(v), use_valid, np.ascontiguousarray(mask),
-        np.ascontiguousarray(depth), np.linalg.inv(K), geometry, axes, kind, lights.mu.astype(np.float64),
-        float(MIN_RELATIVE_ATTENUATION), int(min_samples), params, sorting_network(n), b, status,
+        np.ascontiguousarray(images),
+        np.ascontiguousarray(v),
+        use_valid,
+        np.ascontiguousarray(mask),
+        np.ascontiguousarray(depth),
+        np.linalg.inv(K),
+        geometry,
+        axes,
+        kind,
+        lights.mu.astype(np.float64),
+        float(MIN_RELATIVE_ATTENUATION),
+        int(min_samples),
+        params,
+        sorting_network(n),
+        b,
+        status,
     )
     return field_from_fit(b, status, mask, specular=None)

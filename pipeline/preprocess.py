@@ -56,7 +56,11 @@ class Preprocessed:
 
 
 def preprocess(
-    capture: Capture, *, shadow_fraction: float = 0.05, erode_px: int = 3, workers: int | None = None
+    capture: Capture,
+    *,
+    shadow_fraction: float = 0.05,
+    erode_px: int = 3,
+    workers: int | None = None,
 ) -> Preprocessed:
     """Dark-subtract, normalise, undistort and mask a capture's photometric images.
 
@@ -97,17 +101,33 @@ def preprocess(
     raw, dark = capture.images, capture.dark
     n, (h, w) = capture.n_lights, raw.shape[1:]
     # undistorted pixels whose ray leaves the raw image have no sample in any image
-    seen = cv2.remap(np.ones(raw.shape[1:], np.uint8), map1, map2, cv2.INTER_NEAREST, borderValue=0).astype(bool)
+    seen = cv2.remap(
+        np.ones(raw.shape[1:], np.uint8), map1, map2, cv2.INTER_NEAREST, borderValue=0
+    ).astype(bool)
     images = np.empty((n, h, w), np.float32)
-    saturated = np.zeros((n, h, w), bool)  # zero pages: only the images with a saturated pixel touch theirs
+    saturated = np.zeros(
+        (n, h, w), bool
+    )  # zero pages: only the images with a saturated pixel touch theirs
     threshold = SATURATION_FRACTION * full_scale
 
     def one(k: int) -> bool:
         img = raw[k]
         gain = 1.0 / (capture.light_intensity[k] * full_scale)
         # (img - dark) * gain in one pass
-        signal = cv2.addWeighted(img, gain, dark, -gain, 0.0) if dark is not None else cv2.multiply(img, gain)
-        cv2.remap(signal, map1, map2, cv2.INTER_LINEAR, dst=images[k], borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        signal = (
+            cv2.addWeighted(img, gain, dark, -gain, 0.0)
+            if dark is not None
+            else cv2.multiply(img, gain)
+        )
+        cv2.remap(
+            signal,
+            map1,
+            map2,
+            cv2.INTER_LINEAR,
+            dst=images[k],
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=0,
+        )
         if img.max() >= threshold:
             # a sample is bad if any raw pixel it interpolates from is saturated: dilate by one pixel first
             bad = cv2.dilate((img >= threshold).view(np.uint8), np.ones((3, 3), np.uint8))
@@ -122,8 +142,9 @@ def preprocess(
     _brightest(images, brightest)
     mask = plate_mask(brightest, erode_px=erode_px) & seen
     valid = np.empty((n, h, w), bool)
-    n_lit, n_saturated = _validity(images, brightest, saturated, any_saturated, seen, mask,
-                                   np.float32(shadow_fraction), valid)
+    n_lit, n_saturated = _validity(
+        images, brightest, saturated, any_saturated, seen, mask, np.float32(shadow_fraction), valid
+    )
     return Preprocessed(
         images=images,
         valid=valid,
@@ -173,7 +194,9 @@ def _validity(images, brightest, saturated, use_saturated, seen, mask, shadow_fr
     return int(lit_rows.sum()), int(sat_rows.sum())
 
 
-def plate_mask(brightness: np.ndarray, *, erode_px: int = 3, min_fraction: float = 0.02) -> np.ndarray:
+def plate_mask(
+    brightness: np.ndarray, *, erode_px: int = 3, min_fraction: float = 0.02
+) -> np.ndarray:
     """Tell the plate from the conveyor by an adaptive (Otsu) threshold.
 
     Parameters
@@ -204,12 +227,16 @@ def plate_mask(brightness: np.ndarray, *, erode_px: int = 3, min_fraction: float
     if not hi > 0:
         raise CaptureError("photometric images: no light on the plate (all images dark)")
     # 0..255: negative values (dark-subtracted noise) to 0 first
-    eight = cv2.convertScaleAbs(cv2.threshold(smooth, 0.0, 0.0, cv2.THRESH_TOZERO)[1], alpha=255.0 / hi)
+    eight = cv2.convertScaleAbs(
+        cv2.threshold(smooth, 0.0, 0.0, cv2.THRESH_TOZERO)[1], alpha=255.0 / hi
+    )
     _, binary = cv2.threshold(eight, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
     binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, np.ones((5, 5), np.uint8))
     n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=4)
     if n <= 1:
-        raise CaptureError("photometric images: no plate found (no region brighter than the background)")
+        raise CaptureError(
+            "photometric images: no plate found (no region brighter than the background)"
+        )
     largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
     mask = _fill_holes(labels == largest)
     if erode_px > 0:

@@ -101,12 +101,19 @@ def integrate_and_fuse(
     field, dropped = normals.drop_facing_away(field, K)
     if prior_mm is not None:
         depth = integration.integrate_normals(
-            field.normals, field.mask, K, prior_depth_mm=prior_mm, prior_weight=stereo_weight, tol=tol
+            field.normals,
+            field.mask,
+            K,
+            prior_depth_mm=prior_mm,
+            prior_weight=stereo_weight,
+            tol=tol,
         )
         mask = depth.mask & np.isfinite(depth.depth_mm)
         fused = fusion.fuse_low_frequencies(depth.depth_mm, prior_mm, mask)
         return fused.depth_mm, mask, field, fused, dropped
-    depth = integration.integrate_normals(field.normals, field.mask, K, reference_depth_mm=working_distance_mm, tol=tol)
+    depth = integration.integrate_normals(
+        field.normals, field.mask, K, reference_depth_mm=working_distance_mm, tol=tol
+    )
     z = scale_to_working_distance(depth.depth_mm, K, working_distance_mm)
     return z, depth.mask & np.isfinite(z), field, None, dropped
 
@@ -180,13 +187,23 @@ def near_field_surface(
     surface_mask = mask
     for it in range(1, max_iterations + 1):
         est_mask = surface_mask & np.isfinite(depth)
-        field = nearfield.estimate_normals_near(images, lights, depth, K, est_mask, valid=valid, method=method)
+        field = nearfield.estimate_normals_near(
+            images, lights, depth, K, est_mask, valid=valid, method=method
+        )
         new_depth, surface_mask, field, fused, dropped = integrate_and_fuse(
-            field, K, prior_mm=prior_mm, working_distance_mm=working_distance_mm, stereo_weight=stereo_weight,
+            field,
+            K,
+            prior_mm=prior_mm,
+            working_distance_mm=working_distance_mm,
+            stereo_weight=stereo_weight,
             tol=tol,
         )
         both = surface_mask & np.isfinite(depth)
-        step = float(np.percentile(np.abs(new_depth[both] - depth[both]), 99)) if both.any() else np.inf
+        step = (
+            float(np.percentile(np.abs(new_depth[both] - depth[both]), 99))
+            if both.any()
+            else np.inf
+        )
         steps.append(round(step, 4))
         depth = new_depth
         if step < step_tol_mm:
@@ -243,15 +260,24 @@ def remeasure_with_refined_lights(
     # the images were divided by the given intensities: by the refined ones instead
     gain = (lights.intensity / refined.lights.intensity).astype(np.float32)
     scaled = images * gain[:, None, None]
-    solve = dict(prior_mm=prior_mm, working_distance_mm=working_distance_mm, stereo_weight=stereo_weight, tol=tol)
+    solve = dict(
+        prior_mm=prior_mm,
+        working_distance_mm=working_distance_mm,
+        stereo_weight=stereo_weight,
+        tol=tol,
+    )
     if refined.model == "point":
-        second = near_field_surface(scaled, refined.lights, K, mask, valid=valid, method=method, start_mm=smooth,
-                                    **solve)
+        second = near_field_surface(
+            scaled, refined.lights, K, mask, valid=valid, method=method, start_mm=smooth, **solve
+        )
     else:
-        field = normals.estimate_normals(scaled, refined.lights.directions, mask, valid=valid, method=method,
-                                         camera_matrix=K)
+        field = normals.estimate_normals(
+            scaled, refined.lights.directions, mask, valid=valid, method=method, camera_matrix=K
+        )
         second = distant_surface(field, K, **solve)
-    better = second.fusion is not None and second.fusion.disagreement_mm < first.fusion.disagreement_mm
+    better = (
+        second.fusion is not None and second.fusion.disagreement_mm < first.fusion.disagreement_mm
+    )
     return replace(second if better else first, refinement=refined)
 
 
@@ -268,7 +294,9 @@ def _check_lights_in_front(lights: Lights, depth_mm: np.ndarray, mask: np.ndarra
             )
 
 
-def scale_to_working_distance(depth_mm: np.ndarray, K: np.ndarray, working_distance_mm: float) -> np.ndarray:
+def scale_to_working_distance(
+    depth_mm: np.ndarray, K: np.ndarray, working_distance_mm: float
+) -> np.ndarray:
     """Scale an up-to-scale depth so the plate's depth on the optical axis is the working distance.
 
     The working distance is the depth (mm, along the optical axis) of the surface point seen at the

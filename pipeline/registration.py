@@ -20,7 +20,15 @@ from scipy.spatial.transform import Rotation
 
 from .io import Target
 from .solvers import robust_gauss_newton, robust_scale
-from .surface_fits import MAX_FIT_POINTS, check_grid, fit_curved, fit_cylinder, fit_sphere, grid_sample, pca_frame
+from .surface_fits import (
+    MAX_FIT_POINTS,
+    check_grid,
+    fit_curved,
+    fit_cylinder,
+    fit_sphere,
+    grid_sample,
+    pca_frame,
+)
 from .target_geometry import MeshGrid, check_target, mesh_grid
 
 #: ICP for mesh targets: measured points used for the coarse alignment.
@@ -141,8 +149,9 @@ def register_to_target(points_mm, mask, target) -> Registration:
         return _register_mesh(sample, tgt)
     centroid = sample.mean(axis=0)
     if tgt.shape == "plane":
-        n, p0, _, _, rms, _ = fit_curved(sample, cylinder=False, radius_mm=None, max_points=MAX_FIT_POINTS,
-                                       curvature_per_mm=0.0)
+        n, p0, _, _, rms, _ = fit_curved(
+            sample, cylinder=False, radius_mm=None, max_points=MAX_FIT_POINTS, curvature_per_mm=0.0
+        )
         z = n  # the fit's normal points away from the camera
         origin = p0 + ((centroid - p0) - ((centroid - p0) @ z) * z)
         x = _in_plane_x(sample, z, tgt.size_mm)
@@ -168,8 +177,13 @@ def register_to_target(points_mm, mask, target) -> Registration:
     y = np.cross(z, x)
     R = np.stack([x, y, z], axis=1)
     free_radius = None if convex is None else (abs(1.0 / k_free) if k_free != 0 else math.inf)
-    return Registration(T_cam_target=_pose(R, origin), shape=tgt.shape, rms_mm=float(rms),
-                        convex_towards_camera=convex, fitted_radius_mm=free_radius)
+    return Registration(
+        T_cam_target=_pose(R, origin),
+        shape=tgt.shape,
+        rms_mm=float(rms),
+        convex_towards_camera=convex,
+        fitted_radius_mm=free_radius,
+    )
 
 
 def _register_mesh(sample: np.ndarray, target: Target) -> Registration:
@@ -179,11 +193,15 @@ def _register_mesh(sample: np.ndarray, target: Target) -> Registration:
     jj, ii = np.nonzero(np.isfinite(grid.height))
     keep = np.linspace(0, len(jj) - 1, min(len(jj), 50_000)).round().astype(np.int64)
     jj, ii = jj[keep], ii[keep]
-    q_nodes = np.stack([grid.x0 + ii * grid.step, grid.y0 + jj * grid.step, grid.height[jj, ii]], axis=1)
+    q_nodes = np.stack(
+        [grid.x0 + ii * grid.step, grid.y0 + jj * grid.step, grid.height[jj, ii]], axis=1
+    )
     target_pts = q_nodes @ grid.frame + grid.origin  # target frame
 
     c_s, frame_s = pca_frame(sample)
-    icp_pts = sample[np.linspace(0, len(sample) - 1, min(len(sample), ICP_POINTS)).round().astype(np.int64)]
+    icp_pts = sample[
+        np.linspace(0, len(sample) - 1, min(len(sample), ICP_POINTS)).round().astype(np.int64)
+    ]
     # Mesh PCA frame's z is the least-spread axis; the measured frame's z is too (pointing away from camera).
     # In the plane, PCA's axes are ill-defined for a squarish plate (and turned by an opening differently in
     # the mesh's area weighting and the camera's pixel sampling): in-plane turns every 30 deg, each with
@@ -205,17 +223,30 @@ def _register_mesh(sample: np.ndarray, target: Target) -> Registration:
     # ICP from the four best starts: a saddle turned upside down and by 90 deg is nearly itself (R1 ~ R2), and
     # such near-symmetric poses can score better before ICP than the true one
     for _, T0 in scored[:ICP_STARTS]:
-        T, _, cost = trimesh.registration.icp(icp_pts, target_pts, initial=T0, threshold=1e-7,
-                                              max_iterations=20, reflection=False, scale=False)
+        T, _, cost = trimesh.registration.icp(
+            icp_pts,
+            target_pts,
+            initial=T0,
+            threshold=1e-7,
+            max_iterations=20,
+            reflection=False,
+            scale=False,
+        )
         if best is None or cost < best[1]:
             best = (T, cost)
     T_target_cam = _refine_mesh_pose(best[0], sample, grid)
     rms = _mesh_rms(T_target_cam, sample, grid)
-    return Registration(T_cam_target=np.linalg.inv(T_target_cam), shape="mesh", rms_mm=rms,
-                        convex_towards_camera=None)
+    return Registration(
+        T_cam_target=np.linalg.inv(T_target_cam),
+        shape="mesh",
+        rms_mm=rms,
+        convex_towards_camera=None,
+    )
 
 
-def _mesh_residuals(T_target_cam: np.ndarray, pts: np.ndarray, grid: MeshGrid, *, filled: bool) -> np.ndarray:
+def _mesh_residuals(
+    T_target_cam: np.ndarray, pts: np.ndarray, grid: MeshGrid, *, filled: bool
+) -> np.ndarray:
     x_t = pts @ T_target_cam[:3, :3].T + T_target_cam[:3, 3]
     q = (x_t - grid.origin) @ grid.frame.T
     h, s = grid.sample(q, filled=filled)

@@ -47,7 +47,13 @@ from .stages import (
 from .target_geometry import target_area_mm2
 
 __all__ = [
-    "AREA_WARNING_RATIO", "STAGES", "InspectOptions", "InspectionResult", "ProgressCallback", "inspect", "warm_up",
+    "AREA_WARNING_RATIO",
+    "STAGES",
+    "InspectOptions",
+    "InspectionResult",
+    "ProgressCallback",
+    "inspect",
+    "warm_up",
 ]
 
 #: A measured area (mask and edge band) under this share of the target's gets a warning in the result.
@@ -130,8 +136,9 @@ def inspect(
         raise
 
 
-def _inspect(capture, target, out: Path, clock: StageClock, opts: InspectOptions,
-             light_calibration) -> InspectionResult:
+def _inspect(
+    capture, target, out: Path, clock: StageClock, opts: InspectOptions, light_calibration
+) -> InspectionResult:
     """:func:`inspect` inside its BLAS limit and error handling: every stage, then the two documents."""
     warnings: list[str] = []
     cap, tgt = load_inputs(capture, target, light_calibration, warnings, clock)
@@ -165,8 +172,9 @@ def _details(m: Measurement, pre: Preprocessed, tgt: Target, *, near_field: bool
         defects=[region_details(d) for d in judgement.defects],
         reasons=list(judgement.reasons),
         excluded_regions=[excluded_region_details(r) for r in judgement.excluded],
-        segmentation=segmentation_details(plate.seg, target_area_mm2(tgt), plain=plate.plain,
-                                          measured_area_mm2=measured_area),
+        segmentation=segmentation_details(
+            plate.seg, target_area_mm2(tgt), plain=plate.plain, measured_area_mm2=measured_area
+        ),
         normals_filled=int(surface.field.n_filled),
         normals_facing_away=surface.normals_facing_away,
         light_model="near-field" if near_field else "distant",
@@ -176,7 +184,9 @@ def _details(m: Measurement, pre: Preprocessed, tgt: Target, *, near_field: bool
         light_refinement=refinement_details(surface.refinement),
         samples_saturated=pre.n_saturated,
         samples_shadowed=pre.n_shadowed,
-        stereo_matched_pct=None if plate.matched_pct is None else round(float(plate.matched_pct), 2),
+        stereo_matched_pct=None
+        if plate.matched_pct is None
+        else round(float(plate.matched_pct), 2),
         metric_scale="stereo" if plate.prior is not None else "working_distance",
     )
 
@@ -188,11 +198,16 @@ def _warnings(surface: reconstruct.Surface, tgt: Target, details: Details) -> li
     if surface.refinement is not None:
         r = surface.refinement
         turn = max(c["turn_deg"] for c in r.corrections)
-        what = ("point lights (LEDs near the plate) fitted from the images on the stereo geometry"
-                if r.model == "point" else f"distant lights corrected by up to {turn:.2f} deg from the images on "
-                "the stereo geometry")
-        warnings.append(f"the capture's lights did not fit the plate the stereo pair measured; measured with {what} "
-                        "(details.json: light_refinement)")
+        what = (
+            "point lights (LEDs near the plate) fitted from the images on the stereo geometry"
+            if r.model == "point"
+            else f"distant lights corrected by up to {turn:.2f} deg from the images on "
+            "the stereo geometry"
+        )
+        warnings.append(
+            f"the capture's lights did not fit the plate the stereo pair measured; measured with {what} "
+            "(details.json: light_refinement)"
+        )
     if surface.fusion is not None and surface.fusion.disagreement_mm > max(
         surface.fusion.noise_floor_mm, DISAGREEMENT_FRACTION * tgt.tolerance_mm
     ):
@@ -210,7 +225,9 @@ def _warnings(surface: reconstruct.Surface, tgt: Target, details: Details) -> li
     return warnings
 
 
-def _result_document(cap: Capture, tgt: Target, m: Measurement, warnings: list[str], clock: StageClock) -> dict:
+def _result_document(
+    cap: Capture, tgt: Target, m: Measurement, warnings: list[str], clock: StageClock
+) -> dict:
     """The ``plate-result/1`` document of a measured plate (``warnings`` only when there are some)."""
     # the registration fits the target's shape radius-free on its way (= registration.fitted_target_radius)
     fitted_radius = m.pose.fitted_radius_mm
@@ -258,7 +275,10 @@ def warm_up() -> float:
     t = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="plate-inspect-warm-up-") as tmp:
         bundle = simulate_capture(
-            Path(tmp) / "capture", plate=PlateSpec(), capture=CaptureSpec(width=320, height=256, specular=0.4), seed=0
+            Path(tmp) / "capture",
+            plate=PlateSpec(),
+            capture=CaptureSpec(width=320, height=256, specular=0.4),
+            seed=0,
         )
         inspect(bundle, bundle / "target.json", out_dir=Path(tmp) / "out")
     return time.perf_counter() - t
@@ -270,11 +290,11 @@ def _write_error_result(out: Path, capture, target, err: Exception, clock: Stage
     if plate_id is None:
         try:
             plate_id = load_capture(capture).plate_id
-        except Exception:  # noqa: BLE001 - the bundle itself may be what failed
+        except Exception:
             plate_id = "unknown"
     try:
         tolerance = (target if isinstance(target, Target) else load_target(target)).tolerance_mm
-    except Exception:  # noqa: BLE001 - the target itself may be what failed
+    except Exception:
         tolerance = 0.0
     doc = ResultFile(
         plate_id=plate_id,

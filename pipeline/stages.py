@@ -9,8 +9,8 @@ runs beside the main line, and times them.
 from __future__ import annotations
 
 import time
-from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -170,8 +170,9 @@ class Measurement:
     pixel_area: np.ndarray
 
 
-def load_inputs(capture, target, light_calibration, warnings: list[str],
-                clock: StageClock) -> tuple[Capture, Target]:
+def load_inputs(
+    capture, target, light_calibration, warnings: list[str], clock: StageClock
+) -> tuple[Capture, Target]:
     """Stage *load*: the capture (with ``light_calibration`` applied, see :func:`pipeline.run.inspect`) and the target.
 
     A warning about the light calibration is appended to ``warnings``. CaptureError when the capture
@@ -193,25 +194,41 @@ def preprocess_scene(cap: Capture, opts: InspectOptions, clock: StageClock) -> S
     """Stage *preprocess*: the images ready for the normals, and where the plate may be (see :class:`Scene`)."""
     clock.begin("preprocess")
     pre = preprocess(cap, workers=opts.workers)
-    candidates = segmentation.candidate_mask(pre.brightest, seen=pre.seen) if cap.has_stereo else pre.mask
+    candidates = (
+        segmentation.candidate_mask(pre.brightest, seen=pre.seen) if cap.has_stereo else pre.mask
+    )
     plain_outline = cap.has_stereo and segmentation.plain_outline(pre.mask, candidates)
     region = pre.mask if plain_outline else candidates
     clock.end("preprocess")
     return Scene(pre=pre, candidates=candidates, plain_outline=plain_outline, region=region)
 
 
-def measure(cap: Capture, tgt: Target, scene: Scene, opts: InspectOptions, out: Path, pool: ThreadPoolExecutor,
-             clock: StageClock) -> Measurement:
+def measure(
+    cap: Capture,
+    tgt: Target,
+    scene: Scene,
+    opts: InspectOptions,
+    out: Path,
+    pool: ThreadPoolExecutor,
+    clock: StageClock,
+) -> Measurement:
     """Stages *normals* to *artifacts* (details.json and result.json excepted), work beside the main line on ``pool``."""
     pre, K = scene.pre, cap.rig.left.K
     stereo_job = pool.submit(_stereo_depth, cap, scene.region, opts) if cap.has_stereo else None
-    rays_job = pool.submit(cap.rig.left.pixel_rays)  # (H, W, 3) float64, for the surface and the areas
+    rays_job = pool.submit(
+        cap.rig.left.pixel_rays
+    )  # (H, W, 3) float64, for the surface and the areas
     field = None
     clock.begin("normals")
     if not cap.lights.any_point:
         # distant lights: the normals do not depend on the surface, estimated while stereo matches
         field = normals.estimate_normals(
-            pre.images, cap.light_dirs, scene.region, valid=pre.valid, method=opts.normals_method, camera_matrix=K,
+            pre.images,
+            cap.light_dirs,
+            scene.region,
+            valid=pre.valid,
+            method=opts.normals_method,
+            camera_matrix=K,
         )
         clock.end("normals")
     clock.begin("stereo")
@@ -220,8 +237,14 @@ def measure(cap: Capture, tgt: Target, scene: Scene, opts: InspectOptions, out: 
     if field is not None:
         # normals.png now, while the depth is solved on this thread (the few normals dropped later as facing
         # away are then shown as estimated)
-        writes.append(pool.submit(artifacts.write_normals_png, out / ARTIFACT_FILES["normals"], field.normals,
-                                  field.mask))
+        writes.append(
+            pool.submit(
+                artifacts.write_normals_png,
+                out / ARTIFACT_FILES["normals"],
+                field.normals,
+                field.mask,
+            )
+        )
     _check_stereo_share(plate, cap, opts)
     surface = _surface(cap, tgt, scene, plate, field, opts, clock)
     rays = rays_job.result()
@@ -230,18 +253,30 @@ def measure(cap: Capture, tgt: Target, scene: Scene, opts: InspectOptions, out: 
     return _judge(points, rays, surface, plate, tgt, K, out, pool, writes, clock)
 
 
-def _plate(stereo_job, scene: Scene, field: normals.NormalField | None, K: np.ndarray, tgt: Target,
-           clock: StageClock) -> tuple[Plate, normals.NormalField | None]:
+def _plate(
+    stereo_job,
+    scene: Scene,
+    field: normals.NormalField | None,
+    K: np.ndarray,
+    tgt: Target,
+    clock: StageClock,
+) -> tuple[Plate, normals.NormalField | None]:
     """The stereo depth, and the plate among its surroundings (#17): the near, smooth sheet of the stereo
     depth; openings stay holes, supports beside the plate and an edge band are left out. A plain scene (a
     plate over a dark conveyor, no opening), or no stereo pair: the brightness mask. The distant normal
     field comes back restricted to the plate."""
     pre = scene.pre
-    depth_c, stereo_s, depth_scale = stereo_job.result() if stereo_job is not None else (None, 0.0, 1)
+    depth_c, stereo_s, depth_scale = (
+        stereo_job.result() if stereo_job is not None else (None, 0.0, 1)
+    )
     clock.timings["stereo"] = stereo_s
     t_seg = time.perf_counter()
     seg = None
-    plain = scene.plain_outline and depth_c is not None and segmentation.plain_depth(pre.mask, depth_c, K)
+    plain = (
+        scene.plain_outline
+        and depth_c is not None
+        and segmentation.plain_depth(pre.mask, depth_c, K)
+    )
     if depth_c is not None and not plain:
         seg = _segment(pre, depth_c, K, scene.candidates, depth_scale, field, tgt)
     mask = pre.mask if seg is None else seg.mask
@@ -252,9 +287,18 @@ def _plate(stereo_job, scene: Scene, field: normals.NormalField | None, K: np.nd
     if field is not None:
         field = _restricted(field, mask)
     clock.timings["segmentation"] = round(time.perf_counter() - t_seg, 4)
-    matched_pct = None if prior is None else 100.0 * np.count_nonzero(np.isfinite(prior) & mask) / mask.sum()
-    return Plate(mask=mask, seg=seg, plain=plain, prior=prior, matched_pct=matched_pct, depth_mm=depth_c,
-                  depth_scale=depth_scale), field
+    matched_pct = (
+        None if prior is None else 100.0 * np.count_nonzero(np.isfinite(prior) & mask) / mask.sum()
+    )
+    return Plate(
+        mask=mask,
+        seg=seg,
+        plain=plain,
+        prior=prior,
+        matched_pct=matched_pct,
+        depth_mm=depth_c,
+        depth_scale=depth_scale,
+    ), field
 
 
 def _check_stereo_share(plate: Plate, cap: Capture, opts: InspectOptions) -> None:
@@ -269,44 +313,82 @@ def _check_stereo_share(plate: Plate, cap: Capture, opts: InspectOptions) -> Non
         plate.prior = None
 
 
-def _surface(cap: Capture, tgt: Target, scene: Scene, plate: Plate, field: normals.NormalField | None,
-             opts: InspectOptions, clock: StageClock) -> reconstruct.Surface:
+def _surface(
+    cap: Capture,
+    tgt: Target,
+    scene: Scene,
+    plate: Plate,
+    field: normals.NormalField | None,
+    opts: InspectOptions,
+    clock: StageClock,
+) -> reconstruct.Surface:
     """Stages *normals* (point lights) and *depth*: the metric surface, with the lights refitted on the stereo
     geometry when they bend it away from the stereo pair's (``plate`` then holds the segmented plate)."""
     pre, K = scene.pre, cap.rig.left.K
-    solve = dict(prior_mm=plate.prior, working_distance_mm=cap.working_distance_mm, stereo_weight=opts.stereo_weight,
-                 tol=opts.depth_tol)
+    solve = dict(
+        prior_mm=plate.prior,
+        working_distance_mm=cap.working_distance_mm,
+        stereo_weight=opts.stereo_weight,
+        tol=opts.depth_tol,
+    )
     if cap.lights.any_point:
         # point lights: normals and surface alternate; "normals" times the whole alternation (with its
         # integrations), "depth" what follows
         t_near = time.perf_counter()
         surface = reconstruct.near_field_surface(
-            pre.images, cap.lights, K, plate.mask, valid=pre.valid, method=opts.normals_method, **solve
+            pre.images,
+            cap.lights,
+            K,
+            plate.mask,
+            valid=pre.valid,
+            method=opts.normals_method,
+            **solve,
         )
         clock.timings["normals"] = round(time.perf_counter() - t_near, 4)
         clock.begin("depth")
         return surface
     clock.begin("depth")
     surface = reconstruct.distant_surface(field, K, **solve)
-    if plate.prior is None or not reconstruct.disagrees(surface, tgt.tolerance_mm, DISAGREEMENT_FRACTION):
+    if plate.prior is None or not reconstruct.disagrees(
+        surface, tgt.tolerance_mm, DISAGREEMENT_FRACTION
+    ):
         return surface
     # the given lights bend the surface away from the stereo pair's: refit them on its geometry
     t_refit = time.perf_counter()
     if plate.seg is None and plate.depth_mm is not None:
         # so far on the brightness mask: lights that do not fit light the plate unevenly, and the
         # mask follows its darker edges; measured again on the segmented plate
-        plate.seg = _segment(pre, plate.depth_mm, K, scene.candidates, plate.depth_scale, field, tgt)
+        plate.seg = _segment(
+            pre, plate.depth_mm, K, scene.candidates, plate.depth_scale, field, tgt
+        )
         plate.plain, plate.mask = False, plate.seg.mask
         solve["prior_mm"] = plate.seg.stereo_prior(plate.depth_mm)
     surface = reconstruct.remeasure_with_refined_lights(
-        surface, pre.images, cap.lights, K, plate.mask, valid=pre.valid, method=opts.normals_method, **solve,
+        surface,
+        pre.images,
+        cap.lights,
+        K,
+        plate.mask,
+        valid=pre.valid,
+        method=opts.normals_method,
+        **solve,
     )
     clock.timings["light_refinement"] = round(time.perf_counter() - t_refit, 4)
     return surface
 
 
-def _judge(points: np.ndarray, rays: np.ndarray, surface: reconstruct.Surface, plate: Plate, tgt: Target,
-           K: np.ndarray, out: Path, pool: ThreadPoolExecutor, writes: list, clock: StageClock) -> Measurement:
+def _judge(
+    points: np.ndarray,
+    rays: np.ndarray,
+    surface: reconstruct.Surface,
+    plate: Plate,
+    tgt: Target,
+    K: np.ndarray,
+    out: Path,
+    pool: ThreadPoolExecutor,
+    writes: list,
+    clock: StageClock,
+) -> Measurement:
     """Stages *curvature*, *deviation* and *artifacts* (its files but details.json): curvature and the pixel
     areas beside the registration, each artifact written beside the main line as soon as it is known.
     ``writes``: the artifact writes under way (normals.png when the distant normals were written already)."""
@@ -315,37 +397,76 @@ def _judge(points: np.ndarray, rays: np.ndarray, surface: reconstruct.Surface, p
     clock.begin("curvature")
     curvature_job = pool.submit(_curvature, points, surface_mask)
     area_job = pool.submit(_pixel_area_mm2, surface.depth_mm, field.normals, rays, K)
-    writes.append(pool.submit(artifacts.save_depth, out / ARTIFACT_FILES["depth"], surface.depth_mm))
+    writes.append(
+        pool.submit(artifacts.save_depth, out / ARTIFACT_FILES["depth"], surface.depth_mm)
+    )
     if not normals_written:
-        writes.append(pool.submit(artifacts.write_normals_png, out / ARTIFACT_FILES["normals"], field.normals,
-                                  field.mask))
+        writes.append(
+            pool.submit(
+                artifacts.write_normals_png,
+                out / ARTIFACT_FILES["normals"],
+                field.normals,
+                field.mask,
+            )
+        )
     clock.begin("deviation")
     pose = registration.register_to_target(points, surface_mask, tgt)
     dev = deviation.deviation_map(points, surface_mask, tgt, pose)
     writes += [
-        pool.submit(artifacts.write_surface_ply, out / ARTIFACT_FILES["surface"], points, surface_mask, dev,
-                    tolerance_mm=tgt.tolerance_mm),
-        pool.submit(artifacts.write_deviation_png, out / ARTIFACT_FILES["deviation_map"], dev, surface_mask,
-                    tolerance_mm=tgt.tolerance_mm),
+        pool.submit(
+            artifacts.write_surface_ply,
+            out / ARTIFACT_FILES["surface"],
+            points,
+            surface_mask,
+            dev,
+            tolerance_mm=tgt.tolerance_mm,
+        ),
+        pool.submit(
+            artifacts.write_deviation_png,
+            out / ARTIFACT_FILES["deviation_map"],
+            dev,
+            surface_mask,
+            tolerance_mm=tgt.tolerance_mm,
+        ),
     ]
     pixel_area = area_job.result()
     judgement = verdict.judge(
-        dev, surface_mask, tgt.tolerance_mm, pixel_area_mm2=pixel_area,
-        edge_artefacts=None if plate.seg is None else verdict.EdgeArtefacts(plate.seg.surroundings_step_mm),
+        dev,
+        surface_mask,
+        tgt.tolerance_mm,
+        pixel_area_mm2=pixel_area,
+        edge_artefacts=None
+        if plate.seg is None
+        else verdict.EdgeArtefacts(plate.seg.surroundings_step_mm),
     )
     clock.end("deviation")
     clock.begin("artifacts")
     verts, faces = target_geometry.target_surface(tgt)
-    writes.append(pool.submit(artifacts.write_target_ply, out / ARTIFACT_FILES["target_surface"], verts, faces,
-                              pose.T_cam_target))
+    writes.append(
+        pool.submit(
+            artifacts.write_target_ply,
+            out / ARTIFACT_FILES["target_surface"],
+            verts,
+            faces,
+            pose.T_cam_target,
+        )
+    )
     curv, clock.timings["curvature"] = curvature_job.result()
     for write in writes:
         write.result()
-    return Measurement(surface=surface, plate=plate, pose=pose, judgement=judgement, curv=curv,
-                        pixel_area=pixel_area)
+    return Measurement(
+        surface=surface,
+        plate=plate,
+        pose=pose,
+        judgement=judgement,
+        curv=curv,
+        pixel_area=pixel_area,
+    )
 
 
-def _apply_light_calibration(cap: Capture, calibration: Lights | None, warnings: list[str]) -> Capture:
+def _apply_light_calibration(
+    cap: Capture, calibration: Lights | None, warnings: list[str]
+) -> Capture:
     """The capture with the calibrated lights in place of nominal ones (see :func:`inspect`)."""
     if calibration is None or cap.lights.any_point:
         return cap
@@ -366,7 +487,9 @@ def _curvature(points: np.ndarray, mask: np.ndarray):
     return curv, round(time.perf_counter() - t, 4)
 
 
-def _stereo_depth(cap: Capture, mask: np.ndarray, opts: InspectOptions) -> tuple[np.ndarray, float, int]:
+def _stereo_depth(
+    cap: Capture, mask: np.ndarray, opts: InspectOptions
+) -> tuple[np.ndarray, float, int]:
     """Stereo depth (mm, left undistorted grid, NaN where unmatched or outside ``mask``), its run time (s) and
     the reduction the pair was matched at (1: full size)."""
     t = time.perf_counter()
@@ -379,7 +502,9 @@ def _stereo_depth(cap: Capture, mask: np.ndarray, opts: InspectOptions) -> tuple
         small = (width // step, height // step)
         left, right = (cv2.resize(im, small, interpolation=cv2.INTER_AREA) for im in (left, right))
         rig = replace(rig, left=rig.left.resized(small), right=rig.right.resized(small))
-        stereo_mask = cv2.resize(mask.view(np.uint8), small, interpolation=cv2.INTER_NEAREST).astype(bool)
+        stereo_mask = cv2.resize(
+            mask.view(np.uint8), small, interpolation=cv2.INTER_NEAREST
+        ).astype(bool)
     sd = stereo.stereo_depth(
         left,
         right,
@@ -397,7 +522,12 @@ def _stereo_depth(cap: Capture, mask: np.ndarray, opts: InspectOptions) -> tuple
 def _segment(pre, depth_mm, K, candidates, depth_scale, field, tgt):
     """The plate told from its surroundings (:func:`pipeline.segmentation.segment_plate`)."""
     return segmentation.segment_plate(
-        pre.brightest, depth_mm, K, seen=pre.seen, candidates=candidates, depth_scale_px=depth_scale,
+        pre.brightest,
+        depth_mm,
+        K,
+        seen=pre.seen,
+        candidates=candidates,
+        depth_scale_px=depth_scale,
         normals=None if field is None else field.normals,  # NaN off the field's mask (NormalField)
         target_area_mm2=target_geometry.target_area_mm2(tgt),
     )
@@ -418,7 +548,9 @@ def _restricted(field: normals.NormalField, mask: np.ndarray) -> normals.NormalF
     return replace(field, mask=keep, filled=filled, n_filled=int(np.count_nonzero(filled)))
 
 
-def _pixel_area_mm2(depth_mm: np.ndarray, normals: np.ndarray, rays: np.ndarray, K: np.ndarray) -> np.ndarray:
+def _pixel_area_mm2(
+    depth_mm: np.ndarray, normals: np.ndarray, rays: np.ndarray, K: np.ndarray
+) -> np.ndarray:
     """(H, W) area (mm^2) of the surface patch each pixel sees.
 
     A pixel spans the solid angle ``cos^3(a) / (fx fy)`` (``a``: its ray's angle to

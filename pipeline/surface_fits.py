@@ -171,7 +171,9 @@ def _check_radius(radius_mm) -> float | None:
         return None
     r = float(radius_mm)
     if not math.isfinite(r) or r <= 0:
-        raise ValueError(f"radius_mm: expected a positive finite radius in mm or None, got {radius_mm}")
+        raise ValueError(
+            f"radius_mm: expected a positive finite radius in mm or None, got {radius_mm}"
+        )
     return r
 
 
@@ -213,7 +215,9 @@ def check_grid(points_mm, mask, *, min_points: int = 10) -> tuple[np.ndarray, np
     with np.errstate(invalid="ignore", over="ignore"):
         bad = m & ~np.isfinite(pts[..., 0] + pts[..., 1] + pts[..., 2])
     if bad.any():
-        raise ValueError(f"points_mm: expected finite points inside the mask, got {int(bad.sum())} with NaN/inf")
+        raise ValueError(
+            f"points_mm: expected finite points inside the mask, got {int(bad.sum())} with NaN/inf"
+        )
     return pts, m
 
 
@@ -314,8 +318,14 @@ def fit_plane(points_mm) -> PlaneFit:
 # --------------------------------------------------------------------------- sphere and cylinder
 
 
-def fit_curved(pts: np.ndarray, *, cylinder: bool, radius_mm: float | None, max_points: int,
-               curvature_per_mm: float | None = None) -> CurvedFit:
+def fit_curved(
+    pts: np.ndarray,
+    *,
+    cylinder: bool,
+    radius_mm: float | None,
+    max_points: int,
+    curvature_per_mm: float | None = None,
+) -> CurvedFit:
     """The geometric fit shared by :func:`fit_sphere`, :func:`fit_cylinder` and the plane registration.
 
     Parameters
@@ -419,12 +429,18 @@ class _CurvedModel:
         g = k * s2 - 2.0 * (wn - t)
         return g / (1.0 + np.sqrt(np.maximum(1.0 + k * g, 0.0)))
 
-    def solve(self, x0: np.ndarray, k_fixed: float | None, f_scale: float,
-              max_iter: int = 60) -> tuple[np.ndarray, float]:
+    def solve(
+        self, x0: np.ndarray, k_fixed: float | None, f_scale: float, max_iter: int = 60
+    ) -> tuple[np.ndarray, float]:
         """Robust Levenberg-Marquardt from ``x0`` over the free parameters: (their values, cost)."""
         n_free = self.n_shape + (k_fixed is None)
-        return robust_gauss_newton(lambda x: self.residuals(x, k_fixed), x0[:n_free], self.steps[:n_free], f_scale,
-                                   max_iter=max_iter)
+        return robust_gauss_newton(
+            lambda x: self.residuals(x, k_fixed),
+            x0[:n_free],
+            self.steps[:n_free],
+            f_scale,
+            max_iter=max_iter,
+        )
 
     def fit_free(self, curvature_per_mm: float | None) -> tuple[np.ndarray, float]:
         """Stage 1: robust scale from the quadric's residuals; stage 2: scale from stage 1. Returns the
@@ -438,7 +454,9 @@ class _CurvedModel:
         x[: self.n_shape + (k_fix is None)], _ = self.solve(x, k_fix, f_scale)
         return x, f_scale
 
-    def fit_radius(self, x: np.ndarray, k_free: float, radius_mm: float, f_scale: float) -> np.ndarray:
+    def fit_radius(
+        self, x: np.ndarray, k_free: float, radius_mm: float, f_scale: float
+    ) -> np.ndarray:
         """The fit with the radius fixed, from the free fit ``x``.
 
         When the free fit's curvature is clearly on one side (at least half the fixed curvature), that
@@ -447,18 +465,20 @@ class _CurvedModel:
         """
         k_abs = 1.0 / radius_mm
         sides = (math.copysign(k_abs, k_free),) if abs(k_free) >= 0.5 * k_abs else (k_abs, -k_abs)
-        best = (x[:self.n_shape].copy(), sides[0], None)
+        best = (x[: self.n_shape].copy(), sides[0], None)
         if len(sides) > 1:
             best = None
             for k_try in sides:
-                xs, cost = self.solve(x[:self.n_shape].copy(), k_try, f_scale, max_iter=6)
+                xs, cost = self.solve(x[: self.n_shape].copy(), k_try, f_scale, max_iter=6)
                 if best is None or cost < best[2]:
                     best = (xs, k_try, cost)
         xs, _ = self.solve(best[0], best[1], f_scale)
         return np.append(xs, best[1])
 
 
-def fit_sphere(points_mm, *, radius_mm: float | None = None, max_points: int = MAX_FIT_POINTS) -> SphereFit:
+def fit_sphere(
+    points_mm, *, radius_mm: float | None = None, max_points: int = MAX_FIT_POINTS
+) -> SphereFit:
     """Geometric least-squares sphere through 3-D points of a (possibly small) spherical cap.
 
     Parameters
@@ -492,11 +512,18 @@ def fit_sphere(points_mm, *, radius_mm: float | None = None, max_points: int = M
     r = _check_radius(radius_mm)
     n, p0, k, _, rms, k_free = fit_curved(pts, cylinder=False, radius_mm=r, max_points=max_points)
     center = p0 + n / k if k != 0 else np.full(3, np.inf)
-    return SphereFit(center_mm=center, radius_mm=abs(1.0 / k) if k != 0 else math.inf, curvature_per_mm=k, rms_mm=rms,
-                     free_curvature_per_mm=None if r is None else k_free)
+    return SphereFit(
+        center_mm=center,
+        radius_mm=abs(1.0 / k) if k != 0 else math.inf,
+        curvature_per_mm=k,
+        rms_mm=rms,
+        free_curvature_per_mm=None if r is None else k_free,
+    )
 
 
-def fit_cylinder(points_mm, *, radius_mm: float | None = None, max_points: int = MAX_FIT_POINTS) -> CylinderFit:
+def fit_cylinder(
+    points_mm, *, radius_mm: float | None = None, max_points: int = MAX_FIT_POINTS
+) -> CylinderFit:
     """Geometric least-squares circular cylinder through 3-D points of a (possibly small) arc.
 
     Parameters
@@ -538,7 +565,11 @@ def fit_cylinder(points_mm, *, radius_mm: float | None = None, max_points: int =
         point = centre + ((c - centre) @ ax) * ax
     else:
         point = np.full(3, np.inf)
-    return CylinderFit(axis=ax, point_on_axis_mm=point, radius_mm=abs(1.0 / k) if k != 0 else math.inf,
-                       curvature_per_mm=k, rms_mm=rms, free_curvature_per_mm=None if r is None else k_free)
-
-
+    return CylinderFit(
+        axis=ax,
+        point_on_axis_mm=point,
+        radius_mm=abs(1.0 / k) if k != 0 else math.inf,
+        curvature_per_mm=k,
+        rms_mm=rms,
+        free_curvature_per_mm=None if r is None else k_free,
+    )

@@ -42,16 +42,24 @@ def check_target(target) -> Target:
     if target.shape in ("cylinder", "sphere"):
         r = target.radius_mm
         if r is None or not math.isfinite(r) or r <= 0:
-            raise ValueError(f"target.radius_mm: expected a positive radius for a {target.shape}, got {r}")
+            raise ValueError(
+                f"target.radius_mm: expected a positive radius for a {target.shape}, got {r}"
+            )
     if target.shape == "mesh":
         v, f = target.mesh_vertices_mm, target.mesh_faces
         if v is None or f is None:
-            raise ValueError("target.mesh_vertices_mm/mesh_faces: expected arrays for a mesh target, got None")
+            raise ValueError(
+                "target.mesh_vertices_mm/mesh_faces: expected arrays for a mesh target, got None"
+            )
         v, f = np.asarray(v), np.asarray(f)
         if v.ndim != 2 or v.shape[1] != 3 or v.shape[0] < 3 or not np.all(np.isfinite(v)):
-            raise ValueError(f"target.mesh_vertices_mm: expected finite (V, 3) with V >= 3, got shape {v.shape}")
+            raise ValueError(
+                f"target.mesh_vertices_mm: expected finite (V, 3) with V >= 3, got shape {v.shape}"
+            )
         if f.ndim != 2 or f.shape[1] != 3 or f.shape[0] < 1 or f.min() < 0 or f.max() >= v.shape[0]:
-            raise ValueError(f"target.mesh_faces: expected (F, 3) indices below {v.shape[0]}, got shape {f.shape}")
+            raise ValueError(
+                f"target.mesh_faces: expected (F, 3) indices below {v.shape[0]}, got shape {f.shape}"
+            )
     size = tuple(target.size_mm)
     if len(size) != 2 or not all(math.isfinite(s) and s > 0 for s in size):
         raise ValueError(f"target.size_mm: expected two positive sizes in mm, got {target.size_mm}")
@@ -78,7 +86,9 @@ def target_surface(target, *, spacing_mm: float = 50.0) -> tuple[np.ndarray, np.
     if not (math.isfinite(spacing_mm) and spacing_mm > 0):
         raise ValueError(f"spacing_mm: expected a positive spacing in mm, got {spacing_mm}")
     if tgt.shape == "mesh":
-        return np.asarray(tgt.mesh_vertices_mm, dtype=np.float64).copy(), np.asarray(tgt.mesh_faces, dtype=np.int64).copy()
+        return np.asarray(tgt.mesh_vertices_mm, dtype=np.float64).copy(), np.asarray(
+            tgt.mesh_faces, dtype=np.int64
+        ).copy()
     sx, sy = tgt.size_mm
     nx = max(2, int(math.ceil(sx / spacing_mm)) + 1)
     ny = max(2, int(math.ceil(sy / spacing_mm)) + 1)
@@ -89,12 +99,21 @@ def target_surface(target, *, spacing_mm: float = 50.0) -> tuple[np.ndarray, np.
         Rt = tgt.radius_mm
         r2 = gx * gx if tgt.shape == "cylinder" else gx * gx + gy * gy
         if np.any(r2 >= Rt * Rt):
-            raise ValueError(f"target.radius_mm: a {tgt.shape} of radius {Rt} mm cannot span size_mm {tgt.size_mm}")
+            raise ValueError(
+                f"target.radius_mm: a {tgt.shape} of radius {Rt} mm cannot span size_mm {tgt.size_mm}"
+            )
         gz = Rt - np.sqrt(Rt * Rt - r2)
     vertices = np.stack([gx.ravel(), gy.ravel(), gz.ravel()], axis=1)
     idx = np.arange(nx * ny).reshape(ny, nx)
-    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
-    faces = np.concatenate([np.stack([a, b, c], axis=1), np.stack([b, d, c], axis=1)]).astype(np.int64)
+    a, b, c, d = (
+        idx[:-1, :-1].ravel(),
+        idx[:-1, 1:].ravel(),
+        idx[1:, :-1].ravel(),
+        idx[1:, 1:].ravel(),
+    )
+    faces = np.concatenate([np.stack([a, b, c], axis=1), np.stack([b, d, c], axis=1)]).astype(
+        np.int64
+    )
     return vertices, faces
 
 
@@ -123,7 +142,10 @@ def target_area_mm2(target) -> float:
     if target.shape == "mesh":
         v = np.asarray(target.mesh_vertices_mm, dtype=np.float64)
         tri = v[np.asarray(target.mesh_faces, dtype=np.int64)]
-        return float(0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
+        return float(
+            0.5
+            * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum()
+        )
     sx, sy = (float(v) for v in target.size_mm)
     if target.shape == "plane":
         return sx * sy
@@ -135,7 +157,9 @@ def target_area_mm2(target) -> float:
     y = (np.arange(n) + 0.5) / n * sy - sy / 2
     r2 = x[None, :] ** 2 + y[:, None] ** 2
     if np.any(r2 >= R * R):
-        raise ValueError(f"target.radius_mm: a sphere of radius {R} mm cannot span size_mm {target.size_mm}")
+        raise ValueError(
+            f"target.radius_mm: a sphere of radius {R} mm cannot span size_mm {target.size_mm}"
+        )
     return float((R / np.sqrt(R * R - r2)).sum() * (sx / n) * (sy / n))
 
 
@@ -166,7 +190,10 @@ class MeshGrid:
         my = np.zeros(rows * cols, dtype=np.float32)
         mx[:n] = (q[:, 0] - self.x0) / self.step
         my[:n] = (q[:, 1] - self.y0) / self.step
-        mx, my = mx.reshape(rows, cols), my.reshape(rows, cols)  # cv2.remap wants both sizes < 32767
+        mx, my = (
+            mx.reshape(rows, cols),
+            my.reshape(rows, cols),
+        )  # cv2.remap wants both sizes < 32767
         grid = self.height_filled if filled else self.height
         border = cv2.BORDER_REPLICATE if filled else cv2.BORDER_CONSTANT
         h = cv2.remap(grid, mx, my, cv2.INTER_LINEAR, borderMode=border, borderValue=float("nan"))
@@ -206,10 +233,14 @@ def _rasterise(q_vertices: np.ndarray, faces: np.ndarray, step: float):
             px = lo[0] + ii * step
             py = lo[1] + jj * step
             a, b, cc = tri[f_idx, 0], tri[f_idx, 1], tri[f_idx, 2]
-            det = (b[:, 0] - a[:, 0]) * (cc[:, 1] - a[:, 1]) - (cc[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1])
+            det = (b[:, 0] - a[:, 0]) * (cc[:, 1] - a[:, 1]) - (cc[:, 0] - a[:, 0]) * (
+                b[:, 1] - a[:, 1]
+            )
             ok = np.abs(det) > 1e-12
             det = np.where(ok, det, 1.0)
-            l1 = ((px - a[:, 0]) * (cc[:, 1] - a[:, 1]) - (cc[:, 0] - a[:, 0]) * (py - a[:, 1])) / det
+            l1 = (
+                (px - a[:, 0]) * (cc[:, 1] - a[:, 1]) - (cc[:, 0] - a[:, 0]) * (py - a[:, 1])
+            ) / det
             l2 = ((b[:, 0] - a[:, 0]) * (py - a[:, 1]) - (px - a[:, 0]) * (b[:, 1] - a[:, 1])) / det
             l0 = 1 - l1 - l2
             inside = ok & (l0 >= -1e-9) & (l1 >= -1e-9) & (l2 >= -1e-9)
@@ -242,7 +273,9 @@ def _rasterised_grid(target: Target) -> MeshGrid:
     tri = v[f]
     area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     if not np.any(area > 0):
-        raise ValueError("target.mesh_faces: expected triangles of non-zero area, got only degenerate ones")
+        raise ValueError(
+            "target.mesh_faces: expected triangles of non-zero area, got only degenerate ones"
+        )
     centres = tri.mean(axis=1)
     origin = (centres * area[:, None]).sum(axis=0) / area.sum()
     d = centres - origin
@@ -254,7 +287,9 @@ def _rasterised_grid(target: Target) -> MeshGrid:
     step = max(MESH_GRID_MM, extent / 1500.0)
     lo, height = _rasterise(q, f, step)
     if np.isnan(height).all():
-        raise ValueError("target.mesh_faces: the mesh covers no grid node; it is not a plate-like surface")
+        raise ValueError(
+            "target.mesh_faces: the mesh covers no grid node; it is not a plate-like surface"
+        )
     filled = height
     holes = np.isnan(height)
     if holes.any():
@@ -262,6 +297,13 @@ def _rasterised_grid(target: Target) -> MeshGrid:
         filled = height[rj, ri]
     gy, gx = np.gradient(filled, step)
     slope = 1.0 / np.sqrt(1.0 + gx * gx + gy * gy)
-    return MeshGrid(origin=origin, frame=frame, x0=float(lo[0]), y0=float(lo[1]), step=step,
-                     height=height.astype(np.float32), slope_factor=slope.astype(np.float32),
-                     height_filled=filled.astype(np.float32))
+    return MeshGrid(
+        origin=origin,
+        frame=frame,
+        x0=float(lo[0]),
+        y0=float(lo[1]),
+        step=step,
+        height=height.astype(np.float32),
+        slope_factor=slope.astype(np.float32),
+        height_filled=filled.astype(np.float32),
+    )

@@ -9,7 +9,6 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-
 #: Default smallest out-of-tolerance region (mm^2) that fails a plate: 100 mm^2 = 1 cm^2, i.e. tens of
 #: pixels at 1.2-3.5 mm/pixel, far more than a noisy pixel, far less than a real dent (a 6 mm dent of
 #: radius 100 mm is out of a 2 mm tolerance over ~13 000 mm^2).
@@ -73,12 +72,18 @@ class EdgeArtefacts:
     def __post_init__(self) -> None:
         step = np.asarray(self.step_mm, dtype=np.float32)
         if step.ndim != 2:
-            raise ValueError(f"EdgeArtefacts.step_mm: expected an (H, W) array, got shape {step.shape}")
+            raise ValueError(
+                f"EdgeArtefacts.step_mm: expected an (H, W) array, got shape {step.shape}"
+            )
         object.__setattr__(self, "step_mm", step)
         if not (math.isfinite(self.min_step_mm) and self.min_step_mm > 0):
-            raise ValueError(f"EdgeArtefacts.min_step_mm: expected a step > 0 mm, got {self.min_step_mm}")
+            raise ValueError(
+                f"EdgeArtefacts.min_step_mm: expected a step > 0 mm, got {self.min_step_mm}"
+            )
         if not (math.isfinite(self.max_depth_px) and self.max_depth_px > 0):
-            raise ValueError(f"EdgeArtefacts.max_depth_px: expected > 0 px, got {self.max_depth_px}")
+            raise ValueError(
+                f"EdgeArtefacts.max_depth_px: expected > 0 px, got {self.max_depth_px}"
+            )
         if not 0 < self.share <= 1:
             raise ValueError(f"EdgeArtefacts.share: expected in (0, 1], got {self.share}")
 
@@ -141,8 +146,16 @@ class Judgement:
     excluded: tuple[ExcludedRegion, ...] = ()
 
 
-def judge(deviation_mm, mask, tolerance_mm: float, *, pixel_area_mm2, min_defect_area_mm2: float = MIN_DEFECT_AREA_MM2,
-          max_outside_pct: float = MAX_OUTSIDE_PCT, edge_artefacts: EdgeArtefacts | None = None) -> Judgement:
+def judge(
+    deviation_mm,
+    mask,
+    tolerance_mm: float,
+    *,
+    pixel_area_mm2,
+    min_defect_area_mm2: float = MIN_DEFECT_AREA_MM2,
+    max_outside_pct: float = MAX_OUTSIDE_PCT,
+    edge_artefacts: EdgeArtefacts | None = None,
+) -> Judgement:
     """Deviation statistics and the pass/fail verdict of a plate.
 
     Parameters
@@ -181,13 +194,16 @@ def judge(deviation_mm, mask, tolerance_mm: float, *, pixel_area_mm2, min_defect
     good plate, while a real local defect (a dent, a kink) or a plate wrong all over does. Statistics are
     over the judged pixels (mask and finite deviation); ``within_tolerance_pct`` is area-weighted.
     """
-    dev, m, area = _check_inputs(deviation_mm, mask, tolerance_mm, pixel_area_mm2, min_defect_area_mm2,
-                                 max_outside_pct)
+    dev, m, area = _check_inputs(
+        deviation_mm, mask, tolerance_mm, pixel_area_mm2, min_defect_area_mm2, max_outside_pct
+    )
     judged = m & np.isfinite(dev)
     excluded: tuple[ExcludedRegion, ...] = ()
     if edge_artefacts is not None:
         if not isinstance(edge_artefacts, EdgeArtefacts):
-            raise TypeError(f"edge_artefacts: expected an EdgeArtefacts or None, got {type(edge_artefacts).__name__}")
+            raise TypeError(
+                f"edge_artefacts: expected an EdgeArtefacts or None, got {type(edge_artefacts).__name__}"
+            )
         if edge_artefacts.step_mm.shape != dev.shape:
             raise ValueError(
                 f"edge_artefacts.step_mm: expected shape {dev.shape} to match deviation_mm, got {edge_artefacts.step_mm.shape}"
@@ -210,44 +226,73 @@ def judge(deviation_mm, mask, tolerance_mm: float, *, pixel_area_mm2, min_defect
     total_area = float(w.sum())
     outside_area = float(w[outside].sum())
     within_pct = 100.0 * (1.0 - outside_area / total_area)
-    defects = _defect_regions(dev, judged, outside, area, min_defect_area_mm2) if outside.any() else []
+    defects = (
+        _defect_regions(dev, judged, outside, area, min_defect_area_mm2) if outside.any() else []
+    )
     reasons = []
     if defects:
-        reasons.append(f"{len(defects)} region(s) out of the {tolerance_mm:g} mm tolerance over "
-                       f"{min_defect_area_mm2:g} mm^2 (largest {defects[0].area_mm2:.0f} mm^2)")
+        reasons.append(
+            f"{len(defects)} region(s) out of the {tolerance_mm:g} mm tolerance over "
+            f"{min_defect_area_mm2:g} mm^2 (largest {defects[0].area_mm2:.0f} mm^2)"
+        )
     if 100.0 - within_pct > max_outside_pct:
-        reasons.append(f"{100.0 - within_pct:.2f} % of the area out of tolerance (over {max_outside_pct:g} %)")
-    return Judgement(rms_mm=rms, max_abs_mm=max_abs, p95_mm=p95, within_tolerance_pct=within_pct,
-                     verdict="fail" if reasons else "pass", defects=tuple(defects), outside_area_mm2=outside_area,
-                     n_pixels=n, reasons=tuple(reasons), excluded=excluded)
+        reasons.append(
+            f"{100.0 - within_pct:.2f} % of the area out of tolerance (over {max_outside_pct:g} %)"
+        )
+    return Judgement(
+        rms_mm=rms,
+        max_abs_mm=max_abs,
+        p95_mm=p95,
+        within_tolerance_pct=within_pct,
+        verdict="fail" if reasons else "pass",
+        defects=tuple(defects),
+        outside_area_mm2=outside_area,
+        n_pixels=n,
+        reasons=tuple(reasons),
+        excluded=excluded,
+    )
 
 
-def _check_inputs(deviation_mm, mask, tolerance_mm, pixel_area_mm2, min_defect_area_mm2,
-                  max_outside_pct) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _check_inputs(
+    deviation_mm, mask, tolerance_mm, pixel_area_mm2, min_defect_area_mm2, max_outside_pct
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The arguments of :func:`judge` checked: deviation (H, W) float64, mask, pixel area (scalar or (H, W))."""
     dev = np.asarray(deviation_mm, dtype=np.float64)
     if dev.ndim != 2:
         raise ValueError(f"deviation_mm: expected shape (H, W), got {dev.shape}")
     m = np.asarray(mask)
     if m.dtype != np.bool_ or m.shape != dev.shape:
-        raise ValueError(f"mask: expected a bool array of shape {dev.shape}, got {m.dtype} {m.shape}")
+        raise ValueError(
+            f"mask: expected a bool array of shape {dev.shape}, got {m.dtype} {m.shape}"
+        )
     if not (math.isfinite(tolerance_mm) and tolerance_mm > 0):
         raise ValueError(f"tolerance_mm: expected a positive number of mm, got {tolerance_mm}")
     if not (math.isfinite(min_defect_area_mm2) and min_defect_area_mm2 > 0):
-        raise ValueError(f"min_defect_area_mm2: expected a positive area in mm^2, got {min_defect_area_mm2}")
+        raise ValueError(
+            f"min_defect_area_mm2: expected a positive area in mm^2, got {min_defect_area_mm2}"
+        )
     if not (math.isfinite(max_outside_pct) and 0 <= max_outside_pct <= 100):
-        raise ValueError(f"max_outside_pct: expected a percentage in [0, 100], got {max_outside_pct}")
+        raise ValueError(
+            f"max_outside_pct: expected a percentage in [0, 100], got {max_outside_pct}"
+        )
     area = np.asarray(pixel_area_mm2, dtype=np.float64)
     if area.ndim == 0:
         if not (math.isfinite(float(area)) and area > 0):
             raise ValueError(f"pixel_area_mm2: expected a positive area in mm^2, got {float(area)}")
     elif area.shape != dev.shape:
-        raise ValueError(f"pixel_area_mm2: expected a number or shape {dev.shape}, got shape {area.shape}")
+        raise ValueError(
+            f"pixel_area_mm2: expected a number or shape {dev.shape}, got shape {area.shape}"
+        )
     return dev, m, area
 
 
-def _defect_regions(dev: np.ndarray, judged: np.ndarray, outside: np.ndarray, area: np.ndarray,
-                    min_defect_area_mm2: float) -> list[DefectRegion]:
+def _defect_regions(
+    dev: np.ndarray,
+    judged: np.ndarray,
+    outside: np.ndarray,
+    area: np.ndarray,
+    min_defect_area_mm2: float,
+) -> list[DefectRegion]:
     """The 8-connected regions of the out-of-tolerance judged pixels that cover at least
     ``min_defect_area_mm2``, largest first (``outside``: per judged pixel)."""
     defects: list[DefectRegion] = []
@@ -267,14 +312,26 @@ def _defect_regions(dev: np.ndarray, judged: np.ndarray, outside: np.ndarray, ar
             continue
         v = vals[lab == k]
         peak = float(v[np.argmax(np.abs(v))])
-        defects.append(DefectRegion(centroid_px=(float(reg_col[k] / reg_count[k]), float(reg_row[k] / reg_count[k])),
-                                    area_mm2=float(reg_area[k]), peak_deviation_mm=peak, n_pixels=int(reg_count[k])))
+        defects.append(
+            DefectRegion(
+                centroid_px=(float(reg_col[k] / reg_count[k]), float(reg_row[k] / reg_count[k])),
+                area_mm2=float(reg_area[k]),
+                peak_deviation_mm=peak,
+                n_pixels=int(reg_count[k]),
+            )
+        )
     defects.sort(key=lambda d: -d.area_mm2)
     return defects
 
 
-def _edge_artefacts(dev: np.ndarray, mask: np.ndarray, judged: np.ndarray, tolerance_mm: float, area: np.ndarray,
-                    rule: EdgeArtefacts) -> tuple[np.ndarray, tuple[ExcludedRegion, ...]]:
+def _edge_artefacts(
+    dev: np.ndarray,
+    mask: np.ndarray,
+    judged: np.ndarray,
+    tolerance_mm: float,
+    area: np.ndarray,
+    rule: EdgeArtefacts,
+) -> tuple[np.ndarray, tuple[ExcludedRegion, ...]]:
     """The pixels of out-of-tolerance regions that are edge artefacts under ``rule``, and those regions."""
     out_map = judged & (np.abs(np.where(judged, dev, 0.0)) > tolerance_mm)
     if not out_map.any():
@@ -290,12 +347,18 @@ def _edge_artefacts(dev: np.ndarray, mask: np.ndarray, judged: np.ndarray, toler
     step = rule.step_mm[rows, cols]
     touches = np.bincount(lab, weights=(d <= 1.5).astype(np.float64), minlength=n_lab + 1) > 0
     count = np.bincount(lab, minlength=n_lab + 1)
-    shallow = np.bincount(lab, weights=(d <= rule.max_depth_px).astype(np.float64), minlength=n_lab + 1)
+    shallow = np.bincount(
+        lab, weights=(d <= rule.max_depth_px).astype(np.float64), minlength=n_lab + 1
+    )
     thin = shallow >= rule.share * np.maximum(count, 1)
     # median of the step over the region's pixels where it is known (inf included) >= min_step_mm
     known = ~np.isnan(step)
     n_known = np.bincount(lab[known], minlength=n_lab + 1)
-    n_deep = np.bincount(lab[known], weights=(step[known] >= rule.min_step_mm).astype(np.float64), minlength=n_lab + 1)
+    n_deep = np.bincount(
+        lab[known],
+        weights=(step[known] >= rule.min_step_mm).astype(np.float64),
+        minlength=n_lab + 1,
+    )
     floorish = (n_known > 0) & (n_deep > 0.5 * n_known)
     artefact = touches & thin & floorish
     artefact[0] = False
@@ -311,12 +374,22 @@ def _edge_artefacts(dev: np.ndarray, mask: np.ndarray, judged: np.ndarray, toler
         v = vals[lab == k]
         steps = step[(lab == k) & known]
         typical = float(np.median(steps))
-        beside = "dark surroundings without stereo depth" if math.isinf(typical) else f"surroundings {typical:.0f} mm behind"
-        regions.append(ExcludedRegion(
-            centroid_px=(float(reg_col[k] / count[k]), float(reg_row[k] / count[k])), area_mm2=float(reg_area[k]),
-            peak_deviation_mm=float(v[np.argmax(np.abs(v))]), n_pixels=int(count[k]),
-            reason=(f"edge artefact: along the plate's edge, within {rule.max_depth_px:g} px of it, beside "
-                    f"{beside}: pixels that mix plate and surroundings, not a forming defect"),
-        ))
+        beside = (
+            "dark surroundings without stereo depth"
+            if math.isinf(typical)
+            else f"surroundings {typical:.0f} mm behind"
+        )
+        regions.append(
+            ExcludedRegion(
+                centroid_px=(float(reg_col[k] / count[k]), float(reg_row[k] / count[k])),
+                area_mm2=float(reg_area[k]),
+                peak_deviation_mm=float(v[np.argmax(np.abs(v))]),
+                n_pixels=int(count[k]),
+                reason=(
+                    f"edge artefact: along the plate's edge, within {rule.max_depth_px:g} px of it, beside "
+                    f"{beside}: pixels that mix plate and surroundings, not a forming defect"
+                ),
+            )
+        )
     regions.sort(key=lambda r: -r.area_mm2)
     return artefact[labels] & out_map, tuple(regions)

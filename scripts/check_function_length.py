@@ -62,7 +62,11 @@ def _numba_names(tree: ast.Module) -> tuple[set[str], set[str]]:
 def _docstring_lines(function: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
     """The number of lines of a function's docstring (0 without one)."""
     first = function.body[0]
-    if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant) and isinstance(first.value.value, str):
+    if (
+        isinstance(first, ast.Expr)
+        and isinstance(first.value, ast.Constant)
+        and isinstance(first.value.value, str)
+    ):
         return first.end_lineno - first.lineno + 1
     return 0
 
@@ -98,7 +102,9 @@ def long_functions(path: Path, max_lines: int = MAX_LINES) -> Iterator[LongFunct
             if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 qualname = prefix + child.name
                 lines = child.end_lineno - child.lineno + 1 - _docstring_lines(child)
-                if lines > max_lines and not any(_is_numba(d, modules, names) for d in child.decorator_list):
+                if lines > max_lines and not any(
+                    _is_numba(d, modules, names) for d in child.decorator_list
+                ):
                     yield LongFunction(path, child.lineno, qualname, lines)
                 yield from visit(child, qualname + ".<locals>.")
             elif isinstance(child, ast.ClassDef):
@@ -119,7 +125,9 @@ def check(directories: list[Path], max_lines: int = MAX_LINES) -> list[LongFunct
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("directories", nargs="+", type=Path)
     parser.add_argument("--max-lines", type=int, default=MAX_LINES)
     args = parser.parse_args(argv)

@@ -25,7 +25,10 @@ import cv2
 import numpy as np
 import scipy.io
 
-DATA_ROOT = Path(os.environ.get("PLATE_INSPECT_DATA") or Path(__file__).resolve().parents[1] / ".." / "shared" / "data")
+DATA_ROOT = Path(
+    os.environ.get("PLATE_INSPECT_DATA")
+    or Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+)
 
 #: Grey conversion of the DiLiGenT baseline (MATLAB rgb2gray weights), for R, G, B.
 RGB2GRAY = np.array([0.2989, 0.5870, 0.1140])
@@ -201,7 +204,9 @@ def read_tga(path: Path) -> np.ndarray:
     height = int.from_bytes(data[14:16], "little")
     bpp, descriptor = data[16], data[17]
     if img_type != 2 or cmap_type != 0 or bpp not in (24, 32):
-        raise ValueError(f"{path}: expected an uncompressed 24/32-bit true-colour TGA, got type {img_type}, {bpp} bpp")
+        raise ValueError(
+            f"{path}: expected an uncompressed 24/32-bit true-colour TGA, got type {img_type}, {bpp} bpp"
+        )
     start = 18 + id_len
     px = np.frombuffer(data, dtype=np.uint8, count=width * height * (bpp // 8), offset=start)
     img = px.reshape(height, width, bpp // 8)[..., 2::-1]  # BGR(A) -> RGB
@@ -260,7 +265,9 @@ def load_bini(obj: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
     """BiNI's DiLiGenT ``obj``: normals (H, W, 3) in our frame (BGR->RGB, n = c / 65535 * 2 - 1 in DiLiGenT
     axes, converted to OpenCV's), mask (H, W) bool, K (3, 3) and the true depth (H, W) mm."""
     root = BINI / obj
-    rgb = cv2.cvtColor(cv2.imread(str(root / "normal_map.png"), cv2.IMREAD_UNCHANGED), cv2.COLOR_BGR2RGB)
+    rgb = cv2.cvtColor(
+        cv2.imread(str(root / "normal_map.png"), cv2.IMREAD_UNCHANGED), cv2.COLOR_BGR2RGB
+    )
     n = (rgb.astype(np.float64) / 65535.0 * 2.0 - 1.0) * np.array([1.0, -1.0, -1.0])
     mask = cv2.imread(str(root / "mask.png"), cv2.IMREAD_GRAYSCALE) > 0
     K = np.loadtxt(root / "K.txt")

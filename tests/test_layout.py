@@ -14,18 +14,24 @@ SERVICE_PACKAGES = ("app", "web")
 
 
 def test_no_pipeline_function_is_over_80_lines():
-    out = subprocess.run([sys.executable, str(CHECKER), str(PIPELINE)], capture_output=True, text=True, cwd=ROOT)
-    assert out.returncode == 0, f"functions over 80 lines (numba kernels exempt):\n{out.stdout}{out.stderr}"
+    out = subprocess.run(
+        [sys.executable, str(CHECKER), str(PIPELINE)], capture_output=True, text=True, cwd=ROOT
+    )
+    assert out.returncode == 0, (
+        f"functions over 80 lines (numba kernels exempt):\n{out.stdout}{out.stderr}"
+    )
     assert out.stdout == ""
 
 
 def test_the_checker_finds_a_long_function_and_exempts_numba_kernels(tmp_path):
     body = "\n".join(f"    x{i} = {i}" for i in range(81))
     (tmp_path / "long.py").write_text(
-        f"import numba as nb\n\n\ndef long():\n    \"\"\"Doc.\"\"\"\n{body}\n\n\n"
+        f'import numba as nb\n\n\ndef long():\n    """Doc."""\n{body}\n\n\n'
         f"@nb.njit(cache=True)\ndef kernel():\n{body}\n"
     )
-    out = subprocess.run([sys.executable, str(CHECKER), str(tmp_path)], capture_output=True, text=True)
+    out = subprocess.run(
+        [sys.executable, str(CHECKER), str(tmp_path)], capture_output=True, text=True
+    )
     assert out.returncode == 1
     assert out.stdout.splitlines() == [f"{tmp_path / 'long.py'}:4: long (82 lines)"]
 
@@ -56,5 +62,7 @@ def test_importing_every_pipeline_module_loads_no_service_module():
         "    importlib.import_module(m.name)\n"
         f"print(sorted(n for n in sys.modules if n.split('.')[0] in {SERVICE_PACKAGES!r}))\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True
+    )
     assert out.stdout.strip() == "[]"

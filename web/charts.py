@@ -87,12 +87,20 @@ def section_drawings(
         has = np.isfinite(gap)
         y_p = np.where(has, y_t - gap * exaggeration * sx, np.nan)
         xp, yp = x[has], y_p[has]
-        plate_polygon = _points(np.r_[xp, xp[::-1]], np.r_[yp, yp[::-1] + plate_px]) if xp.size else ""
+        plate_polygon = (
+            _points(np.r_[xp, xp[::-1]], np.r_[yp, yp[::-1] + plate_px]) if xp.size else ""
+        )
         labels = []
         for k in np.linspace(0, len(x) - 1, n_labels).round().astype(int):
             if np.isfinite(gap[k]):
                 labels.append(
-                    GapLabel(float(x[k]), float(y_t[k]), float(y_p[k]), float(gap[k]), bool(abs(gap[k]) > tolerance_mm))
+                    GapLabel(
+                        float(x[k]),
+                        float(y_t[k]),
+                        float(y_p[k]),
+                        float(gap[k]),
+                        bool(abs(gap[k]) > tolerance_mm),
+                    )
                 )
         drawings.append(
             SectionDrawing(
@@ -128,7 +136,9 @@ def nice_ticks(lo: float, hi: float, *, max_ticks: int = 6) -> tuple[list[float]
     step = next(m * power for m in (1.0, 2.0, 2.5, 5.0, 10.0) if m * power >= raw * (1 - 1e-9))
     first, last = np.floor(lo / step + 1e-9), np.ceil(hi / step - 1e-9)
     ticks = [float(k * step) + 0.0 for k in np.arange(first, last + 1)]
-    decimals = max(0, int(-np.floor(np.log10(step) + 1e-9)) + (1 if round(step / power) * power != step else 0))
+    decimals = max(
+        0, int(-np.floor(np.log10(step) + 1e-9)) + (1 if round(step / power) * power != step else 0)
+    )
     return ticks, decimals
 
 
@@ -163,7 +173,10 @@ class TrendChart:
 
 
 def trend_chart(
-    rows: list[tuple[int, str, float | None, float | None]], *, tolerance_mm: float | None, width: float = 900.0
+    rows: list[tuple[int, str, float | None, float | None]],
+    *,
+    tolerance_mm: float | None,
+    width: float = 900.0,
 ) -> TrendChart:
     """Two stacked panels: radius error (%) and max |deviation| (mm) per inspection, oldest left.
 
@@ -186,13 +199,17 @@ def trend_chart(
         lo = min(finite + [0.0] + ([limit] if limit else []))
         hi = max(finite + [0.0] + ([limit] if limit else []))
         margin = 0.04 * (hi - lo)  # keep points and the tolerance line off the panel's edge
-        tick_values, decimals = nice_ticks(lo - margin if lo < 0 else lo, hi + margin if hi > 0 else hi)
+        tick_values, decimals = nice_ticks(
+            lo - margin if lo < 0 else lo, hi + margin if hi > 0 else hi
+        )
         lo, hi = tick_values[0], tick_values[-1]
 
         def y_of(v, y0=y0, lo=lo, hi=hi):
             return y0 + panel_h * (hi - v) / (hi - lo)
 
-        points = [TrendPoint(x, y_of(v), v, r[0]) for x, v, r in zip(xs, values, rows) if v is not None]
+        points = [
+            TrendPoint(x, y_of(v), v, r[0]) for x, v, r in zip(xs, values, rows) if v is not None
+        ]
         ticks = [(y_of(v), f"{v:.{decimals}f}") for v in tick_values]
         series.append(
             TrendSeries(

@@ -53,17 +53,21 @@ def light_rows(document: dict) -> list[LightRow]:
     rows = []
     for k, light in enumerate(document["lights"]):
         axis = light.get("axis")
-        rows.append(LightRow(
-            index=k,
-            position_mm=_rounded(light["position_mm"], 1),
-            axis=None if axis is None else _rounded(axis, 2),
-            mu=float(light.get("mu") or 0.0),
-            intensity=float(light["intensity"]),
-        ))
+        rows.append(
+            LightRow(
+                index=k,
+                position_mm=_rounded(light["position_mm"], 1),
+                axis=None if axis is None else _rounded(axis, 2),
+                mu=float(light.get("mu") or 0.0),
+                intensity=float(light["intensity"]),
+            )
+        )
     return rows
 
 
-def light_plan(document: dict, *, size: float = 360.0, pad: float = 30.0, aim_px: float = 40.0) -> LightPlan:
+def light_plan(
+    document: dict, *, size: float = 360.0, pad: float = 30.0, aim_px: float = 40.0
+) -> LightPlan:
     """The lights in plan (x, y of their positions), scaled to fit a ``size`` px square.
 
     The camera head (the frame's origin) is at the centre; the same px/mm both ways. Each LED's
@@ -79,10 +83,19 @@ def light_plan(document: dict, *, size: float = 360.0, pad: float = 30.0, aim_px
     for k, (light, p) in enumerate(zip(document["lights"], positions)):
         axis = light.get("axis") or (0.0, 0.0, 1.0)
         x, y = c + p[0] * px_per_mm, c + p[1] * px_per_mm
-        lights.append(PlanLight(index=k, x=x, y=y, aim_x=x + axis[0] * aim_px, aim_y=y + axis[1] * aim_px))
+        lights.append(
+            PlanLight(index=k, x=x, y=y, aim_x=x + axis[0] * aim_px, aim_y=y + axis[1] * aim_px)
+        )
     # a scale bar of a round length near a quarter of the drawing
     wanted_mm = (size / 4) / px_per_mm
     scale_mm = max(
         [s for s in (10, 20, 50, 100, 200, 500, 1000, 2000, 5000) if s <= wanted_mm] or [10]
     )
-    return LightPlan(size=size, cx=c, cy=c, lights=lights, scale_px=scale_mm * px_per_mm, scale_mm=float(scale_mm))
+    return LightPlan(
+        size=size,
+        cx=c,
+        cy=c,
+        lights=lights,
+        scale_px=scale_mm * px_per_mm,
+        scale_mm=float(scale_mm),
+    )

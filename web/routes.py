@@ -20,17 +20,17 @@ from app.deps import SessionDep, StorageDep, has_dashboard_session, start_dashbo
 from app.errors import scrub_paths
 from app.models import Inspection
 from app.routes.common import InspectionIdPath
-from app.services.errors import ServiceError
 from app.services import calibrations as calibration_svc
 from app.services import cell as cell_svc
 from app.services import forming as forming_svc
 from app.services import inspections as inspection_svc
 from app.services import light_calibrations as light_calibration_svc
 from app.services import plates as plate_svc
+from app.services.errors import ServiceError
+from pipeline.formats import InputError
 from web import TEMPLATES_DIR
 from web.charts import section_drawings, trend_chart
 from web.lights import light_plan, light_rows
-from pipeline.formats import InputError
 from web.sections import load_sections
 
 logger = logging.getLogger(__name__)
@@ -45,7 +45,9 @@ ACTIVE = ("queued", "running")
 SPACINGS_MM = (300, 500, 700, 1000)
 DEFAULT_SPACING_MM = 700
 #: The ``spacing_mm`` query parameter of the virtual templates, mm.
-SpacingQuery = Annotated[int, Query(ge=50, le=10_000, description="frame spacing of the virtual templates, mm")]
+SpacingQuery = Annotated[
+    int, Query(ge=50, le=10_000, description="frame spacing of the virtual templates, mm")
+]
 
 
 def _fmt(value, digits: int = 1, unit: str = "", signed: bool = False) -> str:
@@ -59,7 +61,9 @@ templates.env.filters["fmt"] = _fmt
 templates.env.filters["when"] = lambda dt: "—" if dt is None else dt.strftime("%Y-%m-%d %H:%M:%S")
 
 
-def _page(request: Request, session, name: str, context: dict, *, status_code: int = 200) -> Response:
+def _page(
+    request: Request, session, name: str, context: dict, *, status_code: int = 200
+) -> Response:
     """Render a full page: the side list (plates, jobs) plus the page's own context."""
     settings = request.app.state.settings
     plates, plate_total = plate_svc.list_plates(session=session, limit=40)
@@ -99,7 +103,12 @@ def home() -> RedirectResponse:
 def cell_page(request: Request, session: SessionDep) -> Response:
     """Start an inspection (simulated, uploaded, or captured by the cell); the cameras; the queue with live progress."""
     recent, _ = inspection_svc.list_inspections(session=session, limit=12)
-    return _page(request, session, "cell.html", {"page": "cell", "queue": recent, **_cameras_context(request)})
+    return _page(
+        request,
+        session,
+        "cell.html",
+        {"page": "cell", "queue": recent, **_cameras_context(request)},
+    )
 
 
 @router.get("/cell/cameras", response_class=HTMLResponse)
@@ -143,7 +152,9 @@ def result_page(
     """Verdict, radius, deviation, the 3D view and the virtual templates of one inspection."""
     row = _inspection_or_404(session, inspection_id)
     plate_viewer = getattr(request.app.state, "viewer", None)
-    has_view = row.status == "done" and plate_viewer is not None and plate_viewer.has_view(inspection_id)
+    has_view = (
+        row.status == "done" and plate_viewer is not None and plate_viewer.has_view(inspection_id)
+    )
     finished = row.status in ("done", "failed")  # a running job's folder holds partial files
     names = inspection_svc.artifact_names(storage=storage, inspection=row) if finished else []
     context = {
@@ -171,7 +182,9 @@ def templates_partial(
     """The virtual templates at another spacing (fetched by result.js)."""
     row = _inspection_or_404(session, inspection_id)
     return templates.TemplateResponse(
-        request, "_templates.html", {"row": row, "spacing_mm": spacing_mm, **_templates_context(storage, row, spacing_mm)}
+        request,
+        "_templates.html",
+        {"row": row, "spacing_mm": spacing_mm, **_templates_context(storage, row, spacing_mm)},
     )
 
 
@@ -195,7 +208,11 @@ def plate_page(request: Request, plate_id: str, session: SessionDep) -> Response
         raise HTTPException(404, f"plate {plate_id!r} not found")
     rows, total = inspection_svc.list_inspections(session=session, plate_id=plate_id, limit=200)
     done = [r for r in reversed(rows) if r.status == "done"]
-    tolerance = overview.target.tolerance_mm if overview.target is not None else (done[-1].tolerance_mm if done else None)
+    tolerance = (
+        overview.target.tolerance_mm
+        if overview.target is not None
+        else (done[-1].tolerance_mm if done else None)
+    )
     chart = trend_chart(
         [(r.id, f"#{r.id}", r.radius_error_pct, r.max_abs_mm) for r in done], tolerance_mm=tolerance
     )
@@ -203,8 +220,15 @@ def plate_page(request: Request, plate_id: str, session: SessionDep) -> Response
         request,
         session,
         "plate.html",
-        {"page": "plate", "overview": overview, "rows": rows, "total": total, "chart": chart, "plate_id": plate_id,
-         "next_pass": next_pass(session, plate_id)},
+        {
+            "page": "plate",
+            "overview": overview,
+            "rows": rows,
+            "total": total,
+            "chart": chart,
+            "plate_id": plate_id,
+            "next_pass": next_pass(session, plate_id),
+        },
     )
 
 
@@ -217,12 +241,19 @@ def next_pass(session, plate_id: str) -> dict:
     if not forming_svc.plate_passes(session=session, plate_id=plate_id):
         machines = forming_svc.list_machines(session=session)
         if len(machines) != 1:
-            return {"reason": "No roll-bending pass of this plate yet"
-                              + ("" if machines else ", and no machine known") + ": ask "
-                              f"/api/v1/plates/{plate_id}/advice?machine_id=... for the first pass."}
+            return {
+                "reason": "No roll-bending pass of this plate yet"
+                + ("" if machines else ", and no machine known")
+                + ": ask "
+                f"/api/v1/plates/{plate_id}/advice?machine_id=... for the first pass."
+            }
         machine_id = machines[0].id
     try:
-        return {"advice": forming_svc.advise(session=session, plate_id=plate_id, machine_id=machine_id).to_dict()}
+        return {
+            "advice": forming_svc.advise(
+                session=session, plate_id=plate_id, machine_id=machine_id
+            ).to_dict()
+        }
     except (ServiceError, InputError) as err:
         return {"reason": f"No advice: {err.detail if isinstance(err, ServiceError) else err}"}
 

@@ -135,7 +135,9 @@ def section_positions(frame: PlateFrame, spacing_mm: float) -> np.ndarray:
     lo, hi = frame.along_range_mm
     length = hi - lo
     if length / spacing_mm > 200:
-        raise ValueError(f"spacing_mm: expected at most 200 sections over {length:.0f} mm, got spacing {spacing_mm}")
+        raise ValueError(
+            f"spacing_mm: expected at most 200 sections over {length:.0f} mm, got spacing {spacing_mm}"
+        )
     # Keep sections off the very edges (a plane through the boundary cuts a ragged line).
     margin = 0.02 * length
     n_half = int(np.floor((length / 2 - margin) / spacing_mm))
@@ -193,7 +195,9 @@ def cut_sections(
     return frame, sections
 
 
-def _profile(mesh: trimesh.Trimesh, origin: np.ndarray, frame: PlateFrame, u: np.ndarray) -> np.ndarray:
+def _profile(
+    mesh: trimesh.Trimesh, origin: np.ndarray, frame: PlateFrame, u: np.ndarray
+) -> np.ndarray:
     """Height along ``frame.normal`` of the mesh's cut by the plane through ``origin`` normal to ``along``.
 
     NaN where the cut has no segment within one sample step of ``u``.
@@ -217,7 +221,9 @@ def _profile(mesh: trimesh.Trimesh, origin: np.ndarray, frame: PlateFrame, u: np
     return out
 
 
-def load_sections(artifact_dir: Path, *, spacing_mm: float) -> tuple[PlateFrame, list[Section], float]:
+def load_sections(
+    artifact_dir: Path, *, spacing_mm: float
+) -> tuple[PlateFrame, list[Section], float]:
     """Sections of an inspection from its artifact folder (surface.ply, target.ply, result.json).
 
     Returns
@@ -229,10 +235,17 @@ def load_sections(artifact_dir: Path, *, spacing_mm: float) -> tuple[PlateFrame,
     artifact_dir = Path(artifact_dir)
     document = json.loads((artifact_dir / "result.json").read_text())
     names = document.get("artifacts", {})
-    surface = trimesh.load(artifact_dir / names.get("surface", "surface.ply"), process=False, force="mesh")
-    target = trimesh.load(artifact_dir / names.get("target_surface", "target.ply"), process=False, force="mesh")
+    surface = trimesh.load(
+        artifact_dir / names.get("surface", "surface.ply"), process=False, force="mesh"
+    )
+    target = trimesh.load(
+        artifact_dir / names.get("target_surface", "target.ply"), process=False, force="mesh"
+    )
     frame, sections = cut_sections(
-        np.asarray(surface.vertices), np.asarray(surface.faces), np.asarray(target.vertices), np.asarray(target.faces),
+        np.asarray(surface.vertices),
+        np.asarray(surface.faces),
+        np.asarray(target.vertices),
+        np.asarray(target.faces),
         spacing_mm=spacing_mm,
     )
     return frame, sections, float(document["tolerance_mm"])

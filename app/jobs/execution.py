@@ -45,7 +45,12 @@ class ProgressWriter:
     """
 
     def __init__(
-        self, session_factory: sessionmaker[Session], inspection_id: int, *, interval_s: float, owner: str | None = None
+        self,
+        session_factory: sessionmaker[Session],
+        inspection_id: int,
+        *,
+        interval_s: float,
+        owner: str | None = None,
     ):
         self.session_factory = session_factory
         self.inspection_id = inspection_id
@@ -61,12 +66,16 @@ class ProgressWriter:
         try:
             with self.session_factory() as session:
                 svc.record_progress(
-                    session=session, inspection_id=self.inspection_id, stage=stage, progress=fraction, owner=self.owner
+                    session=session,
+                    inspection_id=self.inspection_id,
+                    stage=stage,
+                    progress=fraction,
+                    owner=self.owner,
                 )
                 session.commit()
         except ValueError:
             raise
-        except Exception:  # noqa: BLE001 - a progress write must not fail the job
+        except Exception:
             log.warning("inspection %s: progress write skipped", self.inspection_id, exc_info=True)
             return
         self._last_stage, self._last_time = stage, now
@@ -98,7 +107,9 @@ def render_simulated_bundle(*, bundle_dir: Path, plate_id: str, simulation: dict
     bundle_dir.parent.mkdir(parents=True, exist_ok=True)
     for leftover in bundle_dir.parent.glob(bundle_dir.name + PARTIAL_SUFFIX + "*"):
         Storage.remove(leftover)
-    partial = Path(tempfile.mkdtemp(prefix=bundle_dir.name + PARTIAL_SUFFIX + "-", dir=bundle_dir.parent))
+    partial = Path(
+        tempfile.mkdtemp(prefix=bundle_dir.name + PARTIAL_SUFFIX + "-", dir=bundle_dir.parent)
+    )
     try:
         simulate_capture(
             partial,
@@ -158,30 +169,56 @@ def execute_inspection(
     """
     owner = owner or svc.process_lease_owner()
     with session_factory() as session:
-        if not svc.claim(session=session, inspection_id=inspection_id, owner=owner, lease_s=settings.job_lease_s):
+        if not svc.claim(
+            session=session, inspection_id=inspection_id, owner=owner, lease_s=settings.job_lease_s
+        ):
             session.rollback()
             log.info("inspection %s: not claimable (done, failed or taken), skipped", inspection_id)
             return "skipped"
         session.commit()
         row = svc.get_inspection(session=session, inspection_id=inspection_id)
         source, plate_id, simulation = row.source, row.plate_id, row.simulation
-        capture_path, target_path = storage.absolute(row.capture_path), storage.absolute(row.target_path)
-        light_calibration = row.light_calibration  # recorded at submission: a re-run uses the same lights
+        capture_path, target_path = (
+            storage.absolute(row.capture_path),
+            storage.absolute(row.target_path),
+        )
+        light_calibration = (
+            row.light_calibration
+        )  # recorded at submission: a re-run uses the same lights
         attempt, deaths = row.attempts, row.deaths
 
-    progress = ProgressWriter(session_factory, inspection_id, interval_s=settings.progress_interval_s, owner=owner)
-    log.info("inspection %s: running (%s, plate %s, attempt %s%s)", inspection_id, source, plate_id, attempt,
-             f", after {deaths} worker death(s)" if deaths else "")
+    progress = ProgressWriter(
+        session_factory, inspection_id, interval_s=settings.progress_interval_s, owner=owner
+    )
+    log.info(
+        "inspection %s: running (%s, plate %s, attempt %s%s)",
+        inspection_id,
+        source,
+        plate_id,
+        attempt,
+        f", after {deaths} worker death(s)" if deaths else "",
+    )
     message = None
-    with LeaseKeeper(session_factory, inspection_id, owner=owner, lease_s=settings.job_lease_s) as lease:
+    with LeaseKeeper(
+        session_factory, inspection_id, owner=owner, lease_s=settings.job_lease_s
+    ) as lease:
         try:
-            document = _run(inspection_id, settings, storage, progress, source=source, plate_id=plate_id,
-                            simulation=simulation, capture_path=capture_path, target_path=target_path,
-                            light_calibration=light_calibration)
+            document = _run(
+                inspection_id,
+                settings,
+                storage,
+                progress,
+                source=source,
+                plate_id=plate_id,
+                simulation=simulation,
+                capture_path=capture_path,
+                target_path=target_path,
+                light_calibration=light_calibration,
+            )
         except (InputError, PipelineError) as err:
             message = _client_message(str(err), storage, inspection_id) or type(err).__name__
             log.info("inspection %s: failed: %s", inspection_id, message)
-        except Exception as err:  # noqa: BLE001 - stored as failed, never lost
+        except Exception as err:
             if is_out_of_memory(err):
                 message = out_of_memory_message(settings.worker_memory_mb)
                 log.error("inspection %s: %s", inspection_id, message)
@@ -191,13 +228,20 @@ def execute_inspection(
                 message = f"internal error: {type(err).__name__}: {text}"
     with session_factory() as session:
         if message is None:
-            stored = svc.mark_done(session=session, inspection_id=inspection_id, document=document, owner=owner)
+            stored = svc.mark_done(
+                session=session, inspection_id=inspection_id, document=document, owner=owner
+            )
         else:
-            stored = svc.mark_failed(session=session, inspection_id=inspection_id, error=message, owner=owner)
+            stored = svc.mark_failed(
+                session=session, inspection_id=inspection_id, error=message, owner=owner
+            )
         session.commit()
     if not stored:
-        log.warning("inspection %s: lease lost while it ran%s; its result is not stored by this consumer",
-                    inspection_id, " (renewal refused)" if lease.lost.is_set() else "")
+        log.warning(
+            "inspection %s: lease lost while it ran%s; its result is not stored by this consumer",
+            inspection_id,
+            " (renewal refused)" if lease.lost.is_set() else "",
+        )
         return "lost"
     if message is not None:
         return "failed"
@@ -225,13 +269,21 @@ def _run(
         progress(SIMULATE_STAGE, 0.0)
         render_simulated_bundle(bundle_dir=capture_path, plate_id=plate_id, simulation=simulation)
     elif source == ACQUIRED_SOURCE:
-        capture_for_job(inspection_id, settings=settings, storage=storage, plate_id=plate_id,
-                        bundle_dir=capture_path, progress=progress)
+        capture_for_job(
+            inspection_id,
+            settings=settings,
+            storage=storage,
+            plate_id=plate_id,
+            bundle_dir=capture_path,
+            progress=progress,
+        )
     lights = None
     if light_calibration is not None:
         lights = light_calibrations.load_lights(storage=storage, calibration=light_calibration)
     inspect = resolve_entry(settings.inspect_entry)
-    result = inspect(capture_path, target_path, out_dir=out_dir, progress=progress, light_calibration=lights)
+    result = inspect(
+        capture_path, target_path, out_dir=out_dir, progress=progress, light_calibration=lights
+    )
     return json.loads(json.dumps(result.document))  # plain JSON types only
 
 

@@ -22,7 +22,7 @@ import signal
 import socket
 import threading
 import time
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 log = logging.getLogger(__name__)
@@ -69,9 +69,13 @@ class ConsumerLock:
             if err.errno in (errno.EAGAIN, errno.EACCES):
                 return False
             raise
-        since = datetime.now(timezone.utc).isoformat(timespec="seconds")
+        since = datetime.now(UTC).isoformat(timespec="seconds")
         os.ftruncate(fd, 0)
-        os.pwrite(fd, f"consumer {self.owner} (pid {os.getpid()} on {socket.gethostname()}) since {since}\n".encode(), 0)
+        os.pwrite(
+            fd,
+            f"consumer {self.owner} (pid {os.getpid()} on {socket.gethostname()}) since {since}\n".encode(),
+            0,
+        )
         self.held = True  # fd stays open: the kernel frees the lock when this process ends
         return True
 
@@ -89,8 +93,10 @@ class ConsumerLock:
         while not self.try_acquire():
             now = time.monotonic()
             if now - last_log >= WAIT_LOG_S:
-                log.warning("another consumer runs on this data dir (%s); waiting for it to stop",
-                            self.holder() or "holder unknown")
+                log.warning(
+                    "another consumer runs on this data dir (%s); waiting for it to stop",
+                    self.holder() or "holder unknown",
+                )
                 last_log = now
             waited = True
             time.sleep(POLL_S)
@@ -118,7 +124,9 @@ def exit_with_parent(parent_pid: int) -> threading.Thread:
 
 def watch_parent(parent_pid: int) -> threading.Thread:
     """Start a daemon thread that sends SIGTERM to this process once its parent pid is no longer ``parent_pid``."""
-    thread = threading.Thread(target=_watch_parent, args=(parent_pid,), name="parent-watch", daemon=True)
+    thread = threading.Thread(
+        target=_watch_parent, args=(parent_pid,), name="parent-watch", daemon=True
+    )
     thread.start()
     return thread
 
@@ -127,7 +135,10 @@ def _set_pdeathsig(signum: int) -> None:
     libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
     if libc.prctl(PR_SET_PDEATHSIG, int(signum), 0, 0, 0) != 0:
         err = ctypes.get_errno()
-        log.warning("prctl(PR_SET_PDEATHSIG) failed (%s); the parent watch thread stands in", os.strerror(err))
+        log.warning(
+            "prctl(PR_SET_PDEATHSIG) failed (%s); the parent watch thread stands in",
+            os.strerror(err),
+        )
 
 
 def _watch_parent(parent_pid: int) -> None:

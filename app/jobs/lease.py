@@ -32,13 +32,22 @@ class LeaseKeeper:
         Lease length, s; renewed every ``lease_s / 3``.
     """
 
-    def __init__(self, session_factory: sessionmaker[Session], inspection_id: int, *, owner: str, lease_s: float):
+    def __init__(
+        self,
+        session_factory: sessionmaker[Session],
+        inspection_id: int,
+        *,
+        owner: str,
+        lease_s: float,
+    ):
         self.session_factory = session_factory
         self.inspection_id = inspection_id
         self.owner = owner
         self.lease_s = lease_s
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name=f"lease-{inspection_id}", daemon=True)
+        self._thread = threading.Thread(
+            target=self._run, name=f"lease-{inspection_id}", daemon=True
+        )
         #: Set when the database refused a renewal: another consumer holds the job now.
         self.lost = threading.Event()
 
@@ -59,15 +68,25 @@ class LeaseKeeper:
             try:
                 with self.session_factory() as session:
                     held = svc.renew_lease(
-                        session=session, inspection_id=self.inspection_id, owner=self.owner, lease_s=self.lease_s
+                        session=session,
+                        inspection_id=self.inspection_id,
+                        owner=self.owner,
+                        lease_s=self.lease_s,
                     )
                     session.commit()
-            except Exception:  # noqa: BLE001 - a busy database: the next beat tries again
-                log.warning("inspection %s: lease renewal failed; retrying", self.inspection_id, exc_info=True)
+            except Exception:
+                log.warning(
+                    "inspection %s: lease renewal failed; retrying",
+                    self.inspection_id,
+                    exc_info=True,
+                )
                 continue
             if not held:
                 if not self._stop.is_set():
                     self.lost.set()
-                    log.error("inspection %s: lease lost (the job was reclaimed or released); its result "
-                              "will not be stored by this consumer", self.inspection_id)
+                    log.error(
+                        "inspection %s: lease lost (the job was reclaimed or released); its result "
+                        "will not be stored by this consumer",
+                        self.inspection_id,
+                    )
                 return

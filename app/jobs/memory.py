@@ -66,7 +66,11 @@ def is_out_of_memory(err: BaseException) -> bool:
     if isinstance(err, RuntimeError) and "can't start new thread" in str(err):
         return True
     cv2 = sys.modules.get("cv2")
-    return cv2 is not None and isinstance(err, cv2.error) and getattr(err, "code", None) == cv2.Error.StsNoMem
+    return (
+        cv2 is not None
+        and isinstance(err, cv2.error)
+        and getattr(err, "code", None) == cv2.Error.StsNoMem
+    )
 
 
 def out_of_memory_message(limit_mb: int) -> str:

@@ -54,7 +54,14 @@ class JobQueue:
         Run tasks in the calling thread (unit tests of the job body only).
     """
 
-    def __init__(self, settings: Settings, session_factory: sessionmaker[Session], storage: Storage, *, immediate=False):
+    def __init__(
+        self,
+        settings: Settings,
+        session_factory: sessionmaker[Session],
+        storage: Storage,
+        *,
+        immediate=False,
+    ):
         settings.data_dir.mkdir(parents=True, exist_ok=True)
         self.settings = settings
         self.session_factory = session_factory
@@ -63,7 +70,9 @@ class JobQueue:
         with queue_file_lock(self.path):
             aside = repair_if_corrupt(self.path)
             # huey creates the file and its tables here, still under the lock.
-            self.huey = SqliteHuey(name="plate-inspect", filename=str(self.path), results=False, immediate=immediate)
+            self.huey = SqliteHuey(
+                name="plate-inspect", filename=str(self.path), results=False, immediate=immediate
+            )
             self._inode = _inode(self.path)
         self._task = self.huey.task(name=TASK_NAME)(self._run_task)
         #: This process moved a corrupt queue file aside (and rebuilt the queue from the rows).
@@ -138,12 +147,17 @@ class JobQueue:
             reclaimed = svc.requeue_interrupted(session=session, owner=owner)
             session.commit()
         for inspection_id in reclaimed.requeued:
-            log.warning("inspection %s: its worker died while running it; queued again (behind the others)",
-                        inspection_id)
+            log.warning(
+                "inspection %s: its worker died while running it; queued again (behind the others)",
+                inspection_id,
+            )
         for inspection_id in reclaimed.set_aside:
-            log.error("inspection %s: set aside as failed: its worker died %d times while running it "
-                      "(the reason and last stage are in its error; its inputs are kept)",
-                      inspection_id, svc.MAX_WORKER_DEATHS)
+            log.error(
+                "inspection %s: set aside as failed: its worker died %d times while running it "
+                "(the reason and last stage are in its error; its inputs are kept)",
+                inspection_id,
+                svc.MAX_WORKER_DEATHS,
+            )
         self.huey.storage.flush_queue()
         return self.rebuild()
 
@@ -161,12 +175,17 @@ class JobQueue:
             self.repair()
             return []
         with self.session_factory() as session:
-            ids = svc.queued_ids(session=session, queued_before=utcnow() - timedelta(seconds=min_age_s))
+            ids = svc.queued_ids(
+                session=session, queued_before=utcnow() - timedelta(seconds=min_age_s)
+            )
         missing = [inspection_id for inspection_id in ids if inspection_id not in pending]
         for inspection_id in missing:
             self._put(inspection_id)
         if missing:
-            log.warning("inspections %s were queued in the database but not in the job queue: queued again", missing)
+            log.warning(
+                "inspections %s were queued in the database but not in the job queue: queued again",
+                missing,
+            )
         return missing
 
     def sweep_until(self, stop: threading.Event, *, interval_s: float = SWEEP_S) -> None:
@@ -174,12 +193,14 @@ class JobQueue:
         while not stop.wait(interval_s):
             try:
                 self.sweep()
-            except Exception:  # noqa: BLE001 - a busy database: the next sweep tries again
+            except Exception:
                 log.exception("job queue sweep failed")
 
     def create_consumer(self, **options):
         """A huey consumer of this queue (one worker thread by default; the pipeline uses the cores)."""
-        defaults = dict(workers=1, worker_type="thread", periodic=False, max_delay=1.0, initial_delay=0.1)
+        defaults = dict(
+            workers=1, worker_type="thread", periodic=False, max_delay=1.0, initial_delay=0.1
+        )
         defaults.update(options)
         return self.huey.create_consumer(**defaults)
 
@@ -189,8 +210,11 @@ class JobQueue:
         try:
             self._task(int(inspection_id))
         except sqlite3.DatabaseError:
-            log.exception("inspection %s: could not be written to the job queue; it stays queued in the database "
-                          "and the consumer's sweep queues it again", inspection_id)
+            log.exception(
+                "inspection %s: could not be written to the job queue; it stays queued in the database "
+                "and the consumer's sweep queues it again",
+                inspection_id,
+            )
             return False
         return True
 
@@ -209,7 +233,10 @@ class JobQueue:
 
     def _run_task(self, inspection_id: int) -> None:
         execute_inspection(
-            inspection_id, settings=self.settings, session_factory=self.session_factory, storage=self.storage
+            inspection_id,
+            settings=self.settings,
+            session_factory=self.session_factory,
+            storage=self.storage,
         )
 
 

@@ -16,7 +16,7 @@ import os
 import sqlite3
 from collections.abc import Iterator
 from contextlib import contextmanager
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 from app.locks import file_lock
@@ -68,7 +68,7 @@ def move_aside(path: Path, *, now: datetime | None = None) -> Path:
     Returns the new path of the main file; an existing name gets a ``-2``, ``-3``... suffix.
     """
     path = Path(path)
-    stamp = (now or datetime.now(timezone.utc)).strftime("%Y%m%dT%H%M%SZ")
+    stamp = (now or datetime.now(UTC)).strftime("%Y%m%dT%H%M%SZ")
     aside = path.with_name(f"{path.name}.corrupt-{stamp}")
     n = 1
     while aside.exists():
@@ -96,6 +96,8 @@ def repair_if_corrupt(path: Path) -> Path | None:
     log.error(
         "job queue file %s is unusable (%s): moved aside as %s; a new queue is rebuilt from the inspections "
         "in the database (queued jobs are queued again, nothing is lost)",
-        path.name, problem, aside.name,
+        path.name,
+        problem,
+        aside.name,
     )
     return aside

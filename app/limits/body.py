@@ -8,7 +8,10 @@ from app.errors import ApiError
 
 
 def _too_large(max_bytes: int) -> tuple[str, str]:
-    return f"request body: expected at most {max_bytes} bytes ({max_bytes / 2**20:.3g} MiB), got more", "body"
+    return (
+        f"request body: expected at most {max_bytes} bytes ({max_bytes / 2**20:.3g} MiB), got more",
+        "body",
+    )
 
 
 class BodySizeLimit:
@@ -33,12 +36,17 @@ class BodySizeLimit:
         if declared is not None and declared.isdigit() and int(declared) > self.max_bytes:
             detail, field = _too_large(self.max_bytes)
             body = json.dumps({"detail": detail, "field": field}).encode()
-            await send({
-                "type": "http.response.start",
-                "status": 413,
-                "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
-                            (b"connection", b"close")],
-            })
+            await send(
+                {
+                    "type": "http.response.start",
+                    "status": 413,
+                    "headers": [
+                        (b"content-type", b"application/json"),
+                        (b"content-length", str(len(body)).encode()),
+                        (b"connection", b"close"),
+                    ],
+                }
+            )
             await send({"type": "http.response.body", "body": body})
             return
         received = 0

@@ -59,19 +59,22 @@ def check_target(target: Target, *, label: str) -> None:
     for i, side in enumerate(target.size_mm):
         if not SIZE_MM[0] <= side <= SIZE_MM[1]:
             raise InputError(
-                label, f"size_mm[{i}]",
+                label,
+                f"size_mm[{i}]",
                 f"expected a hull plate's side between {SIZE_MM[0]:g} mm and {SIZE_MM[1]:g} mm, got {side:g}",
             )
     if target.tolerance_mm > MAX_TOLERANCE_MM:
         raise InputError(
-            label, "tolerance_mm",
+            label,
+            "tolerance_mm",
             f"expected a hull plate's tolerance of at most {MAX_TOLERANCE_MM:g} mm, got {target.tolerance_mm:g}",
         )
     if target.mesh_vertices_mm is not None:
         reach = float(np.abs(target.mesh_vertices_mm).max())
         if reach > MAX_COORDINATE_MM:
             raise InputError(
-                label, "shape.file",
+                label,
+                "shape.file",
                 f"expected mesh vertices within {MAX_COORDINATE_MM:g} mm of the mesh's origin (a hull plate, in mm), "
                 f"got one {reach:g} mm away",
             )
@@ -91,7 +94,8 @@ def check_lights(lights: Lights, *, label: str, field: str) -> None:
         distance = math.hypot(*(float(v) for v in lights.positions_mm[k]))  # no overflow to inf
         if not distance <= MAX_COORDINATE_MM:
             raise InputError(
-                label, f"{field}[{k}].position_mm",
+                label,
+                f"{field}[{k}].position_mm",
                 f"expected a light within {MAX_COORDINATE_MM:g} mm of the left camera (the cell; positions are mm), "
                 f"got one {distance:g} mm away",
             )

@@ -50,8 +50,12 @@ def check_queue(*, session: Session, plate_id: str, limits: Limits) -> None:
     queued = Inspection.status == "queued"
     per_plate = _count(session, queued, Inspection.plate_id == plate_id)
     if per_plate > limits.max_queued_per_plate:
-        oldest = session.scalar(select(func.min(Inspection.id)).where(queued, Inspection.plate_id == plate_id))
-        ahead = _count(session, queued, Inspection.id <= oldest)  # jobs to start before this plate's next one
+        oldest = session.scalar(
+            select(func.min(Inspection.id)).where(queued, Inspection.plate_id == plate_id)
+        )
+        ahead = _count(
+            session, queued, Inspection.id <= oldest
+        )  # jobs to start before this plate's next one
         raise QueueFullError(
             f"plate_id: plate {plate_id!r} has {per_plate - 1} inspections waiting already, the limit per plate is "
             f"{limits.max_queued_per_plate} (the server setting {setting_name('max_queued_per_plate')} raises it); "
@@ -77,12 +81,17 @@ def _retry_after(session: Session, *, jobs_ahead: int) -> int:
     """Seconds until ``jobs_ahead`` more jobs have started: that many median run times of recent jobs."""
     rows = session.execute(
         select(Inspection.started_at, Inspection.finished_at)
-        .where(Inspection.status.in_(("done", "failed")), Inspection.started_at.is_not(None),
-               Inspection.finished_at.is_not(None))
+        .where(
+            Inspection.status.in_(("done", "failed")),
+            Inspection.started_at.is_not(None),
+            Inspection.finished_at.is_not(None),
+        )
         .order_by(Inspection.finished_at.desc())
         .limit(RECENT_JOBS)
     ).all()
-    runs = [(finished - started).total_seconds() for started, finished in rows if finished >= started]
+    runs = [
+        (finished - started).total_seconds() for started, finished in rows if finished >= started
+    ]
     typical = statistics.median(runs) if runs else DEFAULT_JOB_S
     lo, hi = RETRY_AFTER_S
     return int(min(max(round(typical * max(jobs_ahead, 1)), lo), hi))

@@ -38,7 +38,9 @@ def read_capture_header(path: Path, limits: Limits) -> CaptureHeader:
             path, max_lights=limits.max_lights, max_image_pixels=limits.max_image_pixels
         )
     except InputLimitError as err:
-        raise InputError(err.file, err.field, f"{err.reason} {_raise_hint(_CAPTURE_LIMITS[err.limit])}") from None
+        raise InputError(
+            err.file, err.field, f"{err.reason} {_raise_hint(_CAPTURE_LIMITS[err.limit])}"
+        ) from None
 
 
 def check_calibration_size(image_size: tuple[int, int], limits: Limits, *, label: str) -> None:
@@ -52,7 +54,8 @@ def check_calibration_size(image_size: tuple[int, int], limits: Limits, *, label
     width, height = image_size
     if width * height > limits.max_image_pixels:
         raise InputError(
-            label, "image_size",
+            label,
+            "image_size",
             f"{width}x{height} px = {width * height} px, more than the limit of {limits.max_image_pixels} px "
             f"per image {_raise_hint('max_image_pixels')}",
         )
@@ -68,7 +71,9 @@ def check_light_count(n_lights: int, limits: Limits, *, label: str, field: str) 
     """
     if n_lights > limits.max_lights:
         raise InputError(
-            label, field, f"{n_lights} lights, more than the limit of {limits.max_lights} {_raise_hint('max_lights')}"
+            label,
+            field,
+            f"{n_lights} lights, more than the limit of {limits.max_lights} {_raise_hint('max_lights')}",
         )
 
 

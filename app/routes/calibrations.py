@@ -58,18 +58,29 @@ def upload_calibration(
     def work():
         save_upload(calibration, staging / CALIBRATION_FILE)
         row = svc.create_calibration(
-            session=session, storage=storage, staging_dir=staging, limits=Limits.from_settings(settings)
+            session=session,
+            storage=storage,
+            staging_dir=staging,
+            limits=Limits.from_settings(settings),
         )
         created.append(row.id)
         return 201, calibration_out(row).model_dump(mode="json"), None
 
     return idempotent_write(
-        request=request, session=session, writer=writer, key=idempotency_key, work=work, cleanup=cleanup,
-        staging=staging, upload_field="calibration",
+        request=request,
+        session=session,
+        writer=writer,
+        key=idempotency_key,
+        work=work,
+        cleanup=cleanup,
+        staging=staging,
+        upload_field="calibration",
     )
 
 
-@router.get("/calibrations/current", response_model=CalibrationOut, responses={404: {"model": ErrorOut}})
+@router.get(
+    "/calibrations/current", response_model=CalibrationOut, responses={404: {"model": ErrorOut}}
+)
 def current_calibration(session: SessionDep):
     row = svc.current_calibration(session=session)
     if row is None:
@@ -77,6 +88,8 @@ def current_calibration(session: SessionDep):
     return calibration_out(row)
 
 
-@router.get("/calibrations", response_model=list[CalibrationOut], summary="Calibrations, newest first")
+@router.get(
+    "/calibrations", response_model=list[CalibrationOut], summary="Calibrations, newest first"
+)
 def list_calibrations(session: SessionDep):
     return [calibration_out(r) for r in svc.list_calibrations(session=session)]

@@ -17,7 +17,14 @@ from app.deps import Writer
 from app.errors import error_body, known_error, relabel_input_error
 from app.limits.queue import QueueFullError
 from app.models import Inspection, Target
-from app.schemas import PLATE_ID_MAX_LENGTH, PLATE_ID_REGEX, InspectionOut, InspectionSummary, PlateOut, TargetOut
+from app.schemas import (
+    PLATE_ID_MAX_LENGTH,
+    PLATE_ID_REGEX,
+    InspectionOut,
+    InspectionSummary,
+    PlateOut,
+    TargetOut,
+)
 from app.services import idempotency
 from app.services.inspections import artifact_names
 from app.services.plates import PlateOverview
@@ -53,11 +60,17 @@ PlateIdPath = Annotated[
     ),
 ]
 InspectionIdPath = Annotated[int, Path(ge=1, le=MAX_ROW_ID, description="the inspection's id")]
-LightCalibrationIdPath = Annotated[int, Path(ge=1, le=MAX_ROW_ID, description="the light calibration's id")]
+LightCalibrationIdPath = Annotated[
+    int, Path(ge=1, le=MAX_ROW_ID, description="the light calibration's id")
+]
 OffsetQuery = Annotated[int, Query(ge=0, le=MAX_ROW_ID, description="items to skip (newest first)")]
 IdempotencyKeyHeader = Annotated[
     str | None,
-    Header(alias="Idempotency-Key", description="a retry with the same key returns the first answer", max_length=255),
+    Header(
+        alias="Idempotency-Key",
+        description="a retry with the same key returns the first answer",
+        max_length=255,
+    ),
 ]
 
 #: work() -> (status code, JSON body, called after the commit (e.g. enqueue) or None)
@@ -90,7 +103,10 @@ def idempotent_write(
     if key is not None:
         try:
             row, claimed = idempotency.claim(
-                session=session, key=key, scope=f"{request.method} {request.url.path}", token_hash=writer.token_hash
+                session=session,
+                key=key,
+                scope=f"{request.method} {request.url.path}",
+                token_hash=writer.token_hash,
             )
         except ValueError as err:
             cleanup()
@@ -98,10 +114,14 @@ def idempotent_write(
         if not claimed:
             cleanup()
             if row.state == "done":
-                return JSONResponse(row.body, status_code=row.status_code, headers={"Idempotent-Replayed": "true"})
+                return JSONResponse(
+                    row.body, status_code=row.status_code, headers={"Idempotent-Replayed": "true"}
+                )
             return JSONResponse(
-                error_body("Idempotency-Key: the first request with this key is still in progress, retry later",
-                           "Idempotency-Key"),
+                error_body(
+                    "Idempotency-Key: the first request with this key is still in progress, retry later",
+                    "Idempotency-Key",
+                ),
                 status_code=409,
             )
         row_id = row.id
@@ -118,7 +138,9 @@ def idempotent_write(
                 idempotency.release(session=session, row_id=row_id)
                 session.commit()
             return JSONResponse(
-                error_body(exc.detail, exc.field), status_code=429, headers={"Retry-After": str(exc.retry_after_s)}
+                error_body(exc.detail, exc.field),
+                status_code=429,
+                headers={"Retry-After": str(exc.retry_after_s)},
             )
         if isinstance(exc, InputError) and staging is not None:
             exc = relabel_input_error(exc, staging)
@@ -154,7 +176,9 @@ def artifact_url(inspection_id: int, name: str) -> str:
 
 
 def inspection_out(row: Inspection, *, storage: Storage) -> InspectionOut:
-    names = artifact_names(storage=storage, inspection=row) if row.status in ("done", "failed") else []
+    names = (
+        artifact_names(storage=storage, inspection=row) if row.status in ("done", "failed") else []
+    )
     return InspectionOut(
         id=row.id,
         plate_id=row.plate_id,

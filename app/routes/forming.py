@@ -13,7 +13,14 @@ from pydantic import AfterValidator
 from app.deps import SessionDep, WriterDep
 from app.errors import ApiError
 from app.routes.common import IdempotencyKeyHeader, PlateIdPath, idempotent_write
-from app.schemas import MACHINE_ID_MAX_LENGTH, MACHINE_ID_REGEX, AdviceOut, ErrorOut, MachineIn, MachineOut
+from app.schemas import (
+    MACHINE_ID_MAX_LENGTH,
+    MACHINE_ID_REGEX,
+    AdviceOut,
+    ErrorOut,
+    MachineIn,
+    MachineOut,
+)
 from app.services import forming as svc
 from app.storage import check_plate_id
 
@@ -24,21 +31,30 @@ def _machine_id(value: str) -> str:
     try:
         return check_plate_id(value)  # the same characters as a plate id
     except ValueError:
-        raise ValueError(f"expected 1-{MACHINE_ID_MAX_LENGTH} letters, digits, '.', '_' or '-', starting with a letter "
-                         f"or digit, without '..', got {value!r}") from None
+        raise ValueError(
+            f"expected 1-{MACHINE_ID_MAX_LENGTH} letters, digits, '.', '_' or '-', starting with a letter "
+            f"or digit, without '..', got {value!r}"
+        ) from None
 
 
 MachineIdPath = Annotated[
     str,
     AfterValidator(_machine_id),
-    Path(max_length=MACHINE_ID_MAX_LENGTH, description="the shop's machine id", examples=["R3-01"],
-         json_schema_extra={"pattern": MACHINE_ID_REGEX}),
+    Path(
+        max_length=MACHINE_ID_MAX_LENGTH,
+        description="the shop's machine id",
+        examples=["R3-01"],
+        json_schema_extra={"pattern": MACHINE_ID_REGEX},
+    ),
 ]
 MachineIdQuery = Annotated[
     str | None,
     AfterValidator(lambda v: v if v is None else _machine_id(v)),
-    Query(max_length=MACHINE_ID_MAX_LENGTH, description="the next pass's machine (default: the latest pass's)",
-          json_schema_extra={"pattern": MACHINE_ID_REGEX}),
+    Query(
+        max_length=MACHINE_ID_MAX_LENGTH,
+        description="the next pass's machine (default: the latest pass's)",
+        json_schema_extra={"pattern": MACHINE_ID_REGEX},
+    ),
 ]
 
 
@@ -67,10 +83,14 @@ def put_machine(
     """Store the machine's geometry (mm): 201 when new, 200 when replaced. Later advice uses the new geometry."""
 
     def work():
-        row, created = svc.put_machine(session=session, machine_id=machine_id, spec=body.model_dump())
+        row, created = svc.put_machine(
+            session=session, machine_id=machine_id, spec=body.model_dump()
+        )
         return 201 if created else 200, machine_out(row).model_dump(mode="json"), None
 
-    return idempotent_write(request=request, session=session, writer=writer, key=idempotency_key, work=work)
+    return idempotent_write(
+        request=request, session=session, writer=writer, key=idempotency_key, work=work
+    )
 
 
 @router.get("/machines", response_model=list[MachineOut], summary="Every roll bender, by id")
@@ -78,7 +98,9 @@ def list_machines(session: SessionDep):
     return [machine_out(row) for row in svc.list_machines(session=session)]
 
 
-@router.get("/machines/{machine_id}", response_model=MachineOut, responses={404: {"model": ErrorOut}})
+@router.get(
+    "/machines/{machine_id}", response_model=MachineOut, responses={404: {"model": ErrorOut}}
+)
 def get_machine(machine_id: MachineIdPath, session: SessionDep):
     row = svc.get_machine(session=session, machine_id=machine_id)
     if row is None:
@@ -106,7 +128,12 @@ def get_advice(plate_id: PlateIdPath, session: SessionDep, machine_id: MachineId
 @router.get(
     "/forming-history.csv",
     response_class=Response,
-    responses={200: {"content": {"text/csv": {}}, "description": "one row per inspected pass, oldest first"}},
+    responses={
+        200: {
+            "content": {"text/csv": {}},
+            "description": "one row per inspected pass, oldest first",
+        }
+    },
     summary="The forming history: one row per inspected roll-bending pass",
 )
 def forming_history_csv(session: SessionDep):
@@ -118,8 +145,11 @@ def forming_history_csv(session: SessionDep):
     writer.writerow(svc.HISTORY_COLUMNS)
     for row in svc.exported_passes(session=session):
         writer.writerow([_cell(v) for v in svc.export_row(row)])
-    return Response(out.getvalue(), media_type="text/csv; charset=utf-8",
-                    headers={"Content-Disposition": 'attachment; filename="forming-history.csv"'})
+    return Response(
+        out.getvalue(),
+        media_type="text/csv; charset=utf-8",
+        headers={"Content-Disposition": 'attachment; filename="forming-history.csv"'},
+    )
 
 
 def _cell(value) -> str:

@@ -27,7 +27,10 @@ def healthz(request: Request, session: SessionDep):
     counts = count_by_status(session=session)
     cell = request.app.state.cell.state()
     return Health(
-        status="ok", database="ok", queued=counts.get("queued", 0), running=counts.get("running", 0),
+        status="ok",
+        database="ok",
+        queued=counts.get("queued", 0),
+        running=counts.get("running", 0),
         cell=cell_health(cell) if cell.configured else None,
     )
 
@@ -35,6 +38,10 @@ def healthz(request: Request, session: SessionDep):
 def cell_health(cell: CellState) -> CellHealth:
     """The cell as ``/healthz`` reports it."""
     return CellHealth(
-        ready=cell.ready, reason=cell.reason, cell_id=cell.cell_id, demo=cell.demo, in_use=cell.in_use,
+        ready=cell.ready,
+        reason=cell.reason,
+        cell_id=cell.cell_id,
+        demo=cell.demo,
+        in_use=cell.in_use,
         cameras=[CameraHealth(**asdict(camera)) for camera in cell.cameras],
     )

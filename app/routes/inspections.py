@@ -8,22 +8,11 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, File, Form, Query, Request, UploadFile, status
 from fastapi.responses import FileResponse
+from pydantic import ValidationError
 
 from app.deps import JobsDep, SessionDep, SettingsDep, StorageDep, WriterDep
 from app.errors import ApiError
 from app.limits import Limits
-from pydantic import ValidationError
-
-from app.schemas import (
-    AcquireInspectionIn,
-    ErrorOut,
-    InspectionCreated,
-    InspectionOut,
-    InspectionSummary,
-    Page,
-    ProcessIn,
-    SimulatedInspectionIn,
-)
 from app.routes.common import (
     IdempotencyKeyHeader,
     InspectionIdPath,
@@ -33,6 +22,16 @@ from app.routes.common import (
     inspection_out,
     inspection_summary,
     save_upload,
+)
+from app.schemas import (
+    AcquireInspectionIn,
+    ErrorOut,
+    InspectionCreated,
+    InspectionOut,
+    InspectionSummary,
+    Page,
+    ProcessIn,
+    SimulatedInspectionIn,
 )
 from app.services import inspections as svc
 from app.services.acquisitions import create_acquired_inspection
@@ -47,7 +46,10 @@ ERRORS = {
     401: {"model": ErrorOut},
     413: {"model": ErrorOut},
     422: {"model": ErrorOut},
-    429: {"model": ErrorOut, "description": "the queue is full (per plate or in all); see the Retry-After header"},
+    429: {
+        "model": ErrorOut,
+        "description": "the queue is full (per plate or in all); see the Retry-After header",
+    },
 }
 
 
@@ -61,18 +63,25 @@ ERRORS = {
 def create_inspection(
     request: Request,
     plate_id: PlateIdPath,
-    capture: Annotated[UploadFile, File(description="the capture bundle (plate-capture/1) as a .zip")],
+    capture: Annotated[
+        UploadFile, File(description="the capture bundle (plate-capture/1) as a .zip")
+    ],
     session: SessionDep,
     storage: StorageDep,
     jobs: JobsDep,
     writer: WriterDep,
     settings: SettingsDep,
     idempotency_key: IdempotencyKeyHeader = None,
-    target: Annotated[UploadFile | None, File(description="plate-target/1 JSON; optional if the plate has a target")] = None,
+    target: Annotated[
+        UploadFile | None,
+        File(description="plate-target/1 JSON; optional if the plate has a target"),
+    ] = None,
     process: Annotated[
         str | None,
-        Form(description='the forming pass that produced the shape, JSON: {"method": "roll-bending", '
-                         '"machine_id": "R3-01", "top_roll_displacement_mm": 97.0}'),
+        Form(
+            description='the forming pass that produced the shape, JSON: {"method": "roll-bending", '
+            '"machine_id": "R3-01", "top_roll_displacement_mm": 97.0}'
+        ),
     ] = None,
 ):
     """Check the bundle (and target), store them and queue the inspection: 202 ``{"id", "status"}``.
@@ -99,15 +108,25 @@ def create_inspection(
             (staging / "target").mkdir()
             save_upload(target, staging / "target" / TARGET_FILE)
         row = svc.create_uploaded_inspection(
-            session=session, storage=storage, plate_id=plate_id, staging_dir=staging,
-            limits=Limits.from_settings(settings), process=pass_,
+            session=session,
+            storage=storage,
+            plate_id=plate_id,
+            staging_dir=staging,
+            limits=Limits.from_settings(settings),
+            process=pass_,
         )
         created.append(row.id)
         return 202, {"id": row.id, "status": row.status}, lambda: jobs.enqueue(row.id)
 
     return idempotent_write(
-        request=request, session=session, writer=writer, key=idempotency_key, work=work, cleanup=cleanup,
-        staging=staging, upload_field=_upload_part,
+        request=request,
+        session=session,
+        writer=writer,
+        key=idempotency_key,
+        work=work,
+        cleanup=cleanup,
+        staging=staging,
+        upload_field=_upload_part,
     )
 
 
@@ -163,14 +182,22 @@ def create_simulated_inspection(
 
     def work():
         row = svc.create_simulated_inspection(
-            session=session, storage=storage, plate_id=plate_id, simulation=body.model_dump(mode="json"),
+            session=session,
+            storage=storage,
+            plate_id=plate_id,
+            simulation=body.model_dump(mode="json"),
             limits=Limits.from_settings(settings),
         )
         created.append(row.id)
         return 202, {"id": row.id, "status": row.status}, lambda: jobs.enqueue(row.id)
 
     return idempotent_write(
-        request=request, session=session, writer=writer, key=idempotency_key, work=work, cleanup=cleanup
+        request=request,
+        session=session,
+        writer=writer,
+        key=idempotency_key,
+        work=work,
+        cleanup=cleanup,
     )
 
 
@@ -225,9 +252,13 @@ def acquire_inspection(
 
     def work():
         row = create_acquired_inspection(
-            session=session, storage=storage, plate_id=plate_id, cell=cell,
+            session=session,
+            storage=storage,
+            plate_id=plate_id,
+            cell=cell,
             process=None if body.process is None else body.process.model_dump(mode="json"),
-            target_dir=staging, default_target=demo_target(settings),
+            target_dir=staging,
+            default_target=demo_target(settings),
             limits=Limits.from_settings(settings),
         )
         created.append(row.id)
@@ -235,8 +266,14 @@ def acquire_inspection(
 
     try:
         return idempotent_write(
-            request=request, session=session, writer=writer, key=idempotency_key, work=work, cleanup=cleanup,
-            staging=staging, upload_field="target",
+            request=request,
+            session=session,
+            writer=writer,
+            key=idempotency_key,
+            work=work,
+            cleanup=cleanup,
+            staging=staging,
+            upload_field="target",
         )
     finally:
         storage.remove(staging)
@@ -253,13 +290,17 @@ def list_plate_inspections(
     limit: Annotated[int, Query(ge=1, le=200)] = 20,
     offset: OffsetQuery = 0,
 ):
-    items, total = svc.list_inspections(session=session, plate_id=plate_id, limit=limit, offset=offset)
+    items, total = svc.list_inspections(
+        session=session, plate_id=plate_id, limit=limit, offset=offset
+    )
     return Page[InspectionSummary](
         items=[inspection_summary(r) for r in items], total=total, limit=limit, offset=offset
     )
 
 
-@router.get("/inspections", response_model=Page[InspectionSummary], summary="All inspections, newest first")
+@router.get(
+    "/inspections", response_model=Page[InspectionSummary], summary="All inspections, newest first"
+)
 def list_inspections(
     session: SessionDep,
     status_: Annotated[
@@ -277,7 +318,11 @@ def list_inspections(
     )
 
 
-@router.get("/inspections/{inspection_id}", response_model=InspectionOut, responses={404: {"model": ErrorOut}})
+@router.get(
+    "/inspections/{inspection_id}",
+    response_model=InspectionOut,
+    responses={404: {"model": ErrorOut}},
+)
 def get_inspection(inspection_id: InspectionIdPath, session: SessionDep, storage: StorageDep):
     """Job state (status, progress 0..1, stage), the plate-result/1 object once done, or the error."""
     row = svc.get_inspection(session=session, inspection_id=inspection_id)
@@ -291,7 +336,9 @@ def get_inspection(inspection_id: InspectionIdPath, session: SessionDep, storage
     response_class=FileResponse,
     responses={404: {"model": ErrorOut}, 422: {"model": ErrorOut}},
 )
-def get_artifact(inspection_id: InspectionIdPath, name: str, session: SessionDep, storage: StorageDep):
+def get_artifact(
+    inspection_id: InspectionIdPath, name: str, session: SessionDep, storage: StorageDep
+):
     """One artifact file of an inspection (result.json, surface.ply, deviation.png, ...)."""
     if svc.get_inspection(session=session, inspection_id=inspection_id) is None:
         raise ApiError(404, f"inspection_id: no inspection {inspection_id}", field="inspection_id")
@@ -300,6 +347,10 @@ def get_artifact(inspection_id: InspectionIdPath, name: str, session: SessionDep
     except ValueError as err:
         raise ApiError(422, str(err), field="name") from None
     if path is None:
-        raise ApiError(404, f"name: inspection {inspection_id} has no artifact {name!r}", field="name")
+        raise ApiError(
+            404, f"name: inspection {inspection_id} has no artifact {name!r}", field="name"
+        )
     media_type = mimetypes.guess_type(name)[0] or "application/octet-stream"
-    return FileResponse(path, media_type=media_type, filename=name, content_disposition_type="inline")
+    return FileResponse(
+        path, media_type=media_type, filename=name, content_disposition_type="inline"
+    )

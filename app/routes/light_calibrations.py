@@ -21,26 +21,38 @@ UPLOAD_FIELD = "calibration"
 
 
 def light_calibration_out(row) -> LightCalibrationOut:
-    return LightCalibrationOut.model_validate({name: getattr(row, name) for name in LightCalibrationOut.model_fields})
+    return LightCalibrationOut.model_validate(
+        {name: getattr(row, name) for name in LightCalibrationOut.model_fields}
+    )
 
 
 @router.post(
     "/light-calibrations",
     status_code=status.HTTP_201_CREATED,
     response_model=LightCalibrationOut,
-    responses={401: {"model": ErrorOut}, 413: {"model": ErrorOut}, 415: {"model": ErrorOut}, 422: {"model": ErrorOut}},
+    responses={
+        401: {"model": ErrorOut},
+        413: {"model": ErrorOut},
+        415: {"model": ErrorOut},
+        422: {"model": ErrorOut},
+    },
     openapi_extra={
         "requestBody": {
             "required": True,
             "content": {
-                "application/json": {"schema": {"type": "object", "description": "a light-calibration/1 document"}},
+                "application/json": {
+                    "schema": {"type": "object", "description": "a light-calibration/1 document"}
+                },
                 "multipart/form-data": {
                     "schema": {
                         "type": "object",
                         "required": [UPLOAD_FIELD],
                         "properties": {
-                            UPLOAD_FIELD: {"type": "string", "format": "binary",
-                                           "description": "a light-calibration/1 JSON file"},
+                            UPLOAD_FIELD: {
+                                "type": "string",
+                                "format": "binary",
+                                "description": "a light-calibration/1 JSON file",
+                            },
                         },
                     }
                 },
@@ -72,13 +84,17 @@ async def upload_light_calibration(
         elif content_type == "multipart/form-data":
             upload = (await request.form()).get(UPLOAD_FIELD)
             if not isinstance(upload, UploadFile):
-                raise ApiError(422, f"{UPLOAD_FIELD}: expected a light-calibration/1 JSON file upload",
-                               field=UPLOAD_FIELD)
+                raise ApiError(
+                    422,
+                    f"{UPLOAD_FIELD}: expected a light-calibration/1 JSON file upload",
+                    field=UPLOAD_FIELD,
+                )
             (staging / LIGHT_CALIBRATION_FILE).write_bytes(await upload.read())
             file_name = svc.upload_name(upload.filename)
         else:
             raise ApiError(
-                415, f"Content-Type: expected application/json or multipart/form-data, got {content_type or 'none'!r}",
+                415,
+                f"Content-Type: expected application/json or multipart/form-data, got {content_type or 'none'!r}",
                 field="Content-Type",
             )
     except BaseException:
@@ -94,7 +110,10 @@ async def upload_light_calibration(
 
     def work():
         row = svc.create_light_calibration(
-            session=session, storage=storage, staging_dir=staging, file_name=file_name,
+            session=session,
+            storage=storage,
+            staging_dir=staging,
+            file_name=file_name,
             limits=Limits.from_settings(settings),
         )
         created.append(row.id)
@@ -102,12 +121,22 @@ async def upload_light_calibration(
 
     return await run_in_threadpool(
         idempotent_write,
-        request=request, session=session, writer=writer, key=idempotency_key, work=work, cleanup=cleanup,
-        upload_field=UPLOAD_FIELD if file_name is not None else None, staging=staging,
+        request=request,
+        session=session,
+        writer=writer,
+        key=idempotency_key,
+        work=work,
+        cleanup=cleanup,
+        upload_field=UPLOAD_FIELD if file_name is not None else None,
+        staging=staging,
     )
 
 
-@router.get("/light-calibrations/current", response_model=LightCalibrationOut, responses={404: {"model": ErrorOut}})
+@router.get(
+    "/light-calibrations/current",
+    response_model=LightCalibrationOut,
+    responses={404: {"model": ErrorOut}},
+)
 def current_light_calibration(session: SessionDep):
     row = svc.current_light_calibration(session=session)
     if row is None:
@@ -124,11 +153,18 @@ def current_light_calibration(session: SessionDep):
 def get_light_calibration(light_calibration_id: LightCalibrationIdPath, session: SessionDep):
     row = svc.get_light_calibration(session=session, light_calibration_id=light_calibration_id)
     if row is None:
-        raise ApiError(404, f"light_calibration_id: no light calibration {light_calibration_id}",
-                       field="light_calibration_id")
+        raise ApiError(
+            404,
+            f"light_calibration_id: no light calibration {light_calibration_id}",
+            field="light_calibration_id",
+        )
     return light_calibration_out(row)
 
 
-@router.get("/light-calibrations", response_model=list[LightCalibrationOut], summary="Light calibrations, newest first")
+@router.get(
+    "/light-calibrations",
+    response_model=list[LightCalibrationOut],
+    summary="Light calibrations, newest first",
+)
 def list_light_calibrations(session: SessionDep):
     return [light_calibration_out(r) for r in svc.list_light_calibrations(session=session)]

@@ -38,7 +38,9 @@ def list_plates(
     offset: OffsetQuery = 0,
 ):
     views, total = svc.list_plates(session=session, limit=limit, offset=offset)
-    return Page[PlateOut](items=[plate_out(v) for v in views], total=total, limit=limit, offset=offset)
+    return Page[PlateOut](
+        items=[plate_out(v) for v in views], total=total, limit=limit, offset=offset
+    )
 
 
 @router.get("/plates/{plate_id}", response_model=PlateOut, responses={404: {"model": ErrorOut}})
@@ -49,7 +51,9 @@ def get_plate(plate_id: PlateIdPath, session: SessionDep):
     return plate_out(view)
 
 
-@router.get("/plates/{plate_id}/target", response_model=TargetOut, responses={404: {"model": ErrorOut}})
+@router.get(
+    "/plates/{plate_id}/target", response_model=TargetOut, responses={404: {"model": ErrorOut}}
+)
 def get_target(plate_id: PlateIdPath, session: SessionDep):
     row = svc.current_target(session=session, plate_id=plate_id)
     if row is None:
@@ -60,20 +64,34 @@ def get_target(plate_id: PlateIdPath, session: SessionDep):
 @router.put(
     "/plates/{plate_id}/target",
     response_model=TargetOut,
-    responses={401: {"model": ErrorOut}, 413: {"model": ErrorOut}, 415: {"model": ErrorOut}, 422: {"model": ErrorOut}},
+    responses={
+        401: {"model": ErrorOut},
+        413: {"model": ErrorOut},
+        415: {"model": ErrorOut},
+        422: {"model": ErrorOut},
+    },
     openapi_extra={
         "requestBody": {
             "required": True,
             "content": {
-                "application/json": {"schema": {"type": "object", "description": "a plate-target/1 document"}},
+                "application/json": {
+                    "schema": {"type": "object", "description": "a plate-target/1 document"}
+                },
                 "multipart/form-data": {
                     "schema": {
                         "type": "object",
                         "required": ["mesh"],
                         "properties": {
-                            "mesh": {"type": "string", "format": "binary", "description": "STL, PLY or OBJ, mm"},
-                            "target": {"type": "string", "format": "binary",
-                                       "description": "plate-target/1 JSON with shape mesh (file = the mesh's name)"},
+                            "mesh": {
+                                "type": "string",
+                                "format": "binary",
+                                "description": "STL, PLY or OBJ, mm",
+                            },
+                            "target": {
+                                "type": "string",
+                                "format": "binary",
+                                "description": "plate-target/1 JSON with shape mesh (file = the mesh's name)",
+                            },
                             "size_x_mm": {"type": "number"},
                             "size_y_mm": {"type": "number"},
                             "tolerance_mm": {"type": "number"},
@@ -110,7 +128,8 @@ async def put_target(
             await _stage_mesh_form(form, staging)
         else:
             raise ApiError(
-                415, f"Content-Type: expected application/json or multipart/form-data, got {content_type or 'none'!r}",
+                415,
+                f"Content-Type: expected application/json or multipart/form-data, got {content_type or 'none'!r}",
                 field="Content-Type",
             )
     except BaseException:
@@ -125,14 +144,22 @@ async def put_target(
             storage.remove(storage.target_dir(plate_id, target_id))
 
     def work():
-        row = create_target(session=session, storage=storage, plate_id=plate_id, staging_dir=staging)
+        row = create_target(
+            session=session, storage=storage, plate_id=plate_id, staging_dir=staging
+        )
         created.append(row.id)
         return 200, target_out(row).model_dump(mode="json"), None
 
     return await run_in_threadpool(
         idempotent_write,
-        request=request, session=session, writer=writer, key=idempotency_key, work=work,
-        cleanup=cleanup, upload_field="target", staging=staging,
+        request=request,
+        session=session,
+        writer=writer,
+        key=idempotency_key,
+        work=work,
+        cleanup=cleanup,
+        upload_field="target",
+        staging=staging,
     )
 
 
@@ -142,32 +169,68 @@ async def _stage_mesh_form(form, staging) -> None:
         raise ApiError(422, "mesh: expected a mesh file upload (STL, PLY or OBJ)", field="mesh")
     target_part = form.get("target")
     if target_part is not None:
-        raw = await target_part.read() if isinstance(target_part, UploadFile) else str(target_part).encode()
+        raw = (
+            await target_part.read()
+            if isinstance(target_part, UploadFile)
+            else str(target_part).encode()
+        )
         try:
             document = json.loads(raw)
             mesh_name = document["shape"]["file"]
-        except (ValueError, KeyError, TypeError, RecursionError):  # ValueError: also over-long integers
-            raise ApiError(422, "target: expected a plate-target/1 JSON with shape.file naming the mesh",
-                           field="target") from None
-        if not isinstance(mesh_name, str) or not ARTIFACT_NAME_PATTERN.match(mesh_name) or ".." in mesh_name:
-            raise ApiError(422, f"target: shape.file: expected a plain file name, got {mesh_name!r}", field="target")
+        except (
+            ValueError,
+            KeyError,
+            TypeError,
+            RecursionError,
+        ):  # ValueError: also over-long integers
+            raise ApiError(
+                422,
+                "target: expected a plate-target/1 JSON with shape.file naming the mesh",
+                field="target",
+            ) from None
+        if (
+            not isinstance(mesh_name, str)
+            or not ARTIFACT_NAME_PATTERN.match(mesh_name)
+            or ".." in mesh_name
+        ):
+            raise ApiError(
+                422,
+                f"target: shape.file: expected a plain file name, got {mesh_name!r}",
+                field="target",
+            )
         (staging / TARGET_FILE).write_bytes(raw)
     else:
-        suffix = "." + (mesh.filename or "").rsplit(".", 1)[-1].lower() if "." in (mesh.filename or "") else ""
+        suffix = (
+            "." + (mesh.filename or "").rsplit(".", 1)[-1].lower()
+            if "." in (mesh.filename or "")
+            else ""
+        )
         if suffix not in MESH_SUFFIXES:
-            raise ApiError(422, f"mesh: expected a .stl, .ply or .obj file, got {mesh.filename!r}", field="mesh")
+            raise ApiError(
+                422,
+                f"mesh: expected a .stl, .ply or .obj file, got {mesh.filename!r}",
+                field="mesh",
+            )
         mesh_name = "plate" + suffix
         document = {"format": "plate-target/1", "shape": {"type": "mesh", "file": mesh_name}}
         for name in ("size_x_mm", "size_y_mm", "tolerance_mm"):
             value = form.get(name)
             if value is None or isinstance(value, UploadFile):
-                raise ApiError(422, f"{name}: expected a number (mm) with the mesh upload, got none", field=name)
+                raise ApiError(
+                    422,
+                    f"{name}: expected a number (mm) with the mesh upload, got none",
+                    field=name,
+                )
             try:
                 number = float(value)
             except ValueError:
-                raise ApiError(422, f"{name}: expected a number (mm), got {value[:40]!r}", field=name) from None
+                raise ApiError(
+                    422, f"{name}: expected a number (mm), got {value[:40]!r}", field=name
+                ) from None
             if not math.isfinite(number):
-                raise ApiError(422, f"{name}: expected a finite number (mm), got {value[:40]!r}", field=name)
+                raise ApiError(
+                    422, f"{name}: expected a finite number (mm), got {value[:40]!r}", field=name
+                )
             document[name] = number
         document["size_mm"] = [document.pop("size_x_mm"), document.pop("size_y_mm")]
         (staging / TARGET_FILE).write_text(json.dumps(document, indent=2), encoding="utf-8")

@@ -31,7 +31,10 @@ class LoginIn(BaseModel):
     response_class=Response,
     responses={
         401: {"model": ErrorOut, "description": "wrong token"},
-        429: {"model": ErrorOut, "description": "wrong token from an address that sent too many; see Retry-After"},
+        429: {
+            "model": ErrorOut,
+            "description": "wrong token from an address that sent too many; see Retry-After",
+        },
     },
 )
 async def login(body: LoginIn, request: Request, session: SessionDep) -> Response:

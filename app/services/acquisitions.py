@@ -20,7 +20,14 @@ from sqlalchemy.orm import Session
 from app.limits import DEFAULT_LIMITS, Limits
 from app.limits.queue import check_queue
 from app.models import Inspection
-from app.services.cell import CellLock, CellUnavailable, cell_message, ensure_demo_cell, load_cell, record_capture
+from app.services.cell import (
+    CellLock,
+    CellUnavailable,
+    cell_message,
+    ensure_demo_cell,
+    load_cell,
+    record_capture,
+)
 from app.services.errors import UnprocessableError
 from app.services.forming import check_process
 from app.services.plates import current_target, get_or_create_plate
@@ -84,11 +91,24 @@ def create_acquired_inspection(
     new_targets: list[Path] = []
     row = None
     try:
-        target = _target(session=session, storage=storage, plate_id=plate_id, target_dir=target_dir,
-                         default_target=default_target, created=new_targets)
+        target = _target(
+            session=session,
+            storage=storage,
+            plate_id=plate_id,
+            target_dir=target_dir,
+            default_target=default_target,
+            created=new_targets,
+        )
         row = Inspection(
-            plate_id=plate_id, target_id=target.id, source=ACQUIRED_SOURCE, cell_id=cell.cell_id, process=process,
-            status="queued", progress=0.0, tolerance_mm=target.tolerance_mm, target_radius_mm=target.radius_mm,
+            plate_id=plate_id,
+            target_id=target.id,
+            source=ACQUIRED_SOURCE,
+            cell_id=cell.cell_id,
+            process=process,
+            status="queued",
+            progress=0.0,
+            tolerance_mm=target.tolerance_mm,
+            target_radius_mm=target.radius_mm,
         )
         session.add(row)
         session.flush()
@@ -111,12 +131,21 @@ def create_acquired_inspection(
     return row
 
 
-def _target(*, session: Session, storage: Storage, plate_id: str, target_dir: Path | None,
-            default_target: Path | None, created: list[Path]):
+def _target(
+    *,
+    session: Session,
+    storage: Storage,
+    plate_id: str,
+    target_dir: Path | None,
+    default_target: Path | None,
+    created: list[Path],
+):
     """The target of a new acquired inspection (see :func:`create_acquired_inspection`); the folders
     of targets it creates are appended to ``created``."""
     if target_dir is not None:
-        return _new_target(session=session, storage=storage, plate_id=plate_id, folder=target_dir, created=created)
+        return _new_target(
+            session=session, storage=storage, plate_id=plate_id, folder=target_dir, created=created
+        )
     get_or_create_plate(session=session, plate_id=plate_id)
     target = current_target(session=session, plate_id=plate_id)
     if target is not None:
@@ -126,19 +155,31 @@ def _target(*, session: Session, storage: Storage, plate_id: str, target_dir: Pa
             f"target: plate {plate_id!r} has no target yet: send a plate-target/1 object as 'target'",
             field="target",
         )
-    return _new_target(session=session, storage=storage, plate_id=plate_id, folder=default_target.parent,
-                       created=created)
+    return _new_target(
+        session=session,
+        storage=storage,
+        plate_id=plate_id,
+        folder=default_target.parent,
+        created=created,
+    )
 
 
-def _new_target(*, session: Session, storage: Storage, plate_id: str, folder: Path, created: list[Path]):
+def _new_target(
+    *, session: Session, storage: Storage, plate_id: str, folder: Path, created: list[Path]
+):
     """A new current target of the plate from ``folder/target.json``, validated where it is (errors
     name that file); the plate's copy is made from it."""
     validated = validate_target_dir(folder)
     staged = storage.new_staging_dir()
     try:
         shutil.copyfile(folder / TARGET_FILE, staged / TARGET_FILE)
-        target = create_target(session=session, storage=storage, plate_id=plate_id, staging_dir=staged,
-                               validated=validated)
+        target = create_target(
+            session=session,
+            storage=storage,
+            plate_id=plate_id,
+            staging_dir=staged,
+            validated=validated,
+        )
     except BaseException:
         storage.remove(staged)
         raise
@@ -173,18 +214,37 @@ def capture_for_job(
         The configuration names settings a camera refuses (an exposure out of its range, a sensor
         smaller than the calibration); the file and field are named relative to its folder.
     """
-    request = json.loads((storage.inputs_dir(inspection_id) / ACQUISITION_FILE).read_text(encoding="utf-8"))
+    request = json.loads(
+        (storage.inputs_dir(inspection_id) / ACQUISITION_FILE).read_text(encoding="utf-8")
+    )
     progress(CAPTURE_STAGE, 0.0)
     if not (bundle_dir / "capture.json").is_file():
         storage.remove(bundle_dir)  # nothing complete: acquire writes it anew
-        _capture(inspection_id, settings=settings, storage=storage, plate_id=plate_id, bundle_dir=bundle_dir,
-                 cell_id=request["cell_id"], progress=progress)
-    shutil.copyfile(bundle_dir / "capture.json", storage.artifacts_dir(inspection_id) / "capture.json")
+        _capture(
+            inspection_id,
+            settings=settings,
+            storage=storage,
+            plate_id=plate_id,
+            bundle_dir=bundle_dir,
+            cell_id=request["cell_id"],
+            progress=progress,
+        )
+    shutil.copyfile(
+        bundle_dir / "capture.json", storage.artifacts_dir(inspection_id) / "capture.json"
+    )
     progress(CAPTURE_STAGE, 1.0)
 
 
-def _capture(inspection_id: int, *, settings: Settings, storage: Storage, plate_id: str, bundle_dir: Path,
-             cell_id: str, progress: Callable[[str, float], None]) -> None:
+def _capture(
+    inspection_id: int,
+    *,
+    settings: Settings,
+    storage: Storage,
+    plate_id: str,
+    bundle_dir: Path,
+    cell_id: str,
+    progress: Callable[[str, float], None],
+) -> None:
     """Photograph the plate into ``bundle_dir`` with the cell ``cell_id``, holding the cameras' lock."""
     ensure_demo_cell(settings)
     try:
@@ -198,17 +258,29 @@ def _capture(inspection_id: int, *, settings: Settings, storage: Storage, plate_
         )
     lock = CellLock(storage.data_dir)
     if not lock.acquire(f"inspection {inspection_id} (acquiring)", timeout_s=CAMERAS_WAIT_S):
-        raise AcquisitionFailed(f"the cameras stayed busy for {CAMERAS_WAIT_S:g} s: {lock.holder() or 'holder unknown'}")
+        raise AcquisitionFailed(
+            f"the cameras stayed busy for {CAMERAS_WAIT_S:g} s: {lock.holder() or 'holder unknown'}"
+        )
     try:
-        acquire(config.path, plate_id, bundle_dir, progress=lambda stage, fraction: progress(CAPTURE_STAGE, fraction))
+        acquire(
+            config.path,
+            plate_id,
+            bundle_dir,
+            progress=lambda stage, fraction: progress(CAPTURE_STAGE, fraction),
+        )
     except AcquisitionError as err:
         raise AcquisitionFailed(f"acquisition failed: {err}") from None
     except InputError as err:
-        raise InputError(cell_message(err.file, config.path), err.field, cell_message(err.reason, config.path)) from None
+        raise InputError(
+            cell_message(err.file, config.path), err.field, cell_message(err.reason, config.path)
+        ) from None
     finally:
         lock.release()
     try:
         record_capture(storage.data_dir, bundle_dir, inspection_id=inspection_id)
-    except Exception:  # noqa: BLE001 - the dashboard's record of the cameras must not fail the inspection
-        log.warning("inspection %s: the cameras' last frames were not recorded", inspection_id, exc_info=True)
-
+    except Exception:
+        log.warning(
+            "inspection %s: the cameras' last frames were not recorded",
+            inspection_id,
+            exc_info=True,
+        )

@@ -25,7 +25,7 @@ import tempfile
 import threading
 import time
 from dataclasses import dataclass, field, replace
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 import cv2
@@ -35,7 +35,13 @@ from app.limits import Limits
 from app.limits.work import check_calibration_size, check_light_count
 from app.services.errors import ServiceError
 from app.settings import ENV_PREFIX, Settings
-from pipeline.acquisition import CellConfig, SimulatedCell, SimulatedLightController, load_cell_config, open_camera
+from pipeline.acquisition import (
+    CellConfig,
+    SimulatedCell,
+    SimulatedLightController,
+    load_cell_config,
+    open_camera,
+)
 from pipeline.acquisition import write_demo_cell as _write_demo_cell
 from pipeline.formats import AcquisitionError, InputError
 
@@ -90,7 +96,9 @@ def ensure_demo_cell(settings: Settings) -> None:
     folder.parent.mkdir(parents=True, exist_ok=True)
     partial = Path(tempfile.mkdtemp(prefix=DEMO_CELL_DIR + ".partial-", dir=folder.parent))
     try:
-        _write_demo_cell(partial)  # 8 lights, 1224 x 1024: the size of the Cell page's simulated plates
+        _write_demo_cell(
+            partial
+        )  # 8 lights, 1224 x 1024: the size of the Cell page's simulated plates
         os.rename(partial, folder)
     except OSError:
         if not (folder / "cell.json").is_file():  # not another process's demo cell: a real failure
@@ -132,9 +140,15 @@ def load_cell(settings: Settings) -> CellConfig:
         check_light_count(config.lights.n, limits, label=path.name, field="lights.lights")
         check_calibration_size(config.rig.image_size, limits, label=config.calibration_path.name)
         if len(config.cell_id) > MAX_CELL_ID:
-            raise InputError(path.name, "cell_id", f"expected at most {MAX_CELL_ID} characters, got {len(config.cell_id)}")
+            raise InputError(
+                path.name,
+                "cell_id",
+                f"expected at most {MAX_CELL_ID} characters, got {len(config.cell_id)}",
+            )
     except InputError as err:
-        raise CellUnavailable(f"{CELL_SETTING}: the cell's configuration is not usable: {cell_message(str(err), path)}") from None
+        raise CellUnavailable(
+            f"{CELL_SETTING}: the cell's configuration is not usable: {cell_message(str(err), path)}"
+        ) from None
     return config
 
 
@@ -232,7 +246,10 @@ def record_capture(data_dir: Path, bundle: Path, *, inspection_id: int) -> None:
         "plate_id": doc["plate_id"],
         "captured_at": doc["captured_at"],
         "cameras": {
-            side: {key: record["cameras"][side].get(key) for key in ("driver", "device_id", "vendor", "model", "serial")}
+            side: {
+                key: record["cameras"][side].get(key)
+                for key in ("driver", "device_id", "vendor", "model", "serial")
+            }
             for side in SIDES
         },
     }
@@ -353,7 +370,7 @@ class _Probe:
     config: CellConfig
     results: dict[str, CameraState] = field(default_factory=dict)
     finished: threading.Event = field(default_factory=threading.Event)
-    started_at: datetime = field(default_factory=lambda: datetime.now(timezone.utc))
+    started_at: datetime = field(default_factory=lambda: datetime.now(UTC))
     started: float = field(default_factory=time.monotonic)
 
     @property
@@ -388,7 +405,9 @@ class CameraMonitor:
         See :data:`STATE_TTL_S`, :data:`PROBE_TIMEOUT_S`.
     """
 
-    def __init__(self, settings: Settings, *, ttl_s: float = STATE_TTL_S, timeout_s: float = PROBE_TIMEOUT_S):
+    def __init__(
+        self, settings: Settings, *, ttl_s: float = STATE_TTL_S, timeout_s: float = PROBE_TIMEOUT_S
+    ):
         self.settings = settings
         self.ttl_s = ttl_s
         self.timeout_s = timeout_s
@@ -404,16 +423,31 @@ class CameraMonitor:
         try:
             config = load_cell(self.settings)
         except CellUnavailable as err:
-            return CellState(configured=path is not None, ready=False, reason=err.detail, demo=demo,
-                             config=None if path is None else path.name, last_capture=capture)
+            return CellState(
+                configured=path is not None,
+                ready=False,
+                reason=err.detail,
+                demo=demo,
+                config=None if path is None else path.name,
+                last_capture=capture,
+            )
         cameras, checked_at, in_use = self._cameras(config, capture)
         return CellState(
-            configured=True, ready=True, cell_id=config.cell_id, config=config.path.name,
-            light_controller=light_controller_label(config), demo=demo, cameras=cameras, in_use=in_use,
-            checked_at=checked_at, last_capture=capture,
+            configured=True,
+            ready=True,
+            cell_id=config.cell_id,
+            config=config.path.name,
+            light_controller=light_controller_label(config),
+            demo=demo,
+            cameras=cameras,
+            in_use=in_use,
+            checked_at=checked_at,
+            last_capture=capture,
         )
 
-    def _cameras(self, config: CellConfig, capture: dict | None) -> tuple[tuple[CameraState, ...], datetime | None, str | None]:
+    def _cameras(
+        self, config: CellConfig, capture: dict | None
+    ) -> tuple[tuple[CameraState, ...], datetime | None, str | None]:
         """(cameras, when they were checked, who holds them instead)."""
         key = _config_key(config)
         with self._mutex:
@@ -428,14 +462,24 @@ class CameraMonitor:
                     cameras = known.cameras if known is not None else _last_seen(config, capture)
                     return cameras, None if known is None else known.checked_at, lock.holder()
                 probe = self._probe = _Probe(config)
-                threading.Thread(target=_run_probe, args=(probe, lock), name="camera-check", daemon=True).start()
-        probe.finished.wait(max(0.0, self.timeout_s - (time.monotonic() - probe.started)))  # a hung check: no wait
+                threading.Thread(
+                    target=_run_probe, args=(probe, lock), name="camera-check", daemon=True
+                ).start()
+        probe.finished.wait(
+            max(0.0, self.timeout_s - (time.monotonic() - probe.started))
+        )  # a hung check: no wait
         with self._mutex:
             self._take_finished()
             if self._known is not None and self._known.key == key and probe.finished.is_set():
                 return self._known.cameras, self._known.checked_at, None
-            return tuple(probe.results.get(side) or _no_answer(config, side, self.timeout_s) for side in SIDES), \
-                probe.started_at, None
+            return (
+                tuple(
+                    probe.results.get(side) or _no_answer(config, side, self.timeout_s)
+                    for side in SIDES
+                ),
+                probe.started_at,
+                None,
+            )
 
     def _take_finished(self) -> None:
         """Keep the answer of a check that has finished (hold the mutex)."""
@@ -445,7 +489,8 @@ class CameraMonitor:
         if self._known is None or self._known.checked_at < probe.started_at:
             failed = "the check failed (see the server log)"
             cameras = tuple(
-                probe.results.get(side) or replace(_no_answer(probe.config, side, 0.0), state="error", detail=failed)
+                probe.results.get(side)
+                or replace(_no_answer(probe.config, side, 0.0), state="error", detail=failed)
                 for side in SIDES
             )
             self._known = _Known(probe.key, cameras, probe.started_at, time.monotonic())
@@ -454,17 +499,37 @@ class CameraMonitor:
 def _last_seen(config: CellConfig, capture: dict | None) -> tuple[CameraState, ...]:
     """The cameras as the last capture of this cell described them (connected then), else unknown."""
     cameras = []
-    seen_by_side = (capture or {}).get("cameras", {}) if (capture or {}).get("cell_id") == config.cell_id else {}
+    seen_by_side = (
+        (capture or {}).get("cameras", {})
+        if (capture or {}).get("cell_id") == config.cell_id
+        else {}
+    )
     for side in SIDES:
         cam_config = getattr(config, side)
         seen = seen_by_side.get(side)
         if seen is not None and seen.get("device_id") == cam_config.device_id:
-            cameras.append(CameraState(
-                side, cam_config.driver, cam_config.device_id, "connected", seen.get("vendor"), seen.get("model"),
-                seen.get("serial"), detail=f"at the last capture ({capture['captured_at']})",
-            ))
+            cameras.append(
+                CameraState(
+                    side,
+                    cam_config.driver,
+                    cam_config.device_id,
+                    "connected",
+                    seen.get("vendor"),
+                    seen.get("model"),
+                    seen.get("serial"),
+                    detail=f"at the last capture ({capture['captured_at']})",
+                )
+            )
         else:
-            cameras.append(CameraState(side, cam_config.driver, cam_config.device_id, "unknown", detail="not checked yet"))
+            cameras.append(
+                CameraState(
+                    side,
+                    cam_config.driver,
+                    cam_config.device_id,
+                    "unknown",
+                    detail="not checked yet",
+                )
+            )
     return tuple(cameras)
 
 
@@ -475,8 +540,13 @@ def _config_key(config: CellConfig) -> tuple:
 
 def _no_answer(config: CellConfig, side: str, timeout_s: float) -> CameraState:
     cam_config = getattr(config, side)
-    return CameraState(side, cam_config.driver, cam_config.device_id, "unreachable",
-                       detail=f"no answer within {timeout_s:g} s")
+    return CameraState(
+        side,
+        cam_config.driver,
+        cam_config.device_id,
+        "unreachable",
+        detail=f"no answer within {timeout_s:g} s",
+    )
 
 
 def _run_probe(probe: _Probe, lock: CellLock) -> None:
@@ -486,10 +556,12 @@ def _run_probe(probe: _Probe, lock: CellLock) -> None:
         cell = None
         if "simulated" in (config.left.driver, config.right.driver):
             controller = SimulatedLightController(config.lights.n, False)
-            cell = SimulatedCell(config.rig, config.lights, config.working_distance_mm, controller, "camera-check")
+            cell = SimulatedCell(
+                config.rig, config.lights, config.working_distance_mm, controller, "camera-check"
+            )
         for side in SIDES:
             probe.results[side] = _check_camera(side, getattr(config, side), cell)
-    except Exception:  # noqa: BLE001 - reported as the cameras' error, never lost in a thread
+    except Exception:
         log.exception("the camera check failed")
     finally:
         lock.release()
@@ -507,8 +579,13 @@ def _check_camera(side: str, cam_config, cell: SimulatedCell | None) -> CameraSt
     except AcquisitionError as err:
         state = "unreachable" if err.step == "opening" else "error"
         return replace(base, state=state, detail=f"{err.step}: {err.reason}")
-    except Exception as err:  # noqa: BLE001 - a check reports, it never takes the server down
+    except Exception as err:
         log.exception("%s camera check failed", side)
         return replace(base, state="error", detail=f"{type(err).__name__}: {err}")
-    return replace(base, state="connected", vendor=described.get("vendor"), model=described.get("model"),
-                   serial=described.get("serial"))
+    return replace(
+        base,
+        state="connected",
+        vendor=described.get("vendor"),
+        model=described.get("model"),
+        serial=described.get("serial"),
+    )

@@ -66,8 +66,13 @@ def get_machine(*, session: Session, machine_id: str) -> Machine | None:
 
 def machine_model(row: Machine) -> forming.Machine:
     """The forming model's record of a machine row."""
-    return forming.Machine(row.id, row.bottom_roll_spacing_mm, row.bottom_roll_diameter_mm,
-                           row.top_roll_diameter_mm, kind=row.kind)
+    return forming.Machine(
+        row.id,
+        row.bottom_roll_spacing_mm,
+        row.bottom_roll_diameter_mm,
+        row.top_roll_diameter_mm,
+        kind=row.kind,
+    )
 
 
 def check_process(*, session: Session, process: dict[str, Any] | None) -> None:
@@ -102,14 +107,23 @@ def forming_target(target: Target | None, plate_id: str) -> forming.FormingTarge
         No target, not a single-curvature cylinder, or no material (the message says which).
     """
     if target is None:
-        raise ConflictError(f"plate_id: plate {plate_id!r} has no target: set a cylinder target with its material "
-                            "(PUT /api/v1/plates/{plate_id}/target)", field="plate_id")
+        raise ConflictError(
+            f"plate_id: plate {plate_id!r} has no target: set a cylinder target with its material "
+            "(PUT /api/v1/plates/{plate_id}/target)",
+            field="plate_id",
+        )
     if target.shape != "cylinder":
-        raise ConflictError(f"plate_id: plate {plate_id!r}'s target is a {target.shape}: roll-bending advice is for "
-                            "single-curvature (cylinder) targets only", field="plate_id")
+        raise ConflictError(
+            f"plate_id: plate {plate_id!r}'s target is a {target.shape}: roll-bending advice is for "
+            "single-curvature (cylinder) targets only",
+            field="plate_id",
+        )
     if target_material(target) is None:
-        raise ConflictError(f"plate_id: plate {plate_id!r}'s target has no material: roll-bending advice needs its "
-                            "grade, thickness and yield (plate-target/1 'material')", field="plate_id")
+        raise ConflictError(
+            f"plate_id: plate {plate_id!r}'s target has no material: roll-bending advice needs its "
+            "grade, thickness and yield (plate-target/1 'material')",
+            field="plate_id",
+        )
     loaded = load_target(target.document, file_label="target.json")
     return forming.FormingTarget.from_target(loaded, target_material(target))
 
@@ -126,11 +140,17 @@ def roll_pass(row: Inspection) -> forming.RollPass:
 
 def plate_passes(*, session: Session, plate_id: str) -> list[Inspection]:
     """The plate's done inspections with a process, oldest first."""
-    return list(session.scalars(
-        select(Inspection)
-        .where(Inspection.plate_id == plate_id, Inspection.status == "done", Inspection.process.is_not(None))
-        .order_by(Inspection.id)
-    ))
+    return list(
+        session.scalars(
+            select(Inspection)
+            .where(
+                Inspection.plate_id == plate_id,
+                Inspection.status == "done",
+                Inspection.process.is_not(None),
+            )
+            .order_by(Inspection.id)
+        )
+    )
 
 
 def plate_record(*, session: Session, plate_id: str) -> forming.PlateRecord:
@@ -146,14 +166,20 @@ def plate_record(*, session: Session, plate_id: str) -> forming.PlateRecord:
     return forming.PlateRecord(plate_id, target, passes)
 
 
-def history(*, session: Session, exclude: str, limit: int = MAX_HISTORY_PLATES) -> list[forming.PlateRecord]:
+def history(
+    *, session: Session, exclude: str, limit: int = MAX_HISTORY_PLATES
+) -> list[forming.PlateRecord]:
     """Other plates with roll-bending passes, oldest first: the ``limit`` most recently rolled.
 
     Plates whose current target is not a cylinder with a material are left out (the model cannot use them).
     """
     latest = (
         select(Inspection.plate_id, func.max(Inspection.id).label("last_id"))
-        .where(Inspection.status == "done", Inspection.process.is_not(None), Inspection.plate_id != exclude)
+        .where(
+            Inspection.status == "done",
+            Inspection.process.is_not(None),
+            Inspection.plate_id != exclude,
+        )
         .group_by(Inspection.plate_id)
         .order_by(func.max(Inspection.id).desc())
         .limit(limit)
@@ -185,8 +211,12 @@ def advise(*, session: Session, plate_id: str, machine_id: str | None) -> formin
     plate = plate_record(session=session, plate_id=plate_id)
     machines = {row.id: machine_model(row) for row in list_machines(session=session)}
     try:
-        return forming.advise(plate, machines, history=history(session=session, exclude=plate_id),
-                              machine_id=machine_id)
+        return forming.advise(
+            plate,
+            machines,
+            history=history(session=session, exclude=plate_id),
+            machine_id=machine_id,
+        )
     except forming.FormingError as err:
         raise ConflictError(f"plate_id: {err}", field="plate_id") from None
 
@@ -195,20 +225,43 @@ def advise(*, session: Session, plate_id: str, machine_id: str | None) -> formin
 
 
 #: Columns of the forming history export, in order.
-HISTORY_COLUMNS = ("inspection_id", "created_at", "plate_id", "machine_id", "grade", "thickness_mm",
-                   "top_roll_displacement_mm", "measured_radius_mm", "target_radius_mm", "verdict")
+HISTORY_COLUMNS = (
+    "inspection_id",
+    "created_at",
+    "plate_id",
+    "machine_id",
+    "grade",
+    "thickness_mm",
+    "top_roll_displacement_mm",
+    "measured_radius_mm",
+    "target_radius_mm",
+    "verdict",
+)
 
 
 def export_row(row: Inspection) -> tuple:
     """One pass of the forming history export, :data:`HISTORY_COLUMNS` in order."""
     material = target_material(row.target) or {}
-    return (row.id, row.created_at.isoformat(), row.plate_id, row.process["machine_id"], material.get("grade"),
-            material.get("thickness_mm"), row.process["top_roll_displacement_mm"], row.radius_mm,
-            row.target_radius_mm, row.verdict)
+    return (
+        row.id,
+        row.created_at.isoformat(),
+        row.plate_id,
+        row.process["machine_id"],
+        material.get("grade"),
+        material.get("thickness_mm"),
+        row.process["top_roll_displacement_mm"],
+        row.radius_mm,
+        row.target_radius_mm,
+        row.verdict,
+    )
 
 
 def exported_passes(*, session: Session) -> list[Inspection]:
     """Every done inspection with a process, oldest first."""
-    return list(session.scalars(
-        select(Inspection).where(Inspection.status == "done", Inspection.process.is_not(None)).order_by(Inspection.id)
-    ))
+    return list(
+        session.scalars(
+            select(Inspection)
+            .where(Inspection.status == "done", Inspection.process.is_not(None))
+            .order_by(Inspection.id)
+        )
+    )

@@ -20,19 +20,25 @@ MAX_KEY_LENGTH = 255
 
 def check_key(key: str) -> str:
     if not key or len(key) > MAX_KEY_LENGTH or not key.isprintable():
-        raise ValueError(f"Idempotency-Key: expected 1-{MAX_KEY_LENGTH} printable characters, got {key[:40]!r}")
+        raise ValueError(
+            f"Idempotency-Key: expected 1-{MAX_KEY_LENGTH} printable characters, got {key[:40]!r}"
+        )
     return key
 
 
 def find(*, session: Session, key: str, scope: str, token_hash: str) -> IdempotencyKey | None:
     return session.scalars(
         select(IdempotencyKey).where(
-            IdempotencyKey.key == key, IdempotencyKey.scope == scope, IdempotencyKey.token_hash == token_hash
+            IdempotencyKey.key == key,
+            IdempotencyKey.scope == scope,
+            IdempotencyKey.token_hash == token_hash,
         )
     ).first()
 
 
-def claim(*, session: Session, key: str, scope: str, token_hash: str) -> tuple[IdempotencyKey, bool]:
+def claim(
+    *, session: Session, key: str, scope: str, token_hash: str
+) -> tuple[IdempotencyKey, bool]:
     """Claim ``key`` for this request, or find the request that claimed it first.
 
     Commits (the claim must be visible to a concurrent twin before the work starts).

@@ -82,7 +82,9 @@ def create_uploaded_inspection(
     check_lights(capture.lights, label=capture.label, field="photometric.lights")
     if capture.plate_id != plate_id:
         raise InputError(
-            "capture.json", "plate_id", f"expected {plate_id!r} (the plate of the URL), got {capture.plate_id!r}"
+            "capture.json",
+            "plate_id",
+            f"expected {plate_id!r} (the plate of the URL), got {capture.plate_id!r}",
         )
     target_staging = staging_dir / "target"
     new_target_dir = None
@@ -93,7 +95,11 @@ def create_uploaded_inspection(
         plate_copy = storage.staging_copy(target_staging)
         try:
             target = create_target(
-                session=session, storage=storage, plate_id=plate_id, staging_dir=plate_copy, validated=validated
+                session=session,
+                storage=storage,
+                plate_id=plate_id,
+                staging_dir=plate_copy,
+                validated=validated,
             )
         except BaseException:
             storage.remove(plate_copy)
@@ -187,7 +193,9 @@ def create_simulated_inspection(
     )
     if target is None:
         row.tolerance_mm = float(simulation["tolerance_mm"])
-        row.target_radius_mm = None if simulation["shape"] == "plane" else simulation.get("radius_mm")
+        row.target_radius_mm = (
+            None if simulation["shape"] == "plane" else simulation.get("radius_mm")
+        )
     else:
         row.tolerance_mm, row.target_radius_mm = target.tolerance_mm, target.radius_mm
     session.add(row)
@@ -228,12 +236,19 @@ def simulation_specs(simulation: dict):
         shape=simulation["shape"],
         radius_mm=None if simulation.get("radius_mm") is None else float(simulation["radius_mm"]),
         convex=bool(simulation["convex"]),
-        dents=tuple(Dent(d["x_mm"], d["y_mm"], d["radius_mm"], d["depth_mm"]) for d in simulation["dents"]),
-        floor=None if floor_mm is None else Floor(
-            gap_mm=float(floor_mm), supports=rail_supports((3000.0, 3000.0), float(floor_mm), 3)),
+        dents=tuple(
+            Dent(d["x_mm"], d["y_mm"], d["radius_mm"], d["depth_mm"]) for d in simulation["dents"]
+        ),
+        floor=None
+        if floor_mm is None
+        else Floor(
+            gap_mm=float(floor_mm), supports=rail_supports((3000.0, 3000.0), float(floor_mm), 3)
+        ),
         cutouts=() if cutout_mm is None else (Cutout.circle(400.0, -300.0, float(cutout_mm)),),
     )
-    near = simulation.get("lights", "distant") == "near-field"  # rows from before point lights were distant
+    near = (
+        simulation.get("lights", "distant") == "near-field"
+    )  # rows from before point lights were distant
     capture = CaptureSpec(
         n_lights=int(simulation["n_lights"]),
         noise=float(simulation["noise"]),
@@ -272,7 +287,9 @@ def list_inspections(
     (inspections, total)
     """
     if limit < 1 or offset < 0:
-        raise ValueError(f"paging: expected limit >= 1 and offset >= 0, got limit={limit}, offset={offset}")
+        raise ValueError(
+            f"paging: expected limit >= 1 and offset >= 0, got limit={limit}, offset={offset}"
+        )
     where = []
     if plate_id is not None:
         where.append(Inspection.plate_id == plate_id)
@@ -280,7 +297,13 @@ def list_inspections(
         where.append(Inspection.status.in_(statuses))
     total = int(session.scalar(select(func.count()).select_from(Inspection).where(*where)) or 0)
     items = list(
-        session.scalars(select(Inspection).where(*where).order_by(Inspection.id.desc()).limit(limit).offset(offset))
+        session.scalars(
+            select(Inspection)
+            .where(*where)
+            .order_by(Inspection.id.desc())
+            .limit(limit)
+            .offset(offset)
+        )
     )
     return items, total
 
@@ -294,7 +317,9 @@ def artifact_names(*, storage: Storage, inspection: Inspection) -> list[str]:
 
 
 def count_by_status(*, session: Session) -> dict[str, int]:
-    rows = session.execute(select(Inspection.status, func.count()).group_by(Inspection.status)).all()
+    rows = session.execute(
+        select(Inspection.status, func.count()).group_by(Inspection.status)
+    ).all()
     return {status: int(n) for status, n in rows}
 
 
@@ -329,7 +354,11 @@ def _now(now: datetime | None) -> datetime:
 
 
 def _held_by(inspection_id: int, owner: str):
-    return (Inspection.id == inspection_id, Inspection.status == "running", Inspection.lease_owner == owner)
+    return (
+        Inspection.id == inspection_id,
+        Inspection.status == "running",
+        Inspection.lease_owner == owner,
+    )
 
 
 def _claimable(now: datetime):
@@ -380,7 +409,9 @@ def claim(
             status="running",
             lease_owner=owner or process_lease_owner(),
             lease_expires_at=now + timedelta(seconds=lease_s),
-            deaths=case((Inspection.status == "running", Inspection.deaths + 1), else_=Inspection.deaths),
+            deaths=case(
+                (Inspection.status == "running", Inspection.deaths + 1), else_=Inspection.deaths
+            ),
             started_at=now,
             finished_at=None,
             progress=0.0,
@@ -452,7 +483,9 @@ def mark_done(
     return res.rowcount == 1
 
 
-def mark_failed(*, session: Session, inspection_id: int, error: str, owner: str | None = None) -> bool:
+def mark_failed(
+    *, session: Session, inspection_id: int, error: str, owner: str | None = None
+) -> bool:
     """running -> failed with its message (verdict ``error``); the inputs stay on disk.
 
     Only while ``owner`` (default :func:`process_lease_owner`) holds the lease; returns whether it did.
@@ -461,7 +494,12 @@ def mark_failed(*, session: Session, inspection_id: int, error: str, owner: str 
         update(Inspection)
         .where(*_held_by(inspection_id, owner or process_lease_owner()))
         .values(
-            status="failed", verdict="error", error=error, finished_at=utcnow(), lease_owner=None, lease_expires_at=None
+            status="failed",
+            verdict="error",
+            error=error,
+            finished_at=utcnow(),
+            lease_owner=None,
+            lease_expires_at=None,
         )
     )
     return res.rowcount == 1
@@ -473,13 +511,19 @@ def release(*, session: Session, owner: str) -> list[int]:
     Not a worker death (the job did nothing wrong): ``deaths`` is unchanged. Returns their ids.
     """
     ids = list(
-        session.scalars(select(Inspection.id).where(Inspection.status == "running", Inspection.lease_owner == owner))
+        session.scalars(
+            select(Inspection.id).where(
+                Inspection.status == "running", Inspection.lease_owner == owner
+            )
+        )
     )
     for inspection_id in ids:
         session.execute(
             update(Inspection)
             .where(*_held_by(inspection_id, owner))
-            .values(status="queued", stage=None, progress=0.0, lease_owner=None, lease_expires_at=None)
+            .values(
+                status="queued", stage=None, progress=0.0, lease_owner=None, lease_expires_at=None
+            )
         )
     return ids
 
@@ -495,7 +539,9 @@ def expire_leases(*, session: Session, keep_owner: str, now: datetime | None = N
     where = (Inspection.status == "running", others)
     ids = list(session.scalars(select(Inspection.id).where(*where)))
     if ids:
-        session.execute(update(Inspection).where(Inspection.id.in_(ids), *where).values(lease_expires_at=now))
+        session.execute(
+            update(Inspection).where(Inspection.id.in_(ids), *where).values(lease_expires_at=now)
+        )
     return ids
 
 
@@ -532,8 +578,13 @@ def reclaim_expired(*, session: Session, now: datetime | None = None) -> Reclaim
         )
         cleared = dict(lease_owner=None, lease_expires_at=None, deaths=deaths + 1)
         if deaths + 1 >= MAX_WORKER_DEATHS:
-            values = dict(cleared, status="failed", verdict="error", finished_at=now,
-                          error=poison_reason(deaths + 1, stage))
+            values = dict(
+                cleared,
+                status="failed",
+                verdict="error",
+                finished_at=now,
+                error=poison_reason(deaths + 1, stage),
+            )
             target = set_aside
         else:
             values = dict(cleared, status="queued", queued_at=now, stage=None, progress=0.0)
@@ -547,10 +598,14 @@ def poison_reason(deaths: int, stage: str | None) -> str:
     """The error stored on a job set aside after ``deaths`` worker deaths."""
     times = {1: "once", 2: "twice"}.get(deaths, f"{deaths} times")
     last = f"last stage: {stage}" if stage else "no stage reported"
-    return f"set aside: the worker died {times} while running this job ({last}); its inputs are kept"
+    return (
+        f"set aside: the worker died {times} while running this job ({last}); its inputs are kept"
+    )
 
 
-def requeue_interrupted(*, session: Session, owner: str | None = None, now: datetime | None = None) -> Reclaimed:
+def requeue_interrupted(
+    *, session: Session, owner: str | None = None, now: datetime | None = None
+) -> Reclaimed:
     """Consumer start: every job left running belongs to a dead consumer; reclaim them.
 
     Call it only from the single consumer of an embedded queue, holding the consumer lock
@@ -566,4 +621,8 @@ def queued_ids(*, session: Session, queued_before: datetime | None = None) -> li
     where = [Inspection.status == "queued"]
     if queued_before is not None:
         where.append(Inspection.queued_at < queued_before)
-    return list(session.scalars(select(Inspection.id).where(*where).order_by(Inspection.queued_at, Inspection.id)))
+    return list(
+        session.scalars(
+            select(Inspection.id).where(*where).order_by(Inspection.queued_at, Inspection.id)
+        )
+    )

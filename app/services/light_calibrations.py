@@ -88,10 +88,14 @@ def create_light_calibration(
 
 
 def current_light_calibration(*, session: Session) -> LightCalibration | None:
-    return session.scalars(select(LightCalibration).order_by(LightCalibration.id.desc()).limit(1)).first()
+    return session.scalars(
+        select(LightCalibration).order_by(LightCalibration.id.desc()).limit(1)
+    ).first()
 
 
-def get_light_calibration(*, session: Session, light_calibration_id: int) -> LightCalibration | None:
+def get_light_calibration(
+    *, session: Session, light_calibration_id: int
+) -> LightCalibration | None:
     return session.get(LightCalibration, light_calibration_id)
 
 
@@ -101,7 +105,9 @@ def list_light_calibrations(*, session: Session, limit: int = 20) -> list[LightC
     )
 
 
-def light_calibration_for_capture(*, session: Session, capture: Capture | CaptureHeader) -> LightCalibration | None:
+def light_calibration_for_capture(
+    *, session: Session, capture: Capture | CaptureHeader
+) -> LightCalibration | None:
     """The light calibration an inspection of ``capture`` is run with: the current one, or None.
 
     None when no light calibration was uploaded, or when the capture gives point lights of its

@@ -51,7 +51,10 @@ def current_target(*, session: Session, plate_id: str) -> Target | None:
 
 def latest_inspection(*, session: Session, plate_id: str) -> Inspection | None:
     return session.scalars(
-        select(Inspection).where(Inspection.plate_id == plate_id).order_by(Inspection.id.desc()).limit(1)
+        select(Inspection)
+        .where(Inspection.plate_id == plate_id)
+        .order_by(Inspection.id.desc())
+        .limit(1)
     ).first()
 
 
@@ -60,7 +63,9 @@ def overview(*, session: Session, plate_id: str) -> PlateOverview | None:
     plate = session.get(Plate, plate_id)
     if plate is None:
         return None
-    count = session.scalar(select(func.count()).select_from(Inspection).where(Inspection.plate_id == plate_id))
+    count = session.scalar(
+        select(func.count()).select_from(Inspection).where(Inspection.plate_id == plate_id)
+    )
     return PlateOverview(
         plate=plate,
         inspection_count=int(count or 0),
@@ -69,7 +74,9 @@ def overview(*, session: Session, plate_id: str) -> PlateOverview | None:
     )
 
 
-def list_plates(*, session: Session, limit: int = 50, offset: int = 0) -> tuple[list[PlateOverview], int]:
+def list_plates(
+    *, session: Session, limit: int = 50, offset: int = 0
+) -> tuple[list[PlateOverview], int]:
     """Plates, the most recently inspected (or created) first, with their latest inspection.
 
     Returns
@@ -77,10 +84,14 @@ def list_plates(*, session: Session, limit: int = 50, offset: int = 0) -> tuple[
     (overviews, total)
     """
     if limit < 1 or offset < 0:
-        raise ValueError(f"paging: expected limit >= 1 and offset >= 0, got limit={limit}, offset={offset}")
+        raise ValueError(
+            f"paging: expected limit >= 1 and offset >= 0, got limit={limit}, offset={offset}"
+        )
     total = int(session.scalar(select(func.count()).select_from(Plate)) or 0)
     last = (
-        select(Inspection.plate_id, func.max(Inspection.id).label("last_id"), func.count().label("n"))
+        select(
+            Inspection.plate_id, func.max(Inspection.id).label("last_id"), func.count().label("n")
+        )
         .group_by(Inspection.plate_id)
         .subquery()
     )

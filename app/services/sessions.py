@@ -36,7 +36,9 @@ def well_formed(session_id: str) -> bool:
     return SESSION_ID_PATTERN.fullmatch(session_id) is not None
 
 
-def open_session(*, session: Session, token_hash: str, lifetime: timedelta, now: datetime | None = None) -> str:
+def open_session(
+    *, session: Session, token_hash: str, lifetime: timedelta, now: datetime | None = None
+) -> str:
     """Add a new session (not committed) and return its id, the cookie's value.
 
     Sessions that ended more than :data:`KEEP_ENDED` ago are deleted on the way.
@@ -54,7 +56,12 @@ def open_session(*, session: Session, token_hash: str, lifetime: timedelta, now:
     purge_ended(session=session, now=now)
     session_id = secrets.token_urlsafe(SESSION_ID_BYTES)
     session.add(
-        DashboardSession(id_hash=id_hash(session_id), token_hash=token_hash, created_at=now, expires_at=now + lifetime)
+        DashboardSession(
+            id_hash=id_hash(session_id),
+            token_hash=token_hash,
+            created_at=now,
+            expires_at=now + lifetime,
+        )
     )
     return session_id
 
@@ -67,7 +74,12 @@ def find_session(
         return None
     row = session.get(DashboardSession, id_hash(session_id))
     now = now or utcnow()
-    if row is None or row.revoked_at is not None or row.expires_at <= now or row.token_hash != token_hash:
+    if (
+        row is None
+        or row.revoked_at is not None
+        or row.expires_at <= now
+        or row.token_hash != token_hash
+    ):
         return None
     return row
 

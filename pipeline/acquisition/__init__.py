@@ -11,7 +11,12 @@ from .acquire import acquire, auto_exposure
 from .cameras import Camera, Frame, SimulatedCamera, SimulatedCell, open_camera
 from .config import CellConfig, load_cell_config
 from .demo import write_demo_cell
-from .lights import LightController, SimulatedLightController, TcpLightController, open_light_controller
+from .lights import (
+    LightController,
+    SimulatedLightController,
+    TcpLightController,
+    open_light_controller,
+)
 
 __all__ = [
     "AcquisitionError",

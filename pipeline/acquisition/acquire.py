@@ -33,7 +33,7 @@ from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import ExitStack
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 import cv2
@@ -89,7 +89,9 @@ class _Run:
         """Seconds since the acquisition started."""
         return time.monotonic() - self.t0
 
-    def keep(self, name: str, camera: Camera, frame: Frame, lighting: str | list[int], t_s: float) -> None:
+    def keep(
+        self, name: str, camera: Camera, frame: Frame, lighting: str | list[int], t_s: float
+    ) -> None:
         """Record a capture frame received ``t_s`` after the start, and queue it for writing as ``name``."""
         self.frames.append(
             {
@@ -125,7 +127,9 @@ def brightest_fraction(image: np.ndarray, bit_depth: int) -> float:
     return float(np.percentile(image[::2, ::2], BRIGHTEST_PERCENTILE)) / (2**bit_depth - 1)
 
 
-def auto_exposure(cameras: list[Camera], *, bit_depth: int, timeout_s: float, step: str) -> tuple[dict[str, float], int]:
+def auto_exposure(
+    cameras: list[Camera], *, bit_depth: int, timeout_s: float, step: str
+) -> tuple[dict[str, float], int]:
     """Pre-shots under the present lighting until each camera's brightest samples lie between
     :data:`EXPOSURE_FLOOR` and :data:`EXPOSURE_LIMIT` of full scale.
 
@@ -170,12 +174,15 @@ def auto_exposure(cameras: list[Camera], *, bit_depth: int, timeout_s: float, st
         for cam in metering:
             side, (lo, hi) = cam.side, bounds[cam.side]
             now = exposure[side]
-            p = brightest_fraction(cam.fetch(step=step, timeout_s=timeout_s + now * 1e-6).image, bit_depth)
+            p = brightest_fraction(
+                cam.fetch(step=step, timeout_s=timeout_s + now * 1e-6).image, bit_depth
+            )
             if EXPOSURE_FLOOR <= p <= EXPOSURE_LIMIT or (p < EXPOSURE_FLOOR and now >= hi):
                 continue
             if p > EXPOSURE_LIMIT and now <= lo:
                 raise AcquisitionError(
-                    cam.device, step,
+                    cam.device,
+                    step,
                     f"the brightest samples are at {100 * p:.0f} % of full scale even at the shortest exposure "
                     f"({lo:g} us): lower the gain or the lights",
                 )
@@ -183,8 +190,12 @@ def auto_exposure(cameras: list[Camera], *, bit_depth: int, timeout_s: float, st
                 too_dark[side] = max(too_dark[side], now)
             else:
                 too_bright[side] = min(too_bright[side], now)
-            proposal = now / SATURATED_CUT if p >= SATURATED else now * EXPOSURE_TARGET / max(p, 1e-3)
-            if not too_dark[side] < proposal < too_bright[side]:  # a camera that is not linear: bisect
+            proposal = (
+                now / SATURATED_CUT if p >= SATURATED else now * EXPOSURE_TARGET / max(p, 1e-3)
+            )
+            if (
+                not too_dark[side] < proposal < too_bright[side]
+            ):  # a camera that is not linear: bisect
                 proposal = float(np.sqrt(max(too_dark[side], lo) * min(too_bright[side], hi)))
             exposure[side] = float(np.clip(proposal, lo, hi))
             still.append(cam)
@@ -247,11 +258,19 @@ def acquire(
     if partial.exists():
         shutil.rmtree(partial)  # left by an acquisition that was killed
     partial.mkdir(parents=True)
-    started_at = datetime.now(timezone.utc)
+    started_at = datetime.now(UTC)
     try:
         with ExitStack() as stack:
             writer = stack.enter_context(ThreadPoolExecutor(max_workers=1))
-            run = _open(stack, config, plate_id, partial, writer, frame_timeout_s, progress or (lambda stage, f: None))
+            run = _open(
+                stack,
+                config,
+                plate_id,
+                partial,
+                writer,
+                frame_timeout_s,
+                progress or (lambda stage, f: None),
+            )
             record = _sequence(run)
             for done in run.writes:
                 done.result()
@@ -280,7 +299,9 @@ def _open(
     stack.callback(controller.close)
     cell = None
     if "simulated" in (config.left.driver, config.right.driver):
-        cell = SimulatedCell(config.rig, config.lights, config.working_distance_mm, controller, plate_id)
+        cell = SimulatedCell(
+            config.rig, config.lights, config.working_distance_mm, controller, plate_id
+        )
     cameras = {}
     for side, cam_config in (("left", config.left), ("right", config.right)):
         cameras[side] = open_camera(side, cam_config, cell=cell)
@@ -292,7 +313,8 @@ def _open(
         sw, sh = cam.sensor_size()
         if sw < width or sh < height:
             raise InputError(
-                str(config.calibration_path), "image_size",
+                str(config.calibration_path),
+                "image_size",
                 f"{width}x{height} px is larger than the {cam.device}'s sensor ({sw}x{sh} px): "
                 "a calibration of another camera?",
             )
@@ -302,7 +324,18 @@ def _open(
         _check_settings(cam, cam_config, config)
         cam.start()
     n_frames = config.lights.n + 3
-    return _Run(config, controller, left, right, folder, writer, timeout_s, progress, n_frames, PIXEL_FORMATS[pixel_format])
+    return _Run(
+        config,
+        controller,
+        left,
+        right,
+        folder,
+        writer,
+        timeout_s,
+        progress,
+        n_frames,
+        PIXEL_FORMATS[pixel_format],
+    )
 
 
 def _check_settings(cam: Camera, cam_config: CellCamera, config: CellConfig) -> None:
@@ -311,10 +344,13 @@ def _check_settings(cam: Camera, cam_config: CellCamera, config: CellConfig) -> 
     gain_bounds = cam.gain_bounds_db()
     if cam_config.gain_db is not None:
         if gain_bounds is None:
-            raise InputError(config.label, f"{field}.gain_db", f"the {cam.device} has no gain control")
+            raise InputError(
+                config.label, f"{field}.gain_db", f"the {cam.device} has no gain control"
+            )
         if not gain_bounds[0] <= cam_config.gain_db <= gain_bounds[1]:
             raise InputError(
-                config.label, f"{field}.gain_db",
+                config.label,
+                f"{field}.gain_db",
                 f"expected within the {cam.device}'s range {gain_bounds[0]:g}-{gain_bounds[1]:g} dB, got {cam_config.gain_db:g}",
             )
         cam.set_gain(cam_config.gain_db)
@@ -324,7 +360,8 @@ def _check_settings(cam: Camera, cam_config: CellCamera, config: CellConfig) -> 
         lo, hi = cam.exposure_bounds_us()
         if not lo <= cam_config.exposure_us <= hi:
             raise InputError(
-                config.label, f"{field}.exposure_us",
+                config.label,
+                f"{field}.exposure_us",
                 f"expected within the {cam.device}'s range {lo:g}-{hi:g} us, got {cam_config.exposure_us:g}",
             )
 
@@ -346,17 +383,28 @@ def _exposures(run: _Run) -> tuple[float, dict[str, float], dict[str, str]]:
     each camera's came from: the configuration, or auto-exposure pre-shots."""
     config, left, right = run.config, run.left, run.right
     stereo_light = run.controller.has_stereo_light
-    configured = {cam.side: cc.exposure_us for cam, cc in ((left, config.left), (right, config.right))}
-    source = {side: "configuration" if us is not None else "auto-exposure" for side, us in configured.items()}
+    configured = {
+        cam.side: cc.exposure_us for cam, cc in ((left, config.left), (right, config.right))
+    }
+    source = {
+        side: "configuration" if us is not None else "auto-exposure"
+        for side, us in configured.items()
+    }
     photometric = configured["left"]
     # all the lights together are as bright as one light at N times the exposure
-    stereo = {side: us if stereo_light else us / config.lights.n for side, us in configured.items() if us is not None}
+    stereo = {
+        side: us if stereo_light else us / config.lights.n
+        for side, us in configured.items()
+        if us is not None
+    }
     auto = [cam for cam in (left, right) if configured[cam.side] is None]
     if not auto:
         return photometric, stereo, source
     run.progress("auto-exposure", 0.0)
     meter = dict(bit_depth=run.bit_depth, timeout_s=run.timeout_s)
-    if not stereo_light:  # one metering under all lights: the left camera's serves its photometric frames too
+    if (
+        not stereo_light
+    ):  # one metering under all lights: the left camera's serves its photometric frames too
         step = "auto-exposure pre-shot, all photometric lights on"
         _all_lights(run, True, step=step)
         metered, shots = auto_exposure(auto, step=step, **meter)
@@ -428,7 +476,8 @@ def _sequence(run: _Run) -> dict:
     for cam in (left, right):
         cameras[cam.side] = cam.describe() | {
             "exposure_source": source[cam.side],
-            "exposure_us": {"photometric": photometric_us, "stereo": stereo_us["left"]} if cam is left
+            "exposure_us": {"photometric": photometric_us, "stereo": stereo_us["left"]}
+            if cam is left
             else {"stereo": stereo_us["right"]},
         }
     return {
@@ -437,7 +486,9 @@ def _sequence(run: _Run) -> dict:
         "config": config.path.name,
         "cameras": cameras,
         "light_controller": controller.describe(),
-        "stereo_lighting": "stereo light" if controller.has_stereo_light else "all photometric lights",
+        "stereo_lighting": "stereo light"
+        if controller.has_stereo_light
+        else "all photometric lights",
         "stereo_trigger": "together" if together else "back to back",
         "pre_shots": run.pre_shots,
         "sequence_s": round(sequence_s, 3),

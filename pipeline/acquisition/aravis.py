@@ -99,10 +99,17 @@ class AravisCamera(Camera):
             cam.set_pixel_format_from_string(pixel_format)
             self._format = cam.get_pixel_format_as_string()
         if self._format != pixel_format:
-            raise AcquisitionError(self.device, "setting the pixel format", f"asked for {pixel_format}, got {self._format}")
+            raise AcquisitionError(
+                self.device,
+                "setting the pixel format",
+                f"asked for {pixel_format}, got {self._format}",
+            )
         with self._errors("setting the region"):
             sw, sh = cam.get_sensor_size()
-            x_step, y_step = max(cam.get_x_offset_increment(), 1), max(cam.get_y_offset_increment(), 1)
+            x_step, y_step = (
+                max(cam.get_x_offset_increment(), 1),
+                max(cam.get_y_offset_increment(), 1),
+            )
             x, y = (sw - width) // 2 // x_step * x_step, (sh - height) // 2 // y_step * y_step
             cam.set_region(x, y, width, height)
             region = cam.get_region()
@@ -178,8 +185,14 @@ class AravisCamera(Camera):
             left_us = int((deadline - time.monotonic()) * 1e6)
             buffer = self._stream.timeout_pop_buffer(left_us) if left_us > 0 else None
             if buffer is None:
-                raise AcquisitionError(self.device, step, f"no frame within {timeout_s:.1f} s (camera gone or not triggered?)")
-            if not 0 < buffer.get_system_timestamp() < self._trigger_ns:  # 0: nothing received, a failed frame
+                raise AcquisitionError(
+                    self.device,
+                    step,
+                    f"no frame within {timeout_s:.1f} s (camera gone or not triggered?)",
+                )
+            if (
+                not 0 < buffer.get_system_timestamp() < self._trigger_ns
+            ):  # 0: nothing received, a failed frame
                 break
             self._stream.push_buffer(buffer)  # begun before the trigger: not this frame
         try:
@@ -194,25 +207,39 @@ class AravisCamera(Camera):
     def _frame(self, buffer, step: str) -> Frame:
         status = buffer.get_status()
         if status != self._Aravis.BufferStatus.SUCCESS:
-            raise AcquisitionError(self.device, step, f"incomplete frame (buffer status {status.value_nick})")
+            raise AcquisitionError(
+                self.device, step, f"incomplete frame (buffer status {status.value_nick})"
+            )
         if buffer.get_payload_type() not in (
             self._Aravis.BufferPayloadType.IMAGE,
             self._Aravis.BufferPayloadType.EXTENDED_CHUNK_DATA,
             self._Aravis.BufferPayloadType.CHUNK_DATA,
         ):
-            raise AcquisitionError(self.device, step, f"not an image (payload type {buffer.get_payload_type().value_nick})")
+            raise AcquisitionError(
+                self.device,
+                step,
+                f"not an image (payload type {buffer.get_payload_type().value_nick})",
+            )
         width, height = buffer.get_image_width(), buffer.get_image_height()
         if [width, height] != self._region[2:]:
-            raise AcquisitionError(self.device, step, f"a {width}x{height} px frame, expected {self._region[2]}x{self._region[3]}")
+            raise AcquisitionError(
+                self.device,
+                step,
+                f"a {width}x{height} px frame, expected {self._region[2]}x{self._region[3]}",
+            )
         eight = PIXEL_FORMATS[self._format] == 8
         dtype = np.dtype(np.uint8 if eight else "<u2")  # GenICam pixels are little-endian
         data = buffer.get_image_data()
         if len(data) != width * height * dtype.itemsize:
             raise AcquisitionError(
-                self.device, step, f"{len(data)} bytes of image data, expected {width}x{height} {self._format} pixels"
+                self.device,
+                step,
+                f"{len(data)} bytes of image data, expected {width}x{height} {self._format} pixels",
             )
         return Frame(
-            image=np.frombuffer(data, dtype=dtype).reshape(height, width).astype(np.uint8 if eight else np.uint16, copy=False),
+            image=np.frombuffer(data, dtype=dtype)
+            .reshape(height, width)
+            .astype(np.uint8 if eight else np.uint16, copy=False),
             device_timestamp_ns=int(buffer.get_timestamp()),
             frame_id=int(buffer.get_frame_id()),
         )
@@ -224,7 +251,11 @@ class AravisCamera(Camera):
             return {
                 "driver": "aravis",
                 "device_id": self.config.device_id,
-                "protocol": "GigE Vision" if cam.is_gv_device() else "USB3 Vision" if cam.is_uv_device() else "Aravis fake",
+                "protocol": "GigE Vision"
+                if cam.is_gv_device()
+                else "USB3 Vision"
+                if cam.is_uv_device()
+                else "Aravis fake",
                 "vendor": cam.get_vendor_name(),
                 "model": cam.get_model_name(),
                 "serial": cam.get_device_serial_number(),

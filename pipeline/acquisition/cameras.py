@@ -19,9 +19,9 @@ from typing import Literal
 
 import numpy as np
 
+from ..camera import StereoRig
 from ..formats import AcquisitionError, CellCamera
 from ..lights import Lights
-from ..camera import StereoRig
 from .lights import LightController
 
 Side = Literal["left", "right"]
@@ -170,7 +170,14 @@ class SimulatedCell:
         Seeds the plate's texture and the noise (the same plate id renders the same plate).
     """
 
-    def __init__(self, rig: StereoRig, lights: Lights, working_distance_mm: float, controller: LightController, plate_id: str):
+    def __init__(
+        self,
+        rig: StereoRig,
+        lights: Lights,
+        working_distance_mm: float,
+        controller: LightController,
+        plate_id: str,
+    ):
         from ..simulate import CaptureSpec, PlateSpec
 
         self.rig = rig
@@ -183,7 +190,10 @@ class SimulatedCell:
         self._radiance: dict[str, np.ndarray] = {}
         w, h = rig.image_size
         self._dark = {
-            side: (self.spec.dark_level + 0.001 * np.random.default_rng([self.seed, k]).standard_normal((h, w))).astype(np.float32)
+            side: (
+                self.spec.dark_level
+                + 0.001 * np.random.default_rng([self.seed, k]).standard_normal((h, w))
+            ).astype(np.float32)
             for k, side in enumerate(("left", "right"))
         }
 
@@ -197,10 +207,14 @@ class SimulatedCell:
             )
         return self._radiance[side]
 
-    def render(self, side: Side, lit: frozenset[int], *, exposure_us: float, gain_db: float, bit_depth: int) -> np.ndarray:
+    def render(
+        self, side: Side, lit: frozenset[int], *, exposure_us: float, gain_db: float, bit_depth: int
+    ) -> np.ndarray:
         """A frame of camera ``side`` with lights ``lit`` on: (H, W) uint8 (``bit_depth`` 8) or uint16."""
         radiance = self.radiance(side)
-        signal = radiance[sorted(lit)].sum(axis=0) if lit else np.zeros(radiance.shape[1:], np.float32)
+        signal = (
+            radiance[sorted(lit)].sum(axis=0) if lit else np.zeros(radiance.shape[1:], np.float32)
+        )
         scale = np.float32(exposure_us / SIMULATED_NOMINAL_EXPOSURE_US * 10 ** (gain_db / 20))
         noise = np.float32(self.spec.noise) * self._rng.standard_normal(signal.shape, np.float32)
         full = float(2**bit_depth - 1)
@@ -260,13 +274,19 @@ class SimulatedCamera(Camera):
 
     def trigger(self, *, step: str) -> None:
         controller = self.cell.controller
-        self._lit = frozenset(range(self.cell.lights.n)) if controller.stereo_lit else controller.lit
+        self._lit = (
+            frozenset(range(self.cell.lights.n)) if controller.stereo_lit else controller.lit
+        )
 
     def fetch(self, *, step: str, timeout_s: float) -> Frame:
         if self._lit is None:
             raise AcquisitionError(self.device, step, "fetched a frame that was not triggered")
         image = self.cell.render(
-            self.side, self._lit, exposure_us=self._exposure_us, gain_db=self._gain_db, bit_depth=PIXEL_FORMATS[self._format]
+            self.side,
+            self._lit,
+            exposure_us=self._exposure_us,
+            gain_db=self._gain_db,
+            bit_depth=PIXEL_FORMATS[self._format],
         )
         self._lit = None
         self._frames += 1

@@ -14,7 +14,13 @@ from pathlib import Path
 
 from ..camera import StereoRig
 from ..formats import CELL_CONFIG_FORMAT, CellCamera, CellConfigFile, CellLights, InputError
-from ..io import _check_light_positions, _validate, load_calibration, load_light_calibration, read_json
+from ..io import (
+    _check_light_positions,
+    _validate,
+    load_calibration,
+    load_light_calibration,
+    read_json,
+)
 from ..lights import Lights
 
 
@@ -90,7 +96,9 @@ def load_cell_config(path: str | os.PathLike) -> CellConfig:
     if isinstance(cfg.lights.lights, str):
         light_file = base / cfg.lights.lights
         if not light_file.is_file():
-            raise InputError(label, "lights.lights", f"{cfg.lights.lights!r}: file not found in {base}")
+            raise InputError(
+                label, "lights.lights", f"{cfg.lights.lights!r}: file not found in {base}"
+            )
         lights, _ = load_light_calibration(light_file)
         lights_label, lights_field = str(light_file), "lights"
     else:
@@ -99,7 +107,9 @@ def load_cell_config(path: str | os.PathLike) -> CellConfig:
     try:
         _check_light_positions(lights, rig, cfg.working_distance_mm, label=lights_label)
     except InputError as err:  # the check names a capture's field
-        raise InputError(lights_label, err.field.replace("photometric.lights", lights_field), err.reason) from None
+        raise InputError(
+            lights_label, err.field.replace("photometric.lights", lights_field), err.reason
+        ) from None
 
     return CellConfig(
         path=path,

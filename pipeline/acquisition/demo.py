@@ -50,7 +50,9 @@ def write_demo_cell(
     out.mkdir(parents=True, exist_ok=True)
     spec = CaptureSpec(n_lights=n_lights, near_field_mm=DEMO_LED_HEIGHT_MM, led_mu=1.0)
     lights = spec.lights(np.array([0.0, 0.0, working_distance_mm]), np.ones(n_lights))
-    (out / "calibration.json").write_text(json.dumps(calibration_document(default_rig(width=width, height=height)), indent=2) + "\n")
+    (out / "calibration.json").write_text(
+        json.dumps(calibration_document(default_rig(width=width, height=height)), indent=2) + "\n"
+    )
     cell = {
         "format": CELL_CONFIG_FORMAT,
         "cell_id": "demo",

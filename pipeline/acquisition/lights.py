@@ -119,11 +119,15 @@ class LightController(ABC):
 
     def _check_index(self, index: int, step: str) -> None:
         if not 0 <= index < self.n_lights:
-            raise AcquisitionError(self.device, step, f"no light {index}: the cell has lights 0-{self.n_lights - 1}")
+            raise AcquisitionError(
+                self.device, step, f"no light {index}: the cell has lights 0-{self.n_lights - 1}"
+            )
 
     def _check_stereo(self, step: str) -> None:
         if not self.has_stereo_light:
-            raise AcquisitionError(self.device, step, "the configuration names no stereo_on/stereo_off commands")
+            raise AcquisitionError(
+                self.device, step, "the configuration names no stereo_on/stereo_off commands"
+            )
 
 
 class SimulatedLightController(LightController):
@@ -170,7 +174,12 @@ class TcpLightController(LightController):
         super().__init__(n_lights, config.stereo_on is not None)
         self.address = config.address
         self.device = f"light controller {config.address}"
-        self._templates = {"on": config.on, "off": config.off, "stereo_on": config.stereo_on, "stereo_off": config.stereo_off}
+        self._templates = {
+            "on": config.on,
+            "off": config.off,
+            "stereo_on": config.stereo_on,
+            "stereo_off": config.stereo_off,
+        }
         self._command_timeout_s = command_timeout_s
         self._first_reply_s = first_reply_s
         self._replies: bool | None = None  # unknown until the first command
@@ -178,9 +187,13 @@ class TcpLightController(LightController):
         self._sent: set[str] = set()  # commands sent: a line that repeats one is an echo
         host, _, port = config.address.rpartition(":")
         try:
-            self._sock = socket.create_connection((host.strip("[]"), int(port)), timeout=connect_timeout_s)
+            self._sock = socket.create_connection(
+                (host.strip("[]"), int(port)), timeout=connect_timeout_s
+            )
         except TimeoutError:
-            raise AcquisitionError(self.device, "connecting", f"no connection within {connect_timeout_s:g} s") from None
+            raise AcquisitionError(
+                self.device, "connecting", f"no connection within {connect_timeout_s:g} s"
+            ) from None
         except OSError as exc:
             raise AcquisitionError(self.device, "connecting", exc.strerror or str(exc)) from None
         self._sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
@@ -206,9 +219,13 @@ class TcpLightController(LightController):
             self._sock.settimeout(self._command_timeout_s)
             self._sock.sendall(line.encode())
         except TimeoutError:
-            raise AcquisitionError(self.device, step, f"{sent!r} not taken within {self._command_timeout_s:g} s") from None
+            raise AcquisitionError(
+                self.device, step, f"{sent!r} not taken within {self._command_timeout_s:g} s"
+            ) from None
         except OSError as exc:
-            raise AcquisitionError(self.device, step, f"sending {sent!r}: {exc.strerror or exc}") from None
+            raise AcquisitionError(
+                self.device, step, f"sending {sent!r}: {exc.strerror or exc}"
+            ) from None
         self._sent.add(sent)
         if self._replies is False:
             return
@@ -244,9 +261,13 @@ class TcpLightController(LightController):
                 except (BlockingIOError, TimeoutError):
                     return None
                 except OSError as exc:
-                    raise AcquisitionError(self.device, step, f"reading the answer: {exc.strerror or exc}") from None
+                    raise AcquisitionError(
+                        self.device, step, f"reading the answer: {exc.strerror or exc}"
+                    ) from None
                 if not chunk:
-                    raise AcquisitionError(self.device, step, "the controller closed the connection")
+                    raise AcquisitionError(
+                        self.device, step, "the controller closed the connection"
+                    )
                 self._pending += chunk
             raw, self._pending = self._pending.split(b"\n", 1)
             line = raw.decode(errors="replace").strip()

@@ -19,7 +19,13 @@ target.ply), :mod:`~pipeline.artifacts.png` (deviation.png, normals.png), :mod:`
 from .colours import COLOUR_STOPS, NO_DATA_RGB, default_limit_mm, deviation_colormap
 from .depth import save_depth
 from .ply import write_surface_ply, write_target_ply
-from .png import MAX_PNG_HEIGHT, MAX_PNG_WIDTH, MIN_PNG_HEIGHT, write_deviation_png, write_normals_png
+from .png import (
+    MAX_PNG_HEIGHT,
+    MAX_PNG_WIDTH,
+    MIN_PNG_HEIGHT,
+    write_deviation_png,
+    write_normals_png,
+)
 
 #: File names of an inspection's artifacts in its output folder, keyed as ``plate-result/1``'s ``artifacts``.
 ARTIFACT_FILES = {

@@ -19,5 +19,9 @@ def check_mask(mask, shape) -> np.ndarray:
 
 def check_positive(name: str, value) -> None:
     """ValueError naming ``name`` unless ``value`` is a positive finite number."""
-    if not (isinstance(value, (int, float, np.floating, np.integer)) and math.isfinite(value) and value > 0):
+    if not (
+        isinstance(value, (int, float, np.floating, np.integer))
+        and math.isfinite(value)
+        and value > 0
+    ):
         raise ValueError(f"{name}: expected a positive finite number of mm, got {value!r}")

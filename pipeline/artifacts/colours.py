@@ -36,10 +36,16 @@ def deviation_colormap(deviation_mm, *, limit_mm: float) -> np.ndarray:
         ``limit_mm`` not a positive finite number; infinite deviations.
     """
     dev = np.asarray(deviation_mm, dtype=np.float64)
-    if not (isinstance(limit_mm, (int, float, np.floating, np.integer)) and math.isfinite(limit_mm) and limit_mm > 0):
+    if not (
+        isinstance(limit_mm, (int, float, np.floating, np.integer))
+        and math.isfinite(limit_mm)
+        and limit_mm > 0
+    ):
         raise ValueError(f"limit_mm: expected a positive finite number of mm, got {limit_mm!r}")
     if np.isinf(dev).any():
-        raise ValueError(f"deviation_mm: expected finite values or NaN, got {int(np.isinf(dev).sum())} infinite")
+        raise ValueError(
+            f"deviation_mm: expected finite values or NaN, got {int(np.isinf(dev).sum())} infinite"
+        )
     # a lookup table of _LUT_SIZE steps over [-limit, +limit] (finer than 8-bit colour can show), last entry = no data
     index = np.rint((dev / float(limit_mm) + 1.0) * (0.5 * (_LUT_SIZE - 1)))
     np.clip(index, 0, _LUT_SIZE - 1, out=index)

@@ -22,8 +22,12 @@ def save_depth(path, depth_mm) -> None:
     """
     depth = np.asarray(depth_mm)
     if depth.ndim != 2 or not np.issubdtype(depth.dtype, np.floating):
-        raise ValueError(f"depth_mm: expected a float array of shape (H, W), got {depth.dtype} {depth.shape}")
+        raise ValueError(
+            f"depth_mm: expected a float array of shape (H, W), got {depth.dtype} {depth.shape}"
+        )
     if np.isinf(depth).any():
-        raise ValueError(f"depth_mm: expected finite values or NaN, got {int(np.isinf(depth).sum())} infinite")
+        raise ValueError(
+            f"depth_mm: expected finite values or NaN, got {int(np.isinf(depth).sum())} infinite"
+        )
     with open(path, "wb") as fh:
         np.save(fh, depth.astype(np.float32), allow_pickle=False)

@@ -65,7 +65,9 @@ def write_surface_ply(
     mask = check_mask(mask, (h, w))
     dev = np.asarray(deviation_mm, dtype=np.float64)
     if dev.shape != (h, w):
-        raise ValueError(f"deviation_mm: expected shape {(h, w)} to match points_mm, got {dev.shape}")
+        raise ValueError(
+            f"deviation_mm: expected shape {(h, w)} to match points_mm, got {dev.shape}"
+        )
     if not (isinstance(max_vertices, (int, np.integer)) and max_vertices >= 3):
         raise ValueError(f"max_vertices: expected an integer >= 3, got {max_vertices!r}")
     if limit_mm is None:
@@ -104,7 +106,9 @@ def write_surface_ply(
     a, b = index[:-1, :-1][cell], index[:-1, 1:][cell]
     c, d = index[1:, :-1][cell], index[1:, 1:][cell]
     # (a, c, b) and (b, c, d): with x along columns and y along rows, the normal is -z (towards the cameras).
-    faces = np.stack([np.stack([a, c, b], axis=1), np.stack([b, c, d], axis=1)], axis=1).reshape(-1, 3)
+    faces = np.stack([np.stack([a, c, b], axis=1), np.stack([b, c, d], axis=1)], axis=1).reshape(
+        -1, 3
+    )
 
     vertices = pts[::stride, ::stride][used]
     vdev = dev[::stride, ::stride][used]
@@ -143,18 +147,31 @@ def write_target_ply(path, vertices_mm, faces, T_cam_target) -> None:
     if not np.all(np.isfinite(verts)):
         raise ValueError("vertices_mm: expected finite coordinates")
     faces = np.asarray(faces)
-    if faces.ndim != 2 or faces.shape[1] != 3 or faces.shape[0] == 0 or not np.issubdtype(faces.dtype, np.integer):
+    if (
+        faces.ndim != 2
+        or faces.shape[1] != 3
+        or faces.shape[0] == 0
+        or not np.issubdtype(faces.dtype, np.integer)
+    ):
         raise ValueError(
             f"faces: expected an integer array of shape (F, 3) with F > 0, got {faces.dtype} {faces.shape}"
         )
     if faces.min() < 0 or faces.max() >= verts.shape[0]:
-        raise ValueError(f"faces: expected indices in [0, {verts.shape[0] - 1}], got [{faces.min()}, {faces.max()}]")
+        raise ValueError(
+            f"faces: expected indices in [0, {verts.shape[0] - 1}], got [{faces.min()}, {faces.max()}]"
+        )
     T = np.asarray(T_cam_target, dtype=np.float64)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise ValueError(f"T_cam_target: expected a finite (4, 4) matrix, got shape {T.shape}")
     R = T[:3, :3]
-    if not np.allclose(T[3], [0, 0, 0, 1]) or not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) <= 0:
-        raise ValueError("T_cam_target: expected a rigid transform [[R, t], [0, 0, 0, 1]] with R a rotation")
+    if (
+        not np.allclose(T[3], [0, 0, 0, 1])
+        or not np.allclose(R @ R.T, np.eye(3), atol=1e-6)
+        or np.linalg.det(R) <= 0
+    ):
+        raise ValueError(
+            "T_cam_target: expected a rigid transform [[R, t], [0, 0, 0, 1]] with R a rotation"
+        )
     cam = verts @ R.T + T[:3, 3]
     comments = ["plate-inspect CAD target registered to the measurement: mm, left camera frame"]
     _write_ply(path, cam, faces, comments=comments)

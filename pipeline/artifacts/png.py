@@ -20,7 +20,9 @@ MAX_PNG_HEIGHT = 1080
 MAX_PNG_WIDTH = 4000
 
 
-def write_deviation_png(path, deviation_mm, mask, *, tolerance_mm: float, limit_mm: float | None = None) -> None:
+def write_deviation_png(
+    path, deviation_mm, mask, *, tolerance_mm: float, limit_mm: float | None = None
+) -> None:
     """Write the deviation map as an RGB PNG with a scale bar in mm and the tolerance marked.
 
     Parameters
@@ -94,7 +96,11 @@ def _scale_panel(height: int, *, limit_mm: float, tolerance_mm: float) -> np.nda
     top, bottom = 3 * text_px, height - 7 * text_px
     decimals = 2 if limit_mm < 1 else 1
 
-    ticks = {0.0: "0", limit_mm: f"{limit_mm:+.{decimals}f}", -limit_mm: f"{-limit_mm:+.{decimals}f}"}
+    ticks = {
+        0.0: "0",
+        limit_mm: f"{limit_mm:+.{decimals}f}",
+        -limit_mm: f"{-limit_mm:+.{decimals}f}",
+    }
     if abs(limit_mm / 2 - tolerance_mm) > 0.1 * limit_mm:
         ticks[limit_mm / 2] = f"{limit_mm / 2:+.{decimals}f}"
         ticks[-limit_mm / 2] = f"{-limit_mm / 2:+.{decimals}f}"
@@ -123,7 +129,9 @@ def _scale_panel(height: int, *, limit_mm: float, tolerance_mm: float) -> np.nda
 
     rows = np.arange(top, bottom + 1)
     values = limit_mm * (1 - 2 * (rows - top) / (bottom - top))  # +limit at the top
-    panel[top : bottom + 1, margin : margin + bar_w] = deviation_colormap(values, limit_mm=limit_mm)[:, None, :]
+    panel[top : bottom + 1, margin : margin + bar_w] = deviation_colormap(
+        values, limit_mm=limit_mm
+    )[:, None, :]
     black = (0, 0, 0)
     cv2.rectangle(panel, (margin, top), (margin + bar_w - 1, bottom), black, 1)
 
@@ -134,10 +142,24 @@ def _scale_panel(height: int, *, limit_mm: float, tolerance_mm: float) -> np.nda
         y = row_of(value)
         is_tol = text.endswith("tol")
         if is_tol:
-            cv2.line(panel, (margin - text_px // 3, y), (margin + bar_w + text_px // 3, y), black, max(2, thick + 1))
+            cv2.line(
+                panel,
+                (margin - text_px // 3, y),
+                (margin + bar_w + text_px // 3, y),
+                black,
+                max(2, thick + 1),
+            )
         else:
-            cv2.line(panel, (margin + bar_w - text_px // 2, y), (margin + bar_w + text_px // 4, y), black, 1)
-        cv2.putText(panel, text, (label_x, y + text_px // 2), font, scale, black, thick, cv2.LINE_AA)
+            cv2.line(
+                panel,
+                (margin + bar_w - text_px // 2, y),
+                (margin + bar_w + text_px // 4, y),
+                black,
+                1,
+            )
+        cv2.putText(
+            panel, text, (label_x, y + text_px // 2), font, scale, black, thick, cv2.LINE_AA
+        )
     cv2.putText(panel, title, (margin, top - text_px), font, scale, black, thick, cv2.LINE_AA)
     for i, text in enumerate(legend):
         y = bottom + round((i + 1.5) * 1.5 * text_px)
@@ -184,9 +206,13 @@ def write_normals_png(path, normals, mask) -> None:
     if n_bad:
         raise ValueError(f"normals: expected finite values inside the mask, got {n_bad} non-finite")
     if worst > 1e-3:
-        raise ValueError(f"normals: expected unit vectors inside the mask, got a length off by {worst:.3g}")
+        raise ValueError(
+            f"normals: expected unit vectors inside the mask, got a length off by {worst:.3g}"
+        )
     if not cv2.imwrite(str(path), bgr):
-        raise OSError(f"{path}: cannot write the image (is the suffix .png and the folder writable?)")
+        raise OSError(
+            f"{path}: cannot write the image (is the suffix .png and the folder writable?)"
+        )
 
 
 @numba.njit(cache=True)
@@ -221,4 +247,6 @@ def _encode_normals(n, mask, bgr):
 def _imwrite(path, rgb: np.ndarray) -> None:
     """Write an RGB image (OpenCV writes BGR); OSError naming the path when it cannot."""
     if not cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
-        raise OSError(f"{path}: cannot write the image (is the suffix .png and the folder writable?)")
+        raise OSError(
+            f"{path}: cannot write the image (is the suffix .png and the folder writable?)"
+        )

@@ -10,5 +10,18 @@ from .advice import Advice, AimSettings, FormingError, advise, curvature_band
 from .learning import Fit, Priors, fit
 from .records import FormingTarget, Machine, Material, PlateRecord, RollPass
 
-__all__ = ["Advice", "AimSettings", "Fit", "FormingError", "FormingTarget", "Machine", "Material", "PlateRecord",
-           "Priors", "RollPass", "advise", "curvature_band", "fit"]
+__all__ = [
+    "Advice",
+    "AimSettings",
+    "Fit",
+    "FormingError",
+    "FormingTarget",
+    "Machine",
+    "Material",
+    "PlateRecord",
+    "Priors",
+    "RollPass",
+    "advise",
+    "curvature_band",
+    "fit",
+]

@@ -39,8 +39,9 @@ under-bent; the second pass has the plate's own measurement.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
-from typing import Any, Literal, Mapping, Sequence
+from typing import Any, Literal
 
 import numpy as np
 from scipy import optimize
@@ -84,9 +85,13 @@ class AimSettings:
 
     def __post_init__(self) -> None:
         if not 0 < self.over_probability < 0.5:
-            raise ValueError(f"over_probability: expected a number in (0, 0.5), got {self.over_probability!r}")
+            raise ValueError(
+                f"over_probability: expected a number in (0, 0.5), got {self.over_probability!r}"
+            )
         if not 0 < self.first_pass_quantile < 0.5:
-            raise ValueError(f"first_pass_quantile: expected a number in (0, 0.5), got {self.first_pass_quantile!r}")
+            raise ValueError(
+                f"first_pass_quantile: expected a number in (0, 0.5), got {self.first_pass_quantile!r}"
+            )
         if not 0 < self.over_band <= 1:
             raise ValueError(f"over_band: expected a number in (0, 1], got {self.over_band!r}")
         if not (isinstance(self.min_rows, int) and self.min_rows >= 0):
@@ -159,10 +164,16 @@ def state_action(plate: PlateRecord) -> tuple[Action, str] | None:
         return None
     last = plate.passes[-1]
     if not last.inspected:
-        raise InputError("plate", f"passes[{len(plate.passes) - 1}].measured_radius_mm",
-                         "missing: inspect the plate after its latest pass before asking for the next")
-    k, kt, band = measured_curvature(plate, last.measured_radius_mm), target_curvature(plate.target), \
-        curvature_band(plate.target)
+        raise InputError(
+            "plate",
+            f"passes[{len(plate.passes) - 1}].measured_radius_mm",
+            "missing: inspect the plate after its latest pass before asking for the next",
+        )
+    k, kt, band = (
+        measured_curvature(plate, last.measured_radius_mm),
+        target_curvature(plate.target),
+        curvature_band(plate.target),
+    )
     if last.verdict == "pass":
         return "done", "the latest inspection passes"
     if last.verdict == "fail" and k > kt:
@@ -174,7 +185,9 @@ def state_action(plate: PlateRecord) -> tuple[Action, str] | None:
     return None
 
 
-def aim(fitted: Fit, plate: PlateRecord, machine: Machine, settings: AimSettings = AimSettings()) -> dict:
+def aim(
+    fitted: Fit, plate: PlateRecord, machine: Machine, settings: AimSettings = AimSettings()
+) -> dict:
     """The next displacement of a plate that needs bending (module docstring), with its prediction.
 
     Returns
@@ -197,8 +210,10 @@ def aim(fitted: Fit, plate: PlateRecord, machine: Machine, settings: AimSettings
     d_max = bender.max_displacement_mm(machine, t)
     factor = None
     if fitted.rows_per_plate.get(plate.plate_id, 0) == 0:
-        factor = max(fitted.priors.yield_factor_floor,
-                     fitted.yield_factor_quantile(plate.plate_id, settings.first_pass_quantile))
+        factor = max(
+            fitted.priors.yield_factor_floor,
+            fitted.yield_factor_quantile(plate.plate_id, settings.first_pass_quantile),
+        )
     predict = lambda d: fitted.predict(plate, machine.machine_id, d)  # noqa: E731
     predict_safe = lambda d: fitted.predict(plate, machine.machine_id, d, yield_factor=factor)  # noqa: E731
     warnings: list[str] = []
@@ -207,12 +222,16 @@ def aim(fitted: Fit, plate: PlateRecord, machine: Machine, settings: AimSettings
     d_lo = 1e-3
     if peak > 0:
         if predict(d_max).loaded_curvature <= peak:
-            raise FormingError(f"the plate was loaded beyond what {machine.machine_id} reaches at its deepest "
-                               f"setting ({d_max:.1f} mm)")
+            raise FormingError(
+                f"the plate was loaded beyond what {machine.machine_id} reaches at its deepest "
+                f"setting ({d_max:.1f} mm)"
+            )
         d_lo = optimize.brentq(lambda d: predict(d).loaded_curvature - peak, 1e-3, d_max, xtol=1e-4)
     if predict_safe(d_max).quantile(p_hi) < limit and predict(d_max).mean < kt:
-        raise FormingError(f"radius {target.radius_mm:g} mm needs more than {machine.machine_id}'s deepest setting "
-                           f"({d_max:.1f} mm, loaded radius {bender.min_loaded_radius_mm(machine, t):.0f} mm)")
+        raise FormingError(
+            f"radius {target.radius_mm:g} mm needs more than {machine.machine_id}'s deepest setting "
+            f"({d_max:.1f} mm, loaded radius {bender.min_loaded_radius_mm(machine, t):.0f} mm)"
+        )
     safe = lambda d: predict_safe(d).quantile(p_hi) - limit  # noqa: E731
     centre = lambda d: predict(d).mean - kt  # noqa: E731
     candidates = []
@@ -223,21 +242,40 @@ def aim(fitted: Fit, plate: PlateRecord, machine: Machine, settings: AimSettings
             candidates.append(optimize.brentq(g, d_lo, d_max, xtol=1e-3))
     d = min(candidates)
     if safe(d_lo) >= 0:
-        warnings.append("too uncertain to bend further safely: the advice repeats the deepest setting so far; "
-                        "inspect again")
-    return {"displacement_mm": float(d), "prediction": predict(d), "safe_prediction": predict_safe(d),
-            "yield_factor": factor, "warnings": warnings}
+        warnings.append(
+            "too uncertain to bend further safely: the advice repeats the deepest setting so far; "
+            "inspect again"
+        )
+    return {
+        "displacement_mm": float(d),
+        "prediction": predict(d),
+        "safe_prediction": predict_safe(d),
+        "yield_factor": factor,
+        "warnings": warnings,
+    }
 
 
-def _history_for(plate: PlateRecord, machine_id: str, history: Sequence[PlateRecord], limit: int) -> list[PlateRecord]:
-    used = [h for h in history if h.plate_id != plate.plate_id
-            and any(q.inspected and q.machine_id == machine_id for q in h.passes)]
+def _history_for(
+    plate: PlateRecord, machine_id: str, history: Sequence[PlateRecord], limit: int
+) -> list[PlateRecord]:
+    used = [
+        h
+        for h in history
+        if h.plate_id != plate.plate_id
+        and any(q.inspected and q.machine_id == machine_id for q in h.passes)
+    ]
     return used[-limit:] if limit else []
 
 
-def advise(plate: PlateRecord, machines: Mapping[str, Machine], *, history: Sequence[PlateRecord] = (),
-           machine_id: str | None = None, priors: Priors = Priors(),
-           settings: AimSettings = AimSettings()) -> Advice:
+def advise(
+    plate: PlateRecord,
+    machines: Mapping[str, Machine],
+    *,
+    history: Sequence[PlateRecord] = (),
+    machine_id: str | None = None,
+    priors: Priors = Priors(),
+    settings: AimSettings = AimSettings(),
+) -> Advice:
     """Advice for a plate's next step: done, reverse, or bend with the next top-roll displacement.
 
     Parameters
@@ -267,17 +305,27 @@ def advise(plate: PlateRecord, machines: Mapping[str, Machine], *, history: Sequ
     """
     if machine_id is None:
         if not plate.passes:
-            raise InputError("advice", "machine_id", "missing: a plate without passes needs the machine of its "
-                             "first pass")
+            raise InputError(
+                "advice",
+                "machine_id",
+                "missing: a plate without passes needs the machine of its first pass",
+            )
         machine_id = plate.passes[-1].machine_id
     for name in {machine_id} | {q.machine_id for q in plate.passes}:
         if name not in machines:
-            raise InputError("advice", "machine_id", f"unknown machine {name!r} (known: {', '.join(sorted(machines))})")
+            raise InputError(
+                "advice",
+                "machine_id",
+                f"unknown machine {name!r} (known: {', '.join(sorted(machines))})",
+            )
     target = plate.target
     kt, band = target_curvature(target), curvature_band(target)
     basis: dict[str, Any] = {
         "target_radius_mm": target.radius_mm,
-        "tolerance_band_radius_mm": [_surface_radius(target, kt + band), _surface_radius(target, kt - band)],
+        "tolerance_band_radius_mm": [
+            _surface_radius(target, kt + band),
+            _surface_radius(target, kt - band),
+        ],
         "measured_radius_mm": plate.passes[-1].measured_radius_mm if plate.passes else None,
     }
     decided = state_action(plate)
@@ -293,24 +341,38 @@ def advise(plate: PlateRecord, machines: Mapping[str, Machine], *, history: Sequ
     k_lo, k_hi = pred.quantile(0.025), pred.quantile(0.975)
     basis.update(_data_basis(plate, known, machine_id, fitted, settings))
     if len(known) < len(others):
-        basis["warnings"].append(f"{len(others) - len(known)} plates of the history left out: they passed through "
-                                 "machines not given")
+        basis["warnings"].append(
+            f"{len(others) - len(known)} plates of the history left out: they passed through "
+            "machines not given"
+        )
     basis["aim"] = {
         "loaded_radius_mm": _surface_radius(target, pred.loaded_curvature),
         "probability_over_band": aimed["safe_prediction"].probability_above(kt + band),
-        "probability_within_band": pred.probability_above(kt - band) - pred.probability_above(kt + band),
+        "probability_within_band": pred.probability_above(kt - band)
+        - pred.probability_above(kt + band),
         "over_probability": settings.over_probability,
         "over_band": settings.over_band,
         "yield_factor_aimed": aimed["yield_factor"],
     }
     basis["warnings"] = basis["warnings"] + aimed["warnings"]
     basis["reason"] = "first pass" if not plate.passes else "the latest inspection is under-bent"
-    return Advice("bend", machine_id, aimed["displacement_mm"], _surface_radius(target, pred.mean),
-                  (_surface_radius(target, k_hi), _surface_radius(target, k_lo)), basis)
+    return Advice(
+        "bend",
+        machine_id,
+        aimed["displacement_mm"],
+        _surface_radius(target, pred.mean),
+        (_surface_radius(target, k_hi), _surface_radius(target, k_lo)),
+        basis,
+    )
 
 
-def _data_basis(plate: PlateRecord, others: Sequence[PlateRecord], machine_id: str, fitted: Fit,
-                settings: AimSettings) -> dict[str, Any]:
+def _data_basis(
+    plate: PlateRecord,
+    others: Sequence[PlateRecord],
+    machine_id: str,
+    fitted: Fit,
+    settings: AimSettings,
+) -> dict[str, Any]:
     rows = fitted.rows_per_plate
     own = rows.get(plate.plate_id, 0)
     same = [h for h in others if h.group == plate.group]
@@ -319,12 +381,20 @@ def _data_basis(plate: PlateRecord, others: Sequence[PlateRecord], machine_id: s
     warnings = []
     if own == 0 and machine_rows == 0:
         data = "nominal only: no history"
-        warnings.append("no inspected pass of this plate or of this machine: the advice rests on the nominal "
-                        "model and its priors; expect an under-bent plate and a correction pass")
+        warnings.append(
+            "no inspected pass of this plate or of this machine: the advice rests on the nominal "
+            "model and its priors; expect an under-bent plate and a correction pass"
+        )
     elif own == 0 and group_rows < settings.min_rows:
-        data = "machine history only" if group_rows == 0 else "little history of this grade and thickness"
-        warnings.append(f"{group_rows} inspected passes of {plate.group[0]} {plate.group[1]:g} mm on {machine_id}: "
-                        "its yield is mostly the prior's; expect a correction pass")
+        data = (
+            "machine history only"
+            if group_rows == 0
+            else "little history of this grade and thickness"
+        )
+        warnings.append(
+            f"{group_rows} inspected passes of {plate.group[0]} {plate.group[1]:g} mm on {machine_id}: "
+            "its yield is mostly the prior's; expect a correction pass"
+        )
     elif own == 0:
         data = "history of this machine, grade and thickness"
     else:

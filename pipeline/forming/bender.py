@@ -54,7 +54,9 @@ from .records import Machine
 
 def _check_thickness(thickness_mm) -> None:
     if not np.all(np.isfinite(thickness_mm)) or np.any(np.asarray(thickness_mm) <= 0):
-        raise ValueError(f"thickness_mm: expected a positive finite thickness, got {thickness_mm!r}")
+        raise ValueError(
+            f"thickness_mm: expected a positive finite thickness, got {thickness_mm!r}"
+        )
 
 
 def loaded_radius_mm(displacement_mm, machine: Machine, thickness_mm: float):
@@ -81,8 +83,10 @@ def loaded_radius_mm(displacement_mm, machine: Machine, thickness_mm: float):
     d = np.asarray(displacement_mm, dtype=np.float64)
     d_max = max_displacement_mm(machine, thickness_mm)
     if not np.all(np.isfinite(d)) or np.any(d <= 0) or np.any(d > d_max * (1 + 1e-12)):
-        raise ValueError(f"displacement_mm: expected displacements in (0, {d_max:.1f}] mm for this machine "
-                         f"and thickness, got {displacement_mm!r}")
+        raise ValueError(
+            f"displacement_mm: expected displacements in (0, {d_max:.1f}] mm for this machine "
+            f"and thickness, got {displacement_mm!r}"
+        )
     a = machine.half_span_mm
     r = (a * a + d * d) / (2 * d) - machine.bottom_roll_radius_mm - 0.5 * thickness_mm
     return float(r) if r.ndim == 0 else r
@@ -112,8 +116,10 @@ def displacement_for_radius_mm(radius_mm, machine: Machine, thickness_mm: float)
     r = np.asarray(radius_mm, dtype=np.float64)
     r_min = min_loaded_radius_mm(machine, thickness_mm)
     if np.any(np.isnan(r)) or np.any(r < r_min * (1 - 1e-12)):
-        raise ValueError(f"radius_mm: expected loaded radii of at least {r_min:.1f} mm on this machine, "
-                         f"got {radius_mm!r}")
+        raise ValueError(
+            f"radius_mm: expected loaded radii of at least {r_min:.1f} mm on this machine, "
+            f"got {radius_mm!r}"
+        )
     a = machine.half_span_mm
     with np.errstate(invalid="ignore"):
         rho = r + 0.5 * thickness_mm + machine.bottom_roll_radius_mm
@@ -159,6 +165,9 @@ def roll_force_n(moment_nmm, radius_mm, machine: Machine, thickness_mm: float):
     rho = r + 0.5 * thickness_mm + machine.bottom_roll_radius_mm
     with np.errstate(invalid="ignore", divide="ignore"):
         # 2 M / (R tan phi) = 2 M sqrt(rho^2 - a^2) / (R a); -> 2 M / a * (rho / R) as R -> inf (M -> 0 there)
-        f = np.where(np.isinf(r), 0.0, 2.0 * np.asarray(moment_nmm) * np.sqrt(np.maximum(rho * rho - a * a, 0.0))
-                     / (r * a))
+        f = np.where(
+            np.isinf(r),
+            0.0,
+            2.0 * np.asarray(moment_nmm) * np.sqrt(np.maximum(rho * rho - a * a, 0.0)) / (r * a),
+        )
     return float(f) if f.ndim == 0 else f

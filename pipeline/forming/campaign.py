@@ -15,8 +15,8 @@ Used by the tests and by ``benchmarks/bench_forming.py``.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import numpy as np
 
@@ -89,9 +89,16 @@ class PlateOutcome:
     advice: list = field(default_factory=list)
 
 
-def random_batch(n: int, rng: np.random.Generator, *, radii_mm: tuple[float, float] = (3000.0, 15000.0),
-                 thicknesses_mm: Sequence[float] = THICKNESSES_MM, grades=GRADES,
-                 yield_factors: tuple[float, float] = (1.05, 1.35), prefix: str = "P") -> list[SimPlate]:
+def random_batch(
+    n: int,
+    rng: np.random.Generator,
+    *,
+    radii_mm: tuple[float, float] = (3000.0, 15000.0),
+    thicknesses_mm: Sequence[float] = THICKNESSES_MM,
+    grades=GRADES,
+    yield_factors: tuple[float, float] = (1.05, 1.35),
+    prefix: str = "P",
+) -> list[SimPlate]:
     """``n`` plates of random radius (log-uniform), thickness, grade, size and hidden yield factor.
 
     Sizes: width across the bend 2.5-3.5 m, length along the rolls 2-10 m; tolerance 2 mm.
@@ -101,9 +108,18 @@ def random_batch(n: int, rng: np.random.Generator, *, radii_mm: tuple[float, flo
         grade, yield_mpa = grades[rng.integers(len(grades))]
         t = float(thicknesses_mm[rng.integers(len(thicknesses_mm))])
         radius = float(math.exp(rng.uniform(math.log(radii_mm[0]), math.log(radii_mm[1]))))
-        target = FormingTarget(round(radius, -1), 2.0, float(rng.uniform(2500, 3500)), float(rng.uniform(2000, 10000)),
-                               Material(grade, t, yield_mpa))
-        out.append(SimPlate(PlateRecord(f"{prefix}{i + 1:03d}", target), float(rng.uniform(*yield_factors))))
+        target = FormingTarget(
+            round(radius, -1),
+            2.0,
+            float(rng.uniform(2500, 3500)),
+            float(rng.uniform(2000, 10000)),
+            Material(grade, t, yield_mpa),
+        )
+        out.append(
+            SimPlate(
+                PlateRecord(f"{prefix}{i + 1:03d}", target), float(rng.uniform(*yield_factors))
+            )
+        )
     return out
 
 
@@ -119,7 +135,9 @@ class _TruePlate:
         """Roll one pass; returns the true mid-surface curvature after it."""
         f = self.plate.yield_factor * (1.0 + self.physics.yield_scatter * rng.standard_normal())
         d = displacement_mm + self.physics.displacement_scatter_mm * rng.standard_normal()
-        k = float(self.setup.loaded_curvature(np.array([d]), f, self.physics.compliance_mm_per_mn)[0])
+        k = float(
+            self.setup.loaded_curvature(np.array([d]), f, self.physics.compliance_mm_per_mn)[0]
+        )
         if k > self.peak:
             self.peak, self.peak_factor = k, f
         return self.curvature()
@@ -128,21 +146,33 @@ class _TruePlate:
         return float(self.setup.unloaded_curvature(np.array([self.peak]), self.peak_factor)[0])
 
 
-def inspect(plate: PlateRecord, curvature: float, physics: TruePhysics, rng: np.random.Generator) -> tuple[float, str]:
+def inspect(
+    plate: PlateRecord, curvature: float, physics: TruePhysics, rng: np.random.Generator
+) -> tuple[float, str]:
     """A simulated inspection of a plate of true mid-surface curvature: (measured radius, verdict)."""
     target = plate.target
     if curvature <= 0:
         radius = math.inf
     else:
-        radius = target.surface_radius_mm(1.0 / curvature) * (1.0 + physics.radius_noise * rng.standard_normal())
+        radius = target.surface_radius_mm(1.0 / curvature) * (
+            1.0 + physics.radius_noise * rng.standard_normal()
+        )
     k_meas = 0.0 if math.isinf(radius) else 1.0 / target.mid_radius_mm(radius)
     ok = abs(k_meas - target_curvature(target)) <= physics.verdict_band * curvature_band(target)
     return radius, "pass" if ok else "fail"
 
 
-def run_campaign(plates: Sequence[SimPlate], machine: Machine, physics: TruePhysics, rng: np.random.Generator, *,
-                 learning: bool = True, max_passes: int = 6, priors: Priors = Priors(),
-                 settings: AimSettings = AimSettings()) -> list[PlateOutcome]:
+def run_campaign(
+    plates: Sequence[SimPlate],
+    machine: Machine,
+    physics: TruePhysics,
+    rng: np.random.Generator,
+    *,
+    learning: bool = True,
+    max_passes: int = 6,
+    priors: Priors = Priors(),
+    settings: AimSettings = AimSettings(),
+) -> list[PlateOutcome]:
     """Roll the plates one after the other on ``machine``, each pass as advised, until done or reverse.
 
     Parameters
@@ -169,11 +199,19 @@ def run_campaign(plates: Sequence[SimPlate], machine: Machine, physics: TruePhys
     out = []
     for sim in plates:
         record, truth = sim.record, _TruePlate(sim, machine, physics)
-        band_hi = target_curvature(record.target) + physics.verdict_band * curvature_band(record.target)
+        band_hi = target_curvature(record.target) + physics.verdict_band * curvature_band(
+            record.target
+        )
         over, final, given = False, "stopped", []
         while True:
-            advice = advise(record, machines, history=finished if learning else (), machine_id=machine.machine_id,
-                            priors=priors, settings=settings)
+            advice = advise(
+                record,
+                machines,
+                history=finished if learning else (),
+                machine_id=machine.machine_id,
+                priors=priors,
+                settings=settings,
+            )
             given.append(advice.to_dict())
             if advice.action != "bend":
                 final = advice.action
@@ -183,7 +221,9 @@ def run_campaign(plates: Sequence[SimPlate], machine: Machine, physics: TruePhys
             k = truth.roll(advice.top_roll_displacement_mm, rng)
             over |= k > band_hi
             radius, verdict = inspect(record, k, physics, rng)
-            record = record.with_pass(RollPass(machine.machine_id, advice.top_roll_displacement_mm, radius, verdict))
+            record = record.with_pass(
+                RollPass(machine.machine_id, advice.top_roll_displacement_mm, radius, verdict)
+            )
         finished.append(record)
         out.append(PlateOutcome(record.plate_id, len(record.passes), final, over, record, given))
     return out

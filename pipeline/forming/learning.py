@@ -36,8 +36,8 @@ no history of its own gets its group's distribution; a group with no plates gets
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Mapping, Sequence
 
 import numpy as np
 from scipy import optimize, stats
@@ -94,15 +94,29 @@ class Priors:
     max_plates: int = 40
 
     def __post_init__(self) -> None:
-        for name in ("yield_factor", "yield_factor_sd", "yield_factor_floor", "plate_spread", "plate_spread_weight",
-                     "compliance_sd_mm_per_mn", "scatter_mm", "scatter_weight", "radius_noise", "sagitta_noise_mm"):
+        for name in (
+            "yield_factor",
+            "yield_factor_sd",
+            "yield_factor_floor",
+            "plate_spread",
+            "plate_spread_weight",
+            "compliance_sd_mm_per_mn",
+            "scatter_mm",
+            "scatter_weight",
+            "radius_noise",
+            "sagitta_noise_mm",
+        ):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"{name}: expected a positive finite number, got {v!r}")
         if not np.isfinite(self.compliance_mm_per_mn):
-            raise ValueError(f"compliance_mm_per_mn: expected a finite number, got {self.compliance_mm_per_mn!r}")
+            raise ValueError(
+                f"compliance_mm_per_mn: expected a finite number, got {self.compliance_mm_per_mn!r}"
+            )
         if not (isinstance(self.max_plates, int) and self.max_plates >= 0):
-            raise ValueError(f"max_plates: expected a non-negative integer, got {self.max_plates!r}")
+            raise ValueError(
+                f"max_plates: expected a non-negative integer, got {self.max_plates!r}"
+            )
 
 
 @dataclass(frozen=True)
@@ -188,18 +202,32 @@ class Fit:
         i = self._index(kind, key)
         return float(self.mean[i]), float(np.sqrt(max(self.cov[i, i], 0.0)))
 
-    def curvatures(self, plate: PlateRecord, theta: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def curvatures(
+        self, plate: PlateRecord, theta: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Loaded and unloaded curvature after each of the plate's passes at the fitted parameters (or ``theta``).
 
         ``plate`` (its id) must be in the fit, and its passes' machines.
         """
         th = self.mean if theta is None else theta
-        comp = {m: float(th[self._index("machine", m)]) for m in {p.machine_id for p in plate.passes}}
-        return plate_curvatures(plate, self.machines, yield_factor=float(th[self._index("plate", plate.plate_id)]),
-                                compliance_mm_per_mn=comp)
+        comp = {
+            m: float(th[self._index("machine", m)]) for m in {p.machine_id for p in plate.passes}
+        }
+        return plate_curvatures(
+            plate,
+            self.machines,
+            yield_factor=float(th[self._index("plate", plate.plate_id)]),
+            compliance_mm_per_mn=comp,
+        )
 
-    def predict(self, plate: PlateRecord, machine_id: str, displacement_mm: float, *,
-                yield_factor: float | None = None) -> Prediction:
+    def predict(
+        self,
+        plate: PlateRecord,
+        machine_id: str,
+        displacement_mm: float,
+        *,
+        yield_factor: float | None = None,
+    ) -> Prediction:
         """Distribution of the plate's curvature after one more pass (``plate`` must be in the fit).
 
         The parameters' uncertainty is propagated to first order (numerical gradient), the new pass adds
@@ -238,7 +266,9 @@ class Fit:
             grad[j] = (model(th)[1] - mean) / step
         var_par = max(float(grad @ cov[np.ix_(idx, idx)] @ grad), 0.0)
         g_d = (model(theta, _H_D)[1] - mean) / _H_D
-        var = var_par + (g_d * self.scatter_mm) ** 2 + _inspection_variance(mean, plate, self.priors)
+        var = (
+            var_par + (g_d * self.scatter_mm) ** 2 + _inspection_variance(mean, plate, self.priors)
+        )
         own = self.rows_per_plate.get(plate.plate_id, 0) > 0 or yield_factor is not None
         dof = self.scatter_dof if own else min(self.scatter_dof, self.spread_dof)
         return Prediction(k_loaded, mean, float(np.sqrt(var)), dof)
@@ -270,8 +300,13 @@ def _inspection_variance(curvature: float, plate: PlateRecord, priors: Priors) -
     return (priors.radius_noise * curvature) ** 2 + (8.0 * priors.sagitta_noise_mm / (w * w)) ** 2
 
 
-def fit(plates: Sequence[PlateRecord], machines: Mapping[str, Machine], priors: Priors = Priors(), *,
-        also_machines: Sequence[str] = ()) -> Fit:
+def fit(
+    plates: Sequence[PlateRecord],
+    machines: Mapping[str, Machine],
+    priors: Priors = Priors(),
+    *,
+    also_machines: Sequence[str] = (),
+) -> Fit:
     """Fit compliances, group yield factors and plate yield factors to the plates' inspected passes.
 
     Parameters
@@ -300,10 +335,17 @@ def fit(plates: Sequence[PlateRecord], machines: Mapping[str, Machine], priors: 
     pass_plate, pass_machine, d, setup, starts = _pass_rows(plates, machines, machine_ids)
     plate_group = np.array([M + groups.index(p.group) for p in plates], dtype=int)
 
-    x0 = np.concatenate([np.full(M, priors.compliance_mm_per_mn), np.full(G, priors.yield_factor),
-                         np.full(P, priors.yield_factor)])
+    x0 = np.concatenate(
+        [
+            np.full(M, priors.compliance_mm_per_mn),
+            np.full(G, priors.yield_factor),
+            np.full(P, priors.yield_factor),
+        ]
+    )
 
-    def curvatures(theta: np.ndarray, d_shift: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def curvatures(
+        theta: np.ndarray, d_shift: float = 0.0
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Each pass's loaded curvature, the largest so far, the curvature after it."""
         f = theta[M + G + pass_plate]
         kl = setup.loaded_curvature(d + d_shift, f, theta[pass_machine])
@@ -312,9 +354,12 @@ def fit(plates: Sequence[PlateRecord], machines: Mapping[str, Machine], priors: 
 
     # states: the passes after which an inspection saw a new shape (nominal parameters decide which pass
     # raised the peak), with the mean of their inspections
-    state_pass, state_obs, state_n, state_plate = _inspected_states(plates, starts, curvatures(x0)[0])
-    meas_var = np.array([_inspection_variance(k, plates[i], priors) for k, i in zip(state_obs, state_plate)]) / \
-        np.maximum(state_n, 1)
+    state_pass, state_obs, state_n, state_plate = _inspected_states(
+        plates, starts, curvatures(x0)[0]
+    )
+    meas_var = np.array(
+        [_inspection_variance(k, plates[i], priors) for k, i in zip(state_obs, state_plate)]
+    ) / np.maximum(state_n, 1)
     n_rows = len(state_pass)
     plates_with_rows = np.unique(state_plate)
     dof_rows = max(n_rows - len(plates_with_rows), 0)
@@ -325,13 +370,22 @@ def fit(plates: Sequence[PlateRecord], machines: Mapping[str, Machine], priors: 
         ku = curvatures(theta)[2]
         g = (curvatures(theta, _H_D)[2] - ku)[state_pass] / _H_D
         sd_row = np.sqrt(meas_var + (g * scatter) ** 2)
-        prior_sd = np.concatenate([np.full(M, priors.compliance_sd_mm_per_mn), np.full(G, priors.yield_factor_sd)])
-        prior_mu = np.concatenate([np.full(M, priors.compliance_mm_per_mn), np.full(G, priors.yield_factor)])
+        prior_sd = np.concatenate(
+            [np.full(M, priors.compliance_sd_mm_per_mn), np.full(G, priors.yield_factor_sd)]
+        )
+        prior_mu = np.concatenate(
+            [np.full(M, priors.compliance_mm_per_mn), np.full(G, priors.yield_factor)]
+        )
 
         def residuals(th: np.ndarray) -> np.ndarray:
             k = curvatures(th)[2]
-            return np.concatenate([(k[state_pass] - state_obs) / sd_row, (th[:M + G] - prior_mu) / prior_sd,
-                                   (th[M + G:] - th[plate_group]) / spread])
+            return np.concatenate(
+                [
+                    (k[state_pass] - state_obs) / sd_row,
+                    (th[: M + G] - prior_mu) / prior_sd,
+                    (th[M + G :] - th[plate_group]) / spread,
+                ]
+            )
 
         def jacobian(th: np.ndarray) -> np.ndarray:
             J = np.zeros((n_rows + M + G + P, M + G + P))
@@ -341,7 +395,7 @@ def fit(plates: Sequence[PlateRecord], machines: Mapping[str, Machine], priors: 
                 t2[m] += _H_C
                 J[:n_rows, m] = (curvatures(t2)[2] - k)[state_pass] / _H_C / sd_row
             t2 = th.copy()
-            t2[M + G:] += _H_F
+            t2[M + G :] += _H_F
             dk = (curvatures(t2)[2] - k)[state_pass] / _H_F / sd_row
             J[np.arange(n_rows), M + G + state_plate] = dk
             J[n_rows + np.arange(M + G), np.arange(M + G)] = 1.0 / prior_sd
@@ -349,9 +403,17 @@ def fit(plates: Sequence[PlateRecord], machines: Mapping[str, Machine], priors: 
             J[n_rows + M + G + np.arange(P), plate_group] = -1.0 / spread
             return J
 
-        sol = optimize.least_squares(residuals, theta, jac=jacobian, method="trf", x_scale=1.0,
-                                     bounds=(np.concatenate([np.full(M, -np.inf), np.full(G + P, 0.3)]),
-                                             np.concatenate([np.full(M, np.inf), np.full(G + P, 3.0)])))
+        sol = optimize.least_squares(
+            residuals,
+            theta,
+            jac=jacobian,
+            method="trf",
+            x_scale=1.0,
+            bounds=(
+                np.concatenate([np.full(M, -np.inf), np.full(G + P, 0.3)]),
+                np.concatenate([np.full(M, np.inf), np.full(G + P, 3.0)]),
+            ),
+        )
         theta = sol.x
         J = jacobian(theta)
         cov = np.linalg.pinv(J.T @ J)
@@ -359,17 +421,30 @@ def fit(plates: Sequence[PlateRecord], machines: Mapping[str, Machine], priors: 
             break
         # variance updates (module docstring)
         r2 = (curvatures(theta)[2][state_pass] - state_obs) ** 2
-        scatter, spread = _updated_variances(r2, meas_var, g, theta, cov, plate_group, plates_with_rows,
-                                             M + G, dof_rows, priors)
+        scatter, spread = _updated_variances(
+            r2, meas_var, g, theta, cov, plate_group, plates_with_rows, M + G, dof_rows, priors
+        )
     rows_per_plate = {plates[i].plate_id: int(np.sum(state_plate == i)) for i in range(P)}
-    return Fit(machine_ids, groups, tuple(ids), theta, cov, scatter, spread, n_rows, rows_per_plate,
-               priors.scatter_weight + dof_rows,
-               priors.plate_spread_weight + len(plates_with_rows),
-               {m: machines[m] for m in machine_ids}, priors)
+    return Fit(
+        machine_ids,
+        groups,
+        tuple(ids),
+        theta,
+        cov,
+        scatter,
+        spread,
+        n_rows,
+        rows_per_plate,
+        priors.scatter_weight + dof_rows,
+        priors.plate_spread_weight + len(plates_with_rows),
+        {m: machines[m] for m in machine_ids},
+        priors,
+    )
 
 
-def _inspected_states(plates: Sequence[PlateRecord], starts: np.ndarray,
-                      kl0: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _inspected_states(
+    plates: Sequence[PlateRecord], starts: np.ndarray, kl0: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The passes after which an inspection saw a new shape, with the mean of their inspections.
 
     The nominal loaded curvatures ``kl0`` (one per pass, plates contiguous from ``starts``) decide
@@ -386,57 +461,92 @@ def _inspected_states(plates: Sequence[PlateRecord], starts: np.ndarray,
             if q.inspected:
                 k = measured_curvature(p, q.measured_radius_mm)
                 if not np.isfinite(k):
-                    raise ValueError(f"measured_radius_mm: expected more than half the thickness, "
-                                     f"got {q.measured_radius_mm!r} (plate {p.plate_id})")
+                    raise ValueError(
+                        f"measured_radius_mm: expected more than half the thickness, "
+                        f"got {q.measured_radius_mm!r} (plate {p.plate_id})"
+                    )
                 seen.setdefault(current, []).append(k)
         for n, ks in seen.items():
             state_pass.append(n)
             state_obs.append(float(np.mean(ks)))
             state_n.append(len(ks))
             state_plate.append(i)
-    return (np.array(state_pass, dtype=int), np.array(state_obs), np.array(state_n),
-            np.array(state_plate, dtype=int))
+    return (
+        np.array(state_pass, dtype=int),
+        np.array(state_obs),
+        np.array(state_n),
+        np.array(state_plate, dtype=int),
+    )
 
 
-def _updated_variances(r2: np.ndarray, meas_var: np.ndarray, g: np.ndarray, theta: np.ndarray, cov: np.ndarray,
-                       plate_group: np.ndarray, plates_with_rows: np.ndarray, offset: int, dof_rows: int,
-                       priors: Priors) -> tuple[float, float]:
+def _updated_variances(
+    r2: np.ndarray,
+    meas_var: np.ndarray,
+    g: np.ndarray,
+    theta: np.ndarray,
+    cov: np.ndarray,
+    plate_group: np.ndarray,
+    plates_with_rows: np.ndarray,
+    offset: int,
+    dof_rows: int,
+    priors: Priors,
+) -> tuple[float, float]:
     """The pass scatter and the plates' spread re-estimated with their priors (module docstring).
 
     ``r2`` are the squared residuals of the states, ``g`` their curvature per mm of displacement,
     ``offset`` the index of the first plate factor in ``theta``.
     """
     excess = np.maximum(r2 - meas_var, 0.0) / np.maximum(g * g, 1e-300)
-    scatter = float(np.sqrt((priors.scatter_weight * priors.scatter_mm**2 + excess.sum())
-                            / (priors.scatter_weight + dof_rows)))
-    dev = [(theta[offset + i] - theta[plate_group[i]]) ** 2
-           + cov[offset + i, offset + i] + cov[plate_group[i], plate_group[i]]
-           - 2 * cov[offset + i, plate_group[i]] for i in plates_with_rows]
-    spread = float(np.sqrt((priors.plate_spread_weight * priors.plate_spread**2 + float(np.sum(dev)))
-                           / (priors.plate_spread_weight + len(plates_with_rows))))
+    scatter = float(
+        np.sqrt(
+            (priors.scatter_weight * priors.scatter_mm**2 + excess.sum())
+            / (priors.scatter_weight + dof_rows)
+        )
+    )
+    dev = [
+        (theta[offset + i] - theta[plate_group[i]]) ** 2
+        + cov[offset + i, offset + i]
+        + cov[plate_group[i], plate_group[i]]
+        - 2 * cov[offset + i, plate_group[i]]
+        for i in plates_with_rows
+    ]
+    spread = float(
+        np.sqrt(
+            (priors.plate_spread_weight * priors.plate_spread**2 + float(np.sum(dev)))
+            / (priors.plate_spread_weight + len(plates_with_rows))
+        )
+    )
     return scatter, spread
 
 
-def _pass_rows(plates: Sequence[PlateRecord], machines: Mapping[str, Machine],
-               machine_ids: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, PassSetup, np.ndarray]:
+def _pass_rows(
+    plates: Sequence[PlateRecord], machines: Mapping[str, Machine], machine_ids: tuple[str, ...]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, PassSetup, np.ndarray]:
     """One row per pass, plates contiguous: its plate index, machine index, top-roll displacement,
     the passes' setup, and where each plate's rows start (``len(plates) + 1`` offsets)."""
     pass_plate = np.array([i for i, p in enumerate(plates) for _ in p.passes], dtype=int)
-    pass_machine = np.array([machine_ids.index(q.machine_id) for p in plates for q in p.passes], dtype=int)
+    pass_machine = np.array(
+        [machine_ids.index(q.machine_id) for p in plates for q in p.passes], dtype=int
+    )
     d = np.array([q.top_roll_displacement_mm for p in plates for q in p.passes], dtype=np.float64)
-    setup = PassSetup.of([machines[q.machine_id] for p in plates for q in p.passes],
-                         [p for p in plates for _ in p.passes])
+    setup = PassSetup.of(
+        [machines[q.machine_id] for p in plates for q in p.passes],
+        [p for p in plates for _ in p.passes],
+    )
     starts = np.concatenate([[0], np.cumsum([len(p.passes) for p in plates])])
     return pass_plate, pass_machine, d, setup, starts
 
 
-def _checked_ids(plates: Sequence[PlateRecord], machines: Mapping[str, Machine],
-                 also_machines: Sequence[str]) -> tuple[list[str], tuple[str, ...]]:
+def _checked_ids(
+    plates: Sequence[PlateRecord], machines: Mapping[str, Machine], also_machines: Sequence[str]
+) -> tuple[list[str], tuple[str, ...]]:
     """The plates' ids (distinct) and the machines to fit (sorted, each known); ValueError otherwise."""
     ids = [p.plate_id for p in plates]
     if len(set(ids)) != len(ids):
         raise ValueError("plates: expected distinct plate ids")
-    machine_ids = tuple(sorted({q.machine_id for p in plates for q in p.passes} | set(also_machines)))
+    machine_ids = tuple(
+        sorted({q.machine_id for p in plates for q in p.passes} | set(also_machines))
+    )
     unknown = [m for m in machine_ids if m not in machines]
     if unknown:
         raise ValueError(f"machine_id: no machine {unknown[0]!r} among {sorted(machines)}")

@@ -16,8 +16,9 @@ Units: mm, MPa (N/mm^2). Radii are unsigned (the plate is bent one way only).
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Literal, Mapping
+from typing import Any, Literal
 
 from ..formats import InputError
 
@@ -37,7 +38,9 @@ def _number(record: str, name: str, value: Any) -> float:
 def _positive(record: str, name: str, value: Any, unit: str) -> float:
     v = _number(record, name, value)
     if not (math.isfinite(v) and v > 0):
-        raise InputError(record, name, f"expected a positive finite number of {unit}, got {value!r}")
+        raise InputError(
+            record, name, f"expected a positive finite number of {unit}, got {value!r}"
+        )
     return v
 
 
@@ -56,7 +59,9 @@ def _mapping(record: str, data: Any) -> Mapping[str, Any]:
 def _known_keys(record: str, data: Mapping[str, Any], allowed: tuple[str, ...]) -> None:
     for key in data:
         if key not in allowed:
-            raise InputError(record, str(key), f"unknown field (expected one of {', '.join(allowed)})")
+            raise InputError(
+                record, str(key), f"unknown field (expected one of {', '.join(allowed)})"
+            )
 
 
 def _required(record: str, data: Mapping[str, Any], key: str) -> Any:
@@ -94,8 +99,12 @@ class Machine:
         for name in ("bottom_roll_spacing_mm", "bottom_roll_diameter_mm", "top_roll_diameter_mm"):
             object.__setattr__(self, name, _positive(rec, name, getattr(self, name), "mm"))
         if self.bottom_roll_spacing_mm <= self.bottom_roll_diameter_mm:
-            raise InputError(rec, "bottom_roll_spacing_mm", f"expected more than the bottom rolls' diameter "
-                             f"({self.bottom_roll_diameter_mm:g} mm), got {self.bottom_roll_spacing_mm:g}")
+            raise InputError(
+                rec,
+                "bottom_roll_spacing_mm",
+                f"expected more than the bottom rolls' diameter "
+                f"({self.bottom_roll_diameter_mm:g} mm), got {self.bottom_roll_spacing_mm:g}",
+            )
 
     @property
     def half_span_mm(self) -> float:
@@ -116,8 +125,11 @@ class Machine:
         data = _mapping("machine", data)
         keys = ("kind", "bottom_roll_spacing_mm", "bottom_roll_diameter_mm", "top_roll_diameter_mm")
         _known_keys("machine", data, keys)
-        return cls(machine_id, *(_required("machine", data, k) for k in keys[1:]),
-                   kind=_required("machine", data, "kind"))
+        return cls(
+            machine_id,
+            *(_required("machine", data, k) for k in keys[1:]),
+            kind=_required("machine", data, "kind"),
+        )
 
 
 @dataclass(frozen=True)
@@ -146,7 +158,9 @@ class Material:
     def __post_init__(self) -> None:
         rec = "material"
         _text(rec, "grade", self.grade)
-        object.__setattr__(self, "thickness_mm", _positive(rec, "thickness_mm", self.thickness_mm, "mm"))
+        object.__setattr__(
+            self, "thickness_mm", _positive(rec, "thickness_mm", self.thickness_mm, "mm")
+        )
         object.__setattr__(self, "yield_mpa", _positive(rec, "yield_mpa", self.yield_mpa, "MPa"))
         object.__setattr__(self, "youngs_mpa", _positive(rec, "youngs_mpa", self.youngs_mpa, "MPa"))
         nu = _number(rec, "poisson", self.poisson)
@@ -154,16 +168,24 @@ class Material:
             raise InputError(rec, "poisson", f"expected a number in [0, 0.5), got {self.poisson!r}")
         object.__setattr__(self, "poisson", nu)
         if self.yield_mpa >= self.youngs_mpa:
-            raise InputError(rec, "yield_mpa", f"expected less than youngs_mpa ({self.youngs_mpa:g}), "
-                             f"got {self.yield_mpa:g}")
+            raise InputError(
+                rec,
+                "yield_mpa",
+                f"expected less than youngs_mpa ({self.youngs_mpa:g}), got {self.yield_mpa:g}",
+            )
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> Material:
         """Read a material from its JSON object (``youngs_mpa`` and ``poisson`` optional)."""
         data = _mapping("material", data)
-        _known_keys("material", data, ("grade", "thickness_mm", "yield_mpa", "youngs_mpa", "poisson"))
+        _known_keys(
+            "material", data, ("grade", "thickness_mm", "yield_mpa", "youngs_mpa", "poisson")
+        )
         optional = {k: data[k] for k in ("youngs_mpa", "poisson") if k in data}
-        return cls(*(_required("material", data, k) for k in ("grade", "thickness_mm", "yield_mpa")), **optional)
+        return cls(
+            *(_required("material", data, k) for k in ("grade", "thickness_mm", "yield_mpa")),
+            **optional,
+        )
 
 
 @dataclass(frozen=True)
@@ -199,28 +221,46 @@ class FormingTarget:
         for name in ("radius_mm", "tolerance_mm", "width_mm", "length_mm"):
             object.__setattr__(self, name, _positive(rec, name, getattr(self, name), "mm"))
         if not isinstance(self.material, Material):
-            raise InputError(rec, "material", f"expected a Material, got {type(self.material).__name__}")
+            raise InputError(
+                rec, "material", f"expected a Material, got {type(self.material).__name__}"
+            )
         if self.surface not in SURFACES:
-            raise InputError(rec, "surface", f"expected one of {', '.join(SURFACES)}, got {self.surface!r}")
+            raise InputError(
+                rec, "surface", f"expected one of {', '.join(SURFACES)}, got {self.surface!r}"
+            )
         if self.mid_radius_mm(self.radius_mm) <= 0.5 * self.material.thickness_mm:
-            raise InputError(rec, "radius_mm", f"expected a radius whose inner surface is more than 0 "
-                             f"(thickness {self.material.thickness_mm:g} mm), got {self.radius_mm:g}")
+            raise InputError(
+                rec,
+                "radius_mm",
+                f"expected a radius whose inner surface is more than 0 "
+                f"(thickness {self.material.thickness_mm:g} mm), got {self.radius_mm:g}",
+            )
 
     def mid_radius_mm(self, surface_radius_mm: float) -> float:
         """The mid-surface radius of a plate whose ``surface`` has this radius (``inf`` stays ``inf``)."""
         half = 0.5 * self.material.thickness_mm
-        return surface_radius_mm - half if self.surface == "convex" else (
-            surface_radius_mm + half if self.surface == "concave" else surface_radius_mm)
+        return (
+            surface_radius_mm - half
+            if self.surface == "convex"
+            else (surface_radius_mm + half if self.surface == "concave" else surface_radius_mm)
+        )
 
     def surface_radius_mm(self, mid_radius_mm: float) -> float:
         """The radius of ``surface`` on a plate whose mid-surface has this radius."""
         half = 0.5 * self.material.thickness_mm
-        return mid_radius_mm + half if self.surface == "convex" else (
-            mid_radius_mm - half if self.surface == "concave" else mid_radius_mm)
+        return (
+            mid_radius_mm + half
+            if self.surface == "convex"
+            else (mid_radius_mm - half if self.surface == "concave" else mid_radius_mm)
+        )
 
     @classmethod
-    def from_target(cls, target, material: Material | Mapping[str, Any] | None,
-                    surface: Literal["convex", "concave", "mid"] = "convex") -> FormingTarget:
+    def from_target(
+        cls,
+        target,
+        material: Material | Mapping[str, Any] | None,
+        surface: Literal["convex", "concave", "mid"] = "convex",
+    ) -> FormingTarget:
         """From an inspection target (:class:`pipeline.io.Target`, a cylinder) and its material.
 
         Raises
@@ -229,10 +269,17 @@ class FormingTarget:
             Not a cylinder, or no material (field ``material``: the model needs thickness and yield).
         """
         if getattr(target, "shape", None) != "cylinder":
-            raise InputError("target", "shape", f"roll bending makes cylinders, got {getattr(target, 'shape', None)!r}")
+            raise InputError(
+                "target",
+                "shape",
+                f"roll bending makes cylinders, got {getattr(target, 'shape', None)!r}",
+            )
         if material is None:
-            raise InputError("target", "material", "missing: roll-bending advice needs the plate's grade, "
-                             "thickness and yield")
+            raise InputError(
+                "target",
+                "material",
+                "missing: roll-bending advice needs the plate's grade, thickness and yield",
+            )
         if not isinstance(material, Material):
             material = Material.from_dict(material)
         width, length = target.size_mm
@@ -263,33 +310,54 @@ class RollPass:
     def __post_init__(self) -> None:
         rec = "pass"
         _text(rec, "machine_id", self.machine_id)
-        object.__setattr__(self, "top_roll_displacement_mm",
-                           _positive(rec, "top_roll_displacement_mm", self.top_roll_displacement_mm, "mm"))
+        object.__setattr__(
+            self,
+            "top_roll_displacement_mm",
+            _positive(rec, "top_roll_displacement_mm", self.top_roll_displacement_mm, "mm"),
+        )
         if self.measured_radius_mm is not None:
             r = _number(rec, "measured_radius_mm", self.measured_radius_mm)
             if not r > 0 or math.isnan(r):
-                raise InputError(rec, "measured_radius_mm",
-                                 f"expected a positive number of mm (inf for flat), got {self.measured_radius_mm!r}")
+                raise InputError(
+                    rec,
+                    "measured_radius_mm",
+                    f"expected a positive number of mm (inf for flat), got {self.measured_radius_mm!r}",
+                )
             object.__setattr__(self, "measured_radius_mm", r)
         if self.verdict is not None and self.verdict not in VERDICTS:
-            raise InputError(rec, "verdict", f"expected one of {', '.join(VERDICTS)} or null, got {self.verdict!r}")
+            raise InputError(
+                rec,
+                "verdict",
+                f"expected one of {', '.join(VERDICTS)} or null, got {self.verdict!r}",
+            )
         if self.verdict is not None and self.measured_radius_mm is None:
-            raise InputError(rec, "measured_radius_mm", "missing: a verdict needs the inspected radius")
+            raise InputError(
+                rec, "measured_radius_mm", "missing: a verdict needs the inspected radius"
+            )
 
     @property
     def inspected(self) -> bool:
         return self.measured_radius_mm is not None
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any], *, measured_radius_mm: float | None = None,
-                  verdict: Literal["pass", "fail"] | None = None) -> RollPass:
+    def from_dict(
+        cls,
+        data: Mapping[str, Any],
+        *,
+        measured_radius_mm: float | None = None,
+        verdict: Literal["pass", "fail"] | None = None,
+    ) -> RollPass:
         """Read a pass from its JSON object (issue 14's shape) plus the inspection after it."""
         data = _mapping("pass", data)
         _known_keys("pass", data, ("method", "machine_id", "top_roll_displacement_mm"))
         if _required("pass", data, "method") != PASS_METHOD:
             raise InputError("pass", "method", f"expected {PASS_METHOD!r}, got {data['method']!r}")
-        return cls(_required("pass", data, "machine_id"), _required("pass", data, "top_roll_displacement_mm"),
-                   measured_radius_mm, verdict)
+        return cls(
+            _required("pass", data, "machine_id"),
+            _required("pass", data, "top_roll_displacement_mm"),
+            measured_radius_mm,
+            verdict,
+        )
 
 
 @dataclass(frozen=True)
@@ -310,17 +378,24 @@ class PlateRecord:
     def __post_init__(self) -> None:
         _text("plate", "plate_id", self.plate_id)
         if not isinstance(self.target, FormingTarget):
-            raise InputError("plate", "target", f"expected a FormingTarget, got {type(self.target).__name__}")
+            raise InputError(
+                "plate", "target", f"expected a FormingTarget, got {type(self.target).__name__}"
+            )
         passes = tuple(self.passes)
         for i, p in enumerate(passes):
             if not isinstance(p, RollPass):
-                raise InputError("plate", f"passes[{i}]", f"expected a RollPass, got {type(p).__name__}")
+                raise InputError(
+                    "plate", f"passes[{i}]", f"expected a RollPass, got {type(p).__name__}"
+                )
         object.__setattr__(self, "passes", passes)
 
     @property
     def group(self) -> tuple[str, float]:
         """(grade, thickness rounded to 0.1 mm): plates whose yield is pooled."""
-        return (self.target.material.grade.strip().upper(), round(self.target.material.thickness_mm, 1))
+        return (
+            self.target.material.grade.strip().upper(),
+            round(self.target.material.thickness_mm, 1),
+        )
 
     def with_pass(self, roll_pass: RollPass) -> PlateRecord:
         """The same plate with one more pass."""

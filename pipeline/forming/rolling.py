@@ -19,8 +19,8 @@ Everything is vectorised over passes (:class:`PassSetup` holds one row per pass)
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -55,14 +55,19 @@ class PassSetup:
     def of(cls, machines: Sequence[Machine], plates: Sequence[PlateRecord]) -> PassSetup:
         """Rows for ``(machines[i], plates[i])``, the machine and the plate of pass i."""
         if len(machines) != len(plates):
-            raise ValueError(f"plates: expected one per machine ({len(machines)}), got {len(plates)}")
+            raise ValueError(
+                f"plates: expected one per machine ({len(machines)}), got {len(plates)}"
+            )
         mats = [p.target.material for p in plates]
         return cls(
             np.array([m.half_span_mm for m in machines], dtype=np.float64),
             np.array([m.bottom_roll_radius_mm for m in machines], dtype=np.float64),
             np.array([m.thickness_mm for m in mats], dtype=np.float64),
             np.array([p.target.length_mm for p in plates], dtype=np.float64),
-            np.array([springback.plane_strain_modulus(m.youngs_mpa, m.poisson) for m in mats], dtype=np.float64),
+            np.array(
+                [springback.plane_strain_modulus(m.youngs_mpa, m.poisson) for m in mats],
+                dtype=np.float64,
+            ),
             np.array([springback.plane_strain_yield(m.yield_mpa) for m in mats], dtype=np.float64),
         )
 
@@ -73,7 +78,11 @@ class PassSetup:
         """
         d = np.maximum(np.asarray(displacement_mm, dtype=np.float64), 0.0)
         a = self.half_span_mm
-        return 2.0 * d / (a * a + d * d - 2.0 * d * (self.bottom_roll_radius_mm + 0.5 * self.thickness_mm))
+        return (
+            2.0
+            * d
+            / (a * a + d * d - 2.0 * d * (self.bottom_roll_radius_mm + 0.5 * self.thickness_mm))
+        )
 
     def force_n(self, curvature, yield_factor) -> np.ndarray:
         """Top-roll force at a loaded curvature, N (:func:`.bender.roll_force_n` in curvature form)."""
@@ -82,8 +91,13 @@ class PassSetup:
         m = springback.bending_moment(k, s, self.modulus_mpa, self.thickness_mm) * self.length_mm
         a = self.half_span_mm
         # 2 M sqrt(rho^2 - a^2) / (R a) with rho = R + t/2 + r_b, multiplied through by k = 1/R
-        root = np.sqrt(np.maximum((1.0 + k * (0.5 * self.thickness_mm + self.bottom_roll_radius_mm)) ** 2
-                                  - (k * a) ** 2, 0.0))
+        root = np.sqrt(
+            np.maximum(
+                (1.0 + k * (0.5 * self.thickness_mm + self.bottom_roll_radius_mm)) ** 2
+                - (k * a) ** 2,
+                0.0,
+            )
+        )
         return 2.0 * m * root / a
 
     def loaded_curvature(self, displacement_mm, yield_factor, compliance_mm_per_mn) -> np.ndarray:
@@ -102,12 +116,21 @@ class PassSetup:
     def unloaded_curvature(self, peak_loaded_curvature, yield_factor) -> np.ndarray:
         """Curvature after springback from the largest loaded curvature so far, 1/mm."""
         s = self.yield_mpa * np.asarray(yield_factor, dtype=np.float64)
-        return np.asarray(springback.unloaded_curvature(peak_loaded_curvature, s, self.modulus_mpa,
-                                                        self.thickness_mm), dtype=np.float64)
+        return np.asarray(
+            springback.unloaded_curvature(
+                peak_loaded_curvature, s, self.modulus_mpa, self.thickness_mm
+            ),
+            dtype=np.float64,
+        )
 
 
-def plate_curvatures(plate: PlateRecord, machines: Mapping[str, Machine], *, yield_factor: float,
-                     compliance_mm_per_mn: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray]:
+def plate_curvatures(
+    plate: PlateRecord,
+    machines: Mapping[str, Machine],
+    *,
+    yield_factor: float,
+    compliance_mm_per_mn: Mapping[str, float],
+) -> tuple[np.ndarray, np.ndarray]:
     """Loaded and unloaded mid-surface curvature after each of a plate's passes (history rule included).
 
     Parameters
@@ -130,7 +153,9 @@ def plate_curvatures(plate: PlateRecord, machines: Mapping[str, Machine], *, yie
     missing = [p.machine_id for p in plate.passes if p.machine_id not in machines]
     if missing:
         raise ValueError(f"machine_id: no machine {missing[0]!r} among {sorted(machines)}")
-    setup = PassSetup.of([machines[p.machine_id] for p in plate.passes], [plate] * len(plate.passes))
+    setup = PassSetup.of(
+        [machines[p.machine_id] for p in plate.passes], [plate] * len(plate.passes)
+    )
     d = np.array([p.top_roll_displacement_mm for p in plate.passes])
     c = np.array([compliance_mm_per_mn[p.machine_id] for p in plate.passes])
     loaded = setup.loaded_curvature(d, yield_factor, c)

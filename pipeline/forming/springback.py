@@ -111,7 +111,9 @@ def bending_moment(curvature, yield_stress_mpa, modulus_mpa: float, thickness_mm
     ky = yield_curvature(s, modulus_mpa, thickness_mm)
     t = thickness_mm
     with np.errstate(divide="ignore", invalid="ignore"):
-        m = np.where(k <= ky, modulus_mpa * t**3 / 12.0 * k, s * t * t / 4.0 * (1.0 - (ky / k) ** 2 / 3.0))
+        m = np.where(
+            k <= ky, modulus_mpa * t**3 / 12.0 * k, s * t * t / 4.0 * (1.0 - (ky / k) ** 2 / 3.0)
+        )
     return m[()]
 
 
@@ -146,11 +148,17 @@ def gardiner_ratio(loaded_radius_mm, yield_stress_mpa, modulus_mpa: float, thick
     and ``E`` it is the textbook's bending of a narrow strip.
     """
     _check_positive("loaded_radius_mm", loaded_radius_mm)
-    x = np.asarray(loaded_radius_mm, dtype=np.float64) * np.asarray(yield_stress_mpa) / (modulus_mpa * thickness_mm)
+    x = (
+        np.asarray(loaded_radius_mm, dtype=np.float64)
+        * np.asarray(yield_stress_mpa)
+        / (modulus_mpa * thickness_mm)
+    )
     return np.where(x >= 0.5, 0.0, 1.0 - 3.0 * x + 4.0 * x**3)[()]
 
 
-def loaded_curvature_for(unloaded, yield_stress_mpa: float, modulus_mpa: float, thickness_mm: float) -> float:
+def loaded_curvature_for(
+    unloaded, yield_stress_mpa: float, modulus_mpa: float, thickness_mm: float
+) -> float:
     """The loaded curvature that springs back to ``unloaded`` (inverse of :func:`unloaded_curvature`), 1/mm.
 
     Parameters
@@ -169,8 +177,13 @@ def loaded_curvature_for(unloaded, yield_stress_mpa: float, modulus_mpa: float, 
     return float(optimize.brentq(f, ky, unloaded + 1.5 * ky, xtol=1e-16, rtol=1e-13))
 
 
-def curvatures_after_passes(loaded_curvatures, yield_stress_mpa, modulus_mpa: float, thickness_mm: float,
-                            initial_loaded: float = 0.0) -> np.ndarray:
+def curvatures_after_passes(
+    loaded_curvatures,
+    yield_stress_mpa,
+    modulus_mpa: float,
+    thickness_mm: float,
+    initial_loaded: float = 0.0,
+) -> np.ndarray:
     """The plate's curvature after each of a sequence of same-direction passes (the history rule).
 
     Parameters

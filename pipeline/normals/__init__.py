@@ -56,7 +56,6 @@ __all__ = [
     "LOBE_SEARCH_PIXELS",
     "MAX_SPECULAR_TURN_DEG",
     "METHODS",
-    "NormalField",
     "OUTLIER_K",
     "OUTLIER_K_HIGH",
     "ROBUST_ITERATIONS",
@@ -66,8 +65,9 @@ __all__ = [
     "SPECULAR_ITERATIONS",
     "SPECULAR_K",
     "SPECULAR_WINDOW",
-    "SpecularFit",
     "TRIM_TOP_FRACTION",
+    "NormalField",
+    "SpecularFit",
     "drop_facing_away",
     "estimate_normals",
 ]

@@ -84,7 +84,9 @@ def estimate_normals(
     ----------
     Woodham 1980 (see :mod:`pipeline.normals`).
     """
-    images, light_dirs, mask, valid = _check_inputs(images, light_dirs, mask, valid, method, min_samples)
+    images, light_dirs, mask, valid = _check_inputs(
+        images, light_dirs, mask, valid, method, min_samples
+    )
     view_map = _view_map(view_dirs, camera_matrix)
     fitted = None
     if method == "lstsq":
@@ -104,17 +106,23 @@ def _check_inputs(images, light_dirs, mask, valid, method, min_samples):
     if images.ndim != 3:
         raise ValueError(f"images: expected shape (N, H, W), got {images.shape}")
     if not np.issubdtype(images.dtype, np.floating):
-        raise ValueError(f"images: expected a float array (intensity-normalised), got dtype {images.dtype}")
+        raise ValueError(
+            f"images: expected a float array (intensity-normalised), got dtype {images.dtype}"
+        )
     n, h, w = images.shape
     light_dirs = np.asarray(light_dirs, dtype=np.float64)
     if light_dirs.shape != (n, 3):
-        raise ValueError(f"light_dirs: expected shape ({n}, 3) to match {n} images, got {light_dirs.shape}")
+        raise ValueError(
+            f"light_dirs: expected shape ({n}, 3) to match {n} images, got {light_dirs.shape}"
+        )
     if not np.all(np.isfinite(light_dirs)):
         raise ValueError("light_dirs: expected finite numbers, got NaN or inf")
     lengths = np.linalg.norm(light_dirs, axis=1)
     bad = np.flatnonzero(np.abs(lengths - 1.0) > UNIT_TOLERANCE)
     if bad.size:
-        raise ValueError(f"light_dirs[{bad[0]}]: expected a unit vector, got length {lengths[bad[0]]:.4f}")
+        raise ValueError(
+            f"light_dirs[{bad[0]}]: expected a unit vector, got length {lengths[bad[0]]:.4f}"
+        )
     behind = np.flatnonzero(light_dirs[:, 2] >= 0)
     if behind.size:
         raise ValueError(
@@ -122,10 +130,18 @@ def _check_inputs(images, light_dirs, mask, valid, method, min_samples):
             f"frame, from surface to light), got {light_dirs[behind[0]].round(4).tolist()}"
         )
     if n < MIN_FIT or np.linalg.matrix_rank(light_dirs, tol=1e-6) < 3:
-        raise ValueError(f"light_dirs: expected at least 3 directions spanning 3D, got {n} of rank "
-                         f"{np.linalg.matrix_rank(light_dirs, tol=1e-6)}")
-    if isinstance(min_samples, bool) or not isinstance(min_samples, (int, np.integer)) or not MIN_FIT <= min_samples <= n:
-        raise ValueError(f"min_samples: expected an integer in [{MIN_FIT}, {n}] (N images), got {min_samples!r}")
+        raise ValueError(
+            f"light_dirs: expected at least 3 directions spanning 3D, got {n} of rank "
+            f"{np.linalg.matrix_rank(light_dirs, tol=1e-6)}"
+        )
+    if (
+        isinstance(min_samples, bool)
+        or not isinstance(min_samples, (int, np.integer))
+        or not MIN_FIT <= min_samples <= n
+    ):
+        raise ValueError(
+            f"min_samples: expected an integer in [{MIN_FIT}, {n}] (N images), got {min_samples!r}"
+        )
     mask = np.asarray(mask)
     if mask.shape != (h, w):
         raise ValueError(f"mask: expected shape ({h}, {w}) to match images, got {mask.shape}")
@@ -134,7 +150,9 @@ def _check_inputs(images, light_dirs, mask, valid, method, min_samples):
     if valid is not None:
         valid = np.asarray(valid)
         if valid.shape != images.shape:
-            raise ValueError(f"valid: expected shape {images.shape} to match images, got {valid.shape}")
+            raise ValueError(
+                f"valid: expected shape {images.shape} to match images, got {valid.shape}"
+            )
         if valid.dtype != bool:
             raise ValueError(f"valid: expected a bool array, got dtype {valid.dtype}")
     return images.astype(np.float32, copy=False), light_dirs, mask, valid
@@ -151,16 +169,22 @@ def _view_map(view_dirs, camera_matrix) -> np.ndarray | None:
         K = np.asarray(camera_matrix, dtype=np.float64)
         if K.shape != (3, 3) or not np.all(np.isfinite(K)):
             raise ValueError(f"camera_matrix: expected a finite (3, 3) matrix, got shape {K.shape}")
-        if not (K[0, 0] > 0 and K[1, 1] > 0 and K[1, 0] == K[2, 0] == K[2, 1] == 0 and K[2, 2] == 1):
-            raise ValueError(f"camera_matrix: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, "
-                             f"got {K.tolist()}")
+        if not (
+            K[0, 0] > 0 and K[1, 1] > 0 and K[1, 0] == K[2, 0] == K[2, 1] == 0 and K[2, 2] == 1
+        ):
+            raise ValueError(
+                f"camera_matrix: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, "
+                f"got {K.tolist()}"
+            )
         return -np.linalg.inv(K)
     if view_dirs is None:
         return None
     v = np.asarray(view_dirs)
     if v.shape != (3,):
-        raise ValueError(f"view_dirs: expected shape (3,) (a distant camera; camera_matrix for a pinhole one), "
-                         f"got {v.shape}")
+        raise ValueError(
+            f"view_dirs: expected shape (3,) (a distant camera; camera_matrix for a pinhole one), "
+            f"got {v.shape}"
+        )
     if not np.issubdtype(v.dtype, np.floating):
         raise ValueError(f"view_dirs: expected a float array, got dtype {v.dtype}")
     if not np.all(np.isfinite(v)):
@@ -169,7 +193,9 @@ def _view_map(view_dirs, camera_matrix) -> np.ndarray | None:
     if abs(length - 1.0) > UNIT_TOLERANCE:
         raise ValueError(f"view_dirs: expected a unit vector, got length {length:.4f}")
     if v[2] >= 0:
-        raise ValueError("view_dirs: expected a vector from the surface towards the camera (v_z < 0), got v_z >= 0")
+        raise ValueError(
+            "view_dirs: expected a vector from the surface towards the camera (v_z < 0), got v_z >= 0"
+        )
     A = np.zeros((3, 3))
     A[:, 2] = v
     return A

@@ -124,7 +124,9 @@ def field_from_fit(
     )
 
 
-def drop_facing_away(field: NormalField, K: np.ndarray, *, min_cos: float = 0.02) -> tuple[NormalField, int]:
+def drop_facing_away(
+    field: NormalField, K: np.ndarray, *, min_cos: float = 0.02
+) -> tuple[NormalField, int]:
     """Treat normals that do not face their pixel's ray as holes and fill them.
 
     A normal can have n_z < 0 and still face away from a pixel near the image's edge, whose ray
@@ -146,19 +148,33 @@ def drop_facing_away(field: NormalField, K: np.ndarray, *, min_cos: float = 0.02
         include them; pixels that cannot be filled leave the mask), and how many were dropped.
     """
     bad = np.empty(field.mask.shape, np.bool_)
-    count = _facing_away(field.normals, field.mask, np.linalg.inv(np.asarray(K, dtype=np.float64)), float(min_cos), bad)
+    count = _facing_away(
+        field.normals,
+        field.mask,
+        np.linalg.inv(np.asarray(K, dtype=np.float64)),
+        float(min_cos),
+        bad,
+    )
     if count == 0:
         return field, 0
     normals, albedo = field.normals.copy(), field.albedo.copy()
     known = field.mask & ~bad
     if not known.any():
-        raise CaptureError(f"normals: every one of the {count} normals faces away from its camera ray")
+        raise CaptureError(
+            f"normals: every one of the {count} normals faces away from its camera ray"
+        )
     normals[bad] = np.nan
     filled_now = harmonic_fill(normals, albedo, known, bad)
     mask = known | filled_now
     filled = (field.filled & known) | filled_now
-    return replace(field, normals=normals, albedo=albedo, mask=mask, filled=filled,
-                   n_filled=int(np.count_nonzero(filled))), count
+    return replace(
+        field,
+        normals=normals,
+        albedo=albedo,
+        mask=mask,
+        filled=filled,
+        n_filled=int(np.count_nonzero(filled)),
+    ), count
 
 
 @numba.njit(parallel=True, cache=True)
@@ -175,7 +191,8 @@ def _facing_away(normals, mask, kinv, min_cos, bad):
             r1 = kinv[1, 0] * j + kinv[1, 1] * i + kinv[1, 2]
             r2 = kinv[2, 0] * j + kinv[2, 1] * i + kinv[2, 2]
             c = -(normals[i, j, 0] * r0 + normals[i, j, 1] * r1 + normals[i, j, 2] * r2) / np.sqrt(
-                r0 * r0 + r1 * r1 + r2 * r2)
+                r0 * r0 + r1 * r1 + r2 * r2
+            )
             if not c > min_cos:
                 bad[i, j] = True
                 count += 1
@@ -209,4 +226,3 @@ def _finalize(b, status, normals, albedo):
             normals[i, j, 1] = np.nan
             normals[i, j, 2] = np.nan
             albedo[i, j] = np.nan
-

@@ -8,7 +8,9 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 
-def harmonic_fill(normals: np.ndarray, albedo: np.ndarray, known: np.ndarray, holes: np.ndarray) -> np.ndarray:
+def harmonic_fill(
+    normals: np.ndarray, albedo: np.ndarray, known: np.ndarray, holes: np.ndarray
+) -> np.ndarray:
     """Fill ``holes`` of the normals and the albedo in place by the discrete Laplace equation.
 
     Each hole pixel becomes the mean of its 4-neighbours that are known or holes; known
@@ -47,7 +49,11 @@ def harmonic_fill(normals: np.ndarray, albedo: np.ndarray, known: np.ndarray, ho
     if not fill.any():
         return filled
     h, w = hole_b.shape
-    values = np.concatenate([normals[box], albedo[box][..., None]], axis=-1).reshape(h * w, 4).astype(np.float64)
+    values = (
+        np.concatenate([normals[box], albedo[box][..., None]], axis=-1)
+        .reshape(h * w, 4)
+        .astype(np.float64)
+    )
     fill_flat = np.flatnonzero(fill)
     index = np.full(h * w, -1, dtype=np.int64)
     index[fill_flat] = np.arange(fill_flat.size)
@@ -69,7 +75,10 @@ def harmonic_fill(normals: np.ndarray, albedo: np.ndarray, known: np.ndarray, ho
     ii, jj = np.concatenate(ii), np.concatenate(jj)
     diag_idx = np.arange(fill_flat.size)
     A = sp.csc_matrix(
-        (np.concatenate([diag, -np.ones(ii.size)]), (np.concatenate([diag_idx, ii]), np.concatenate([diag_idx, jj]))),
+        (
+            np.concatenate([diag, -np.ones(ii.size)]),
+            (np.concatenate([diag_idx, ii]), np.concatenate([diag_idx, jj])),
+        ),
         shape=(fill_flat.size, fill_flat.size),
     )
     sol = np.asarray(spla.spsolve(A, rhs)).reshape(fill_flat.size, 4)
@@ -79,5 +88,3 @@ def harmonic_fill(normals: np.ndarray, albedo: np.ndarray, known: np.ndarray, ho
     albedo[at] = sol[:, 3]
     filled[at] = True
     return filled
-
-

@@ -103,9 +103,22 @@ def robust(
     v = valid if use_valid else np.ones((1, 1, 1), dtype=bool)
     zeros = np.zeros((n, 3))
     robust_kernel(
-        np.ascontiguousarray(images), np.ascontiguousarray(v), use_valid, np.ascontiguousarray(mask),
-        np.zeros((1, 1)), np.eye(3), np.ascontiguousarray(L, dtype=np.float64), zeros, np.zeros(n, np.int64),
-        np.zeros(n), 0.0, int(min_samples), robust_params(), sorting_network(n), b, status,
+        np.ascontiguousarray(images),
+        np.ascontiguousarray(v),
+        use_valid,
+        np.ascontiguousarray(mask),
+        np.zeros((1, 1)),
+        np.eye(3),
+        np.ascontiguousarray(L, dtype=np.float64),
+        zeros,
+        np.zeros(n, np.int64),
+        np.zeros(n),
+        0.0,
+        int(min_samples),
+        robust_params(),
+        sorting_network(n),
+        b,
+        status,
     )
     return b, status
 
@@ -115,8 +128,16 @@ def robust_params() -> np.ndarray:
     SHADOW_FRACTION, SHADOW_REF_QUANTILE, TRIM_TOP_FRACTION, COS_MIN, OUTLIER_K, SCALE_FLOOR,
     ROBUST_ITERATIONS, OUTLIER_K_HIGH."""
     return np.array(
-        [SHADOW_FRACTION, SHADOW_REF_QUANTILE, TRIM_TOP_FRACTION, COS_MIN, OUTLIER_K, SCALE_FLOOR, ROBUST_ITERATIONS,
-         OUTLIER_K_HIGH],
+        [
+            SHADOW_FRACTION,
+            SHADOW_REF_QUANTILE,
+            TRIM_TOP_FRACTION,
+            COS_MIN,
+            OUTLIER_K,
+            SCALE_FLOOR,
+            ROBUST_ITERATIONS,
+            OUTLIER_K_HIGH,
+        ],
         dtype=np.float64,
     )
 
@@ -141,8 +162,24 @@ def sorting_network(n: int) -> np.ndarray:
 
 
 @numba.njit(parallel=True, cache=True)
-def robust_kernel(images, valid, use_valid, mask, depth, kinv, geometry, axes, kind, mu, min_attenuation,
-                  min_samples, params, pairs, b_out, status):
+def robust_kernel(
+    images,
+    valid,
+    use_valid,
+    mask,
+    depth,
+    kinv,
+    geometry,
+    axes,
+    kind,
+    mu,
+    min_attenuation,
+    min_samples,
+    params,
+    pairs,
+    b_out,
+    status,
+):
     """Robust fit of every mask pixel (see the module docstring). Fills b_out (3, H, W) with rho n and
     status (H, W) with a status code per pixel.
 
@@ -167,12 +204,16 @@ def robust_kernel(images, valid, use_valid, mask, depth, kinv, geometry, axes, k
         samples, usable, m, finite = _load_block(images, valid, use_valid, mask, i, j0, j1)
         L = np.empty((n, 3, j1 - j0), np.float32)
         if near:
-            light_vectors_block(depth, kinv, geometry, axes, kind, mu, min_attenuation, i, j0, samples, usable, m, L)
+            light_vectors_block(
+                depth, kinv, geometry, axes, kind, mu, min_attenuation, i, j0, samples, usable, m, L
+            )
         else:
             for k in range(n):
                 for c in range(3):
                     L[k, c, :] = geometry[k, c]
-        _robust_block(samples, usable, m, finite, mask, L, min_samples, params, pairs, b_out, status, i, j0)
+        _robust_block(
+            samples, usable, m, finite, mask, L, min_samples, params, pairs, b_out, status, i, j0
+        )
 
 
 @numba.njit(cache=True, fastmath=FASTMATH)
@@ -198,20 +239,42 @@ def _load_block(images, valid, use_valid, mask, i, j0, j1):
 
 
 @numba.njit(cache=True, fastmath=FASTMATH)
-def _robust_block(samples, usable, m, finite, mask, L, min_samples, params, pairs, b_out, status, i, j0):
+def _robust_block(
+    samples, usable, m, finite, mask, L, min_samples, params, pairs, b_out, status, i, j0
+):
     """The robust fit of the pixels (i, j0:j0 + w) of one row from their samples (N, w), usability
     (N, w), counts and finiteness (see _load_block) under light vectors L (N, 3, w)."""
     # params: float64 (8,); the per-sample work is float32 (L too), the per-pixel quantities float32
     shadow_fraction, trim_top, cos_min = np.float32(params[0]), params[2], np.float32(params[3])
-    outlier_k, scale_floor, outlier_k_high = np.float32(params[4]), np.float32(params[5]), np.float32(params[7])
+    outlier_k, scale_floor, outlier_k_high = (
+        np.float32(params[4]),
+        np.float32(params[5]),
+        np.float32(params[7]),
+    )
     ref_quantile = params[1]
     iterations = int(params[6])
     n, w = samples.shape
     ranked = np.empty((n, w), np.float32)  # scratch for order statistics (+inf = not counted)
     keep = np.empty((n, w), np.float32)
-    low, top = _trim_levels(samples, usable, m, ranked, pairs, shadow_fraction, ref_quantile, trim_top)
+    low, top = _trim_levels(
+        samples, usable, m, ranked, pairs, shadow_fraction, ref_quantile, trim_top
+    )
     b, ok = _first_fit(samples, usable, m, L, low, top, keep)
-    _refit(samples, usable, L, pairs, iterations, cos_min, outlier_k, outlier_k_high, scale_floor, b, ok, keep, ranked)
+    _refit(
+        samples,
+        usable,
+        L,
+        pairs,
+        iterations,
+        cos_min,
+        outlier_k,
+        outlier_k_high,
+        scale_floor,
+        b,
+        ok,
+        keep,
+        ranked,
+    )
     for j in range(w):
         if not mask[i, j0 + j]:
             status[i, j0 + j] = OUTSIDE
@@ -285,8 +348,21 @@ def _first_fit(samples, usable, m, L, low, top, keep):
 
 
 @numba.njit(cache=True, fastmath=FASTMATH)
-def _refit(samples, usable, L, pairs, iterations, cos_min, outlier_k, outlier_k_high, scale_floor, b, ok, keep,
-           ranked):
+def _refit(
+    samples,
+    usable,
+    L,
+    pairs,
+    iterations,
+    cos_min,
+    outlier_k,
+    outlier_k_high,
+    scale_floor,
+    b,
+    ok,
+    keep,
+    ranked,
+):
     """``iterations`` re-selections and refits of a block, in place on b (3, w) and keep (N, w): each
     keeps the samples lit (n.l > cos_min) and within -outlier_k .. +outlier_k_high robust scales of
     the current fit (``ranked`` (N, w) is scratch)."""

@@ -47,6 +47,8 @@ def adjugate_times(c00, c01, c02, c11, c12, c22, r0, r1, r2):
 
     Divided by ``det`` (or multiplied by its reciprocal) it is the solution of ``M b = r``.
     """
-    return (c00 * r0 + c01 * r1 + c02 * r2,
-            c01 * r0 + c11 * r1 + c12 * r2,
-            c02 * r0 + c12 * r1 + c22 * r2)
+    return (
+        c00 * r0 + c01 * r1 + c02 * r2,
+        c01 * r0 + c11 * r1 + c12 * r2,
+        c02 * r0 + c12 * r1 + c22 * r2,
+    )

@@ -99,7 +99,11 @@ def _lookup(table, c):
 
 
 def specular(
-    images: np.ndarray, valid: np.ndarray | None, status: np.ndarray, L: np.ndarray, view_map: np.ndarray,
+    images: np.ndarray,
+    valid: np.ndarray | None,
+    status: np.ndarray,
+    L: np.ndarray,
+    view_map: np.ndarray,
     b: np.ndarray,
 ) -> SpecularFit:
     """The specular stage (see the module docstring): fit a lobe and refine b in place.
@@ -127,12 +131,21 @@ def specular(
     sel = flat[:: max(1, flat.size // LOBE_SEARCH_PIXELS)]
     exponent, f_ratio, sigma = _lobe_search(images, valid, b, sel, w, view_map, L)
     if not f_ratio >= LOBE_MIN_F:
-        return SpecularFit(modelled=False, exponent=float("nan"), f_ratio=f_ratio, amplitude_median=0.0)
+        return SpecularFit(
+            modelled=False, exponent=float("nan"), f_ratio=f_ratio, amplitude_median=0.0
+        )
     b_start = b.copy()
-    s, exponent, f_ratio = _joint_fit(images, valid, fit, sel, L, view_map, b, exponent, f_ratio, sigma)
+    s, exponent, f_ratio = _joint_fit(
+        images, valid, fit, sel, L, view_map, b, exponent, f_ratio, sigma
+    )
     n_reverted = _revert_turned(b, b_start, fit)
-    return SpecularFit(modelled=True, exponent=exponent, f_ratio=f_ratio, amplitude_median=float(np.median(s[fit])),
-                       n_reverted=n_reverted)
+    return SpecularFit(
+        modelled=True,
+        exponent=exponent,
+        f_ratio=f_ratio,
+        amplitude_median=float(np.median(s[fit])),
+        n_reverted=n_reverted,
+    )
 
 
 def _lobe_search(images, valid, b, sel, w, view_map, L) -> tuple[float, float, float]:
@@ -144,14 +157,27 @@ def _lobe_search(images, valid, b, sel, w, view_map, L) -> tuple[float, float, f
     n, h = images.shape[:2]
     rows, cols = np.divmod(sel, w)
     samples = images.reshape(n, h * w).take(sel, axis=1).astype(np.float64)
-    usable = valid.reshape(n, h * w).take(sel, axis=1) if valid is not None else np.ones(samples.shape, dtype=bool)
+    usable = (
+        valid.reshape(n, h * w).take(sel, axis=1)
+        if valid is not None
+        else np.ones(samples.shape, dtype=bool)
+    )
     pv = np.stack([cols, rows, np.ones(sel.size)], axis=1) @ view_map.T
     pv /= np.linalg.norm(pv, axis=1, keepdims=True)
     exps = np.array(LOBE_EXPONENTS)
     tables = np.stack([_lobe_tables(e)[0] for e in exps], axis=1)
     out = np.empty((sel.size, exps.size + 2))
-    _lobe_search_kernel(samples, usable, b.reshape(3, h * w).take(sel, axis=1).astype(np.float64), pv, L, tables,
-                        COS_MIN, SHADOW_FRACTION, out)
+    _lobe_search_kernel(
+        samples,
+        usable,
+        b.reshape(3, h * w).take(sel, axis=1).astype(np.float64),
+        pv,
+        L,
+        tables,
+        COS_MIN,
+        SHADOW_FRACTION,
+        out,
+    )
     used = out[:, -1] > 0
     if not used.any():
         return float("nan"), 0.0, float("nan")
@@ -186,18 +212,42 @@ def _joint_fit(images, valid, fit, sel, L, view_map, b, exponent, f_ratio, sigma
     den = np.empty((h, w), dtype=np.float32)
     box = (SPECULAR_WINDOW, SPECULAR_WINDOW)
     for it in range(SPECULAR_ITERATIONS):
-        if it == SPECULAR_ITERATIONS // 2:  # again, from the better normals; kept only if it is a clear lobe
+        if (
+            it == SPECULAR_ITERATIONS // 2
+        ):  # again, from the better normals; kept only if it is a clear lobe
             again = _lobe_search(images, valid, b, sel, w, view_map, L)
             if again[1] >= LOBE_MIN_F and LOBE_EXPONENTS[0] < again[0] < LOBE_EXPONENTS[-1]:
                 exponent, f_ratio, sigma = again
         g_table, dg_table = _lobe_tables(exponent)
         hi = np.inf if it == 0 else SPECULAR_K * sigma  # the first pass starts without the lobe
-        _specular_pass_kernel(images, v, use_valid, fit, L, view_map, g_table, dg_table, b, s, COS_MIN,
-                              -SPECULAR_K * sigma, hi, db0, coef, num, den)
+        _specular_pass_kernel(
+            images,
+            v,
+            use_valid,
+            fit,
+            L,
+            view_map,
+            g_table,
+            dg_table,
+            b,
+            s,
+            COS_MIN,
+            -SPECULAR_K * sigma,
+            hi,
+            db0,
+            coef,
+            num,
+            den,
+        )
         pooled_num = cv2.boxFilter(num, -1, box, normalize=False)
         pooled_den = cv2.boxFilter(den, -1, box, normalize=False)
         # a box with (almost) no information on s keeps its s
-        ds = np.divide(pooled_num, pooled_den, out=np.zeros_like(num), where=pooled_den > 1e-6 * float(pooled_den.max()))
+        ds = np.divide(
+            pooled_num,
+            pooled_den,
+            out=np.zeros_like(num),
+            where=pooled_den > 1e-6 * float(pooled_den.max()),
+        )
         s_new = np.maximum(s + ds, 0.0)  # the lobe adds light: s >= 0 (a constraint of the model)
         step = s_new - s
         np.add(b, db0 - coef * step, out=b, where=fit)  # b outside the fitted pixels is not defined
@@ -209,7 +259,9 @@ def _revert_turned(b, b_start, fit) -> int:
     """Pixels the lobe turned by more than MAX_SPECULAR_TURN_DEG (or away from the camera) get their
     Lambertian estimate back: the lobe did not describe them (saturated peak, another material).
     Returns how many."""
-    with np.errstate(all="ignore"):  # NaN / inf compare False below: reverted; b outside fit is undefined
+    with np.errstate(
+        all="ignore"
+    ):  # NaN / inf compare False below: reverted; b outside fit is undefined
         b64, b0 = b.astype(np.float64), b_start.astype(np.float64)
         cos_turn = (b64 * b0).sum(axis=0) / np.sqrt((b64 * b64).sum(axis=0) * (b0 * b0).sum(axis=0))
     revert = fit & ~((cos_turn > np.cos(np.radians(MAX_SPECULAR_TURN_DEG))) & (b[2] < 0))
@@ -276,7 +328,9 @@ def _lobe_search_kernel(samples, usable, b, view, L, g_tables, cos_min, shadow_f
         gg = np.zeros(n_exp)
         for k in range(n):
             if w[k] > 0:
-                x = min(max(cs[k], 0.0), 1.0) * (_LOBE_TABLE - 1)  # as _lookup, for every lobe at once
+                x = min(max(cs[k], 0.0), 1.0) * (
+                    _LOBE_TABLE - 1
+                )  # as _lookup, for every lobe at once
                 t = int(x)
                 f = x - t
                 lo, hi = g_tables[t], g_tables[t + 1]
@@ -298,8 +352,25 @@ def _lobe_search_kernel(samples, usable, b, view, L, g_tables, cos_min, shadow_f
 
 
 @numba.njit(parallel=True, cache=True, fastmath=FASTMATH, error_model="numpy")
-def _specular_pass_kernel(images, valid, use_valid, fit, L, view_map, g_table, dg_table, b, s_map,
-                          cos_min, lo, hi, db0, coef, num, den):
+def _specular_pass_kernel(
+    images,
+    valid,
+    use_valid,
+    fit,
+    L,
+    view_map,
+    g_table,
+    dg_table,
+    b,
+    s_map,
+    cos_min,
+    lo,
+    hi,
+    db0,
+    coef,
+    num,
+    den,
+):
     """One joint Gauss-Newton linearisation of I_k = b.l_k + s g(n.h_k) at every pixel with fit True.
 
     b (3, H, W) = rho n and s_map (H, W) are the current estimate; lo < r_k < hi selects the samples;
@@ -372,7 +443,11 @@ def _specular_pass_kernel(images, valid, use_valid, fit, L, view_map, g_table, d
             d0, d1, d2 = d0 / det, d1 / det, d2 / det
             e0, e1, e2 = adjugate_times(c00, c01, c02, c11, c12, c22, jg0, jg1, jg2)
             e0, e1, e2 = e0 / det, e1 / det, e2 / det
-            if not (np.isfinite(d0 + d1 + d2) and np.isfinite(e0 + e1 + e2) and abs(e0) + abs(e1) + abs(e2) < 1e6):
+            if not (
+                np.isfinite(d0 + d1 + d2)
+                and np.isfinite(e0 + e1 + e2)
+                and abs(e0) + abs(e1) + abs(e2) < 1e6
+            ):
                 continue  # overflow in float32: leave the pixel as it is
             db0[0, i, j], db0[1, i, j], db0[2, i, j] = d0, d1, d2
             coef[0, i, j], coef[1, i, j], coef[2, i, j] = e0, e1, e2

@@ -52,7 +52,9 @@ def candidate_mask(brightness, *, seen=None, dark_fraction: float = DARK_FRACTIO
     b = np.nan_to_num(b, nan=0.0, posinf=0.0, neginf=0.0)
     # smooth the grain so that single dark texels of a rusty plate are not called dark
     smooth = cv2.GaussianBlur(b, (0, 0), 1.0)
-    step = max(1, int(math.sqrt(b.size / 200_000)))  # the level from ~200k pixels: as good, and cheaper
+    step = max(
+        1, int(math.sqrt(b.size / 200_000))
+    )  # the level from ~200k pixels: as good, and cheaper
     lit = smooth[::step, ::step][ok[::step, ::step]]
     level = float(np.percentile(lit, 95)) if lit.size else 0.0
     if not level > 0:

@@ -21,7 +21,9 @@ def check_bool_image(name: str, value, shape: tuple[int, int]) -> np.ndarray:
     """A bool image of ``shape``; ValueError naming ``name`` otherwise."""
     arr = np.asarray(value)
     if arr.dtype != np.bool_ or arr.shape != shape:
-        raise ValueError(f"{name}: expected a bool array of shape {shape}, got {arr.dtype} {arr.shape}")
+        raise ValueError(
+            f"{name}: expected a bool array of shape {shape}, got {arr.dtype} {arr.shape}"
+        )
     return arr
 
 
@@ -29,5 +31,7 @@ def check_camera_matrix(K) -> np.ndarray:
     """A finite (3, 3) float64 camera matrix with fx, fy > 0; ValueError otherwise."""
     K = np.asarray(K, dtype=np.float64)
     if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise ValueError(f"camera_matrix: expected a (3, 3) K with fx, fy > 0, got {np.asarray(K).tolist()}")
+        raise ValueError(
+            f"camera_matrix: expected a (3, 3) K with fx, fy > 0, got {np.asarray(K).tolist()}"
+        )
     return K

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 from ..formats import CaptureError
-from .surface import surface_geometry, largest_component, Surface, fit_surface, surface_depth
+from .surface import Surface, fit_surface, largest_component, surface_depth, surface_geometry
 
 #: Default width (mm) under which a part of the matched plate that leaves the smooth surface is taken for a
 #: support reaching out beside the plate (rails and blocks are 100-200 mm wide).
@@ -45,23 +45,46 @@ class Parts:
     protrusions_mm2: float  # supports removed
     px_scale: int = 1  # pixels of the final grid per pixel of this one, along each axis
 
-    def upsampled(self, s: int, shape: tuple[int, int]) -> "Parts":
+    def upsampled(self, s: int, shape: tuple[int, int]) -> Parts:
         """The decisions on a grid ``s`` times finer of ``shape`` (coarse pixel i covers s i .. s i + s - 1)."""
         h, w = shape
 
         def up(a: np.ndarray) -> np.ndarray:
             src = a.view(np.uint8) if a.dtype == np.bool_ else a
             big = cv2.resize(src, (a.shape[1] * s, a.shape[0] * s), interpolation=cv2.INTER_NEAREST)
-            out = np.zeros((h, w), src.dtype) if a.dtype == np.bool_ else np.full((h, w), np.nan, a.dtype)
+            out = (
+                np.zeros((h, w), src.dtype)
+                if a.dtype == np.bool_
+                else np.full((h, w), np.nan, a.dtype)
+            )
             out[: min(h, big.shape[0]), : min(w, big.shape[1])] = big[:h, :w]
             return out.view(np.bool_) if a.dtype == np.bool_ else out
 
-        return replace(self, region=up(self.region), holes=up(self.holes), feet=up(self.feet), step=up(self.step),
-                       mm_per_px=self.mm_per_px / s, px_scale=s)
+        return replace(
+            self,
+            region=up(self.region),
+            holes=up(self.holes),
+            feet=up(self.feet),
+            step=up(self.step),
+            mm_per_px=self.mm_per_px / s,
+            px_scale=s,
+        )
 
 
-def classify(b, depth, K, ok, cand, normals, *, depth_band_mm: float, max_dropout_mm2: float, reach_px: int,
-             support_width_mm: float, step_zone_px: int) -> Parts | None:
+def classify(
+    b,
+    depth,
+    K,
+    ok,
+    cand,
+    normals,
+    *,
+    depth_band_mm: float,
+    max_dropout_mm2: float,
+    reach_px: int,
+    support_width_mm: float,
+    step_zone_px: int,
+) -> Parts | None:
     """Steps 2-5 and 7 of the module docstring on the given grid; None if no smooth surface fits.
 
     ``b`` brightness, ``depth`` stereo depth (mm, NaN unmatched), ``ok`` pixels seen, ``cand`` candidates,
@@ -84,7 +107,13 @@ def classify(b, depth, K, ok, cand, normals, *, depth_band_mm: float, max_dropou
     geometry = surface_geometry(surface, K, shape)
     area = geometry.area_full(shape)
     mm_per_px = math.sqrt(float(np.nanmedian(area[core])))
-    protrusions = _protrusions(core, residual, mm_per_px, support_width_mm, max(PROTRUSION_RESIDUAL_MM, 5.0 * surface.rms_mm))
+    protrusions = _protrusions(
+        core,
+        residual,
+        mm_per_px,
+        support_width_mm,
+        max(PROTRUSION_RESIDUAL_MM, 5.0 * surface.rms_mm),
+    )
     if protrusions.any():
         core &= ~protrusions
         core = largest_component(core)
@@ -92,12 +121,24 @@ def classify(b, depth, K, ok, cand, normals, *, depth_band_mm: float, max_dropou
     enclosed = _enclosed(core, off | dark | ~ok, area, geometry, normals, max_dropout_mm2)
     # the rim: a pixel mostly dark (under half the plate's median brightness, unsmoothed) is not taken
     lit = b >= 0.5 * float(np.median(b[::4, ::4][core[::4, ::4]]))
-    region = _with_rim(core | enclosed.filled, ok & cand & ~finite & lit & ~enclosed.holes, dark, reach_px)
+    region = _with_rim(
+        core | enclosed.filled, ok & cand & ~finite & lit & ~enclosed.holes, dark, reach_px
+    )
     step = _surroundings_step(region, off, dark | ~lit | ~ok, depth, z_fit, step_zone_px, reach_px)
-    return Parts(surface=surface, region=region, holes=enclosed.holes, feet=feet, step=step, mm_per_px=mm_per_px,
-                 n_holes=enclosed.n_holes, largest_hole_mm2=enclosed.largest_hole_mm2, filled_mm2=enclosed.filled_mm2,
-                 filled_by_normals_mm2=enclosed.by_normals_mm2, largest_by_normals_mm2=enclosed.largest_by_normals_mm2,
-                 protrusions_mm2=float(np.nansum(area[protrusions])))
+    return Parts(
+        surface=surface,
+        region=region,
+        holes=enclosed.holes,
+        feet=feet,
+        step=step,
+        mm_per_px=mm_per_px,
+        n_holes=enclosed.n_holes,
+        largest_hole_mm2=enclosed.largest_hole_mm2,
+        filled_mm2=enclosed.filled_mm2,
+        filled_by_normals_mm2=enclosed.by_normals_mm2,
+        largest_by_normals_mm2=enclosed.largest_by_normals_mm2,
+        protrusions_mm2=float(np.nansum(area[protrusions])),
+    )
 
 
 @dataclass(frozen=True)
@@ -113,8 +154,14 @@ class _Enclosed:
     largest_by_normals_mm2: float
 
 
-def _enclosed(core: np.ndarray, offish: np.ndarray, area: np.ndarray, geometry, normals,
-              max_dropout_mm2: float) -> _Enclosed:
+def _enclosed(
+    core: np.ndarray,
+    offish: np.ndarray,
+    area: np.ndarray,
+    geometry,
+    normals,
+    max_dropout_mm2: float,
+) -> _Enclosed:
     """Step 4: small dropouts are filled, openings and large unmatched areas stay holes.
 
     ``offish``: pixels that show what lies behind the plate (matched off its surface, dark, unseen). A
@@ -128,7 +175,9 @@ def _enclosed(core: np.ndarray, offish: np.ndarray, area: np.ndarray, geometry, 
     lab = labels.ravel()
     count = np.bincount(lab, minlength=n_lab)
     n_offish = np.bincount(lab, weights=offish.ravel().astype(np.float64), minlength=n_lab)
-    area_lab = np.bincount(lab, weights=np.nan_to_num(area, nan=0.0).ravel().astype(np.float64), minlength=n_lab)
+    area_lab = np.bincount(
+        lab, weights=np.nan_to_num(area, nan=0.0).ravel().astype(np.float64), minlength=n_lab
+    )
     no_depth_behind = inner & (n_offish <= DROPOUT_MAX_OFF_SHARE * count)
     fill = no_depth_behind & (area_lab <= max_dropout_mm2)
     larger = no_depth_behind & ~fill
@@ -137,20 +186,29 @@ def _enclosed(core: np.ndarray, offish: np.ndarray, area: np.ndarray, geometry, 
         # a larger unmatched area is plate if its photometric normals follow the plate's surface: with no
         # stereo depth in it, filling it lets no depth step into the solve, only normals that agree
         rows, cols = np.nonzero(larger[labels])
-        cos = np.einsum("mc,mc->m", np.asarray(normals[rows, cols], np.float32), geometry.normals_at(rows, cols))
+        cos = np.einsum(
+            "mc,mc->m", np.asarray(normals[rows, cols], np.float32), geometry.normals_at(rows, cols)
+        )
         agree = np.nan_to_num(cos, nan=-1.0) >= math.cos(math.radians(DROPOUT_NORMAL_DEG))
         n_agree = np.bincount(labels[rows, cols], weights=agree.astype(np.float64), minlength=n_lab)
         by_normals = larger & (n_agree > 0.5 * count)
         fill |= by_normals
     hole_lab = inner & ~fill
     small = fill & ~by_normals
-    return _Enclosed(filled=fill[labels], holes=hole_lab[labels], n_holes=int(np.count_nonzero(hole_lab)),
-                     largest_hole_mm2=float(area_lab[hole_lab].max()) if hole_lab.any() else 0.0,
-                     filled_mm2=float(area_lab[small].sum()), by_normals_mm2=float(area_lab[by_normals].sum()),
-                     largest_by_normals_mm2=float(area_lab[by_normals].max()) if by_normals.any() else 0.0)
+    return _Enclosed(
+        filled=fill[labels],
+        holes=hole_lab[labels],
+        n_holes=int(np.count_nonzero(hole_lab)),
+        largest_hole_mm2=float(area_lab[hole_lab].max()) if hole_lab.any() else 0.0,
+        filled_mm2=float(area_lab[small].sum()),
+        by_normals_mm2=float(area_lab[by_normals].sum()),
+        largest_by_normals_mm2=float(area_lab[by_normals].max()) if by_normals.any() else 0.0,
+    )
 
 
-def _with_rim(region: np.ndarray, reachable: np.ndarray, dark: np.ndarray, reach_px: int) -> np.ndarray:
+def _with_rim(
+    region: np.ndarray, reachable: np.ndarray, dark: np.ndarray, reach_px: int
+) -> np.ndarray:
     """Step 5: the region grown by the ``reachable`` (unmatched, lit) pixels next to it that darkness bounds
     within ``reach_px`` (a dark background), up to ``reach_px`` steps."""
     kernel = np.ones((3, 3), np.uint8)
@@ -162,8 +220,15 @@ def _with_rim(region: np.ndarray, reachable: np.ndarray, dark: np.ndarray, reach
     return grown.astype(bool)
 
 
-def _surroundings_step(region: np.ndarray, off: np.ndarray, no_depth: np.ndarray, depth: np.ndarray,
-                       z_fit: np.ndarray, step_zone_px: int, reach_px: int) -> np.ndarray:
+def _surroundings_step(
+    region: np.ndarray,
+    off: np.ndarray,
+    no_depth: np.ndarray,
+    depth: np.ndarray,
+    z_fit: np.ndarray,
+    step_zone_px: int,
+    reach_px: int,
+) -> np.ndarray:
     """Step 7: the depth step (mm) to the surroundings along the boundary, for telling edge artefacts from
     defects: to the nearest surroundings with a depth (``off``), unless ``no_depth`` (darkness: no depth,
     a dark background; ``+inf``) is nearer; NaN away from the boundary (see ``Segmentation``)."""
@@ -179,8 +244,13 @@ def _surroundings_step(region: np.ndarray, off: np.ndarray, no_depth: np.ndarray
     return step
 
 
-def _protrusions(core: np.ndarray, residual: np.ndarray, mm_per_px: float, width_mm: float,
-                 max_residual_mm: float) -> np.ndarray:
+def _protrusions(
+    core: np.ndarray,
+    residual: np.ndarray,
+    mm_per_px: float,
+    width_mm: float,
+    max_residual_mm: float,
+) -> np.ndarray:
     """(H, W) bool: the parts of ``core`` narrower than ``width_mm`` (removed by an opening with a disc
     of that diameter) of which ``PROTRUSION_SHARE`` have ``|residual|`` (mm) over ``max_residual_mm``.
 
@@ -191,9 +261,16 @@ def _protrusions(core: np.ndarray, residual: np.ndarray, mm_per_px: float, width
     h, w = core.shape
     d_px = width_mm / mm_per_px
     f = max(1, int(d_px // 15))
-    small = cv2.resize(core.astype(np.float32), (max(1, w // f), max(1, h // f)), interpolation=cv2.INTER_AREA) > 0.5
+    small = (
+        cv2.resize(
+            core.astype(np.float32), (max(1, w // f), max(1, h // f)), interpolation=cv2.INTER_AREA
+        )
+        > 0.5
+    )
     k = max(3, int(round(d_px / f)) | 1)
-    opened = cv2.morphologyEx(small.view(np.uint8), cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    opened = cv2.morphologyEx(
+        small.view(np.uint8), cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+    )
     back = cv2.resize(opened, (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
     parts = core & ~back
     if not parts.any():
@@ -228,7 +305,9 @@ def _wide_parts(parts: np.ndarray, min_half_width_px: float) -> np.ndarray:
 def _nearest(outside: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Distance (px, L2 5x5 mask) from each pixel to the nearest ``outside`` pixel, and that pixel's flat index."""
     src = (~outside).view(np.uint8)
-    dist, labels = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
+    dist, labels = cv2.distanceTransformWithLabels(
+        src, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
+    )
     zeros = np.flatnonzero(outside.ravel())
     if zeros.size == 0:
         return np.full(outside.shape, np.inf, np.float32), np.zeros(outside.shape, np.intp)

@@ -10,7 +10,7 @@ import numpy as np
 
 from .classify import DROPOUT_NORMAL_DEG, Parts
 from .result import Segmentation
-from .surface import surface_geometry, surface_depth
+from .surface import surface_depth, surface_geometry
 
 #: Near the boundary (``edge_px`` + this many px) a pixel whose photometric normal is more than
 #: EDGE_NORMAL_DEG from the fitted surface's is not measured: a bent edge turns its normal by far less
@@ -19,9 +19,24 @@ EDGE_NORMAL_ZONE_PX = 3
 EDGE_NORMAL_DEG = 35.0
 
 
-def finish(parts: Parts, b, depth, K, ok, cand, dark, normals, reasons: list[str], *, edge_px: int,
-           depth_scale_px: int, depth_band_mm: float, max_dropout_mm2: float, support_width_mm: float,
-           target_area_mm2: float | None) -> Segmentation:
+def finish(
+    parts: Parts,
+    b,
+    depth,
+    K,
+    ok,
+    cand,
+    dark,
+    normals,
+    reasons: list[str],
+    *,
+    edge_px: int,
+    depth_scale_px: int,
+    depth_band_mm: float,
+    max_dropout_mm2: float,
+    support_width_mm: float,
+    target_area_mm2: float | None,
+) -> Segmentation:
     """Step 6 (edge band, normals check) on the full grid, areas and counts, the result.
 
     ``reasons`` (what was decided so far) is extended with what the parts and the edge band show.
@@ -34,14 +49,23 @@ def finish(parts: Parts, b, depth, K, ok, cand, dark, normals, reasons: list[str
     finite = np.isfinite(depth) & (depth > 0) & ok
     with np.errstate(invalid="ignore"):
         off = finite & cand & ~(np.abs(depth - z_fit) < depth_band_mm)
-    mask, n_normal_off = _measured(parts, ok, normals, geometry, edge_px, depth_scale_px, support_width_mm)
+    mask, n_normal_off = _measured(
+        parts, ok, normals, geometry, edge_px, depth_scale_px, support_width_mm
+    )
     edge_band = region & ~mask
     step = np.where(region, parts.step, np.float32(np.nan)).astype(np.float32)
     holes = parts.holes
     plate_area = float(np.nansum(area[mask]))
     band_area = float(np.nansum(area[edge_band]))
     holes_area = float(np.nansum(area[holes]))
-    reasons += _reasons(parts, holes_area, max_dropout_mm2, n_normal_off, int(np.count_nonzero(edge_band)), band_area)
+    reasons += _reasons(
+        parts,
+        holes_area,
+        max_dropout_mm2,
+        n_normal_off,
+        int(np.count_nonzero(edge_band)),
+        band_area,
+    )
     if target_area_mm2 is not None:
         reasons += _area_reasons(plate_area + band_area, target_area_mm2)
     return Segmentation(
@@ -74,12 +98,17 @@ def inner_region(region: np.ndarray, edge_px: int) -> np.ndarray:
     if edge_px <= 0:
         return region
     k = 2 * edge_px + 1
-    padded = cv2.copyMakeBorder(region.view(np.uint8), edge_px, edge_px, edge_px, edge_px, cv2.BORDER_REPLICATE)
-    return cv2.erode(padded, np.ones((k, k), np.uint8))[edge_px:-edge_px, edge_px:-edge_px].astype(bool)
+    padded = cv2.copyMakeBorder(
+        region.view(np.uint8), edge_px, edge_px, edge_px, edge_px, cv2.BORDER_REPLICATE
+    )
+    return cv2.erode(padded, np.ones((k, k), np.uint8))[edge_px:-edge_px, edge_px:-edge_px].astype(
+        bool
+    )
 
 
-def _measured(parts: Parts, ok, normals, geometry, edge_px: int, depth_scale_px: int,
-              support_width_mm: float) -> tuple[np.ndarray, int]:
+def _measured(
+    parts: Parts, ok, normals, geometry, edge_px: int, depth_scale_px: int, support_width_mm: float
+) -> tuple[np.ndarray, int]:
     """The plate's pixels to measure (the edge band left out, wider where a support met the plate), and how
     many pixels near the boundary the normals check put in the band."""
     region = parts.region
@@ -93,15 +122,23 @@ def _measured(parts: Parts, ok, normals, geometry, edge_px: int, depth_scale_px:
         zone_px = edge_px + EDGE_NORMAL_ZONE_PX * depth_scale_px
         zone = mask & (cv2.distanceTransform(region.view(np.uint8), cv2.DIST_L2, 3) <= zone_px)
         rows, cols = np.nonzero(zone)
-        cos = np.einsum("mc,mc->m", np.asarray(normals[rows, cols], np.float32), geometry.normals_at(rows, cols))
+        cos = np.einsum(
+            "mc,mc->m", np.asarray(normals[rows, cols], np.float32), geometry.normals_at(rows, cols)
+        )
         turned = np.nan_to_num(cos, nan=1.0) < math.cos(math.radians(EDGE_NORMAL_DEG))
         n_normal_off = int(np.count_nonzero(turned))
         mask[rows[turned], cols[turned]] = False
     return mask, n_normal_off
 
 
-def _reasons(parts: Parts, holes_area: float, max_dropout_mm2: float, n_normal_off: int, n_band: int,
-             band_area: float) -> list[str]:
+def _reasons(
+    parts: Parts,
+    holes_area: float,
+    max_dropout_mm2: float,
+    n_normal_off: int,
+    n_band: int,
+    band_area: float,
+) -> list[str]:
     """What the operator should read about the supports removed, the holes kept, the areas filled and the edge band."""
     reasons = []
     if parts.protrusions_mm2:
@@ -141,9 +178,13 @@ def _area_reasons(segmented_mm2: float, target_area_mm2: float) -> list[str]:
     """A reason when the segmented area is more than 5 % over or 10 % under the target's."""
     ratio = segmented_mm2 / target_area_mm2
     if ratio > 1.05:
-        return [f"segmented area {segmented_mm2:.0f} mm^2 is {100 * (ratio - 1):.1f} % over the target's "
-                f"{target_area_mm2:.0f} mm^2: surroundings at the plate's depth may be included"]
+        return [
+            f"segmented area {segmented_mm2:.0f} mm^2 is {100 * (ratio - 1):.1f} % over the target's "
+            f"{target_area_mm2:.0f} mm^2: surroundings at the plate's depth may be included"
+        ]
     if ratio < 0.9:
-        return [f"segmented area {segmented_mm2:.0f} mm^2 is {100 * (1 - ratio):.1f} % under the target's "
-                f"{target_area_mm2:.0f} mm^2 (openings, plate partly out of view, or unmatched areas)"]
+        return [
+            f"segmented area {segmented_mm2:.0f} mm^2 is {100 * (1 - ratio):.1f} % under the target's "
+            f"{target_area_mm2:.0f} mm^2 (openings, plate partly out of view, or unmatched areas)"
+        ]
     return []

@@ -50,7 +50,9 @@ def plain_outline(bright_mask, candidates) -> bool:
     return bool(np.count_nonzero(cand & ~grown) <= PLAIN_LIT_SHARE * n)
 
 
-def plain_depth(bright_mask, depth_mm, camera_matrix, *, depth_band_mm: float = DEPTH_BAND_MM) -> bool:
+def plain_depth(
+    bright_mask, depth_mm, camera_matrix, *, depth_band_mm: float = DEPTH_BAND_MM
+) -> bool:
     """Whether the stereo depth over the brightness mask is one smooth sheet (no floor taken in).
 
     Parameters

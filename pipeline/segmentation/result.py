@@ -94,5 +94,7 @@ class Segmentation:
     def area_ratio(self, target_area_mm2: float) -> float:
         """Segmented plate area (mask and edge band) over the target's area (dimensionless)."""
         if not (math.isfinite(target_area_mm2) and target_area_mm2 > 0):
-            raise ValueError(f"target_area_mm2: expected a positive area in mm^2, got {target_area_mm2}")
+            raise ValueError(
+                f"target_area_mm2: expected a positive area in mm^2, got {target_area_mm2}"
+            )
         return (self.plate_area_mm2 + self.edge_band_area_mm2) / target_area_mm2

@@ -106,20 +106,59 @@ def segment_plate(
     The steps: see :mod:`pipeline.segmentation`. Brightness only excludes the dark and bounds the rim.
     """
     b, K, ok, depth, normals = _inputs(brightness, camera_matrix, seen, depth_mm, normals)
-    _check_options(depth_band_mm, max_dropout_mm2, support_width_mm, edge_px, reach_px, step_zone_px, depth_scale_px,
-                   target_area_mm2)
-    cand = candidate_mask(b, seen=ok, dark_fraction=dark_fraction) if candidates is None else (
-        check_bool_image("candidates", candidates, b.shape) & ok)
+    _check_options(
+        depth_band_mm,
+        max_dropout_mm2,
+        support_width_mm,
+        edge_px,
+        reach_px,
+        step_zone_px,
+        depth_scale_px,
+        target_area_mm2,
+    )
+    cand = (
+        candidate_mask(b, seen=ok, dark_fraction=dark_fraction)
+        if candidates is None
+        else (check_bool_image("candidates", candidates, b.shape) & ok)
+    )
     if not cand.any():
-        raise CaptureError("photometric images: no plate found (no pixel brighter than the dark background)")
-    params = dict(depth_band_mm=float(depth_band_mm), max_dropout_mm2=float(max_dropout_mm2), reach_px=int(reach_px),
-                  support_width_mm=float(support_width_mm), step_zone_px=int(step_zone_px))
-    return _segmented(b, depth, K, ok, cand, normals, params, edge_px=int(edge_px) * int(depth_scale_px),
-                      depth_scale_px=int(depth_scale_px), target_area_mm2=target_area_mm2)
+        raise CaptureError(
+            "photometric images: no plate found (no pixel brighter than the dark background)"
+        )
+    params = dict(
+        depth_band_mm=float(depth_band_mm),
+        max_dropout_mm2=float(max_dropout_mm2),
+        reach_px=int(reach_px),
+        support_width_mm=float(support_width_mm),
+        step_zone_px=int(step_zone_px),
+    )
+    return _segmented(
+        b,
+        depth,
+        K,
+        ok,
+        cand,
+        normals,
+        params,
+        edge_px=int(edge_px) * int(depth_scale_px),
+        depth_scale_px=int(depth_scale_px),
+        target_area_mm2=target_area_mm2,
+    )
 
 
-def _segmented(b, depth, K, ok, cand, normals, params: dict, *, edge_px: int, depth_scale_px: int,
-               target_area_mm2: float | None) -> Segmentation:
+def _segmented(
+    b,
+    depth,
+    K,
+    ok,
+    cand,
+    normals,
+    params: dict,
+    *,
+    edge_px: int,
+    depth_scale_px: int,
+    target_area_mm2: float | None,
+) -> Segmentation:
     """The geometric segmentation when enough of the candidates have a stereo depth and a smooth surface
     fits it, else the brightness-only one (its reasons say why). ``params``: the options of
     :func:`classify`; ``edge_px`` already scaled by ``depth_scale_px``."""
@@ -128,7 +167,9 @@ def _segmented(b, depth, K, ok, cand, normals, params: dict, *, edge_px: int, de
     finite = np.zeros(b.shape, bool) if depth is None else (np.isfinite(depth) & (depth > 0) & ok)
     matched_share = np.count_nonzero(finite & cand) / np.count_nonzero(cand)
     if depth is None:
-        reasons.append("no stereo depth: the plate was told from its surroundings by brightness only")
+        reasons.append(
+            "no stereo depth: the plate was told from its surroundings by brightness only"
+        )
     elif matched_share < MIN_MATCHED_SHARE:
         reasons.append(
             f"stereo depth on {100 * matched_share:.1f} % of the bright pixels (under {100 * MIN_MATCHED_SHARE:.0f} %): "
@@ -139,10 +180,23 @@ def _segmented(b, depth, K, ok, cand, normals, params: dict, *, edge_px: int, de
         if parts is None:
             reasons.append("no smooth surface fits the stereo depth: brightness only")
         else:
-            return finish(parts, b, depth, K, ok, cand, dark, normals, reasons, edge_px=edge_px,
-                          depth_scale_px=depth_scale_px, depth_band_mm=params["depth_band_mm"],
-                          max_dropout_mm2=params["max_dropout_mm2"], support_width_mm=params["support_width_mm"],
-                          target_area_mm2=target_area_mm2)
+            return finish(
+                parts,
+                b,
+                depth,
+                K,
+                ok,
+                cand,
+                dark,
+                normals,
+                reasons,
+                edge_px=edge_px,
+                depth_scale_px=depth_scale_px,
+                depth_band_mm=params["depth_band_mm"],
+                max_dropout_mm2=params["max_dropout_mm2"],
+                support_width_mm=params["support_width_mm"],
+                target_area_mm2=target_area_mm2,
+            )
     return _by_brightness(cand, dark, ok, reasons, edge_px=edge_px)
 
 
@@ -152,30 +206,51 @@ def _inputs(brightness, camera_matrix, seen, depth_mm, normals):
     shape = b.shape
     K = check_camera_matrix(camera_matrix)
     ok = np.ones(shape, bool) if seen is None else check_bool_image("seen", seen, shape)
-    depth = None if depth_mm is None else check_image("depth_mm", depth_mm, shape).astype(np.float32)
+    depth = (
+        None if depth_mm is None else check_image("depth_mm", depth_mm, shape).astype(np.float32)
+    )
     if normals is not None:
         normals = np.asarray(normals)
         if normals.shape != shape + (3,):
-            raise ValueError(f"normals: expected shape {shape + (3,)} to match brightness, got {normals.shape}")
+            raise ValueError(
+                f"normals: expected shape {shape + (3,)} to match brightness, got {normals.shape}"
+            )
     return b, K, ok, depth, normals
 
 
-def _check_options(depth_band_mm, max_dropout_mm2, support_width_mm, edge_px, reach_px, step_zone_px, depth_scale_px,
-                   target_area_mm2) -> None:
+def _check_options(
+    depth_band_mm,
+    max_dropout_mm2,
+    support_width_mm,
+    edge_px,
+    reach_px,
+    step_zone_px,
+    depth_scale_px,
+    target_area_mm2,
+) -> None:
     """ValueError naming the first option of :func:`segment_plate` out of its range."""
-    for name, value in (("depth_band_mm", depth_band_mm), ("max_dropout_mm2", max_dropout_mm2),
-                        ("support_width_mm", support_width_mm)):
+    for name, value in (
+        ("depth_band_mm", depth_band_mm),
+        ("max_dropout_mm2", max_dropout_mm2),
+        ("support_width_mm", support_width_mm),
+    ):
         if not (math.isfinite(value) and value >= 0):
             raise ValueError(f"{name}: expected a finite value >= 0, got {value}")
     if depth_band_mm <= 0:
         raise ValueError(f"depth_band_mm: expected a band > 0 mm, got {depth_band_mm}")
-    for name, value in (("edge_px", edge_px), ("reach_px", reach_px), ("step_zone_px", step_zone_px)):
+    for name, value in (
+        ("edge_px", edge_px),
+        ("reach_px", reach_px),
+        ("step_zone_px", step_zone_px),
+    ):
         if not isinstance(value, (int, np.integer)) or value < 0:
             raise ValueError(f"{name}: expected an integer >= 0, got {value!r}")
     if not isinstance(depth_scale_px, (int, np.integer)) or depth_scale_px < 1:
         raise ValueError(f"depth_scale_px: expected an integer >= 1, got {depth_scale_px!r}")
     if target_area_mm2 is not None and not (math.isfinite(target_area_mm2) and target_area_mm2 > 0):
-        raise ValueError(f"target_area_mm2: expected a positive area in mm^2 or None, got {target_area_mm2}")
+        raise ValueError(
+            f"target_area_mm2: expected a positive area in mm^2 or None, got {target_area_mm2}"
+        )
 
 
 def _classified(b, depth, K, ok, cand, normals, s: int, params: dict):
@@ -186,20 +261,34 @@ def _classified(b, depth, K, ok, cand, normals, s: int, params: dict):
     # the depth has the resolution of a grid s times coarser: decide there (s^2 times less work),
     # then bring the decisions back and draw the edge band on this grid
     K_s = np.diag([1.0 / s, 1.0 / s, 1.0]) @ K
-    parts = classify(b[::s, ::s], depth[::s, ::s], K_s, ok[::s, ::s], cand[::s, ::s],
-                     None if normals is None else normals[::s, ::s], **params)
+    parts = classify(
+        b[::s, ::s],
+        depth[::s, ::s],
+        K_s,
+        ok[::s, ::s],
+        cand[::s, ::s],
+        None if normals is None else normals[::s, ::s],
+        **params,
+    )
     return None if parts is None else parts.upsampled(s, b.shape)
 
 
-def _by_brightness(cand: np.ndarray, dark: np.ndarray, ok: np.ndarray, reasons: list[str], *,
-                   edge_px: int) -> Segmentation:
+def _by_brightness(
+    cand: np.ndarray, dark: np.ndarray, ok: np.ndarray, reasons: list[str], *, edge_px: int
+) -> Segmentation:
     """The plate as the largest candidate component, holes of a few pixels filled (no depth to judge by)."""
     shape = cand.shape
-    opened = cv2.morphologyEx(cand.view(np.uint8), cv2.MORPH_OPEN, np.ones((5, 5), np.uint8)).astype(bool)
+    opened = cv2.morphologyEx(
+        cand.view(np.uint8), cv2.MORPH_OPEN, np.ones((5, 5), np.uint8)
+    ).astype(bool)
     core = largest_component(opened)
     if not core.any():
-        raise CaptureError("photometric images: no plate found (no region brighter than the background)")
-    n_lab, labels, stats, _ = cv2.connectedComponentsWithStats((~core).view(np.uint8), connectivity=4)
+        raise CaptureError(
+            "photometric images: no plate found (no region brighter than the background)"
+        )
+    n_lab, labels, stats, _ = cv2.connectedComponentsWithStats(
+        (~core).view(np.uint8), connectivity=4
+    )
     border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
     # without depth only specks can be told from openings: at most 0.05 % of the plate
     small = stats[:, cv2.CC_STAT_AREA] <= max(4, int(5e-4 * np.count_nonzero(core)))
@@ -218,11 +307,25 @@ def _by_brightness(cand: np.ndarray, dark: np.ndarray, ok: np.ndarray, reasons: 
     if n_holes:
         reasons.append(f"{n_holes} dark region(s) inside the plate kept as holes, not measured")
     return Segmentation(
-        mask=mask, edge_band=edge_band, holes=holes, surface_depth_mm=nan, surroundings_step_mm=nan.copy(),
-        pixel_area_mm2=nan.copy(), plate_area_mm2=math.nan, edge_band_area_mm2=math.nan, holes_area_mm2=math.nan,
+        mask=mask,
+        edge_band=edge_band,
+        holes=holes,
+        surface_depth_mm=nan,
+        surroundings_step_mm=nan.copy(),
+        pixel_area_mm2=nan.copy(),
+        plate_area_mm2=math.nan,
+        edge_band_area_mm2=math.nan,
+        holes_area_mm2=math.nan,
         filled_area_mm2=math.nan,
-        n_mask=int(np.count_nonzero(mask)), n_edge_band=int(np.count_nonzero(edge_band)),
-        n_holes=n_holes, n_hole_pixels=int(np.count_nonzero(holes)),
-        n_off_depth=0, n_dark=int(np.count_nonzero(dark)), n_unmatched=int(np.count_nonzero(cand)),
-        fit_rms_mm=math.nan, depth_band_mm=math.nan, method="brightness", reasons=tuple(reasons),
+        n_mask=int(np.count_nonzero(mask)),
+        n_edge_band=int(np.count_nonzero(edge_band)),
+        n_holes=n_holes,
+        n_hole_pixels=int(np.count_nonzero(holes)),
+        n_off_depth=0,
+        n_dark=int(np.count_nonzero(dark)),
+        n_unmatched=int(np.count_nonzero(cand)),
+        fit_rms_mm=math.nan,
+        depth_band_mm=math.nan,
+        method="brightness",
+        reasons=tuple(reasons),
     )

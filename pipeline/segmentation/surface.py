@@ -21,7 +21,9 @@ FIT_SAMPLES = 20_000
 SEED_SHARE = 0.25
 
 
-def normalised_coords(K: np.ndarray, shape: tuple[int, int], stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+def normalised_coords(
+    K: np.ndarray, shape: tuple[int, int], stride: int = 1
+) -> tuple[np.ndarray, np.ndarray]:
     """Normalised image coordinates ``(x, y)`` of ``K^-1 (u, v, 1)`` at every ``stride``-th pixel of a (H, W) grid."""
     h, w = shape
     u = np.arange(0, w, stride, dtype=np.float64)
@@ -32,7 +34,9 @@ def normalised_coords(K: np.ndarray, shape: tuple[int, int], stride: int = 1) ->
     return x, y
 
 
-def design(x: np.ndarray, y: np.ndarray, degree: int, scale: tuple[float, float, float, float]) -> np.ndarray:
+def design(
+    x: np.ndarray, y: np.ndarray, degree: int, scale: tuple[float, float, float, float]
+) -> np.ndarray:
     """Monomials ``xs^i ys^j`` (i + j <= degree) of the centred, scaled coordinates, (M, T)."""
     xs = (x - scale[0]) / scale[1]
     ys = (y - scale[2]) / scale[3]
@@ -60,7 +64,9 @@ def _robust_fit(X: np.ndarray, w_obs: np.ndarray, z: np.ndarray, iterations: int
 
 def largest_component(mask: np.ndarray, connectivity: int = 8) -> np.ndarray:
     """The largest connected component of ``mask`` (all False when it is empty)."""
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.view(np.uint8), connectivity=connectivity)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(
+        mask.view(np.uint8), connectivity=connectivity
+    )
     if n <= 1:
         return np.zeros_like(mask)
     return labels == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
@@ -83,7 +89,9 @@ class Surface:
             return np.where(inv > 0, 1.0 / inv, np.nan)
 
 
-def fit_surface(depth: np.ndarray, candidates: np.ndarray, K: np.ndarray, band_mm: float) -> Surface | None:
+def fit_surface(
+    depth: np.ndarray, candidates: np.ndarray, K: np.ndarray, band_mm: float
+) -> Surface | None:
     """Grow a robust smooth fit from the nearest candidates (see the module docstring); None if too few."""
     h, w = depth.shape
     stride = max(1, int(round(math.sqrt(h * w / FIT_SAMPLES))))
@@ -127,10 +135,14 @@ def _on_full_grid(values: np.ndarray, shape: tuple[int, int], step: int) -> np.n
     h, w = shape
     map_x = np.broadcast_to((np.arange(w, dtype=np.float32) / step)[None, :], (h, w))
     map_y = np.broadcast_to((np.arange(h, dtype=np.float32) / step)[:, None], (h, w))
-    return cv2.remap(values.astype(np.float32), map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return cv2.remap(
+        values.astype(np.float32), map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+    )
 
 
-def _coarse_coords(K: np.ndarray, shape: tuple[int, int], step: int) -> tuple[np.ndarray, np.ndarray]:
+def _coarse_coords(
+    K: np.ndarray, shape: tuple[int, int], step: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Normalised coordinates at pixels ``(step i, step j)`` covering the (H, W) grid (last sample at or
     beyond the last pixel)."""
     h, w = shape
@@ -138,7 +150,9 @@ def _coarse_coords(K: np.ndarray, shape: tuple[int, int], step: int) -> tuple[np
     return normalised_coords(K, grid, step)
 
 
-def surface_depth(surface: Surface, K: np.ndarray, shape: tuple[int, int], step: int = 8) -> np.ndarray:
+def surface_depth(
+    surface: Surface, K: np.ndarray, shape: tuple[int, int], step: int = 8
+) -> np.ndarray:
     """(H, W) float32 depth (mm) of the fitted surface: evaluated every ``step`` pixels, bilinear between
     (a surface of degree 4 over the image is smooth at that scale: the interpolation errs by micrometres)."""
     x, y = _coarse_coords(K, shape, step)
@@ -167,13 +181,23 @@ class Geometry:
         map_x[:m] = cols / self.step
         map_y[:m] = rows / self.step
         map_x, map_y = map_x.reshape(height, width), map_y.reshape(height, width)
-        comps = [cv2.remap(self.normal[..., i].astype(np.float32), map_x, map_y, cv2.INTER_LINEAR,
-                           borderMode=cv2.BORDER_REPLICATE).ravel()[:m] for i in range(3)]
+        comps = [
+            cv2.remap(
+                self.normal[..., i].astype(np.float32),
+                map_x,
+                map_y,
+                cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_REPLICATE,
+            ).ravel()[:m]
+            for i in range(3)
+        ]
         n = np.stack(comps, axis=-1)
         return n / np.linalg.norm(n, axis=-1, keepdims=True)
 
 
-def surface_geometry(surface: Surface, K: np.ndarray, shape: tuple[int, int], step: int = 16) -> Geometry:
+def surface_geometry(
+    surface: Surface, K: np.ndarray, shape: tuple[int, int], step: int = 16
+) -> Geometry:
     """Area per pixel and normals of the fitted surface from its analytic-by-differences derivatives.
 
     With ``P = z(x, y) (x, y, 1)``: ``dP/dx = z_x (x, y, 1) + z (1, 0, 0)``, likewise for y; a pixel spans

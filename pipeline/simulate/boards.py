@@ -22,7 +22,9 @@ from .texture import smooth_noise
 _BOARD_MIN_COS = math.cos(math.radians(50.0))
 
 
-def _board_pose(rng: np.random.Generator, distance_mm: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+def _board_pose(
+    rng: np.random.Generator, distance_mm: tuple[float, float]
+) -> tuple[np.ndarray, np.ndarray]:
     """A random board pose: R_cam_board (3, 3), centre t (3,) mm, board facing the camera."""
     rx, ry = rng.uniform(-np.radians(35), np.radians(35), 2)
     rz = rng.uniform(-np.radians(12), np.radians(12))
@@ -156,14 +158,25 @@ def render_calibration_pairs(
         R_rb, t_rb = rig.R @ R_lb, rig.R @ t_lb + rig.T
         for side, rays, Rc, tc in (("left", rays_l, R_lb, t_lb), ("right", rays_r, R_rb, t_rb)):
             img = _board_view(rays, Rc, tc, squares, square_mm, margin_sq, rng)
-            paths.append(_write_view(out / f"{side}{i + 1:0{digits}d}.png", img, blur_px, noise, rng))
-    gx, gy = np.meshgrid(np.arange(1, cols + 1) - squares[0] / 2, np.arange(1, rows + 1) - squares[1] / 2)
+            paths.append(
+                _write_view(out / f"{side}{i + 1:0{digits}d}.png", img, blur_px, noise, rng)
+            )
+    gx, gy = np.meshgrid(
+        np.arange(1, cols + 1) - squares[0] / 2, np.arange(1, rows + 1) - squares[1] / 2
+    )
     obj = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], axis=1) * square_mm
-    np.savez(out / "board_truth.npz", R_cam_board=np.array(Rs), t_cam_board=np.array(ts), object_points=obj)
+    np.savez(
+        out / "board_truth.npz",
+        R_cam_board=np.array(Rs),
+        t_cam_board=np.array(ts),
+        object_points=obj,
+    )
     return paths
 
 
-def _write_view(path: Path, img: np.ndarray, blur_px: float, noise: float, rng: np.random.Generator) -> Path:
+def _write_view(
+    path: Path, img: np.ndarray, blur_px: float, noise: float, rng: np.random.Generator
+) -> Path:
     """A board view as the camera records it (blurred, noisy, 8-bit), written to ``path``; returns ``path``."""
     if blur_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), blur_px)
@@ -196,13 +209,23 @@ def _board_outline(squares: tuple[int, int], margin_sq: float, square_mm: float)
     """The board's outline (its white border included), (36, 3) points in the board frame, mm: densified so
     that distortion cannot push an edge out between corners."""
     half = np.array([squares[0] / 2 + margin_sq, squares[1] / 2 + margin_sq]) * square_mm
-    outline = np.array([[-half[0], -half[1], 0], [half[0], -half[1], 0], [half[0], half[1], 0], [-half[0], half[1], 0]])
+    outline = np.array(
+        [
+            [-half[0], -half[1], 0],
+            [half[0], -half[1], 0],
+            [half[0], half[1], 0],
+            [-half[0], half[1], 0],
+        ]
+    )
     edge = np.linspace(0, 1, 9)[:, None]
-    return np.concatenate([outline[i] + edge * (outline[(i + 1) % 4] - outline[i]) for i in range(4)])
+    return np.concatenate(
+        [outline[i] + edge * (outline[(i + 1) % 4] - outline[i]) for i in range(4)]
+    )
 
 
-def _pose_in_both(rng: np.random.Generator, rig: StereoRig, outline: np.ndarray,
-                  dist_range: tuple[float, float]) -> tuple[np.ndarray | None, np.ndarray | None]:
+def _pose_in_both(
+    rng: np.random.Generator, rig: StereoRig, outline: np.ndarray, dist_range: tuple[float, float]
+) -> tuple[np.ndarray | None, np.ndarray | None]:
     """A random board pose (R, t in the left frame) whose outline both cameras see whole, within 50 deg of
     head-on and 4 % of the width inside the image; (None, None) if 2000 draws found none."""
     w, h = rig.image_size
@@ -220,7 +243,11 @@ def _pose_in_both(rng: np.random.Generator, rig: StereoRig, outline: np.ndarray,
                 ok = False
                 break
             uv = cam.project(pc)
-            if np.any(uv < margin_px) or np.any(uv[:, 0] > w - 1 - margin_px) or np.any(uv[:, 1] > h - 1 - margin_px):
+            if (
+                np.any(uv < margin_px)
+                or np.any(uv[:, 0] > w - 1 - margin_px)
+                or np.any(uv[:, 1] > h - 1 - margin_px)
+            ):
                 ok = False
                 break
         if ok:

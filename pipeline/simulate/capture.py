@@ -135,11 +135,17 @@ class CaptureSpec:
         if not isinstance(self.n_lights, (int, np.integer)) or self.n_lights < 3:
             raise ValueError(f"CaptureSpec.n_lights: expected an integer >= 3, got {self.n_lights}")
         if not 0.0 < self.light_elevation_deg < 90.0:
-            raise ValueError(f"CaptureSpec.light_elevation_deg: expected in (0, 90), got {self.light_elevation_deg}")
+            raise ValueError(
+                f"CaptureSpec.light_elevation_deg: expected in (0, 90), got {self.light_elevation_deg}"
+            )
         if not 0.0 <= self.intensity_spread < 0.5:
-            raise ValueError(f"CaptureSpec.intensity_spread: expected in [0, 0.5), got {self.intensity_spread}")
+            raise ValueError(
+                f"CaptureSpec.intensity_spread: expected in [0, 0.5), got {self.intensity_spread}"
+            )
         if not (math.isfinite(self.noise) and self.noise >= 0):
-            raise ValueError(f"CaptureSpec.noise: expected a fraction of full scale >= 0, got {self.noise}")
+            raise ValueError(
+                f"CaptureSpec.noise: expected a fraction of full scale >= 0, got {self.noise}"
+            )
         if self.bit_depth not in (8, 12, 16):
             raise ValueError(f"CaptureSpec.bit_depth: expected 8, 12 or 16, got {self.bit_depth}")
         if not (math.isfinite(self.exposure) and self.exposure > 0):
@@ -151,27 +157,51 @@ class CaptureSpec:
         if not (math.isfinite(self.dark_level) and 0 <= self.dark_level < 0.5):
             raise ValueError(f"CaptureSpec.dark_level: expected in [0, 0.5), got {self.dark_level}")
         if self.texture not in ("rusty", "painted", "uniform"):
-            raise ValueError(f"CaptureSpec.texture: expected rusty, painted or uniform, got {self.texture!r}")
+            raise ValueError(
+                f"CaptureSpec.texture: expected rusty, painted or uniform, got {self.texture!r}"
+            )
         if self.working_distance_mm is not None and not (
             math.isfinite(self.working_distance_mm) and self.working_distance_mm > 0
         ):
-            raise ValueError(f"CaptureSpec.working_distance_mm: expected > 0 or None, got {self.working_distance_mm}")
+            raise ValueError(
+                f"CaptureSpec.working_distance_mm: expected > 0 or None, got {self.working_distance_mm}"
+            )
         if self.width < 64 or self.height < 64:
-            raise ValueError(f"CaptureSpec.width, height: expected at least 64 x 64, got {self.width} x {self.height}")
-        if self.near_field_mm is not None and not (math.isfinite(self.near_field_mm) and self.near_field_mm > 0):
-            raise ValueError(f"CaptureSpec.near_field_mm: expected a height > 0 mm or None, got {self.near_field_mm}")
+            raise ValueError(
+                f"CaptureSpec.width, height: expected at least 64 x 64, got {self.width} x {self.height}"
+            )
+        if self.near_field_mm is not None and not (
+            math.isfinite(self.near_field_mm) and self.near_field_mm > 0
+        ):
+            raise ValueError(
+                f"CaptureSpec.near_field_mm: expected a height > 0 mm or None, got {self.near_field_mm}"
+            )
         if not (math.isfinite(self.led_mu) and self.led_mu >= 0):
             raise ValueError(f"CaptureSpec.led_mu: expected >= 0, got {self.led_mu}")
         if not (math.isfinite(self.light_error_deg) and 0 <= self.light_error_deg < 30):
-            raise ValueError(f"CaptureSpec.light_error_deg: expected in [0, 30), got {self.light_error_deg}")
+            raise ValueError(
+                f"CaptureSpec.light_error_deg: expected in [0, 30), got {self.light_error_deg}"
+            )
         if self.manifest_lights not in ("exact", "nominal"):
-            raise ValueError(f"CaptureSpec.manifest_lights: expected exact or nominal, got {self.manifest_lights!r}")
+            raise ValueError(
+                f"CaptureSpec.manifest_lights: expected exact or nominal, got {self.manifest_lights!r}"
+            )
 
     def light_directions(self) -> np.ndarray:
         """(n_lights, 3) float64 unit vectors, left-camera frame, from the surface towards each light."""
         el = math.radians(self.light_elevation_deg)
-        phi = math.radians(self.light_azimuth_deg) + 2.0 * np.pi * np.arange(self.n_lights) / self.n_lights
-        return np.stack([math.sin(el) * np.cos(phi), math.sin(el) * np.sin(phi), np.full(phi.shape, -math.cos(el))], 1)
+        phi = (
+            math.radians(self.light_azimuth_deg)
+            + 2.0 * np.pi * np.arange(self.n_lights) / self.n_lights
+        )
+        return np.stack(
+            [
+                math.sin(el) * np.cos(phi),
+                math.sin(el) * np.sin(phi),
+                np.full(phi.shape, -math.cos(el)),
+            ],
+            1,
+        )
 
     def lights(self, centre_mm: np.ndarray, intensities: np.ndarray) -> Lights:
         """The true lights for a plate centred at ``centre_mm`` (3,) (left-camera frame, mm).
@@ -184,10 +214,14 @@ class CaptureSpec:
         if self.near_field_mm is None:
             return Lights.distant(dirs, intensities)
         centre = np.asarray(centre_mm, dtype=np.float64)
-        reach = self.near_field_mm / -dirs[:, 2]  # distance along each direction to the lights' plane
+        reach = (
+            self.near_field_mm / -dirs[:, 2]
+        )  # distance along each direction to the lights' plane
         positions = centre + reach[:, None] * dirs
         axes = -dirs
-        unit = Lights.points(positions, np.ones(len(dirs)), axes=axes, mu=np.full(len(dirs), self.led_mu))
+        unit = Lights.points(
+            positions, np.ones(len(dirs)), axes=axes, mu=np.full(len(dirs), self.led_mu)
+        )
         at_centre = unit.attenuation_at(centre)  # cos(theta) = 1 on the axis
         return unit.with_intensity(np.asarray(intensities) / at_centre)
 
@@ -210,8 +244,14 @@ def _render_view(scene: _Scene, origin: np.ndarray, rays: np.ndarray) -> tuple[H
     albedo = np.where(hits.on_plate, scene.albedo.sample(x, y), scene.conveyor.sample(x, y))
     floor = scene.plate.floor
     if floor is not None:
-        for k, sup in enumerate(floor.supports):  # the floor's texture, scaled to the support's albedo
-            albedo = np.where(hits.surface == SURFACE_SUPPORT + k, albedo * np.float32(sup.albedo / floor.albedo), albedo)
+        for k, sup in enumerate(
+            floor.supports
+        ):  # the floor's texture, scaled to the support's albedo
+            albedo = np.where(
+                hits.surface == SURFACE_SUPPORT + k,
+                albedo * np.float32(sup.albedo / floor.albedo),
+                albedo,
+            )
     return hits, albedo.astype(np.float32)
 
 
@@ -235,8 +275,13 @@ def _shade(
         view = eye.astype(np.float32) - points_cam.astype(np.float32)
         view /= np.linalg.norm(view, axis=-1, keepdims=True)
     for k in range(lights.n):
-        one = Lights(lights.directions[k:k + 1], lights.positions_mm[k:k + 1], lights.axes[k:k + 1],
-                     lights.mu[k:k + 1], lights.intensity[k:k + 1])
+        one = Lights(
+            lights.directions[k : k + 1],
+            lights.positions_mm[k : k + 1],
+            lights.axes[k : k + 1],
+            lights.mu[k : k + 1],
+            lights.intensity[k : k + 1],
+        )
         l = one.directions_at(points_cam)[0].astype(np.float32)
         gain = (one.intensity[0] * one.attenuation_at(points_cam)[0]).astype(np.float32)
         ndotl = np.einsum("hwc,hwc->hw", n, l)
@@ -259,13 +304,19 @@ def _floor_span_mm(plate: PlateSpec, rig: StereoRig) -> float:
     return 1.2 * field + BASELINE_MM
 
 
-def _bumped(lights: Lights, centre_mm: np.ndarray, error_deg: float, rng: np.random.Generator) -> Lights:
+def _bumped(
+    lights: Lights, centre_mm: np.ndarray, error_deg: float, rng: np.random.Generator
+) -> Lights:
     """Every light turned by ``error_deg`` about ``centre_mm``, each about a random axis across its direction."""
     if error_deg == 0:
         return lights
     dirs = lights.directions_at(centre_mm)
     angle = math.radians(error_deg)
-    directions, positions, axes = lights.directions.copy(), lights.positions_mm.copy(), lights.axes.copy()
+    directions, positions, axes = (
+        lights.directions.copy(),
+        lights.positions_mm.copy(),
+        lights.axes.copy(),
+    )
     for k in range(lights.n):
         across = np.cross(dirs[k], rng.standard_normal(3))
         across /= np.linalg.norm(across)
@@ -331,7 +382,11 @@ def simulate_capture(
     out.mkdir(parents=True, exist_ok=True)
     seeds = np.random.SeedSequence(int(seed)).spawn(6)
     rng_lights, rng_noise, rng_dark, rng_stereo = (np.random.default_rng(s) for s in seeds[:4])
-    tex_seed = capture.albedo_seed if capture.albedo_seed is not None else int(seeds[4].generate_state(1)[0])
+    tex_seed = (
+        capture.albedo_seed
+        if capture.albedo_seed is not None
+        else int(seeds[4].generate_state(1)[0])
+    )
     conveyor_seed = int(seeds[5].generate_state(1)[0])
     scene = _scene(plate, capture, rig, tex_seed, conveyor_seed)
     spread = capture.intensity_spread
@@ -341,8 +396,15 @@ def simulate_capture(
     written = _bumped(lights, centre, capture.light_error_deg, rng_lights)
     if lights.any_point and capture.manifest_lights == "nominal":
         written = written.nominal_directions(centre)
-    image_names, hits_raw = _write_images(out, scene, rig, lights, capture, (rng_noise, rng_dark, rng_stereo),
-                                          workers or default_workers())
+    image_names, hits_raw = _write_images(
+        out,
+        scene,
+        rig,
+        lights,
+        capture,
+        (rng_noise, rng_dark, rng_stereo),
+        workers or default_workers(),
+    )
     _write_truth(out, scene, rig, hits_raw, lights, capture)
     _write_documents(out, rig, plate, capture, plate_id, tolerance_mm, image_names, written)
     return out
@@ -389,7 +451,11 @@ def render_radiance(
     if side not in ("left", "right"):
         raise ValueError(f"side: expected 'left' or 'right', got {side!r}")
     seeds = np.random.SeedSequence(int(seed)).spawn(6)
-    tex_seed = capture.albedo_seed if capture.albedo_seed is not None else int(seeds[4].generate_state(1)[0])
+    tex_seed = (
+        capture.albedo_seed
+        if capture.albedo_seed is not None
+        else int(seeds[4].generate_state(1)[0])
+    )
     scene = _scene(plate, capture, rig, tex_seed, int(seeds[5].generate_state(1)[0]))
     camera = getattr(rig, side)
     rays = raw_pixel_rays(camera)
@@ -399,7 +465,9 @@ def render_radiance(
         eye = -rig.R.T @ rig.T
     hits, albedo = _render_view(scene, eye, rays)
     if not hits.on_plate.any():
-        raise ValueError(f"plate: no pixel of the {side} camera sees the plate (check distance_mm, tilt_deg, size_mm)")
+        raise ValueError(
+            f"plate: no pixel of the {side} camera sees the plate (check distance_mm, tilt_deg, size_mm)"
+        )
     return _shade(hits, albedo, eye + hits.s[..., None] * rays, eye, lights, capture)
 
 
@@ -420,25 +488,36 @@ def _check_arguments(plate, capture, rig, plate_id, tolerance_mm) -> StereoRig:
     return rig
 
 
-def _scene(plate: PlateSpec, capture: CaptureSpec, rig: StereoRig, tex_seed: int, conveyor_seed: int) -> _Scene:
+def _scene(
+    plate: PlateSpec, capture: CaptureSpec, rig: StereoRig, tex_seed: int, conveyor_seed: int
+) -> _Scene:
     """The plate posed in front of the rig with its texture, and what lies behind it (conveyor or floor)."""
     mm_per_px = plate.distance_mm / rig.left.K[0, 0]
     return _Scene(
         plate=plate,
         T_cam_plate=plate_pose(plate),
-        albedo=plate_albedo_texture(plate, capture.texture, tex_seed, max(TEXEL_MM, mm_per_px / 2)).prefiltered(
-            mm_per_px
-        ),
+        albedo=plate_albedo_texture(
+            plate, capture.texture, tex_seed, max(TEXEL_MM, mm_per_px / 2)
+        ).prefiltered(mm_per_px),
         conveyor=(
             conveyor_texture(plate, conveyor_seed)
             if plate.floor is None
-            else floor_texture(plate, conveyor_seed, max(4.0, mm_per_px / 2), _floor_span_mm(plate, rig))
+            else floor_texture(
+                plate, conveyor_seed, max(4.0, mm_per_px / 2), _floor_span_mm(plate, rig)
+            )
         ).prefiltered(mm_per_px),
     )
 
 
-def _write_images(out: Path, scene: _Scene, rig: StereoRig, lights: Lights, capture: CaptureSpec,
-                  rngs: tuple[np.random.Generator, ...], workers: int) -> tuple[list[str], Hits]:
+def _write_images(
+    out: Path,
+    scene: _Scene,
+    rig: StereoRig,
+    lights: Lights,
+    capture: CaptureSpec,
+    rngs: tuple[np.random.Generator, ...],
+    workers: int,
+) -> tuple[list[str], Hits]:
     """Render and write the photometric images, the dark frame and the stereo pair.
 
     PNG encoding (cv2 releases the GIL) overlaps with rendering on ``workers`` threads. ``rngs``: the
@@ -455,19 +534,34 @@ def _write_images(out: Path, scene: _Scene, rig: StereoRig, lights: Lights, capt
         eye_left = np.zeros(3)
         hits_raw, albedo_raw = _render_view(scene, eye_left, left_rays)
         if not hits_raw.on_plate.any():
-            raise ValueError("plate: no pixel of the left camera sees the plate (check distance_mm, tilt_deg, size_mm)")
+            raise ValueError(
+                "plate: no pixel of the left camera sees the plate (check distance_mm, tilt_deg, size_mm)"
+            )
         points_raw = hits_raw.s[..., None] * left_rays
         radiance = _shade(hits_raw, albedo_raw, points_raw, eye_left, lights, capture)
         dark_map = _dark_map(capture, rng_dark, (h, w))
         image_names = [f"ps_{k:02d}.png" for k in range(capture.n_lights)]
         for k, name in enumerate(image_names):
-            noisy = radiance[k] + dark_map + np.float32(capture.noise) * rng_noise.standard_normal((h, w), np.float32)
+            noisy = (
+                radiance[k]
+                + dark_map
+                + np.float32(capture.noise) * rng_noise.standard_normal((h, w), np.float32)
+            )
             writes.append(pool.submit(write_png, out / name, quantise(noisy, capture.bit_depth)))
         dark = dark_map + np.float32(capture.noise) * rng_noise.standard_normal((h, w), np.float32)
         writes.append(pool.submit(write_png, out / "dark.png", quantise(dark, capture.bit_depth)))
         if capture.stereo:  # all lights on, each at 1/N power
-            writes += _write_stereo_pair(out, scene, rig, lights, capture, radiance.mean(axis=0), dark_map,
-                                         (rng_dark, rng_stereo), pool)
+            writes += _write_stereo_pair(
+                out,
+                scene,
+                rig,
+                lights,
+                capture,
+                radiance.mean(axis=0),
+                dark_map,
+                (rng_dark, rng_stereo),
+                pool,
+            )
     finally:
         pool.shutdown(wait=True)
     for done in writes:
@@ -475,7 +569,9 @@ def _write_images(out: Path, scene: _Scene, rig: StereoRig, lights: Lights, capt
     return image_names, hits_raw
 
 
-def _dark_map(capture: CaptureSpec, rng_dark: np.random.Generator, shape: tuple[int, int]) -> np.ndarray:
+def _dark_map(
+    capture: CaptureSpec, rng_dark: np.random.Generator, shape: tuple[int, int]
+) -> np.ndarray:
     """A camera's dark level with its fixed pattern (H, W) float32, fractions of full scale."""
     dark_map = (capture.dark_level + 0.001 * rng_dark.standard_normal(shape)).astype(np.float32)
     if capture.dark_level == 0:
@@ -483,15 +579,29 @@ def _dark_map(capture: CaptureSpec, rng_dark: np.random.Generator, shape: tuple[
     return dark_map
 
 
-def _write_stereo_pair(out: Path, scene: _Scene, rig: StereoRig, lights: Lights, capture: CaptureSpec,
-                       flash: np.ndarray, dark_map: np.ndarray, rngs: tuple[np.random.Generator, ...],
-                       pool: ThreadPoolExecutor) -> list:
+def _write_stereo_pair(
+    out: Path,
+    scene: _Scene,
+    rig: StereoRig,
+    lights: Lights,
+    capture: CaptureSpec,
+    flash: np.ndarray,
+    dark_map: np.ndarray,
+    rngs: tuple[np.random.Generator, ...],
+    pool: ThreadPoolExecutor,
+) -> list:
     """Submit the stereo pair's writes; ``flash`` is the left camera's radiance with all lights on, ``rngs``
     the generators of the dark frame and of the pair's noise. Returns the futures."""
     rng_dark, rng_stereo = rngs
     w, h = rig.image_size
-    left_img = flash + dark_map + np.float32(capture.noise) * rng_stereo.standard_normal((h, w), np.float32)
-    writes = [pool.submit(write_png, out / "stereo_left.png", quantise(left_img, capture.bit_depth))]
+    left_img = (
+        flash
+        + dark_map
+        + np.float32(capture.noise) * rng_stereo.standard_normal((h, w), np.float32)
+    )
+    writes = [
+        pool.submit(write_png, out / "stereo_left.png", quantise(left_img, capture.bit_depth))
+    ]
     right_rays_cam = raw_pixel_rays(rig.right)
     right_rays = right_rays_cam @ rig.R  # directions into the left frame: R^T r
     eye_right = -rig.R.T @ rig.T
@@ -499,13 +609,20 @@ def _write_stereo_pair(out: Path, scene: _Scene, rig: StereoRig, lights: Lights,
     points_r = eye_right + hits_r.s[..., None] * right_rays
     flash_r = _shade(hits_r, albedo_r, points_r, eye_right, lights, capture).mean(axis=0)
     dark_r = _dark_map(capture, rng_dark, (h, w))
-    right_img = flash_r + dark_r + np.float32(capture.noise) * rng_stereo.standard_normal((h, w), np.float32)
-    writes.append(pool.submit(write_png, out / "stereo_right.png", quantise(right_img, capture.bit_depth)))
+    right_img = (
+        flash_r
+        + dark_r
+        + np.float32(capture.noise) * rng_stereo.standard_normal((h, w), np.float32)
+    )
+    writes.append(
+        pool.submit(write_png, out / "stereo_right.png", quantise(right_img, capture.bit_depth))
+    )
     return writes
 
 
-def _write_truth(out: Path, scene: _Scene, rig: StereoRig, hits_raw: Hits, lights: Lights,
-                 capture: CaptureSpec) -> None:
+def _write_truth(
+    out: Path, scene: _Scene, rig: StereoRig, hits_raw: Hits, lights: Lights, capture: CaptureSpec
+) -> None:
     """``truth.npz`` (see the module docstring), on the left camera's undistorted grid."""
     plate, T_cam_plate = scene.plate, scene.T_cam_plate
     und_rays = rig.left.pixel_rays()
@@ -526,12 +643,16 @@ def _write_truth(out: Path, scene: _Scene, rig: StereoRig, hits_raw: Hits, light
         mask_raw=hits_raw.on_plate,
         surface=hits_u.surface,
         scene_depth_mm=scene_depth.astype(np.float32),
-        radius_mm=np.float64(plate.radius_mm if plate.shape != "plane" and plate.radius_mm else np.nan),
+        radius_mm=np.float64(
+            plate.radius_mm if plate.shape != "plane" and plate.radius_mm else np.nan
+        ),
         radius2_mm=np.float64(plate.radius2 if plate.radius2 is not None else np.nan),
         shape=np.array(plate.shape),
         convex=np.bool_(plate.convex),
         size_mm=np.array(plate.size_mm),
-        dents=np.array([[d.x_mm, d.y_mm, d.radius_mm, d.depth_mm] for d in plate.dents], dtype=np.float64).reshape(-1, 4),
+        dents=np.array(
+            [[d.x_mm, d.y_mm, d.radius_mm, d.depth_mm] for d in plate.dents], dtype=np.float64
+        ).reshape(-1, 4),
         T_cam_plate=T_cam_plate,
         light_dirs=lights.directions_at(T_cam_plate[:3, 3]),
         light_intensity=lights.intensity,
@@ -546,8 +667,16 @@ def _write_truth(out: Path, scene: _Scene, rig: StereoRig, hits_raw: Hits, light
     )
 
 
-def _write_documents(out: Path, rig: StereoRig, plate: PlateSpec, capture: CaptureSpec, plate_id: str,
-                     tolerance_mm: float, image_names: list[str], written: Lights) -> None:
+def _write_documents(
+    out: Path,
+    rig: StereoRig,
+    plate: PlateSpec,
+    capture: CaptureSpec,
+    plate_id: str,
+    tolerance_mm: float,
+    image_names: list[str],
+    written: Lights,
+) -> None:
     """``calibration.json``, ``target.json`` (and its mesh) and ``capture.json``, each checked against its format."""
     calibration_doc = calibration_document(rig)
     StereoCalibrationFile.model_validate(calibration_doc)

@@ -59,10 +59,14 @@ def outline_polygon(plate: PlateSpec, *, step_mm: float = 20.0) -> np.ndarray:
         raise ValueError(f"step_mm: expected > 0, got {step_mm}")
     if not isinstance(plate.outline, str):
         corners = np.array(plate.outline, dtype=np.float64)
-        area2 = np.sum(corners[:, 0] * np.roll(corners[:, 1], -1) - np.roll(corners[:, 0], -1) * corners[:, 1])
+        area2 = np.sum(
+            corners[:, 0] * np.roll(corners[:, 1], -1) - np.roll(corners[:, 0], -1) * corners[:, 1]
+        )
         return densify(corners if area2 > 0 else corners[::-1], step_mm)
     if plate.outline == "rectangle":
-        corners = np.array([[-half_w, -half_h], [half_w, -half_h], [half_w, half_h], [-half_w, half_h]])
+        corners = np.array(
+            [[-half_w, -half_h], [half_w, -half_h], [half_w, half_h], [-half_w, half_h]]
+        )
     elif plate.outline == "trapezoid":
         top = TRAPEZOID_TOP * half_w
         corners = np.array([[-half_w, -half_h], [half_w, -half_h], [top, half_h], [-top, half_h]])
@@ -84,7 +88,9 @@ def inside_outline(plate: PlateSpec, x: np.ndarray, y: np.ndarray) -> np.ndarray
         return box
     if plate.outline == "trapezoid":
         with np.errstate(invalid="ignore"):
-            return box & (np.abs(x) <= half_w * (1.0 - 0.5 * (1.0 - TRAPEZOID_TOP) * (1.0 + y / half_h)))
+            return box & (
+                np.abs(x) <= half_w * (1.0 - 0.5 * (1.0 - TRAPEZOID_TOP) * (1.0 + y / half_h))
+            )
     if plate.outline == "curved":
         yc, rho = _curved_edge(plate)
         return box & (x * x + (y - yc) ** 2 <= rho * rho)
@@ -125,7 +131,9 @@ def plate_region(plate: PlateSpec, x_mm: np.ndarray, y_mm: np.ndarray) -> np.nda
     return inside
 
 
-def plate_height(plate: PlateSpec, x_mm: np.ndarray, y_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def plate_height(
+    plate: PlateSpec, x_mm: np.ndarray, y_mm: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Height field of the plate and its analytic gradient.
 
     Parameters
@@ -203,7 +211,9 @@ class Hits:
 SURFACE_PLATE, SURFACE_CONVEYOR, SURFACE_FLOOR, SURFACE_SUPPORT = 0, 1, 2, 3
 
 
-def intersect(plate: PlateSpec, T_cam_plate: np.ndarray, origin: np.ndarray, dirs: np.ndarray) -> Hits:
+def intersect(
+    plate: PlateSpec, T_cam_plate: np.ndarray, origin: np.ndarray, dirs: np.ndarray
+) -> Hits:
     """Intersect rays ``origin + s * dirs`` (left-camera frame) with the plate, else with the conveyor."""
     R = T_cam_plate[:3, :3]
     t = T_cam_plate[:3, 3]
@@ -272,11 +282,15 @@ def intersect(plate: PlateSpec, T_cam_plate: np.ndarray, origin: np.ndarray, dir
     if plate.floor is None:
         s = np.where(on_plate, s, s_bg)
         xyz = np.stack([o[0] + s * dx, o[1] + s * dy, np.where(on_plate, h, z_bg)], axis=-1)
-        n_plate = np.stack([np.where(on_plate, hx, 0.0), np.where(on_plate, hy, 0.0), -np.ones_like(s)], axis=-1)
+        n_plate = np.stack(
+            [np.where(on_plate, hx, 0.0), np.where(on_plate, hy, 0.0), -np.ones_like(s)], axis=-1
+        )
         surface = np.where(on_plate, SURFACE_PLATE, SURFACE_CONVEYOR).astype(np.int8)
     else:
         s = np.where(on_plate, s, s_bg)
-        xyz = np.stack([o[0] + s * dx, o[1] + s * dy, np.where(on_plate, h, o[2] + s * dz)], axis=-1)
+        xyz = np.stack(
+            [o[0] + s * dx, o[1] + s * dy, np.where(on_plate, h, o[2] + s * dz)], axis=-1
+        )
         n_plate = np.where(on_plate[..., None], np.stack([hx, hy, -np.ones_like(s)], axis=-1), n_bg)
         surface = np.where(on_plate, SURFACE_PLATE, surface_bg).astype(np.int8)
     n_plate /= np.linalg.norm(n_plate, axis=-1, keepdims=True)
@@ -284,7 +298,9 @@ def intersect(plate: PlateSpec, T_cam_plate: np.ndarray, origin: np.ndarray, dir
     return Hits(s=s, xyz_plate=xyz, normals=normals, on_plate=on_plate, surface=surface)
 
 
-def _surroundings(plate: PlateSpec, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _surroundings(
+    plate: PlateSpec, o: np.ndarray, d: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rays ``o + s d`` (plate frame) against the floor and the supports: nearest hit ``s`` (...,), its
     outward normal (..., 3) (plate frame, towards the rays' side) and surface code (...,) int8."""
     floor = plate.floor
@@ -296,7 +312,13 @@ def _surroundings(plate: PlateSpec, o: np.ndarray, d: np.ndarray) -> tuple[np.nd
         normal[..., 2] = -1.0
         surface = np.full(s.shape, SURFACE_FLOOR, dtype=np.int8)
         for k, sup in enumerate(floor.supports):
-            lo = np.array([sup.x_mm - sup.size_x_mm / 2, sup.y_mm - sup.size_y_mm / 2, z_floor - sup.height_mm])
+            lo = np.array(
+                [
+                    sup.x_mm - sup.size_x_mm / 2,
+                    sup.y_mm - sup.size_y_mm / 2,
+                    z_floor - sup.height_mm,
+                ]
+            )
             hi = np.array([sup.x_mm + sup.size_x_mm / 2, sup.y_mm + sup.size_y_mm / 2, z_floor])
             t1 = (lo - o) / d
             t2 = (hi - o) / d
@@ -306,7 +328,12 @@ def _surroundings(plate: PlateSpec, o: np.ndarray, d: np.ndarray) -> tuple[np.nd
             hit = (enter <= far.min(axis=-1)) & (enter > 0) & (enter < s)
             axis = near.argmax(axis=-1)
             face = np.zeros(d.shape)
-            np.put_along_axis(face, axis[..., None], -np.sign(np.take_along_axis(d, axis[..., None], axis=-1)), axis=-1)
+            np.put_along_axis(
+                face,
+                axis[..., None],
+                -np.sign(np.take_along_axis(d, axis[..., None], axis=-1)),
+                axis=-1,
+            )
             s = np.where(hit, enter, s)
             normal = np.where(hit[..., None], face, normal)
             surface = np.where(hit, SURFACE_SUPPORT + k, surface).astype(np.int8)

@@ -58,14 +58,26 @@ def default_rig(*, width: int = 1224, height: int = 1024) -> StereoRig:
         ``k1 k2 p1 p2 k3`` ~ ``(-0.08, 0.05, 4e-4, -3e-4, 0)`` (left), slightly different right.
     """
     if not (isinstance(width, (int, np.integer)) and isinstance(height, (int, np.integer))):
-        raise TypeError(f"width, height: expected integers, got {type(width).__name__}, {type(height).__name__}")
+        raise TypeError(
+            f"width, height: expected integers, got {type(width).__name__}, {type(height).__name__}"
+        )
     if width < 64 or height < 64:
         raise ValueError(f"width, height: expected at least 64 x 64 pixels, got {width} x {height}")
     s = width / 1224.0
     fx = _FX_PER_WIDTH_PX * width
-    K_left = np.array([[fx, 0.0, (width - 1) / 2 + 3.2 * s], [0.0, fx, (height - 1) / 2 - 2.1 * s], [0.0, 0.0, 1.0]])
+    K_left = np.array(
+        [
+            [fx, 0.0, (width - 1) / 2 + 3.2 * s],
+            [0.0, fx, (height - 1) / 2 - 2.1 * s],
+            [0.0, 0.0, 1.0],
+        ]
+    )
     K_right = np.array(
-        [[fx * 1.004, 0.0, (width - 1) / 2 - 2.5 * s], [0.0, fx * 1.004, (height - 1) / 2 + 1.8 * s], [0.0, 0.0, 1.0]]
+        [
+            [fx * 1.004, 0.0, (width - 1) / 2 - 2.5 * s],
+            [0.0, fx * 1.004, (height - 1) / 2 + 1.8 * s],
+            [0.0, 0.0, 1.0],
+        ]
     )
     left = CameraModel(K_left, np.array([-0.08, 0.05, 4e-4, -3e-4, 0.0]), (width, height))
     right = CameraModel(K_right, np.array([-0.075, 0.045, -3e-4, 2e-4, 0.0]), (width, height))
@@ -81,7 +93,9 @@ def raw_pixel_rays(camera: CameraModel) -> np.ndarray:
     w, h = camera.image_size
     u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
     pts = np.stack([u, v], axis=-1).reshape(-1, 1, 2)
-    xy = cv2.undistortPoints(pts, camera.K, camera.dist, None, np.eye(3), np.eye(3), _UNDISTORT_CRITERIA)
+    xy = cv2.undistortPoints(
+        pts, camera.K, camera.dist, None, np.eye(3), np.eye(3), _UNDISTORT_CRITERIA
+    )
     rays = np.empty((h, w, 3), dtype=np.float64)
     rays[..., :2] = xy.reshape(h, w, 2)
     rays[..., 2] = 1.0

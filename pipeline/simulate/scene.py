@@ -32,7 +32,9 @@ class Dent:
     def __post_init__(self) -> None:
         for name in ("x_mm", "y_mm", "radius_mm", "depth_mm"):
             if not math.isfinite(getattr(self, name)):
-                raise ValueError(f"Dent.{name}: expected a finite number, got {getattr(self, name)}")
+                raise ValueError(
+                    f"Dent.{name}: expected a finite number, got {getattr(self, name)}"
+                )
         if self.radius_mm <= 0:
             raise ValueError(f"Dent.radius_mm: expected > 0, got {self.radius_mm}")
 
@@ -67,17 +69,21 @@ class Cutout:
         for name in ("x_mm", "y_mm", "width_mm", "height_mm", "corner_mm"):
             value = float(getattr(self, name))
             if not math.isfinite(value):
-                raise ValueError(f"Cutout.{name}: expected a finite number, got {getattr(self, name)}")
+                raise ValueError(
+                    f"Cutout.{name}: expected a finite number, got {getattr(self, name)}"
+                )
             object.__setattr__(self, name, value)
         if self.width_mm <= 0 or self.height_mm <= 0:
-            raise ValueError(f"Cutout.width_mm, height_mm: expected > 0, got {self.width_mm}, {self.height_mm}")
+            raise ValueError(
+                f"Cutout.width_mm, height_mm: expected > 0, got {self.width_mm}, {self.height_mm}"
+            )
         if not 0 <= self.corner_mm <= min(self.width_mm, self.height_mm) / 2 + 1e-9:
             raise ValueError(
                 f"Cutout.corner_mm: expected in [0, {min(self.width_mm, self.height_mm) / 2:g}] mm, got {self.corner_mm}"
             )
 
     @classmethod
-    def circle(cls, x_mm: float, y_mm: float, radius_mm: float) -> "Cutout":
+    def circle(cls, x_mm: float, y_mm: float, radius_mm: float) -> Cutout:
         """A round hole of ``radius_mm`` centred at ``(x_mm, y_mm)`` (plate frame, mm)."""
         if not (math.isfinite(radius_mm) and radius_mm > 0):
             raise ValueError(f"Cutout.radius_mm: expected > 0, got {radius_mm}")
@@ -131,7 +137,9 @@ class Support:
         for name in ("x_mm", "y_mm", "size_x_mm", "size_y_mm", "height_mm", "albedo"):
             value = float(getattr(self, name))
             if not math.isfinite(value):
-                raise ValueError(f"Support.{name}: expected a finite number, got {getattr(self, name)}")
+                raise ValueError(
+                    f"Support.{name}: expected a finite number, got {getattr(self, name)}"
+                )
             object.__setattr__(self, name, value)
         if self.size_x_mm <= 0 or self.size_y_mm <= 0 or self.height_mm <= 0:
             raise ValueError(
@@ -187,8 +195,15 @@ class Floor:
         object.__setattr__(self, "supports", supports)
 
 
-def rail_supports(size_mm: tuple[float, float], gap_mm: float, n: int, *, heights_mm: tuple[float, float] = (200.0, 400.0),
-                  width_mm: float = 150.0, overhang_mm: float = 500.0) -> tuple[Support, ...]:
+def rail_supports(
+    size_mm: tuple[float, float],
+    gap_mm: float,
+    n: int,
+    *,
+    heights_mm: tuple[float, float] = (200.0, 400.0),
+    width_mm: float = 150.0,
+    overhang_mm: float = 500.0,
+) -> tuple[Support, ...]:
     """``n`` rails across the plate, as a plate lies on them in a shop.
 
     The rails run along x_p (across a cylinder's curvature), evenly spaced over the middle 70 % of
@@ -282,31 +297,45 @@ class PlateSpec:
 
     def __post_init__(self) -> None:
         if self.shape not in ("plane", "cylinder", "sphere", "saddle"):
-            raise ValueError(f"PlateSpec.shape: expected plane, cylinder, sphere or saddle, got {self.shape!r}")
+            raise ValueError(
+                f"PlateSpec.shape: expected plane, cylinder, sphere or saddle, got {self.shape!r}"
+            )
         size = tuple(float(v) for v in self.size_mm)
         if len(size) != 2 or not all(math.isfinite(v) and v > 0 for v in size):
-            raise ValueError(f"PlateSpec.size_mm: expected two positive sizes in mm, got {self.size_mm}")
+            raise ValueError(
+                f"PlateSpec.size_mm: expected two positive sizes in mm, got {self.size_mm}"
+            )
         object.__setattr__(self, "size_mm", size)
         half_w, half_h = size[0] / 2, size[1] / 2
         if self.shape != "plane":
             if self.radius_mm is None or not math.isfinite(self.radius_mm) or self.radius_mm <= 0:
-                raise ValueError(f"PlateSpec.radius_mm: expected a positive radius for a {self.shape}, got {self.radius_mm}")
-            need = {"cylinder": half_w, "sphere": math.hypot(half_w, half_h), "saddle": half_w}[self.shape]
+                raise ValueError(
+                    f"PlateSpec.radius_mm: expected a positive radius for a {self.shape}, got {self.radius_mm}"
+                )
+            need = {"cylinder": half_w, "sphere": math.hypot(half_w, half_h), "saddle": half_w}[
+                self.shape
+            ]
             if self.radius_mm <= need:
                 raise ValueError(
                     f"PlateSpec.radius_mm: expected > {need:.1f} mm for a {self.shape} of size {size}, got {self.radius_mm}"
                 )
         if self.shape == "saddle" and self.radius2_mm is not None:
             if not math.isfinite(self.radius2_mm) or self.radius2_mm <= half_h:
-                raise ValueError(f"PlateSpec.radius2_mm: expected > {half_h:.1f} mm for a saddle, got {self.radius2_mm}")
+                raise ValueError(
+                    f"PlateSpec.radius2_mm: expected > {half_h:.1f} mm for a saddle, got {self.radius2_mm}"
+                )
         if not math.isfinite(self.distance_mm) or self.distance_mm <= 0:
             raise ValueError(f"PlateSpec.distance_mm: expected > 0, got {self.distance_mm}")
         tilt = tuple(float(v) for v in self.tilt_deg)
         if len(tilt) != 2 or not all(math.isfinite(v) and abs(v) < 60 for v in tilt):
-            raise ValueError(f"PlateSpec.tilt_deg: expected two angles within +-60 deg, got {self.tilt_deg}")
+            raise ValueError(
+                f"PlateSpec.tilt_deg: expected two angles within +-60 deg, got {self.tilt_deg}"
+            )
         object.__setattr__(self, "tilt_deg", tilt)
         if not math.isfinite(self.in_plane_deg):
-            raise ValueError(f"PlateSpec.in_plane_deg: expected a finite angle, got {self.in_plane_deg}")
+            raise ValueError(
+                f"PlateSpec.in_plane_deg: expected a finite angle, got {self.in_plane_deg}"
+            )
         dents = tuple(self.dents)
         if not all(isinstance(d, Dent) for d in dents):
             raise TypeError("PlateSpec.dents: expected a tuple of Dent")
@@ -318,7 +347,12 @@ class PlateSpec:
                 )
         else:
             vertices = np.asarray(self.outline, dtype=np.float64)
-            if vertices.ndim != 2 or vertices.shape[0] < 3 or vertices.shape[1] != 2 or not np.isfinite(vertices).all():
+            if (
+                vertices.ndim != 2
+                or vertices.shape[0] < 3
+                or vertices.shape[1] != 2
+                or not np.isfinite(vertices).all()
+            ):
                 raise ValueError(
                     f"PlateSpec.outline: expected at least 3 finite (x, y) vertices in mm, got shape {vertices.shape}"
                 )
@@ -332,7 +366,9 @@ class PlateSpec:
             raise TypeError("PlateSpec.cutouts: expected a tuple of Cutout")
         object.__setattr__(self, "cutouts", cutouts)
         if self.floor is not None and not isinstance(self.floor, Floor):
-            raise TypeError(f"PlateSpec.floor: expected a Floor or None, got {type(self.floor).__name__}")
+            raise TypeError(
+                f"PlateSpec.floor: expected a Floor or None, got {type(self.floor).__name__}"
+            )
 
     @property
     def radius2(self) -> float | None:

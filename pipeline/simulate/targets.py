@@ -26,7 +26,12 @@ def target_object(plate: PlateSpec, tolerance_mm: float, out: Path) -> dict:
     else:
         _saddle_mesh(plate).export(out / "target.stl")
         shape = {"type": "mesh", "file": "target.stl"}
-    obj = {"format": TARGET_FORMAT, "shape": shape, "size_mm": list(plate.size_mm), "tolerance_mm": float(tolerance_mm)}
+    obj = {
+        "format": TARGET_FORMAT,
+        "shape": shape,
+        "size_mm": list(plate.size_mm),
+        "tolerance_mm": float(tolerance_mm),
+    }
     TargetFile.model_validate(obj)
     return obj
 
@@ -54,19 +59,29 @@ def plate_mesh(plate: PlateSpec, *, spacing_mm: float = 50.0):
     if not (math.isfinite(spacing_mm) and spacing_mm > 0):
         raise ValueError(f"spacing_mm: expected > 0, got {spacing_mm}")
     nominal = PlateSpec(
-        shape=plate.shape, radius_mm=plate.radius_mm, radius2_mm=plate.radius2_mm, convex=plate.convex,
-        size_mm=plate.size_mm, outline=plate.outline, cutouts=plate.cutouts,
+        shape=plate.shape,
+        radius_mm=plate.radius_mm,
+        radius2_mm=plate.radius2_mm,
+        convex=plate.convex,
+        size_mm=plate.size_mm,
+        outline=plate.outline,
+        cutouts=plate.cutouts,
     )
     edge_step = spacing_mm / 2
     outline = outline_polygon(plate, step_mm=edge_step)
-    edges = [outline[~np.any([c.signed_distance(*outline.T) < 0 for c in plate.cutouts], axis=0)]
-             if plate.cutouts else outline]
+    edges = [
+        outline[~np.any([c.signed_distance(*outline.T) < 0 for c in plate.cutouts], axis=0)]
+        if plate.cutouts
+        else outline
+    ]
     for cut in plate.cutouts:
         ring = cut.boundary(edge_step)
         edges.append(ring[inside_outline(plate, ring[:, 0], ring[:, 1])])
     boundary = np.concatenate(edges)
     half_w, half_h = plate.size_mm[0] / 2, plate.size_mm[1] / 2
-    gx, gy = np.meshgrid(np.arange(-half_w, half_w + 1e-9, spacing_mm), np.arange(-half_h, half_h + 1e-9, spacing_mm))
+    gx, gy = np.meshgrid(
+        np.arange(-half_w, half_w + 1e-9, spacing_mm), np.arange(-half_h, half_h + 1e-9, spacing_mm)
+    )
     grid = np.stack([gx.ravel(), gy.ravel()], axis=1)
     grid = grid[plate_region(nominal, grid[:, 0], grid[:, 1])]
     near_edge, _ = cKDTree(boundary).query(grid)
@@ -104,6 +119,11 @@ def _saddle_mesh(plate: PlateSpec, n: int = 61):
     gz, _, _ = plate_height(nominal, gx, gy)
     vertices = np.stack([gx.ravel(), gy.ravel(), gz.ravel()], axis=1)
     idx = np.arange(n * n).reshape(n, n)
-    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    a, b, c, d = (
+        idx[:-1, :-1].ravel(),
+        idx[:-1, 1:].ravel(),
+        idx[1:, :-1].ravel(),
+        idx[1:, 1:].ravel(),
+    )
     faces = np.concatenate([np.stack([a, c, b], 1), np.stack([b, c, d], 1)])
     return trimesh.Trimesh(vertices=vertices, faces=faces, process=False)

@@ -22,7 +22,7 @@ class Texture:
         self.y0 = y0_mm
         self.texel = texel_mm
 
-    def prefiltered(self, footprint_mm: float) -> "Texture":
+    def prefiltered(self, footprint_mm: float) -> Texture:
         """The texture blurred to the footprint of a camera pixel (anti-aliasing), mm."""
         sigma = 0.5 * footprint_mm / self.texel
         if sigma < 0.3:
@@ -44,7 +44,9 @@ def smooth_noise(rng: np.random.Generator, shape: tuple[int, int], cells: int) -
     gw = max(2, int(round(cells * w / max(h, w)))) + 3
     coarse = rng.standard_normal((gh, gw)).astype(np.float32)
     # Crop a margin so the cubic upsampling has no edge artefacts.
-    big = cv2.resize(coarse, (w * gw // (gw - 3) + 1, h * gh // (gh - 3) + 1), interpolation=cv2.INTER_CUBIC)
+    big = cv2.resize(
+        coarse, (w * gw // (gw - 3) + 1, h * gh // (gh - 3) + 1), interpolation=cv2.INTER_CUBIC
+    )
     off_y = (big.shape[0] - h) // 2
     off_x = (big.shape[1] - w) // 2
     out = big[off_y : off_y + h, off_x : off_x + w]
@@ -75,7 +77,9 @@ def plate_albedo_texture(plate: PlateSpec, kind: str, seed: int, texel_mm: float
         level = blotch + 0.6 * patch
         rust = np.clip((level - 1.2) / 0.5, 0.0, 1.0)
         rust = rust * rust * (3.0 - 2.0 * rust)  # smoothstep edge
-        rust_albedo = 0.34 + 0.04 * smooth_noise(rng, (ny, nx), int(max(plate.size_mm) / 15)) + 0.04 * grain
+        rust_albedo = (
+            0.34 + 0.04 * smooth_noise(rng, (ny, nx), int(max(plate.size_mm) / 15)) + 0.04 * grain
+        )
         albedo = (1.0 - rust) * albedo + rust * rust_albedo
     elif kind != "painted":
         raise ValueError(f"CaptureSpec.texture: expected rusty, painted or uniform, got {kind!r}")
@@ -111,12 +115,19 @@ def floor_texture(plate: PlateSpec, seed: int, texel_mm: float, span_mm: float) 
     stains = smooth_noise(rng, (n, n), max(2, int(span_mm / 300)))
     stain = np.clip((stains - 1.3) / 0.5, 0.0, 1.0)
     stain = stain * stain * (3.0 - 2.0 * stain)
-    coords = (np.arange(n, dtype=np.float32) * texel_mm - span_mm / 2)
+    coords = np.arange(n, dtype=np.float32) * texel_mm - span_mm / 2
     joint = lambda c: (np.abs(((c + 1500.0) % 3000.0) - 1500.0) < 8.0).astype(np.float32)  # noqa: E731
     joints = np.maximum(joint(coords)[None, :], joint(coords)[:, None])
     line_x = plate.size_mm[0] / 2 + 350.0
     line = (np.abs(coords - line_x) < 50.0).astype(np.float32)[None, :]
     c = floor.texture
-    albedo = floor.albedo * (1.0 + c * (0.10 * grain + 0.08 * slow)) * (1.0 - 0.45 * c * stain) * (1.0 - 0.5 * c * joints)
+    albedo = (
+        floor.albedo
+        * (1.0 + c * (0.10 * grain + 0.08 * slow))
+        * (1.0 - 0.45 * c * stain)
+        * (1.0 - 0.5 * c * joints)
+    )
     albedo = albedo * (1.0 - line) + line * min(0.95, floor.albedo + 0.3 * c)
-    return Texture(np.clip(albedo, 0.02, 0.95).astype(np.float32), -span_mm / 2, -span_mm / 2, texel_mm)
+    return Texture(
+        np.clip(albedo, 0.02, 0.95).astype(np.float32), -span_mm / 2, -span_mm / 2, texel_mm
+    )

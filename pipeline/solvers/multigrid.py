@@ -38,12 +38,23 @@ class Multigrid:
         Scale of the coarse levels' edge weights.
     """
 
-    def __init__(self, ex: np.ndarray, ey: np.ndarray, wd: np.ndarray, dg: np.ndarray, idg: np.ndarray, *,
-                 edge_scale: float = 0.5):
+    def __init__(
+        self,
+        ex: np.ndarray,
+        ey: np.ndarray,
+        wd: np.ndarray,
+        dg: np.ndarray,
+        idg: np.ndarray,
+        *,
+        edge_scale: float = 0.5,
+    ):
         lv = _Level(ex, ey, wd, dg, idg, with_rhs=False)
         self.levels = [lv]
         while (lv.dg.shape[0] - 2) * (lv.dg.shape[1] - 2) > _COARSEST_CELLS:
-            hc, wc = (lv.dg.shape[0] - 1) // 2, (lv.dg.shape[1] - 1) // 2  # ceil(h / 2), ceil(w / 2)
+            hc, wc = (
+                (lv.dg.shape[0] - 1) // 2,
+                (lv.dg.shape[1] - 1) // 2,
+            )  # ceil(h / 2), ceil(w / 2)
             arrs = [np.zeros((hc + 2, wc + 2), np.float32) for _ in range(5)]
             _coarsen(lv.ex, lv.ey, lv.wd, np.float32(edge_scale), *arrs)
             lv = _Level(*arrs)
@@ -112,16 +123,27 @@ def _presmooth_restrict(ex, ey, dg, idg, x, b, bc, zero_start):
                     x[i, j] = 0.0
             else:
                 for j in range(1, w + 1):
-                    tmp[j] = (b[i, j] + ex[i, j] * x[i, j + 1] + ex[i, j - 1] * x[i, j - 1]
-                              + ey[i, j] * x[i + 1, j] + ey[i - 1, j] * x[i - 1, j]) * idg[i, j]
+                    tmp[j] = (
+                        b[i, j]
+                        + ex[i, j] * x[i, j + 1]
+                        + ex[i, j - 1] * x[i, j - 1]
+                        + ey[i, j] * x[i + 1, j]
+                        + ey[i - 1, j] * x[i - 1, j]
+                    ) * idg[i, j]
             for j in range(j0, w + 1, 2):
                 x[i, j] = tmp[j]
         i = t - 2
         if i < 1:
             continue
         for j in range(1, w + 1):
-            tmp[j] = (b[i, j] - dg[i, j] * x[i, j] + ex[i, j] * x[i, j + 1] + ex[i, j - 1] * x[i, j - 1]
-                      + ey[i, j] * x[i + 1, j] + ey[i - 1, j] * x[i - 1, j])
+            tmp[j] = (
+                b[i, j]
+                - dg[i, j] * x[i, j]
+                + ex[i, j] * x[i, j + 1]
+                + ex[i, j - 1] * x[i, j - 1]
+                + ey[i, j] * x[i + 1, j]
+                + ey[i - 1, j] * x[i - 1, j]
+            )
         tmp[w + 1] = 0.0
         ic = (i + 1) // 2
         if i % 2 == 1:
@@ -153,8 +175,13 @@ def _prolong_postsmooth(ex, ey, idg, x, b, xc):
             if i < 1 or i > h:
                 continue
             for j in range(1, w + 1):
-                tmp[j] = (b[i, j] + ex[i, j] * x[i, j + 1] + ex[i, j - 1] * x[i, j - 1]
-                          + ey[i, j] * x[i + 1, j] + ey[i - 1, j] * x[i - 1, j]) * idg[i, j]
+                tmp[j] = (
+                    b[i, j]
+                    + ex[i, j] * x[i, j + 1]
+                    + ex[i, j - 1] * x[i, j - 1]
+                    + ey[i, j] * x[i + 1, j]
+                    + ey[i - 1, j] * x[i - 1, j]
+                ) * idg[i, j]
             for j in range(1 + (i + 1 + phase) % 2, w + 1, 2):
                 x[i, j] = tmp[j]
         i = t - 2
@@ -190,7 +217,12 @@ def _restrict(r, rc):
     hc, wc = rc.shape[0] - 2, rc.shape[1] - 2
     for ic in range(1, hc + 1):
         for jc in range(1, wc + 1):
-            rc[ic, jc] = r[2 * ic - 1, 2 * jc - 1] + r[2 * ic - 1, 2 * jc] + r[2 * ic, 2 * jc - 1] + r[2 * ic, 2 * jc]
+            rc[ic, jc] = (
+                r[2 * ic - 1, 2 * jc - 1]
+                + r[2 * ic - 1, 2 * jc]
+                + r[2 * ic, 2 * jc - 1]
+                + r[2 * ic, 2 * jc]
+            )
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
@@ -228,8 +260,13 @@ def _coarsest_solve(ex, ey, idg, x, b, sweeps):
     for k in range(2 * sweeps + 1):
         for i in range(1, h + 1):
             for j in range(1 + (i + 1 + k) % 2, w + 1, 2):
-                x[i, j] = (b[i, j] + ex[i, j] * x[i, j + 1] + ex[i, j - 1] * x[i, j - 1]
-                           + ey[i, j] * x[i + 1, j] + ey[i - 1, j] * x[i - 1, j]) * idg[i, j]
+                x[i, j] = (
+                    b[i, j]
+                    + ex[i, j] * x[i, j + 1]
+                    + ex[i, j - 1] * x[i, j - 1]
+                    + ey[i, j] * x[i + 1, j]
+                    + ey[i - 1, j] * x[i - 1, j]
+                ) * idg[i, j]
     acc = 0.0
     for i in range(1, h + 1):
         for j in range(1, w + 1):

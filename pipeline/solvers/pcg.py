@@ -12,8 +12,15 @@ from .multigrid import FASTMATH, Multigrid
 
 
 def solve_grid_system(
-    ex: np.ndarray, ey: np.ndarray, wd: np.ndarray, dg: np.ndarray, idg: np.ndarray, b: np.ndarray, *,
-    tol: float, max_iter: int,
+    ex: np.ndarray,
+    ey: np.ndarray,
+    wd: np.ndarray,
+    dg: np.ndarray,
+    idg: np.ndarray,
+    b: np.ndarray,
+    *,
+    tol: float,
+    max_iter: int,
 ) -> tuple[np.ndarray, int, float]:
     """Solve a grid system (see :mod:`pipeline.solvers`) by multigrid-preconditioned conjugate gradients.
 
@@ -46,8 +53,15 @@ def solve_grid_system(
 
 
 def pcg(
-    ex: np.ndarray, ey: np.ndarray, wd: np.ndarray, b: np.ndarray, x: np.ndarray, precond: Multigrid, *,
-    tol: float, max_iter: int,
+    ex: np.ndarray,
+    ey: np.ndarray,
+    wd: np.ndarray,
+    b: np.ndarray,
+    x: np.ndarray,
+    precond: Multigrid,
+    *,
+    tol: float,
+    max_iter: int,
 ) -> tuple[int, float]:
     """Preconditioned conjugate gradients on the padded grid, from ``x`` in place (cells outside the system stay 0).
 
@@ -81,7 +95,9 @@ def pcg(
     while rel > tol and it < max_iter:
         z, rz = precond.apply(r)
         pap = _direction_matvec(z, rz / rz_old if it else 0.0, pdir, ex, ey, wd, ap)
-        if not pap > 0.0:  # the direction lies in the null space (constants of a part): nothing left to do
+        if (
+            not pap > 0.0
+        ):  # the direction lies in the null space (constants of a part): nothing left to do
             break
         it += 1
         rel = np.sqrt(_cg_step(rz / pap, pdir, ap, x, r)) / bnorm
@@ -98,7 +114,14 @@ def _residual_norm2(ex, ey, wd, x, b, r):
         for j in range(1, w + 1):
             e, wst, s_, n_ = ex[i, j], ex[i, j - 1], ey[i, j], ey[i - 1, j]
             d = np.float64(wd[i, j]) + e + wst + s_ + n_
-            s = b[i, j] - d * x[i, j] + e * x[i, j + 1] + wst * x[i, j - 1] + s_ * x[i + 1, j] + n_ * x[i - 1, j]
+            s = (
+                b[i, j]
+                - d * x[i, j]
+                + e * x[i, j + 1]
+                + wst * x[i, j - 1]
+                + s_ * x[i + 1, j]
+                + n_ * x[i - 1, j]
+            )
             r[i, j] = s
             acc += s * s
     return acc
@@ -116,7 +139,12 @@ def _direction_matvec(z, beta, pdir, ex, ey, wd, ap):
         for j in range(1, w + 1):
             e, wst, s_, n_ = ex[i, j], ex[i, j - 1], ey[i, j], ey[i - 1, j]
             d = np.float64(wd[i, j]) + e + wst + s_ + n_
-            s = d * pdir[i, j] - (e * pdir[i, j + 1] + wst * pdir[i, j - 1] + s_ * pdir[i + 1, j] + n_ * pdir[i - 1, j])
+            s = d * pdir[i, j] - (
+                e * pdir[i, j + 1]
+                + wst * pdir[i, j - 1]
+                + s_ * pdir[i + 1, j]
+                + n_ * pdir[i - 1, j]
+            )
             ap[i, j] = s
             acc += s * pdir[i, j]
     return acc

@@ -7,8 +7,15 @@ from collections.abc import Callable
 import numpy as np
 
 
-def robust_gauss_newton(fun: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, steps: np.ndarray, f_scale: float,
-                        *, max_iter: int = 60, rtol: float = 1e-12) -> tuple[np.ndarray, float]:
+def robust_gauss_newton(
+    fun: Callable[[np.ndarray], np.ndarray],
+    x0: np.ndarray,
+    steps: np.ndarray,
+    f_scale: float,
+    *,
+    max_iter: int = 60,
+    rtol: float = 1e-12,
+) -> tuple[np.ndarray, float]:
     """Levenberg-Marquardt on the soft-L1 cost ``sum 2 f^2 (sqrt(1 + (r/f)^2) - 1)``.
 
     Iteratively reweighted normal equations (weights ``1/sqrt(1 + (r/f)^2)``) with a forward-difference

@@ -18,7 +18,14 @@ from .depth import (
     stereo_depth,
 )
 from .matching import BLOCK_SIZE, LR_MAX_DIFF_PX, RECTIFY_INTERPOLATION, rectification
-from .refine import MIN_ZNCC, REFINE_ITERATIONS, REFINE_MAX_STEP_PX, REFINE_SIGMA_PX, match_correlation, refine_disparity
+from .refine import (
+    MIN_ZNCC,
+    REFINE_ITERATIONS,
+    REFINE_MAX_STEP_PX,
+    REFINE_SIGMA_PX,
+    match_correlation,
+    refine_disparity,
+)
 
 __all__ = [
     "BLOCK_SIZE",

@@ -38,15 +38,23 @@ import cv2
 import numpy as np
 
 from ..camera import StereoRig
-from .matching import BLOCK_SIZE, MatchPass, bbox_corners, match_pass, rectification, reduced_camera, search_range
+from .matching import (
+    BLOCK_SIZE,
+    MatchPass,
+    bbox_corners,
+    match_pass,
+    rectification,
+    reduced_camera,
+    search_range,
+)
 from .refine import (
     MIN_ZNCC,
     REFINE_ITERATIONS,
     REFINE_MAX_STEP_PX,
     REFINE_SIGMA_PX,
-    scaled,
     match_correlation,
     refine_disparity,
+    scaled,
 )
 
 #: Extra disparity searched on each side of the range implied by z_min..z_max, pixels.
@@ -101,9 +109,13 @@ class StereoDepth:
 def _grey(name: str, image, size: tuple[int, int]) -> np.ndarray:
     arr = np.asarray(image)
     if arr.ndim == 3 and arr.shape[2] in (3, 4):
-        arr = cv2.cvtColor(arr.astype(np.float32), cv2.COLOR_BGRA2GRAY if arr.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+        arr = cv2.cvtColor(
+            arr.astype(np.float32), cv2.COLOR_BGRA2GRAY if arr.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+        )
     if arr.ndim != 2:
-        raise ValueError(f"{name}: expected an (H, W) or (H, W, 3) image, got shape {np.asarray(image).shape}")
+        raise ValueError(
+            f"{name}: expected an (H, W) or (H, W, 3) image, got shape {np.asarray(image).shape}"
+        )
     if arr.shape != (size[1], size[0]):
         raise ValueError(
             f"{name}: expected shape {(size[1], size[0])} to match the calibration's image_size {size}, got {arr.shape}"
@@ -112,7 +124,9 @@ def _grey(name: str, image, size: tuple[int, int]) -> np.ndarray:
         raise ValueError(f"{name}: expected a real-valued image, got dtype {arr.dtype}")
     arr = arr.astype(np.float32)
     if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name}: expected finite pixel values, got {np.count_nonzero(~np.isfinite(arr))} NaN/inf")
+        raise ValueError(
+            f"{name}: expected finite pixel values, got {np.count_nonzero(~np.isfinite(arr))} NaN/inf"
+        )
     return arr
 
 
@@ -172,12 +186,15 @@ def stereo_depth(
         a mask that is not (H, W) bool, or a vertical baseline.
     """
     timings: dict[str, float] = {}
-    left, right, z_min, z_max, mask = _check_inputs(left_raw, right_raw, rig, z_min_mm, z_max_mm, mask)
+    left, right, z_min, z_max, mask = _check_inputs(
+        left_raw, right_raw, rig, z_min_mm, z_max_mm, mask
+    )
     w, h = rig.image_size
     K_inv = np.linalg.inv(rig.left.K)
     R1, R2, f, bx = rectification(rig)
-    fp, shift, num_disp, coarse_span = _two_passes(left, right, rig, (R1, R2, f, bx), mask, K_inv, z_min, z_max,
-                                                   timings)
+    fp, shift, num_disp, coarse_span = _two_passes(
+        left, right, rig, (R1, R2, f, bx), mask, K_inv, z_min, z_max, timings
+    )
     t0 = time.perf_counter()
     disparity = _checked_disparity(fp, shift, refine)
     timings["refine"] = time.perf_counter() - t0
@@ -207,17 +224,23 @@ def _check_inputs(left_raw, right_raw, rig, z_min_mm, z_max_mm, mask):
     right = _grey("right_raw", right_raw, size)
     z_min, z_max = float(z_min_mm), float(z_max_mm)
     if not (np.isfinite(z_min) and np.isfinite(z_max) and 0 < z_min < z_max):
-        raise ValueError(f"z_min_mm, z_max_mm: expected 0 < z_min_mm < z_max_mm, got {z_min_mm!r}, {z_max_mm!r}")
+        raise ValueError(
+            f"z_min_mm, z_max_mm: expected 0 < z_min_mm < z_max_mm, got {z_min_mm!r}, {z_max_mm!r}"
+        )
     if mask is not None:
         mask = np.asarray(mask)
         if mask.dtype != bool or mask.shape != (size[1], size[0]):
-            raise ValueError(f"mask: expected a {(size[1], size[0])} bool array, got {mask.shape} {mask.dtype}")
+            raise ValueError(
+                f"mask: expected a {(size[1], size[0])} bool array, got {mask.shape} {mask.dtype}"
+            )
         if not mask.any():
             raise ValueError("mask: expected at least one True pixel, got none")
     return left, right, z_min, z_max, mask
 
 
-def _two_passes(left, right, rig, rect, mask, K_inv, z_min, z_max, timings) -> tuple[MatchPass, int, int, tuple | None]:
+def _two_passes(
+    left, right, rig, rect, mask, K_inv, z_min, z_max, timings
+) -> tuple[MatchPass, int, int, tuple | None]:
     """The coarse pass over the given depth range, then the fine pass over the span it found: the fine pass,
     its SGBM ``shift`` and ``num_disp``, and the coarse span (None: the given range was searched).
     ``rect``: :func:`rectification` of the rig; ``timings`` receives ``coarse``, ``rectify`` and ``match``."""
@@ -229,8 +252,21 @@ def _two_passes(left, right, rig, rect, mask, K_inv, z_min, z_max, timings) -> t
     timings["coarse"] = time.perf_counter() - t0
     w, h = rig.image_size
     fp = match_pass(
-        left, right, rig.left.K, rig.left.dist, rig.right.K, rig.right.dist, R1, R2, f, rays, shift, num_disp,
-        mask, K_inv, 4 * w * h,
+        left,
+        right,
+        rig.left.K,
+        rig.left.dist,
+        rig.right.K,
+        rig.right.dist,
+        R1,
+        R2,
+        f,
+        rays,
+        shift,
+        num_disp,
+        mask,
+        K_inv,
+        4 * w * h,
     )
     timings["rectify"], timings["match"] = fp.seconds
     return fp, shift, num_disp, coarse_span
@@ -246,13 +282,17 @@ def _search_region(rig, mask, K_inv, R1, f, bx, z_min, z_max) -> tuple[np.ndarra
     corners = bbox_corners(mask, rig.image_size)
     rays = np.c_[corners, np.ones(4)] @ (R1 @ K_inv).T
     if np.any(rays[:, 2] <= 0):
-        raise ValueError("rig: the rectified left camera does not look forward over the image; check R and T")
+        raise ValueError(
+            "rig: the rectified left camera does not look forward over the image; check R and T"
+        )
     # disparity x_left - x_right = -f * bx / Z_rect is extreme at the box corners and the range ends
     disps = np.concatenate([-f * bx / (z * rays[:, 2]) for z in (z_min, z_max)])
     return rays, float(disps.min()) - RANGE_MARGIN_PX, float(disps.max()) + RANGE_MARGIN_PX
 
 
-def _coarse_span(left, right, rig, R1, R2, f, rays, user_lo, user_hi, mask, K_inv) -> tuple[float, float] | None:
+def _coarse_span(
+    left, right, rig, R1, R2, f, rays, user_lo, user_hi, mask, K_inv
+) -> tuple[float, float] | None:
     """The coarse pass: where is the scene? The ``COARSE_PERCENTILES`` of the trusted disparities of the pair
     reduced ``COARSE_FACTOR`` times (full-size pixels), or None with too few matches or too small a pair."""
     c = COARSE_FACTOR
@@ -265,15 +305,33 @@ def _coarse_span(left, right, rig, R1, R2, f, rays, user_lo, user_hi, mask, K_in
     fc = f / c
     shift_c, num_c = search_range(user_lo / c - RANGE_MARGIN_PX, user_hi / c + RANGE_MARGIN_PX)
     cp = match_pass(
-        small_l, small_r, reduced_camera(rig.left.K, c), rig.left.dist, reduced_camera(rig.right.K, c),
-        rig.right.dist, R1, R2, fc, rays, shift_c, num_c, mask, K_inv, 4 * wc * hc,
+        small_l,
+        small_r,
+        reduced_camera(rig.left.K, c),
+        rig.left.dist,
+        reduced_camera(rig.right.K, c),
+        rig.right.dist,
+        R1,
+        R2,
+        fc,
+        rays,
+        shift_c,
+        num_c,
+        mask,
+        K_inv,
+        4 * wc * hc,
         # grey levels from the whole reduced images, not the window (whose width follows the given range):
         # the coarse pass then sees the same pixels whatever the range, and its span barely moves with it
-        levels=(tuple(np.percentile(small_l, [0.5, 99.5])), tuple(np.percentile(small_r, [0.5, 99.5]))),
+        levels=(
+            tuple(np.percentile(small_l, [0.5, 99.5])),
+            tuple(np.percentile(small_r, [0.5, 99.5])),
+        ),
     )
     d_c = cp.d_win
     sl, sr = scaled(cp.rect_l, *cp.levels[0]), scaled(cp.rect_r, *cp.levels[1])
-    zncc = match_correlation(sl, sr, np.where(np.isfinite(d_c), d_c - shift_c, np.nan), sigma_px=REFINE_SIGMA_PX / 2)
+    zncc = match_correlation(
+        sl, sr, np.where(np.isfinite(d_c), d_c - shift_c, np.nan), sigma_px=REFINE_SIGMA_PX / 2
+    )
     good = d_c[np.isfinite(d_c) & (zncc >= MIN_ZNCC)]
     if good.size < COARSE_MIN_MATCHES:
         return None
@@ -281,13 +339,17 @@ def _coarse_span(left, right, rig, R1, R2, f, rays, user_lo, user_hi, mask, K_in
     return float(c * p_lo), float(c * p_hi)
 
 
-def _fine_range(coarse_span, user_lo: float, user_hi: float) -> tuple[int, int, tuple[float, float] | None]:
+def _fine_range(
+    coarse_span, user_lo: float, user_hi: float
+) -> tuple[int, int, tuple[float, float] | None]:
     """The fine pass's SGBM ``(shift, num_disp)``: the coarse span widened by ``FINE_MARGIN_PX`` and rounded
     outward to multiples of 16, never beyond the given range (all of it without a coarse span); and the
     coarse span kept (None when the given range is searched)."""
     lo = user_lo if coarse_span is None else max(coarse_span[0] - FINE_MARGIN_PX, user_lo)
     hi = user_hi if coarse_span is None else min(coarse_span[1] + FINE_MARGIN_PX, user_hi)
-    if hi < lo:  # unreachable unless the coarse pass matched only at the range's ends; search it all
+    if (
+        hi < lo
+    ):  # unreachable unless the coarse pass matched only at the range's ends; search it all
         lo, hi, coarse_span = user_lo, user_hi, None
     shift, num_disp = search_range(lo, hi, quantum=16 if coarse_span is not None else 1)
     return shift, num_disp, coarse_span
@@ -320,8 +382,13 @@ def _checked_disparity(fp: MatchPass, shift: int, refine: bool) -> np.ndarray:
     return (d_rel + np.float32(shift)).astype(np.float32)
 
 
-def _on_left_grid(z_rect: np.ndarray, H_win: np.ndarray, M: np.ndarray, size: tuple[int, int],
-                  mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+def _on_left_grid(
+    z_rect: np.ndarray,
+    H_win: np.ndarray,
+    M: np.ndarray,
+    size: tuple[int, int],
+    mask: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray]:
     """The rectified depth brought onto the left undistorted grid: (depth (H, W) float32, NaN = hole; valid).
 
     Each left undistorted pixel (u, v) looks up the rectified depth on its own ray: window pixel
@@ -337,9 +404,17 @@ def _on_left_grid(z_rect: np.ndarray, H_win: np.ndarray, M: np.ndarray, size: tu
     ray_z = (M[2, 0] * u + M[2, 1] * v + M[2, 2]).astype(np.float32)
     finite = np.isfinite(z_rect)
     z_filled = np.where(finite, z_rect, 0).astype(np.float32)
-    z_on_left = cv2.remap(z_filled, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    support = cv2.remap(finite.astype(np.float32), map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                        borderValue=0)
+    z_on_left = cv2.remap(
+        z_filled, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+    )
+    support = cv2.remap(
+        finite.astype(np.float32),
+        map_x,
+        map_y,
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=0,
+    )
     depth = (z_on_left / ray_z).astype(np.float32)
     valid = (support > 0.999) & (depth > 0)
     if mask is not None:

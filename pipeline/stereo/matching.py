@@ -45,7 +45,13 @@ def rectification(rig: StereoRig) -> tuple[np.ndarray, np.ndarray, float, float]
             f"rig.T: expected a horizontal baseline (|Tx| >= |Ty|) for row-wise matching, got T = {T.tolist()} mm"
         )
     R1, R2, _, _, _, _, _ = cv2.stereoRectify(
-        rig.left.K, rig.left.dist, rig.right.K, rig.right.dist, rig.image_size, rig.R, T.reshape(3, 1)
+        rig.left.K,
+        rig.left.dist,
+        rig.right.K,
+        rig.right.dist,
+        rig.image_size,
+        rig.R,
+        T.reshape(3, 1),
     )
     f_rect = float(max(rig.left.K[0, 0], rig.left.K[1, 1], rig.right.K[0, 0], rig.right.K[1, 1]))
     return R1, R2, f_rect, float((R2 @ T)[0])
@@ -60,11 +66,19 @@ def bbox_corners(mask: np.ndarray | None, size: tuple[int, int]) -> np.ndarray:
         cols = np.flatnonzero(mask.any(axis=0))
         rows = np.flatnonzero(mask.any(axis=1))
         u0, u1, v0, v1 = cols[0], cols[-1], rows[0], rows[-1]
-    return np.array([[u0 - 0.5, v0 - 0.5], [u1 + 0.5, v0 - 0.5], [u0 - 0.5, v1 + 0.5], [u1 + 0.5, v1 + 0.5]], np.float64)
+    return np.array(
+        [[u0 - 0.5, v0 - 0.5], [u1 + 0.5, v0 - 0.5], [u0 - 0.5, v1 + 0.5], [u1 + 0.5, v1 + 0.5]],
+        np.float64,
+    )
 
 
-def _grey_levels(image: np.ndarray, valid: np.ndarray, low_pct: float = 0.5, high_pct: float = 99.5,
-                 stride: int = 2) -> tuple[float, float]:
+def _grey_levels(
+    image: np.ndarray,
+    valid: np.ndarray,
+    low_pct: float = 0.5,
+    high_pct: float = 99.5,
+    stride: int = 2,
+) -> tuple[float, float]:
     """The ``low_pct`` / ``high_pct`` percentiles of ``image`` over ``valid`` (all pixels if none is), taken
     on every ``stride``-th row and column: the same levels to a fraction of a grey level, at a fraction
     of the cost of sorting every pixel."""
@@ -77,7 +91,9 @@ def _grey_levels(image: np.ndarray, valid: np.ndarray, low_pct: float = 0.5, hig
 class MatchPass:
     """One rectify-and-match pass on a window of the rectified pair (internal)."""
 
-    d_win: np.ndarray  # (h', w') float32 disparity (x_left - x_right, pixels of this pass); NaN = no match
+    d_win: (
+        np.ndarray
+    )  # (h', w') float32 disparity (x_left - x_right, pixels of this pass); NaN = no match
     rect_l: np.ndarray
     rect_r: np.ndarray
     seen_l: np.ndarray
@@ -86,7 +102,9 @@ class MatchPass:
     x0: int
     y0: int
     win: tuple[int, int]
-    levels: tuple[tuple[float, float], tuple[float, float]]  # grey levels mapped to 0 / 255, left and right
+    levels: tuple[
+        tuple[float, float], tuple[float, float]
+    ]  # grey levels mapped to 0 / 255, left and right
     seconds: tuple[float, float]  # rectify, match
 
 
@@ -140,26 +158,64 @@ def match_pass(
     d_win = _sgbm(img_l, img_r, num_disp, seen_l, seen_r)
     if mask is not None:
         # only plate pixels count (the background lies at another depth)
-        mask_win = cv2.warpPerspective(mask.astype(np.uint8), K1w @ R1 @ K_mask_inv, win, flags=cv2.INTER_NEAREST) > 0
+        mask_win = (
+            cv2.warpPerspective(
+                mask.astype(np.uint8), K1w @ R1 @ K_mask_inv, win, flags=cv2.INTER_NEAREST
+            )
+            > 0
+        )
         # a matching block that straddles the plate's edge mixes two depths: such pixels are holes
         edge = BLOCK_SIZE // 2 + 1
-        mask_win = cv2.erode(mask_win.astype(np.uint8), np.ones((2 * edge + 1, 2 * edge + 1), np.uint8)) > 0
+        mask_win = (
+            cv2.erode(mask_win.astype(np.uint8), np.ones((2 * edge + 1, 2 * edge + 1), np.uint8))
+            > 0
+        )
         d_win[~mask_win] = np.nan
     d_win = (d_win + np.float32(shift)).astype(np.float32)
-    return MatchPass(d_win, rect_l, rect_r, seen_l, seen_r, K1w, x0, y0, win, levels, (t1 - t0, time.perf_counter() - t1))
+    return MatchPass(
+        d_win,
+        rect_l,
+        rect_r,
+        seen_l,
+        seen_r,
+        K1w,
+        x0,
+        y0,
+        win,
+        levels,
+        (t1 - t0, time.perf_counter() - t1),
+    )
 
 
-def _rectified(image: np.ndarray, K: np.ndarray, dist: np.ndarray, R: np.ndarray, K_win: np.ndarray,
-               win: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+def _rectified(
+    image: np.ndarray,
+    K: np.ndarray,
+    dist: np.ndarray,
+    R: np.ndarray,
+    K_win: np.ndarray,
+    win: tuple[int, int],
+) -> tuple[np.ndarray, np.ndarray]:
     """A camera's raw image on the rectified window ``K_win`` (rotation ``R``): (image, pixels it sees)."""
     maps = cv2.initUndistortRectifyMap(K, dist, R, K_win, win, cv2.CV_32FC1)
-    seen = cv2.remap(np.ones(image.shape, np.float32), *maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                     borderValue=0) > 0.999
-    rect = cv2.remap(image, *maps, RECTIFY_INTERPOLATION, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    seen = (
+        cv2.remap(
+            np.ones(image.shape, np.float32),
+            *maps,
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=0,
+        )
+        > 0.999
+    )
+    rect = cv2.remap(
+        image, *maps, RECTIFY_INTERPOLATION, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+    )
     return rect, seen
 
 
-def _sgbm(img_l: np.ndarray, img_r: np.ndarray, num_disp: int, seen_l: np.ndarray, seen_r: np.ndarray) -> np.ndarray:
+def _sgbm(
+    img_l: np.ndarray, img_r: np.ndarray, num_disp: int, seen_l: np.ndarray, seen_r: np.ndarray
+) -> np.ndarray:
     """SGBM disparities (float32, pixels of the window pair, 0 .. num_disp - 1) of rectified 8-bit images;
     NaN where SGBM found no match or either camera does not see the matched pixel."""
     win = (img_l.shape[1], img_l.shape[0])
@@ -191,7 +247,9 @@ def _levels_uint8(image: np.ndarray, lo: float, hi: float) -> np.ndarray:
     """``image`` mapped so ``lo`` / ``hi`` become 0 / 255, saturating beyond (all 0 if ``hi <= lo``)."""
     if not hi > lo:
         return np.zeros(image.shape, np.uint8)
-    return np.clip((image - np.float32(lo)) * np.float32(255.0 / (hi - lo)) + 0.5, 0, 255).astype(np.uint8)
+    return np.clip((image - np.float32(lo)) * np.float32(255.0 / (hi - lo)) + 0.5, 0, 255).astype(
+        np.uint8
+    )
 
 
 def search_range(d_lo: float, d_hi: float, quantum: int = 1) -> tuple[int, int]:
@@ -204,5 +262,11 @@ def search_range(d_lo: float, d_hi: float, quantum: int = 1) -> tuple[int, int]:
 
 def reduced_camera(K: np.ndarray, factor: int) -> np.ndarray:
     """Camera matrix of an image reduced by ``factor`` by area averaging (pixel centres: ``u = factor * u' + (factor - 1) / 2``)."""
-    S = np.array([[1.0 / factor, 0.0, -(factor - 1) / (2.0 * factor)], [0.0, 1.0 / factor, -(factor - 1) / (2.0 * factor)], [0, 0, 1]])
+    S = np.array(
+        [
+            [1.0 / factor, 0.0, -(factor - 1) / (2.0 * factor)],
+            [0.0, 1.0 / factor, -(factor - 1) / (2.0 * factor)],
+            [0, 0, 1],
+        ]
+    )
     return S @ K

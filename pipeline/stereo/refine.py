@@ -70,7 +70,9 @@ def refine_disparity(
         map_x = xs - d
         inside = (map_x >= 1) & (map_x <= w - 2)
         warped = cv2.remap(right, map_x, ys, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
-        g = 0.5 * (gx_l + cv2.remap(gx_r, map_x, ys, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE))
+        g = 0.5 * (
+            gx_l + cv2.remap(gx_r, map_x, ys, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+        )
         r = left - warped
         wgt = (support & inside).astype(np.float32)
         # right(x - d - delta) ~ warped - g * delta  ->  delta = -sum(g r) / sum(g g)
@@ -84,7 +86,9 @@ def refine_disparity(
     return out.astype(np.float32)
 
 
-def match_correlation(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, *, sigma_px: float) -> np.ndarray:
+def match_correlation(
+    left: np.ndarray, right: np.ndarray, disparity: np.ndarray, *, sigma_px: float
+) -> np.ndarray:
     """Zero-mean normalised cross-correlation of each match over a Gaussian window.
 
     Parameters

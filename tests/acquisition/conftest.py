@@ -10,7 +10,6 @@ import pytest
 
 from pipeline.io import calibration_document
 from pipeline.simulate import default_rig
-
 from tests.acquisition.devices import FakeGigECamera, LightServer
 
 #: Image size of the test cells (the calibration's image_size), width x height.
@@ -23,17 +22,27 @@ def ring_lights(n: int) -> list[dict]:
     for k in range(n):
         phi = 2 * np.pi * k / n
         axis = np.array([-0.4 * np.cos(phi), -0.4 * np.sin(phi), 0.92])
-        lights.append({
-            "position_mm": [1650 * np.cos(phi), 1650 * np.sin(phi), 210.0],
-            "axis": [round(float(v), 2) for v in axis],
-            "mu": 1.3,
-            "intensity": 9.8,
-        })
+        lights.append(
+            {
+                "position_mm": [1650 * np.cos(phi), 1650 * np.sin(phi), 210.0],
+                "axis": [round(float(v), 2) for v in axis],
+                "mu": 1.3,
+                "intensity": 9.8,
+            }
+        )
     return lights
 
 
-def write_cell(folder: Path, *, left: dict, right: dict, lights: dict, n_lights: int = 6,
-               size: tuple[int, int] = (WIDTH, HEIGHT), **overrides) -> Path:
+def write_cell(
+    folder: Path,
+    *,
+    left: dict,
+    right: dict,
+    lights: dict,
+    n_lights: int = 6,
+    size: tuple[int, int] = (WIDTH, HEIGHT),
+    **overrides,
+) -> Path:
     """A ``cell-config/1`` file and its calibration in ``folder``; ``lights`` without its ``lights`` list."""
     folder.mkdir(parents=True, exist_ok=True)
     rig = default_rig(width=size[0], height=size[1])
@@ -53,7 +62,13 @@ def write_cell(folder: Path, *, left: dict, right: dict, lights: dict, n_lights:
 
 
 def tcp_lights(server: LightServer, **extra) -> dict:
-    return {"driver": "tcp", "address": server.address, "on": "L{index} ON\n", "off": "L{index} OFF\n", **extra}
+    return {
+        "driver": "tcp",
+        "address": server.address,
+        "on": "L{index} ON\n",
+        "off": "L{index} OFF\n",
+        **extra,
+    }
 
 
 @pytest.fixture

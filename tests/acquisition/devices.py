@@ -37,8 +37,15 @@ class LightServer:
         ``on_command(command)`` before the answer, in the server's thread.
     """
 
-    def __init__(self, *, reply: str | None = "OK", echo: bool = False, refuse: str | None = None,
-                 stall_after: int | None = None, on_command: Callable[[str], None] | None = None):
+    def __init__(
+        self,
+        *,
+        reply: str | None = "OK",
+        echo: bool = False,
+        refuse: str | None = None,
+        stall_after: int | None = None,
+        on_command: Callable[[str], None] | None = None,
+    ):
         self.commands: list[str] = []
         self.connections = 0
         server = self
@@ -83,7 +90,9 @@ class FakeGigECamera:
 
     def __init__(self, serial: str = "PITEST", *, lost_packets_per_thousand: int = 0):
         if shutil.which(FAKE_GV_CAMERA) is None:
-            raise RuntimeError(f"{FAKE_GV_CAMERA} not found: scripts/setup.sh installs Debian's aravis-tools")
+            raise RuntimeError(
+                f"{FAKE_GV_CAMERA} not found: scripts/setup.sh installs Debian's aravis-tools"
+            )
         import gi
 
         gi.require_version("Aravis", "0.8")
@@ -91,12 +100,22 @@ class FakeGigECamera:
 
         self.serial = serial
         self.device_id = FAKE_GV_ADDRESS
-        command = [FAKE_GV_CAMERA, "-i", FAKE_GV_ADDRESS, "-s", serial, "-r", str(lost_packets_per_thousand)]
+        command = [
+            FAKE_GV_CAMERA,
+            "-i",
+            FAKE_GV_ADDRESS,
+            "-s",
+            serial,
+            "-r",
+            str(lost_packets_per_thousand),
+        ]
         self._process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + 15
         while True:
             if self._process.poll() is not None:
-                raise RuntimeError(f"{FAKE_GV_CAMERA} exited: {self._process.stdout.read().decode().strip()}")
+                raise RuntimeError(
+                    f"{FAKE_GV_CAMERA} exited: {self._process.stdout.read().decode().strip()}"
+                )
             try:
                 found = Aravis.Camera.new(FAKE_GV_ADDRESS).get_device_serial_number()
             except GLib.Error:
@@ -105,7 +124,9 @@ class FakeGigECamera:
                 return
             if found is not None or time.monotonic() > deadline:
                 self.stop()
-                raise RuntimeError(f"the fake GigE camera at {FAKE_GV_ADDRESS} is {found!r}, not this test's {serial!r}")
+                raise RuntimeError(
+                    f"the fake GigE camera at {FAKE_GV_ADDRESS} is {found!r}, not this test's {serial!r}"
+                )
             time.sleep(0.2)
 
     def stop(self) -> None:

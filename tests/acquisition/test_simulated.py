@@ -6,7 +6,12 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.acquisition import SimulatedCamera, SimulatedCell, SimulatedLightController, auto_exposure
+from pipeline.acquisition import (
+    SimulatedCamera,
+    SimulatedCell,
+    SimulatedLightController,
+    auto_exposure,
+)
 from pipeline.acquisition.acquire import EXPOSURE_FLOOR, EXPOSURE_LIMIT, brightest_fraction
 from pipeline.formats import CellCamera
 from pipeline.io import load_capture
@@ -27,7 +32,9 @@ def test_render_radiance_is_what_simulate_capture_renders(tmp_path):
 @pytest.fixture
 def cell():
     rig = default_rig(width=200, height=160)
-    lights = CaptureSpec(n_lights=4, near_field_mm=2000.0).lights(np.array([0.0, 0.0, 3000.0]), np.ones(4))
+    lights = CaptureSpec(n_lights=4, near_field_mm=2000.0).lights(
+        np.array([0.0, 0.0, 3000.0]), np.ones(4)
+    )
     controller = SimulatedLightController(4, False)
     return SimulatedCell(rig, lights, 3000.0, controller, "PLATE-7")
 
@@ -64,7 +71,9 @@ def test_exposure_scales_the_signal(cell):
         camera.set_exposure(exposure, step="test")
         frames[exposure] = camera.grab(step="test", timeout_s=1).image.astype(float).mean()
     dark_level = CaptureSpec().dark_level * 65535
-    assert (frames[4000.0] - dark_level) / (frames[2000.0] - dark_level) == pytest.approx(2.0, rel=0.02)
+    assert (frames[4000.0] - dark_level) / (frames[2000.0] - dark_level) == pytest.approx(
+        2.0, rel=0.02
+    )
 
 
 def test_auto_exposure_brings_both_cameras_between_floor_and_limit(cell):
@@ -74,6 +83,8 @@ def test_auto_exposure_brings_both_cameras_between_floor_and_limit(cell):
     exposures, shots = auto_exposure(cameras, bit_depth=16, timeout_s=1.0, step="test")
     assert shots >= 2
     for camera in cameras:
-        assert exposures[camera.side] == pytest.approx(camera.set_exposure(exposures[camera.side], step="test"))
+        assert exposures[camera.side] == pytest.approx(
+            camera.set_exposure(exposures[camera.side], step="test")
+        )
         p = brightest_fraction(camera.grab(step="check", timeout_s=1).image, 16)
         assert EXPOSURE_FLOOR <= p <= EXPOSURE_LIMIT

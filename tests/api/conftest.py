@@ -50,9 +50,20 @@ class Consumer:
     (:func:`invocations`); ``args`` are extra command-line arguments (e.g. ``--parent-pid``).
     """
 
-    def __init__(self, settings: Settings, *, stage_delay_s: float = 0.0, invocations: Path | None = None,
-                 args: tuple[str, ...] = (), log_name: str = "consumer.log"):
-        self.env = {**os.environ, **settings.to_env(), "PLATE_INSPECT_TEST_STAGE_DELAY_S": str(stage_delay_s)}
+    def __init__(
+        self,
+        settings: Settings,
+        *,
+        stage_delay_s: float = 0.0,
+        invocations: Path | None = None,
+        args: tuple[str, ...] = (),
+        log_name: str = "consumer.log",
+    ):
+        self.env = {
+            **os.environ,
+            **settings.to_env(),
+            "PLATE_INSPECT_TEST_STAGE_DELAY_S": str(stage_delay_s),
+        }
         if invocations is not None:
             self.env["PLATE_INSPECT_TEST_INVOCATIONS"] = str(invocations)
         self.args = tuple(args)
@@ -62,14 +73,23 @@ class Consumer:
     def start(self) -> Consumer:
         self.log.parent.mkdir(parents=True, exist_ok=True)
         fh = open(self.log, "ab")
-        self.proc = subprocess.Popen([sys.executable, "-m", "app.worker", *self.args], env=self.env, cwd=ROOT,
-                                     stdout=fh, stderr=fh)
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "app.worker", *self.args],
+            env=self.env,
+            cwd=ROOT,
+            stdout=fh,
+            stderr=fh,
+        )
         fh.close()
         return self
 
     def wait_ready(self, timeout_s: float = 60.0) -> Consumer:
         """Wait until the consumer logs that it runs its queue (it holds the consumer lock)."""
-        wait_until(lambda: "consumer ready" in self.output(), timeout_s, lambda: f"consumer not ready\n{self.output()}")
+        wait_until(
+            lambda: "consumer ready" in self.output(),
+            timeout_s,
+            lambda: f"consumer not ready\n{self.output()}",
+        )
         return self
 
     def kill(self) -> None:
@@ -135,7 +155,14 @@ def consumer_factory(settings):
         c.stop()
 
 
-def wait_for(client, inspection_id: int, *, statuses=("done", "failed"), timeout_s: float = 60.0, consumer=None) -> dict:
+def wait_for(
+    client,
+    inspection_id: int,
+    *,
+    statuses=("done", "failed"),
+    timeout_s: float = 60.0,
+    consumer=None,
+) -> dict:
     """Poll GET /api/v1/inspections/{id} until its status is one of ``statuses``."""
     deadline = time.monotonic() + timeout_s
     while True:
@@ -144,7 +171,9 @@ def wait_for(client, inspection_id: int, *, statuses=("done", "failed"), timeout
             return body
         if time.monotonic() > deadline:
             log = consumer.output() if consumer is not None else ""
-            raise AssertionError(f"inspection {inspection_id} still {body['status']} after {timeout_s} s\n{log}")
+            raise AssertionError(
+                f"inspection {inspection_id} still {body['status']} after {timeout_s} s\n{log}"
+            )
         time.sleep(0.05)
 
 
@@ -155,7 +184,11 @@ def bundle_zip(tmp_path_factory) -> bytes:
 
     folder = tmp_path_factory.mktemp("bundle") / "P-100"
     simulate_capture(
-        folder, plate=PlateSpec(), capture=CaptureSpec(width=320, height=256, n_lights=6), plate_id="P-100", seed=1
+        folder,
+        plate=PlateSpec(),
+        capture=CaptureSpec(width=320, height=256, n_lights=6),
+        plate_id="P-100",
+        seed=1,
     )
     return zip_folder(folder)
 
@@ -184,8 +217,12 @@ def rezip(data: bytes, *, replace: dict[str, bytes] | None = None, drop=()) -> b
 def target_json(**over) -> bytes:
     import json
 
-    doc = {"format": "plate-target/1", "shape": {"type": "cylinder", "radius_mm": 5000.0},
-           "size_mm": [3000.0, 3000.0], "tolerance_mm": 2.0}
+    doc = {
+        "format": "plate-target/1",
+        "shape": {"type": "cylinder", "radius_mm": 5000.0},
+        "size_mm": [3000.0, 3000.0],
+        "tolerance_mm": 2.0,
+    }
     doc.update(over)
     return json.dumps(doc).encode()
 
@@ -194,9 +231,19 @@ def stored_files(data_dir: Path) -> list[str]:
     """Every file under the data dir except the database and queue files."""
     skip = ("plate_inspect.db", "huey.db", "consumer.")
     return sorted(
-        str(p.relative_to(data_dir)) for p in data_dir.rglob("*")
+        str(p.relative_to(data_dir))
+        for p in data_dir.rglob("*")
         if p.is_file() and not p.name.startswith(skip)
     )
 
 
-__all__ = ["AUTH", "TOKEN", "wait_for", "rezip", "target_json", "stored_files", "zip_folder", "shutil"]
+__all__ = [
+    "AUTH",
+    "TOKEN",
+    "rezip",
+    "shutil",
+    "stored_files",
+    "target_json",
+    "wait_for",
+    "zip_folder",
+]

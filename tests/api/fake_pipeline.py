@@ -58,7 +58,9 @@ def inspect(capture, target, *, out_dir: Path, progress=None, light_calibration=
     if "HOG" in cap.plate_id:
         import numpy as np
 
-        hog = np.empty(int(os.environ.get("PLATE_INSPECT_TEST_ALLOCATE_MB", "2048")) << 20, dtype=np.uint8)
+        hog = np.empty(
+            int(os.environ.get("PLATE_INSPECT_TEST_ALLOCATE_MB", "2048")) << 20, dtype=np.uint8
+        )
         del hog
     for i, stage in enumerate(STAGES):
         if progress is not None:
@@ -85,7 +87,9 @@ def inspect(capture, target, *, out_dir: Path, progress=None, light_calibration=
     ).model_dump(mode="json")
     if document["warnings"] is None:
         del document["warnings"]
-    details = {"light_calibration_n_lights": None if light_calibration is None else light_calibration.n}
+    details = {
+        "light_calibration_n_lights": None if light_calibration is None else light_calibration.n
+    }
     (out_dir / "details.json").write_text(json.dumps(details), encoding="utf-8")
     (out_dir / "result.json").write_text(json.dumps(document), encoding="utf-8")
     if progress is not None:
@@ -105,5 +109,7 @@ def _light_warnings(lights, calibration) -> list[str]:
     if calibration is None or lights.any_point:
         return []
     if calibration.n != lights.n:
-        return [f"the light calibration was not applied: it has {calibration.n} lights, the capture {lights.n} images"]
+        return [
+            f"the light calibration was not applied: it has {calibration.n} lights, the capture {lights.n} images"
+        ]
     return ["a light calibration was applied to the capture's nominal light directions"]

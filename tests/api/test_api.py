@@ -20,7 +20,9 @@ def _count(client, model) -> int:
 
 
 def _simulated(client, plate_id="P-1", headers=AUTH, **spec):
-    return client.post(f"/api/v1/plates/{plate_id}/inspections/simulated", json=spec, headers=headers)
+    return client.post(
+        f"/api/v1/plates/{plate_id}/inspections/simulated", json=spec, headers=headers
+    )
 
 
 # ------------------------------------------------------------------ bad bundles
@@ -39,7 +41,9 @@ def _capture_doc(bundle: bytes) -> dict:
         (lambda d: d["photometric"]["images"].__setitem__(1, "missing.png"), "images"),
     ],
 )
-def test_bad_bundle_is_refused_and_nothing_is_stored(client, settings, bundle_zip, mutate, field_part):
+def test_bad_bundle_is_refused_and_nothing_is_stored(
+    client, settings, bundle_zip, mutate, field_part
+):
     doc = _capture_doc(bundle_zip)
     mutate(doc)
     bad = rezip(bundle_zip, replace={"capture.json": json.dumps(doc).encode()})
@@ -59,30 +63,52 @@ def test_bad_bundle_is_refused_and_nothing_is_stored(client, settings, bundle_zi
 
 
 def test_not_a_zip_and_missing_capture_are_refused(client, settings):
-    r = client.post("/api/v1/plates/P-100/inspections", files={"capture": ("b.zip", b"not a zip")}, headers=AUTH)
+    r = client.post(
+        "/api/v1/plates/P-100/inspections", files={"capture": ("b.zip", b"not a zip")}, headers=AUTH
+    )
     assert r.status_code == 422 and r.json()["field"] == "capture", r.text
-    r = client.post("/api/v1/plates/P-100/inspections", files={"target": ("t.json", target_json())}, headers=AUTH)
+    r = client.post(
+        "/api/v1/plates/P-100/inspections",
+        files={"target": ("t.json", target_json())},
+        headers=AUTH,
+    )
     assert r.status_code == 422 and r.json()["field"] == "capture", r.text
     assert _count(client, Plate) == 0 and stored_files(settings.data_dir) == []
 
 
 def test_bundle_of_another_plate_and_missing_target_are_refused(client, settings, bundle_zip):
-    r = client.post("/api/v1/plates/P-999/inspections",
-                    files={"capture": ("b.zip", bundle_zip), "target": ("t.json", target_json())}, headers=AUTH)
+    r = client.post(
+        "/api/v1/plates/P-999/inspections",
+        files={"capture": ("b.zip", bundle_zip), "target": ("t.json", target_json())},
+        headers=AUTH,
+    )
     assert r.status_code == 422 and r.json()["field"] == "capture: plate_id", r.text
-    r = client.post("/api/v1/plates/P-100/inspections", files={"capture": ("b.zip", bundle_zip)}, headers=AUTH)
+    r = client.post(
+        "/api/v1/plates/P-100/inspections", files={"capture": ("b.zip", bundle_zip)}, headers=AUTH
+    )
     assert r.status_code == 422 and r.json()["field"] == "target", r.text
     bad_target = target_json(tolerance_mm=-1)
-    r = client.post("/api/v1/plates/P-100/inspections",
-                    files={"capture": ("b.zip", bundle_zip), "target": ("t.json", bad_target)}, headers=AUTH)
+    r = client.post(
+        "/api/v1/plates/P-100/inspections",
+        files={"capture": ("b.zip", bundle_zip), "target": ("t.json", bad_target)},
+        headers=AUTH,
+    )
     assert r.status_code == 422 and "tolerance_mm" in r.json()["detail"], r.text
     assert _count(client, Plate) == 0 and stored_files(settings.data_dir) == []
 
 
 def test_target_of_the_plate_is_used_when_none_is_sent(client, bundle_zip):
-    assert client.put("/api/v1/plates/P-100/target", content=target_json(), headers={
-        **AUTH, "Content-Type": "application/json"}).status_code == 200
-    r = client.post("/api/v1/plates/P-100/inspections", files={"capture": ("b.zip", bundle_zip)}, headers=AUTH)
+    assert (
+        client.put(
+            "/api/v1/plates/P-100/target",
+            content=target_json(),
+            headers={**AUTH, "Content-Type": "application/json"},
+        ).status_code
+        == 200
+    )
+    r = client.post(
+        "/api/v1/plates/P-100/inspections", files={"capture": ("b.zip", bundle_zip)}, headers=AUTH
+    )
     assert r.status_code == 202, r.text
 
 
@@ -91,17 +117,27 @@ def test_target_of_the_plate_is_used_when_none_is_sent(client, bundle_zip):
 
 @pytest.mark.parametrize(
     "headers",
-    [{}, {"Authorization": "Bearer wrong-token"}, {"Authorization": "Basic dGVzdA=="}, {"Authorization": "Bearer "}],
+    [
+        {},
+        {"Authorization": "Bearer wrong-token"},
+        {"Authorization": "Basic dGVzdA=="},
+        {"Authorization": "Bearer "},
+    ],
 )
 def test_writes_need_the_token(client, headers):
     r = _simulated(client, headers=headers)
     assert r.status_code == 401, r.text
     assert r.json()["field"] == "Authorization"
     assert r.headers["www-authenticate"] == "Bearer"
-    r = client.put("/api/v1/plates/P-1/target", content=target_json(),
-                   headers={**headers, "Content-Type": "application/json"})
+    r = client.put(
+        "/api/v1/plates/P-1/target",
+        content=target_json(),
+        headers={**headers, "Content-Type": "application/json"},
+    )
     assert r.status_code == 401
-    r = client.post("/api/v1/calibrations", files={"calibration": ("c.json", b"{}")}, headers=headers)
+    r = client.post(
+        "/api/v1/calibrations", files={"calibration": ("c.json", b"{}")}, headers=headers
+    )
     assert r.status_code == 401
     assert _count(client, Plate) == 0
 
@@ -110,7 +146,10 @@ def test_dashboard_session_cookie_allows_writes(client):
     assert client.post("/api/v1/session", json={"token": "wrong"}).status_code == 401
     r = client.post("/api/v1/session", json={"token": AUTH["Authorization"].split()[1]})
     assert r.status_code == 204
-    assert "httponly" in r.headers["set-cookie"].lower() and "samesite=strict" in r.headers["set-cookie"].lower()
+    assert (
+        "httponly" in r.headers["set-cookie"].lower()
+        and "samesite=strict" in r.headers["set-cookie"].lower()
+    )
     assert _simulated(client, headers={}).status_code == 202
     r = _simulated(client, headers={"Origin": "http://evil.example"})
     assert r.status_code == 403 and r.json()["field"] == "Origin"
@@ -130,21 +169,32 @@ def test_idempotent_retry_returns_the_first_answer(client, bundle_zip):
     # the same key on another route is another request
     r1 = _simulated(client, "P-100", headers=headers)
     r2 = _simulated(client, "P-100", headers=headers)
-    assert r1.status_code == 202 and r2.json() == r1.json() and r1.json()["id"] != first.json()["id"]
+    assert (
+        r1.status_code == 202 and r2.json() == r1.json() and r1.json()["id"] != first.json()["id"]
+    )
     assert _count(client, Inspection) == 2
     # a refusal is remembered too
     bad = {**AUTH, "Idempotency-Key": "mes-43"}
-    b1 = client.post("/api/v1/plates/P-100/inspections", files={"capture": ("b.zip", b"x")}, headers=bad)
-    b2 = client.post("/api/v1/plates/P-100/inspections", files={"capture": ("b.zip", b"x")}, headers=bad)
+    b1 = client.post(
+        "/api/v1/plates/P-100/inspections", files={"capture": ("b.zip", b"x")}, headers=bad
+    )
+    b2 = client.post(
+        "/api/v1/plates/P-100/inspections", files={"capture": ("b.zip", b"x")}, headers=bad
+    )
     assert b1.status_code == b2.status_code == 422 and b1.json() == b2.json()
     # a new key is a new inspection
-    assert _simulated(client, "P-100", headers={**AUTH, "Idempotency-Key": "mes-44"}).json()["id"] != r1.json()["id"]
+    assert (
+        _simulated(client, "P-100", headers={**AUTH, "Idempotency-Key": "mes-44"}).json()["id"]
+        != r1.json()["id"]
+    )
     assert _count(client, Inspection) == 3
 
 
 def test_upload_over_the_limit_is_413(client, settings):
     big = b"0" * (settings.max_upload_bytes + 1)
-    r = client.post("/api/v1/plates/P-100/inspections", files={"capture": ("b.zip", big)}, headers=AUTH)
+    r = client.post(
+        "/api/v1/plates/P-100/inspections", files={"capture": ("b.zip", big)}, headers=AUTH
+    )
     assert r.status_code == 413
     assert r.json()["field"] == "body" and "bytes" in r.json()["detail"]
 
@@ -152,7 +202,11 @@ def test_upload_over_the_limit_is_413(client, settings):
         for _ in range(9):
             yield b"0" * (1 << 20)
 
-    r = client.put("/api/v1/plates/P-100/target", content=chunks(), headers={**AUTH, "Content-Type": "application/json"})
+    r = client.put(
+        "/api/v1/plates/P-100/target",
+        content=chunks(),
+        headers={**AUTH, "Content-Type": "application/json"},
+    )
     assert r.status_code == 413 and r.json()["field"] == "body"
     assert _count(client, Plate) == 0 and stored_files(settings.data_dir) == []
 
@@ -194,10 +248,16 @@ def test_plates_list_and_history_paging(client):
 def test_healthz_and_openapi(client):
     assert client.get("/healthz").json()["status"] == "ok"
     paths = client.get("/openapi.json").json()["paths"]
-    for path in ("/api/v1/plates/{plate_id}/inspections", "/api/v1/plates/{plate_id}/inspections/simulated",
-                 "/api/v1/inspections/{inspection_id}", "/api/v1/inspections/{inspection_id}/artifacts/{name}",
-                 "/api/v1/plates", "/api/v1/plates/{plate_id}/target", "/api/v1/calibrations",
-                 "/api/v1/calibrations/current"):
+    for path in (
+        "/api/v1/plates/{plate_id}/inspections",
+        "/api/v1/plates/{plate_id}/inspections/simulated",
+        "/api/v1/inspections/{inspection_id}",
+        "/api/v1/inspections/{inspection_id}/artifacts/{name}",
+        "/api/v1/plates",
+        "/api/v1/plates/{plate_id}/target",
+        "/api/v1/calibrations",
+        "/api/v1/calibrations/current",
+    ):
         assert path in paths, path
     docs = client.get("/docs")
     assert docs.status_code == 200
@@ -212,8 +272,11 @@ def test_healthz_and_openapi(client):
 
 
 def test_put_target_json_then_mesh_upload(client, settings):
-    r = client.put("/api/v1/plates/P-7/target", content=target_json(shape={"type": "sphere", "radius_mm": 9000.0}),
-                   headers={**AUTH, "Content-Type": "application/json"})
+    r = client.put(
+        "/api/v1/plates/P-7/target",
+        content=target_json(shape={"type": "sphere", "radius_mm": 9000.0}),
+        headers={**AUTH, "Content-Type": "application/json"},
+    )
     assert r.status_code == 200, r.text
     assert r.json()["shape"] == "sphere" and r.json()["radius_mm"] == 9000.0
 
@@ -221,26 +284,50 @@ def test_put_target_json_then_mesh_upload(client, settings):
 
     mesh = trimesh.creation.box(extents=(3000.0, 2000.0, 10.0))
     stl = trimesh.exchange.stl.export_stl(mesh)
-    r = client.put("/api/v1/plates/P-7/target", files={"mesh": ("plate.stl", stl)},
-                   data={"size_x_mm": "3000", "size_y_mm": "2000", "tolerance_mm": "1.5"}, headers=AUTH)
+    r = client.put(
+        "/api/v1/plates/P-7/target",
+        files={"mesh": ("plate.stl", stl)},
+        data={"size_x_mm": "3000", "size_y_mm": "2000", "tolerance_mm": "1.5"},
+        headers=AUTH,
+    )
     assert r.status_code == 200, r.text
     assert r.json()["shape"] == "mesh" and r.json()["tolerance_mm"] == 1.5
     current = client.get("/api/v1/plates/P-7/target").json()
-    assert current["id"] == r.json()["id"] and current["document"]["shape"] == {"type": "mesh", "file": "plate.stl"}
-    assert (settings.data_dir / "plates" / "P-7" / "targets" / str(current["id"]) / "plate.stl").is_file()
+    assert current["id"] == r.json()["id"] and current["document"]["shape"] == {
+        "type": "mesh",
+        "file": "plate.stl",
+    }
+    assert (
+        settings.data_dir / "plates" / "P-7" / "targets" / str(current["id"]) / "plate.stl"
+    ).is_file()
 
     doc = json.loads(target_json(shape={"type": "mesh", "file": "hull.stl"}))
-    r = client.put("/api/v1/plates/P-7/target", files={"mesh": ("x.stl", stl), "target": ("t.json", json.dumps(doc))},
-                   headers=AUTH)
+    r = client.put(
+        "/api/v1/plates/P-7/target",
+        files={"mesh": ("x.stl", stl), "target": ("t.json", json.dumps(doc))},
+        headers=AUTH,
+    )
     assert r.status_code == 200, r.text
 
-    r = client.put("/api/v1/plates/P-7/target", files={"mesh": ("plate.stl", stl)}, data={"size_x_mm": "3000"},
-                   headers=AUTH)
+    r = client.put(
+        "/api/v1/plates/P-7/target",
+        files={"mesh": ("plate.stl", stl)},
+        data={"size_x_mm": "3000"},
+        headers=AUTH,
+    )
     assert r.status_code == 422 and r.json()["field"] == "size_y_mm"
-    r = client.put("/api/v1/plates/P-7/target", files={"mesh": ("plate.stl", b"solid nothing")},
-                   data={"size_x_mm": "3000", "size_y_mm": "2000", "tolerance_mm": "1.5"}, headers=AUTH)
+    r = client.put(
+        "/api/v1/plates/P-7/target",
+        files={"mesh": ("plate.stl", b"solid nothing")},
+        data={"size_x_mm": "3000", "size_y_mm": "2000", "tolerance_mm": "1.5"},
+        headers=AUTH,
+    )
     assert r.status_code == 422, r.text
-    r = client.put("/api/v1/plates/P-7/target", content=b"format: yaml", headers={**AUTH, "Content-Type": "text/yaml"})
+    r = client.put(
+        "/api/v1/plates/P-7/target",
+        content=b"format: yaml",
+        headers={**AUTH, "Content-Type": "text/yaml"},
+    )
     assert r.status_code == 415
     assert client.get("/api/v1/plates/P-7/target").json()["id"] == current["id"] + 1
     assert client.get("/api/v1/plates/NONE/target").status_code == 404
@@ -250,14 +337,20 @@ def test_calibration_upload_and_current(client, bundle_zip):
     assert client.get("/api/v1/calibrations/current").status_code == 404
     with zipfile.ZipFile(io.BytesIO(bundle_zip)) as zf:
         calibration = zf.read("calibration.json")
-    r = client.post("/api/v1/calibrations", files={"calibration": ("calibration.json", calibration)}, headers=AUTH)
+    r = client.post(
+        "/api/v1/calibrations",
+        files={"calibration": ("calibration.json", calibration)},
+        headers=AUTH,
+    )
     assert r.status_code == 201, r.text
     doc = json.loads(calibration)
     current = client.get("/api/v1/calibrations/current").json()
     assert current["id"] == r.json()["id"]
     assert current["image_size"] == doc["image_size"] and current["rms_px"] == doc.get("rms_px")
     bad = dict(doc, R=[[1, 0], [0, 1]])
-    r = client.post("/api/v1/calibrations", files={"calibration": ("c.json", json.dumps(bad))}, headers=AUTH)
+    r = client.post(
+        "/api/v1/calibrations", files={"calibration": ("c.json", json.dumps(bad))}, headers=AUTH
+    )
     assert r.status_code == 422 and "R" in r.json()["field"], r.text
     assert client.get("/api/v1/calibrations/current").json()["id"] == current["id"]
     assert len(client.get("/api/v1/calibrations").json()) == 1

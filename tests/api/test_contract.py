@@ -58,9 +58,16 @@ def test_every_operation_documents_the_errors_it_can_send_as_one_error_model(doc
 def test_writes_declare_their_security(document):
     schemes = document["components"]["securitySchemes"]
     assert schemes["HTTPBearer"]["scheme"] == "bearer"
-    assert schemes["APIKeyCookie"] == {**schemes["APIKeyCookie"], "in": "cookie", "name": "plate_inspect_session"}
+    assert schemes["APIKeyCookie"] == {
+        **schemes["APIKeyCookie"],
+        "in": "cookie",
+        "name": "plate_inspect_session",
+    }
     writes = [name for name, op in _operations(document) if op.get("security")]
-    assert "POST /api/v1/plates/{plate_id}/inspections" in writes and "PUT /api/v1/plates/{plate_id}/target" in writes
+    assert (
+        "POST /api/v1/plates/{plate_id}/inspections" in writes
+        and "PUT /api/v1/plates/{plate_id}/target" in writes
+    )
     assert not any(name.startswith("GET ") for name in writes)
 
 
@@ -69,8 +76,16 @@ def test_writes_declare_their_security(document):
     [
         ("GET", f"{API}/inspections", {"params": {"limit": "many"}}),
         ("GET", f"{API}/inspections/x", {}),
-        ("POST", f"{API}/plates/P-1/inspections/simulated", {"json": {"n_lights": 1}, "headers": AUTH}),
-        ("POST", f"{API}/plates/P-1/inspections/simulated", {"content": b"{not json", "headers": {**AUTH, "Content-Type": "application/json"}}),
+        (
+            "POST",
+            f"{API}/plates/P-1/inspections/simulated",
+            {"json": {"n_lights": 1}, "headers": AUTH},
+        ),
+        (
+            "POST",
+            f"{API}/plates/P-1/inspections/simulated",
+            {"content": b"{not json", "headers": {**AUTH, "Content-Type": "application/json"}},
+        ),
         ("POST", f"{API}/session", {"json": {}}),
     ],
 )
@@ -78,18 +93,25 @@ def test_422_bodies_match_the_documented_schema(client, document, method, path, 
     r = client.request(method, path, **kwargs)
     assert r.status_code == 422, r.text
     template = next(
-        p for p in document["paths"]
+        p
+        for p in document["paths"]
         if re.fullmatch(re.sub(r"\{[^}]+\}", "[^/]+", p), path)
         and method.lower() in document["paths"][p]
     )
     _validator(document, document["paths"][template][method.lower()], "422").validate(r.json())
     body = r.json()
-    assert isinstance(body["detail"], str) and body["errors"] and all({"type", "loc", "msg"} <= set(e) for e in body["errors"])
+    assert (
+        isinstance(body["detail"], str)
+        and body["errors"]
+        and all({"type", "loc", "msg"} <= set(e) for e in body["errors"])
+    )
 
 
 def test_a_broken_multipart_body_is_a_documented_400(client, document):
     r = client.post(
-        f"{API}/calibrations", content=b"--x\r\nbroken", headers={**AUTH, "Content-Type": "multipart/form-data"}
+        f"{API}/calibrations",
+        content=b"--x\r\nbroken",
+        headers={**AUTH, "Content-Type": "multipart/form-data"},
     )
     assert r.status_code == 400, r.text
     _validator(document, document["paths"][f"{API}/calibrations"]["post"], "400").validate(r.json())
@@ -124,7 +146,9 @@ def test_messages_built_from_exceptions_carry_no_server_path(client, settings):
     secret = str(settings.data_dir.resolve() / "inspections" / "7" / "inputs")
 
     def broken_input():
-        raise InputError(f"{secret}/capture.zip", "capture.json", f"cannot read {secret}/capture.json")
+        raise InputError(
+            f"{secret}/capture.zip", "capture.json", f"cannot read {secret}/capture.json"
+        )
 
     def bug():
         raise OSError(2, "No such file or directory", f"{secret}/result.json")
@@ -136,18 +160,30 @@ def test_messages_built_from_exceptions_carry_no_server_path(client, settings):
     assert r.json()["detail"] == "capture.zip: capture.json: cannot read capture.json"
     with TestClient(client.app, raise_server_exceptions=False) as quiet:
         r = quiet.get("/test-only/bug")
-    assert r.status_code == 500 and r.json() == {"detail": "internal error: FileNotFoundError", "field": None}
+    assert r.status_code == 500 and r.json() == {
+        "detail": "internal error: FileNotFoundError",
+        "field": None,
+    }
     assert r.headers["x-content-type-options"] == "nosniff"  # the 500 answer has the headers too
 
 
 @pytest.mark.parametrize(
     ("text", "scrubbed"),
     [
-        ("[Errno 2] No such file or directory: '/srv/cell/var/a/result.json'", "[Errno 2] No such file or directory: 'result.json'"),
+        (
+            "[Errno 2] No such file or directory: '/srv/cell/var/a/result.json'",
+            "[Errno 2] No such file or directory: 'result.json'",
+        ),
         ("/tmp/staging/x1/capture.zip: capture.json: bad", "capture.zip: capture.json: bad"),
         ("sections (/home/op/venv/lib/x.py)", "sections (x.py)"),
-        ("Origin: cross-site write refused (origin http://evil.example/a/b)", "Origin: cross-site write refused (origin http://evil.example/a/b)"),
-        ("Content-Type: expected application/json or multipart/form-data", "Content-Type: expected application/json or multipart/form-data"),
+        (
+            "Origin: cross-site write refused (origin http://evil.example/a/b)",
+            "Origin: cross-site write refused (origin http://evil.example/a/b)",
+        ),
+        (
+            "Content-Type: expected application/json or multipart/form-data",
+            "Content-Type: expected application/json or multipart/form-data",
+        ),
     ],
 )
 def test_scrub_paths_keeps_file_names_only(text, scrubbed):
@@ -172,7 +208,11 @@ def test_every_response_has_the_security_headers(client):
         assert r.headers["referrer-policy"] == "same-origin", r.url
         assert r.headers["x-frame-options"] == "DENY", r.url
         policy = r.headers["content-security-policy"]
-        assert "script-src 'self';" in policy and "frame-ancestors 'none'" in policy and "'unsafe-inline'" not in policy
+        assert (
+            "script-src 'self';" in policy
+            and "frame-ancestors 'none'" in policy
+            and "'unsafe-inline'" not in policy
+        )
 
 
 def test_dashboard_pages_have_no_inline_script_or_style(client):
@@ -181,7 +221,9 @@ def test_dashboard_pages_have_no_inline_script_or_style(client):
         html = client.get(page).text
         assert not re.search(r"<script(?![^>]*\bsrc=)[^>]*>", html), page
         assert " style=" not in html and "<style" not in html, page
-        assert "frame-src 'self'" in client.get(page).headers["content-security-policy"]  # the 3D view's frame
+        assert (
+            "frame-src 'self'" in client.get(page).headers["content-security-policy"]
+        )  # the 3D view's frame
 
 
 def test_docs_page_allows_its_start_script_by_hash(client):

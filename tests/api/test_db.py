@@ -26,14 +26,18 @@ def test_processes_upgrading_one_new_file_at_once_all_succeed(tmp_path):
     for trial in range(3):
         url = f"sqlite:///{tmp_path / f'trial{trial}' / 'plate_inspect.db'}"
         procs = [
-            subprocess.Popen([sys.executable, "-c", UPGRADE, url], cwd=ROOT, stderr=subprocess.PIPE, text=True)
+            subprocess.Popen(
+                [sys.executable, "-c", UPGRADE, url], cwd=ROOT, stderr=subprocess.PIPE, text=True
+            )
             for _ in range(3)
         ]
         errors = [p.communicate(timeout=120)[1] for p in procs]
         assert [p.returncode for p in procs] == [0, 0, 0], "\n".join(errors)
         engine = sa.create_engine(url)
         with engine.connect() as conn:
-            versions = {row[0] for row in conn.execute(sa.text("SELECT version_num FROM alembic_version"))}
+            versions = {
+                row[0] for row in conn.execute(sa.text("SELECT version_num FROM alembic_version"))
+            }
             tables = set(sa.inspect(conn).get_table_names())
         engine.dispose()
         assert versions == _heads()

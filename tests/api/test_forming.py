@@ -11,35 +11,65 @@ import pytest
 
 from tests.api.conftest import AUTH, target_json
 
-MACHINE = {"kind": "three-roll-pyramid", "bottom_roll_spacing_mm": 1400, "bottom_roll_diameter_mm": 420,
-           "top_roll_diameter_mm": 500}
-MATERIAL = {"grade": "AH36", "thickness_mm": 20, "yield_mpa": 355, "youngs_mpa": 206000, "poisson": 0.3}
+MACHINE = {
+    "kind": "three-roll-pyramid",
+    "bottom_roll_spacing_mm": 1400,
+    "bottom_roll_diameter_mm": 420,
+    "top_roll_diameter_mm": 500,
+}
+MATERIAL = {
+    "grade": "AH36",
+    "thickness_mm": 20,
+    "yield_mpa": 355,
+    "youngs_mpa": 206000,
+    "poisson": 0.3,
+}
 SMALL = {"n_lights": 3, "width": 160, "height": 128}
 
 
 def process(displacement_mm: float = 97.0, machine_id: str = "R3-01") -> dict:
-    return {"method": "roll-bending", "machine_id": machine_id, "top_roll_displacement_mm": displacement_mm}
+    return {
+        "method": "roll-bending",
+        "machine_id": machine_id,
+        "top_roll_displacement_mm": displacement_mm,
+    }
 
 
 def put_target(client, plate_id: str, **over) -> None:
     body = json.loads(target_json(material=MATERIAL))
     body.update(over)
-    r = client.put(f"/api/v1/plates/{plate_id}/target", content=json.dumps(body),
-                   headers={**AUTH, "Content-Type": "application/json"})
+    r = client.put(
+        f"/api/v1/plates/{plate_id}/target",
+        content=json.dumps(body),
+        headers={**AUTH, "Content-Type": "application/json"},
+    )
     assert r.status_code == 200, r.text
 
 
-def inspected_pass(client, plate_id: str, displacement_mm: float, radius_mm: float, verdict: str) -> int:
+def inspected_pass(
+    client, plate_id: str, displacement_mm: float, radius_mm: float, verdict: str
+) -> int:
     """A simulated inspection with a process, finished by the service as a job would finish it."""
     from app.services import inspections as svc
 
-    r = client.post(f"/api/v1/plates/{plate_id}/inspections/simulated",
-                    json={**SMALL, "process": process(displacement_mm)}, headers=AUTH)
+    r = client.post(
+        f"/api/v1/plates/{plate_id}/inspections/simulated",
+        json={**SMALL, "process": process(displacement_mm)},
+        headers=AUTH,
+    )
     assert r.status_code == 202, r.text
     inspection_id = r.json()["id"]
-    document = {"format": "plate-result/1", "plate_id": plate_id, "radius_mm": radius_mm, "target_radius_mm": 5000.0,
-                "radius_error_pct": 100 * (radius_mm - 5000) / 5000, "deviation_mm": {"rms": 1, "max_abs": 3, "p95": 2},
-                "tolerance_mm": 2.0, "within_tolerance_pct": 90.0, "verdict": verdict}
+    document = {
+        "format": "plate-result/1",
+        "plate_id": plate_id,
+        "radius_mm": radius_mm,
+        "target_radius_mm": 5000.0,
+        "radius_error_pct": 100 * (radius_mm - 5000) / 5000,
+        "deviation_mm": {"rms": 1, "max_abs": 3, "p95": 2},
+        "tolerance_mm": 2.0,
+        "within_tolerance_pct": 90.0,
+        "verdict": verdict,
+    }
     with client.app.state.session_factory() as session:
         assert svc.claim(session=session, inspection_id=inspection_id)
         assert svc.mark_done(session=session, inspection_id=inspection_id, document=document)
@@ -57,7 +87,9 @@ def machine(client):
 def test_machines_crud_and_auth(client, machine):
     assert machine["id"] == "R3-01" and machine["bottom_roll_spacing_mm"] == 1400
     assert client.put("/api/v1/machines/R3-02", json=MACHINE).status_code == 401
-    r = client.put("/api/v1/machines/R3-01", json={**MACHINE, "top_roll_diameter_mm": 520}, headers=AUTH)
+    r = client.put(
+        "/api/v1/machines/R3-01", json={**MACHINE, "top_roll_diameter_mm": 520}, headers=AUTH
+    )
     assert r.status_code == 200 and r.json()["top_roll_diameter_mm"] == 520
     assert [m["id"] for m in client.get("/api/v1/machines").json()] == ["R3-01"]
     assert client.get("/api/v1/machines/R3-01").json()["top_roll_diameter_mm"] == 520
@@ -65,14 +97,20 @@ def test_machines_crud_and_auth(client, machine):
     assert r.status_code == 404 and r.json()["field"] == "machine_id"
 
 
-@pytest.mark.parametrize("change, field", [
-    ({"bottom_roll_spacing_mm": -1}, "bottom_roll_spacing_mm"),
-    ({"top_roll_diameter_mm": 0}, "top_roll_diameter_mm"),
-    ({"bottom_roll_diameter_mm": "420"}, "bottom_roll_diameter_mm"),
-    ({"kind": "four-roll"}, "kind"),
-    ({"bottom_roll_spacing_mm": 400}, "bottom_roll_spacing_mm"),  # narrower than the bottom rolls
-    ({"extra": 1}, "extra"),
-])
+@pytest.mark.parametrize(
+    "change, field",
+    [
+        ({"bottom_roll_spacing_mm": -1}, "bottom_roll_spacing_mm"),
+        ({"top_roll_diameter_mm": 0}, "top_roll_diameter_mm"),
+        ({"bottom_roll_diameter_mm": "420"}, "bottom_roll_diameter_mm"),
+        ({"kind": "four-roll"}, "kind"),
+        (
+            {"bottom_roll_spacing_mm": 400},
+            "bottom_roll_spacing_mm",
+        ),  # narrower than the bottom rolls
+        ({"extra": 1}, "extra"),
+    ],
+)
 def test_bad_machine_is_422_naming_the_field(client, change, field):
     r = client.put("/api/v1/machines/R3-01", json={**MACHINE, **change}, headers=AUTH)
     assert r.status_code == 422, r.text
@@ -82,50 +120,77 @@ def test_bad_machine_is_422_naming_the_field(client, change, field):
 
 def test_non_finite_machine_number_is_422(client):
     body = json.dumps(MACHINE).replace("1400", "Infinity")
-    r = client.put("/api/v1/machines/R3-01", content=body, headers={**AUTH, "Content-Type": "application/json"})
+    r = client.put(
+        "/api/v1/machines/R3-01", content=body, headers={**AUTH, "Content-Type": "application/json"}
+    )
     assert r.status_code == 422 and r.json()["field"] == "bottom_roll_spacing_mm"
 
 
 def test_target_material_is_validated(client):
     put_target(client, "P-M1")
-    assert client.get("/api/v1/plates/P-M1/target").json()["document"]["material"]["grade"] == "AH36"
+    assert (
+        client.get("/api/v1/plates/P-M1/target").json()["document"]["material"]["grade"] == "AH36"
+    )
     body = json.loads(target_json(material={**MATERIAL, "thickness_mm": -20}))
-    r = client.put("/api/v1/plates/P-M1/target", content=json.dumps(body),
-                   headers={**AUTH, "Content-Type": "application/json"})
+    r = client.put(
+        "/api/v1/plates/P-M1/target",
+        content=json.dumps(body),
+        headers={**AUTH, "Content-Type": "application/json"},
+    )
     assert r.status_code == 422 and "material.thickness_mm" in r.json()["field"], r.text
 
 
 def test_process_is_stored_and_returned(client, machine, bundle_zip):
-    r = client.post("/api/v1/plates/P-100/inspections", headers=AUTH,
-                    files={"capture": ("c.zip", bundle_zip), "target": ("t.json", target_json(material=MATERIAL))},
-                    data={"process": json.dumps(process(97.0))})
+    r = client.post(
+        "/api/v1/plates/P-100/inspections",
+        headers=AUTH,
+        files={
+            "capture": ("c.zip", bundle_zip),
+            "target": ("t.json", target_json(material=MATERIAL)),
+        },
+        data={"process": json.dumps(process(97.0))},
+    )
     assert r.status_code == 202, r.text
     inspection_id = r.json()["id"]
     assert client.get(f"/api/v1/inspections/{inspection_id}").json()["process"] == process(97.0)
     history = client.get("/api/v1/plates/P-100/inspections").json()["items"]
     assert history[0]["process"] == process(97.0)
 
-    r = client.post("/api/v1/plates/P-S1/inspections/simulated", json={**SMALL, "process": process(90.0)},
-                    headers=AUTH)
+    r = client.post(
+        "/api/v1/plates/P-S1/inspections/simulated",
+        json={**SMALL, "process": process(90.0)},
+        headers=AUTH,
+    )
     assert r.status_code == 202
     assert client.get(f"/api/v1/inspections/{r.json()['id']}").json()["process"] == process(90.0)
 
 
-@pytest.mark.parametrize("bad, field", [
-    (process(machine_id="R9"), "process.machine_id"),
-    ({**process(), "top_roll_displacement_mm": -3}, "process.top_roll_displacement_mm"),
-    ({**process(), "method": "press"}, "process.method"),
-])
+@pytest.mark.parametrize(
+    "bad, field",
+    [
+        (process(machine_id="R9"), "process.machine_id"),
+        ({**process(), "top_roll_displacement_mm": -3}, "process.top_roll_displacement_mm"),
+        ({**process(), "method": "press"}, "process.method"),
+    ],
+)
 def test_bad_process_is_422(client, machine, bundle_zip, bad, field):
-    r = client.post("/api/v1/plates/P-S2/inspections/simulated", json={**SMALL, "process": bad}, headers=AUTH)
+    r = client.post(
+        "/api/v1/plates/P-S2/inspections/simulated", json={**SMALL, "process": bad}, headers=AUTH
+    )
     assert r.status_code == 422 and r.json()["field"] == field, r.text
-    r = client.post("/api/v1/plates/P-100/inspections", headers=AUTH,
-                    files={"capture": ("c.zip", bundle_zip), "target": ("t.json", target_json())},
-                    data={"process": json.dumps(bad)})
+    r = client.post(
+        "/api/v1/plates/P-100/inspections",
+        headers=AUTH,
+        files={"capture": ("c.zip", bundle_zip), "target": ("t.json", target_json())},
+        data={"process": json.dumps(bad)},
+    )
     assert r.status_code == 422 and r.json()["field"] == field, r.text
-    r = client.post("/api/v1/plates/P-100/inspections", headers=AUTH,
-                    files={"capture": ("c.zip", bundle_zip), "target": ("t.json", target_json())},
-                    data={"process": "{not json"})
+    r = client.post(
+        "/api/v1/plates/P-100/inspections",
+        headers=AUTH,
+        files={"capture": ("c.zip", bundle_zip), "target": ("t.json", target_json())},
+        data={"process": "{not json"},
+    )
     assert r.status_code == 422 and r.json()["field"] == "process", r.text
     assert client.get("/api/v1/inspections").json()["total"] == 0
 
@@ -140,7 +205,9 @@ def test_advice_nominal_bend_done_reverse(client, machine):
     first = client.get("/api/v1/plates/P-A/advice", params={"machine_id": "R3-01"}).json()
     assert first["action"] == "bend" and first["basis"]["data"] == "nominal only: no history"
     lo, hi = first["expected_radius_range_mm"]
-    assert lo < first["expected_radius_mm"] < hi and first["expected_radius_mm"] > 5000  # aimed on the open side
+    assert (
+        lo < first["expected_radius_mm"] < hi and first["expected_radius_mm"] > 5000
+    )  # aimed on the open side
 
     inspected_pass(client, "P-A", first["top_roll_displacement_mm"], 6200.0, "fail")  # under-bent
     second = client.get("/api/v1/plates/P-A/advice").json()
@@ -180,12 +247,24 @@ def test_forming_history_csv(client, machine):
     put_target(client, "P-H")
     inspected_pass(client, "P-H", 95.0, 6100.0, "fail")
     inspected_pass(client, "P-H", 101.5, 5005.0, "pass")
-    client.post("/api/v1/plates/P-H/inspections/simulated", json=SMALL, headers=AUTH)  # no process: not a pass
+    client.post(
+        "/api/v1/plates/P-H/inspections/simulated", json=SMALL, headers=AUTH
+    )  # no process: not a pass
     r = client.get("/api/v1/forming-history.csv")
     assert r.status_code == 200 and r.headers["content-type"].startswith("text/csv")
     rows = list(csv.DictReader(io.StringIO(r.text)))
-    assert [(row["plate_id"], row["machine_id"], row["grade"], row["thickness_mm"], row["top_roll_displacement_mm"],
-             row["measured_radius_mm"], row["verdict"]) for row in rows] == [
+    assert [
+        (
+            row["plate_id"],
+            row["machine_id"],
+            row["grade"],
+            row["thickness_mm"],
+            row["top_roll_displacement_mm"],
+            row["measured_radius_mm"],
+            row["verdict"],
+        )
+        for row in rows
+    ] == [
         ("P-H", "R3-01", "AH36", "20", "95.0", "6100.0", "fail"),
         ("P-H", "R3-01", "AH36", "20", "101.5", "5005.0", "pass"),
     ]
@@ -193,9 +272,15 @@ def test_forming_history_csv(client, machine):
 
 def test_simulated_inspection_uses_the_plates_target(client, settings):
     put_target(client, "P-G", tolerance_mm=3.0)
-    r = client.post("/api/v1/plates/P-G/inspections/simulated", json={**SMALL, "radius_mm": 7000.0}, headers=AUTH)
+    r = client.post(
+        "/api/v1/plates/P-G/inspections/simulated",
+        json={**SMALL, "radius_mm": 7000.0},
+        headers=AUTH,
+    )
     inspection_id = r.json()["id"]
-    used = settings.data_dir / "inspections" / str(inspection_id) / "inputs" / "target" / "target.json"
+    used = (
+        settings.data_dir / "inspections" / str(inspection_id) / "inputs" / "target" / "target.json"
+    )
     assert json.loads(used.read_text())["shape"]["radius_mm"] == 5000.0
     summary = client.get("/api/v1/plates/P-G/inspections").json()["items"][0]
     assert summary["target_radius_mm"] == 5000.0 and summary["tolerance_mm"] == 3.0
@@ -215,13 +300,22 @@ def test_under_bent_simulated_plate_fails(tmp_path):
     try:
         with TestClient(app) as client:
             put_target(client, "P-U")
-            r = client.post("/api/v1/plates/P-U/inspections/simulated",
-                            json={"width": 320, "height": 256, "n_lights": 8, "seed": 5, "radius_mm": 7000.0},
-                            headers=AUTH)
+            r = client.post(
+                "/api/v1/plates/P-U/inspections/simulated",
+                json={"width": 320, "height": 256, "n_lights": 8, "seed": 5, "radius_mm": 7000.0},
+                headers=AUTH,
+            )
             inspection_id = r.json()["id"]
             state = client.app.state
-            assert execute_inspection(inspection_id, settings=settings, session_factory=state.session_factory,
-                                      storage=state.storage) == "done"
+            assert (
+                execute_inspection(
+                    inspection_id,
+                    settings=settings,
+                    session_factory=state.session_factory,
+                    storage=state.storage,
+                )
+                == "done"
+            )
             body = client.get(f"/api/v1/inspections/{inspection_id}").json()
             assert body["result"]["target_radius_mm"] == 5000.0
             assert body["verdict"] == "fail", body["result"]

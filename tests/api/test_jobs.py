@@ -16,7 +16,9 @@ def _post_bundle(client, plate_id, bundle, *, target=True, headers=None):
     files = {"capture": ("bundle.zip", bundle, "application/zip")}
     if target:
         files["target"] = ("target.json", target_json(), "application/json")
-    return client.post(f"/api/v1/plates/{plate_id}/inspections", files=files, headers=headers or AUTH)
+    return client.post(
+        f"/api/v1/plates/{plate_id}/inspections", files=files, headers=headers or AUTH
+    )
 
 
 def test_whole_inspection_through_the_api(client, settings, consumer_factory, bundle_zip):
@@ -37,8 +39,12 @@ def test_whole_inspection_through_the_api(client, settings, consumer_factory, bu
     assert set(body["artifacts"]) >= {"result.json", "deviation.png"}
     art = client.get(body["artifacts"]["result.json"])
     assert art.status_code == 200 and art.json()["plate_id"] == "P-100"
-    assert client.get(f"/api/v1/inspections/{inspection_id}/artifacts/nothing.png").status_code == 404
-    assert client.get(f"/api/v1/inspections/{inspection_id}/artifacts/..%2Fresult.json").status_code in (404, 422)
+    assert (
+        client.get(f"/api/v1/inspections/{inspection_id}/artifacts/nothing.png").status_code == 404
+    )
+    assert client.get(
+        f"/api/v1/inspections/{inspection_id}/artifacts/..%2Fresult.json"
+    ).status_code in (404, 422)
 
     plates = client.get("/api/v1/plates").json()
     assert plates["total"] == 1
@@ -51,8 +57,15 @@ def test_whole_inspection_through_the_api(client, settings, consumer_factory, bu
 
 def test_simulated_inspection_is_rendered_in_the_consumer(client, settings, consumer_factory):
     consumer = consumer_factory().start()
-    spec = {"shape": "sphere", "radius_mm": 8000.0, "n_lights": 4, "width": 160, "height": 128,
-            "dents": [{"x_mm": 100.0, "y_mm": -50.0, "radius_mm": 150.0, "depth_mm": 3.0}], "seed": 3}
+    spec = {
+        "shape": "sphere",
+        "radius_mm": 8000.0,
+        "n_lights": 4,
+        "width": 160,
+        "height": 128,
+        "dents": [{"x_mm": 100.0, "y_mm": -50.0, "radius_mm": 150.0, "depth_mm": 3.0}],
+        "seed": 3,
+    }
     r = client.post("/api/v1/plates/SIM-1/inspections/simulated", json=spec, headers=AUTH)
     assert r.status_code == 202, r.text
     body = wait_for(client, r.json()["id"], consumer=consumer)
@@ -63,7 +76,9 @@ def test_simulated_inspection_is_rendered_in_the_consumer(client, settings, cons
     assert body["result"]["target_radius_mm"] == 8000.0
 
 
-def test_consumer_killed_mid_job_is_requeued_and_completes(client, consumer_factory, bundle_zip, tmp_path):
+def test_consumer_killed_mid_job_is_requeued_and_completes(
+    client, consumer_factory, bundle_zip, tmp_path
+):
     # 0.4 s per stage: the job runs ~2.4 s, so the kill lands mid-job.
     calls = tmp_path / "invocations.txt"
     first = consumer_factory(stage_delay_s=0.4, invocations=calls).start()
@@ -80,14 +95,19 @@ def test_consumer_killed_mid_job_is_requeued_and_completes(client, consumer_fact
     body = client.get(f"/api/v1/inspections/{inspection_id}").json()
     assert body["status"] == "running"  # the row still says so: its consumer is gone
 
-    second = consumer_factory(stage_delay_s=0.0, invocations=calls, log_name="consumer-2.log").start()
+    second = consumer_factory(
+        stage_delay_s=0.0, invocations=calls, log_name="consumer-2.log"
+    ).start()
     body = wait_for(client, inspection_id, consumer=second)
     assert body["status"] == "done", body
     assert body["result"]["verdict"] == "pass" and body["error"] is None
     # Run again once (one worker death, below the limit) and completed once.
     events = [(event, i, pid) for event, i, pid in invocations(calls)]
-    assert events == [("start", inspection_id, first.proc.pid), ("start", inspection_id, second.proc.pid),
-                      ("end", inspection_id, second.proc.pid)]
+    assert events == [
+        ("start", inspection_id, first.proc.pid),
+        ("start", inspection_id, second.proc.pid),
+        ("end", inspection_id, second.proc.pid),
+    ]
     from app.models import Inspection
 
     with client.app.state.session_factory() as s:
@@ -101,10 +121,15 @@ def test_consumer_killed_mid_job_is_requeued_and_completes(client, consumer_fact
         ("P-UNMEASURABLE", "P-UNMEASURABLE: no plate found in the photometric images"),
         ("P-CRASH", "internal error: RuntimeError: simulated bug"),
         # the server path of the file is not given away: named relative to the inspection's inputs
-        ("P-PATHERROR", "internal error: FileExistsError: [Errno 17] File exists: 'bundle.partial'"),
+        (
+            "P-PATHERROR",
+            "internal error: FileExistsError: [Errno 17] File exists: 'bundle.partial'",
+        ),
     ],
 )
-def test_failed_job_keeps_inputs_and_error(client, settings, consumer_factory, bundle_zip, plate_id, message):
+def test_failed_job_keeps_inputs_and_error(
+    client, settings, consumer_factory, bundle_zip, plate_id, message
+):
     consumer = consumer_factory().start()
     capture_json = _capture_json_with_plate(bundle_zip, plate_id)
     bundle = rezip(bundle_zip, replace={"capture.json": capture_json})
@@ -134,8 +159,11 @@ def _capture_json_with_plate(bundle: bytes, plate_id: str) -> bytes:
 def test_a_job_delivered_twice_runs_once(client, settings):
     from app.jobs import execute_inspection
 
-    r = client.post("/api/v1/plates/SIM-2/inspections/simulated",
-                    json={"n_lights": 3, "width": 160, "height": 128}, headers=AUTH)
+    r = client.post(
+        "/api/v1/plates/SIM-2/inspections/simulated",
+        json={"n_lights": 3, "width": 160, "height": 128},
+        headers=AUTH,
+    )
     inspection_id = r.json()["id"]
     state = client.app.state
     kw = dict(settings=settings, session_factory=state.session_factory, storage=state.storage)
@@ -147,8 +175,11 @@ def test_a_job_delivered_twice_runs_once(client, settings):
 def test_simulated_bundle_rendered_over_leftovers_of_dead_runs(client, settings):
     from app.jobs import execute_inspection
 
-    r = client.post("/api/v1/plates/SIM-3/inspections/simulated",
-                    json={"n_lights": 3, "width": 160, "height": 128}, headers=AUTH)
+    r = client.post(
+        "/api/v1/plates/SIM-3/inspections/simulated",
+        json={"n_lights": 3, "width": 160, "height": 128},
+        headers=AUTH,
+    )
     inspection_id = r.json()["id"]
     inputs = settings.data_dir / "inspections" / str(inspection_id) / "inputs"
     # A run killed while rendering (the old fixed name, and a newer random one), and a bundle
@@ -159,8 +190,12 @@ def test_simulated_bundle_rendered_over_leftovers_of_dead_runs(client, settings)
     (inputs / "bundle").mkdir()
     (inputs / "bundle" / "ps_00.png").write_bytes(b"half an image")
     state = client.app.state
-    status = execute_inspection(inspection_id, settings=settings, session_factory=state.session_factory,
-                                storage=state.storage)
+    status = execute_inspection(
+        inspection_id,
+        settings=settings,
+        session_factory=state.session_factory,
+        storage=state.storage,
+    )
     assert status == "done", client.get(f"/api/v1/inspections/{inspection_id}").json()
     assert sorted(p.name for p in inputs.iterdir()) == ["bundle", "simulation.json"]
     assert (inputs / "bundle" / "capture.json").is_file()
@@ -169,20 +204,22 @@ def test_simulated_bundle_rendered_over_leftovers_of_dead_runs(client, settings)
 def test_real_pipeline_inspection(tmp_path, consumer_factory, bundle_zip):
     """The production entry point (pipeline.run:inspect): a simulated plate is measured; a valid
     bundle with neither a stereo pair nor a working distance is accepted, then fails saying why."""
-    from tests.api.conftest import TOKEN, Consumer
-
     from fastapi.testclient import TestClient
 
     from app.main import create_app
     from app.settings import Settings
+    from tests.api.conftest import TOKEN, Consumer
 
     settings = Settings(data_dir=tmp_path / "real", api_token=TOKEN, progress_interval_s=0.05)
     app = create_app(settings)
     consumer = Consumer(settings).start()
     try:
         with TestClient(app) as client:
-            r = client.post("/api/v1/plates/SIM-R/inspections/simulated",
-                            json={"width": 320, "height": 256, "n_lights": 8, "seed": 5}, headers=AUTH)
+            r = client.post(
+                "/api/v1/plates/SIM-R/inspections/simulated",
+                json={"width": 320, "height": 256, "n_lights": 8, "seed": 5},
+                headers=AUTH,
+            )
             body = wait_for(client, r.json()["id"], timeout_s=120, consumer=consumer)
             assert body["status"] == "done", body
             assert body["result"]["verdict"] in ("pass", "fail")
@@ -191,8 +228,11 @@ def test_real_pipeline_inspection(tmp_path, consumer_factory, bundle_zip):
             doc = json.loads(zipfile.ZipFile(io.BytesIO(bundle_zip)).read("capture.json"))
             del doc["stereo"]
             doc.pop("working_distance_mm", None)
-            no_scale = rezip(bundle_zip, replace={"capture.json": json.dumps(doc).encode()},
-                             drop=("stereo_left.png", "stereo_right.png"))
+            no_scale = rezip(
+                bundle_zip,
+                replace={"capture.json": json.dumps(doc).encode()},
+                drop=("stereo_left.png", "stereo_right.png"),
+            )
             r = _post_bundle(client, "P-100", no_scale)
             assert r.status_code == 202, r.text  # a valid bundle: refused only when measured
             body = wait_for(client, r.json()["id"], timeout_s=120, consumer=consumer)
@@ -201,7 +241,9 @@ def test_real_pipeline_inspection(tmp_path, consumer_factory, bundle_zip):
                 "capture.zip: stereo, working_distance_mm: a metric result needs a stereo pair or a working distance"
             )
             inputs = settings.data_dir / "inspections" / str(body["id"]) / "inputs"
-            assert (inputs / "capture.zip").is_file() and (inputs / "target" / "target.json").is_file()
+            assert (inputs / "capture.zip").is_file() and (
+                inputs / "target" / "target.json"
+            ).is_file()
     finally:
         consumer.stop()
         app.state.engine.dispose()

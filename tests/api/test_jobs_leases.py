@@ -34,7 +34,9 @@ def _row(client, inspection_id: int) -> Inspection:
 
 def _claim(client, inspection_id: int, owner: str, *, now=None, lease_s: float = 30.0) -> bool:
     with client.app.state.session_factory() as s:
-        won = svc.claim(session=s, inspection_id=inspection_id, owner=owner, lease_s=lease_s, now=now)
+        won = svc.claim(
+            session=s, inspection_id=inspection_id, owner=owner, lease_s=lease_s, now=now
+        )
         s.commit()
     return won
 
@@ -64,7 +66,10 @@ def test_two_claims_of_one_row_race_and_one_wins(client, settings):
                 results[owner] = svc.claim(session=s, inspection_id=inspection_id, owner=owner)
                 s.commit()
 
-        threads = [threading.Thread(target=claim, args=(f"host:{n}:aa", f)) for n, f in enumerate(factories)]
+        threads = [
+            threading.Thread(target=claim, args=(f"host:{n}:aa", f))
+            for n, f in enumerate(factories)
+        ]
         for t in threads:
             t.start()
         for t in threads:
@@ -88,10 +93,18 @@ def test_a_live_lease_is_not_claimed_an_expired_one_is_and_counts_a_death(client
 
     # The first owner's late writes change nothing: it lost the lease.
     with client.app.state.session_factory() as s:
-        assert not svc.renew_lease(session=s, inspection_id=inspection_id, owner="a:1:x", lease_s=30)
-        svc.record_progress(session=s, inspection_id=inspection_id, stage="depth", progress=0.5, owner="a:1:x")
-        assert not svc.mark_done(session=s, inspection_id=inspection_id, document={"verdict": "pass"}, owner="a:1:x")
-        assert not svc.mark_failed(session=s, inspection_id=inspection_id, error="late", owner="a:1:x")
+        assert not svc.renew_lease(
+            session=s, inspection_id=inspection_id, owner="a:1:x", lease_s=30
+        )
+        svc.record_progress(
+            session=s, inspection_id=inspection_id, stage="depth", progress=0.5, owner="a:1:x"
+        )
+        assert not svc.mark_done(
+            session=s, inspection_id=inspection_id, document={"verdict": "pass"}, owner="a:1:x"
+        )
+        assert not svc.mark_failed(
+            session=s, inspection_id=inspection_id, error="late", owner="a:1:x"
+        )
         s.commit()
     row = _row(client, inspection_id)
     assert (row.status, row.stage, row.error) == ("running", None, None)
@@ -99,11 +112,20 @@ def test_a_live_lease_is_not_claimed_an_expired_one_is_and_counts_a_death(client
     # The holder renews, reports progress and finishes.
     with client.app.state.session_factory() as s:
         assert svc.renew_lease(session=s, inspection_id=inspection_id, owner="b:2:y", lease_s=30)
-        svc.record_progress(session=s, inspection_id=inspection_id, stage="depth", progress=0.5, owner="b:2:y")
-        assert svc.mark_done(session=s, inspection_id=inspection_id, document={"verdict": "pass"}, owner="b:2:y")
+        svc.record_progress(
+            session=s, inspection_id=inspection_id, stage="depth", progress=0.5, owner="b:2:y"
+        )
+        assert svc.mark_done(
+            session=s, inspection_id=inspection_id, document={"verdict": "pass"}, owner="b:2:y"
+        )
         s.commit()
     row = _row(client, inspection_id)
-    assert (row.status, row.verdict, row.lease_owner, row.lease_expires_at) == ("done", "pass", None, None)
+    assert (row.status, row.verdict, row.lease_owner, row.lease_expires_at) == (
+        "done",
+        "pass",
+        None,
+        None,
+    )
 
 
 def test_a_second_expired_lease_sets_the_job_aside_with_its_last_stage(client):
@@ -121,7 +143,9 @@ def test_a_second_expired_lease_sets_the_job_aside_with_its_last_stage(client):
     t1 = t0 + timedelta(seconds=20)
     assert _claim(client, inspection_id, "b:2:y", now=t1, lease_s=10)
     with client.app.state.session_factory() as s:
-        svc.record_progress(session=s, inspection_id=inspection_id, stage="stereo", progress=0.4, owner="b:2:y")
+        svc.record_progress(
+            session=s, inspection_id=inspection_id, stage="stereo", progress=0.4, owner="b:2:y"
+        )
         s.commit()
     # At the limit the expired lease is not claimed again: it is set aside.
     assert not _claim(client, inspection_id, "c:3:z", now=t1 + timedelta(seconds=11))
@@ -146,18 +170,29 @@ def test_a_graceful_release_keeps_the_place_and_is_no_death(client):
         s.commit()
         assert svc.queued_ids(session=s) == [first, second]
     row = _row(client, first)
-    assert (row.status, row.deaths, row.lease_owner, row.queued_at) == ("queued", 0, None, queued_at)
+    assert (row.status, row.deaths, row.lease_owner, row.queued_at) == (
+        "queued",
+        0,
+        None,
+        queued_at,
+    )
 
 
 def test_consumer_start_reclaims_rows_of_dead_consumers_in_queue_order(client):
     a, b, c = _submit(client, 3)
-    assert _claim(client, a, "dead:1:x", lease_s=600)  # a live-looking lease of a consumer that is gone
+    assert _claim(
+        client, a, "dead:1:x", lease_s=600
+    )  # a live-looking lease of a consumer that is gone
     with client.app.state.session_factory() as s:
         reclaimed = svc.requeue_interrupted(session=s, owner="me:2:y")
         s.commit()
         order = svc.queued_ids(session=s)
     assert reclaimed.requeued == [a]
-    assert order == [b, c, a]  # the job that was running when its worker died goes behind the others
+    assert order == [
+        b,
+        c,
+        a,
+    ]  # the job that was running when its worker died goes behind the others
     assert _row(client, a).deaths == 1
 
 

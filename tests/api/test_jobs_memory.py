@@ -15,14 +15,25 @@ HEADROOM_MB = 1024
 def _consumer_baseline_mb() -> float:
     """Address space a consumer process maps before its first job (its modules and the test double's), MiB."""
     code = "import app.worker, tests.api.fake_pipeline; from app.jobs.memory import mapped_mb; print(mapped_mb())"
-    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60, check=True)
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=True,
+    )
     return float(out.stdout.strip())
 
 
 def _post(client, plate_id: str, bundle_zip: bytes) -> int:
-    bundle = rezip(bundle_zip, replace={"capture.json": _capture_json_with_plate(bundle_zip, plate_id)})
-    files = {"capture": ("bundle.zip", bundle, "application/zip"),
-             "target": ("target.json", target_json(), "application/json")}
+    bundle = rezip(
+        bundle_zip, replace={"capture.json": _capture_json_with_plate(bundle_zip, plate_id)}
+    )
+    files = {
+        "capture": ("bundle.zip", bundle, "application/zip"),
+        "target": ("target.json", target_json(), "application/json"),
+    }
     r = client.post(f"/api/v1/plates/{plate_id}/inspections", files=files, headers=AUTH)
     assert r.status_code == 202, r.text
     return r.json()["id"]
@@ -46,7 +57,9 @@ def test_a_job_beyond_the_memory_limit_fails_and_the_next_one_runs(client, setti
         consumer.stop()
 
 
-def test_under_the_default_limit_the_same_job_completes(client, settings, consumer_factory, bundle_zip):
+def test_under_the_default_limit_the_same_job_completes(
+    client, settings, consumer_factory, bundle_zip
+):
     """The test double's allocation is refused by the limit alone (its pages are never touched)."""
     consumer = consumer_factory().start()
     hog = _post(client, "P-HOG", bundle_zip)
@@ -55,7 +68,15 @@ def test_under_the_default_limit_the_same_job_completes(client, settings, consum
 
 def test_a_limit_too_low_to_start_is_refused_with_the_setting_named(settings):
     env = {**Consumer(settings).env, "PLATE_INSPECT_WORKER_MEMORY_MB": "64"}
-    out = subprocess.run([sys.executable, "-m", "app.worker"], cwd=ROOT, env=env, capture_output=True, text=True,
-                         timeout=60)
+    out = subprocess.run(
+        [sys.executable, "-m", "app.worker"],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert out.returncode == 78, out.stderr
-    assert "PLATE_INSPECT_WORKER_MEMORY_MB: expected at least" in out.stderr and "got 64" in out.stderr
+    assert (
+        "PLATE_INSPECT_WORKER_MEMORY_MB: expected at least" in out.stderr and "got 64" in out.stderr
+    )

@@ -27,22 +27,34 @@ class Server:
     """``plate-inspect serve`` in a child process (its own session, so a signal to it reaches it alone)."""
 
     def __init__(self, settings, *, calls: Path, stage_delay_s: float, log: Path):
-        self.env = {**os.environ, **settings.to_env(), "PLATE_INSPECT_TEST_INVOCATIONS": str(calls),
-                    "PLATE_INSPECT_TEST_STAGE_DELAY_S": str(stage_delay_s)}
+        self.env = {
+            **os.environ,
+            **settings.to_env(),
+            "PLATE_INSPECT_TEST_INVOCATIONS": str(calls),
+            "PLATE_INSPECT_TEST_STAGE_DELAY_S": str(stage_delay_s),
+        }
         self.log = log
         self.proc: subprocess.Popen | None = None
 
     def start(self) -> Server:
         with open(self.log, "ab") as fh:
-            self.proc = subprocess.Popen([str(PLATE_INSPECT), "serve", "--port", str(_free_port())], env=self.env,
-                                         cwd=ROOT, stdout=fh, stderr=fh, start_new_session=True)
+            self.proc = subprocess.Popen(
+                [str(PLATE_INSPECT), "serve", "--port", str(_free_port())],
+                env=self.env,
+                cwd=ROOT,
+                stdout=fh,
+                stderr=fh,
+                start_new_session=True,
+            )
         return self
 
     def output(self) -> str:
         return self.log.read_text(errors="replace") if self.log.exists() else ""
 
     def consumer_pids(self) -> list[int]:
-        return [int(pid) for pid in re.findall(r"job consumer started \(pid (\d+)\)", self.output())]
+        return [
+            int(pid) for pid in re.findall(r"job consumer started \(pid (\d+)\)", self.output())
+        ]
 
     def stop(self) -> None:
         if self.proc is not None and self.proc.poll() is None:
@@ -59,7 +71,9 @@ def _submit(client, n: int) -> list[int]:
     return ids
 
 
-def test_server_killed_alone_takes_its_consumer_along_and_a_restart_runs_each_job_once(client, settings, tmp_path):
+def test_server_killed_alone_takes_its_consumer_along_and_a_restart_runs_each_job_once(
+    client, settings, tmp_path
+):
     calls = tmp_path / "invocations.txt"
     ids = _submit(client, 4)
     first = Server(settings, calls=calls, stage_delay_s=0.3, log=tmp_path / "serve-1.log").start()
@@ -70,8 +84,12 @@ def test_server_killed_alone_takes_its_consumer_along_and_a_restart_runs_each_jo
         first.proc.send_signal(signal.SIGKILL)  # the server process alone, not its group
         first.proc.wait(10)
         # Restarted at once (as a service manager would): its consumer waits for the orphan's lock.
-        second = Server(settings, calls=calls, stage_delay_s=0.0, log=tmp_path / "serve-2.log").start()
-        wait_until(lambda: not pid_alive(orphan), 10, lambda: f"consumer {orphan} outlived its server")
+        second = Server(
+            settings, calls=calls, stage_delay_s=0.0, log=tmp_path / "serve-2.log"
+        ).start()
+        wait_until(
+            lambda: not pid_alive(orphan), 10, lambda: f"consumer {orphan} outlived its server"
+        )
         for inspection_id in ids:
             body = wait_for(client, inspection_id, timeout_s=90)
             assert body["status"] == "done", f"{body}\n{second.output()}"
@@ -96,7 +114,9 @@ def test_server_killed_alone_takes_its_consumer_along_and_a_restart_runs_each_jo
         assert {s.get(Inspection, i).deaths for i in ids} == {0}
 
 
-def test_a_second_consumer_waits_for_the_lock_and_takes_over_when_the_first_dies(client, settings, tmp_path):
+def test_a_second_consumer_waits_for_the_lock_and_takes_over_when_the_first_dies(
+    client, settings, tmp_path
+):
     calls = tmp_path / "invocations.txt"
     first = Consumer(settings, invocations=calls, stage_delay_s=0.3).start().wait_ready()
     second = Consumer(settings, invocations=calls, log_name="consumer-2.log").start()
@@ -109,13 +129,20 @@ def test_a_second_consumer_waits_for_the_lock_and_takes_over_when_the_first_dies
         second.wait_ready()
         (b,) = _submit(client, 1)
         for inspection_id in (a, b):
-            assert wait_for(client, inspection_id, timeout_s=60, consumer=second)["status"] == "done"
+            assert (
+                wait_for(client, inspection_id, timeout_s=60, consumer=second)["status"] == "done"
+            )
     finally:
         first.stop()
         second.stop()
     runs = invocations(calls)
     assert [(e, i, p) for e, i, p in runs if p == first.proc.pid] == [("start", a, first.proc.pid)]
-    assert [(e, i) for e, i, p in runs if p == second.proc.pid] == [("start", a), ("end", a), ("start", b), ("end", b)]
+    assert [(e, i) for e, i, p in runs if p == second.proc.pid] == [
+        ("start", a),
+        ("end", a),
+        ("start", b),
+        ("end", b),
+    ]
 
 
 def test_the_parent_watch_alone_stops_a_child_whose_parent_died(tmp_path):
@@ -128,8 +155,13 @@ def test_the_parent_watch_alone_stops_a_child_whose_parent_died(tmp_path):
         "import subprocess, sys; p = subprocess.Popen([sys.executable, '-c', sys.argv[1]], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL); "
         "print(p.stdout.readline().decode().strip(), flush=True)"  # then exits, leaving the child behind
     )
-    out = subprocess.run([sys.executable, "-c", parent_code, child_code], cwd=ROOT, capture_output=True, text=True,
-                         timeout=60)
+    out = subprocess.run(
+        [sys.executable, "-c", parent_code, child_code],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     child = int(out.stdout.strip())
     try:
         wait_until(lambda: not pid_alive(child), 10, lambda: f"child {child} outlived its parent")

@@ -16,21 +16,31 @@ from tests.api.test_jobs import _capture_json_with_plate
 
 
 def _post(client, plate_id: str, bundle_zip: bytes) -> int:
-    bundle = rezip(bundle_zip, replace={"capture.json": _capture_json_with_plate(bundle_zip, plate_id)})
-    files = {"capture": ("bundle.zip", bundle, "application/zip"),
-             "target": ("target.json", target_json(), "application/json")}
+    bundle = rezip(
+        bundle_zip, replace={"capture.json": _capture_json_with_plate(bundle_zip, plate_id)}
+    )
+    files = {
+        "capture": ("bundle.zip", bundle, "application/zip"),
+        "target": ("target.json", target_json(), "application/json"),
+    }
     r = client.post(f"/api/v1/plates/{plate_id}/inspections", files=files, headers=AUTH)
     assert r.status_code == 202, r.text
     return r.json()["id"]
 
 
-def test_a_job_that_kills_its_consumer_is_set_aside_and_the_queue_goes_on(client, settings, bundle_zip, tmp_path):
+def test_a_job_that_kills_its_consumer_is_set_aside_and_the_queue_goes_on(
+    client, settings, bundle_zip, tmp_path
+):
     calls = tmp_path / "invocations.txt"
     poison = _post(client, "P-KILLSELF", bundle_zip)  # first in the queue
     behind = [_post(client, f"P-{n}", bundle_zip) for n in range(4)]
 
-    supervisor = ConsumerProcess(settings)  # the supervisor of `plate-inspect serve`: restarts a consumer that exits
-    supervisor.env.update(PLATE_INSPECT_TEST_INVOCATIONS=str(calls), PLATE_INSPECT_TEST_STAGE_DELAY_S="0")
+    supervisor = ConsumerProcess(
+        settings
+    )  # the supervisor of `plate-inspect serve`: restarts a consumer that exits
+    supervisor.env.update(
+        PLATE_INSPECT_TEST_INVOCATIONS=str(calls), PLATE_INSPECT_TEST_STAGE_DELAY_S="0"
+    )
     supervisor.start()
     try:
         body = wait_for(client, poison, timeout_s=120)

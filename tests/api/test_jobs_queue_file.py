@@ -41,20 +41,32 @@ def _queued_then_corrupt(settings, how: str) -> list[int]:
 
 
 def _aside(settings) -> list[str]:
-    return sorted(p.name for p in settings.data_dir.glob("huey.db.corrupt-*") if not p.name.endswith(("-wal", "-shm")))
+    return sorted(
+        p.name
+        for p in settings.data_dir.glob("huey.db.corrupt-*")
+        if not p.name.endswith(("-wal", "-shm"))
+    )
 
 
 @pytest.mark.parametrize("how", ["junk", "truncated"])
-def test_web_process_starts_on_a_corrupt_queue_and_its_jobs_complete(settings, consumer_factory, caplog, how):
+def test_web_process_starts_on_a_corrupt_queue_and_its_jobs_complete(
+    settings, consumer_factory, caplog, how
+):
     ids = _queued_then_corrupt(settings, how)
     caplog.set_level(logging.INFO, logger="app.jobs")
     app = create_app(settings)
     try:
-        errors = [r for r in caplog.records if r.levelno == logging.ERROR and "moved aside" in r.getMessage()]
+        errors = [
+            r
+            for r in caplog.records
+            if r.levelno == logging.ERROR and "moved aside" in r.getMessage()
+        ]
         assert len(errors) == 1, caplog.text
         (aside,) = _aside(settings)
         assert aside in errors[0].getMessage() and "nothing is lost" in errors[0].getMessage()
-        assert app.state.jobs.repaired and app.state.jobs.pending_count() == 2  # rebuilt from the rows
+        assert (
+            app.state.jobs.repaired and app.state.jobs.pending_count() == 2
+        )  # rebuilt from the rows
         consumer = consumer_factory().start()
         with TestClient(app) as client:
             ids.append(_submit(client, "Q-3"))
@@ -97,8 +109,17 @@ print("repaired" if queue.repaired else "sound", queue.pending_count())
 def test_processes_opening_one_corrupt_queue_at_once_move_it_aside_once(settings):
     _queued_then_corrupt(settings, "junk")
     env = {**os.environ, **settings.to_env()}
-    procs = [subprocess.Popen([sys.executable, "-c", OPEN_QUEUE], cwd=ROOT, env=env, stdout=subprocess.PIPE,
-                              stderr=subprocess.PIPE, text=True) for _ in range(3)]
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", OPEN_QUEUE],
+            cwd=ROOT,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for _ in range(3)
+    ]
     outputs = [p.communicate(timeout=120) for p in procs]
     assert [p.returncode for p in procs] == [0, 0, 0], outputs
     verdicts = sorted(out.split()[0] for out, _ in outputs)
@@ -131,10 +152,14 @@ def test_a_queue_file_that_fails_under_a_running_server_is_repaired_and_followed
             second = _submit(client, "Q-2")  # the web process meets the failure and repairs
         assert app.state.jobs.repaired
         assert len(_aside(settings)) == 1
-        assert any(r.levelno == logging.ERROR and "moved aside" in r.getMessage() for r in caplog.records)
+        assert any(
+            r.levelno == logging.ERROR and "moved aside" in r.getMessage() for r in caplog.records
+        )
         pending = {task.args[0] for task in app.state.jobs.huey.pending()}
         assert pending == {first, second}  # rebuilt from the rows
-        assert other.sweep(min_age_s=0) == []  # the other process follows the new file: nothing missing
+        assert (
+            other.sweep(min_age_s=0) == []
+        )  # the other process follows the new file: nothing missing
         assert other.pending_count() == 2
     finally:
         if other is not None:

@@ -11,7 +11,16 @@ import pytest
 from sqlalchemy import func, select
 
 from app.models import LightCalibration
-from tests.api.conftest import AUTH, TOKEN, Consumer, rezip, stored_files, target_json, wait_for, zip_folder
+from tests.api.conftest import (
+    AUTH,
+    TOKEN,
+    Consumer,
+    rezip,
+    stored_files,
+    target_json,
+    wait_for,
+    zip_folder,
+)
 
 URL = "/api/v1/light-calibrations"
 APPLIED = "a light calibration was applied to the capture's nominal light directions"
@@ -29,14 +38,24 @@ def near_field(tmp_path_factory):
     simulate_capture(
         folder,
         plate=PlateSpec(),
-        capture=CaptureSpec(near_field_mm=2800, light_elevation_deg=30, led_mu=1.5, manifest_lights="nominal",
-                            width=320, height=256),
+        capture=CaptureSpec(
+            near_field_mm=2800,
+            light_elevation_deg=30,
+            led_mu=1.5,
+            manifest_lights="nominal",
+            width=320,
+            height=256,
+        ),
         plate_id="NF-1",
         seed=0,
     )
     truth = np.load(folder / "truth.npz")
-    lights = Lights.points(truth["light_positions_mm"], truth["light_intensity"], axes=truth["light_axes"],
-                           mu=truth["light_mu"])
+    lights = Lights.points(
+        truth["light_positions_mm"],
+        truth["light_intensity"],
+        axes=truth["light_axes"],
+        mu=truth["light_mu"],
+    )
     return {
         "zip": zip_folder(folder),
         "target": (folder / "target.json").read_bytes(),
@@ -59,8 +78,10 @@ def _count(client, model) -> int:
 
 
 def _post_bundle(client, plate_id, bundle, target=None):
-    files = {"capture": ("bundle.zip", bundle, "application/zip"),
-             "target": ("target.json", target or target_json(), "application/json")}
+    files = {
+        "capture": ("bundle.zip", bundle, "application/zip"),
+        "target": ("target.json", target or target_json(), "application/json"),
+    }
     return client.post(f"/api/v1/plates/{plate_id}/inspections", files=files, headers=AUTH)
 
 
@@ -82,8 +103,11 @@ def test_upload_list_and_current(client, settings, near_field):
     assert client.get(f"{URL}/current").json()["id"] == first["id"]
 
     # A JSON body works too, and the newest upload becomes the current one.
-    r = client.post(URL, content=json.dumps(_first(near_field["lights"], 6)),
-                    headers={**AUTH, "Content-Type": "application/json"})
+    r = client.post(
+        URL,
+        content=json.dumps(_first(near_field["lights"], 6)),
+        headers={**AUTH, "Content-Type": "application/json"},
+    )
     assert r.status_code == 201, r.text
     second = r.json()
     assert second["file_name"] is None and second["n_lights"] == 6
@@ -111,7 +135,9 @@ def test_upload_list_and_current(client, settings, near_field):
         (lambda d: d.update(extra=1), "extra"),
     ],
 )
-def test_bad_light_calibration_is_refused_naming_file_and_field(client, settings, near_field, mutate, field):
+def test_bad_light_calibration_is_refused_naming_file_and_field(
+    client, settings, near_field, mutate, field
+):
     document = json.loads(json.dumps(near_field["lights"]))
     mutate(document)
     before = stored_files(settings.data_dir)
@@ -122,8 +148,12 @@ def test_bad_light_calibration_is_refused_naming_file_and_field(client, settings
     assert body["detail"].startswith(f"bad-lights.json: {field}: "), body
     assert str(settings.data_dir) not in body["detail"]
     # the same document as a JSON body: the message names the body
-    r = client.post(URL, content=json.dumps(document), headers={**AUTH, "Content-Type": "application/json"})
-    assert r.status_code == 422 and r.json()["file"] == "body" and r.json()["field"] == field, r.text
+    r = client.post(
+        URL, content=json.dumps(document), headers={**AUTH, "Content-Type": "application/json"}
+    )
+    assert r.status_code == 422 and r.json()["file"] == "body" and r.json()["field"] == field, (
+        r.text
+    )
     assert _count(client, LightCalibration) == 0 and stored_files(settings.data_dir) == before
     assert client.get(f"{URL}/current").status_code == 404
 
@@ -151,26 +181,38 @@ def _point_light_bundle(bundle: bytes, lights: dict) -> bytes:
     return rezip(bundle, replace={"capture.json": json.dumps(doc).encode()})
 
 
-def test_inspection_records_the_current_light_calibration_for_nominal_lights(client, bundle_zip, near_field):
+def test_inspection_records_the_current_light_calibration_for_nominal_lights(
+    client, bundle_zip, near_field
+):
     r = _post_bundle(client, "P-100", bundle_zip)
     assert r.status_code == 202, r.text
-    assert client.get(f"/api/v1/inspections/{r.json()['id']}").json()["light_calibration_id"] is None
+    assert (
+        client.get(f"/api/v1/inspections/{r.json()['id']}").json()["light_calibration_id"] is None
+    )
 
     calibration_id = _upload(client, _first(near_field["lights"], 6)).json()["id"]
     r = _post_bundle(client, "P-100", bundle_zip)  # 6 nominal directions
-    assert client.get(f"/api/v1/inspections/{r.json()['id']}").json()["light_calibration_id"] == calibration_id
+    assert (
+        client.get(f"/api/v1/inspections/{r.json()['id']}").json()["light_calibration_id"]
+        == calibration_id
+    )
 
     # A capture that gives point lights keeps them: no calibration is passed.
     r = _post_bundle(client, "P-100", _point_light_bundle(bundle_zip, near_field["lights"]))
     assert r.status_code == 202, r.text
-    assert client.get(f"/api/v1/inspections/{r.json()['id']}").json()["light_calibration_id"] is None
+    assert (
+        client.get(f"/api/v1/inspections/{r.json()['id']}").json()["light_calibration_id"] is None
+    )
     # The simulated cell renders with the lights it writes: no calibration either.
     r = client.post("/api/v1/plates/SIM-1/inspections/simulated", json={}, headers=AUTH)
-    assert client.get(f"/api/v1/inspections/{r.json()['id']}").json()["light_calibration_id"] is None
+    assert (
+        client.get(f"/api/v1/inspections/{r.json()['id']}").json()["light_calibration_id"] is None
+    )
 
 
-def test_job_uses_the_light_calibration_recorded_at_submission(client, settings, consumer_factory, bundle_zip,
-                                                                near_field):
+def test_job_uses_the_light_calibration_recorded_at_submission(
+    client, settings, consumer_factory, bundle_zip, near_field
+):
     """Fake pipeline (records the count of lights it was given): a calibration uploaded after an
     inspection was submitted does not change that inspection's lights."""
     six = _upload(client, _first(near_field["lights"], 6)).json()["id"]
@@ -183,12 +225,18 @@ def test_job_uses_the_light_calibration_recorded_at_submission(client, settings,
     assert first["status"] == second["status"] == "done", (first, second)
     assert first["light_calibration_id"] == six and second["light_calibration_id"] == twelve
     assert first["result"]["warnings"] == [APPLIED]
-    assert second["result"]["warnings"][0].startswith("the light calibration was not applied: it has 12 lights")
+    assert second["result"]["warnings"][0].startswith(
+        "the light calibration was not applied: it has 12 lights"
+    )
     for body, n in ((first, 6), (second, 12)):
-        assert client.get(body["artifacts"]["details.json"]).json()["light_calibration_n_lights"] == n
+        assert (
+            client.get(body["artifacts"]["details.json"]).json()["light_calibration_n_lights"] == n
+        )
 
 
-def test_real_pipeline_applies_the_light_calibration_to_a_nominal_near_field_capture(tmp_path, near_field):
+def test_real_pipeline_applies_the_light_calibration_to_a_nominal_near_field_capture(
+    tmp_path, near_field
+):
     """pipeline.run:inspect in a real consumer: the current light calibration (the simulator's true
     lights) is applied to nominal directions and the result says so. Only the service's part is
     asserted (stored, passed, applied, warning kept), not the measured radius."""

@@ -27,7 +27,9 @@ def _count(client, model, *where) -> int:
 
 
 def _simulated(client, plate_id="P-1", headers=AUTH, **spec):
-    return client.post(f"/api/v1/plates/{plate_id}/inspections/simulated", json=spec, headers=headers)
+    return client.post(
+        f"/api/v1/plates/{plate_id}/inspections/simulated", json=spec, headers=headers
+    )
 
 
 # ------------------------------------------------------------------ capture bundles built from headers
@@ -44,7 +46,9 @@ def png_header_only(width: int, height: int) -> bytes:
     """
     ihdr = struct.pack(">IIBBBBB", width, height, 16, 0, 0, 0, 0)
     idat = zlib.compress(b"\0" * 64)
-    return b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", ihdr) + _chunk(b"IDAT", idat) + _chunk(b"IEND", b"")
+    return (
+        b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", ihdr) + _chunk(b"IDAT", idat) + _chunk(b"IEND", b"")
+    )
 
 
 def png_zeros(width: int, height: int) -> bytes:
@@ -53,7 +57,9 @@ def png_zeros(width: int, height: int) -> bytes:
     packer = zlib.compressobj(9)
     data = b"".join(packer.compress(row) for _ in range(height)) + packer.flush()
     ihdr = struct.pack(">IIBBBBB", width, height, 16, 0, 0, 0, 0)
-    return b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", ihdr) + _chunk(b"IDAT", data) + _chunk(b"IEND", b"")
+    return (
+        b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", ihdr) + _chunk(b"IDAT", data) + _chunk(b"IEND", b"")
+    )
 
 
 def calibration_doc(width: int, height: int) -> dict:
@@ -71,7 +77,13 @@ def calibration_doc(width: int, height: int) -> dict:
 
 
 def capture_zip(
-    *, plate_id: str, width: int, height: int, n_lights: int, stereo: bool = True, image: bytes | None = None
+    *,
+    plate_id: str,
+    width: int,
+    height: int,
+    n_lights: int,
+    stereo: bool = True,
+    image: bytes | None = None,
 ) -> bytes:
     """A capture bundle (zip) of ``n_lights`` photometric images (+ a stereo pair) of one size.
 
@@ -132,7 +144,9 @@ def test_defaults_admit_40_images_of_2448x2048_and_38_lights(tmp_path):
 def test_the_cell_capture_is_accepted_from_its_headers(client, settings):
     """The web process checks headers only: images whose pixel data is cut short are accepted here
     (the job decodes them and fails with the reason, see test_image_corrupt_past_its_header_fails_the_job)."""
-    r = _upload(client, "P-CELL", capture_zip(plate_id="P-CELL", width=2448, height=2048, n_lights=38))
+    r = _upload(
+        client, "P-CELL", capture_zip(plate_id="P-CELL", width=2448, height=2048, n_lights=38)
+    )
     assert r.status_code == 202, r.text
 
 
@@ -141,7 +155,9 @@ def test_the_cell_capture_is_accepted_from_its_headers(client, settings):
 
 def test_huge_declared_images_are_refused_from_their_header(client, settings):
     """The prober's upload: 12 images declaring 4000x4000, a few hundred kB in all (valid PNGs of zeros)."""
-    bundle = capture_zip(plate_id="P-BIG", width=4000, height=4000, n_lights=12, image=png_zeros(4000, 4000))
+    bundle = capture_zip(
+        plate_id="P-BIG", width=4000, height=4000, n_lights=12, image=png_zeros(4000, 4000)
+    )
     assert len(bundle) < 1_000_000
     before = stored_files(settings.data_dir)
     r = _upload(client, "P-BIG", bundle)
@@ -159,7 +175,11 @@ def test_huge_declared_images_are_refused_from_their_header(client, settings):
 
 def test_decompression_bomb_header_is_refused_without_decoding(client):
     bomb = png_header_only(100_000, 100_000)  # 10 Gpx declared in 100 bytes
-    r = _upload(client, "P-BOMB", capture_zip(plate_id="P-BOMB", width=2448, height=2048, n_lights=3, image=bomb))
+    r = _upload(
+        client,
+        "P-BOMB",
+        capture_zip(plate_id="P-BOMB", width=2448, height=2048, n_lights=3, image=bomb),
+    )
     assert r.status_code == 422, r.text
     assert "'img_00.png'" in r.json()["detail"] and "decompression bomb" in r.json()["detail"]
     assert r.json()["field"] == "capture: photometric.images[0]"
@@ -178,7 +198,9 @@ def test_image_pixel_limit_is_a_setting(tmp_path):
 def test_too_many_lights_are_refused_before_any_image(tmp_path, client, settings):
     limits = Limits.from_settings(settings)
     n = settings.max_lights + 1
-    r = _upload(client, "P-LIGHTS", capture_zip(plate_id="P-LIGHTS", width=640, height=480, n_lights=n))
+    r = _upload(
+        client, "P-LIGHTS", capture_zip(plate_id="P-LIGHTS", width=640, height=480, n_lights=n)
+    )
     assert r.status_code == 422, r.text
     body = r.json()
     assert body["field"] == "capture: photometric.lights"
@@ -186,12 +208,16 @@ def test_too_many_lights_are_refused_before_any_image(tmp_path, client, settings
     assert "PLATE_INSPECT_MAX_LIGHTS" in body["detail"]
     # the images are never opened: the same bundle with unreadable images gives the same refusal
     path = tmp_path / "capture.zip"
-    path.write_bytes(capture_zip(plate_id="P", width=640, height=480, n_lights=n, image=b"not an image"))
+    path.write_bytes(
+        capture_zip(plate_id="P", width=640, height=480, n_lights=n, image=b"not an image")
+    )
     with pytest.raises(ValueError, match="photometric.lights"):
         read_capture_header(path, limits)
 
 
-def test_image_corrupt_past_its_header_fails_the_job_with_its_inputs(client, settings, consumer_factory):
+def test_image_corrupt_past_its_header_fails_the_job_with_its_inputs(
+    client, settings, consumer_factory
+):
     """Accepted from its headers, the bundle is decoded by the job, which fails naming the image."""
     consumer = consumer_factory().start()
     r = _upload(client, "P-CUT", capture_zip(plate_id="P-CUT", width=320, height=256, n_lights=3))
@@ -206,20 +232,35 @@ def test_image_corrupt_past_its_header_fails_the_job_with_its_inputs(client, set
 
 def test_calibration_image_size_over_the_limit_is_refused(client, settings):
     doc = calibration_doc(20_000, 20_000)
-    r = client.post("/api/v1/calibrations", files={"calibration": ("c.json", json.dumps(doc).encode())}, headers=AUTH)
+    r = client.post(
+        "/api/v1/calibrations",
+        files={"calibration": ("c.json", json.dumps(doc).encode())},
+        headers=AUTH,
+    )
     assert r.status_code == 422, r.text
     assert r.json()["field"] == "calibration: image_size"
-    assert "20000x20000 px" in r.json()["detail"] and "PLATE_INSPECT_MAX_IMAGE_PIXELS" in r.json()["detail"]
+    assert (
+        "20000x20000 px" in r.json()["detail"]
+        and "PLATE_INSPECT_MAX_IMAGE_PIXELS" in r.json()["detail"]
+    )
     ok = calibration_doc(2448, 2048)
-    r = client.post("/api/v1/calibrations", files={"calibration": ("c.json", json.dumps(ok).encode())}, headers=AUTH)
+    r = client.post(
+        "/api/v1/calibrations",
+        files={"calibration": ("c.json", json.dumps(ok).encode())},
+        headers=AUTH,
+    )
     assert r.status_code == 201, r.text
 
 
 def test_light_calibration_over_the_light_limit_is_refused(client, settings):
     n = settings.max_lights + 1
     lights = [
-        {"position_mm": [1500.0 * math.cos(a), 1500.0 * math.sin(a), 200.0], "axis": [0.0, 0.0, 1.0], "mu": 1.0,
-         "intensity": 1.0}
+        {
+            "position_mm": [1500.0 * math.cos(a), 1500.0 * math.sin(a), 200.0],
+            "axis": [0.0, 0.0, 1.0],
+            "mu": 1.0,
+            "intensity": 1.0,
+        }
         for a in (2 * math.pi * k / n for k in range(n))
     ]
     doc = {"format": "light-calibration/1", "lights": lights}
@@ -241,7 +282,10 @@ def test_simulated_size_and_lights_over_the_limits_are_refused(client, settings)
     assert r.status_code == 422, r.text
     body = r.json()
     assert body["field"] == "width"
-    assert "4096x4096 px" in body["detail"] and f"limit of {settings.max_simulated_pixels} px" in body["detail"]
+    assert (
+        "4096x4096 px" in body["detail"]
+        and f"limit of {settings.max_simulated_pixels} px" in body["detail"]
+    )
     assert "PLATE_INSPECT_MAX_SIMULATED_PIXELS" in body["detail"]
     assert _count(client, Inspection) == 0
     assert _simulated(client, n_lights=38).status_code == 202  # the default size, the cell's lights
@@ -261,7 +305,10 @@ def test_a_plate_gets_8_queued_jobs_then_429(client, settings):
     assert r.status_code == 429, r.text
     body = r.json()
     assert body["field"] == "plate_id"
-    assert "8 inspections waiting" in body["detail"] and "PLATE_INSPECT_MAX_QUEUED_PER_PLATE" in body["detail"]
+    assert (
+        "8 inspections waiting" in body["detail"]
+        and "PLATE_INSPECT_MAX_QUEUED_PER_PLATE" in body["detail"]
+    )
     retry_after = int(r.headers["Retry-After"])
     assert retry_after >= 1
     assert _count(client, Inspection, Inspection.plate_id == "P-Q") == 8
@@ -294,7 +341,10 @@ def test_whole_queue_cap_is_429_with_retry_after(tmp_path, settings):
         r = _simulated(client, "P-3", **SIMULATED_SMALL)
         assert r.status_code == 429, r.text
         assert r.json()["field"] is None
-        assert "3 inspections are waiting" in r.json()["detail"] and "PLATE_INSPECT_MAX_QUEUED" in r.json()["detail"]
+        assert (
+            "3 inspections are waiting" in r.json()["detail"]
+            and "PLATE_INSPECT_MAX_QUEUED" in r.json()["detail"]
+        )
         assert int(r.headers["Retry-After"]) >= 1
         assert _count(client, Inspection) == 3
     app.state.engine.dispose()
@@ -308,7 +358,9 @@ def test_a_refused_retry_is_admitted_once_the_queue_moves(client, settings, cons
     r = _simulated(client, "P-R", headers=headers, seed=99, **SIMULATED_SMALL)
     assert r.status_code == 429, r.text
     consumer = consumer_factory().start()
-    first = client.get("/api/v1/plates/P-R/inspections", params={"limit": 200}).json()["items"][-1]["id"]
+    first = client.get("/api/v1/plates/P-R/inspections", params={"limit": 200}).json()["items"][-1][
+        "id"
+    ]
     wait_for(client, first, statuses=("running", "done", "failed"), consumer=consumer)
     r = _simulated(client, "P-R", headers=headers, seed=99, **SIMULATED_SMALL)
     assert r.status_code == 202, r.text

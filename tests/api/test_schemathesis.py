@@ -29,7 +29,12 @@ from tests.api.conftest import AUTH, FAKE_INSPECT, TOKEN
 
 #: Generated requests per operation (valid and invalid ones together).
 MAX_EXAMPLES = 25
-CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance, response_schema_conformance]
+CHECKS = [
+    not_a_server_error,
+    status_code_conformance,
+    content_type_conformance,
+    response_schema_conformance,
+]
 
 
 @pytest.fixture(scope="module")
@@ -65,7 +70,11 @@ def _fuzz(operation) -> None:
 
     @given(case=cases)
     @settings(
-        max_examples=MAX_EXAMPLES, deadline=None, derandomize=True, database=None, suppress_health_check=list(HealthCheck)
+        max_examples=MAX_EXAMPLES,
+        deadline=None,
+        derandomize=True,
+        database=None,
+        suppress_health_check=list(HealthCheck),
     )
     def check(case) -> None:
         response = case.call_and_validate(headers=AUTH, checks=CHECKS)

@@ -9,8 +9,8 @@ from concurrent.futures import ThreadPoolExecutor
 from datetime import timedelta
 
 import pytest
-from pydantic import SecretStr
 from fastapi.testclient import TestClient
+from pydantic import SecretStr
 from sqlalchemy import select
 
 from app.deps import SESSION_COOKIE
@@ -58,12 +58,16 @@ def test_each_login_is_a_new_random_session_stored_only_as_its_hash(client, sett
     cookie = first.headers["set-cookie"].lower()
     assert "httponly" in cookie and "samesite=strict" in cookie and "path=/" in cookie
     assert f"max-age={12 * 3600}" in cookie  # PLATE_INSPECT_SESSION_HOURS: a shift by default
-    values = [first.cookies[SESSION_COOKIE]] + [_login(client).cookies[SESSION_COOKIE] for _ in range(2)]
+    values = [first.cookies[SESSION_COOKIE]] + [
+        _login(client).cookies[SESSION_COOKIE] for _ in range(2)
+    ]
     assert len(set(values)) == 3 and all(len(v) == 43 for v in values)
 
     rows = _rows(client.app)
     assert {r.id_hash for r in rows} == {hashlib.sha256(v.encode()).hexdigest() for v in values}
-    assert all(r.expires_at - r.created_at == timedelta(hours=12) and r.revoked_at is None for r in rows)
+    assert all(
+        r.expires_at - r.created_at == timedelta(hours=12) and r.revoked_at is None for r in rows
+    )
     # Neither the session ids nor the token are in the database file.
     client.app.state.engine.dispose()
     dump = "\n".join(sqlite3.connect(settings.data_dir / "plate_inspect.db").iterdump())
@@ -107,14 +111,17 @@ def test_session_lifetime_is_a_setting(settings):
 def test_a_new_api_token_ends_the_sessions_of_the_old_one(client, settings):
     value = _login(client).cookies[SESSION_COOKIE]
     client.app.state.engine.dispose()
-    rotated = create_app(settings.model_copy(update={"api_token": SecretStr("another-token-98765")}))
+    rotated = create_app(
+        settings.model_copy(update={"api_token": SecretStr("another-token-98765")})
+    )
     r = _write(_with_cookie(rotated, value))
     assert r.status_code == 401 and r.json()["field"] == SESSION_COOKIE
     rotated.state.engine.dispose()
 
 
 @pytest.mark.parametrize(
-    "value", ["é".encode("utf-8"), "\u00ff\u00fe".encode("latin-1"), b"x" * 43, b"../../etc/passwd", b""]
+    "value",
+    ["é".encode(), "\u00ff\u00fe".encode("latin-1"), b"x" * 43, b"../../etc/passwd", b""],
 )
 def test_a_bad_cookie_is_no_session(demo_app, value):
     with _with_cookie(demo_app, value) as c:
@@ -127,7 +134,7 @@ def test_a_bad_cookie_is_no_session(demo_app, value):
 
 
 def test_a_bad_cookie_is_no_session_outside_demo_mode(client):
-    with _with_cookie(client.app, "é".encode("utf-8")) as c:
+    with _with_cookie(client.app, "é".encode()) as c:
         page = c.get("/cell")
         assert page.status_code == 200 and "operator session" not in page.text
         assert c.get("/login").status_code == 200
@@ -153,7 +160,9 @@ def test_demo_pages_open_a_session_that_writes(demo_app):
 @pytest.fixture
 def throttled(settings):
     """An app whose throttle allows 3 free failures and spaces checks at most 0.05 s (quick tests)."""
-    app = create_app(settings.model_copy(update={"login_free_failures": 3, "login_max_delay_s": 0.05}))
+    app = create_app(
+        settings.model_copy(update={"login_free_failures": 3, "login_max_delay_s": 0.05})
+    )
     yield app
     app.state.engine.dispose()
 
@@ -174,8 +183,14 @@ def test_bearer_guesses_count_and_other_addresses_are_not_slowed(throttled):
         for _ in range(3):
             assert _write(c, Authorization="Bearer wrong").status_code == 401
         r = _write(c, Authorization="Bearer wrong")
-        assert r.status_code == 429 and r.headers["retry-after"] and r.headers["www-authenticate"] == "Bearer"
-        assert _login(c, "wrong").status_code == 429  # one count for both ways of presenting a token
+        assert (
+            r.status_code == 429
+            and r.headers["retry-after"]
+            and r.headers["www-authenticate"] == "Bearer"
+        )
+        assert (
+            _login(c, "wrong").status_code == 429
+        )  # one count for both ways of presenting a token
         # Malformed headers guess nothing and do not count.
         assert _write(other, Authorization="Basic dGVzdA==").status_code == 401
         assert throttled.state.token_throttle.failures(client_key("10.1.2.3")) == 0
@@ -201,7 +216,9 @@ def test_throttled_checks_are_spaced_out_one_at_a_time():
     async def sleep(seconds: float) -> None:
         pass  # the turn is what is checked here; the clock is stepped by hand
 
-    throttle = TokenThrottle(free_failures=2, window_s=60.0, max_delay_s=2.0, clock=lambda: now[0], sleep=sleep)
+    throttle = TokenThrottle(
+        free_failures=2, window_s=60.0, max_delay_s=2.0, clock=lambda: now[0], sleep=sleep
+    )
     assert throttle.failed("a") is None and throttle.failed("a") is None
     # Two failures: the next check waits FIRST_DELAY_S; four concurrent ones queue behind each other.
     waits = asyncio.run(_gather(throttle, "a", 4))

@@ -58,11 +58,18 @@ def light_ring(n: int, *, slant_rad: float = 0.5) -> np.ndarray:
     """(n, 3) unit light directions on a cone of half angle ``slant_rad`` around -z."""
     phi = 2 * np.pi * np.arange(n) / n
     return np.stack(
-        [np.sin(slant_rad) * np.cos(phi), np.sin(slant_rad) * np.sin(phi), -np.cos(slant_rad) * np.ones(n)], axis=1
+        [
+            np.sin(slant_rad) * np.cos(phi),
+            np.sin(slant_rad) * np.sin(phi),
+            -np.cos(slant_rad) * np.ones(n),
+        ],
+        axis=1,
     )
 
 
-def sphere_images(dirs: np.ndarray, width: int, height: int, *, peak: float, seed: int = 0) -> np.ndarray:
+def sphere_images(
+    dirs: np.ndarray, width: int, height: int, *, peak: float, seed: int = 0
+) -> np.ndarray:
     """(N, H, W) float64 Lambertian images of a sphere cap filling the frame, counts up to ``peak``."""
     v, u = np.mgrid[0:height, 0:width].astype(np.float64)
     r = 0.45 * min(width, height)
@@ -125,15 +132,22 @@ def write_bundle(
     root = Path(tmp_path) / name
     root.mkdir(parents=True, exist_ok=True)
     bit_depth = overrides.get("bit_depth", 16)
-    peak = float(2 ** (bit_depth if isinstance(bit_depth, int) and 8 <= bit_depth <= 16 else 16) - 1)
+    peak = float(
+        2 ** (bit_depth if isinstance(bit_depth, int) and 8 <= bit_depth <= 16 else 16) - 1
+    )
     dtype = np.uint8 if peak <= 255 else np.uint16
 
     dirs = light_ring(n_lights)
     stack = sphere_images(dirs, width, height, peak=peak, seed=seed)
-    out = {f"ps_{k:02d}.png": np.clip(np.rint(img), 0, peak).astype(dtype) for k, img in enumerate(stack)}
+    out = {
+        f"ps_{k:02d}.png": np.clip(np.rint(img), 0, peak).astype(dtype)
+        for k, img in enumerate(stack)
+    }
     rng = np.random.default_rng(seed + 1)
     if with_dark:
-        out["dark.png"] = np.clip(rng.normal(0.01 * peak, 0.002 * peak, (height, width)), 0, peak).astype(dtype)
+        out["dark.png"] = np.clip(
+            rng.normal(0.01 * peak, 0.002 * peak, (height, width)), 0, peak
+        ).astype(dtype)
     if with_stereo:
         texture = rng.uniform(0.1 * peak, 0.9 * peak, (height, width))
         out["stereo_left.png"] = texture.astype(dtype)

@@ -18,8 +18,16 @@ from scipy.spatial.transform import Rotation
 TILT_DEG = (8.0, -5.0, 20.0)
 
 
-def plate_grid(height, *, shape=(128, 160), size_mm=(3000.0, 3000.0), distance_mm=3000.0, tilt_deg=TILT_DEG,
-               noise_mm=0.0, rng=None):
+def plate_grid(
+    height,
+    *,
+    shape=(128, 160),
+    size_mm=(3000.0, 3000.0),
+    distance_mm=3000.0,
+    tilt_deg=TILT_DEG,
+    noise_mm=0.0,
+    rng=None,
+):
     """Ray-cast a plate ``z_p = height(x_p, y_p)`` (mm, z_p away from the camera) into a camera grid.
 
     Returns
@@ -51,7 +59,11 @@ def plate_grid(height, *, shape=(128, 160), size_mm=(3000.0, 3000.0), distance_m
         g1, _ = g(s + 1e-3)
         s = s - g0 / ((g1 - g0) / 1e-3)
     g0, p = g(s)
-    mask = (np.abs(p[..., 0]) <= size_mm[0] / 2) & (np.abs(p[..., 1]) <= size_mm[1] / 2) & (np.abs(g0) < 1e-6)
+    mask = (
+        (np.abs(p[..., 0]) <= size_mm[0] / 2)
+        & (np.abs(p[..., 1]) <= size_mm[1] / 2)
+        & (np.abs(g0) < 1e-6)
+    )
     if noise_mm:
         s = s + rng.normal(0.0, noise_mm, s.shape) / np.linalg.norm(rays, axis=-1)
     points = s[..., None] * rays
@@ -96,11 +108,21 @@ def rotation_xy(ax_rad: float, ay_rad: float) -> np.ndarray:
 
 def plate_camera(width: int, height: int, f_px: float) -> np.ndarray:
     """K with fx != fy and a principal point off the centre."""
-    return np.array([[f_px, 0.0, width / 2 + 3.3], [0.0, 1.013 * f_px, height / 2 - 2.1], [0.0, 0.0, 1.0]])
+    return np.array(
+        [[f_px, 0.0, width / 2 + 3.3], [0.0, 1.013 * f_px, height / 2 - 2.1], [0.0, 0.0, 1.0]]
+    )
 
 
-def render_cylinder(K, hw, *, radius_mm=5000.0, plate_mm=(3000.0, 3000.0), distance_mm=3000.0,
-                    tilt_rad=(0.05, 0.08), convex=False):
+def render_cylinder(
+    K,
+    hw,
+    *,
+    radius_mm=5000.0,
+    plate_mm=(3000.0, 3000.0),
+    distance_mm=3000.0,
+    tilt_rad=(0.05, 0.08),
+    convex=False,
+):
     """Ray-trace a cylindrical plate (axis along the plate's second axis).
 
     The plate frame is the camera frame at zero tilt, its origin on the surface at the plate centre,
@@ -133,7 +155,11 @@ def render_cylinder(K, hw, *, radius_mm=5000.0, plate_mm=(3000.0, 3000.0), dista
     n = grad @ r_cam_plate.T
     n /= np.linalg.norm(n, axis=-1, keepdims=True)
     n *= -np.sign(np.sum(n * rays, -1))[..., None]
-    mask = (disc > 0) & (np.abs(xp[..., 0]) <= plate_mm[0] / 2) & (np.abs(xp[..., 1]) <= plate_mm[1] / 2)
+    mask = (
+        (disc > 0)
+        & (np.abs(xp[..., 0]) <= plate_mm[0] / 2)
+        & (np.abs(xp[..., 1]) <= plate_mm[1] / 2)
+    )
     return n, mask, np.where(mask, lam * rays[..., 2], np.nan)
 
 
@@ -150,8 +176,10 @@ def sparse_least_squares(n, mask, K, log_prior=None, weight=0.0):
     index[mask] = np.arange(mask.sum())
     rows, cols, vals, rhs = [], [], [], []
     eq = 0
-    for (a_sl, b_sl, g) in (((slice(None), slice(0, -1)), (slice(None), slice(1, None)), gu),
-                            ((slice(0, -1), slice(None)), (slice(1, None), slice(None)), gv)):
+    for a_sl, b_sl, g in (
+        ((slice(None), slice(0, -1)), (slice(None), slice(1, None)), gu),
+        ((slice(0, -1), slice(None)), (slice(1, None), slice(None)), gv),
+    ):
         both = mask[a_sl] & mask[b_sl]
         ia, ib = index[a_sl][both], index[b_sl][both]
         m = ia.size
@@ -168,8 +196,10 @@ def sparse_least_squares(n, mask, K, log_prior=None, weight=0.0):
         vals.append(np.full(m, np.sqrt(weight)))
         rhs.append(np.sqrt(weight) * log_prior[known])
         eq += m
-    a = scipy.sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                                shape=(eq, int(mask.sum())))
+    a = scipy.sparse.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+        shape=(eq, int(mask.sum())),
+    )
     x = scipy.sparse.linalg.spsolve((a.T @ a).tocsc(), a.T @ np.concatenate(rhs))
     out = np.full((h, w), np.nan)
     out[mask] = x

@@ -63,7 +63,9 @@ def test_colormap_bad_limit(limit):
 
 
 def test_colormap_rejects_infinite_deviation():
-    with pytest.raises(ValueError, match="deviation_mm: expected finite values or NaN, got 1 infinite"):
+    with pytest.raises(
+        ValueError, match="deviation_mm: expected finite values or NaN, got 1 infinite"
+    ):
         deviation_colormap(np.array([0.0, np.inf]), limit_mm=1.0)
 
 
@@ -99,19 +101,25 @@ def test_surface_ply_masked_cells(tmp_path):
     mesh, _ = _read_ply(tmp_path / "s.ply")
     # Brute force: cells whose four corners are valid, and the corners they use.
     valid = mask & np.isfinite(pts).all(axis=-1)
-    cells = [(r, c) for r in range(h - 1) for c in range(w - 1) if valid[r : r + 2, c : c + 2].all()]
+    cells = [
+        (r, c) for r in range(h - 1) for c in range(w - 1) if valid[r : r + 2, c : c + 2].all()
+    ]
     used = {(r + dr, c + dc) for r, c in cells for dr in (0, 1) for dc in (0, 1)}
     assert len(mesh.faces) == 2 * len(cells) and len(mesh.vertices) == len(used)
     expected = np.array([pts[r, c] for r, c in sorted(used)])
     got = mesh.vertices[np.lexsort((mesh.vertices[:, 0], mesh.vertices[:, 1]))]
-    np.testing.assert_allclose(got, expected[np.lexsort((expected[:, 0], expected[:, 1]))], atol=5e-4)
+    np.testing.assert_allclose(
+        got, expected[np.lexsort((expected[:, 0], expected[:, 1]))], atol=5e-4
+    )
     assert np.all(np.isfinite(mesh.vertices))
 
 
 def test_surface_ply_decimation_stride(tmp_path):
     h, w, budget = 100, 130, 1000
     pts = _grid(h, w)
-    write_surface_ply(tmp_path / "s.ply", pts, np.ones((h, w), bool), np.zeros((h, w)), max_vertices=budget)
+    write_surface_ply(
+        tmp_path / "s.ply", pts, np.ones((h, w), bool), np.zeros((h, w)), max_vertices=budget
+    )
     mesh, _ = _read_ply(tmp_path / "s.ply")
     stride = next(s for s in range(1, 100) if math.ceil(h / s) * math.ceil(w / s) <= budget)
     assert len(mesh.vertices) == math.ceil(h / stride) * math.ceil(w / stride) <= budget
@@ -153,7 +161,11 @@ def test_target_ply_moved_into_camera_frame(tmp_path):
     box = trimesh.creation.box(extents=(300.0, 200.0, 10.0))
     angle = 0.3
     T = np.eye(4)
-    T[:3, :3] = [[math.cos(angle), -math.sin(angle), 0], [math.sin(angle), math.cos(angle), 0], [0, 0, 1]]
+    T[:3, :3] = [
+        [math.cos(angle), -math.sin(angle), 0],
+        [math.sin(angle), math.cos(angle), 0],
+        [0, 0, 1],
+    ]
     T[:3, 3] = [10.0, -20.0, 3000.0]
     write_target_ply(tmp_path / "t.ply", box.vertices, box.faces, T)
     mesh, _ = _read_ply(tmp_path / "t.ply")
@@ -193,9 +205,13 @@ def test_deviation_png_size_and_colours(tmp_path):
     expected = list(COLOUR_STOPS) + [COLOUR_STOPS[-1], GREY, GREY]
     for i, colour in enumerate(expected):
         centre = rgb[k * h // 2, k * (i * 10 + 5)]
-        np.testing.assert_array_equal(centre, colour, err_msg=f"block {i} ({values[i] if i < 7 else 'masked'})")
+        np.testing.assert_array_equal(
+            centre, colour, err_msg=f"block {i} ({values[i] if i < 7 else 'masked'})"
+        )
     # The map region is exactly the colour map, enlarged by k (nearest neighbour).
-    np.testing.assert_array_equal(rgb[::k, :w * k : k][:h], deviation_colormap(np.where(mask, dev, np.nan), limit_mm=3.0))
+    np.testing.assert_array_equal(
+        rgb[::k, : w * k : k][:h], deviation_colormap(np.where(mask, dev, np.nan), limit_mm=3.0)
+    )
     # The panel holds black text and the colour bar from red to blue. The bar's end rows are
     # under its black frame, the next ones are 1/(bar height) inside the ends: allow 4 units.
     panel = rgb[:, k * w :].astype(int)
@@ -207,7 +223,9 @@ def test_deviation_png_size_and_colours(tmp_path):
 def test_deviation_png_large_map_keeps_resolution(tmp_path):
     h, w = 600, 700
     dev = np.tile(np.linspace(-2, 2, w), (h, 1))
-    write_deviation_png(tmp_path / "d.png", dev, np.ones((h, w), bool), tolerance_mm=1.0, limit_mm=2.0)
+    write_deviation_png(
+        tmp_path / "d.png", dev, np.ones((h, w), bool), tolerance_mm=1.0, limit_mm=2.0
+    )
     rgb = _read_rgb(tmp_path / "d.png")
     assert rgb.shape[0] == h and rgb.shape[1] > w
     np.testing.assert_array_equal(rgb[:, :w], deviation_colormap(dev, limit_mm=2.0))
@@ -256,7 +274,9 @@ def test_normals_png_bad_inputs(tmp_path):
     with pytest.raises(ValueError, match="normals: expected unit vectors inside the mask"):
         write_normals_png(tmp_path / "n.png", bad, mask)
     bad[1, 1] = np.nan
-    with pytest.raises(ValueError, match="normals: expected finite values inside the mask, got 1 non-finite"):
+    with pytest.raises(
+        ValueError, match="normals: expected finite values inside the mask, got 1 non-finite"
+    ):
         write_normals_png(tmp_path / "n.png", bad, mask)
     with pytest.raises(ValueError, match=r"normals: expected shape \(H, W, 3\)"):
         write_normals_png(tmp_path / "n.png", n[..., :2], mask)

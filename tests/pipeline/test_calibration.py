@@ -48,13 +48,30 @@ def test_real_boards_meet_the_published_left_intrinsics(real_report):
 def test_real_boards_use_all_pairs_and_give_a_sane_baseline(real_report):
     # all 13 pairs are detected (SOURCE.txt); OpenCV's stereo_calib sample gives |T| = 3.34 squares = 83.5 mm
     # with different flags, so 2 % is the agreement to expect between the two models
-    assert [v.key for v in real_report.views] == ["01", "02", "03", "04", "05", "06", "07", "08", "09", "11", "12", "13", "14"]
+    assert [v.key for v in real_report.views] == [
+        "01",
+        "02",
+        "03",
+        "04",
+        "05",
+        "06",
+        "07",
+        "08",
+        "09",
+        "11",
+        "12",
+        "13",
+        "14",
+    ]
     assert real_report.rejected == []
     assert abs(real_report.rig.baseline_mm / 83.5 - 1.0) < 0.02
     assert real_report.rig.T[0] < 0  # the right camera sits to the right: X_right = R X_left + T
     # the stereo RMS of a plain OpenCV stereo calibration of these pairs is about 0.6 px (data README)
     assert real_report.rms_px < 0.6
-    assert all(isinstance(v, ViewReport) and 0 < v.left_error_px < 1.0 and 0 < v.right_error_px < 1.0 for v in real_report.views)
+    assert all(
+        isinstance(v, ViewReport) and 0 < v.left_error_px < 1.0 and 0 < v.right_error_px < 1.0
+        for v in real_report.views
+    )
 
 
 def test_calibration_document_validates_and_round_trips(real_report):
@@ -76,7 +93,9 @@ def test_failed_views_are_listed_and_too_few_pairs_refused(tmp_path):
     cv2.imwrite(str(tmp_path / "left05.png"), np.full((480, 640), 128, np.uint8))  # no board in it
     cv2.imwrite(str(tmp_path / "right05.png"), np.full((480, 640), 128, np.uint8))
     shutil.copy(BOARDS / "left06.jpg", tmp_path / "left06.jpg")  # no partner
-    with pytest.raises(CalibrationError, match=r"expected at least 5 usable board pairs, got 4 of 5 pairs") as info:
+    with pytest.raises(
+        CalibrationError, match=r"expected at least 5 usable board pairs, got 4 of 5 pairs"
+    ) as info:
         calibrate_stereo(tmp_path, square_mm=25.0)
     assert "05: no 9x6 chessboard found in left05.png and right05.png" in str(info.value)
     assert "left06.jpg has no matching right06.<ext>" in str(info.value)
@@ -91,8 +110,17 @@ def test_failed_views_are_listed_and_too_few_pairs_refused(tmp_path):
 
 
 def test_find_board_pairs_natural_order_and_unmatched(tmp_path):
-    for name in ("left2.png", "right2.png", "left10.png", "right10.png", "left_03.jpg", "right_03.jpg",
-                 "left7.png", "notes.txt", "leftover.yml"):
+    for name in (
+        "left2.png",
+        "right2.png",
+        "left10.png",
+        "right10.png",
+        "left_03.jpg",
+        "right_03.jpg",
+        "left7.png",
+        "notes.txt",
+        "leftover.yml",
+    ):
         (tmp_path / name).write_bytes(b"")
     with pytest.warns(UserWarning, match=r"'7' not used: left7.png has no matching right7"):
         pairs = find_board_pairs(tmp_path)
@@ -105,8 +133,14 @@ def test_find_board_pairs_natural_order_and_unmatched(tmp_path):
     [
         ({"square_mm": 0.0}, r"square_mm: expected a positive finite square size in mm, got 0.0"),
         ({"square_mm": float("nan")}, r"square_mm: expected a positive finite"),
-        ({"square_mm": 25.0, "inner_corners": (6, 6)}, r"inner_corners: expected a non-square board"),
-        ({"square_mm": 25.0, "inner_corners": (9, 2)}, r"inner_corners: expected \(columns, rows\) with both >= 3"),
+        (
+            {"square_mm": 25.0, "inner_corners": (6, 6)},
+            r"inner_corners: expected a non-square board",
+        ),
+        (
+            {"square_mm": 25.0, "inner_corners": (9, 2)},
+            r"inner_corners: expected \(columns, rows\) with both >= 3",
+        ),
         ({"square_mm": 25.0, "inner_corners": "9x6"}, r"inner_corners: expected two integers"),
         ({"square_mm": 25.0, "min_pairs": 2}, r"min_pairs: expected an integer >= 3"),
     ],
@@ -129,7 +163,9 @@ def test_missing_folder_is_refused(tmp_path):
 @pytest.mark.parametrize("seed", [7, 12])
 def test_simulated_boards_recover_the_rig(tmp_path, seed):
     rig = default_rig(width=640, height=512)
-    render_calibration_pairs(tmp_path, rig=rig, n_pairs=15, inner_corners=(9, 6), square_mm=60.0, seed=seed)
+    render_calibration_pairs(
+        tmp_path, rig=rig, n_pairs=15, inner_corners=(9, 6), square_mm=60.0, seed=seed
+    )
     report = calibrate_stereo(tmp_path, inner_corners=(9, 6), square_mm=60.0)
     assert report.rejected == []
     # issue 4: fx within 0.1 %, |T| within 0.5 %, R within 0.05 deg of the rig that rendered the boards

@@ -18,7 +18,9 @@ def test_rays_reproject_through_the_distorted_model():
     map1, map2 = cam.undistort_maps()
     pts = rays[::37, ::41].reshape(-1, 3) * 3000.0
     uv = cam.project(pts)
-    np.testing.assert_allclose(uv[:, 0], map1[::37, ::41].ravel(), atol=0.02)  # remap maps agree to ~1/50 px
+    np.testing.assert_allclose(
+        uv[:, 0], map1[::37, ::41].ravel(), atol=0.02
+    )  # remap maps agree to ~1/50 px
     np.testing.assert_allclose(uv[:, 1], map2[::37, ::41].ravel(), atol=0.02)
 
 
@@ -40,7 +42,11 @@ def test_undistort_image_keeps_dtype_and_shape():
     ],
 )
 def test_camera_rejects_bad_values(kwargs, match):
-    base = dict(K=np.array([[100.0, 0, 50], [0, 100, 40], [0, 0, 1]]), dist=np.zeros(5), image_size=(100, 80))
+    base = dict(
+        K=np.array([[100.0, 0, 50], [0, 100, 40], [0, 0, 1]]),
+        dist=np.zeros(5),
+        image_size=(100, 80),
+    )
     with pytest.raises(ValueError, match=match):
         CameraModel(**(base | kwargs))
 

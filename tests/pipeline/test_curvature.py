@@ -13,7 +13,14 @@ import numpy as np
 import pytest
 
 from pipeline.curvature import principal_curvatures
-from pipeline.surface_fits import CylinderFit, PlaneFit, SphereFit, fit_cylinder, fit_plane, fit_sphere
+from pipeline.surface_fits import (
+    CylinderFit,
+    PlaneFit,
+    SphereFit,
+    fit_cylinder,
+    fit_plane,
+    fit_sphere,
+)
 from tests.pipeline.surfaces import cylinder, dented, plate_grid, saddle, sphere
 
 
@@ -128,7 +135,9 @@ def _analytic_principal(height, xy, mask, h=1e-2):
     Kg = (L * N - M * M) / (E * G - F * F)
     Hm = (E * N - 2 * F * M + G * L) / (2 * (E * G - F * F))
     d = np.sqrt(np.maximum(Hm * Hm - Kg, 0))
-    k = np.stack([Hm + d, Hm - d], axis=1)  # z_p points away from the camera: convex towards it is +
+    k = np.stack(
+        [Hm + d, Hm - d], axis=1
+    )  # z_p points away from the camera: convex towards it is +
     order = np.argsort(-np.abs(k), axis=1)
     return np.take_along_axis(k, order, axis=1)
 
@@ -149,7 +158,9 @@ def test_principal_radii_cylinder(R, sign):
     km = res.curvature_map
     assert km.shape == m.shape + (2,) and km.dtype == np.float32
     assert np.isnan(km[~m]).all() and np.isfinite(km[m]).all()
-    assert np.median(np.abs(km[m][:, 0] * R - sign)) < 0.01  # per-pixel k1 within 1 % for most pixels
+    assert (
+        np.median(np.abs(km[m][:, 0] * R - sign)) < 0.01
+    )  # per-pixel k1 within 1 % for most pixels
 
 
 @pytest.mark.parametrize("R,sign", [(2500.0, 1), (8000.0, -1)])
@@ -238,7 +249,9 @@ def test_principal_curvatures_bad_inputs():
         principal_curvatures(pts, m[:-1])
     holed = pts.copy()
     holed[m.nonzero()[0][0], m.nonzero()[1][0]] = np.nan
-    with pytest.raises(ValueError, match="points_mm: expected finite points inside the mask, got 1"):
+    with pytest.raises(
+        ValueError, match="points_mm: expected finite points inside the mask, got 1"
+    ):
         principal_curvatures(holed, m)
     with pytest.raises(ValueError, match="mask: expected at least 50 valid pixels, got 0"):
         principal_curvatures(pts, np.zeros_like(m))

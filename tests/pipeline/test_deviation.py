@@ -11,10 +11,10 @@ from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
 from pipeline.deviation import deviation_map
+from pipeline.io import Target
 from pipeline.registration import Registration, fitted_target_radius, register_to_target
 from pipeline.target_geometry import target_surface
 from pipeline.verdict import EdgeArtefacts, judge
-from pipeline.io import Target
 from tests.pipeline.surfaces import cylinder, dented, plate_grid, saddle, sphere
 
 PLATE_CENTRE = np.array([30.0, -20.0, 3000.0])  # where plate_grid puts the plate frame's origin
@@ -65,7 +65,9 @@ def test_registration_gives_noise_level_deviation(shape, sign):
         # the target's +z points to its centre of curvature: away from the camera for a convex plate
         assert np.sign(reg.T_cam_target[:3, 2] @ R_cp[:, 2]) == sign
     if shape == "cylinder":
-        assert abs(reg.T_cam_target[:3, 1] @ R_cp[:, 1]) > math.cos(math.radians(0.1))  # y = the axis
+        assert abs(reg.T_cam_target[:3, 1] @ R_cp[:, 1]) > math.cos(
+            math.radians(0.1)
+        )  # y = the axis
     dev = deviation_map(pts, m, tgt, reg)
     assert dev.dtype == np.float32 and dev.shape == m.shape
     assert np.isnan(dev[~m]).all() and np.isfinite(dev[m]).all()
@@ -86,8 +88,11 @@ def test_deviation_sign_with_known_pose(shape, sign):
     dev = deviation_map(pts, m, tgt, true_registration(shape, R_cp, sign))
     # 1 mm towards the cameras, exactly along every normal: +1 mm (noise-free; float32 output).
     assert np.allclose(dev[m], 1.0, atol=1e-4)
-    behind = deviation_map(*plate_grid(shape_height(shape, R, sign, offset_mm=-1.0))[:2], tgt,
-                           true_registration(shape, R_cp, sign))
+    behind = deviation_map(
+        *plate_grid(shape_height(shape, R, sign, offset_mm=-1.0))[:2],
+        tgt,
+        true_registration(shape, R_cp, sign),
+    )
     assert np.allclose(behind[np.isfinite(behind)], -1.0, atol=1e-4)
 
 
@@ -105,9 +110,17 @@ def test_dent_fails_and_the_same_plate_without_it_passes():
     R = 5000.0
     tgt = target("cylinder", R, tol=2.0)
     plain, m0, _, _ = plate_grid(cylinder(R), noise_mm=0.2, rng=np.random.default_rng(8))
-    dent, m1, xy, _ = plate_grid(dented(cylinder(R), depth_mm=6.0, radius_mm=100.0, at=(300.0, -200.0)),
-                                 noise_mm=0.2, rng=np.random.default_rng(8))
-    j0 = judge(deviation_map(plain, m0, tgt, register_to_target(plain, m0, tgt)), m0, 2.0, pixel_area_mm2=pixel_area(m0))
+    dent, m1, xy, _ = plate_grid(
+        dented(cylinder(R), depth_mm=6.0, radius_mm=100.0, at=(300.0, -200.0)),
+        noise_mm=0.2,
+        rng=np.random.default_rng(8),
+    )
+    j0 = judge(
+        deviation_map(plain, m0, tgt, register_to_target(plain, m0, tgt)),
+        m0,
+        2.0,
+        pixel_area_mm2=pixel_area(m0),
+    )
     assert j0.verdict == "pass"
     dev = deviation_map(dent, m1, tgt, register_to_target(dent, m1, tgt))
     j1 = judge(dev, m1, 2.0, pixel_area_mm2=pixel_area(m1))
@@ -140,7 +153,9 @@ def test_judge_rules_single_pixel_block_and_scatter():
     assert j.defects[0].centroid_px == (22.5, 12.5)
     scatter = dev.copy()
     pick = np.zeros(m.shape, dtype=bool)
-    pick[::2, ::2] = rng.random((50, 60)) < 0.3  # isolated pixels: no region reaches 100 mm^2, ~7 % out
+    pick[::2, ::2] = (
+        rng.random((50, 60)) < 0.3
+    )  # isolated pixels: no region reaches 100 mm^2, ~7 % out
     scatter[pick] = 2.5
     j = judge(scatter, m, 2.0, pixel_area_mm2=area)
     assert j.defects == () and j.verdict == "fail" and "% of the area" in j.reasons[0]
@@ -172,11 +187,18 @@ def _patch_mesh(height, half=1650.0, n=67):
     gx, gy = np.meshgrid(g, g)
     V = np.stack([gx.ravel(), gy.ravel(), height(gx, gy).ravel()], axis=1)
     idx = np.arange(n * n).reshape(n, n)
-    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    a, b, c, d = (
+        idx[:-1, :-1].ravel(),
+        idx[:-1, 1:].ravel(),
+        idx[1:, :-1].ravel(),
+        idx[1:, 1:].ravel(),
+    )
     return V, np.concatenate([np.stack([a, b, c], 1), np.stack([b, d, c], 1)])
 
 
-@pytest.mark.parametrize("name,height", [("cylinder", cylinder(4000.0, -1)), ("saddle", saddle(4000.0, 6000.0))])
+@pytest.mark.parametrize(
+    "name,height", [("cylinder", cylinder(4000.0, -1)), ("saddle", saddle(4000.0, 6000.0))]
+)
 def test_mesh_target_from_stl_registers(tmp_path, name, height):
     V, F = _patch_mesh(height)
     # The mesh in an arbitrary frame of its own, written as STL by trimesh and read back.
@@ -185,7 +207,9 @@ def test_mesh_target_from_stl_registers(tmp_path, name, height):
     path = tmp_path / "target.stl"
     trimesh.Trimesh(moved, F).export(path)
     loaded = trimesh.load(path)
-    tgt = target("mesh", mesh_vertices_mm=np.asarray(loaded.vertices), mesh_faces=np.asarray(loaded.faces))
+    tgt = target(
+        "mesh", mesh_vertices_mm=np.asarray(loaded.vertices), mesh_faces=np.asarray(loaded.faces)
+    )
     pts, m, _, _ = plate_grid(height)
     reg = register_to_target(pts, m, tgt)
     dev = deviation_map(pts, m, tgt, reg)
@@ -206,7 +230,9 @@ def test_mesh_target_from_stl_registers(tmp_path, name, height):
 def test_fitted_target_radius():
     rng = np.random.default_rng(12)
     pts, m, _, _ = plate_grid(cylinder(6000.0, -1), noise_mm=0.2, rng=rng)
-    assert fitted_target_radius(pts, m, target("cylinder", 5000.0)) == pytest.approx(6000.0, rel=5e-4)
+    assert fitted_target_radius(pts, m, target("cylinder", 5000.0)) == pytest.approx(
+        6000.0, rel=5e-4
+    )
     pts, m, _, _ = plate_grid(sphere(7000.0), noise_mm=0.2, rng=rng)
     assert fitted_target_radius(pts, m, target("sphere", 7500.0)) == pytest.approx(7000.0, rel=5e-4)
     assert fitted_target_radius(pts, m, target("plane")) is None
@@ -241,18 +267,24 @@ def test_bad_inputs():
         register_to_target(pts, m, {"shape": "cylinder"})
     with pytest.raises(ValueError, match="target.shape: expected one of"):
         register_to_target(pts, m, target("cone", 5.0))
-    with pytest.raises(ValueError, match="target.radius_mm: expected a positive radius for a sphere, got None"):
+    with pytest.raises(
+        ValueError, match="target.radius_mm: expected a positive radius for a sphere, got None"
+    ):
         register_to_target(pts, m, target("sphere"))
     with pytest.raises(ValueError, match="target.mesh_vertices_mm/mesh_faces: expected arrays"):
         register_to_target(pts, m, target("mesh"))
     with pytest.raises(ValueError, match=r"target.mesh_faces: expected \(F, 3\) indices below 3"):
-        register_to_target(pts, m, target("mesh", mesh_vertices_mm=np.eye(3), mesh_faces=np.array([[0, 1, 3]])))
+        register_to_target(
+            pts, m, target("mesh", mesh_vertices_mm=np.eye(3), mesh_faces=np.array([[0, 1, 3]]))
+        )
     with pytest.raises(ValueError, match=r"mask: expected shape \(40, 50\)"):
         register_to_target(pts, m[:, :-1], good)
     reg = true_registration("cylinder", R_cp, 1)
     with pytest.raises(TypeError, match="registration: expected a Registration"):
         deviation_map(pts, m, good, np.eye(4))
-    skew = Registration(T_cam_target=np.diag([2.0, 1, 1, 1]), shape="cylinder", rms_mm=0, convex_towards_camera=None)
+    skew = Registration(
+        T_cam_target=np.diag([2.0, 1, 1, 1]), shape="cylinder", rms_mm=0, convex_towards_camera=None
+    )
     with pytest.raises(ValueError, match="registration.T_cam_target: expected a rigid transform"):
         deviation_map(pts, m, good, skew)
     dev = deviation_map(pts, m, good, reg)
@@ -262,7 +294,9 @@ def test_bad_inputs():
         judge(dev, m, 2.0, pixel_area_mm2=np.ones((3, 3)))
     with pytest.raises(ValueError, match="pixel_area_mm2: expected a positive area"):
         judge(dev, m, 2.0, pixel_area_mm2=-1.0)
-    with pytest.raises(ValueError, match="deviation_mm: expected finite deviations inside the mask, got none"):
+    with pytest.raises(
+        ValueError, match="deviation_mm: expected finite deviations inside the mask, got none"
+    ):
         judge(np.full(m.shape, np.nan), m, 2.0, pixel_area_mm2=1.0)
     with pytest.raises(ValueError, match=r"mask: expected a bool array of shape \(40, 50\)"):
         judge(dev, m.astype(int), 2.0, pixel_area_mm2=1.0)
@@ -293,18 +327,24 @@ def _plate_with_a_hole():
 def test_edge_artefacts_are_excluded_with_a_reason():
     m, dev, step = _plate_with_a_hole()
     bad = dev.copy()
-    bad[20:23, 60:120] = -9.0  # a 3 px strip along the outline: 180 px = 1800 mm^2, the floor pulled in
-    yy, xx = np.mgrid[0:m.shape[0], 0:m.shape[1]]
+    bad[
+        20:23, 60:120
+    ] = -9.0  # a 3 px strip along the outline: 180 px = 1800 mm^2, the floor pulled in
+    yy, xx = np.mgrid[0 : m.shape[0], 0 : m.shape[1]]
     ring = m & (np.hypot(xx - 160, yy - 100) < 28)  # along the opening's edge
     bad[ring] = 6.0
-    assert judge(bad, m, 2.0, pixel_area_mm2=10.0).verdict == "fail"  # without the rule: two "defects"
+    assert (
+        judge(bad, m, 2.0, pixel_area_mm2=10.0).verdict == "fail"
+    )  # without the rule: two "defects"
     j = judge(bad, m, 2.0, pixel_area_mm2=10.0, edge_artefacts=EdgeArtefacts(step))
     assert j.verdict == "pass" and j.defects == () and j.reasons == ()
     assert len(j.excluded) == 2
     assert {round(r.peak_deviation_mm) for r in j.excluded} == {-9, 6}
     assert all("edge artefact" in r.reason and "350 mm behind" in r.reason for r in j.excluded)
     # excluded from the statistics too, and counted there as not judged
-    assert j.max_abs_mm < 2.0 and j.n_pixels == np.count_nonzero(m) - sum(r.n_pixels for r in j.excluded)
+    assert j.max_abs_mm < 2.0 and j.n_pixels == np.count_nonzero(m) - sum(
+        r.n_pixels for r in j.excluded
+    )
 
 
 def test_a_bent_edge_still_fails():
@@ -312,9 +352,15 @@ def test_a_bent_edge_still_fails():
     m, dev, step = _plate_with_a_hole()
     bent = dev.copy()
     ramp = np.linspace(12.0, 2.5, 30)[None, :]
-    bent[60:140, 190:220] = ramp[:, ::-1]  # deepest at the outline (column 219), in tolerance 30 px in
+    bent[60:140, 190:220] = ramp[
+        :, ::-1
+    ]  # deepest at the outline (column 219), in tolerance 30 px in
     j = judge(bent, m, 2.0, pixel_area_mm2=10.0, edge_artefacts=EdgeArtefacts(step))
-    assert j.verdict == "fail" and j.excluded == () and j.defects[0].peak_deviation_mm == pytest.approx(12.0)
+    assert (
+        j.verdict == "fail"
+        and j.excluded == ()
+        and j.defects[0].peak_deviation_mm == pytest.approx(12.0)
+    )
 
 
 def test_thin_edge_regions_without_a_floor_step_are_judged():
@@ -322,7 +368,10 @@ def test_thin_edge_regions_without_a_floor_step_are_judged():
     lip = dev.copy()
     lip[20:23, 60:120] = 5.0
     # the surroundings at the plate's own depth (a support under the edge), or unknown: judged
-    for beside in (np.where(np.isnan(step), np.nan, 20.0).astype(np.float32), np.full(m.shape, np.nan, np.float32)):
+    for beside in (
+        np.where(np.isnan(step), np.nan, 20.0).astype(np.float32),
+        np.full(m.shape, np.nan, np.float32),
+    ):
         j = judge(lip, m, 2.0, pixel_area_mm2=10.0, edge_artefacts=EdgeArtefacts(beside))
         assert j.verdict == "fail" and j.excluded == ()
     # a dark background (no depth, +inf) is a step
@@ -333,7 +382,13 @@ def test_thin_edge_regions_without_a_floor_step_are_judged():
     full = np.ones_like(m)
     frame = np.where(full, 0.1, np.nan)
     frame[0:3, 60:120] = 5.0
-    j = judge(frame, full, 2.0, pixel_area_mm2=10.0, edge_artefacts=EdgeArtefacts(np.full(m.shape, 350.0, np.float32)))
+    j = judge(
+        frame,
+        full,
+        2.0,
+        pixel_area_mm2=10.0,
+        edge_artefacts=EdgeArtefacts(np.full(m.shape, 350.0, np.float32)),
+    )
     assert j.verdict == "fail" and j.excluded == ()
 
 
@@ -353,12 +408,21 @@ def test_mesh_target_with_an_opening_registers(tmp_path):
     from pipeline.io import load_target
     from pipeline.simulate import CaptureSpec, Cutout, PlateSpec, simulate_capture
 
-    plate = PlateSpec(shape="saddle", radius_mm=6000.0, radius2_mm=8000.0, cutouts=(Cutout.circle(400.0, -300.0, 260.0),))
-    out = simulate_capture(tmp_path, plate=plate, capture=CaptureSpec(width=320, height=256, stereo=False), seed=3)
+    plate = PlateSpec(
+        shape="saddle",
+        radius_mm=6000.0,
+        radius2_mm=8000.0,
+        cutouts=(Cutout.circle(400.0, -300.0, 260.0),),
+    )
+    out = simulate_capture(
+        tmp_path, plate=plate, capture=CaptureSpec(width=320, height=256, stereo=False), seed=3
+    )
     truth = np.load(out / "truth.npz")
     h, w = truth["mask"].shape
     u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    points = truth["depth_mm"][..., None] * (np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(truth["K"]).T)
+    points = truth["depth_mm"][..., None] * (
+        np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(truth["K"]).T
+    )
     tgt = load_target(out / "target.json")
     reg = register_to_target(points, truth["mask"], tgt)
     # the STL is in the plate frame: the registration is T_cam_plate

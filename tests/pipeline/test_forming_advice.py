@@ -8,13 +8,21 @@ import math
 import pytest
 
 from pipeline.deviation import deviation_map
-from pipeline.registration import register_to_target
-from pipeline.verdict import judge
-from pipeline.forming import (FormingError, FormingTarget, Machine, Material, PlateRecord, RollPass, advise,
-                              curvature_band)
+from pipeline.forming import (
+    FormingError,
+    FormingTarget,
+    Machine,
+    Material,
+    PlateRecord,
+    RollPass,
+    advise,
+    curvature_band,
+)
 from pipeline.forming.advice import target_curvature
 from pipeline.forming.rolling import plate_curvatures
 from pipeline.io import Target
+from pipeline.registration import register_to_target
+from pipeline.verdict import judge
 from tests.pipeline.test_curvature import cylinder, plate_grid
 
 MACHINE = Machine("R3-01", 1400.0, 420.0, 500.0)
@@ -25,13 +33,19 @@ def target(radius=5000.0, t=20.0, width=3000.0):
     return FormingTarget(radius, 2.0, width, 4000.0, Material("AH36", t, 355.0))
 
 
-def rolled(plate: PlateRecord, d: float, *, factor: float, compliance: float, verdict: bool = True) -> PlateRecord:
+def rolled(
+    plate: PlateRecord, d: float, *, factor: float, compliance: float, verdict: bool = True
+) -> PlateRecord:
     """The plate after one more pass on the true physics (no scatter), inspected exactly."""
     trial = plate.with_pass(RollPass("R3-01", d))
-    k = plate_curvatures(trial, MACHINES, yield_factor=factor, compliance_mm_per_mn={"R3-01": compliance})[1][-1]
+    k = plate_curvatures(
+        trial, MACHINES, yield_factor=factor, compliance_mm_per_mn={"R3-01": compliance}
+    )[1][-1]
     radius = math.inf if k <= 0 else plate.target.surface_radius_mm(1 / k)
     ok = abs(k - target_curvature(plate.target)) <= 0.95 * curvature_band(plate.target)
-    return plate.with_pass(RollPass("R3-01", d, radius, ("pass" if ok else "fail") if verdict else None))
+    return plate.with_pass(
+        RollPass("R3-01", d, radius, ("pass" if ok else "fail") if verdict else None)
+    )
 
 
 def test_nominal_first_pass_says_so_and_never_over_bends():
@@ -41,21 +55,27 @@ def test_nominal_first_pass_says_so_and_never_over_bends():
         assert advice.action == "bend"
         assert advice.basis["data"] == "nominal only: no history"
         assert advice.basis["enough_data"] is False and advice.basis["warnings"]
-        assert advice.basis["aim"]["yield_factor_aimed"] == 1.0  # the nominal yield is a guaranteed minimum
+        assert (
+            advice.basis["aim"]["yield_factor_aimed"] == 1.0
+        )  # the nominal yield is a guaranteed minimum
         lo, hi = advice.expected_radius_range_mm
         assert lo < advice.expected_radius_mm < hi
         json.dumps(advice.to_dict(), allow_nan=False)  # JSON-ready for the service
         # whatever the plate's real yield (>= nominal) and the machine's give (>= 0), no over-bending
         for factor in (1.0, 1.2, 1.4):
             for compliance in (0.0, 2.0, 6.0):
-                after = rolled(plate, advice.top_roll_displacement_mm, factor=factor, compliance=compliance)
+                after = rolled(
+                    plate, advice.top_roll_displacement_mm, factor=factor, compliance=compliance
+                )
                 k = 1 / target(radius, t).mid_radius_mm(after.passes[-1].measured_radius_mm)
                 assert k <= target_curvature(plate.target) + 0.95 * curvature_band(plate.target)
 
 
 def test_narrow_plate_band_reaches_flat():
     # a 400 mm wide plate, 2 mm: any radius above ~10 m passes; the band's open end is flat (null in JSON)
-    plate = PlateRecord("strip", FormingTarget(15000.0, 2.0, 400.0, 3000.0, Material("AH36", 20.0, 355.0)))
+    plate = PlateRecord(
+        "strip", FormingTarget(15000.0, 2.0, 400.0, 3000.0, Material("AH36", 20.0, 355.0))
+    )
     advice = advise(plate, MACHINES, machine_id="R3-01").to_dict()
     assert advice["basis"]["tolerance_band_radius_mm"][1] is None
     json.dumps(advice, allow_nan=False)
@@ -65,9 +85,13 @@ def test_second_pass_reaches_the_band():
     plate = PlateRecord("p", target(6000.0, 15.0))
     first = advise(plate, MACHINES, machine_id="R3-01")
     plate = rolled(plate, first.top_roll_displacement_mm, factor=1.25, compliance=2.0)
-    assert plate.passes[-1].verdict == "fail" and plate.passes[-1].measured_radius_mm > 6000.0  # under-bent probe
+    assert (
+        plate.passes[-1].verdict == "fail" and plate.passes[-1].measured_radius_mm > 6000.0
+    )  # under-bent probe
     second = advise(plate, MACHINES)
-    assert second.action == "bend" and second.top_roll_displacement_mm > first.top_roll_displacement_mm
+    assert (
+        second.action == "bend" and second.top_roll_displacement_mm > first.top_roll_displacement_mm
+    )
     assert second.basis["plate_passes_inspected"] == 1
     assert second.basis["data"] == "this plate's passes"
     plate = rolled(plate, second.top_roll_displacement_mm, factor=1.25, compliance=2.0)
@@ -83,7 +107,10 @@ def test_over_bent_on_purpose_is_told_reverse():
     assert advice.action == "reverse" and advice.top_roll_displacement_mm is None
     assert "tighter" in advice.basis["reason"]
     # without a verdict the measured radius decides
-    assert advise(rolled(plate, 130.0, factor=1.2, compliance=1.0, verdict=False), MACHINES).action == "reverse"
+    assert (
+        advise(rolled(plate, 130.0, factor=1.2, compliance=1.0, verdict=False), MACHINES).action
+        == "reverse"
+    )
 
 
 def test_done_by_verdict_or_by_the_band():
@@ -92,7 +119,9 @@ def test_done_by_verdict_or_by_the_band():
     assert band_lo < 5000.0 < band_hi
     inside = plate.with_pass(RollPass("R3-01", 100.0, 0.5 * (band_hi + 5000.0)))
     assert advise(inside, MACHINES).action == "done"
-    assert advise(plate.with_pass(RollPass("R3-01", 100.0, 5050.0, "pass")), MACHINES).action == "done"
+    assert (
+        advise(plate.with_pass(RollPass("R3-01", 100.0, 5050.0, "pass")), MACHINES).action == "done"
+    )
     under = advise(plate.with_pass(RollPass("R3-01", 100.0, 1.05 * band_hi)), MACHINES)
     assert under.action == "bend" and under.top_roll_displacement_mm > 100.0
 
@@ -107,13 +136,17 @@ def test_group_history_is_used_and_reported():
                 break
             plate = rolled(plate, advice.top_roll_displacement_mm, factor=factor, compliance=2.0)
         history.append(plate)
-    new = advise(PlateRecord("new", target(7000.0, 20.0)), MACHINES, history=history, machine_id="R3-01")
+    new = advise(
+        PlateRecord("new", target(7000.0, 20.0)), MACHINES, history=history, machine_id="R3-01"
+    )
     assert new.basis["data"] == "history of this machine, grade and thickness"
     assert new.basis["group_plates"] == 3 and new.basis["group_passes_inspected"] >= 6
     group = new.basis["parameters"]["group_yield_factor"]
     assert group["mean"] == pytest.approx(1.2, abs=0.03)  # learnt from the three plates
     assert group["sd"] < 0.06  # tighter than the prior
-    other = advise(PlateRecord("thin", target(7000.0, 10.0)), MACHINES, history=history, machine_id="R3-01")
+    other = advise(
+        PlateRecord("thin", target(7000.0, 10.0)), MACHINES, history=history, machine_id="R3-01"
+    )
     assert other.basis["data"] == "machine history only" and other.basis["warnings"]
 
 
@@ -131,6 +164,8 @@ def test_band_matches_the_inspection_verdict(radius):
 
 
 def test_unreachable_target_raises():
-    big_top_roll = Machine("R3-09", 1400.0, 420.0, 1300.0)  # loaded radius >= 660 mm for 20 mm plates
+    big_top_roll = Machine(
+        "R3-09", 1400.0, 420.0, 1300.0
+    )  # loaded radius >= 660 mm for 20 mm plates
     with pytest.raises(FormingError, match="deepest setting"):
         advise(PlateRecord("p", target(500.0, 20.0)), {"R3-09": big_top_roll}, machine_id="R3-09")

@@ -24,8 +24,14 @@ def campaigns():
     out = []
     for seed, compliance in CAMPAIGNS:
         plates = random_batch(20, np.random.default_rng(seed))
-        out.append(run_campaign(plates, MACHINE, TruePhysics(compliance_mm_per_mn=compliance),
-                                np.random.default_rng(seed + 1)))
+        out.append(
+            run_campaign(
+                plates,
+                MACHINE,
+                TruePhysics(compliance_mm_per_mn=compliance),
+                np.random.default_rng(seed + 1),
+            )
+        )
     return out
 
 
@@ -40,10 +46,14 @@ def test_every_plate_done_within_four_passes_never_over_bent(campaigns):
 
 def test_prediction_intervals_are_honest(campaigns):
     # after a plate's own first pass, the measured radius falls in the advised 95 % range about as often
-    inside = [lo <= p.measured_radius_mm <= (np.inf if hi is None else hi)
-              for outcomes in campaigns for o in outcomes
-              for a, p in zip(o.advice, o.record.passes) if a["basis"]["plate_passes_inspected"] > 0
-              for lo, hi in [a["expected_radius_range_mm"]]]
+    inside = [
+        lo <= p.measured_radius_mm <= (np.inf if hi is None else hi)
+        for outcomes in campaigns
+        for o in outcomes
+        for a, p in zip(o.advice, o.record.passes)
+        if a["basis"]["plate_passes_inspected"] > 0
+        for lo, hi in [a["expected_radius_range_mm"]]
+    ]
     assert len(inside) >= 20
     assert np.mean(inside) >= 0.85
 
@@ -51,8 +61,13 @@ def test_prediction_intervals_are_honest(campaigns):
 def test_learning_saves_passes(campaigns):
     seed, compliance = CAMPAIGNS[0]
     plates = random_batch(20, np.random.default_rng(seed))
-    alone = run_campaign(plates, MACHINE, TruePhysics(compliance_mm_per_mn=compliance),
-                         np.random.default_rng(seed + 1), learning=False)
+    alone = run_campaign(
+        plates,
+        MACHINE,
+        TruePhysics(compliance_mm_per_mn=compliance),
+        np.random.default_rng(seed + 1),
+        learning=False,
+    )
     assert summary(alone)["over_bent"] == 0
     assert summary(campaigns[0])["mean_passes"] < summary(alone)["mean_passes"]
     # later plates rest on the history and say so

@@ -34,7 +34,9 @@ def test_moment_form_is_gardiners_relation():
     R = np.array([800.0, 2000.0, 4000.0, 5500.0])
     x = R * S / (E * t)
     assert np.all(x < 0.5)
-    np.testing.assert_allclose(R * sb.unloaded_curvature(1 / R, S, E, t), 1 - 3 * x + 4 * x**3, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(
+        R * sb.unloaded_curvature(1 / R, S, E, t), 1 - 3 * x + 4 * x**3, rtol=1e-9, atol=1e-12
+    )
     np.testing.assert_allclose(sb.gardiner_ratio(R, S, E, t), 1 - 3 * x + 4 * x**3, rtol=1e-12)
 
 
@@ -72,7 +74,9 @@ def test_fully_plastic_limit():
     assert k - sb.unloaded_curvature(k, S, E, t) == pytest.approx(3 * S / (E * t), rel=1e-5)
     assert sb.bending_moment(k, S, E, t) == pytest.approx(S * t * t / 4, rel=1e-5)
     ks = np.linspace(1.01, 40, 200) * ky
-    assert np.all(np.diff(ks - sb.unloaded_curvature(ks, S, E, t)) > 0)  # springback grows to its limit
+    assert np.all(
+        np.diff(ks - sb.unloaded_curvature(ks, S, E, t)) > 0
+    )  # springback grows to its limit
 
 
 def test_inverse():
@@ -90,16 +94,23 @@ def test_history_rule():
     after = sb.curvatures_after_passes([k1, k_less, k1, k2, k_less], S, E, t)
     single = sb.unloaded_curvature(np.array([k1, k2]), S, E, t)
     # a pass that does not load beyond an earlier one leaves the shape; a deeper one acts as if alone
-    np.testing.assert_allclose(after, [single[0], single[0], single[0], single[1], single[1]], rtol=1e-15)
+    np.testing.assert_allclose(
+        after, [single[0], single[0], single[0], single[1], single[1]], rtol=1e-15
+    )
     # a plate that already saw more than a pass loads it to is left unchanged by it
-    np.testing.assert_allclose(sb.curvatures_after_passes([k_less], S, E, t, initial_loaded=k2), single[1])
+    np.testing.assert_allclose(
+        sb.curvatures_after_passes([k_less], S, E, t, initial_loaded=k2), single[1]
+    )
 
 
 def test_history_rule_through_the_bender():
     target = FormingTarget(5000.0, 2.0, 3000.0, 4000.0, Material("AH36", 20.0, 355.0))
-    plate = PlateRecord("p", target, (RollPass("R3-01", 100.0), RollPass("R3-01", 90.0), RollPass("R3-01", 104.0)))
-    loaded, unloaded = plate_curvatures(plate, {"R3-01": MACHINE}, yield_factor=1.2,
-                                        compliance_mm_per_mn={"R3-01": 2.0})
+    plate = PlateRecord(
+        "p", target, (RollPass("R3-01", 100.0), RollPass("R3-01", 90.0), RollPass("R3-01", 104.0))
+    )
+    loaded, unloaded = plate_curvatures(
+        plate, {"R3-01": MACHINE}, yield_factor=1.2, compliance_mm_per_mn={"R3-01": 2.0}
+    )
     assert loaded[1] < loaded[0] < loaded[2]
     assert unloaded[1] == unloaded[0]  # the shallower pass changes nothing
     assert unloaded[2] > unloaded[0]

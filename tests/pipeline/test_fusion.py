@@ -31,7 +31,9 @@ def _stereo(z, mask, rng, sigma_mm=1.5):
 def test_a_smooth_bend_of_the_normals_is_taken_out_and_the_dent_kept():
     z, dent, mask, u, v = _surface()
     rng = np.random.default_rng(0)
-    bias = 1.0 + 0.03 * ((u - W / 2) / W) ** 2 + 0.01 * (v / H) ** 3  # light-model error: tens of mm
+    bias = (
+        1.0 + 0.03 * ((u - W / 2) / W) ** 2 + 0.01 * (v / H) ** 3
+    )  # light-model error: tens of mm
     z_ps = np.where(mask, z * bias, np.nan)
     fused = fuse_low_frequencies(z_ps, _stereo(z, mask, rng), mask)
     err = (fused.depth_mm - z)[mask]
@@ -60,7 +62,9 @@ def test_smooth_stereo_depth_fills_holes():
     zs[100:200, 100:200] = np.nan
     smooth = smooth_stereo_depth(zs, mask)
     assert np.all(np.isfinite(smooth[mask])) and np.all(np.isnan(smooth[~mask]))
-    assert np.sqrt(np.mean((smooth - z)[mask] ** 2)) < 3.0  # smooth: the dent and the noise are gone
+    assert (
+        np.sqrt(np.mean((smooth - z)[mask] ** 2)) < 3.0
+    )  # smooth: the dent and the noise are gone
 
 
 def test_bad_inputs_are_named():

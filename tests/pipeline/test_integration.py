@@ -61,7 +61,9 @@ def test_cylinder_with_reference_depth_is_metric_to_microns(plate):
 
 def test_convex_plate_tilted_other_way(plate):
     K = plate[0]
-    n, mask, depth = render_cylinder(K, (256, 306), convex=True, tilt_rad=(-0.09, 0.03), radius_mm=3000.0)
+    n, mask, depth = render_cylinder(
+        K, (256, 306), convex=True, tilt_rad=(-0.09, 0.03), radius_mm=3000.0
+    )
     res = integrate_normals(n, mask, K, reference_depth_mm=float(np.median(depth[mask])))
     assert rms(res.depth_mm - depth) < 0.01  # same reason as above
 
@@ -69,7 +71,9 @@ def test_convex_plate_tilted_other_way(plate):
 def test_prior_alone_fixes_the_scale(plate):
     K, n, mask, depth = plate
     rng = np.random.default_rng(3)
-    prior = np.where(rng.random(mask.shape) < 0.05, 1.03 * depth, np.nan)  # 5 % of pixels, scale 1.03
+    prior = np.where(
+        rng.random(mask.shape) < 0.05, 1.03 * depth, np.nan
+    )  # 5 % of pixels, scale 1.03
     res = integrate_normals(n, mask, K, prior_depth_mm=prior)
     # normals and prior agree up to the scale factor, so the fused depth is exactly 1.03 x truth
     # (up to the 2-um discretisation error of the normals)
@@ -118,7 +122,9 @@ def test_solver_equals_direct_sparse_solve_on_an_irregular_mask():
     hw = (96, 128)
     K = plate_camera(128, 96, 110.0)
     n, _, depth = render_cylinder(K, hw, plate_mm=(9000.0, 9000.0))
-    n = n + rng.normal(0.0, 0.02, n.shape)  # a non-integrable field: the LS solution is not the truth
+    n = n + rng.normal(
+        0.0, 0.02, n.shape
+    )  # a non-integrable field: the LS solution is not the truth
     n /= np.linalg.norm(n, axis=-1, keepdims=True)
     mask = irregular_mask(rng, hw)
     prior = np.where(rng.random(hw) < 0.1, depth * np.exp(rng.normal(0, 0.01, hw)), np.nan)
@@ -157,7 +163,9 @@ def test_parts_without_prior_take_the_reference_or_are_left_out():
     expected = np.zeros_like(mask)
     expected[5:40, 5:50] = True
     np.testing.assert_array_equal(res.mask, expected)
-    with pytest.raises(ValueError, match=r"prior_depth_mm: expected at least one depth with a weight > 0 inside"):
+    with pytest.raises(
+        ValueError, match=r"prior_depth_mm: expected at least one depth with a weight > 0 inside"
+    ):
         integrate_normals(n, mask, K, prior_depth_mm=np.full(mask.shape, np.nan))
 
 
@@ -192,9 +200,13 @@ def test_bad_input_is_rejected(small):
         integrate_normals(n, np.zeros_like(mask), K, reference_depth_mm=1.0)
     with pytest.raises(ValueError, match=r"K: expected \[\[fx, s, cx\]"):
         integrate_normals(n, mask, -K, reference_depth_mm=1.0)
-    with pytest.raises(ValueError, match=r"prior_depth_mm, reference_depth_mm: expected at least one"):
+    with pytest.raises(
+        ValueError, match=r"prior_depth_mm, reference_depth_mm: expected at least one"
+    ):
         integrate_normals(n, mask, K)
-    with pytest.raises(ValueError, match=r"reference_depth_mm: expected a positive depth in mm, got -5"):
+    with pytest.raises(
+        ValueError, match=r"reference_depth_mm: expected a positive depth in mm, got -5"
+    ):
         integrate_normals(n, mask, K, reference_depth_mm=-5.0)
     with pytest.raises(ValueError, match=r"tol: expected a relative residual in \(0, 1\), got 0"):
         integrate_normals(n, mask, K, reference_depth_mm=1.0, tol=0.0)
@@ -208,7 +220,9 @@ def test_bad_normals_are_counted_not_dropped(small):
     bad[10, 10] = -bad[10, 10]  # facing away from the camera
     bad[11, 11] = np.nan
     bad[12, 12] *= 1.5  # not unit
-    with pytest.raises(ValueError, match=r"normals: expected finite unit vectors facing the camera .* got 3 pixel"):
+    with pytest.raises(
+        ValueError, match=r"normals: expected finite unit vectors facing the camera .* got 3 pixel"
+    ):
         integrate_normals(bad, mask, K, reference_depth_mm=1.0)
     outside = n.copy()
     m2 = mask.copy()
@@ -219,22 +233,30 @@ def test_bad_normals_are_counted_not_dropped(small):
 
 def test_bad_prior_is_rejected(small):
     n, mask, K, depth = small
-    with pytest.raises(ValueError, match=r"prior_depth_mm: expected shape \(30, 40\), got \(30, 39\)"):
+    with pytest.raises(
+        ValueError, match=r"prior_depth_mm: expected shape \(30, 40\), got \(30, 39\)"
+    ):
         integrate_normals(n, mask, K, prior_depth_mm=depth[:, 1:])
     neg = depth.copy()
     neg[3, 3] = -1.0
-    with pytest.raises(ValueError, match=r"prior_depth_mm: expected depths > 0 mm or NaN, got 1 pixel"):
+    with pytest.raises(
+        ValueError, match=r"prior_depth_mm: expected depths > 0 mm or NaN, got 1 pixel"
+    ):
         integrate_normals(n, mask, K, prior_depth_mm=neg)
     with pytest.raises(ValueError, match=r"prior_weight: expected a finite weight >= 0, got -1"):
         integrate_normals(n, mask, K, prior_depth_mm=depth, prior_weight=-1.0)
-    with pytest.raises(ValueError, match=r"prior_weight: expected a scalar or shape \(30, 40\), got \(3,\)"):
+    with pytest.raises(
+        ValueError, match=r"prior_weight: expected a scalar or shape \(30, 40\), got \(3,\)"
+    ):
         integrate_normals(n, mask, K, prior_depth_mm=depth, prior_weight=np.ones(3))
 
 
 def test_bad_gradients_are_rejected():
     mask = np.ones((20, 30), bool)
     g = np.zeros((20, 30))
-    with pytest.raises(ValueError, match=r"grad_v: expected shape \(20, 30\) like grad_u, got \(20, 31\)"):
+    with pytest.raises(
+        ValueError, match=r"grad_v: expected shape \(20, 30\) like grad_u, got \(20, 31\)"
+    ):
         integrate_gradient(g, np.zeros((20, 31)), mask)
     bad = g.copy()
     bad[3, 4] = np.inf
@@ -322,7 +344,10 @@ def test_bad_prior_weight_map_is_rejected(small):
     weight = np.full(mask.shape, 0.01)
     weight[5, 5] = np.nan
     weight[6, 6] = -1.0
-    with pytest.raises(ValueError, match=r"prior_weight: expected finite weights >= 0 where the prior is known, got 2"):
+    with pytest.raises(
+        ValueError,
+        match=r"prior_weight: expected finite weights >= 0 where the prior is known, got 2",
+    ):
         integrate_normals(n, mask, K, prior_depth_mm=depth, prior_weight=weight)
 
 
@@ -345,8 +370,12 @@ def render_sphere(K, hw, *, radius_mm, centre_mm):
 def test_sphere_cap_off_axis_with_prior_on_a_few_pixels():
     # double curvature, off the optical axis, fx != fy: nothing cylinder-specific
     K = plate_camera(320, 240, 260.0)
-    n, mask, depth = render_sphere(K, (240, 320), radius_mm=4000.0, centre_mm=(600.0, -300.0, 7200.0))
-    mask &= np.sum(n * np.array([0.0, 0.0, -1.0]), -1) > 0.9  # the cap within ~25 deg of facing the camera
+    n, mask, depth = render_sphere(
+        K, (240, 320), radius_mm=4000.0, centre_mm=(600.0, -300.0, 7200.0)
+    )
+    mask &= (
+        np.sum(n * np.array([0.0, 0.0, -1.0]), -1) > 0.9
+    )  # the cap within ~25 deg of facing the camera
     rng = np.random.default_rng(9)
     prior = np.where(rng.random(mask.shape) < 0.02, depth, np.nan)
     res = integrate_normals(n, mask, K, prior_depth_mm=prior)

@@ -23,10 +23,17 @@ from pipeline.io import (
     load_target,
     read_json,
 )
-
-from tests.pipeline.bundles import DELETE, HEIGHT, WIDTH, calibration_doc, light_ring, target_doc, write_bundle, zip_folder
+from tests.pipeline.bundles import (
+    DELETE,
+    HEIGHT,
+    WIDTH,
+    calibration_doc,
+    light_ring,
+    target_doc,
+    write_bundle,
+    zip_folder,
+)
 from tests.realdata import DATA_ROOT
-
 
 
 def _err(*parts: str) -> str:
@@ -58,7 +65,9 @@ def test_folder_bundle_loads_every_part(tmp_path):
     # Values are the 16-bit counts as written, exactly (float32 holds every uint16).
     raw = cv2.imread(str(bundle / "ps_03.png"), cv2.IMREAD_UNCHANGED)
     np.testing.assert_array_equal(cap.images[3], raw.astype(np.float32))
-    np.testing.assert_array_equal(cap.dark, cv2.imread(str(bundle / "dark.png"), cv2.IMREAD_UNCHANGED))
+    np.testing.assert_array_equal(
+        cap.dark, cv2.imread(str(bundle / "dark.png"), cv2.IMREAD_UNCHANGED)
+    )
     assert cap.stereo_left.shape == cap.stereo_right.shape == (HEIGHT, WIDTH)
     assert cap.has_stereo and cap.working_distance_mm == 1000.0
     np.testing.assert_allclose(np.linalg.norm(cap.light_dirs, axis=1), 1.0, atol=1e-12)
@@ -83,12 +92,21 @@ def test_zip_bundle_equals_folder(tmp_path, top_folder):
 def test_capture_json_path_names_its_folder(tmp_path):
     bundle = write_bundle(tmp_path)
     assert load_capture(bundle / "capture.json").source == bundle / "capture.json"
-    np.testing.assert_array_equal(load_capture(bundle / "capture.json").images, load_capture(bundle).images)
+    np.testing.assert_array_equal(
+        load_capture(bundle / "capture.json").images, load_capture(bundle).images
+    )
 
 
 def test_optional_parts_may_be_missing(tmp_path):
-    cap = load_capture(write_bundle(tmp_path, with_dark=False, with_stereo=False, working_distance_mm=DELETE))
-    assert cap.dark is None and cap.stereo_left is None and not cap.has_stereo and cap.working_distance_mm is None
+    cap = load_capture(
+        write_bundle(tmp_path, with_dark=False, with_stereo=False, working_distance_mm=DELETE)
+    )
+    assert (
+        cap.dark is None
+        and cap.stereo_left is None
+        and not cap.has_stereo
+        and cap.working_distance_mm is None
+    )
 
 
 def test_inline_calibration_object(tmp_path):
@@ -133,7 +151,14 @@ def test_real_diligent_16bit_rgb_frames(tmp_path):
 
     real = {f"real/{p.name}": p.read_bytes() for p in crops}
     bundle = write_bundle(
-        tmp_path, width=w, height=h, n_lights=3, with_stereo=False, with_dark=False, files=real, mutate=use_real
+        tmp_path,
+        width=w,
+        height=h,
+        n_lights=3,
+        with_stereo=False,
+        with_dark=False,
+        files=real,
+        mutate=use_real,
     )
     cap = load_capture(bundle)
     assert cap.images.shape == (3, h, w) and raw[0].dtype == np.uint16 and raw[0].ndim == 3
@@ -147,7 +172,9 @@ def test_real_diligent_16bit_rgb_frames(tmp_path):
 
 def test_missing_image_file(tmp_path):
     bundle = write_bundle(tmp_path, omit=["ps_02.png"])
-    with pytest.raises(InputError, match=_err("capture.json: photometric.images[2]: 'ps_02.png'", "not found")):
+    with pytest.raises(
+        InputError, match=_err("capture.json: photometric.images[2]: 'ps_02.png'", "not found")
+    ):
         load_capture(bundle)
 
 
@@ -155,18 +182,29 @@ def test_corrupt_image(tmp_path):
     good = (write_bundle(tmp_path, name="g") / "ps_01.png").read_bytes()
     for content in (good[: len(good) // 2], good[:40] + bytes(200)):
         bundle = write_bundle(tmp_path, name="bad", files={"ps_01.png": content})
-        with pytest.raises(InputError, match=_err("capture.json: photometric.images[1]: 'ps_01.png'", "cannot decode")):
+        with pytest.raises(
+            InputError,
+            match=_err("capture.json: photometric.images[1]: 'ps_01.png'", "cannot decode"),
+        ):
             load_capture(bundle)
     for content in (b"not an image at all", b""):
         bundle = write_bundle(tmp_path, name="bad", files={"ps_01.png": content})
-        with pytest.raises(InputError, match=_err("capture.json: photometric.images[1]: 'ps_01.png'", "not a PNG or TIFF")):
+        with pytest.raises(
+            InputError,
+            match=_err("capture.json: photometric.images[1]: 'ps_01.png'", "not a PNG or TIFF"),
+        ):
             load_capture(bundle)
 
 
 def test_image_size_differs_from_calibration(tmp_path):
     bundle = write_bundle(tmp_path, files={"ps_03.png": np.zeros((HEIGHT, WIDTH + 2), np.uint16)})
     with pytest.raises(
-        InputError, match=_err("photometric.images[3]: 'ps_03.png'", f"is {WIDTH + 2}x{HEIGHT}", f"expected {WIDTH}x{HEIGHT}")
+        InputError,
+        match=_err(
+            "photometric.images[3]: 'ps_03.png'",
+            f"is {WIDTH + 2}x{HEIGHT}",
+            f"expected {WIDTH}x{HEIGHT}",
+        ),
     ):
         load_capture(bundle)
 
@@ -197,34 +235,48 @@ def test_huge_image_header_refused_before_decoding(tmp_path, ext, monkeypatch):
         return real_imdecode(buf, flags)
 
     monkeypatch.setattr(cv2, "imdecode", imdecode)
-    with pytest.raises(InputError, match=_err("photometric.images[1]: 'ps_01.png'", "is 100000x90000 px", "expected 64x48")):
+    with pytest.raises(
+        InputError,
+        match=_err("photometric.images[1]: 'ps_01.png'", "is 100000x90000 px", "expected 64x48"),
+    ):
         load_capture(bundle, workers=1)
 
 
 def test_image_of_another_type_refused(tmp_path):
     ok, jpeg = cv2.imencode(".jpg", np.zeros((HEIGHT, WIDTH), np.uint8))
     bundle = write_bundle(tmp_path, files={"ps_01.png": jpeg.tobytes()})
-    with pytest.raises(InputError, match=_err("photometric.images[1]: 'ps_01.png': not a PNG or TIFF")):
+    with pytest.raises(
+        InputError, match=_err("photometric.images[1]: 'ps_01.png': not a PNG or TIFF")
+    ):
         load_capture(bundle)
 
 
 def test_sixteen_bit_tiff_images(tmp_path):
-    imgs = {f"ps_{k:02d}.tif": np.full((HEIGHT, WIDTH), 1000 * (k + 1), np.uint16) for k in range(4)}
-    bundle = write_bundle(tmp_path, files=imgs, mutate=_set(["photometric", "images"], sorted(imgs)))
+    imgs = {
+        f"ps_{k:02d}.tif": np.full((HEIGHT, WIDTH), 1000 * (k + 1), np.uint16) for k in range(4)
+    }
+    bundle = write_bundle(
+        tmp_path, files=imgs, mutate=_set(["photometric", "images"], sorted(imgs))
+    )
     cap = load_capture(bundle)
     np.testing.assert_array_equal(cap.images[:, 0, 0], [1000, 2000, 3000, 4000])
 
 
 def test_dark_frame_of_wrong_size(tmp_path):
     bundle = write_bundle(tmp_path, files={"dark.png": np.zeros((HEIGHT - 1, WIDTH), np.uint16)})
-    with pytest.raises(InputError, match=_err("capture.json: photometric.dark: 'dark.png'", f"expected {WIDTH}x{HEIGHT}")):
+    with pytest.raises(
+        InputError,
+        match=_err("capture.json: photometric.dark: 'dark.png'", f"expected {WIDTH}x{HEIGHT}"),
+    ):
         load_capture(bundle)
 
 
 @pytest.mark.parametrize("side", ["left", "right"])
 def test_stereo_image_of_wrong_size(tmp_path, side):
     bundle = write_bundle(tmp_path, files={f"stereo_{side}.png": np.zeros((20, 30), np.uint16)})
-    with pytest.raises(InputError, match=_err(f"capture.json: stereo.{side}: 'stereo_{side}.png'", "is 30x20")):
+    with pytest.raises(
+        InputError, match=_err(f"capture.json: stereo.{side}: 'stereo_{side}.png'", "is 30x20")
+    ):
         load_capture(bundle)
 
 
@@ -232,7 +284,9 @@ def test_pixel_above_bit_depth(tmp_path):
     img = np.full((HEIGHT, WIDTH), 100, np.uint16)
     img[5, 7] = 4100
     bundle = write_bundle(tmp_path, bit_depth=12, files={"ps_01.png": img})
-    with pytest.raises(InputError, match=_err("photometric.images[1]: 'ps_01.png'", "4100", "4095", "bit_depth 12")):
+    with pytest.raises(
+        InputError, match=_err("photometric.images[1]: 'ps_01.png'", "4100", "4095", "bit_depth 12")
+    ):
         load_capture(bundle)
 
 
@@ -242,14 +296,20 @@ def test_twelve_bit_values_in_16bit_files_load(tmp_path):
 
 
 def test_eight_bit_file_cannot_hold_twelve_bits(tmp_path):
-    bundle = write_bundle(tmp_path, bit_depth=12, files={"ps_00.png": np.zeros((HEIGHT, WIDTH), np.uint8)})
-    with pytest.raises(InputError, match=_err("photometric.images[0]: 'ps_00.png'", "8-bit file", "bit_depth 12")):
+    bundle = write_bundle(
+        tmp_path, bit_depth=12, files={"ps_00.png": np.zeros((HEIGHT, WIDTH), np.uint8)}
+    )
+    with pytest.raises(
+        InputError, match=_err("photometric.images[0]: 'ps_00.png'", "8-bit file", "bit_depth 12")
+    ):
         load_capture(bundle)
 
 
 @pytest.mark.parametrize("bad", ["../outside.png", "/etc/hostname", "C:/x.png", "a\\..\\x.png", ""])
 def test_image_path_leaving_the_bundle(tmp_path, bad):
-    (tmp_path / "outside.png").write_bytes((write_bundle(tmp_path, name="o") / "ps_00.png").read_bytes())
+    (tmp_path / "outside.png").write_bytes(
+        (write_bundle(tmp_path, name="o") / "ps_00.png").read_bytes()
+    )
     bundle = write_bundle(tmp_path, mutate=_set(["photometric", "images", 1], bad))
     with pytest.raises(InputError, match=_err("capture.json: photometric.images[1]:")):
         load_capture(bundle)
@@ -259,13 +319,17 @@ def test_image_symlink_leaving_the_folder(tmp_path):
     outside = write_bundle(tmp_path, name="o") / "ps_00.png"
     bundle = write_bundle(tmp_path, omit=["ps_02.png"])
     (bundle / "ps_02.png").symlink_to(outside)
-    with pytest.raises(InputError, match=_err("capture.json: photometric.images[2]: 'ps_02.png' leaves the bundle")):
+    with pytest.raises(
+        InputError, match=_err("capture.json: photometric.images[2]: 'ps_02.png' leaves the bundle")
+    ):
         load_capture(bundle)
 
 
 def test_dark_path_leaving_the_bundle(tmp_path):
     bundle = write_bundle(tmp_path, mutate=_set(["photometric", "dark"], "../dark.png"))
-    with pytest.raises(InputError, match=_err("capture.json: photometric.dark:", "leaves the bundle")):
+    with pytest.raises(
+        InputError, match=_err("capture.json: photometric.dark:", "leaves the bundle")
+    ):
         load_capture(bundle)
 
 
@@ -274,13 +338,17 @@ def test_dark_path_leaving_the_bundle(tmp_path):
 
 def test_light_count_differs_from_image_count(tmp_path):
     bundle = write_bundle(tmp_path, n_lights=5, mutate=lambda d: d["photometric"]["lights"].pop())
-    with pytest.raises(InputError, match=_err("capture.json: photometric.lights: expected 5 lights", "got 4")):
+    with pytest.raises(
+        InputError, match=_err("capture.json: photometric.lights: expected 5 lights", "got 4")
+    ):
         load_capture(bundle)
 
 
 def test_fewer_than_three_lights(tmp_path):
     bundle = write_bundle(tmp_path, n_lights=2)
-    with pytest.raises(InputError, match=_err("capture.json: photometric.lights: expected at least 3", "got 2")):
+    with pytest.raises(
+        InputError, match=_err("capture.json: photometric.lights: expected at least 3", "got 2")
+    ):
         load_capture(bundle)
 
 
@@ -294,14 +362,20 @@ def test_fewer_than_three_lights(tmp_path):
     ],
 )
 def test_bad_light_direction(tmp_path, direction, problem):
-    bundle = write_bundle(tmp_path, mutate=_set(["photometric", "lights", 2, "direction"], direction))
-    with pytest.raises(InputError, match=_err("capture.json: photometric.lights[2].direction", problem)):
+    bundle = write_bundle(
+        tmp_path, mutate=_set(["photometric", "lights", 2, "direction"], direction)
+    )
+    with pytest.raises(
+        InputError, match=_err("capture.json: photometric.lights[2].direction", problem)
+    ):
         load_capture(bundle)
 
 
 def test_bad_light_intensity(tmp_path):
     bundle = write_bundle(tmp_path, mutate=_set(["photometric", "lights", 0, "intensity"], -1.0))
-    with pytest.raises(InputError, match=_err("capture.json: photometric.lights[0].intensity", "greater than 0")):
+    with pytest.raises(
+        InputError, match=_err("capture.json: photometric.lights[0].intensity", "greater than 0")
+    ):
         load_capture(bundle)
 
 
@@ -310,12 +384,17 @@ def test_bad_light_intensity(tmp_path):
 
 def test_unknown_format(tmp_path):
     bundle = write_bundle(tmp_path, format="plate-capture/2")
-    with pytest.raises(InputError, match=_err("capture.json: format:", "plate-capture/2", "expected 'plate-capture/1'")):
+    with pytest.raises(
+        InputError,
+        match=_err("capture.json: format:", "plate-capture/2", "expected 'plate-capture/1'"),
+    ):
         load_capture(bundle)
 
 
 def test_missing_format(tmp_path):
-    with pytest.raises(InputError, match=_err("capture.json: format: missing", "'plate-capture/1'")):
+    with pytest.raises(
+        InputError, match=_err("capture.json: format: missing", "'plate-capture/1'")
+    ):
         load_capture(write_bundle(tmp_path, format=DELETE))
 
 
@@ -326,7 +405,10 @@ def test_unknown_top_level_key(tmp_path):
 
 def test_unknown_nested_key(tmp_path):
     bundle = write_bundle(tmp_path, mutate=_set(["photometric", "lights", 1, "colour"], "red"))
-    with pytest.raises(InputError, match=_err("capture.json: photometric.lights[1].colour: unknown key", "direction")):
+    with pytest.raises(
+        InputError,
+        match=_err("capture.json: photometric.lights[1].colour: unknown key", "direction"),
+    ):
         load_capture(bundle)
 
 
@@ -338,7 +420,9 @@ def test_missing_required_key(tmp_path, key):
 
 def test_missing_nested_required_key(tmp_path):
     bundle = write_bundle(tmp_path, mutate=lambda d: d["photometric"].pop("images"))
-    with pytest.raises(InputError, match=_err("capture.json: photometric.images: missing required key")):
+    with pytest.raises(
+        InputError, match=_err("capture.json: photometric.images: missing required key")
+    ):
         load_capture(bundle)
 
 
@@ -349,7 +433,12 @@ def test_bad_bit_depth(tmp_path):
 
 @pytest.mark.parametrize(
     ("content", "problem"),
-    [(b"", "empty"), (b"  \n", "empty"), (b"{not json", "not valid JSON"), (b"[1, 2]", "expected a JSON object, got a list")],
+    [
+        (b"", "empty"),
+        (b"  \n", "empty"),
+        (b"{not json", "not valid JSON"),
+        (b"[1, 2]", "expected a JSON object, got a list"),
+    ],
 )
 def test_bad_capture_json(tmp_path, content, problem):
     bundle = write_bundle(tmp_path, files={"capture.json": content})
@@ -379,7 +468,9 @@ def test_not_a_bundle(tmp_path):
 
 def test_calibration_file_missing_from_bundle(tmp_path):
     bundle = write_bundle(tmp_path, omit=["calibration.json"])
-    with pytest.raises(InputError, match=_err("capture.json: calibration: 'calibration.json'", "not found")):
+    with pytest.raises(
+        InputError, match=_err("capture.json: calibration: 'calibration.json'", "not found")
+    ):
         load_capture(bundle)
 
 
@@ -392,16 +483,27 @@ def test_calibration_file_errors_name_the_calibration_file(tmp_path):
 
 
 def test_inline_calibration_errors_name_the_field(tmp_path):
-    bundle = write_bundle(tmp_path, inline_calibration=True, mutate=_set(["calibration", "R"], [[1, 0, 0], [0, 1, 0], [0, 0, -1]]))
+    bundle = write_bundle(
+        tmp_path,
+        inline_calibration=True,
+        mutate=_set(["calibration", "R"], [[1, 0, 0], [0, 1, 0], [0, 0, -1]]),
+    )
     with pytest.raises(InputError, match=_err("capture.json: calibration.R:", "rotation")):
         load_capture(bundle)
-    bundle = write_bundle(tmp_path, name="b2", inline_calibration=True, mutate=_set(["calibration", "format"], "x/1"))
-    with pytest.raises(InputError, match=_err("capture.json: calibration.format:", "expected 'stereo-calibration/1'")):
+    bundle = write_bundle(
+        tmp_path, name="b2", inline_calibration=True, mutate=_set(["calibration", "format"], "x/1")
+    )
+    with pytest.raises(
+        InputError,
+        match=_err("capture.json: calibration.format:", "expected 'stereo-calibration/1'"),
+    ):
         load_capture(bundle)
 
 
 def test_calibration_of_wrong_type(tmp_path):
-    with pytest.raises(InputError, match=_err("capture.json: calibration: expected a file name", "got a number")):
+    with pytest.raises(
+        InputError, match=_err("capture.json: calibration: expected a file name", "got a number")
+    ):
         load_capture(write_bundle(tmp_path, calibration=3))
 
 
@@ -413,7 +515,10 @@ def test_calibration_path_leaving_the_bundle(tmp_path):
 def test_calibration_image_size_must_match_images(tmp_path):
     cal = calibration_doc(WIDTH, HEIGHT + 8)
     bundle = write_bundle(tmp_path, files={"calibration.json": json.dumps(cal).encode()})
-    with pytest.raises(InputError, match=_err("photometric.images[0]: 'ps_00.png'", f"expected {WIDTH}x{HEIGHT + 8}")):
+    with pytest.raises(
+        InputError,
+        match=_err("photometric.images[0]: 'ps_00.png'", f"expected {WIDTH}x{HEIGHT + 8}"),
+    ):
         load_capture(bundle)
 
 
@@ -461,7 +566,9 @@ def test_zip_symlink_member_refused(tmp_path, no_member_read):
     info.external_attr = (stat.S_IFLNK | 0o777) << 16
     zpath = _zip_with(tmp_path, info, b"/etc/passwd")
     no_member_read()
-    with pytest.raises(InputError, match=_err("evil.zip: member 'link.png': refused: symbolic link")):
+    with pytest.raises(
+        InputError, match=_err("evil.zip: member 'link.png': refused: symbolic link")
+    ):
         load_capture(zpath)
 
 
@@ -469,7 +576,9 @@ def test_zip_total_size_limit(tmp_path, no_member_read):
     zpath = write_bundle(tmp_path, as_zip=True)
     total = sum(i.file_size for i in zipfile.ZipFile(zpath).infolist())
     no_member_read()
-    with pytest.raises(InputError, match=_err("bundle.zip: refused: uncompressed size exceeds", str(total - 1))):
+    with pytest.raises(
+        InputError, match=_err("bundle.zip: refused: uncompressed size exceeds", str(total - 1))
+    ):
         load_capture(zpath, max_total_bytes=total - 1)
 
 
@@ -477,7 +586,10 @@ def test_zip_compression_ratio_limit(tmp_path):
     info = zipfile.ZipInfo("padding.bin")
     info.compress_type = zipfile.ZIP_DEFLATED
     zpath = _zip_with(tmp_path, info, bytes(4 * 1024**2))  # 4 MiB of zeros deflate ~1000:1
-    with pytest.raises(InputError, match=_err("evil.zip: member 'padding.bin': refused: compression ratio", "200:1")):
+    with pytest.raises(
+        InputError,
+        match=_err("evil.zip: member 'padding.bin': refused: compression ratio", "200:1"),
+    ):
         load_capture(zpath)
     # The same bundle is fine when the caller trusts it with a higher ratio.
     assert load_capture(zpath, max_ratio=5000).n_lights == 4
@@ -501,7 +613,10 @@ def test_zip_with_two_top_folders(tmp_path):
 
 def test_zip_errors_name_the_member(tmp_path):
     zpath = write_bundle(tmp_path, as_zip=True, top_folder="p", omit=["ps_01.png"])
-    with pytest.raises(InputError, match=_err("bundle.zip:p/capture.json: photometric.images[1]: 'ps_01.png'", "not found")):
+    with pytest.raises(
+        InputError,
+        match=_err("bundle.zip:p/capture.json: photometric.images[1]: 'ps_01.png'", "not found"),
+    ):
         load_capture(zpath)
 
 
@@ -509,7 +624,9 @@ def test_zip_duplicate_member_refused(tmp_path):
     zpath = write_bundle(tmp_path, as_zip=True)
     with pytest.warns(UserWarning, match="Duplicate name"), zipfile.ZipFile(zpath, "a") as zf:
         zf.writestr("ps_00.png", b"other")
-    with pytest.raises(InputError, match=_err("bundle.zip: member 'ps_00.png': refused: duplicate")):
+    with pytest.raises(
+        InputError, match=_err("bundle.zip: member 'ps_00.png': refused: duplicate")
+    ):
         load_capture(zpath)
 
 
@@ -577,7 +694,12 @@ def test_bad_calibration(tmp_path, mutate, field, problem):
 
 @pytest.mark.parametrize(
     ("content", "problem"),
-    [(b"", "file is empty"), (b"{\"a\": }", "not valid JSON"), (b"3", "got a number"), (b"\xff\xfe{}", "not UTF-8")],
+    [
+        (b"", "file is empty"),
+        (b'{"a": }', "not valid JSON"),
+        (b"3", "got a number"),
+        (b"\xff\xfe{}", "not UTF-8"),
+    ],
 )
 def test_read_json_bad_files(tmp_path, content, problem):
     path = tmp_path / "x.json"
@@ -596,7 +718,9 @@ def test_read_json_missing_file(tmp_path):
 
 def test_target_shapes(tmp_path):
     cyl = load_target(target_doc())
-    assert cyl == Target(shape="cylinder", radius_mm=5000.0, size_mm=(3000.0, 3000.0), tolerance_mm=2.0)
+    assert cyl == Target(
+        shape="cylinder", radius_mm=5000.0, size_mm=(3000.0, 3000.0), tolerance_mm=2.0
+    )
     plane = load_target(target_doc(shape={"type": "plane"}))
     assert plane.shape == "plane" and plane.radius_mm is None
     path = tmp_path / "t.json"
@@ -627,8 +751,16 @@ def test_mesh_target(tmp_path, suffix):
     [
         ({"type": "mesh", "file": "gone.stl"}, {}, "'gone.stl': file not found"),
         ({"type": "mesh", "file": "../plate.stl"}, {}, "leaves the bundle"),
-        ({"type": "mesh", "file": "plate.step"}, {"plate.step": b"x"}, "expected an STL, PLY or OBJ"),
-        ({"type": "mesh", "file": "plate.stl"}, {"plate.stl": b"solid x\nendsolid x\n"}, "plate.stl"),
+        (
+            {"type": "mesh", "file": "plate.step"},
+            {"plate.step": b"x"},
+            "expected an STL, PLY or OBJ",
+        ),
+        (
+            {"type": "mesh", "file": "plate.stl"},
+            {"plate.stl": b"solid x\nendsolid x\n"},
+            "plate.stl",
+        ),
     ],
 )
 def test_bad_mesh_target(tmp_path, shape, files, problem):

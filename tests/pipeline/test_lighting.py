@@ -22,11 +22,19 @@ NEAR = dict(near_field_mm=2800.0, light_elevation_deg=30.0, led_mu=1.5, width=61
 
 
 def _run(tmp_path, seed=5, **capture):
-    bundle = simulate_capture(tmp_path / "bundle", plate=PlateSpec(), capture=CaptureSpec(**capture), seed=seed)
+    bundle = simulate_capture(
+        tmp_path / "bundle", plate=PlateSpec(), capture=CaptureSpec(**capture), seed=seed
+    )
     seen = []
-    doc = inspect(bundle, bundle / "target.json", out_dir=tmp_path / "out",
-                  progress=lambda stage, fraction: seen.append(fraction)).document
-    assert seen == sorted(seen) and seen[-1] == 1.0  # the progress never goes back, whichever light model
+    doc = inspect(
+        bundle,
+        bundle / "target.json",
+        out_dir=tmp_path / "out",
+        progress=lambda stage, fraction: seen.append(fraction),
+    ).document
+    assert (
+        seen == sorted(seen) and seen[-1] == 1.0
+    )  # the progress never goes back, whichever light model
     details = json.loads((tmp_path / "out" / "details.json").read_text())
     return doc, details
 
@@ -37,7 +45,9 @@ def test_point_lights_with_positions_measure_the_radius(tmp_path):
     assert doc["verdict"] == "pass"
     assert details["light_model"] == "near-field"
     steps = details["near_field_depth_steps_mm"]
-    assert 1 <= len(steps) <= 4 and steps[-1] < 1.0  # the alternation stopped because the depth stopped moving
+    assert (
+        1 <= len(steps) <= 4 and steps[-1] < 1.0
+    )  # the alternation stopped because the depth stopped moving
     assert "warnings" not in doc
 
 
@@ -71,10 +81,25 @@ def test_glare_with_18_leds_does_not_crash_or_bend_the_radius(tmp_path, manifest
 
 
 def test_the_lstsq_estimator_under_nominal_leds_no_longer_crashes(tmp_path, capsys):
-    bundle = simulate_capture(tmp_path / "bundle", plate=PlateSpec(),
-                              capture=CaptureSpec(manifest_lights="nominal", **NEAR), seed=6)
-    code = cli_main(["inspect", str(bundle), "--target", str(bundle / "target.json"), "--out",
-                     str(tmp_path / "out"), "--normals", "lstsq", "--no-warm-up"])
+    bundle = simulate_capture(
+        tmp_path / "bundle",
+        plate=PlateSpec(),
+        capture=CaptureSpec(manifest_lights="nominal", **NEAR),
+        seed=6,
+    )
+    code = cli_main(
+        [
+            "inspect",
+            str(bundle),
+            "--target",
+            str(bundle / "target.json"),
+            "--out",
+            str(tmp_path / "out"),
+            "--normals",
+            "lstsq",
+            "--no-warm-up",
+        ]
+    )
     assert code == 0, capsys.readouterr().err
     doc = json.loads((tmp_path / "out" / "result.json").read_text())
     assert abs(doc["radius_error_pct"]) <= 0.3
@@ -85,15 +110,22 @@ def test_normals_facing_away_are_filled_and_counted_not_fatal():
     K = np.array([[150.0, 0, 80], [0, 150.0, 60], [0, 0, 1]])
     normals = np.zeros((h, w, 3), np.float32)
     normals[..., 2] = -1.0
-    normals[50:53, 70:75] = (0.0, 0.0, 1.0)  # 15 normals facing away, as a light model that does not fit gives
+    normals[50:53, 70:75] = (
+        0.0,
+        0.0,
+        1.0,
+    )  # 15 normals facing away, as a light model that does not fit gives
     normals[10, 10] = np.nan
     mask = np.ones((h, w), bool)
     field = NormalField(normals, np.ones((h, w), np.float32), mask, np.zeros((h, w), bool), 0)
     depth, out_mask, out_field, fused, dropped = integrate_and_fuse(
-        field, K, prior_mm=None, working_distance_mm=3000.0, stereo_weight=1e-4, tol=1e-6)
+        field, K, prior_mm=None, working_distance_mm=3000.0, stereo_weight=1e-4, tol=1e-6
+    )
     assert dropped == 16 and out_field.n_filled == 16 and fused is None
     assert np.all(np.isfinite(depth[out_mask])) and out_mask.all()
-    np.testing.assert_allclose(depth, 3000.0, rtol=1e-6)  # a flat plate facing the camera, filled smoothly
+    np.testing.assert_allclose(
+        depth, 3000.0, rtol=1e-6
+    )  # a flat plate facing the camera, filled smoothly
 
 
 @pytest.mark.slow
@@ -106,13 +138,22 @@ def test_lights_calibrated_on_a_flat_plate_measure_a_curved_one(tmp_path):
     from pipeline.light_calibration import calibrate_lights
 
     capture = CaptureSpec(manifest_lights="nominal", **dict(NEAR, width=1224, height=1024))
-    ref = simulate_capture(tmp_path / "ref", plate=PlateSpec(shape="plane", radius_mm=None, tilt_deg=(1.0, -1.0)),
-                           capture=capture, seed=9)
+    ref = simulate_capture(
+        tmp_path / "ref",
+        plate=PlateSpec(shape="plane", radius_mm=None, tilt_deg=(1.0, -1.0)),
+        capture=capture,
+        seed=9,
+    )
     lights = calibrate_lights([load_capture(ref)]).lights
     bundle = simulate_capture(tmp_path / "plate", plate=PlateSpec(), capture=capture, seed=9)
-    doc = inspect(bundle, bundle / "target.json", out_dir=tmp_path / "out", light_calibration=lights).document
+    doc = inspect(
+        bundle, bundle / "target.json", out_dir=tmp_path / "out", light_calibration=lights
+    ).document
     assert abs(doc["radius_error_pct"]) <= 0.1, doc  # acceptance: <= 0.1 %, right verdict
     assert doc["verdict"] == "pass"
-    assert "a light calibration was applied to the capture's nominal light directions" in doc["warnings"]
+    assert (
+        "a light calibration was applied to the capture's nominal light directions"
+        in doc["warnings"]
+    )
     details = json.loads((tmp_path / "out" / "details.json").read_text())
     assert details["light_model"] == "near-field" and details["light_refinement"] is None

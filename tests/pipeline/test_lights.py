@@ -10,14 +10,16 @@ import numpy as np
 import pytest
 
 from pipeline.formats import InputError
-from pipeline.io import load_capture, load_light_calibration, light_calibration_document
+from pipeline.io import light_calibration_document, load_capture, load_light_calibration
 from pipeline.lights import CAMERA_HEAD_RADIUS_MM, Lights
 
 from .bundles import write_bundle
 
 
 def _point_lights(doc, positions, **extra):
-    doc["photometric"]["lights"] = [{"position_mm": list(p), "intensity": 9.0, **extra} for p in positions]
+    doc["photometric"]["lights"] = [
+        {"position_mm": list(p), "intensity": 9.0, **extra} for p in positions
+    ]
 
 
 def _ring_positions(n, radius=1600.0, z=200.0):
@@ -27,7 +29,9 @@ def _ring_positions(n, radius=1600.0, z=200.0):
 
 def test_point_lights_load_with_axis_and_profile(tmp_path):
     axis = [0.0, 0.0, 1.0]
-    bundle = write_bundle(tmp_path, mutate=lambda d: _point_lights(d, _ring_positions(4), axis=axis, mu=1.5))
+    bundle = write_bundle(
+        tmp_path, mutate=lambda d: _point_lights(d, _ring_positions(4), axis=axis, mu=1.5)
+    )
     cap = load_capture(bundle)
     assert cap.lights.is_point.all() and cap.lights.any_point
     np.testing.assert_allclose(cap.lights.positions_mm, _ring_positions(4))
@@ -42,7 +46,11 @@ def test_point_lights_load_with_axis_and_profile(tmp_path):
     [
         ({"intensity": 1.0}, "lights[1]", "expected exactly one of them"),
         ({"direction": [0, 0, -1.0], "position_mm": [0, 0, 100.0]}, "lights[1]", "got both"),
-        ({"position_mm": [1000, 0, 0], "axis": [0, 0, 2.0]}, "lights[1].axis", "expected a unit vector"),
+        (
+            {"position_mm": [1000, 0, 0], "axis": [0, 0, 2.0]},
+            "lights[1].axis",
+            "expected a unit vector",
+        ),
         ({"position_mm": [1000, 0, 0], "mu": -1.0}, "lights[1].mu", "greater than or equal to 0"),
         ({"direction": [0.5, 0, -0.866], "mu": 1.0}, "lights[1]", "only a point light"),
         ({"position_mm": [1000, 0]}, "lights[1].position_mm", "at least 3"),
@@ -53,7 +61,9 @@ def test_bad_lights_name_the_light(tmp_path, light, field, problem):
         doc["photometric"]["lights"][1] = light
 
     bundle = write_bundle(tmp_path, mutate=mutate)
-    with pytest.raises(InputError, match=re.escape(f"capture.json: photometric.{field}") + f".*{problem}"):
+    with pytest.raises(
+        InputError, match=re.escape(f"capture.json: photometric.{field}") + f".*{problem}"
+    ):
         load_capture(bundle)
 
 
@@ -61,7 +71,9 @@ def test_a_light_inside_the_camera_head_is_a_named_error(tmp_path):
     positions = _ring_positions(4)
     positions[2] = (30.0, 0.0, 10.0)
     bundle = write_bundle(tmp_path, mutate=lambda d: _point_lights(d, positions))
-    with pytest.raises(InputError, match=r"photometric\.lights\[2\]\.position_mm: .*inside the camera head"):
+    with pytest.raises(
+        InputError, match=r"photometric\.lights\[2\]\.position_mm: .*inside the camera head"
+    ):
         load_capture(bundle)
     assert CAMERA_HEAD_RADIUS_MM > 30
 
@@ -77,7 +89,9 @@ def test_a_light_near_the_right_camera_is_inside_the_head_too(tmp_path):
 def test_a_light_behind_the_plate_is_a_named_error(tmp_path):
     positions = _ring_positions(4)
     positions[3] = (500.0, 0.0, 3200.0)
-    bundle = write_bundle(tmp_path, working_distance_mm=3000.0, mutate=lambda d: _point_lights(d, positions))
+    bundle = write_bundle(
+        tmp_path, working_distance_mm=3000.0, mutate=lambda d: _point_lights(d, positions)
+    )
     with pytest.raises(InputError, match=r"lights\[3\]\.position_mm: .*behind the plate"):
         load_capture(bundle)
 
@@ -100,19 +114,27 @@ def test_irradiance_follows_the_documented_model():
 
 
 def test_nominal_directions_keep_the_irradiance_at_the_centre():
-    lights = Lights.points([[1500.0, 0.0, 200.0], [-1500.0, 300.0, 100.0]], [9.0, 11.0],
-                           axes=[[-0.5, 0, 0.866], [0.5, 0, 0.866]], mu=[1.0, 1.0])
+    lights = Lights.points(
+        [[1500.0, 0.0, 200.0], [-1500.0, 300.0, 100.0]],
+        [9.0, 11.0],
+        axes=[[-0.5, 0, 0.866], [0.5, 0, 0.866]],
+        mu=[1.0, 1.0],
+    )
     centre = np.array([0.0, 0.0, 3000.0])
     nominal = lights.nominal_directions(centre)
     assert not nominal.any_point
-    dirs = (lights.positions_mm - centre) / np.linalg.norm(lights.positions_mm - centre, axis=1, keepdims=True)
+    dirs = (lights.positions_mm - centre) / np.linalg.norm(
+        lights.positions_mm - centre, axis=1, keepdims=True
+    )
     np.testing.assert_allclose(nominal.directions, dirs)
     n = np.array([0.0, 0.0, -1.0])
     np.testing.assert_allclose(nominal.irradiance(centre, n), lights.irradiance(centre, n))
 
 
 def test_light_calibration_round_trip_and_errors(tmp_path):
-    lights = Lights.points(_ring_positions(4), [9.0, 9.5, 10.0, 10.5], axes=[[0, 0, 1.0]] * 4, mu=[1.2] * 4)
+    lights = Lights.points(
+        _ring_positions(4), [9.0, 9.5, 10.0, 10.5], axes=[[0, 0, 1.0]] * 4, mu=[1.2] * 4
+    )
     doc = light_calibration_document(lights, 0.004)
     path = tmp_path / "lights.json"
     path.write_text(json.dumps(doc))

@@ -17,9 +17,16 @@ def near_capture(tmp_path_factory):
     """12 LEDs 2.8 m above a cylinder, 30 deg from the axis, beam profile mu 1.5, no noise."""
     out = tmp_path_factory.mktemp("near")
     bundle = simulate_capture(
-        out, plate=PlateSpec(),
-        capture=CaptureSpec(near_field_mm=2800.0, light_elevation_deg=30.0, led_mu=1.5, noise=0.0, width=320,
-                            height=256),
+        out,
+        plate=PlateSpec(),
+        capture=CaptureSpec(
+            near_field_mm=2800.0,
+            light_elevation_deg=30.0,
+            led_mu=1.5,
+            noise=0.0,
+            width=320,
+            height=256,
+        ),
         seed=1,
     )
     cap = load_capture(bundle)
@@ -36,7 +43,9 @@ def test_point_lights_recover_the_true_normals(near_capture, method):
     cap, pre, truth = near_capture
     mask = pre.mask & truth["mask"]
     depth = np.where(mask, truth["depth_mm"], np.nan)
-    field = estimate_normals_near(pre.images, cap.lights, depth, cap.rig.left.K, mask, valid=pre.valid, method=method)
+    field = estimate_normals_near(
+        pre.images, cap.lights, depth, cap.rig.left.K, mask, valid=pre.valid, method=method
+    )
     err = _angles_deg(field.normals, truth["normals"], field.mask & mask)
     # noise-free 16-bit images: quantisation and the bilinear undistortion of the images are all that is left
     assert np.percentile(err, 95) < 0.1, np.percentile(err, 95)
@@ -48,7 +57,9 @@ def test_the_distant_model_is_wrong_by_degrees_under_leds(near_capture):
     cap, pre, truth = near_capture
     mask = pre.mask & truth["mask"]
     nominal = cap.lights.nominal_directions(truth["T_cam_plate"][:3, 3])
-    images = pre.images * (cap.lights.intensity / nominal.intensity)[:, None, None].astype(np.float32)
+    images = pre.images * (cap.lights.intensity / nominal.intensity)[:, None, None].astype(
+        np.float32
+    )
     field = estimate_normals(images, nominal.directions, mask, valid=pre.valid, method="lstsq")
     err = _angles_deg(field.normals, truth["normals"], field.mask & mask)
     assert np.percentile(err, 95) > 5.0
@@ -59,7 +70,9 @@ def test_a_depth_error_turns_the_normals_only_a_little(near_capture):
     cap, pre, truth = near_capture
     mask = pre.mask & truth["mask"]
     depth = np.where(mask, truth["depth_mm"] + 20.0, np.nan)
-    field = estimate_normals_near(pre.images, cap.lights, depth, cap.rig.left.K, mask, valid=pre.valid)
+    field = estimate_normals_near(
+        pre.images, cap.lights, depth, cap.rig.left.K, mask, valid=pre.valid
+    )
     assert np.median(_angles_deg(field.normals, truth["normals"], field.mask & mask)) < 0.6
 
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.formats import CaptureError
 from pipeline.camera import undistorted_rays
+from pipeline.formats import CaptureError
 from pipeline.normals import NormalField, estimate_normals
 from tests import realdata as rd
 
@@ -17,7 +17,9 @@ def ring_lights(n: int = 12, polar_deg: float = 40.0, offset_deg: float = 0.0) -
     """n unit light directions on a cone of ``polar_deg`` around the camera's -z axis (OpenCV frame)."""
     phi = np.radians(offset_deg) + np.linspace(0, 2 * np.pi, n, endpoint=False)
     t = np.radians(polar_deg)
-    return np.stack([np.sin(t) * np.cos(phi), np.sin(t) * np.sin(phi), -np.full(n, np.cos(t))], axis=1)
+    return np.stack(
+        [np.sin(t) * np.cos(phi), np.sin(t) * np.sin(phi), -np.full(n, np.cos(t))], axis=1
+    )
 
 
 def curved_plate() -> tuple[np.ndarray, np.ndarray]:
@@ -139,7 +141,10 @@ def test_saturated_samples_excluded_by_valid(method):
     err_biased = angle_deg(biased, n_true, affected)
     # with the clipped samples dropped, 3..11 samples remain: noise-limited again (0.6 deg
     # as in test_recovers_curved_plate), while the clipped samples bias plain least squares
-    assert np.median(err) < 0.6 and np.median(err_biased) > 2.0, (np.median(err), np.median(err_biased))
+    assert np.median(err) < 0.6 and np.median(err_biased) > 2.0, (
+        np.median(err),
+        np.median(err_biased),
+    )
 
 
 @pytest.mark.parametrize("method", ["lstsq", "robust"])
@@ -175,7 +180,9 @@ def test_holes_filled_and_counted(method):
 def test_degenerate_light_subset_is_a_hole():
     n_true, rho = curved_plate()
     # lights 0..2 lie in the x-z plane (coplanar with the origin): rank 2 on their own
-    lights = np.concatenate([[[np.sin(t), 0.0, -np.cos(t)] for t in (-0.5, 0.0, 0.5)], ring_lights(6)])
+    lights = np.concatenate(
+        [[[np.sin(t), 0.0, -np.cos(t)] for t in (-0.5, 0.0, 0.5)], ring_lights(6)]
+    )
     images = render(n_true, rho, lights, np.random.default_rng(1), noise=0.0)
     valid = np.ones(images.shape, bool)
     valid[3:, 20:23, 30:34] = False
@@ -203,7 +210,9 @@ def test_unfillable_component_warns_and_leaves_mask():
 def test_dark_images_are_a_capture_error(method):
     lights = ring_lights(6)
     with pytest.raises(CaptureError, match="no pixel of the mask"):
-        estimate_normals(np.zeros((6, 20, 30), np.float32), lights, np.ones((20, 30), bool), method=method)
+        estimate_normals(
+            np.zeros((6, 20, 30), np.float32), lights, np.ones((20, 30), bool), method=method
+        )
 
 
 @pytest.mark.parametrize("method", ["lstsq", "robust"])
@@ -226,12 +235,30 @@ def _ok_inputs():
 @pytest.mark.parametrize(
     "change, match",
     [
-        (lambda i, l, m: (i, l[:5], m), r"light_dirs: expected shape \(6, 3\) to match 6 images, got \(5, 3\)"),
-        (lambda i, l, m: (i, l * 1.1, m), r"light_dirs\[0\]: expected a unit vector, got length 1.1000"),
-        (lambda i, l, m: (i, l * [1, 1, -1], m), r"light_dirs\[0\]: expected a light on the camera side \(l_z < 0"),
-        (lambda i, l, m: (i, np.where(np.isnan(l), 0, np.nan), m), "light_dirs: expected finite numbers"),
-        (lambda i, l, m: (i, l, m[:, :20]), r"mask: expected shape \(20, 30\) to match images, got \(20, 20\)"),
-        (lambda i, l, m: (i, l, m.astype(np.uint8)), "mask: expected a bool array, got dtype uint8"),
+        (
+            lambda i, l, m: (i, l[:5], m),
+            r"light_dirs: expected shape \(6, 3\) to match 6 images, got \(5, 3\)",
+        ),
+        (
+            lambda i, l, m: (i, l * 1.1, m),
+            r"light_dirs\[0\]: expected a unit vector, got length 1.1000",
+        ),
+        (
+            lambda i, l, m: (i, l * [1, 1, -1], m),
+            r"light_dirs\[0\]: expected a light on the camera side \(l_z < 0",
+        ),
+        (
+            lambda i, l, m: (i, np.where(np.isnan(l), 0, np.nan), m),
+            "light_dirs: expected finite numbers",
+        ),
+        (
+            lambda i, l, m: (i, l, m[:, :20]),
+            r"mask: expected shape \(20, 30\) to match images, got \(20, 20\)",
+        ),
+        (
+            lambda i, l, m: (i, l, m.astype(np.uint8)),
+            "mask: expected a bool array, got dtype uint8",
+        ),
         (lambda i, l, m: (i[0], l, m), r"images: expected shape \(N, H, W\), got \(20, 30\)"),
         (lambda i, l, m: (i.astype(np.uint16), l, m), "images: expected a float array"),
     ],
@@ -244,18 +271,24 @@ def test_bad_inputs(change, match):
 
 def test_bad_options():
     images, lights, mask = _ok_inputs()
-    with pytest.raises(ValueError, match=r"method: expected one of \('robust', 'lstsq'\), got 'l1'"):
+    with pytest.raises(
+        ValueError, match=r"method: expected one of \('robust', 'lstsq'\), got 'l1'"
+    ):
         estimate_normals(images, lights, mask, method="l1")
     with pytest.raises(ValueError, match=r"min_samples: expected an integer in \[3, 6\]"):
         estimate_normals(images, lights, mask, min_samples=2)
     with pytest.raises(ValueError, match=r"min_samples: expected an integer in \[3, 6\]"):
         estimate_normals(images, lights, mask, min_samples=7)
-    with pytest.raises(ValueError, match=r"valid: expected shape \(6, 20, 30\) to match images, got \(5, 20, 30\)"):
+    with pytest.raises(
+        ValueError, match=r"valid: expected shape \(6, 20, 30\) to match images, got \(5, 20, 30\)"
+    ):
         estimate_normals(images, lights, mask, valid=np.ones((5, 20, 30), bool))
     with pytest.raises(ValueError, match="valid: expected a bool array"):
         estimate_normals(images, lights, mask, valid=np.ones((6, 20, 30)))
     coplanar = np.array([[np.sin(t), 0.0, -np.cos(t)] for t in np.linspace(-0.6, 0.6, 6)])
-    with pytest.raises(ValueError, match="light_dirs: expected at least 3 directions spanning 3D, got 6 of rank 2"):
+    with pytest.raises(
+        ValueError, match="light_dirs: expected at least 3 directions spanning 3D, got 6 of rank 2"
+    ):
         estimate_normals(images, coplanar, mask)
 
 
@@ -293,7 +326,10 @@ def test_diligent_crop8_lstsq_and_robust(obj, published):
     assert e_robust <= 0.85 * e_lstsq, (e_robust, e_lstsq)
 
 
-@pytest.mark.skipif(not rd.data_available("uw_spheres"), reason=f"real data not found: {rd.DATA_ROOT / 'uw_spheres'}")
+@pytest.mark.skipif(
+    not rd.data_available("uw_spheres"),
+    reason=f"real data not found: {rd.DATA_ROOT / 'uw_spheres'}",
+)
 def test_uw_grey_sphere_lstsq():
     data = rd.load_uw_gray_sphere()
     field = estimate_normals(data.images, data.light_dirs, data.mask, method="lstsq")
@@ -355,7 +391,9 @@ def test_specular_lobe_with_perspective_view_is_modelled(lobe_name, lobe, expone
     rho = 0.25 * rho  # a dark coating: the lobe is as bright as the diffuse part
     lights = ring_lights(12, polar_deg=45.0)
     K = pinhole()
-    images = render_lobe(n_true, rho, lights, perspective_view(K), rng, noise=0.002, specular=0.3, lobe=lobe)
+    images = render_lobe(
+        n_true, rho, lights, perspective_view(K), rng, noise=0.002, specular=0.3, lobe=lobe
+    )
     mask = np.ones((H, W), bool)
     plain = estimate_normals(images, lights, mask, method="robust")
     field = estimate_normals(images, lights, mask, method="robust", camera_matrix=K)
@@ -372,7 +410,9 @@ def test_specular_lobe_with_perspective_view_is_modelled(lobe_name, lobe, expone
     assert b_spec < 0.2 * b_plain, (b_spec, b_plain)
     # noise: sigma 0.002 on rho ~0.15 gives ~1 deg median for Lambertian least squares
     # (scaled from test_recovers_curved_plate); the lobe adds information, it must not add noise
-    assert np.median(err) < 1.0 and np.median(err) < np.median(angle_deg(plain.normals, n_true, mask)), np.median(err)
+    assert np.median(err) < 1.0 and np.median(err) < np.median(
+        angle_deg(plain.normals, n_true, mask)
+    ), np.median(err)
 
 
 def test_specular_stage_leaves_a_matte_plate_alone():
@@ -384,7 +424,9 @@ def test_specular_stage_leaves_a_matte_plate_alone():
     plain = estimate_normals(images, lights, mask, method="robust")
     field = estimate_normals(images, lights, mask, method="robust", camera_matrix=pinhole())
     # no lobe in the data: the F-ratio stays near 1 (noise), the stage stops, the estimate is the robust one
-    assert field.specular is not None and not field.specular.modelled and field.specular.f_ratio < 4.0
+    assert (
+        field.specular is not None and not field.specular.modelled and field.specular.f_ratio < 4.0
+    )
     np.testing.assert_array_equal(field.normals, plain.normals)
 
 
@@ -394,8 +436,16 @@ def test_specular_stage_on_a_sphere_with_orthographic_view():
     rho = np.full((H, W), 0.3)
     lights = ring_lights(12, polar_deg=40.0)
     view = np.array([0.0, 0.0, -1.0])
-    images = render_lobe(n_true, rho, lights, np.broadcast_to(view, (H, W, 3)), rng, noise=0.003, specular=0.5,
-                         lobe=lambda c: c**60)
+    images = render_lobe(
+        n_true,
+        rho,
+        lights,
+        np.broadcast_to(view, (H, W, 3)),
+        rng,
+        noise=0.003,
+        specular=0.5,
+        lobe=lambda c: c**60,
+    )
     plain = estimate_normals(images, lights, mask, method="robust")
     field = estimate_normals(images, lights, mask, method="robust", view_dirs=view)
     inner = mask & (np.hypot(n_true[..., 0], n_true[..., 1]) < 0.8)  # away from the grazing rim
@@ -408,16 +458,22 @@ def test_specular_stage_on_a_sphere_with_orthographic_view():
 
 def test_bad_view_dirs():
     images, lights, mask = _ok_inputs()
-    with pytest.raises(ValueError, match=r"view_dirs: expected shape \(3,\) \(a distant camera; camera_matrix"):
+    with pytest.raises(
+        ValueError, match=r"view_dirs: expected shape \(3,\) \(a distant camera; camera_matrix"
+    ):
         estimate_normals(images, lights, mask, view_dirs=np.zeros((20, 30, 3)))
     with pytest.raises(ValueError, match=r"view_dirs: expected a unit vector, got length 2.0000"):
         estimate_normals(images, lights, mask, view_dirs=np.array([0.0, 0.0, -2.0]))
-    with pytest.raises(ValueError, match=r"view_dirs: expected a vector from the surface towards the camera"):
+    with pytest.raises(
+        ValueError, match=r"view_dirs: expected a vector from the surface towards the camera"
+    ):
         estimate_normals(images, lights, mask, view_dirs=np.array([0.0, 0.0, 1.0]))
     with pytest.raises(ValueError, match="view_dirs: expected finite numbers"):
         estimate_normals(images, lights, mask, view_dirs=np.full(3, np.nan))
     with pytest.raises(ValueError, match="view_dirs, camera_matrix: expected at most one"):
-        estimate_normals(images, lights, mask, view_dirs=np.array([0.0, 0.0, -1.0]), camera_matrix=pinhole())
+        estimate_normals(
+            images, lights, mask, view_dirs=np.array([0.0, 0.0, -1.0]), camera_matrix=pinhole()
+        )
     with pytest.raises(ValueError, match=r"camera_matrix: expected \[\[fx, s, cx\]"):
         estimate_normals(images, lights, mask, camera_matrix=-pinhole())
     with pytest.raises(ValueError, match=r"camera_matrix: expected a finite \(3, 3\) matrix"):

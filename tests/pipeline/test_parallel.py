@@ -32,7 +32,9 @@ def test_default_workers_refuses_a_bad_override(monkeypatch, value):
 def test_importing_the_pipeline_sets_no_process_policy():
     env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
     code = "import os, pipeline.run, pipeline.cli; print(os.environ.get('OMP_WAIT_POLICY'))"
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
+    )
     assert out.stdout.strip() == "None"
 
 

@@ -36,8 +36,8 @@ def test_plate_mask_is_one_piece_after_erosion():
     # a plate with a thin spur: eroding cuts the spur's tip loose; only the plate may remain
     img = np.full((200, 240), 0.04)
     img[40:160, 40:200] = 0.8
-    img[100:103, 200:230] = 0.8   # a 3 px spur
-    img[95:108, 225:235] = 0.8    # with a blob at its end
+    img[100:103, 200:230] = 0.8  # a 3 px spur
+    img[95:108, 225:235] = 0.8  # with a blob at its end
     mask = plate_mask(img, erode_px=2)
     from scipy import ndimage
 

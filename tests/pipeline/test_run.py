@@ -23,7 +23,9 @@ FULL = dict(width=1224, height=1024)
 
 
 def run_case(tmp_path: Path, *, plate: PlateSpec, capture: CaptureSpec, seed: int, **kwargs):
-    bundle = simulate_capture(tmp_path / "bundle", plate=plate, capture=capture, seed=seed, **kwargs)
+    bundle = simulate_capture(
+        tmp_path / "bundle", plate=plate, capture=capture, seed=seed, **kwargs
+    )
     result = inspect(bundle, bundle / "target.json", out_dir=tmp_path / "out")
     return bundle, result.document
 
@@ -31,12 +33,14 @@ def run_case(tmp_path: Path, *, plate: PlateSpec, capture: CaptureSpec, seed: in
 @pytest.mark.parametrize(
     "radius_mm, convex, n_lights, limit_pct",
     [
-        (5000.0, True, 12, 0.2),   # issue 3: <= 0.2 % at 12 lights
+        (5000.0, True, 12, 0.2),  # issue 3: <= 0.2 % at 12 lights
         (3500.0, False, 12, 0.2),  # concave bends alike
-        (8000.0, True, 3, 0.5),    # issue 3: <= 0.5 % with 3 lights
+        (8000.0, True, 3, 0.5),  # issue 3: <= 0.5 % with 3 lights
     ],
 )
-def test_cylinder_radius_within_the_product_figures(tmp_path, radius_mm, convex, n_lights, limit_pct):
+def test_cylinder_radius_within_the_product_figures(
+    tmp_path, radius_mm, convex, n_lights, limit_pct
+):
     plate = PlateSpec(shape="cylinder", radius_mm=radius_mm, convex=convex, tilt_deg=(2.5, -1.5))
     capture = CaptureSpec(n_lights=n_lights, noise=0.004, bit_depth=16, **FULL)
     _, doc = run_case(tmp_path, plate=plate, capture=capture, seed=11)
@@ -56,11 +60,17 @@ def test_specular_highlights_do_not_spoil_the_radius(tmp_path):
 
 
 def test_a_local_dent_fails_an_otherwise_good_plate(tmp_path):
-    plate = PlateSpec(shape="cylinder", radius_mm=6000.0, dents=(Dent(x_mm=400.0, y_mm=-300.0, radius_mm=150.0, depth_mm=6.0),))
+    plate = PlateSpec(
+        shape="cylinder",
+        radius_mm=6000.0,
+        dents=(Dent(x_mm=400.0, y_mm=-300.0, radius_mm=150.0, depth_mm=6.0),),
+    )
     capture = CaptureSpec(n_lights=12, noise=0.004, **FULL)
     bundle, doc = run_case(tmp_path, plate=plate, capture=capture, seed=21)
     assert doc["verdict"] == "fail", doc
-    assert doc["deviation_mm"]["max_abs"] > 4.0  # the dent is 6 mm deep; the fit spreads a little of it
+    assert (
+        doc["deviation_mm"]["max_abs"] > 4.0
+    )  # the dent is 6 mm deep; the fit spreads a little of it
     assert abs(doc["radius_error_pct"]) <= 0.2  # robust fits: one dent does not move the radius
     details = json.loads((tmp_path / "out" / "details.json").read_text())
     assert details["defects"], "the dent is reported as a defect region"
@@ -94,7 +104,11 @@ def test_stereo_makes_the_working_distance_hint_irrelevant(tmp_path):
         doc = json.loads((bundle / "capture.json").read_text())
         doc["working_distance_mm"] = hint
         (bundle / "capture.json").write_text(json.dumps(doc))
-        radii.append(inspect(bundle, bundle / "target.json", out_dir=tmp_path / f"out{hint:.0f}").document["radius_mm"])
+        radii.append(
+            inspect(bundle, bundle / "target.json", out_dir=tmp_path / f"out{hint:.0f}").document[
+                "radius_mm"
+            ]
+        )
     assert abs(radii[0] - radii[1]) / 5000.0 < 1e-4
     assert abs(radii[0] - 5000.0) / 5000.0 < 2e-3
 
@@ -104,7 +118,9 @@ def test_without_stereo_the_working_distance_sets_the_scale(tmp_path):
     capture = CaptureSpec(n_lights=12, noise=0.004, stereo=False, width=612, height=512)
     _, doc = run_case(tmp_path, plate=plate, capture=capture, seed=4)
     assert abs(doc["radius_error_pct"]) <= 0.5, doc
-    assert all(r is not None and r == pytest.approx(9000.0, rel=0.01) for r in doc["principal_radii_mm"])
+    assert all(
+        r is not None and r == pytest.approx(9000.0, rel=0.01) for r in doc["principal_radii_mm"]
+    )
 
 
 def test_progress_reports_every_stage_and_artifacts_exist(tmp_path):
@@ -112,7 +128,12 @@ def test_progress_reports_every_stage_and_artifacts_exist(tmp_path):
     capture = CaptureSpec(n_lights=6, width=320, height=256)
     bundle = simulate_capture(tmp_path / "bundle", plate=plate, capture=capture, seed=2)
     seen = []
-    result = inspect(bundle, bundle / "target.json", out_dir=tmp_path / "out", progress=lambda s, f: seen.append((s, f)))
+    result = inspect(
+        bundle,
+        bundle / "target.json",
+        out_dir=tmp_path / "out",
+        progress=lambda s, f: seen.append((s, f)),
+    )
     assert [s for s, _ in seen] == [*STAGES, "done"]
     assert [f for _, f in seen] == sorted(f for _, f in seen)
     doc = result.document
@@ -131,27 +152,59 @@ def test_an_unmeasurable_capture_leaves_an_error_result(tmp_path):
     assert doc["verdict"] == "error" and "working_distance_mm" in doc["error"]
     assert "warnings" not in doc
     # the CLI: exit 3 (not measurable), result.json written all the same
-    code = cli_main(["inspect", str(bundle), "--target", str(bundle / "target.json"), "--out", str(tmp_path / "o3"),
-                     "--no-warm-up"])
+    code = cli_main(
+        [
+            "inspect",
+            str(bundle),
+            "--target",
+            str(bundle / "target.json"),
+            "--out",
+            str(tmp_path / "o3"),
+            "--no-warm-up",
+        ]
+    )
     assert code == 3
     assert json.loads((tmp_path / "o3" / "result.json").read_text())["verdict"] == "error"
 
 
 def test_cli_inspect_exit_codes(tmp_path, capsys):
-    bundle = simulate_capture(tmp_path / "bundle", capture=CaptureSpec(n_lights=4, width=320, height=256), seed=6)
+    bundle = simulate_capture(
+        tmp_path / "bundle", capture=CaptureSpec(n_lights=4, width=320, height=256), seed=6
+    )
     archive = tmp_path / "bundle.zip"
     with zipfile.ZipFile(archive, "w") as zf:
         for f in bundle.iterdir():
             zf.write(f, f.name)
-    assert cli_main(["inspect", str(archive), "--target", str(bundle / "target.json"), "--out", str(tmp_path / "o")]) == 0
+    assert (
+        cli_main(
+            [
+                "inspect",
+                str(archive),
+                "--target",
+                str(bundle / "target.json"),
+                "--out",
+                str(tmp_path / "o"),
+            ]
+        )
+        == 0
+    )
     assert json.loads((tmp_path / "o" / "result.json").read_text())["verdict"] in ("pass", "fail")
     capsys.readouterr()
     # bad input: exit 2 and one line naming the file and the field
     doc = json.loads((bundle / "capture.json").read_text())
     doc["photometric"]["lights"][1]["direction"] = [0.0, 0.0, 0.0]
     (bundle / "capture.json").write_text(json.dumps(doc))
-    code = cli_main(["inspect", str(bundle), "--target", str(bundle / "target.json"), "--out", str(tmp_path / "o2"),
-                     "--no-warm-up"])
+    code = cli_main(
+        [
+            "inspect",
+            str(bundle),
+            "--target",
+            str(bundle / "target.json"),
+            "--out",
+            str(tmp_path / "o2"),
+            "--no-warm-up",
+        ]
+    )
     err = capsys.readouterr().err.strip()
     assert code == 2
     assert len(err.splitlines()) == 1 and "capture.json" in err and "lights[1].direction" in err

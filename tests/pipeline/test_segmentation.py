@@ -39,19 +39,37 @@ CUT = Cutout.circle(400.0, -300.0, 260.0)
 
 
 def _scene(tmp_path_factory, name: str, plate: PlateSpec, seed: int = 5):
-    out = simulate_capture(tmp_path_factory.mktemp(name), plate=plate, capture=CaptureSpec(width=W, height=H), seed=seed)
+    out = simulate_capture(
+        tmp_path_factory.mktemp(name),
+        plate=plate,
+        capture=CaptureSpec(width=W, height=H),
+        seed=seed,
+    )
     cap = load_capture(out)
     pre = preprocess(cap)
     cand = candidate_mask(pre.brightest, seen=pre.seen)
-    depth = stereo.stereo_depth(cap.stereo_left, cap.stereo_right, cap.rig, z_min_mm=1500.0, z_max_mm=6000.0,
-                                mask=cand).depth_mm
+    depth = stereo.stereo_depth(
+        cap.stereo_left, cap.stereo_right, cap.rig, z_min_mm=1500.0, z_max_mm=6000.0, mask=cand
+    ).depth_mm
     # photometric normals over the candidates (plate and surroundings), as the inspection has them
-    field = estimate_normals(pre.images, cap.light_dirs, cand, valid=pre.valid, camera_matrix=cap.rig.left.K)
+    field = estimate_normals(
+        pre.images, cap.light_dirs, cand, valid=pre.valid, camera_matrix=cap.rig.left.K
+    )
     normals = np.where(field.mask[..., None], field.normals, np.nan)
     with np.load(out / "truth.npz") as z:
-        truth = {k: z[k] for k in ("mask", "surface", "plate_xy_mm", "scene_depth_mm", "depth_mm", "normals")}
-    return {"bundle": out, "cap": cap, "pre": pre, "candidates": cand, "depth": depth, "normals": normals,
-            "truth": truth}
+        truth = {
+            k: z[k]
+            for k in ("mask", "surface", "plate_xy_mm", "scene_depth_mm", "depth_mm", "normals")
+        }
+    return {
+        "bundle": out,
+        "cap": cap,
+        "pre": pre,
+        "candidates": cand,
+        "depth": depth,
+        "normals": normals,
+        "truth": truth,
+    }
 
 
 @pytest.fixture(scope="module")
@@ -72,8 +90,14 @@ def dark_cut_scene(tmp_path_factory):
 def _segment(scene, **kwargs) -> Segmentation:
     pre, cap = scene["pre"], scene["cap"]
     kwargs.setdefault("normals", scene["normals"])
-    return segment_plate(pre.brightest, scene["depth"], cap.rig.left.K, seen=pre.seen,
-                         candidates=scene["candidates"], **kwargs)
+    return segment_plate(
+        pre.brightest,
+        scene["depth"],
+        cap.rig.left.K,
+        seen=pre.seen,
+        candidates=scene["candidates"],
+        **kwargs,
+    )
 
 
 def _iou(a, b):
@@ -146,8 +170,14 @@ def test_cutout_on_a_dark_background(dark_cut_scene):
 
 @pytest.mark.parametrize("outline, floor", [("trapezoid", FLOOR), ("curved", None)])
 def test_non_rectangular_outlines(tmp_path_factory, outline, floor):
-    plate = PlateSpec(shape="sphere", radius_mm=8000.0, convex=False, outline=outline,
-                      cutouts=(Cutout(-500.0, 500.0, 600.0, 300.0, 80.0),), floor=floor)
+    plate = PlateSpec(
+        shape="sphere",
+        radius_mm=8000.0,
+        convex=False,
+        outline=outline,
+        cutouts=(Cutout(-500.0, 500.0, 600.0, 300.0, 80.0),),
+        floor=floor,
+    )
     scene = _scene(tmp_path_factory, f"outline-{outline}", plate, seed=8)
     truth = scene["truth"]["mask"]
     target = load_target(scene["bundle"] / "target.json")
@@ -168,7 +198,9 @@ def test_a_bent_edge_is_kept_not_cut_away(tmp_path_factory):
     truth = scene["truth"]
     seg = _segment(scene)
     xy = truth["plate_xy_mm"]
-    defect = truth["mask"] & (np.hypot(xy[..., 0] - 1500.0, xy[..., 1] + 520.0) < 270.0)  # bent by > 22 mm
+    defect = truth["mask"] & (
+        np.hypot(xy[..., 0] - 1500.0, xy[..., 1] + 520.0) < 270.0
+    )  # bent by > 22 mm
     assert defect.sum() > 500
     assert np.count_nonzero(seg.region & defect) > 0.97 * defect.sum()
     assert np.count_nonzero(seg.mask & defect) > 0.85 * defect.sum()
@@ -201,7 +233,9 @@ def test_areas_on_the_fitted_surface(floor_scene):
     h, w = truth["mask"].shape
     u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
     rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T
-    exact = truth["depth_mm"] ** 2 / (K[0, 0] * K[1, 1] * np.abs(np.einsum("hwc,hwc->hw", truth["normals"], rays)))
+    exact = truth["depth_mm"] ** 2 / (
+        K[0, 0] * K[1, 1] * np.abs(np.einsum("hwc,hwc->hw", truth["normals"], rays))
+    )
     inner = seg.mask & truth["mask"]
     np.testing.assert_allclose(seg.pixel_area_mm2[inner], exact[inner], rtol=0.01)
 
@@ -215,7 +249,9 @@ def test_small_dropouts_are_filled_large_unmatched_areas_are_not(floor_scene):
     depth[200:203, 300:303] = np.nan  # 9 px ~ 400 mm^2: a stereo dropout
     depth[250:300, 200:250] = np.nan  # 2500 px ~ 110 000 mm^2: too large to guess
     pre, cap = floor_scene["pre"], floor_scene["cap"]
-    seg = segment_plate(pre.brightest, depth, cap.rig.left.K, seen=pre.seen, candidates=floor_scene["candidates"])
+    seg = segment_plate(
+        pre.brightest, depth, cap.rig.left.K, seen=pre.seen, candidates=floor_scene["candidates"]
+    )
     assert seg.mask[200:203, 300:303].all()
     assert not seg.mask[250:300, 200:250].any() and seg.holes[250:300, 200:250].all()
     assert seg.n_holes == 1 and seg.filled_area_mm2 >= 9 * 40.0
@@ -244,13 +280,17 @@ def test_candidates_exclude_a_dark_conveyor_not_a_lit_floor(floor_scene, dark_cu
     cand = candidate_mask(dark_cut_scene["pre"].brightest, seen=dark_cut_scene["pre"].seen)
     assert _iou(cand, dark["mask"]) > 0.97
     lit = candidate_mask(floor_scene["pre"].brightest, seen=floor_scene["pre"].seen)
-    assert np.count_nonzero(lit & ~floor_scene["truth"]["mask"]) > 0.8 * np.count_nonzero(~floor_scene["truth"]["mask"])
+    assert np.count_nonzero(lit & ~floor_scene["truth"]["mask"]) > 0.8 * np.count_nonzero(
+        ~floor_scene["truth"]["mask"]
+    )
 
 
 def test_bad_inputs_are_named():
     K = np.array([[450.0, 0, 306], [0, 450.0, 256], [0, 0, 1]])
     b = np.ones((40, 50), np.float32)
-    with pytest.raises(ValueError, match=r"depth_mm: expected shape \(40, 50\) to match brightness, got \(40, 51\)"):
+    with pytest.raises(
+        ValueError, match=r"depth_mm: expected shape \(40, 50\) to match brightness, got \(40, 51\)"
+    ):
         segment_plate(b, np.ones((40, 51)), K)
     with pytest.raises(ValueError, match=r"brightness: expected an \(H, W\) array"):
         segment_plate(np.ones((2, 40, 50)), None, K)
@@ -271,7 +311,9 @@ def test_bad_inputs_are_named():
 def test_unmatched_plate_areas_with_agreeing_normals_are_filled(tmp_path_factory):
     """A deep concave plate (R 3500, 338 mm sagitta) leaves the stereo pair a few % of the plate unmatched in
     patches up to ~10 000 mm^2: their normals follow the plate's surface (within 3 deg), so they are plate."""
-    scene = _scene(tmp_path_factory, "concave", PlateSpec(convex=False, radius_mm=3500.0, floor=FLOOR), seed=6)
+    scene = _scene(
+        tmp_path_factory, "concave", PlateSpec(convex=False, radius_mm=3500.0, floor=FLOOR), seed=6
+    )
     truth = scene["truth"]["mask"]
     seg = _segment(scene)
     assert seg.n_holes == 0
@@ -301,9 +343,15 @@ def test_depth_matched_at_half_size(floor_cut_scene):
     half = _segment(floor_cut_scene, depth_scale_px=2)
     assert _iou(half.region, truth["mask"]) > 0.98
     assert np.count_nonzero(half.mask & ~_dilate(truth["mask"], 3)) == 0
-    assert half.n_holes == 1 and np.count_nonzero(half.mask & _hole_pixels(truth) & ~_dilate(truth["mask"], 1)) == 0
-    assert half.n_edge_band > 1.2 * full.n_edge_band  # 4 px instead of 2 (the wider band at supports alike)
+    assert (
+        half.n_holes == 1
+        and np.count_nonzero(half.mask & _hole_pixels(truth) & ~_dilate(truth["mask"], 1)) == 0
+    )
+    assert (
+        half.n_edge_band > 1.2 * full.n_edge_band
+    )  # 4 px instead of 2 (the wider band at supports alike)
     assert half.plate_area_mm2 + half.edge_band_area_mm2 == pytest.approx(
-        full.plate_area_mm2 + full.edge_band_area_mm2, rel=0.01)
+        full.plate_area_mm2 + full.edge_band_area_mm2, rel=0.01
+    )
     with pytest.raises(ValueError, match="depth_scale_px: expected an integer >= 1"):
         _segment(floor_cut_scene, depth_scale_px=0)

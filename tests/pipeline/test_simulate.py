@@ -66,7 +66,9 @@ def _erode(mask, px):
 
 def _bilinear(image, uv):
     """Bilinear samples of ``image`` (H, W) at pixel positions ``uv`` (M, 2) = (col, row)."""
-    return map_coordinates(np.asarray(image, np.float64), [uv[:, 1], uv[:, 0]], order=1, mode="nearest")
+    return map_coordinates(
+        np.asarray(image, np.float64), [uv[:, 1], uv[:, 0]], order=1, mode="nearest"
+    )
 
 
 def _points(truth, K):
@@ -147,7 +149,9 @@ def test_truth_normals_recovered_by_least_squares(bundle, rig):
     cap = load_capture(bundle)
     truth = _truth(bundle)
     imgs = cap.images - cap.dark[None]
-    und = np.stack([rig.left.undistort_image(im) for im in imgs]) / cap.light_intensity[:, None, None]
+    und = (
+        np.stack([rig.left.undistort_image(im) for im in imgs]) / cap.light_intensity[:, None, None]
+    )
     b, *_ = np.linalg.lstsq(cap.light_dirs, und.reshape(len(imgs), -1), rcond=None)
     n = (b.T / np.linalg.norm(b.T, axis=1, keepdims=True)).reshape(H, W, 3)
     ndotl = np.einsum("hwc,kc->hwk", np.nan_to_num(truth["normals"]), cap.light_dirs)
@@ -169,7 +173,9 @@ def test_truth_depth_on_the_analytic_cylinder(bundle, rig):
     # float64 ray casting: the residual is at the 1e-6 mm level.
     np.testing.assert_allclose(np.hypot(p[:, 0], p[:, 2] - R), R, atol=1e-6)
     assert np.all(np.abs(p[:, 0]) <= 1500 + 1e-6) and np.all(np.abs(p[:, 1]) <= 1500 + 1e-6)
-    np.testing.assert_allclose(p[:, :2], truth["plate_xy_mm"][truth["mask"]], atol=1e-3)  # float32 storage
+    np.testing.assert_allclose(
+        p[:, :2], truth["plate_xy_mm"][truth["mask"]], atol=1e-3
+    )  # float32 storage
     # Normals agree with the analytic gradient of the height field.
     _, hx, hy = plate_height(PlateSpec(), p[:, 0], p[:, 1])
     n_plate = np.stack([hx, hy, -np.ones_like(hx)], 1)
@@ -216,7 +222,14 @@ def test_stereo_pair_sees_the_same_texture(bundle, rig):
 def test_deterministic_for_a_seed(tmp_path, bundle):
     again = simulate_capture(tmp_path / "a", capture=CaptureSpec(width=W, height=H), seed=3)
     other = simulate_capture(tmp_path / "b", capture=CaptureSpec(width=W, height=H), seed=4)
-    for name in ("ps_00.png", "ps_07.png", "dark.png", "stereo_left.png", "stereo_right.png", "capture.json"):
+    for name in (
+        "ps_00.png",
+        "ps_07.png",
+        "dark.png",
+        "stereo_left.png",
+        "stereo_right.png",
+        "capture.json",
+    ):
         assert (again / name).read_bytes() == (bundle / name).read_bytes(), name
     assert (other / "ps_00.png").read_bytes() != (bundle / "ps_00.png").read_bytes()
     np.testing.assert_array_equal(_truth(again)["depth_mm"], _truth(bundle)["depth_mm"])
@@ -227,7 +240,9 @@ def test_convex_and_concave(tmp_path, convex):
     """Facing the camera squarely, the plate edges lie farther (convex) or nearer (concave) than
     the centre by the sagitta R - sqrt(R^2 - x^2) of the cylinder."""
     plate = PlateSpec(radius_mm=4000.0, convex=convex, tilt_deg=(0.0, 0.0))
-    out = simulate_capture(tmp_path, plate=plate, capture=CaptureSpec(width=W, height=H, stereo=False), seed=1)
+    out = simulate_capture(
+        tmp_path, plate=plate, capture=CaptureSpec(width=W, height=H, stereo=False), seed=1
+    )
     truth = _truth(out)
     rig = default_rig(width=W, height=H)
     pts = _points(truth, rig.left.K)
@@ -247,7 +262,9 @@ def test_dents_change_depth_by_their_depth(tmp_path):
     dents = (Dent(300.0, -200.0, 250.0, 8.0), Dent(-500.0, 400.0, 200.0, -5.0))
     cap = CaptureSpec(width=W, height=H, stereo=False)
     plain = _truth(simulate_capture(tmp_path / "plain", capture=cap, seed=2))
-    dented = _truth(simulate_capture(tmp_path / "dented", plate=PlateSpec(dents=dents), capture=cap, seed=2))
+    dented = _truth(
+        simulate_capture(tmp_path / "dented", plate=PlateSpec(dents=dents), capture=cap, seed=2)
+    )
     rig = default_rig(width=W, height=H)
     T = plate_pose(PlateSpec())
     for d in dents:
@@ -255,7 +272,11 @@ def test_dents_change_depth_by_their_depth(tmp_path):
         xy = dented["plate_xy_mm"]
         dist = np.hypot(xy[..., 0] - d.x_mm, xy[..., 1] - d.y_mm)
         v, u = np.unravel_index(np.nanargmin(dist), dist.shape)
-        ray = np.linalg.inv(rig.left.K) @ [u, v, 1.0]  # z component 1: the ray parameter is the depth
+        ray = np.linalg.inv(rig.left.K) @ [
+            u,
+            v,
+            1.0,
+        ]  # z component 1: the ray parameter is the depth
         # Raising the height field by depth_mm at the hit moves it along the ray by
         # depth_mm / (d_z - h_x d_x - h_y d_y), d the ray in the plate frame, h the cylinder's slope.
         d_p = T[:3, :3].T @ ray
@@ -272,8 +293,12 @@ def test_dents_change_depth_by_their_depth(tmp_path):
 
 
 def test_saddle_writes_a_mesh_target(tmp_path):
-    plate = PlateSpec(shape="saddle", radius_mm=6000.0, radius2_mm=8000.0, dents=(Dent(0, 0, 300, 3.0),))
-    out = simulate_capture(tmp_path, plate=plate, capture=CaptureSpec(width=W, height=H, stereo=False), seed=5)
+    plate = PlateSpec(
+        shape="saddle", radius_mm=6000.0, radius2_mm=8000.0, dents=(Dent(0, 0, 300, 3.0),)
+    )
+    out = simulate_capture(
+        tmp_path, plate=plate, capture=CaptureSpec(width=W, height=H, stereo=False), seed=5
+    )
     doc = json.loads((out / "target.json").read_text())
     assert doc["shape"] == {"type": "mesh", "file": "target.stl"}
     target = load_target(out / "target.json")
@@ -288,7 +313,9 @@ def test_saddle_writes_a_mesh_target(tmp_path):
 
 
 def test_bit_depths_and_saturation(tmp_path):
-    out8 = simulate_capture(tmp_path / "b8", capture=CaptureSpec(width=W, height=H, bit_depth=8, stereo=False))
+    out8 = simulate_capture(
+        tmp_path / "b8", capture=CaptureSpec(width=W, height=H, bit_depth=8, stereo=False)
+    )
     img8 = cv2.imread(str(out8 / "ps_00.png"), cv2.IMREAD_UNCHANGED)
     assert img8.dtype == np.uint8
     hot = CaptureSpec(width=W, height=H, bit_depth=12, exposure=3.0, stereo=False)
@@ -301,7 +328,9 @@ def test_bit_depths_and_saturation(tmp_path):
 def test_specular_lobe_brightens_highlights(tmp_path):
     cap = dict(width=W, height=H, stereo=False, noise=0.0, n_lights=4)
     matte = load_capture(simulate_capture(tmp_path / "m", capture=CaptureSpec(**cap), seed=1))
-    shiny = load_capture(simulate_capture(tmp_path / "s", capture=CaptureSpec(**cap, specular=0.3), seed=1))
+    shiny = load_capture(
+        simulate_capture(tmp_path / "s", capture=CaptureSpec(**cap, specular=0.3), seed=1)
+    )
     diff = shiny.images - matte.images
     assert diff.min() >= 0 and diff.max() > 0.05 * 65535
 
@@ -329,7 +358,9 @@ def test_calibration_boards_detected_in_both_images(tmp_path):
     corners sit on the projection of the true corners (blur 0.7 px, noise 1 %: < 0.3 px)."""
     rig = default_rig(width=640, height=480)
     paths = render_calibration_pairs(tmp_path, rig=rig, n_pairs=4, seed=7)
-    assert [p.name for p in paths] == [f"{s}{i:02d}.png" for i in range(1, 5) for s in ("left", "right")]
+    assert [p.name for p in paths] == [
+        f"{s}{i:02d}.png" for i in range(1, 5) for s in ("left", "right")
+    ]
     truth = np.load(tmp_path / "board_truth.npz")
     obj = truth["object_points"]
     for i in range(4):
@@ -343,7 +374,11 @@ def test_calibration_boards_detected_in_both_images(tmp_path):
             found, corners = cv2.findChessboardCorners(img, (9, 6))
             assert found, path.name
             corners = cv2.cornerSubPix(
-                img, corners, (5, 5), (-1, -1), (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-3)
+                img,
+                corners,
+                (5, 5),
+                (-1, -1),
+                (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-3),
             ).reshape(-1, 2)
             expected = cam.project(obj @ R_cb.T + t_cb)
             err = min(
@@ -372,7 +407,11 @@ def _plate_frame(truth, K):
 def _projected_area(vertices, faces):
     """Area (mm^2) of a triangle mesh projected on the plate frame's xy plane."""
     a, b, c = (vertices[faces[:, i], :2] for i in range(3))
-    return 0.5 * float(np.abs((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1])).sum())
+    return 0.5 * float(
+        np.abs(
+            (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1])
+        ).sum()
+    )
 
 
 @pytest.fixture(scope="module")
@@ -390,7 +429,13 @@ def test_floor_supports_and_cutout_truth(floor_bundle, rig):
     out, plate = floor_bundle
     truth = _truth(out)
     surface, mask = truth["surface"], truth["mask"]
-    assert set(np.unique(surface)) == {SURFACE_PLATE, SURFACE_FLOOR, SURFACE_SUPPORT, SURFACE_SUPPORT + 1, SURFACE_SUPPORT + 2}
+    assert set(np.unique(surface)) == {
+        SURFACE_PLATE,
+        SURFACE_FLOOR,
+        SURFACE_SUPPORT,
+        SURFACE_SUPPORT + 1,
+        SURFACE_SUPPORT + 2,
+    }
     np.testing.assert_array_equal(mask, surface == SURFACE_PLATE)
     p = _plate_frame(truth, rig.left.K)
     # plate pixels lie on the plate's material, every other pixel's ray crosses the plate's surface off it
@@ -406,7 +451,9 @@ def test_floor_supports_and_cutout_truth(floor_bundle, rig):
     for k, sup in enumerate(plate.floor.supports):
         q = p[surface == SURFACE_SUPPORT + k]
         assert q.size
-        assert np.all(q[:, 2] >= h_max + 300.0 - sup.height_mm - 0.01) and np.all(q[:, 2] <= h_max + 300.0 + 0.01)
+        assert np.all(q[:, 2] >= h_max + 300.0 - sup.height_mm - 0.01) and np.all(
+            q[:, 2] <= h_max + 300.0 + 0.01
+        )
         assert np.all(np.abs(q[:, 1] - sup.y_mm) <= sup.size_y_mm / 2 + 0.01)
     # depth on the plate is the scene depth there
     np.testing.assert_allclose(truth["scene_depth_mm"][mask], truth["depth_mm"][mask], atol=1e-3)
@@ -439,10 +486,19 @@ def test_cutout_and_outline_make_a_mesh_target(floor_bundle):
     assert area == pytest.approx(3000.0**2 - math.pi * 260.0**2, rel=1e-3)
 
 
-@pytest.mark.parametrize("outline", ["trapezoid", "curved", ((-1500.0, -1500.0), (1500.0, -1500.0), (0.0, 1500.0))])
+@pytest.mark.parametrize(
+    "outline", ["trapezoid", "curved", ((-1500.0, -1500.0), (1500.0, -1500.0), (0.0, 1500.0))]
+)
 def test_outlines(tmp_path, rig, outline):
-    plate = PlateSpec(shape="plane", radius_mm=None, outline=outline, cutouts=(Cutout(-300.0, 0.0, 500.0, 200.0, 60.0),))
-    out = simulate_capture(tmp_path, plate=plate, capture=CaptureSpec(width=W, height=H, stereo=False), seed=6)
+    plate = PlateSpec(
+        shape="plane",
+        radius_mm=None,
+        outline=outline,
+        cutouts=(Cutout(-300.0, 0.0, 500.0, 200.0, 60.0),),
+    )
+    out = simulate_capture(
+        tmp_path, plate=plate, capture=CaptureSpec(width=W, height=H, stereo=False), seed=6
+    )
     truth = _truth(out)
     # each pixel's ray met with the plate's plane z_p = 0 (float64, as the renderer does)
     h, w = truth["mask"].shape
@@ -452,13 +508,17 @@ def test_outlines(tmp_path, rig, outline):
     o, d = -T[:3, :3].T @ T[:3, 3], rays @ T[:3, :3]
     xy = o[:2] + (-o[2] / d[..., 2])[..., None] * d[..., :2]
     inside = plate_region(plate, xy[..., 0], xy[..., 1])
-    assert np.count_nonzero(truth["mask"] != inside) <= 2  # a pixel centre within rounding of the edge
+    assert (
+        np.count_nonzero(truth["mask"] != inside) <= 2
+    )  # a pixel centre within rounding of the edge
     poly = outline_polygon(plate, step_mm=10.0)
     x, y = poly[:, 0], poly[:, 1]
     polygon_area = 0.5 * np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)
     if outline == "trapezoid":
         assert polygon_area == pytest.approx(0.5 * (3000.0 + 1800.0) * 3000.0, rel=1e-9)
-    elif outline == "curved":  # the box less the two corners above the arc: between the box and the sagitta's
+    elif (
+        outline == "curved"
+    ):  # the box less the two corners above the arc: between the box and the sagitta's
         assert 3000.0 * 2400.0 < polygon_area < 3000.0**2
     else:
         assert polygon_area == pytest.approx(0.5 * 3000.0 * 3000.0, rel=1e-9)
@@ -467,7 +527,9 @@ def test_outlines(tmp_path, rig, outline):
     hole = 500.0 * 200.0 - (4.0 - math.pi) * 60.0**2
     assert area == pytest.approx(polygon_area - hole, rel=2e-3)
     # the pixel count agrees with the area: a plane at ~3 m, ~ (3000 / fx)^2 mm^2 per pixel
-    assert np.count_nonzero(truth["mask"]) * (3000.0 / rig.left.K[0, 0]) ** 2 == pytest.approx(area, rel=0.05)
+    assert np.count_nonzero(truth["mask"]) * (3000.0 / rig.left.K[0, 0]) ** 2 == pytest.approx(
+        area, rel=0.05
+    )
 
 
 def test_surroundings_specs_are_checked():
@@ -475,11 +537,15 @@ def test_surroundings_specs_are_checked():
         Cutout(0.0, 0.0, 100.0, 50.0, 40.0)
     with pytest.raises(ValueError, match="Cutout.radius_mm"):
         Cutout.circle(0.0, 0.0, -1.0)
-    with pytest.raises(ValueError, match=r"Floor.supports\[0\].height_mm: expected at most the floor's gap_mm 200"):
+    with pytest.raises(
+        ValueError, match=r"Floor.supports\[0\].height_mm: expected at most the floor's gap_mm 200"
+    ):
         Floor(gap_mm=200.0, supports=(Support(0.0, 0.0, 100.0, 100.0, 300.0),))
     with pytest.raises(ValueError, match="Floor.gap_mm"):
         Floor(gap_mm=0.0)
-    with pytest.raises(ValueError, match="PlateSpec.outline: expected vertices inside the size_mm box"):
+    with pytest.raises(
+        ValueError, match="PlateSpec.outline: expected vertices inside the size_mm box"
+    ):
         PlateSpec(outline=((0.0, 0.0), (2000.0, 0.0), (0.0, 100.0)))
     with pytest.raises(ValueError, match="PlateSpec.outline: expected rectangle"):
         PlateSpec(outline="oval")
@@ -491,8 +557,26 @@ def test_cli_renders_the_surroundings(tmp_path):
     from pipeline.cli import main
 
     out = tmp_path / "b"
-    code = main(["simulate", "capture", str(out), "--size", "160x128", "--floor", "350", "--supports", "2",
-                 "--cutout", "0,0,300", "--cutout=-800,600,400,200,50", "--outline", "curved", "--lights", "4"])
+    code = main(
+        [
+            "simulate",
+            "capture",
+            str(out),
+            "--size",
+            "160x128",
+            "--floor",
+            "350",
+            "--supports",
+            "2",
+            "--cutout",
+            "0,0,300",
+            "--cutout=-800,600,400,200,50",
+            "--outline",
+            "curved",
+            "--lights",
+            "4",
+        ]
+    )
     assert code == 0
     truth = _truth(out)
     assert {SURFACE_FLOOR, SURFACE_SUPPORT}.issubset(set(np.unique(truth["surface"])))

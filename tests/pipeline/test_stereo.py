@@ -10,10 +10,14 @@ import pytest
 
 from pipeline import simulate
 from pipeline.camera import CameraModel, StereoRig
-from pipeline.stereo import COARSE_PERCENTILES, FINE_MARGIN_PX, StereoDepth, rectification, stereo_depth
+from pipeline.stereo import (
+    COARSE_PERCENTILES,
+    FINE_MARGIN_PX,
+    StereoDepth,
+    rectification,
+    stereo_depth,
+)
 from tests.realdata import ALOE
-
-
 
 
 def _capture(tmp_path: Path, *, width: int, seed: int, plate=None):
@@ -24,7 +28,13 @@ def _capture(tmp_path: Path, *, width: int, seed: int, plate=None):
     truth = np.load(tmp_path / "truth.npz")
     left = cv2.imread(str(tmp_path / "stereo_left.png"), cv2.IMREAD_UNCHANGED)
     right = cv2.imread(str(tmp_path / "stereo_right.png"), cv2.IMREAD_UNCHANGED)
-    return simulate.default_rig(width=width, height=height), left, right, truth["depth_mm"], truth["mask"]
+    return (
+        simulate.default_rig(width=width, height=height),
+        left,
+        right,
+        truth["depth_mm"],
+        truth["mask"],
+    )
 
 
 @pytest.fixture(scope="module")
@@ -71,8 +81,10 @@ def test_the_working_distance_hint_does_not_change_the_depth(plate_3m):
     # issue 4: the hint only bounds the coarse search; the fine range comes from the plate's own disparities,
     # rounded outward to multiples of 16 px, so hints 2600 / 3000 / 3400 mm and no hint give the same depth map
     rig, left, right, depth_true, mask = plate_3m
-    runs = [stereo_depth(left, right, rig, z_min_mm=a, z_max_mm=b, mask=mask)
-            for a, b in map(_coarse_range, (3000.0, 2600.0, 3400.0, None))]
+    runs = [
+        stereo_depth(left, right, rig, z_min_mm=a, z_max_mm=b, mask=mask)
+        for a, b in map(_coarse_range, (3000.0, 2600.0, 3400.0, None))
+    ]
     for sd in runs[1:]:
         assert sd.search_disparity_px == runs[0].search_disparity_px
         np.testing.assert_array_equal(sd.depth_mm, runs[0].depth_mm)
@@ -120,7 +132,9 @@ def test_nothing_to_match_searches_the_given_range_and_invents_nothing():
     # a textureless pair: the coarse pass finds no match, the fine pass falls back to the whole given range
     rig = _small_rig()
     flat = np.full((128, 160), 1000, np.uint16)
-    sd = stereo_depth(flat, flat, rig, z_min_mm=2000.0, z_max_mm=4000.0, mask=np.ones((128, 160), bool))
+    sd = stereo_depth(
+        flat, flat, rig, z_min_mm=2000.0, z_max_mm=4000.0, mask=np.ones((128, 160), bool)
+    )
     assert sd.coarse_span_px is None
     # 150 px * 800 mm / z: 30 .. 60 px, plus RANGE_MARGIN_PX each side
     assert sd.search_disparity_px[0] <= 28 and sd.search_disparity_px[1] >= 62
@@ -154,8 +168,14 @@ def test_holes_are_not_invented(tmp_path):
 def test_eight_bit_and_float_inputs_agree(tmp_path):
     rig, left, right, depth_true, mask = _capture(tmp_path, width=612, seed=6)
     a = stereo_depth(left, right, rig, z_min_mm=2500.0, z_max_mm=3500.0, mask=mask)
-    b = stereo_depth(left.astype(np.float32) * 3.0 + 100.0, right.astype(np.float32) * 3.0 + 100.0, rig,
-                     z_min_mm=2500.0, z_max_mm=3500.0, mask=mask)
+    b = stereo_depth(
+        left.astype(np.float32) * 3.0 + 100.0,
+        right.astype(np.float32) * 3.0 + 100.0,
+        rig,
+        z_min_mm=2500.0,
+        z_max_mm=3500.0,
+        mask=mask,
+    )
     # the percentile scaling removes gain and offset: identical input up to float rounding
     both = a.valid & b.valid
     assert both.sum() >= 0.99 * a.valid.sum()
@@ -182,7 +202,14 @@ def test_middlebury_aloe_bad_pixel_share():
     rig = StereoRig(cam, cam, np.eye(3), np.array([-baseline, 0.0, 0.0]))
     known = gt > 0
     d_lo, d_hi = gt[known].min(), gt[known].max()
-    sd = stereo_depth(left, right, rig, z_min_mm=f * baseline / (d_hi + 2), z_max_mm=f * baseline / (d_lo - 2), refine=False)
+    sd = stereo_depth(
+        left,
+        right,
+        rig,
+        z_min_mm=f * baseline / (d_hi + 2),
+        z_max_mm=f * baseline / (d_lo - 2),
+        refine=False,
+    )
     x0, y0 = sd.disparity_origin_px
     disp = np.full((h, w), np.nan, np.float32)
     hh, ww = sd.disparity_px.shape
@@ -201,21 +228,47 @@ def test_middlebury_aloe_bad_pixel_share():
 
 
 def _small_rig(width=160, height=128, T=(-800.0, 0.0, 0.0)):
-    cam = CameraModel(np.array([[150.0, 0, 80], [0, 150.0, 64], [0, 0, 1]]), np.zeros(5), (width, height))
+    cam = CameraModel(
+        np.array([[150.0, 0, 80], [0, 150.0, 64], [0, 0, 1]]), np.zeros(5), (width, height)
+    )
     return StereoRig(cam, cam, np.eye(3), np.array(T))
 
 
 @pytest.mark.parametrize(
     "change, exc, match",
     [
-        ({"left_raw": np.zeros((100, 160))}, ValueError, r"left_raw: expected shape \(128, 160\) to match"),
-        ({"right_raw": np.zeros((128, 160, 2))}, ValueError, r"right_raw: expected an \(H, W\) or \(H, W, 3\) image"),
-        ({"left_raw": np.full((128, 160), np.nan)}, ValueError, r"left_raw: expected finite pixel values"),
+        (
+            {"left_raw": np.zeros((100, 160))},
+            ValueError,
+            r"left_raw: expected shape \(128, 160\) to match",
+        ),
+        (
+            {"right_raw": np.zeros((128, 160, 2))},
+            ValueError,
+            r"right_raw: expected an \(H, W\) or \(H, W, 3\) image",
+        ),
+        (
+            {"left_raw": np.full((128, 160), np.nan)},
+            ValueError,
+            r"left_raw: expected finite pixel values",
+        ),
         ({"z_min_mm": 3000.0, "z_max_mm": 2000.0}, ValueError, r"expected 0 < z_min_mm < z_max_mm"),
         ({"z_min_mm": -1.0}, ValueError, r"expected 0 < z_min_mm < z_max_mm"),
-        ({"mask": np.ones((128, 160), np.uint8)}, ValueError, r"mask: expected a \(128, 160\) bool array"),
-        ({"mask": np.zeros((128, 160), bool)}, ValueError, r"mask: expected at least one True pixel"),
-        ({"rig": _small_rig(T=(0.0, -800.0, 0.0))}, ValueError, r"rig.T: expected a horizontal baseline"),
+        (
+            {"mask": np.ones((128, 160), np.uint8)},
+            ValueError,
+            r"mask: expected a \(128, 160\) bool array",
+        ),
+        (
+            {"mask": np.zeros((128, 160), bool)},
+            ValueError,
+            r"mask: expected at least one True pixel",
+        ),
+        (
+            {"rig": _small_rig(T=(0.0, -800.0, 0.0))},
+            ValueError,
+            r"rig.T: expected a horizontal baseline",
+        ),
         ({"rig": "calibration.json"}, TypeError, r"rig: expected a StereoRig"),
     ],
 )

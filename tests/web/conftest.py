@@ -19,7 +19,9 @@ def demo_app(tmp_path, monkeypatch):
     return create_app(settings)
 
 
-def seed_done_inspection(app, *, plate_id: str = "H1-P01", measured_radius_mm: float = 5050.0) -> int:
+def seed_done_inspection(
+    app, *, plate_id: str = "H1-P01", measured_radius_mm: float = 5050.0
+) -> int:
     """A done inspection of ``plate_id`` whose artifacts are an analytic cylinder pair."""
     from app.services import inspections as svc
 
@@ -34,9 +36,15 @@ def seed_done_inspection(app, *, plate_id: str = "H1-P01", measured_radius_mm: f
         session.commit()
         assert svc.claim(session=session, inspection_id=inspection_id)
         folder = write_artifacts(
-            app.state.storage.artifacts_dir(inspection_id), plate_id=plate_id, measured_radius_mm=measured_radius_mm
+            app.state.storage.artifacts_dir(inspection_id),
+            plate_id=plate_id,
+            measured_radius_mm=measured_radius_mm,
         )
-        svc.mark_done(session=session, inspection_id=inspection_id, document=json.loads((folder / "result.json").read_text()))
+        svc.mark_done(
+            session=session,
+            inspection_id=inspection_id,
+            document=json.loads((folder / "result.json").read_text()),
+        )
         session.commit()
     return inspection_id
 
@@ -46,7 +54,9 @@ def seed_queued_inspection(app, *, plate_id: str = "H1-P02") -> int:
 
     with app.state.session_factory() as session:
         row = svc.create_simulated_inspection(
-            session=session, storage=app.state.storage, plate_id=plate_id,
+            session=session,
+            storage=app.state.storage,
+            plate_id=plate_id,
             simulation=_simulation(),
         )
         session.commit()
@@ -56,4 +66,6 @@ def seed_queued_inspection(app, *, plate_id: str = "H1-P02") -> int:
 def _simulation() -> dict:
     from app.schemas import SimulatedInspectionIn
 
-    return SimulatedInspectionIn(shape="cylinder", radius_mm=5000.0, tolerance_mm=2.0).model_dump(mode="json")
+    return SimulatedInspectionIn(shape="cylinder", radius_mm=5000.0, tolerance_mm=2.0).model_dump(
+        mode="json"
+    )

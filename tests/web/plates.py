@@ -10,7 +10,12 @@ import trimesh
 
 
 def cylinder_grid(
-    *, radius_mm: float, size_mm: tuple[float, float], n: tuple[int, int], depth_mm: float = 3000.0, convex: bool = True
+    *,
+    radius_mm: float,
+    size_mm: tuple[float, float],
+    n: tuple[int, int],
+    depth_mm: float = 3000.0,
+    convex: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A cylinder patch seen by the left camera: axis along camera y, apex at (0, 0, depth).
 
@@ -27,7 +32,9 @@ def cylinder_grid(
     rows, cols = uu.shape
     idx = np.arange(rows * cols).reshape(rows, cols)
     a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
-    faces = np.concatenate([np.stack([a, c, b], -1).reshape(-1, 3), np.stack([b, c, d], -1).reshape(-1, 3)])
+    faces = np.concatenate(
+        [np.stack([a, c, b], -1).reshape(-1, 3), np.stack([b, c, d], -1).reshape(-1, 3)]
+    )
     return vertices, faces, np.stack([uu, vv], -1).reshape(-1, 2)
 
 
@@ -51,11 +58,17 @@ def write_artifacts(
     out_dir.mkdir(parents=True, exist_ok=True)
     tv, tf, _ = cylinder_grid(radius_mm=radius_mm, size_mm=size_mm, n=n)
     mv, mf, _ = cylinder_grid(radius_mm=measured_radius_mm, size_mm=size_mm, n=n)
-    deviation = tv[:, 2] - mv[:, 2]  # same (x, y) grid: positive where the measured lies nearer the cameras
+    deviation = (
+        tv[:, 2] - mv[:, 2]
+    )  # same (x, y) grid: positive where the measured lies nearer the cameras
     surface = trimesh.Trimesh(mv, mf, process=False)
     surface.vertex_attributes["deviation_mm"] = deviation.astype(np.float32)
-    (out_dir / "surface.ply").write_bytes(trimesh.exchange.ply.export_ply(surface, include_attributes=True))
-    (out_dir / "target.ply").write_bytes(trimesh.exchange.ply.export_ply(trimesh.Trimesh(tv, tf, process=False)))
+    (out_dir / "surface.ply").write_bytes(
+        trimesh.exchange.ply.export_ply(surface, include_attributes=True)
+    )
+    (out_dir / "target.ply").write_bytes(
+        trimesh.exchange.ply.export_ply(trimesh.Trimesh(tv, tf, process=False))
+    )
     max_abs = float(np.abs(deviation).max())
     document = {
         "format": "plate-result/1",
@@ -64,7 +77,11 @@ def write_artifacts(
         "principal_radii_mm": [measured_radius_mm, None],
         "target_radius_mm": radius_mm,
         "radius_error_pct": 100.0 * (measured_radius_mm - radius_mm) / radius_mm,
-        "deviation_mm": {"rms": float(np.sqrt(np.mean(deviation**2))), "max_abs": max_abs, "p95": max_abs},
+        "deviation_mm": {
+            "rms": float(np.sqrt(np.mean(deviation**2))),
+            "max_abs": max_abs,
+            "p95": max_abs,
+        },
         "tolerance_mm": tolerance_mm,
         "within_tolerance_pct": float(100.0 * np.mean(np.abs(deviation) <= tolerance_mm)),
         "verdict": "pass" if max_abs <= tolerance_mm else "fail",

@@ -28,8 +28,13 @@ ROOT = Path(__file__).resolve().parents[2]
 SHOTS = ROOT / "test-artifacts"
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = [
-    "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-    "--disable-component-update", "--disable-sync", "--no-first-run",
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
 ]
 
 TOKEN = "browser-test-token"
@@ -70,12 +75,28 @@ def live_server(tmp_path_factory):
 
     write_demo_cell(data / "demo-cell", n_lights=6, width=612, height=512)
     web = subprocess.Popen(
-        [sys.executable, "-m", "uvicorn", "app.main:create_app", "--factory", "--host", "127.0.0.1", "--port", str(port)],
-        env=env, cwd=ROOT, stdout=open(logs / "web.log", "wb"), stderr=subprocess.STDOUT,
+        [
+            sys.executable,
+            "-m",
+            "uvicorn",
+            "app.main:create_app",
+            "--factory",
+            "--host",
+            "127.0.0.1",
+            "--port",
+            str(port),
+        ],
+        env=env,
+        cwd=ROOT,
+        stdout=open(logs / "web.log", "wb"),
+        stderr=subprocess.STDOUT,
     )
     worker = subprocess.Popen(
-        [sys.executable, "-m", "app.worker"], env=env, cwd=ROOT,
-        stdout=open(logs / "worker.log", "wb"), stderr=subprocess.STDOUT,
+        [sys.executable, "-m", "app.worker"],
+        env=env,
+        cwd=ROOT,
+        stdout=open(logs / "worker.log", "wb"),
+        stderr=subprocess.STDOUT,
     )
     base = f"http://127.0.0.1:{port}"
     deadline = time.monotonic() + 90  # a cold first start on a loaded machine imports for long
@@ -136,7 +157,10 @@ def _watch_csp(page) -> list[str]:
     """The CSP violations the page and its frames will report (a list filled as they happen)."""
     violations: list[str] = []
     page.add_init_script(REPORT_CSP_VIOLATIONS)
-    page.on("console", lambda m: violations.append(m.text) if m.text.startswith("CSP violation") else None)
+    page.on(
+        "console",
+        lambda m: violations.append(m.text) if m.text.startswith("CSP violation") else None,
+    )
     return violations
 
 
@@ -160,7 +184,9 @@ def test_cell_to_result_to_history(live_server, browser):
     row = page.locator("#queue tr[data-id]").first
     inspection_id = int(row.get_attribute("data-id"))
     # The queue updates without reload: the same page sees the job finish.
-    page.wait_for_selector(f"#queue tr[data-id='{inspection_id}'][data-status='running']", timeout=60_000)
+    page.wait_for_selector(
+        f"#queue tr[data-id='{inspection_id}'][data-status='running']", timeout=60_000
+    )
     page.screenshot(path=SHOTS / "cell-running.png")
     page.wait_for_selector(
         f"#queue tr[data-id='{inspection_id}'][data-status='done'], #queue tr[data-id='{inspection_id}'][data-status='failed']",
@@ -205,7 +231,9 @@ def test_cell_to_result_to_history(live_server, browser):
     assert not errors, errors
     # Pages and the 3D view (viser's client in the frame) run under their Content-Security-Policy.
     assert not violations, violations
-    (SHOTS / "browser-run.json").write_text(json.dumps({"inspect_entry": live_server["entry"], "inspection": inspection_id}))
+    (SHOTS / "browser-run.json").write_text(
+        json.dumps({"inspect_entry": live_server["entry"], "inspection": inspection_id})
+    )
 
 
 def test_two_browsers_see_their_own_plates(live_server, browser):
@@ -215,13 +243,20 @@ def test_two_browsers_see_their_own_plates(live_server, browser):
     for plate in ("H8-A", "H8-B"):
         req = urllib.request.Request(
             f"{base}/api/v1/plates/{plate}/inspections/simulated",
-            data=json.dumps({"width": 320, "height": 256, "radius_mm": 4000.0 if plate == "H8-A" else 8000.0}).encode(),
-            headers={"Content-Type": "application/json", "Authorization": f"Bearer {_token(live_server)}"},
+            data=json.dumps(
+                {"width": 320, "height": 256, "radius_mm": 4000.0 if plate == "H8-A" else 8000.0}
+            ).encode(),
+            headers={
+                "Content-Type": "application/json",
+                "Authorization": f"Bearer {_token(live_server)}",
+            },
         )
         ids.append(json.load(urllib.request.urlopen(req))["id"])
     for inspection_id in ids:
         deadline = time.monotonic() + 90
-        while json.load(urllib.request.urlopen(f"{base}/api/v1/inspections/{inspection_id}"))["status"] not in ("done", "failed"):
+        while json.load(urllib.request.urlopen(f"{base}/api/v1/inspections/{inspection_id}"))[
+            "status"
+        ] not in ("done", "failed"):
             assert time.monotonic() < deadline
             time.sleep(0.5)
     pages = []
@@ -250,17 +285,37 @@ def test_light_calibration_upload_on_the_calibration_page(live_server, browser):
     field = "#light-calibration-form input[name=calibration]"
     bad = ring_of_lights(8)
     bad["lights"][3]["mu"] = -1.0
-    page.set_input_files(field, files=[{"name": "bad-lights.json", "mimeType": "application/json",
-                                        "buffer": json.dumps(bad).encode()}])
+    page.set_input_files(
+        field,
+        files=[
+            {
+                "name": "bad-lights.json",
+                "mimeType": "application/json",
+                "buffer": json.dumps(bad).encode(),
+            }
+        ],
+    )
     page.click("#light-calibration-form button[type=submit]")
     page.wait_for_selector("#light-calibration-message[data-kind=error]", timeout=10_000)
-    assert "bad-lights.json: lights[3].mu" in page.locator("#light-calibration-message").inner_text()
+    assert (
+        "bad-lights.json: lights[3].mu" in page.locator("#light-calibration-message").inner_text()
+    )
 
-    page.set_input_files(field, files=[{"name": "cell-lights.json", "mimeType": "application/json",
-                                        "buffer": json.dumps(ring_of_lights(8)).encode()}])
+    page.set_input_files(
+        field,
+        files=[
+            {
+                "name": "cell-lights.json",
+                "mimeType": "application/json",
+                "buffer": json.dumps(ring_of_lights(8)).encode(),
+            }
+        ],
+    )
     page.click("#light-calibration-form button[type=submit]")
     page.wait_for_selector("#light-calibration-message[data-kind=ok]", timeout=10_000)
-    page.wait_for_selector("#light-table", timeout=10_000)  # the page reloads with the new current one
+    page.wait_for_selector(
+        "#light-table", timeout=10_000
+    )  # the page reloads with the new current one
     assert page.locator("#light-table tbody tr").count() == 8
     assert page.locator(".light-plan circle.light").count() == 8
     page.screenshot(path=SHOTS / "calibration-lights.png", full_page=True)
@@ -278,7 +333,10 @@ def test_capture_button_photographs_and_inspects_with_the_demo_cell(live_server,
     page.goto(f"{live_server['base']}/cell")
     cameras = page.locator("#cameras figure.camera")
     assert cameras.count() == 2
-    assert [cameras.nth(k).get_attribute("data-state") for k in range(2)] == ["connected", "connected"]
+    assert [cameras.nth(k).get_attribute("data-state") for k in range(2)] == [
+        "connected",
+        "connected",
+    ]
     assert "simulated camera" in page.locator("#cameras").inner_text()
     assert page.locator("#capture").is_enabled()
 
@@ -287,16 +345,24 @@ def test_capture_button_photographs_and_inspects_with_the_demo_cell(live_server,
     page.wait_for_selector("#start-message[data-kind=ok]:has-text('queued')", timeout=10_000)
     inspection_id = int(re.search(r"#(\d+)", page.locator("#start-message").inner_text()).group(1))
     row = f"#queue tr[data-id='{inspection_id}']"
-    page.wait_for_selector(f"{row}[data-status='done'], {row}[data-status='failed']", timeout=120_000)
+    page.wait_for_selector(
+        f"{row}[data-status='done'], {row}[data-status='failed']", timeout=120_000
+    )
     page.screenshot(path=SHOTS / "cell-captured.png")
-    assert page.locator(row).get_attribute("data-status") == "done", (live_server["logs"] / "worker.log").read_text()[-3000:]
+    assert page.locator(row).get_attribute("data-status") == "done", (
+        live_server["logs"] / "worker.log"
+    ).read_text()[-3000:]
     assert page.locator(f"{row} td").nth(2).inner_text() == "acquired"
 
     # the cameras panel (polled) shows this capture's last frames, decoded by the browser
     thumbnails = page.locator(f"#cameras img[src$='inspection={inspection_id}']")
     thumbnails.nth(1).wait_for(timeout=30_000)
     deadline = time.monotonic() + 10
-    while (widths := thumbnails.evaluate_all("(imgs) => imgs.map((img) => img.complete ? img.naturalWidth : 0)")) != [320, 320]:
+    while (
+        widths := thumbnails.evaluate_all(
+            "(imgs) => imgs.map((img) => img.complete ? img.naturalWidth : 0)"
+        )
+    ) != [320, 320]:
         assert time.monotonic() < deadline, f"the thumbnails did not load: {widths}"
         time.sleep(0.2)
     page.screenshot(path=SHOTS / "cell-cameras.png")
@@ -317,7 +383,9 @@ def test_api_docs_run_under_their_csp(live_server, browser):
     violations = _watch_csp(page)
     response = page.goto(f"{live_server['base']}/docs")
     assert "'sha256-" in response.headers["content-security-policy"]
-    page.wait_for_selector(".opblock", timeout=20_000)  # the operations, rendered from /openapi.json
+    page.wait_for_selector(
+        ".opblock", timeout=20_000
+    )  # the operations, rendered from /openapi.json
     assert page.locator(".opblock").count() >= 15
     assert not errors and not violations, (errors, violations)
 

@@ -19,21 +19,27 @@ def ring_of_lights(n: int = 8, *, radius_mm: float = 1616.58, height_mm: float =
     from pipeline.lights import Lights
 
     angles = np.arange(n) * 2 * np.pi / n
-    positions = np.stack([radius_mm * np.cos(angles), radius_mm * np.sin(angles), np.full(n, height_mm)], axis=1)
+    positions = np.stack(
+        [radius_mm * np.cos(angles), radius_mm * np.sin(angles), np.full(n, height_mm)], axis=1
+    )
     axes = np.array([0.0, 0.0, 2800.0]) - positions
     axes /= np.linalg.norm(axes, axis=1, keepdims=True)
     lights = Lights.points(positions, np.linspace(9.5, 10.5, n), axes=axes, mu=np.full(n, 1.5))
     return light_calibration_document(lights, 0.0042)
 
 
-def seed_light_calibration(app, document: dict, *, file_name: str | None = "cell-lights.json") -> int:
+def seed_light_calibration(
+    app, document: dict, *, file_name: str | None = "cell-lights.json"
+) -> int:
     from app.services import light_calibrations as svc
 
     storage = app.state.storage
     staging = storage.new_staging_dir()
     (staging / svc.LIGHT_CALIBRATION_FILE).write_text(json.dumps(document), encoding="utf-8")
     with app.state.session_factory() as session:
-        row = svc.create_light_calibration(session=session, storage=storage, staging_dir=staging, file_name=file_name)
+        row = svc.create_light_calibration(
+            session=session, storage=storage, staging_dir=staging, file_name=file_name
+        )
         session.commit()
         return row.id
 
@@ -47,9 +53,13 @@ def test_calibration_page_shows_the_current_light_calibration(demo_app):
         seed_light_calibration(demo_app, ring_of_lights(6))
         newest = seed_light_calibration(demo_app, ring_of_lights(8))
         html = client.get("/calibration").text
-        table = html[html.index('id="light-table"'):html.index("</table>", html.index('id="light-table"'))]
+        table = html[
+            html.index('id="light-table"') : html.index("</table>", html.index('id="light-table"'))
+        ]
         rows = re.findall(r"<tr>\s*<td>(\d+)</td>(.*?)</tr>", table, re.S)
-        assert [int(k) for k, _ in rows] == list(range(8))  # the current (newest) one, in image order
+        assert [int(k) for k, _ in rows] == list(
+            range(8)
+        )  # the current (newest) one, in image order
         first = re.findall(r'<td class="num">([^<]*)</td>', rows[0][1])
         # position in mm with one decimal, axis, mu, intensity
         assert first == ["1616.6", "0.0", "200.0", "-0.53, 0.00, 0.85", "1.50", "9.500"], first
@@ -74,7 +84,9 @@ def test_result_page_shows_the_warnings_and_the_light_calibration(demo_app):
         session.commit()
     with TestClient(demo_app) as client:
         html = client.get(f"/inspections/{warned}").text
-        section = html[html.index('id="warnings"'):html.index("</section>", html.index('id="warnings"'))]
+        section = html[
+            html.index('id="warnings"') : html.index("</section>", html.index('id="warnings"'))
+        ]
         assert f"<li>{APPLIED}</li>".replace("'", "&#39;") in section
         assert "&lt;far&gt;" in section  # escaped by the template
         assert f'href="/api/v1/light-calibrations/{calibration_id}"' in html

@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
-import json
-
 from fastapi.testclient import TestClient
 
 from tests.api.conftest import target_json
 from tests.api.test_forming import MACHINE, MATERIAL, process
 
 
-def _seed(app, *, plate_id: str, passes: list[tuple[float, float, str]], material=MATERIAL) -> int | None:
+def _seed(
+    app, *, plate_id: str, passes: list[tuple[float, float, str]], material=MATERIAL
+) -> int | None:
     """A machine, the plate's cylinder target and its done passes ``(setting, measured radius, verdict)``."""
     from app.schemas import SimulatedInspectionIn
     from app.services import forming as forming_svc
@@ -20,20 +20,29 @@ def _seed(app, *, plate_id: str, passes: list[tuple[float, float, str]], materia
     storage = app.state.storage
     last = None
     with app.state.session_factory() as session:
-        forming_svc.put_machine(session=session, machine_id="R3-01", spec={k: float(v) if k != "kind" else v
-                                                                          for k, v in MACHINE.items()})
+        forming_svc.put_machine(
+            session=session,
+            machine_id="R3-01",
+            spec={k: float(v) if k != "kind" else v for k, v in MACHINE.items()},
+        )
         staging = storage.new_staging_dir()
         (staging / TARGET_FILE).write_bytes(target_json(material=material))
         create_target(session=session, storage=storage, plate_id=plate_id, staging_dir=staging)
         session.commit()
         for setting, radius, verdict in passes:
             simulation = SimulatedInspectionIn(process=process(setting)).model_dump(mode="json")
-            row = svc.create_simulated_inspection(session=session, storage=storage, plate_id=plate_id,
-                                                  simulation=simulation)
+            row = svc.create_simulated_inspection(
+                session=session, storage=storage, plate_id=plate_id, simulation=simulation
+            )
             session.commit()
             assert svc.claim(session=session, inspection_id=row.id)
-            document = {"format": "plate-result/1", "plate_id": plate_id, "radius_mm": radius,
-                        "target_radius_mm": 5000.0, "verdict": verdict}
+            document = {
+                "format": "plate-result/1",
+                "plate_id": plate_id,
+                "radius_mm": radius,
+                "target_radius_mm": 5000.0,
+                "verdict": verdict,
+            }
             assert svc.mark_done(session=session, inspection_id=row.id, document=document)
             session.commit()
             last = row.id

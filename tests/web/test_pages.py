@@ -25,14 +25,20 @@ def test_cell_page_has_form_queue_and_no_external_assets(demo_app):
         # Demo mode hands out the write session to same-origin pages.
         assert "plate_inspect_session" in page.headers.get("set-cookie", "")
         partial = client.get("/cell/queue")
-        assert partial.status_code == 200 and f'data-id="{queued}"' in partial.text and "<html" not in partial.text
+        assert (
+            partial.status_code == 200
+            and f'data-id="{queued}"' in partial.text
+            and "<html" not in partial.text
+        )
 
 
 def test_result_page_shows_verdict_numbers_view_and_templates(demo_app):
     inspection_id = seed_done_inspection(demo_app)
     with TestClient(demo_app) as client:
         html = client.get(f"/inspections/{inspection_id}").text
-        assert 'class="verdict-banner verdict-fail"' in html  # 2.2 mm max deviation > 2 mm tolerance
+        assert (
+            'class="verdict-banner verdict-fail"' in html
+        )  # 2.2 mm max deviation > 2 mm tolerance
         assert "5050.0 mm" in html and "5000.0 mm" in html and "+1.00 %" in html
         assert f'src="/viewer/{inspection_id}/?hideViserLogo"' in html
         # Frames every 700 mm over the 2000 mm axis: 3 templates (300, 1000, 1700 mm).
@@ -42,7 +48,12 @@ def test_result_page_shows_verdict_numbers_view_and_templates(demo_app):
         assert 'class="gap-label bad"' in html
         partial = client.get(f"/inspections/{inspection_id}/templates", params={"spacing_mm": 300})
         assert partial.text.count('<figure class="template">') == 7 and "<html" not in partial.text
-        assert client.get(f"/inspections/{inspection_id}/templates", params={"spacing_mm": 10}).status_code == 422
+        assert (
+            client.get(
+                f"/inspections/{inspection_id}/templates", params={"spacing_mm": 10}
+            ).status_code
+            == 422
+        )
         assert client.get("/inspections/999").status_code == 404
 
 
@@ -60,7 +71,10 @@ def test_plate_history_has_trend_and_links(demo_app):
     with TestClient(demo_app) as client:
         html = client.get("/plates/H2-P03").text
         assert f'href="/inspections/{first}"' in html and f'href="/inspections/{second}"' in html
-        assert html.count('<circle class="dot dot-1"') == 2 and html.count('<circle class="dot dot-2"') == 2
+        assert (
+            html.count('<circle class="dot dot-1"') == 2
+            and html.count('<circle class="dot dot-2"') == 2
+        )
         assert 'class="limit"' in html  # the tolerance line
         assert client.get("/plates/NOPE").status_code == 404
 
@@ -84,6 +98,8 @@ def test_no_outside_url_in_pages_static_files_or_the_viewer_client():
     assert len(files) >= 10
     for path in files:
         assert not re.search(r"https?://|//cdn", path.read_text(encoding="utf-8")), path
-    client_page = (Path(viser.__file__).parent / "client" / "build" / "index.html").read_text(encoding="utf-8")
+    client_page = (Path(viser.__file__).parent / "client" / "build" / "index.html").read_text(
+        encoding="utf-8"
+    )
     # The only URL in viser's bundled client is the SVG namespace (an identifier, never fetched).
     assert set(re.findall(r"https?://[A-Za-z0-9.-]+", client_page)) <= {"http://www.w3.org"}

@@ -30,7 +30,9 @@ def test_gap_matches_two_cylinders(seed):
     shift = rng.uniform(-200, 200, 3)
     tv, tf, _ = cylinder_grid(radius_mm=5000.0, size_mm=(3000.0, 2000.0), n=(61, 41))
     mv, mf, _ = cylinder_grid(radius_mm=5050.0, size_mm=(3000.0, 2000.0), n=(61, 41))
-    frame, sections = cut_sections(_pose(mv, rot, shift), mf, _pose(tv, rot, shift), tf, spacing_mm=500.0)
+    frame, sections = cut_sections(
+        _pose(mv, rot, shift), mf, _pose(tv, rot, shift), tf, spacing_mm=500.0
+    )
     # Frames are stacked along the cylinder axis (camera y before the pose).
     assert abs(frame.along @ (rot @ [0, 1, 0])) > 0.999
     assert frame.normal @ (rot @ [0, 0, -1]) > 0.999  # towards the cameras
@@ -67,7 +69,9 @@ def test_holes_are_nan_not_bridged():
 
 
 def test_plate_frame_refuses_bad_input():
-    with pytest.raises(ValueError, match=r"target_vertices_mm: expected shape \(V, 3\) with V >= 6"):
+    with pytest.raises(
+        ValueError, match=r"target_vertices_mm: expected shape \(V, 3\) with V >= 6"
+    ):
         plate_frame(np.zeros((4, 3)))
     bad = np.zeros((10, 3))
     bad[0, 0] = np.nan
@@ -85,7 +89,15 @@ def test_trend_axis_ticks_are_round_numbers():
         nice_ticks(1.0, 0.0)
     chart = trend_chart([(1, "#1", 0.017, 0.22), (2, "#2", -0.4, 2.6)], tolerance_mm=2.0)
     radius, deviation = chart.series
-    assert [label for _, label in radius.ticks] == ["-0.5", "-0.4", "-0.3", "-0.2", "-0.1", "0.0", "0.1"]
+    assert [label for _, label in radius.ticks] == [
+        "-0.5",
+        "-0.4",
+        "-0.3",
+        "-0.2",
+        "-0.1",
+        "0.0",
+        "0.1",
+    ]
     assert [label for _, label in deviation.ticks] == ["0", "1", "2", "3"]
     # the tolerance line lies inside the panel
     assert deviation.y0 < deviation.limit_y < deviation.y1
@@ -100,7 +112,9 @@ def test_template_gap_enlargement_follows_the_tolerance_or_the_gap():
 
     def drawing(gap_mm):
         gap = np.full_like(u, gap_mm)
-        return section_drawings([Section(100.0, u, target_h, target_h + gap, gap)], tolerance_mm=2.0, width=1100.0)[0]
+        return section_drawings(
+            [Section(100.0, u, target_h, target_h + gap, gap)], tolerance_mm=2.0, width=1100.0
+        )[0]
 
     sx = (1100.0 - 80.0) / 3000.0  # px per mm along the section (40 px pads)
     small = drawing(0.05)  # noise-level gaps: the tolerance sets the scale (2 mm -> <= 24 px)
@@ -108,4 +122,6 @@ def test_template_gap_enlargement_follows_the_tolerance_or_the_gap():
     large = drawing(6.0)  # a gap beyond tolerance sets it instead
     assert 6.0 * large.exaggeration * sx <= 24.0 and large.exaggeration < small.exaggeration
     with pytest.raises(ValueError, match="tolerance_mm: expected a positive number"):
-        section_drawings([Section(100.0, u, target_h, target_h, np.zeros_like(u))], tolerance_mm=0.0)
+        section_drawings(
+            [Section(100.0, u, target_h, target_h, np.zeros_like(u))], tolerance_mm=0.0
+        )

@@ -37,7 +37,9 @@ def test_decimate_keeps_a_cylinder_on_its_surface():
 
 def test_decimate_averages_values_and_leaves_small_meshes_alone():
     v, f, _ = cylinder_grid(radius_mm=5000.0, size_mm=(1000.0, 1000.0), n=(41, 41))
-    values = 0.01 * v[:, 0]  # linear in x: cluster means of a linear field are the field at the cluster mean
+    values = (
+        0.01 * v[:, 0]
+    )  # linear in x: cluster means of a linear field are the field at the cluster mean
     dv, _, dval = decimate_mesh(v, f, values, max_vertices=300)
     np.testing.assert_allclose(dval, 0.01 * dv[:, 0], atol=1e-9)
     same_v, same_f, same_val = decimate_mesh(v, f, values, max_vertices=len(v))
@@ -72,7 +74,9 @@ def test_load_plate_meshes_in_display_frame(tmp_path):
     meshes = load_plate_meshes(tmp_path, max_vertices=10_000)
     # Display frame: metres, centred; the apex (nearest the cameras) is the highest point.
     assert meshes.extent_m == pytest.approx(3.0)
-    apex = meshes.measured_vertices[np.argmin(np.abs(meshes.measured_vertices[:, 0]) + np.abs(meshes.measured_vertices[:, 1]))]
+    apex = meshes.measured_vertices[
+        np.argmin(np.abs(meshes.measured_vertices[:, 0]) + np.abs(meshes.measured_vertices[:, 1]))
+    ]
     assert apex[2] == pytest.approx(meshes.measured_vertices[:, 2].max(), abs=1e-6)
     tri = meshes.measured_vertices[meshes.measured_faces]
     normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
@@ -86,8 +90,12 @@ def test_read_surface_ply_needs_a_deviation(tmp_path):
     import trimesh
 
     v, f, _ = cylinder_grid(radius_mm=5000.0, size_mm=(100.0, 100.0), n=(3, 3))
-    (tmp_path / "s.ply").write_bytes(trimesh.exchange.ply.export_ply(trimesh.Trimesh(v, f, process=False)))
-    with pytest.raises(ValueError, match=r"s.ply: vertex: expected a property among \('deviation_mm'"):
+    (tmp_path / "s.ply").write_bytes(
+        trimesh.exchange.ply.export_ply(trimesh.Trimesh(v, f, process=False))
+    )
+    with pytest.raises(
+        ValueError, match=r"s.ply: vertex: expected a property among \('deviation_mm'"
+    ):
         read_surface_ply(tmp_path / "s.ply")
 
 

@@ -40,15 +40,21 @@ def app(tmp_path):
 
 def _open(stack: ExitStack, client: TestClient, inspection_id: int):
     """A connected bridge (viser's first message relayed), kept open until ``stack`` closes."""
-    ws = stack.enter_context(client.websocket_connect(f"/viewer/{inspection_id}", subprotocols=[VISER_SUBPROTOCOL]))
+    ws = stack.enter_context(
+        client.websocket_connect(f"/viewer/{inspection_id}", subprotocols=[VISER_SUBPROTOCOL])
+    )
     assert len(ws.receive_bytes()) > 0
     return ws
 
 
 def _refused(client: TestClient, inspection_id: int) -> WebSocketDisconnect:
-    with pytest.raises(WebSocketDisconnect) as closed:
-        with client.websocket_connect(f"/viewer/{inspection_id}", subprotocols=[VISER_SUBPROTOCOL]) as ws:
-            ws.receive_bytes()
+    with (
+        pytest.raises(WebSocketDisconnect) as closed,
+        client.websocket_connect(
+            f"/viewer/{inspection_id}", subprotocols=[VISER_SUBPROTOCOL]
+        ) as ws,
+    ):
+        ws.receive_bytes()
     return closed.value
 
 
@@ -64,10 +70,15 @@ def test_an_anonymous_address_holds_at_most_its_websockets(app):
             _open(stack, anonymous, first)
             _open(stack, anonymous, second)
             refused = _refused(anonymous, first)
-            assert refused.code == CLOSE_TRY_AGAIN_LATER and "already has 2 3D views open" in refused.reason
+            assert (
+                refused.code == CLOSE_TRY_AGAIN_LATER
+                and "already has 2 3D views open" in refused.reason
+            )
             page = anonymous.get(f"/viewer/{first}/")
             assert page.status_code == 503 and "already has 2 3D views open" in page.text
-            assert page.headers["x-frame-options"] == "SAMEORIGIN"  # shown inside the dashboard's frame
+            assert (
+                page.headers["x-frame-options"] == "SAMEORIGIN"
+            )  # shown inside the dashboard's frame
             # Another address is not affected.
             _open(stack, _client(app, "10.0.0.6"), first)
             assert main.app.state.viewer.running() == sorted([first, second])
@@ -95,12 +106,19 @@ def test_anonymous_clients_leave_the_reserved_servers_to_the_operator(app):
         page = operator.get(f"/viewer/{ids[2]}/")
         assert page.status_code == 200 and page.headers["x-frame-options"] == "SAMEORIGIN"
         policy = page.headers["content-security-policy"]
-        assert "'strict-dynamic'" in policy and "'sha256-" in policy and "frame-ancestors 'self'" in policy
+        assert (
+            "'strict-dynamic'" in policy
+            and "'sha256-" in policy
+            and "frame-ancestors 'self'" in policy
+        )
         _open(stack, operator, ids[2])
         assert main.app.state.viewer.running() == sorted(ids[:3])
         # Every server has a browser now: even the operator is told so.
         refused = _refused(operator, ids[3])
-        assert refused.code == CLOSE_TRY_AGAIN_LATER and "3 inspections are already being viewed" in refused.reason
+        assert (
+            refused.code == CLOSE_TRY_AGAIN_LATER
+            and "3 inspections are already being viewed" in refused.reason
+        )
 
 
 def test_the_cells_own_screen_on_loopback_is_the_operator(app):
