@@ -15,7 +15,7 @@ from app.limits.physical import (
     SIZE_MM,
     radius_reason,
 )
-from app.storage import PLATE_ID_REGEX  # the one plate-id rule (folder names)
+from app.storage import PLATE_ID_MAX_LENGTH, PLATE_ID_REGEX  # noqa: F401  (routes.common imports the length from here)
 
 T = TypeVar("T")
 
