@@ -1,7 +1,8 @@
-"""``plate-inspect serve``: the web server plus its job consumer (a child process).
+"""``plate-inspect serve``: the web server plus its job consumer (a child process), and
+``plate-inspect worker``: a job consumer alone (a worker machine of a yard).
 
 Registered in the CLI through the entry-point group ``plate_inspect.commands``
-(``serve = "app.cli:register"``); the pipeline's CLI never imports ``app``.
+(``serve = "app.cli:register"``, which adds both); the pipeline's CLI never imports ``app``.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ CONSUMER_STOP_TIMEOUT_S = 10.0
 
 
 def register(subparsers) -> None:
-    """Add the ``serve`` subcommand to the CLI's subparsers."""
+    """Add the ``serve`` and ``worker`` subcommands to the CLI's subparsers."""
     p = subparsers.add_parser(
         "serve",
         help="run the inspection service (REST API, dashboard, job consumer)",
@@ -45,7 +46,42 @@ def register(subparsers) -> None:
         action="store_true",
         help="demo cell: generate and print an API token if none is set",
     )
+    p.add_argument(
+        "--no-worker",
+        action="store_true",
+        help="no local job consumer: the jobs run on `plate-inspect worker` machines (shared queue)",
+    )
     p.set_defaults(handler=serve_command)
+    w = subparsers.add_parser(
+        "worker",
+        help="run a job consumer only (a worker machine of a yard)",
+        description="Run a job consumer: it takes inspection jobs from the queue and runs the pipeline. "
+        "Same PLATE_INSPECT_* settings as serve; on a shared queue (PLATE_INSPECT_QUEUE_URL) any number "
+        "of workers run at once. The database is brought to the current schema on start.",
+    )
+    w.add_argument(
+        "--cell",
+        default=None,
+        metavar="ID",
+        help="also run the acquisition jobs of cell ID (its cameras must be reachable from here: "
+        "PLATE_INSPECT_CELL_CONFIG names that cell)",
+    )
+    w.add_argument(
+        "--data-dir",
+        type=Path,
+        default=None,
+        help="data directory, shared by every machine (default: PLATE_INSPECT_DATA_DIR or ./var)",
+    )
+    w.set_defaults(handler=worker_command)
+
+
+def worker_command(args: argparse.Namespace) -> int:
+    """Handler of ``plate-inspect worker``: :func:`app.worker.main` in this process."""
+    from app import worker
+
+    if args.data_dir is not None:
+        os.environ["PLATE_INSPECT_DATA_DIR"] = str(args.data_dir.resolve())
+    return worker.main([] if args.cell is None else ["--cell", args.cell])
 
 
 class ConsumerProcess:
@@ -60,6 +96,7 @@ class ConsumerProcess:
 
     def __init__(self, settings: Settings):
         self.env = {**os.environ, **settings.to_env()}
+        self.args = consumer_cell_args(settings)
         self.proc: subprocess.Popen | None = None
         self._stopping = threading.Event()
         self._watchdog: threading.Thread | None = None
@@ -71,7 +108,8 @@ class ConsumerProcess:
 
     def _spawn(self) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "app.worker", "--parent-pid", str(os.getpid())], env=self.env
+            [sys.executable, "-m", "app.worker", "--parent-pid", str(os.getpid()), *self.args],
+            env=self.env,
         )
         log.info("job consumer started (pid %s)", self.proc.pid)
 
@@ -106,6 +144,19 @@ class ConsumerProcess:
         log.info("job consumer stopped")
 
 
+def consumer_cell_args(settings: Settings) -> list[str]:
+    """``["--cell", id]`` for the consumer of a server with a cell on a shared queue (it runs that
+    cell's acquisitions), else nothing (the embedded queue's one consumer runs every job)."""
+    if settings.queue_url is None:
+        return []
+    from app.services.cell import CellUnavailable, load_cell
+
+    try:
+        return ["--cell", load_cell(settings).cell_id]
+    except CellUnavailable:
+        return []
+
+
 def serve_command(args: argparse.Namespace) -> int:
     """Handler of ``plate-inspect serve``: start the consumer, run uvicorn, stop the consumer."""
     import uvicorn
@@ -136,16 +187,20 @@ def serve_command(args: argparse.Namespace) -> int:
         f"plate-inspect serve: http://{args.host}:{args.port}/ (API docs at /docs), data in {settings.data_dir.resolve()}",
         flush=True,
     )
-    consumer = ConsumerProcess(settings)
+    consumer = None if args.no_worker else ConsumerProcess(settings)
+    if consumer is None:
+        print("plate-inspect serve: no local job consumer (--no-worker)", flush=True)
     # uvicorn shuts down gracefully on SIGTERM, then raises the signal again with the handler
     # that was installed before it started: the default one would end this process before the
     # consumer is stopped (leaving it orphaned). Ours just notes it, so the consumer stops first.
     stopped_by: list[int] = []
     previous = signal.signal(signal.SIGTERM, lambda signum, frame: stopped_by.append(signum))
-    consumer.start()
+    if consumer is not None:
+        consumer.start()
     try:
         uvicorn.run(app, host=args.host, port=args.port, log_level="info")
     finally:
-        consumer.stop()
+        if consumer is not None:
+            consumer.stop()
         signal.signal(signal.SIGTERM, previous)
     return 128 + signal.SIGTERM if stopped_by else 0

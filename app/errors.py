@@ -18,9 +18,11 @@ from fastapi import FastAPI, HTTPException, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
+from sqlalchemy.exc import DBAPIError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match, Mount
 
+from app.db import database_unavailable
 from app.schemas import ErrorOut
 from app.services.errors import ConflictError, NotFoundError, ServiceError
 from pipeline.formats import InputError
@@ -30,6 +32,8 @@ log = logging.getLogger(__name__)
 #: An absolute path of two or more parts, at the start of the text or after a space, quote,
 #: bracket, '=' or ','; group 1 is its last part (URLs such as ``http://host/a/b`` are left alone).
 _ABSOLUTE_PATH = re.compile(r"""(?:^|(?<=[\s'"(\[=,]))/(?:[^/\s'"]+/)+([^/\s'"]*)""")
+#: Seconds a client is told to wait (``Retry-After``) when the database cannot be reached.
+DATABASE_RETRY_AFTER_S = 5
 #: Methods a 405's ``Allow`` header may list.
 _METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS")
 
@@ -202,6 +206,20 @@ def install_error_handlers(app: FastAPI) -> None:
     async def _input(request: Request, exc: InputError):
         status, body = known_error(exc)
         return JSONResponse(body, status_code=status)
+
+    @app.exception_handler(DBAPIError)
+    async def _database(request: Request, exc: DBAPIError):
+        if not database_unavailable(exc):
+            return await _bug(request, exc)
+        log.warning(
+            "database unavailable on %s %s: %s",
+            request.method,
+            request.url.path,
+            str(exc.orig or exc).splitlines()[0],
+        )
+        detail = "database unavailable: the service cannot reach its database now; retry shortly"
+        headers = {"Retry-After": str(DATABASE_RETRY_AFTER_S)}
+        return JSONResponse(error_body(detail), status_code=503, headers=headers)
 
     @app.exception_handler(Exception)
     async def _bug(request: Request, exc: Exception):

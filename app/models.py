@@ -15,6 +15,7 @@ from sqlalchemy import (
     DateTime,
     Float,
     ForeignKey,
+    Index,
     Integer,
     String,
     Text,
@@ -34,20 +35,30 @@ def utcnow() -> datetime:
 
 
 class UTCDateTime(TypeDecorator):
-    """A timezone-aware UTC datetime on every backend (SQLite stores naive values)."""
+    """A timezone-aware UTC datetime on every backend.
+
+    PostgreSQL stores ``timestamp with time zone`` (migration 0007); SQLite has no such type and
+    stores the naive UTC value. Reads are always aware, in UTC.
+    """
 
     impl = DateTime
     cache_ok = True
+
+    def load_dialect_impl(self, dialect):
+        return dialect.type_descriptor(DateTime(timezone=dialect.name == "postgresql"))
 
     def process_bind_param(self, value, dialect):
         if value is None:
             return None
         if value.tzinfo is None:
             raise ValueError(f"datetime: expected a timezone-aware value, got naive {value!r}")
-        return value.astimezone(UTC).replace(tzinfo=None)
+        value = value.astimezone(UTC)
+        return value if dialect.name == "postgresql" else value.replace(tzinfo=None)
 
     def process_result_value(self, value, dialect):
-        return None if value is None else value.replace(tzinfo=UTC)
+        if value is None:
+            return None
+        return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
 
 
 class Base(DeclarativeBase):
@@ -119,6 +130,11 @@ class Inspection(Base):
     """One inspection job and its summary result."""
 
     __tablename__ = "inspections"
+    __table_args__ = (
+        # A plate's history, newest first (GET /plates/{id}/inspections), and the queue in order.
+        Index("ix_inspections_plate_id_id", "plate_id", "id"),
+        Index("ix_inspections_status_queued_at", "status", "queued_at"),
+    )
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     plate_id: Mapped[str] = mapped_column(ForeignKey("plates.id"), index=True)

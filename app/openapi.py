@@ -11,7 +11,8 @@ declares:
   and 413 (over ``PLATE_INSPECT_MAX_UPLOAD_MB``);
 - 401, 403 (a cookie write from another origin) and 429 (a throttled wrong token) on every
   operation that needs the API token (one with ``security``);
-- 409 on every operation that takes an ``Idempotency-Key`` (the first request with the key still runs).
+- 409 on every operation that takes an ``Idempotency-Key`` (the first request with the key still runs);
+- 503 on every operation (the database cannot be reached now; ``Retry-After`` says when to retry).
 """
 
 from __future__ import annotations
@@ -41,6 +42,9 @@ _AUTH_ERRORS = {
 _VALIDATION_ERROR = {
     "422": "the request does not match the operation's parameters or body (`errors` lists how)"
 }
+_UNAVAILABLE_ERROR = {
+    "503": "the database cannot be reached now (Retry-After says when to try again)"
+}
 _IDEMPOTENCY_ERROR = {
     "409": "the first request with this Idempotency-Key is still in progress; retry later"
 }
@@ -68,6 +72,7 @@ def document_errors(schema: dict[str, Any]) -> dict[str, Any]:
     for operations in schema.get("paths", {}).values():
         for operation in operations.values():
             responses = operation.setdefault("responses", {})
+            _add(responses, _UNAVAILABLE_ERROR)
             if operation.get("parameters") or operation.get("requestBody"):
                 _add(responses, _VALIDATION_ERROR)
             if operation.get("requestBody"):

@@ -7,7 +7,8 @@
 ``PLATE_INSPECT_SESSION_HOURS``, ``PLATE_INSPECT_LOGIN_FREE_FAILURES``, ``PLATE_INSPECT_LOGIN_WINDOW_S``,
 ``PLATE_INSPECT_LOGIN_MAX_DELAY_S``; request and queue limits: ``PLATE_INSPECT_MAX_IMAGE_PIXELS``, ``PLATE_INSPECT_MAX_LIGHTS``,
 ``PLATE_INSPECT_MAX_SIMULATED_PIXELS``, ``PLATE_INSPECT_MAX_QUEUED_PER_PLATE``, ``PLATE_INSPECT_MAX_QUEUED``;
-job consumer: ``PLATE_INSPECT_WORKER_MEMORY_MB``, ``PLATE_INSPECT_JOB_LEASE_S``; the cell:
+job consumer: ``PLATE_INSPECT_WORKER_MEMORY_MB``, ``PLATE_INSPECT_JOB_LEASE_S``; a yard:
+``PLATE_INSPECT_QUEUE_URL``; the cell:
 ``PLATE_INSPECT_CELL_CONFIG``.
 """
 
@@ -15,11 +16,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pydantic import Field, SecretStr, field_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 #: Environment variable prefix of every setting.
 ENV_PREFIX = "PLATE_INSPECT_"
+#: Default job lease on the embedded SQLite queue, s.
+EMBEDDED_JOB_LEASE_S = 60.0
+#: Default job lease on a shared (Redis) queue, s: a dead worker's job is queued again within
+#: about this plus the reclaim interval (a quarter of it), well under a minute.
+YARD_JOB_LEASE_S = 15.0
 
 
 class Settings(BaseSettings):
@@ -31,7 +37,11 @@ class Settings(BaseSettings):
         Root of everything stored on disk: the SQLite database (by default), the huey queue,
         uploads and artifacts (layout in :mod:`app.storage`).
     database_url : str or None
-        SQLAlchemy URL; None means ``sqlite:///<data_dir>/plate_inspect.db``.
+        SQLAlchemy URL; None means ``sqlite:///<data_dir>/plate_inspect.db``. A yard's central
+        database: ``postgresql+psycopg://user:password@host:5432/name`` (the ``yard`` extra).
+    queue_url : str or None
+        The job queue: None is the embedded SQLite queue under ``data_dir`` (one consumer per data
+        dir); ``redis://host:port/db`` is huey's Redis storage, shared by any number of workers.
     api_token : SecretStr or None
         Bearer token required by every write. Without one the server refuses to start unless
         ``demo`` is set, in which case a random token is generated and printed at start.
@@ -89,7 +99,9 @@ class Settings(BaseSettings):
     job_lease_s : float
         A running job's lease, s: its consumer renews it every third of this; a job whose lease ran
         out (its consumer hung or died on another host) may be claimed again, which counts as a
-        worker death (the second sets the job aside as failed).
+        worker death (the second sets the job aside as failed). Default: 60 on the embedded queue
+        (its one consumer is known dead when the next starts), :data:`YARD_JOB_LEASE_S` on a
+        shared queue (the other workers reclaim a dead worker's job when its lease ran out).
     cell_config : Path or None
         The cell's ``cell-config/1`` file (docs/acquisition.md): acquisition jobs
         (``POST /plates/{plate_id}/inspections/acquire``) photograph the plate with the cameras and
@@ -101,6 +113,7 @@ class Settings(BaseSettings):
 
     data_dir: Path = Path("var")
     database_url: str | None = None
+    queue_url: str | None = None
     api_token: SecretStr | None = None
     max_upload_mb: float = Field(default=512.0, gt=0)
     demo: bool = False
@@ -122,7 +135,7 @@ class Settings(BaseSettings):
     max_queued: int = Field(default=100, ge=1)
     # -- job consumer (app.worker): memory bound and job leases
     worker_memory_mb: int = Field(default=8192, ge=0)
-    job_lease_s: float = Field(default=60.0, ge=3.0)
+    job_lease_s: float | None = Field(default=None, ge=3.0)  # None: set by _default_lease
     # -- the cell (app.services.cell)
     cell_config: Path | None = None
 
@@ -138,6 +151,25 @@ class Settings(BaseSettings):
     def _unset_when_empty(cls, v: object) -> object:
         """``PLATE_INSPECT_CELL_CONFIG=`` (empty) is no cell config, not the current folder."""
         return None if isinstance(v, str) and not v.strip() else v
+
+    @field_validator("database_url", "queue_url", mode="before")
+    @classmethod
+    def _none_when_empty(cls, v: object) -> object:
+        """An empty ``PLATE_INSPECT_DATABASE_URL=`` or ``QUEUE_URL=`` is the embedded default."""
+        return None if isinstance(v, str) and not v.strip() else v
+
+    @field_validator("queue_url")
+    @classmethod
+    def _redis_only(cls, v: str | None) -> str | None:
+        if v is not None and not v.startswith(("redis://", "rediss://", "unix://")):
+            raise ValueError(f"expected redis://host:port/db (or rediss://, unix://), got {v!r}")
+        return v
+
+    @model_validator(mode="after")
+    def _default_lease(self) -> Settings:
+        if self.job_lease_s is None:
+            self.job_lease_s = YARD_JOB_LEASE_S if self.queue_url else EMBEDDED_JOB_LEASE_S
+        return self
 
     @property
     def sqlalchemy_url(self) -> str:
@@ -167,6 +199,8 @@ class Settings(BaseSettings):
             f"{ENV_PREFIX}WORKER_MEMORY_MB": str(self.worker_memory_mb),
             f"{ENV_PREFIX}JOB_LEASE_S": repr(self.job_lease_s),
         }
+        if self.queue_url is not None:
+            env[f"{ENV_PREFIX}QUEUE_URL"] = self.queue_url
         if self.cell_config is not None:
             env[f"{ENV_PREFIX}CELL_CONFIG"] = str(self.cell_config.resolve())
         if self.api_token is not None:

@@ -168,53 +168,18 @@ def execute_inspection(
     relative to the inspection's inputs or the data dir, never by server path.
     """
     owner = owner or svc.process_lease_owner()
-    with session_factory() as session:
-        if not svc.claim(
-            session=session, inspection_id=inspection_id, owner=owner, lease_s=settings.job_lease_s
-        ):
-            session.rollback()
-            log.info("inspection %s: not claimable (done, failed or taken), skipped", inspection_id)
-            return "skipped"
-        session.commit()
-        row = svc.get_inspection(session=session, inspection_id=inspection_id)
-        source, plate_id, simulation = row.source, row.plate_id, row.simulation
-        capture_path, target_path = (
-            storage.absolute(row.capture_path),
-            storage.absolute(row.target_path),
-        )
-        light_calibration = (
-            row.light_calibration
-        )  # recorded at submission: a re-run uses the same lights
-        attempt, deaths = row.attempts, row.deaths
-
+    job = _claim(inspection_id, settings, session_factory, storage, owner=owner)
+    if job is None:
+        return "skipped"
     progress = ProgressWriter(
         session_factory, inspection_id, interval_s=settings.progress_interval_s, owner=owner
     )
-    log.info(
-        "inspection %s: running (%s, plate %s, attempt %s%s)",
-        inspection_id,
-        source,
-        plate_id,
-        attempt,
-        f", after {deaths} worker death(s)" if deaths else "",
-    )
-    message = None
+    message, document = None, {}
     with LeaseKeeper(
         session_factory, inspection_id, owner=owner, lease_s=settings.job_lease_s
     ) as lease:
         try:
-            document = _run(
-                inspection_id,
-                settings,
-                storage,
-                progress,
-                source=source,
-                plate_id=plate_id,
-                simulation=simulation,
-                capture_path=capture_path,
-                target_path=target_path,
-                light_calibration=light_calibration,
-            )
+            document = _run(inspection_id, settings, storage, progress, **job)
         except (InputError, PipelineError) as err:
             message = _client_message(str(err), storage, inspection_id) or type(err).__name__
             log.info("inspection %s: failed: %s", inspection_id, message)
@@ -226,16 +191,7 @@ def execute_inspection(
                 log.exception("inspection %s: internal error", inspection_id)
                 text = _client_message(str(err), storage, inspection_id)
                 message = f"internal error: {type(err).__name__}: {text}"
-    with session_factory() as session:
-        if message is None:
-            stored = svc.mark_done(
-                session=session, inspection_id=inspection_id, document=document, owner=owner
-            )
-        else:
-            stored = svc.mark_failed(
-                session=session, inspection_id=inspection_id, error=message, owner=owner
-            )
-        session.commit()
+    stored = _store(session_factory, inspection_id, owner, document=document, message=message)
     if not stored:
         log.warning(
             "inspection %s: lease lost while it ran%s; its result is not stored by this consumer",
@@ -247,6 +203,66 @@ def execute_inspection(
         return "failed"
     log.info("inspection %s: done, verdict %s", inspection_id, document.get("verdict"))
     return "done"
+
+
+def _claim(
+    inspection_id: int,
+    settings: Settings,
+    session_factory: sessionmaker[Session],
+    storage: Storage,
+    *,
+    owner: str,
+) -> dict | None:
+    """Claim the row under a lease; the job's inputs (keyword arguments of :func:`_run`), or None
+    when the row is not claimable (done, failed, or run by another consumer)."""
+    with session_factory() as session:
+        if not svc.claim(
+            session=session, inspection_id=inspection_id, owner=owner, lease_s=settings.job_lease_s
+        ):
+            session.rollback()
+            log.info("inspection %s: not claimable (done, failed or taken), skipped", inspection_id)
+            return None
+        session.commit()
+        row = svc.get_inspection(session=session, inspection_id=inspection_id)
+        log.info(
+            "inspection %s: running (%s, plate %s, attempt %s%s)",
+            inspection_id,
+            row.source,
+            row.plate_id,
+            row.attempts,
+            f", after {row.deaths} worker death(s)" if row.deaths else "",
+        )
+        return {
+            "source": row.source,
+            "plate_id": row.plate_id,
+            "simulation": row.simulation,
+            "capture_path": storage.absolute(row.capture_path),
+            "target_path": storage.absolute(row.target_path),
+            # recorded at submission: a re-run uses the same lights
+            "light_calibration": row.light_calibration,
+        }
+
+
+def _store(
+    session_factory: sessionmaker[Session],
+    inspection_id: int,
+    owner: str,
+    *,
+    document: dict,
+    message: str | None,
+) -> bool:
+    """Store done (``message`` None) or failed; False when ``owner`` no longer holds the lease."""
+    with session_factory() as session:
+        if message is None:
+            stored = svc.mark_done(
+                session=session, inspection_id=inspection_id, document=document, owner=owner
+            )
+        else:
+            stored = svc.mark_failed(
+                session=session, inspection_id=inspection_id, error=message, owner=owner
+            )
+        session.commit()
+    return stored
 
 
 def _run(

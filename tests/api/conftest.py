@@ -1,4 +1,10 @@
-"""Service tests: a real SQLite file migrated by Alembic, a real huey consumer process."""
+"""Service tests: a real database migrated by Alembic, a real huey consumer process.
+
+Every test that uses ``settings`` runs twice, on the embedded SQLite file (``[sqlite]``) and on a
+real PostgreSQL server (``[postgresql]``: one server per test session, a database copied from a
+migrated template per test; :mod:`tests.yard.servers`). The job queue is the embedded SQLite one
+here; ``tests/yard/`` runs the jobs on Redis.
+"""
 
 from __future__ import annotations
 
@@ -17,6 +23,7 @@ from fastapi.testclient import TestClient
 
 from app.main import create_app
 from app.settings import Settings
+from tests.yard import servers
 
 ROOT = Path(__file__).resolve().parents[2]
 TOKEN = "test-token-0123456789"
@@ -24,10 +31,30 @@ AUTH = {"Authorization": f"Bearer {TOKEN}"}
 FAKE_INSPECT = "tests.api.fake_pipeline:inspect"
 
 
+@pytest.fixture(scope="session")
+def pg_template():
+    """A PostgreSQL server for the session and the name of a database migrated to the head."""
+    with servers.running_postgres() as server, servers.migrated_template(server) as template:
+        yield server, template
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def database_url(request) -> str | None:
+    """None (the SQLite file under the data dir), or a fresh migrated PostgreSQL database."""
+    if request.param == "sqlite":
+        yield None
+        return
+    server, template = request.getfixturevalue("pg_template")
+    name = server.create_database(template=template)
+    yield server.url(name)
+    server.drop_database(name)
+
+
 @pytest.fixture
-def settings(tmp_path) -> Settings:
+def settings(tmp_path, database_url) -> Settings:
     return Settings(
         data_dir=tmp_path / "data",
+        database_url=database_url,
         api_token=TOKEN,
         max_upload_mb=8.0,
         progress_interval_s=0.05,
