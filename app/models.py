@@ -12,6 +12,7 @@ from typing import Any
 
 from sqlalchemy import (
     JSON,
+    BigInteger,
     DateTime,
     Float,
     ForeignKey,
@@ -28,6 +29,11 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 STATUSES = ("queued", "running", "done", "failed")
 #: Verdicts: the pipeline's pass/fail, or error for a failed job.
 VERDICTS = ("pass", "fail", "error")
+
+
+#: Numeric row ids: 64-bit on PostgreSQL (the API takes ids up to 2^63 - 1; migration 0007),
+#: SQLite's INTEGER (its rowid, 64-bit already).
+RowId = Integer().with_variant(BigInteger(), "postgresql")
 
 
 def utcnow() -> datetime:
@@ -82,7 +88,7 @@ class Target(Base):
 
     __tablename__ = "targets"
 
-    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    id: Mapped[int] = mapped_column(RowId, primary_key=True)
     plate_id: Mapped[str] = mapped_column(ForeignKey("plates.id"), index=True)
     shape: Mapped[str] = mapped_column(String(16))
     radius_mm: Mapped[float | None] = mapped_column(Float)
@@ -100,7 +106,7 @@ class Calibration(Base):
 
     __tablename__ = "calibrations"
 
-    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    id: Mapped[int] = mapped_column(RowId, primary_key=True)
     image_width: Mapped[int] = mapped_column(Integer)
     image_height: Mapped[int] = mapped_column(Integer)
     rms_px: Mapped[float | None] = mapped_column(Float)
@@ -114,7 +120,7 @@ class LightCalibration(Base):
 
     __tablename__ = "light_calibrations"
 
-    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    id: Mapped[int] = mapped_column(RowId, primary_key=True)
     #: The uploaded file's name as the client sent it (None for a JSON body).
     file_name: Mapped[str | None] = mapped_column(String(255))
     n_lights: Mapped[int] = mapped_column(Integer)
@@ -136,7 +142,7 @@ class Inspection(Base):
         Index("ix_inspections_status_queued_at", "status", "queued_at"),
     )
 
-    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    id: Mapped[int] = mapped_column(RowId, primary_key=True)
     plate_id: Mapped[str] = mapped_column(ForeignKey("plates.id"), index=True)
     target_id: Mapped[int | None] = mapped_column(ForeignKey("targets.id"))
     #: The light calibration passed to the pipeline: the current one when an uploaded capture
@@ -217,7 +223,7 @@ class IdempotencyKey(Base):
         UniqueConstraint("key", "scope", "token_hash", name="uq_idempotency_key_scope_token"),
     )
 
-    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    id: Mapped[int] = mapped_column(RowId, primary_key=True)
     key: Mapped[str] = mapped_column(String(255))
     #: "METHOD /path" of the request.
     scope: Mapped[str] = mapped_column(String(512))

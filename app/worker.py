@@ -77,6 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(
         level=logging.INFO,
         format="%(asctime)s %(levelname)s [worker %(process)d] %(name)s: %(message)s",
+        force=True,  # under `plate-inspect worker` the CLI configured logging already
     )
     if args.parent_pid is not None:
         exit_with_parent(args.parent_pid)

@@ -7,7 +7,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 packages=(gir1.2-aravis-0.8 aravis-tools aravis-tools-cli libgirepository1.0-dev libcairo2-dev pkg-config gcc)
-[ "${1:-}" = "--with-browser" ] && packages+=(chromium)
+[ "${1:-}" = "--with-browser" ] && packages+=(chromium postgresql redis-server)
 python3 -c 'import os, sys, sysconfig; sys.exit(not os.path.isfile(os.path.join(sysconfig.get_paths()["include"], "Python.h")))' \
   || packages+=(python3-dev)
 if command -v apt-get >/dev/null 2>&1; then

@@ -8,7 +8,7 @@ from datetime import timedelta
 from alembic.autogenerate import compare_metadata
 from alembic.migration import MigrationContext
 from alembic.script import ScriptDirectory
-from sqlalchemy import create_engine
+from sqlalchemy import create_engine, text
 
 from app.db import alembic_config, make_engine, make_session_factory
 from app.models import Base, Inspection, utcnow
@@ -200,7 +200,9 @@ def test_a_row_of_the_previous_schema_left_running_is_reclaimed(client, settings
     (inspection_id,) = _submit(client)
     engine = create_engine(settings.sqlalchemy_url)
     with engine.begin() as conn:  # as revision 0002 left it: running, no lease
-        conn.exec_driver_sql("UPDATE inspections SET status='running' WHERE id=?", (inspection_id,))
+        conn.execute(
+            text("UPDATE inspections SET status='running' WHERE id=:id"), {"id": inspection_id}
+        )
     engine.dispose()
     with client.app.state.session_factory() as s:
         assert svc.requeue_interrupted(session=s, owner="me:2:y").requeued == [inspection_id]

@@ -1,0 +1,73 @@
+"""The issue's acceptance run: ``serve --no-worker`` on PostgreSQL + Redis, two ``worker``
+processes, 8 inspections through the real pipeline, one worker killed with SIGKILL mid-job."""
+
+from __future__ import annotations
+
+import collections
+import re
+import signal
+
+import pytest
+from sqlalchemy import create_engine, select
+
+from app.models import Inspection
+from pipeline.artifacts import ARTIFACT_FILES
+from tests.api.conftest import wait_until
+from tests.yard.cluster import Yard
+
+SIM = {"n_lights": 6, "width": 160, "height": 128}
+N = 8
+
+
+@pytest.mark.slow
+def test_eight_inspections_two_workers_one_killed_all_complete_once(tmp_path, pg_url, queue_url):
+    yard = Yard(
+        tmp_path / "data", database_url=pg_url, queue_url=queue_url, PLATE_INSPECT_JOB_LEASE_S="6"
+    )
+    try:
+        yard.start_server()
+        victim, survivor = yard.start_worker(), yard.start_worker()
+        ids = [yard.submit(f"ACC-{i}", SIM) for i in range(N)]
+        # Kill the first worker while it runs a job (after its first job completed: mid-queue).
+        running = wait_until(
+            lambda: [
+                b["id"]
+                for b in map(yard.inspection, ids)
+                if b["status"] == "running"
+                and f"inspection {b['id']}: running" in yard.log("worker0.log")
+            ],
+            180,
+            lambda: "the first worker never ran a job",
+        )
+        victim.send_signal(signal.SIGKILL)
+        victim.wait(30)
+        bodies = yard.wait_all(ids, timeout_s=600)
+    finally:
+        yard.stop()
+    assert [b["status"] for b in bodies] == ["done"] * N, [b["error"] for b in bodies]
+    assert all(b["verdict"] in ("pass", "fail") for b in bodies), [b["error"] for b in bodies]
+    for b in bodies:
+        assert set(ARTIFACT_FILES.values()) <= set(b["artifacts"]), b["artifacts"]
+        assert (
+            yard.data_dir / "inspections" / str(b["id"]) / "artifacts" / "result.json"
+        ).is_file()
+    killed = running[0]
+    done_lines = collections.Counter(
+        int(m.group(1))
+        for k in (0, 1)
+        for m in re.finditer(r"inspection (\d+): done, verdict", yard.log(f"worker{k}.log"))
+    )
+    assert done_lines == dict.fromkeys(ids, 1), done_lines  # each completed exactly once
+    assert f"inspection {killed}: its worker died while running it" in yard.log("worker1.log")
+    engine = create_engine(pg_url)
+    with engine.connect() as conn:
+        rows = conn.execute(select(Inspection.id, Inspection.status, Inspection.deaths)).all()
+    engine.dispose()
+    assert sorted(r.id for r in rows) == sorted(ids)
+    assert {r.id: r.deaths for r in rows}[killed] == 1
+    assert not [
+        p
+        for p in yard.data_dir.rglob("*")
+        if p.suffix in (".db", ".sqlite", ".lock") and "cell" not in p.parts
+    ]
+    assert survivor.returncode is not None
