@@ -41,7 +41,7 @@ import json
 import logging
 import threading
 from collections.abc import Callable
-from contextlib import asynccontextmanager
+from contextlib import asynccontextmanager, suppress
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -786,10 +786,8 @@ async def viewer_bridge(websocket: WebSocket, inspection_id: int) -> None:
         logger.warning("viewer: bridge for inspection %s ended: %s", inspection_id, err)
     finally:
         viewer.bridge_closed(inspection_id, client)
-        try:
+        with suppress(RuntimeError, WebSocketDisconnect):  # the browser side is closed already
             await websocket.close()
-        except (RuntimeError, WebSocketDisconnect):
-            pass  # the browser side is closed already
 
 
 async def _pump(browser: WebSocket, upstream) -> None:
@@ -812,7 +810,7 @@ async def _pump(browser: WebSocket, upstream) -> None:
 
     tasks = [asyncio.create_task(browser_to_viser()), asyncio.create_task(viser_to_browser())]
     try:
-        done, pending = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+        done, _pending = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
     finally:
         for task in tasks:
             task.cancel()

@@ -56,7 +56,7 @@ def rms(a):
 
 
 def load():
-    return "load avg %.1f %.1f %.1f" % os.getloadavg()
+    return "load avg {:.1f} {:.1f} {:.1f}".format(*os.getloadavg())
 
 
 def speed_table(sizes, repeat):

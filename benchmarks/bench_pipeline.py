@@ -73,8 +73,8 @@ def lights_table(root: Path, seeds: list[int], lights: tuple[int, ...]) -> None:
 
 def timing_table(root: Path, sizes: list[tuple[int, int]], repeat: int) -> None:
     print(
-        "\n## Per-stage timings, 12 lights, cylinder R5000 (run with the best total of %d, seconds)\n"
-        % repeat
+        "\n## Per-stage timings, 12 lights, cylinder R5000 "
+        f"(run with the best total of {repeat}, seconds)\n"
     )
     print(
         "Stages overlap (stereo beside normals, curvature beside deviation): they do not add up to the total.\n"

@@ -254,7 +254,7 @@ def _curvature_map(
         kmap[m] = _eig_sym2(-poly.tensor(qv[:, 0], qv[:, 1]))
     else:
         qc = (pts[o::step, o::step][coarse_mask] - c) @ frame.T
-        kmap_c = np.empty(coarse_mask.shape + (2,), dtype=np.float32)
+        kmap_c = np.empty((*coarse_mask.shape, 2), dtype=np.float32)
         kmap_c[coarse_mask] = _eig_sym2(-poly.tensor(qc[:, 0], qc[:, 1]))
         if not coarse_mask.all():
             # Extend the smooth field nearest-neighbour outside the mask so the interpolation at the mask's

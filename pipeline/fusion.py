@@ -209,7 +209,7 @@ def _ladder_fits(
         grid = _Grid.over(shape, extent * (1.0 if rung in _POLYNOMIAL else rung))
         if blocks.n_used < 4 * _POLYNOMIAL.get(rung, grid.size):
             return None
-        return (rung, grid) + _fit(grid, blocks, degree=_DEGREE.get(rung))
+        return (rung, grid, *_fit(grid, blocks, degree=_DEGREE.get(rung)))
 
     if resolve_mm is None:
         for rung in [

@@ -310,9 +310,12 @@ def _union_member(members, tag):
         member = _unwrap(member)
         if getattr(member, "__name__", None) == tag:
             return member
-        if _is_model(member) and "type" in member.model_fields:
-            if tag in get_args(_unwrap(member.model_fields["type"].annotation)):
-                return member
+        if (
+            _is_model(member)
+            and "type" in member.model_fields
+            and tag in get_args(_unwrap(member.model_fields["type"].annotation))
+        ):
+            return member
     return None
 
 
@@ -613,12 +616,9 @@ class _ZipBundle:
         for info in self._zf.infolist():
             name = info.filename
             field = f"member {name!r}"
-            if "\\" in name:
-                # Not a separator in zip names, but one on Windows: treat it as one for the checks.
-                if ".." in re.split(r"[\\/]", name):
-                    raise InputError(
-                        where, field, "refused: the member path leaves the bundle ('..')"
-                    )
+            # A backslash is no separator in zip names, but one on Windows: treat it as one here.
+            if "\\" in name and ".." in re.split(r"[\\/]", name):
+                raise InputError(where, field, "refused: the member path leaves the bundle ('..')")
             if name.startswith(("/", "\\")) or re.match(r"^[A-Za-z]:", name):
                 raise InputError(where, field, "refused: absolute member path")
             if ".." in name.split("/"):

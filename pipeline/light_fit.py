@@ -141,7 +141,7 @@ def _irradiance(
     )
     if not jac:
         return E, None
-    G = np.empty(E.shape + (_N_PARAMS,))
+    G = np.empty((*E.shape, _N_PARAMS))
     inv_d2 = 1.0 / d2
     # d log E / d P = -3 v / d^2 + mu (-a / (cos d) - v / d^2) + n / (n . v)
     G[..., :3] = (

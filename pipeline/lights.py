@@ -193,7 +193,7 @@ class Lights:
             ``l_k(X)``; a distant light's direction everywhere.
         """
         x = np.asarray(points_mm, dtype=np.float64)
-        out = np.empty((self.n,) + x.shape)
+        out = np.empty((self.n, *x.shape))
         for k in range(self.n):
             if self.is_point[k]:
                 d = self.positions_mm[k] - x
@@ -216,7 +216,7 @@ class Lights:
             ``(1000 / |P - X|)^2 * max(0, cos theta)^mu``, dimensionless.
         """
         x = np.asarray(points_mm, dtype=np.float64)
-        out = np.ones((self.n,) + x.shape[:-1])
+        out = np.ones((self.n, *x.shape[:-1]))
         for k in np.flatnonzero(self.is_point):
             d = x - self.positions_mm[k]  # light -> surface
             dist2 = np.einsum("...c,...c->...", d, d)

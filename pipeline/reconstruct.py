@@ -185,7 +185,7 @@ def near_field_surface(
     field = fused = None
     dropped = 0
     surface_mask = mask
-    for it in range(1, max_iterations + 1):
+    for it in range(1, max_iterations + 1):  # noqa: B007 (the count is returned)
         est_mask = surface_mask & np.isfinite(depth)
         field = nearfield.estimate_normals_near(
             images, lights, depth, K, est_mask, valid=valid, method=method

@@ -126,8 +126,8 @@ def _diligent_images(files: list[Path], intensities: np.ndarray, max_count: floa
     """Benchmark protocol: img / max_count, / intensity (per channel), negatives to 0, rgb2gray, grey > 1 to 1."""
     first = _read_rgb(files[0])
     n = len(files)
-    images = np.empty((n,) + first.shape[:2], dtype=np.float32)
-    saturated = np.empty((n,) + first.shape[:2], dtype=bool)
+    images = np.empty((n, *first.shape[:2]), dtype=np.float32)
+    saturated = np.empty((n, *first.shape[:2]), dtype=bool)
     for k, f in enumerate(files):
         raw = first if k == 0 else _read_rgb(f)
         saturated[k] = np.any(raw >= max_count, axis=2)

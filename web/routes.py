@@ -193,7 +193,7 @@ def _templates_context(storage, row: Inspection, spacing_mm: int) -> dict:
         return {"drawings": [], "templates_error": None}
     folder = storage.artifacts_dir(row.id)
     try:
-        frame, sections, tolerance = load_sections(folder, spacing_mm=float(spacing_mm))
+        _frame, sections, tolerance = load_sections(folder, spacing_mm=float(spacing_mm))
     except (OSError, ValueError, KeyError) as err:
         logger.warning("inspection %s: no virtual templates: %s", row.id, err)
         return {"drawings": [], "templates_error": scrub_paths(str(err))}

@@ -15,7 +15,7 @@ that Aravis received before the trigger (its system time stamp) is put back, not
 from __future__ import annotations
 
 import time
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 
 import numpy as np
 
@@ -268,9 +268,7 @@ class AravisCamera(Camera):
 
     def close(self) -> None:
         if self._started:
-            try:
+            with suppress(self._GLib.Error):  # a camera that is gone cannot be stopped
                 self._cam.stop_acquisition()
-            except self._GLib.Error:
-                pass  # a camera that is gone cannot be stopped
         self._stream = None
         self._cam = None

@@ -196,9 +196,16 @@ def _write_ply(path, vertices, faces, *, comments, colours=None, deviation=None)
     fdata["n"] = 3
     fdata["v"] = faces
     header = "\n".join(
-        ["ply", "format binary_little_endian 1.0", *(f"comment {c}" for c in comments)]
-        + [f"element vertex {len(vertices)}", *props]
-        + [f"element face {len(faces)}", "property list uchar int vertex_indices", "end_header"]
+        [
+            "ply",
+            "format binary_little_endian 1.0",
+            *(f"comment {c}" for c in comments),
+            f"element vertex {len(vertices)}",
+            *props,
+            f"element face {len(faces)}",
+            "property list uchar int vertex_indices",
+            "end_header",
+        ]
     )
     with open(path, "wb") as fh:
         fh.write(header.encode("ascii") + b"\n")

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from itertools import pairwise
 
 import numpy as np
 from scipy import optimize, stats
@@ -291,7 +292,7 @@ def measured_curvature(plate: PlateRecord, radius_mm: float) -> float:
 
 def _peaks(loaded: np.ndarray, starts: np.ndarray) -> np.ndarray:
     """Each pass's plate's largest loaded curvature so far (plates' passes contiguous from ``starts``)."""
-    peak = [np.maximum.accumulate(loaded[a:b]) for a, b in zip(starts[:-1], starts[1:])]
+    peak = [np.maximum.accumulate(loaded[a:b]) for a, b in pairwise(starts)]
     return np.concatenate(peak) if peak else loaded
 
 

@@ -399,4 +399,4 @@ class PlateRecord:
 
     def with_pass(self, roll_pass: RollPass) -> PlateRecord:
         """The same plate with one more pass."""
-        return PlateRecord(self.plate_id, self.target, self.passes + (roll_pass,))
+        return PlateRecord(self.plate_id, self.target, (*self.passes, roll_pass))

@@ -202,7 +202,7 @@ def _joint_fit(images, valid, fit, sel, L, view_map, b, exponent, f_ratio, sigma
     Returns the amplitude s (H, W) float32 and the exponent and F-ratio in use at the end (the
     exponent is searched again half way, and kept only if the lobe is clear).
     """
-    n, h, w = images.shape
+    _n, h, w = images.shape
     use_valid = valid is not None
     v = valid if use_valid else np.ones((1, 1, 1), dtype=bool)
     s = np.zeros((h, w), dtype=np.float32)

@@ -60,7 +60,9 @@ def candidate_mask(brightness, *, seen=None, dark_fraction: float = DARK_FRACTIO
     if not level > 0:
         raise ValueError("brightness: expected some light on the seen pixels, got none above zero")
     bright = ok & (smooth >= dark_fraction * level)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats((~bright).view(np.uint8), connectivity=4)
+    _n, labels, stats, _ = cv2.connectedComponentsWithStats(
+        (~bright).view(np.uint8), connectivity=4
+    )
     speck = stats[:, cv2.CC_STAT_AREA] <= DARK_SPECK_PX
     speck[0] = False  # label 0: the bright pixels
     return (bright | speck[labels]) & ok

@@ -211,9 +211,9 @@ def _inputs(brightness, camera_matrix, seen, depth_mm, normals):
     )
     if normals is not None:
         normals = np.asarray(normals)
-        if normals.shape != shape + (3,):
+        if normals.shape != (*shape, 3):
             raise ValueError(
-                f"normals: expected shape {shape + (3,)} to match brightness, got {normals.shape}"
+                f"normals: expected shape {(*shape, 3)} to match brightness, got {normals.shape}"
             )
     return b, K, ok, depth, normals
 

@@ -269,7 +269,7 @@ def _shade(
     (:class:`pipeline.lights.Lights`; constant for distant lights).
     """
     n = hits.normals.astype(np.float32)
-    out = np.empty((lights.n,) + albedo.shape, dtype=np.float32)
+    out = np.empty((lights.n, *albedo.shape), dtype=np.float32)
     view = None
     if capture.specular > 0:
         view = eye.astype(np.float32) - points_cam.astype(np.float32)

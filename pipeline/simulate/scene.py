@@ -106,7 +106,7 @@ class Cutout:
             n_arc = int(math.ceil(r * math.pi / 2 / step_mm)) if r > 0 else 0
             t = k * math.pi / 2 + np.linspace(0.0, math.pi / 2, n_arc + 1)
             corners.append(np.stack([cx + r * np.cos(t), cy + r * np.sin(t)], axis=1))
-        return densify(np.concatenate(corners), step_mm) + [self.x_mm, self.y_mm]
+        return densify(np.concatenate(corners), step_mm) + np.array([self.x_mm, self.y_mm])
 
 
 @dataclass(frozen=True)
@@ -319,11 +319,14 @@ class PlateSpec:
                 raise ValueError(
                     f"PlateSpec.radius_mm: expected > {need:.1f} mm for a {self.shape} of size {size}, got {self.radius_mm}"
                 )
-        if self.shape == "saddle" and self.radius2_mm is not None:
-            if not math.isfinite(self.radius2_mm) or self.radius2_mm <= half_h:
-                raise ValueError(
-                    f"PlateSpec.radius2_mm: expected > {half_h:.1f} mm for a saddle, got {self.radius2_mm}"
-                )
+        if (
+            self.shape == "saddle"
+            and self.radius2_mm is not None
+            and (not math.isfinite(self.radius2_mm) or self.radius2_mm <= half_h)
+        ):
+            raise ValueError(
+                f"PlateSpec.radius2_mm: expected > {half_h:.1f} mm for a saddle, got {self.radius2_mm}"
+            )
         if not math.isfinite(self.distance_mm) or self.distance_mm <= 0:
             raise ValueError(f"PlateSpec.distance_mm: expected > 0, got {self.distance_mm}")
         tilt = tuple(float(v) for v in self.tilt_deg)

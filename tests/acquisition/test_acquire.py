@@ -130,7 +130,7 @@ def test_configured_exposure_takes_no_pre_shots_and_a_flood_light(tmp_path, ligh
 
     out = acquire(config, "P-2", tmp_path / "bundle")
 
-    assert server.commands == SEQUENCE + ["FLOOD ON", "FLOOD OFF"]
+    assert server.commands == [*SEQUENCE, "FLOOD ON", "FLOOD OFF"]
     record = json.loads((out / "capture.json").read_text())["acquisition"]
     assert record["pre_shots"] == 0 and record["stereo_lighting"] == "stereo light"
     assert record["cameras"]["left"]["exposure_us"] == {"photometric": 4000.0, "stereo": 4000.0}

@@ -23,6 +23,7 @@ from fastapi.testclient import TestClient
 
 from app.main import create_app
 from app.settings import Settings
+from tests.acquisition.conftest import fake_gv, light_server  # noqa: F401 (fixtures of test_acquire.py)
 from tests.yard import servers
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -99,7 +100,7 @@ class Consumer:
 
     def start(self) -> Consumer:
         self.log.parent.mkdir(parents=True, exist_ok=True)
-        fh = open(self.log, "ab")
+        fh = open(self.log, "ab")  # noqa: SIM115 (the consumer process holds it)
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "app.worker", *self.args],
             env=self.env,

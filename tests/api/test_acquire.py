@@ -21,7 +21,7 @@ from app.services.cell import CELL_DIR, DEMO_CELL_DIR, CellLock
 from app.settings import Settings
 from pipeline.acquisition import write_demo_cell
 from pipeline.io import load_capture
-from tests.acquisition.conftest import HEIGHT, WIDTH, fake_gv, light_server, tcp_lights, write_cell  # noqa: F401 (fixtures)
+from tests.acquisition.conftest import HEIGHT, WIDTH, tcp_lights, write_cell
 from tests.api.conftest import (
     AUTH,
     FAKE_INSPECT,

@@ -211,7 +211,7 @@ def test_too_many_lights_are_refused_before_any_image(tmp_path, client, settings
     path.write_bytes(
         capture_zip(plate_id="P", width=640, height=480, n_lights=n, image=b"not an image")
     )
-    with pytest.raises(ValueError, match="photometric.lights"):
+    with pytest.raises(ValueError, match=r"photometric.lights"):
         read_capture_header(path, limits)
 
 

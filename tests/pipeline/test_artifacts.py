@@ -202,7 +202,7 @@ def test_deviation_png_size_and_colours(tmp_path):
     rgb = _read_rgb(path)
     k = math.ceil(540 / h)  # documented enlargement of small maps
     assert rgb.shape[0] == max(k * h, 540) and rgb.shape[1] > k * w
-    expected = list(COLOUR_STOPS) + [COLOUR_STOPS[-1], GREY, GREY]
+    expected = [*COLOUR_STOPS, COLOUR_STOPS[-1], GREY, GREY]
     for i, colour in enumerate(expected):
         centre = rgb[k * h // 2, k * (i * 10 + 5)]
         np.testing.assert_array_equal(

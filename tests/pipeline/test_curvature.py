@@ -156,7 +156,7 @@ def test_principal_radii_cylinder(R, sign):
     # Direction of k1 is across the axis.
     assert abs(res.principal_directions[0] @ R_cp[:, 1]) < 0.02
     km = res.curvature_map
-    assert km.shape == m.shape + (2,) and km.dtype == np.float32
+    assert km.shape == (*m.shape, 2) and km.dtype == np.float32
     assert np.isnan(km[~m]).all() and np.isfinite(km[m]).all()
     assert (
         np.median(np.abs(km[m][:, 0] * R - sign)) < 0.01

@@ -263,15 +263,15 @@ def test_target_surface(shape):
 def test_bad_inputs():
     pts, m, _, R_cp = plate_grid(cylinder(5000.0), shape=(40, 50))
     good = target("cylinder", 5000.0)
-    with pytest.raises(TypeError, match="target: expected a pipeline.io.Target, got dict"):
+    with pytest.raises(TypeError, match=r"target: expected a pipeline.io.Target, got dict"):
         register_to_target(pts, m, {"shape": "cylinder"})
-    with pytest.raises(ValueError, match="target.shape: expected one of"):
+    with pytest.raises(ValueError, match=r"target.shape: expected one of"):
         register_to_target(pts, m, target("cone", 5.0))
     with pytest.raises(
-        ValueError, match="target.radius_mm: expected a positive radius for a sphere, got None"
+        ValueError, match=r"target.radius_mm: expected a positive radius for a sphere, got None"
     ):
         register_to_target(pts, m, target("sphere"))
-    with pytest.raises(ValueError, match="target.mesh_vertices_mm/mesh_faces: expected arrays"):
+    with pytest.raises(ValueError, match=r"target.mesh_vertices_mm/mesh_faces: expected arrays"):
         register_to_target(pts, m, target("mesh"))
     with pytest.raises(ValueError, match=r"target.mesh_faces: expected \(F, 3\) indices below 3"):
         register_to_target(
@@ -285,7 +285,7 @@ def test_bad_inputs():
     skew = Registration(
         T_cam_target=np.diag([2.0, 1, 1, 1]), shape="cylinder", rms_mm=0, convex_towards_camera=None
     )
-    with pytest.raises(ValueError, match="registration.T_cam_target: expected a rigid transform"):
+    with pytest.raises(ValueError, match=r"registration.T_cam_target: expected a rigid transform"):
         deviation_map(pts, m, good, skew)
     dev = deviation_map(pts, m, good, reg)
     with pytest.raises(ValueError, match="tolerance_mm: expected a positive number of mm, got 0"):
@@ -396,7 +396,7 @@ def test_edge_artefacts_option_is_checked():
     m, dev, step = _plate_with_a_hole()
     with pytest.raises(ValueError, match=r"edge_artefacts.step_mm: expected shape \(200, 240\)"):
         judge(dev, m, 2.0, pixel_area_mm2=1.0, edge_artefacts=EdgeArtefacts(step[:, :10]))
-    with pytest.raises(ValueError, match="EdgeArtefacts.min_step_mm"):
+    with pytest.raises(ValueError, match=r"EdgeArtefacts.min_step_mm"):
         EdgeArtefacts(step, min_step_mm=0.0)
     with pytest.raises(TypeError, match="edge_artefacts: expected an EdgeArtefacts"):
         judge(dev, m, 2.0, pixel_area_mm2=1.0, edge_artefacts=step)

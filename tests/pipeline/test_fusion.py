@@ -46,7 +46,7 @@ def test_a_smooth_bend_of_the_normals_is_taken_out_and_the_dent_kept():
 
 
 def test_correct_normals_keep_their_shape_and_get_scale_tilt_and_bend():
-    z, _, mask, u, v = _surface()
+    z, _, mask, u, _v = _surface()
     rng = np.random.default_rng(1)
     # a 1 % scale, a tilt and a slight bend (what a weak prior and a bumped light leave)
     z_ps = np.where(mask, z * 1.01 * (1 + 1e-5 * u + 1e-8 * (u - 200) ** 2), np.nan)
@@ -69,7 +69,7 @@ def test_smooth_stereo_depth_fills_holes():
 
 def test_bad_inputs_are_named():
     z, _, mask, _, _ = _surface()
-    with pytest.raises(ValueError, match="expected .H, W. arrays of one shape"):
+    with pytest.raises(ValueError, match=r"expected .H, W. arrays of one shape"):
         fuse_low_frequencies(z, z[:-1], mask)
     bad = z.copy()
     bad[50, 50] = -1.0

@@ -189,7 +189,7 @@ def small():
 
 
 def test_bad_input_is_rejected(small):
-    n, mask, K, depth = small
+    n, mask, K, _depth = small
     with pytest.raises(ValueError, match=r"normals: expected shape \(H, W, 3\), got \(30, 40\)"):
         integrate_normals(n[..., 0], mask, K, reference_depth_mm=1.0)
     with pytest.raises(ValueError, match=r"mask: expected shape \(30, 40\), got \(30, 41\)"):
@@ -215,7 +215,7 @@ def test_bad_input_is_rejected(small):
 
 
 def test_bad_normals_are_counted_not_dropped(small):
-    n, mask, K, depth = small
+    n, mask, K, _depth = small
     bad = n.copy()
     bad[10, 10] = -bad[10, 10]  # facing away from the camera
     bad[11, 11] = np.nan

@@ -213,7 +213,7 @@ def test_image_size_differs_from_calibration(tmp_path):
 def test_huge_image_header_refused_before_decoding(tmp_path, ext, monkeypatch):
     """A small file whose header claims 100000 x 90000 px is refused from the header alone."""
     big = np.zeros((HEIGHT, WIDTH), np.uint16)
-    ok, buf = cv2.imencode(ext, big)
+    _ok, buf = cv2.imencode(ext, big)
     data = bytearray(buf.tobytes())
     if ext == ".png":
         data[16:24] = (100_000).to_bytes(4, "big") + (90_000).to_bytes(4, "big")
@@ -243,7 +243,7 @@ def test_huge_image_header_refused_before_decoding(tmp_path, ext, monkeypatch):
 
 
 def test_image_of_another_type_refused(tmp_path):
-    ok, jpeg = cv2.imencode(".jpg", np.zeros((HEIGHT, WIDTH), np.uint8))
+    _ok, jpeg = cv2.imencode(".jpg", np.zeros((HEIGHT, WIDTH), np.uint8))
     bundle = write_bundle(tmp_path, files={"ps_01.png": jpeg.tobytes()})
     with pytest.raises(
         InputError, match=_err("photometric.images[1]: 'ps_01.png': not a PNG or TIFF")
@@ -631,7 +631,7 @@ def test_zip_duplicate_member_refused(tmp_path):
 
 
 def test_loader_argument_checks(tmp_path):
-    with pytest.raises(ValueError, match="max_ratio: expected a ratio >= 1, got 0.5"):
+    with pytest.raises(ValueError, match=r"max_ratio: expected a ratio >= 1, got 0.5"):
         load_capture(tmp_path, max_ratio=0.5)
     with pytest.raises(ValueError, match="max_total_bytes: expected a positive"):
         load_capture(tmp_path, max_total_bytes=0)

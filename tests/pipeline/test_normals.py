@@ -236,31 +236,31 @@ def _ok_inputs():
     "change, match",
     [
         (
-            lambda i, l, m: (i, l[:5], m),
+            lambda i, d, m: (i, d[:5], m),
             r"light_dirs: expected shape \(6, 3\) to match 6 images, got \(5, 3\)",
         ),
         (
-            lambda i, l, m: (i, l * 1.1, m),
+            lambda i, d, m: (i, d * 1.1, m),
             r"light_dirs\[0\]: expected a unit vector, got length 1.1000",
         ),
         (
-            lambda i, l, m: (i, l * [1, 1, -1], m),
+            lambda i, d, m: (i, d * [1, 1, -1], m),
             r"light_dirs\[0\]: expected a light on the camera side \(l_z < 0",
         ),
         (
-            lambda i, l, m: (i, np.where(np.isnan(l), 0, np.nan), m),
+            lambda i, d, m: (i, np.where(np.isnan(d), 0, np.nan), m),
             "light_dirs: expected finite numbers",
         ),
         (
-            lambda i, l, m: (i, l, m[:, :20]),
+            lambda i, d, m: (i, d, m[:, :20]),
             r"mask: expected shape \(20, 30\) to match images, got \(20, 20\)",
         ),
         (
-            lambda i, l, m: (i, l, m.astype(np.uint8)),
+            lambda i, d, m: (i, d, m.astype(np.uint8)),
             "mask: expected a bool array, got dtype uint8",
         ),
-        (lambda i, l, m: (i[0], l, m), r"images: expected shape \(N, H, W\), got \(20, 30\)"),
-        (lambda i, l, m: (i.astype(np.uint16), l, m), "images: expected a float array"),
+        (lambda i, d, m: (i[0], d, m), r"images: expected shape \(N, H, W\), got \(20, 30\)"),
+        (lambda i, d, m: (i.astype(np.uint16), d, m), "images: expected a float array"),
     ],
 )
 def test_bad_inputs(change, match):

@@ -111,7 +111,7 @@ def _dilate(mask, px):
 def _hole_pixels(truth):
     """Pixels seeing through an opening inside the plate: off the plate and enclosed by it."""
     off = (~truth["mask"]).view(np.uint8)
-    n, labels = cv2.connectedComponents(off, connectivity=4)
+    _n, labels = cv2.connectedComponents(off, connectivity=4)
     border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
     return (labels > 0) & ~np.isin(labels, border)
 

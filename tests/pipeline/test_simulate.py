@@ -215,7 +215,7 @@ def test_stereo_pair_sees_the_same_texture(bundle, rig):
     right = _bilinear(cap.stereo_right, uv_right)
     assert np.corrcoef(left, right)[0, 1] > 0.98
     assert np.median(np.abs(left - right)) < 0.006 * 65535  # noise 0.4 % in each image
-    off_by_one = _bilinear(cap.stereo_right, uv_right + [1.0, 0.0])
+    off_by_one = _bilinear(cap.stereo_right, uv_right + np.array([1.0, 0.0]))
     assert np.corrcoef(left, off_by_one)[0, 1] < 0.95
 
 
@@ -336,15 +336,15 @@ def test_specular_lobe_brightens_highlights(tmp_path):
 
 
 def test_bad_specs_are_rejected():
-    with pytest.raises(ValueError, match="PlateSpec.radius_mm: expected > 1500"):
+    with pytest.raises(ValueError, match=r"PlateSpec.radius_mm: expected > 1500"):
         PlateSpec(shape="cylinder", radius_mm=1200.0)
-    with pytest.raises(ValueError, match="PlateSpec.shape"):
+    with pytest.raises(ValueError, match=r"PlateSpec.shape"):
         PlateSpec(shape="cone")
-    with pytest.raises(ValueError, match="CaptureSpec.n_lights: expected an integer >= 3, got 2"):
+    with pytest.raises(ValueError, match=r"CaptureSpec.n_lights: expected an integer >= 3, got 2"):
         CaptureSpec(n_lights=2)
-    with pytest.raises(ValueError, match="CaptureSpec.bit_depth"):
+    with pytest.raises(ValueError, match=r"CaptureSpec.bit_depth"):
         CaptureSpec(bit_depth=10)
-    with pytest.raises(ValueError, match="Dent.radius_mm"):
+    with pytest.raises(ValueError, match=r"Dent.radius_mm"):
         Dent(0.0, 0.0, 0.0, 1.0)
     with pytest.raises(ValueError, match="n_pairs"):
         render_calibration_pairs("/nonexistent", n_pairs=0)
@@ -473,7 +473,7 @@ def test_floor_is_lit_like_the_plate(floor_bundle):
 
 def test_cutout_and_outline_make_a_mesh_target(floor_bundle):
     """A plate with openings (or a non-rectangular outline) gets a mesh target carrying both."""
-    out, plate = floor_bundle
+    out, _plate = floor_bundle
     doc = json.loads((out / "target.json").read_text())
     assert doc["shape"] == {"type": "mesh", "file": "target.stl"}
     target = load_target(out / "target.json")
@@ -533,23 +533,23 @@ def test_outlines(tmp_path, rig, outline):
 
 
 def test_surroundings_specs_are_checked():
-    with pytest.raises(ValueError, match="Cutout.corner_mm"):
+    with pytest.raises(ValueError, match=r"Cutout.corner_mm"):
         Cutout(0.0, 0.0, 100.0, 50.0, 40.0)
-    with pytest.raises(ValueError, match="Cutout.radius_mm"):
+    with pytest.raises(ValueError, match=r"Cutout.radius_mm"):
         Cutout.circle(0.0, 0.0, -1.0)
     with pytest.raises(
         ValueError, match=r"Floor.supports\[0\].height_mm: expected at most the floor's gap_mm 200"
     ):
         Floor(gap_mm=200.0, supports=(Support(0.0, 0.0, 100.0, 100.0, 300.0),))
-    with pytest.raises(ValueError, match="Floor.gap_mm"):
+    with pytest.raises(ValueError, match=r"Floor.gap_mm"):
         Floor(gap_mm=0.0)
     with pytest.raises(
-        ValueError, match="PlateSpec.outline: expected vertices inside the size_mm box"
+        ValueError, match=r"PlateSpec.outline: expected vertices inside the size_mm box"
     ):
         PlateSpec(outline=((0.0, 0.0), (2000.0, 0.0), (0.0, 100.0)))
-    with pytest.raises(ValueError, match="PlateSpec.outline: expected rectangle"):
+    with pytest.raises(ValueError, match=r"PlateSpec.outline: expected rectangle"):
         PlateSpec(outline="oval")
-    with pytest.raises(TypeError, match="PlateSpec.floor"):
+    with pytest.raises(TypeError, match=r"PlateSpec.floor"):
         PlateSpec(floor=300.0)
 
 

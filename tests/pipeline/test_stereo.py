@@ -166,7 +166,7 @@ def test_holes_are_not_invented(tmp_path):
 
 
 def test_eight_bit_and_float_inputs_agree(tmp_path):
-    rig, left, right, depth_true, mask = _capture(tmp_path, width=612, seed=6)
+    rig, left, right, _depth_true, mask = _capture(tmp_path, width=612, seed=6)
     a = stereo_depth(left, right, rig, z_min_mm=2500.0, z_max_mm=3500.0, mask=mask)
     b = stereo_depth(
         left.astype(np.float32) * 3.0 + 100.0,

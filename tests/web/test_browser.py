@@ -88,14 +88,14 @@ def live_server(tmp_path_factory):
         ],
         env=env,
         cwd=ROOT,
-        stdout=open(logs / "web.log", "wb"),
+        stdout=open(logs / "web.log", "wb"),  # noqa: SIM115 (the server process holds it)
         stderr=subprocess.STDOUT,
     )
     worker = subprocess.Popen(
         [sys.executable, "-m", "app.worker"],
         env=env,
         cwd=ROOT,
-        stdout=open(logs / "worker.log", "wb"),
+        stdout=open(logs / "worker.log", "wb"),  # noqa: SIM115 (the consumer holds it)
         stderr=subprocess.STDOUT,
     )
     base = f"http://127.0.0.1:{port}"
@@ -106,7 +106,9 @@ def live_server(tmp_path_factory):
             break
         except OSError:
             if time.monotonic() > deadline or web.poll() is not None:
-                raise RuntimeError(f"server did not start:\n{(logs / 'web.log').read_text()}")
+                raise RuntimeError(
+                    f"server did not start:\n{(logs / 'web.log').read_text()}"
+                ) from None
             time.sleep(0.3)
     yield {"base": base, "entry": entry, "logs": logs, "token": TOKEN}
     for proc in (worker, web):

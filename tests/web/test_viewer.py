@@ -42,7 +42,7 @@ def test_decimate_averages_values_and_leaves_small_meshes_alone():
     )  # linear in x: cluster means of a linear field are the field at the cluster mean
     dv, _, dval = decimate_mesh(v, f, values, max_vertices=300)
     np.testing.assert_allclose(dval, 0.01 * dv[:, 0], atol=1e-9)
-    same_v, same_f, same_val = decimate_mesh(v, f, values, max_vertices=len(v))
+    same_v, same_f, _same_val = decimate_mesh(v, f, values, max_vertices=len(v))
     np.testing.assert_array_equal(same_v, v)
     np.testing.assert_array_equal(same_f, f)
 
@@ -124,13 +124,17 @@ def test_bridge_reaches_the_inspection_server(viewer_app):
             first = ws.receive_bytes()  # viser's first message batch, relayed from loopback
             assert len(first) > 0
             assert viewer.port_for(7) > 0
-        with pytest.raises(WebSocketDisconnect) as closed:
-            with client.websocket_connect("/viewer/8", subprotocols=[VISER_SUBPROTOCOL]) as ws:
-                ws.receive_bytes()
+        with (
+            pytest.raises(WebSocketDisconnect) as closed,
+            client.websocket_connect("/viewer/8", subprotocols=[VISER_SUBPROTOCOL]) as ws,
+        ):
+            ws.receive_bytes()
         assert closed.value.code == CLOSE_NOT_FOUND
-        with pytest.raises(WebSocketDisconnect) as refused:
-            with client.websocket_connect("/viewer/7", subprotocols=["viser-v0.0.1"]) as ws:
-                ws.receive_bytes()
+        with (
+            pytest.raises(WebSocketDisconnect) as refused,
+            client.websocket_connect("/viewer/7", subprotocols=["viser-v0.0.1"]) as ws,
+        ):
+            ws.receive_bytes()
         assert refused.value.code == 1002
 
 
