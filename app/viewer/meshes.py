@@ -1,0 +1,266 @@
+"""The surfaces the 3D view shows: PLY reading, decimation to display size, deviation colours."""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from pipeline.artifacts.colours import COLOUR_STOPS, deviation_colormap
+
+logger = logging.getLogger(__name__)
+
+
+#: Vertex properties of surface.ply that may carry the signed deviation in mm, in order of preference.
+DEVIATION_PROPERTIES = ("deviation_mm", "deviation", "quality")
+#: The colour scale saturates at this multiple of the tolerance.
+SCALE_TOLERANCES = 2.0
+
+# Display frame from the left camera frame: x, -y, -z (the cameras' side looks up).
+_CAM_TO_DISPLAY = np.diag([1.0, -1.0, -1.0])
+
+# --------------------------------------------------------------------------- meshes
+
+
+@dataclass(frozen=True)
+class PlateMeshes:
+    """Display-ready meshes of one inspection (display frame, metres).
+
+    Attributes
+    ----------
+    measured_vertices : (V, 3) float32, m
+    measured_faces : (F, 3) int32
+    deviation_mm : (V,) float32, signed deviation per measured vertex, mm (positive:
+        the measured surface lies on the cameras' side of the target).
+    target_vertices : (W, 3) float32, m
+    target_faces : (G, 3) int32
+    tolerance_mm : float
+    extent_m : float, largest side of the measured or the target surface's bounding box, m.
+    """
+
+    measured_vertices: np.ndarray
+    measured_faces: np.ndarray
+    deviation_mm: np.ndarray
+    target_vertices: np.ndarray
+    target_faces: np.ndarray
+    tolerance_mm: float
+    extent_m: float
+
+    @property
+    def floor_z_m(self) -> float:
+        """Height of a floor just below both meshes (display frame), m."""
+        low = min(
+            float(self.measured_vertices[:, 2].min()), float(self.target_vertices[:, 2].min())
+        )
+        return low - 0.02 * self.extent_m
+
+    @property
+    def scale_mm(self) -> float:
+        """Deviation at which the colour scale saturates, mm."""
+        return SCALE_TOLERANCES * self.tolerance_mm
+
+
+def decimate_mesh(
+    vertices: np.ndarray, faces: np.ndarray, values: np.ndarray | None = None, *, max_vertices: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Reduce a mesh to at most about ``max_vertices`` vertices by vertex clustering.
+
+    Vertices are binned into cubic cells; each cell becomes one vertex at the mean
+    of its members (the per-vertex ``values`` are averaged the same way), faces are
+    re-indexed and those that collapse are dropped. Meant for display only.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float array, any length unit.
+    faces : (F, 3) int array of vertex indices.
+    values : (V,) float array or None, a per-vertex quantity to carry along.
+    max_vertices : int, > 0.
+
+    Returns
+    -------
+    vertices : (V', 3) float64, faces : (F', 3) int32, values : (V',) float64 or None
+        Unchanged (as copies) when the mesh already has at most ``max_vertices`` vertices.
+
+    Raises
+    ------
+    ValueError
+        On shapes that do not match, face indices out of range or ``max_vertices < 1``.
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces)
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise ValueError(f"vertices: expected shape (V, 3), got {vertices.shape}")
+    if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
+        raise ValueError(
+            f"faces: expected an integer array of shape (F, 3), got {faces.dtype} {faces.shape}"
+        )
+    if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
+        raise ValueError(
+            f"faces: expected indices in [0, {len(vertices) - 1}], got [{faces.min()}, {faces.max()}]"
+        )
+    if values is not None:
+        values = np.asarray(values, dtype=np.float64)
+        if values.shape != (len(vertices),):
+            raise ValueError(f"values: expected shape ({len(vertices)},), got {values.shape}")
+    if max_vertices < 1:
+        raise ValueError(f"max_vertices: expected >= 1, got {max_vertices}")
+    if len(vertices) <= max_vertices:
+        return vertices.copy(), faces.astype(np.int32), None if values is None else values.copy()
+
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    span = np.maximum(hi - lo, 1e-12)
+    # Start from the cell size that would give max_vertices on a surface filling
+    # its bounding box's two largest sides, grow until the count fits.
+    a, b = np.sort(span)[-2:]
+    cell = float(np.sqrt(a * b / max_vertices))
+    for _ in range(40):
+        keys = np.floor((vertices - lo) / cell).astype(np.int64)
+        dims = keys.max(axis=0) + 1
+        flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
+        cells, inverse = np.unique(flat, return_inverse=True)
+        if len(cells) <= max_vertices:
+            break
+        cell *= 1.15
+    counts = np.bincount(inverse, minlength=len(cells)).astype(np.float64)
+    out_vertices = np.stack(
+        [np.bincount(inverse, vertices[:, k], len(cells)) for k in range(3)], axis=1
+    )
+    out_vertices /= counts[:, None]
+    out_values = None if values is None else np.bincount(inverse, values, len(cells)) / counts
+    out_faces = inverse[faces]
+    keep = (
+        (out_faces[:, 0] != out_faces[:, 1])
+        & (out_faces[:, 1] != out_faces[:, 2])
+        & (out_faces[:, 0] != out_faces[:, 2])
+    )
+    out_faces = out_faces[keep]
+    # Faces that collapsed onto the same three cells: keep the first (with its winding).
+    _, first = np.unique(np.sort(out_faces, axis=1), axis=0, return_index=True)
+    out_faces = out_faces[np.sort(first)]
+    return out_vertices, out_faces.astype(np.int32), out_values
+
+
+def deviation_colours(deviation_mm: np.ndarray, scale_mm: float) -> np.ndarray:
+    """Colour signed deviations on a diverging blue - white - red scale.
+
+    Parameters
+    ----------
+    deviation_mm : (V,) float array, mm. NaN is drawn grey.
+    scale_mm : float > 0, deviation drawn in full colour; larger magnitudes saturate
+        (the legend says so).
+
+    Returns
+    -------
+    (V, 3) uint8 RGB: blue below the target (away from the cameras), red above it.
+    """
+    deviation_mm = np.asarray(deviation_mm, dtype=np.float64)
+    if deviation_mm.ndim != 1:
+        raise ValueError(f"deviation_mm: expected shape (V,), got {deviation_mm.shape}")
+    if not (np.isfinite(scale_mm) and scale_mm > 0):
+        raise ValueError(f"scale_mm: expected a positive number, got {scale_mm}")
+    return deviation_colormap(deviation_mm, limit_mm=scale_mm)
+
+
+def legend_html(scale_mm: float, tolerance_mm: float) -> str:
+    """HTML of the colour legend shown in the viewer's panel (ticks in mm)."""
+    stops = ", ".join(f"rgb{c}" for c in COLOUR_STOPS)
+    ticks = "".join(
+        f'<span style="position:absolute;left:{100 * (v + scale_mm) / (2 * scale_mm):.1f}%;'
+        f'transform:translateX(-50%)">{v:+.1f}</span>'
+        for v in (-scale_mm, -tolerance_mm, 0.0, tolerance_mm, scale_mm)
+    )
+    return (
+        '<div style="font:12px sans-serif;padding:4px 14px 4px 14px">'
+        "<div>Deviation from target, mm</div>"
+        f'<div style="height:14px;margin-top:4px;background:linear-gradient(to right, {stops})"></div>'
+        f'<div style="position:relative;height:14px">{ticks}</div>'
+        f'<div style="margin-top:6px;color:#555">red: proud of target (cameras\' side); '
+        f"tolerance ±{tolerance_mm:g} mm; colours saturate beyond ±{scale_mm:g} mm</div></div>"
+    )
+
+
+def read_surface_ply(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Read the measured surface written by the pipeline.
+
+    Returns
+    -------
+    vertices : (V, 3) float64, mm, left camera frame; faces : (F, 3) int64;
+    deviation_mm : (V,) float64, the vertex property named in :data:`DEVIATION_PROPERTIES`.
+
+    Raises
+    ------
+    ValueError
+        If the file has no faces or no deviation property.
+    """
+    mesh = trimesh.load(path, process=False, force="mesh")
+    raw = mesh.metadata.get("_ply_raw", {}).get("vertex", {}).get("data")
+    names = () if raw is None or raw.dtype.names is None else raw.dtype.names
+    found = next((n for n in DEVIATION_PROPERTIES if n in names), None)
+    if found is None:
+        raise ValueError(
+            f"{path.name}: vertex: expected a property among {DEVIATION_PROPERTIES}, got {names}"
+        )
+    if len(mesh.faces) == 0:
+        raise ValueError(f"{path.name}: face: expected a triangle mesh, got no faces")
+    return (
+        np.asarray(mesh.vertices, dtype=np.float64),
+        np.asarray(mesh.faces),
+        np.asarray(raw[found], dtype=np.float64),
+    )
+
+
+def load_plate_meshes(artifact_dir: Path, *, max_vertices: int = 150_000) -> PlateMeshes:
+    """Load surface.ply, target.ply and result.json of an inspection, ready for display.
+
+    Parameters
+    ----------
+    artifact_dir : Path, the inspection's artifact folder (holds result.json and the
+        files its ``artifacts`` names: ``surface`` and ``target_surface``).
+    max_vertices : int, each mesh is decimated to about this many vertices.
+
+    Raises
+    ------
+    FileNotFoundError
+        If result.json or a mesh is missing.
+    ValueError
+        If a mesh lacks what the view needs.
+    """
+    artifact_dir = Path(artifact_dir)
+    document = json.loads((artifact_dir / "result.json").read_text())
+    names = document.get("artifacts", {})
+    surface_path = artifact_dir / names.get("surface", "surface.ply")
+    target_path = artifact_dir / names.get("target_surface", "target.ply")
+    vertices, faces, deviation = read_surface_ply(surface_path)
+    target = trimesh.load(target_path, process=False, force="mesh")
+
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    centre = (lo + hi) / 2.0
+
+    def to_display(v_mm: np.ndarray) -> np.ndarray:
+        return ((v_mm - centre) @ _CAM_TO_DISPLAY.T / 1000.0).astype(np.float32)
+
+    mv, mf, md = decimate_mesh(vertices, faces, deviation, max_vertices=max_vertices)
+    tv, tf, _ = decimate_mesh(
+        np.asarray(target.vertices), np.asarray(target.faces), max_vertices=max_vertices
+    )
+    mv, tv = to_display(mv), to_display(tv)
+    return PlateMeshes(
+        measured_vertices=mv,
+        measured_faces=_facing_up(mv, mf),
+        deviation_mm=md.astype(np.float32),
+        target_vertices=tv,
+        target_faces=_facing_up(tv, tf),
+        tolerance_mm=float(document["tolerance_mm"]),
+        extent_m=float(max(np.ptp(mv, axis=0).max(), np.ptp(tv, axis=0).max())),
+    )
+
+
+def _facing_up(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Wind the faces so that their normals point up (+z, the cameras' side) on average."""
+    tri = vertices[faces].astype(np.float64)
+    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    return faces[:, ::-1].copy() if normals[:, 2].sum() < 0 else faces

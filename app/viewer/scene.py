@@ -1,0 +1,125 @@
+"""One inspection's viser scene: the measured surface and the registered target, layout, legend.
+
+Display frame: metres, origin at the centre of the measured surface's bounding box, axes
+``(x, -y, -z)`` of the left camera frame, so the side of the plate that faces the cameras looks up
+(+z, viser's up direction).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import trimesh
+import viser
+
+from app.viewer.meshes import PlateMeshes, deviation_colours, legend_html
+
+logger = logging.getLogger(__name__)
+
+
+_TARGET_COLOUR = (176, 180, 188)
+# Scene background: a vertical gradient from light grey-blue (top) to a darker one (bottom).
+_BACKGROUND = (
+    np.linspace((236, 240, 245), (196, 205, 216), 64)
+    .round()
+    .astype(np.uint8)[:, None, :]
+    .repeat(4, axis=1)
+)
+_LAYOUTS = ("Side by side", "Overlaid")
+
+
+class _OfflineViserServer(viser.ViserServer):
+    """A viser server that refuses share requests (the share tunnel reaches an outside host)."""
+
+    def request_share_url(self, verbose: bool = True) -> None:
+        logger.warning("viewer: a client asked for a share URL; refused, sharing is disabled")
+        return
+
+
+class InspectionView:
+    """One inspection's viser server and the meshes it shows."""
+
+    def __init__(self, inspection_id: int, meshes: PlateMeshes, *, host: str):
+        self.inspection_id = inspection_id
+        self.meshes = meshes
+        self._glb = _measured_glb(meshes)
+        self.server = _OfflineViserServer(
+            host=host, port=0, label=f"Inspection {inspection_id}", verbose=False
+        )
+        self.server.gui.configure_theme(
+            show_share_button=False, show_logo=False, control_width="medium"
+        )
+        extent = max(meshes.extent_m, 0.1)
+        # Far enough back that both plates side by side (about 2.2 extents wide) fit a
+        # landscape panel (viser's vertical field of view is 75 deg), seen from the front, above.
+        self.server.initial_camera.position = (0.0, -1.25 * extent, 1.0 * extent)
+        self.server.initial_camera.look_at = (0.0, 0.0, 0.0)
+        self._client_nodes: dict[int, tuple[str, ...]] = {}
+        self.server.on_client_connect(self._build_client_scene)
+        self.server.on_client_disconnect(
+            lambda client: self._client_nodes.pop(client.client_id, None)
+        )
+
+    @property
+    def port(self) -> int:
+        return self.server.get_port()
+
+    def _build_client_scene(self, client: viser.ClientHandle) -> None:
+        """Give one browser its own copy of the plate, layout toggle and legend."""
+        meshes = self.meshes
+        extent = max(meshes.extent_m, 0.1)
+        half = np.array([0.575 * extent, 0.0, 0.0])
+        client.gui.configure_theme(show_share_button=False, show_logo=False, control_width="medium")
+        measured = client.scene.add_glb("/plate/measured", self._glb, position=-half)
+        target = client.scene.add_mesh_simple(
+            "/plate/target",
+            meshes.target_vertices,
+            meshes.target_faces,
+            color=_TARGET_COLOUR,
+            opacity=1.0,
+            side="double",
+            position=half,
+        )
+        # A tinted background and a floor grid (0.5 m cells): a plate within tolerance is
+        # coloured near white, which must not vanish into a white page.
+        client.scene.set_background_image(_BACKGROUND, format="png")
+        client.scene.add_grid(
+            "/floor",
+            width=2.6 * extent,
+            height=1.6 * extent,
+            cell_size=0.5,
+            section_size=1.0,
+            cell_color=(170, 178, 188),
+            section_color=(120, 130, 142),
+            position=(0.0, 0.0, meshes.floor_z_m),
+        )
+        layout = client.gui.add_dropdown("Layout", _LAYOUTS, initial_value=_LAYOUTS[0])
+        client.gui.add_html(legend_html(meshes.scale_mm, meshes.tolerance_mm))
+
+        self._client_nodes[client.client_id] = (measured.name, target.name)
+
+        @layout.on_update
+        def _(_event) -> None:
+            overlaid = layout.value == _LAYOUTS[1]
+            measured.position = np.zeros(3) if overlaid else -half
+            target.position = np.zeros(3) if overlaid else half
+            target.opacity = 0.35 if overlaid else 1.0
+
+    def client_count(self) -> int:
+        return len(self.server.get_clients())
+
+    def nodes_of(self, client_id: int) -> tuple[str, ...]:
+        """Names of the plate's scene nodes built for a client."""
+        return self._client_nodes.get(client_id, ())
+
+    def stop(self) -> None:
+        self.server.stop()
+
+
+def _measured_glb(meshes: PlateMeshes) -> bytes:
+    mesh = trimesh.Trimesh(meshes.measured_vertices, meshes.measured_faces, process=False)
+    mesh.visual = trimesh.visual.ColorVisuals(
+        mesh, vertex_colors=deviation_colours(meshes.deviation_mm, meshes.scale_mm)
+    )
+    return mesh.export(file_type="glb")
