@@ -21,7 +21,9 @@ from __future__ import annotations
 import re
 import shutil
 import uuid
-from dataclasses import dataclass
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
 
 #: A plate id as a regular expression: letters, digits, '.', '_', '-', starting with a letter or
@@ -77,6 +79,19 @@ class Storage:
         path = self.data_dir / "staging" / uuid.uuid4().hex
         path.mkdir(parents=True)
         return path
+
+    @contextmanager
+    def staging(self, *, folder: bool = True) -> Iterator[Staged]:
+        """The files of one write before its rows are committed (see :class:`Staged`).
+
+        ``folder``: make a staging folder for the upload (``Staged.dir``; None without). The
+        folder is removed on leaving, whatever the service did not move into place.
+        """
+        staged = Staged(self, self.new_staging_dir() if folder else None)
+        try:
+            yield staged
+        finally:
+            self.remove(staged.dir)
 
     def target_dir(self, plate_id: str, target_id: int) -> Path:
         return self.data_dir / "plates" / check_plate_id(plate_id) / "targets" / str(int(target_id))
@@ -144,3 +159,24 @@ class Storage:
         self.remove(out)
         out.mkdir(parents=True)
         return out
+
+
+@dataclass
+class Staged:
+    """A write's files: its upload's staging folder and the folders of the rows it created.
+
+    :meth:`track` each row folder the write makes; :meth:`undo` (the write's cleanup when its rows
+    are not committed) removes them with the staging folder, so a refused write leaves nothing.
+    """
+
+    storage: Storage
+    dir: Path | None
+    created: list[Path] = field(default_factory=list)
+
+    def track(self, folder: Path) -> None:
+        self.created.append(folder)
+
+    def undo(self) -> None:
+        self.storage.remove(self.dir)
+        for folder in self.created:
+            self.storage.remove(folder)

@@ -47,35 +47,29 @@ def upload_calibration(
 
     A bad file, or an ``image_size`` over the image pixel limit, is refused with 422 naming the field.
     """
-    staging = storage.new_staging_dir()
-    created: list[int] = []
+    with storage.staging() as staged:
 
-    def cleanup():
-        storage.remove(staging)
-        for calibration_id in created:
-            storage.remove(storage.calibration_dir(calibration_id))
+        def work():
+            save_upload(calibration, staged.dir / CALIBRATION_FILE)
+            row = svc.create_calibration(
+                session=session,
+                storage=storage,
+                staging_dir=staged.dir,
+                limits=Limits.from_settings(settings),
+            )
+            staged.track(storage.calibration_dir(row.id))
+            return 201, calibration_out(row).model_dump(mode="json"), None
 
-    def work():
-        save_upload(calibration, staging / CALIBRATION_FILE)
-        row = svc.create_calibration(
+        return idempotent_write(
+            request=request,
             session=session,
-            storage=storage,
-            staging_dir=staging,
-            limits=Limits.from_settings(settings),
+            writer=writer,
+            key=idempotency_key,
+            work=work,
+            cleanup=staged.undo,
+            staging=staged.dir,
+            upload_field="calibration",
         )
-        created.append(row.id)
-        return 201, calibration_out(row).model_dump(mode="json"), None
-
-    return idempotent_write(
-        request=request,
-        session=session,
-        writer=writer,
-        key=idempotency_key,
-        work=work,
-        cleanup=cleanup,
-        staging=staging,
-        upload_field="calibration",
-    )
 
 
 @router.get(

@@ -93,41 +93,35 @@ def create_inspection(
     is stored with the inspection; a bad one, or one naming an unknown machine, is refused with 422
     naming ``process`` or its field (``process.machine_id``).
     """
-    staging = storage.new_staging_dir()
-    created: list[int] = []
+    with storage.staging() as staged:
 
-    def cleanup():
-        storage.remove(staging)
-        for inspection_id in created:
-            storage.remove(storage.inspection_dir(inspection_id))
+        def work():
+            pass_ = None if process is None else parse_process(process)
+            save_upload(capture, staged.dir / CAPTURE_FILE)
+            if target is not None:
+                (staged.dir / "target").mkdir()
+                save_upload(target, staged.dir / "target" / TARGET_FILE)
+            row = svc.create_uploaded_inspection(
+                session=session,
+                storage=storage,
+                plate_id=plate_id,
+                staging_dir=staged.dir,
+                limits=Limits.from_settings(settings),
+                process=pass_,
+            )
+            staged.track(storage.inspection_dir(row.id))
+            return 202, {"id": row.id, "status": row.status}, lambda: jobs.enqueue(row.id)
 
-    def work():
-        pass_ = None if process is None else parse_process(process)
-        save_upload(capture, staging / CAPTURE_FILE)
-        if target is not None:
-            (staging / "target").mkdir()
-            save_upload(target, staging / "target" / TARGET_FILE)
-        row = svc.create_uploaded_inspection(
+        return idempotent_write(
+            request=request,
             session=session,
-            storage=storage,
-            plate_id=plate_id,
-            staging_dir=staging,
-            limits=Limits.from_settings(settings),
-            process=pass_,
+            writer=writer,
+            key=idempotency_key,
+            work=work,
+            cleanup=staged.undo,
+            staging=staged.dir,
+            upload_field=_upload_part,
         )
-        created.append(row.id)
-        return 202, {"id": row.id, "status": row.status}, lambda: jobs.enqueue(row.id)
-
-    return idempotent_write(
-        request=request,
-        session=session,
-        writer=writer,
-        key=idempotency_key,
-        work=work,
-        cleanup=cleanup,
-        staging=staging,
-        upload_field=_upload_part,
-    )
 
 
 def parse_process(text: str) -> dict:
@@ -174,31 +168,27 @@ def create_simulated_inspection(
 
     Over the request limits (lights, simulated pixels): 422; a full queue: 429 and ``Retry-After``.
     """
-    created: list[int] = []
+    with storage.staging(folder=False) as staged:
 
-    def cleanup():
-        for inspection_id in created:
-            storage.remove(storage.inspection_dir(inspection_id))
+        def work():
+            row = svc.create_simulated_inspection(
+                session=session,
+                storage=storage,
+                plate_id=plate_id,
+                simulation=body.model_dump(mode="json"),
+                limits=Limits.from_settings(settings),
+            )
+            staged.track(storage.inspection_dir(row.id))
+            return 202, {"id": row.id, "status": row.status}, lambda: jobs.enqueue(row.id)
 
-    def work():
-        row = svc.create_simulated_inspection(
+        return idempotent_write(
+            request=request,
             session=session,
-            storage=storage,
-            plate_id=plate_id,
-            simulation=body.model_dump(mode="json"),
-            limits=Limits.from_settings(settings),
+            writer=writer,
+            key=idempotency_key,
+            work=work,
+            cleanup=staged.undo,
         )
-        created.append(row.id)
-        return 202, {"id": row.id, "status": row.status}, lambda: jobs.enqueue(row.id)
-
-    return idempotent_write(
-        request=request,
-        session=session,
-        writer=writer,
-        key=idempotency_key,
-        work=work,
-        cleanup=cleanup,
-    )
 
 
 @router.post(
@@ -240,43 +230,34 @@ def acquire_inspection(
         cell = load_cell(settings)
     except CellUnavailable as err:  # checked first, never remembered under an Idempotency-Key
         raise ApiError(409, err.detail) from None
-    staging = None
-    if body.target is not None:
-        staging = storage.new_staging_dir()
-        (staging / TARGET_FILE).write_text(json.dumps(body.target), encoding="utf-8")
-    created: list[int] = []
+    with storage.staging(folder=body.target is not None) as staged:
+        if staged.dir is not None:
+            (staged.dir / TARGET_FILE).write_text(json.dumps(body.target), encoding="utf-8")
 
-    def cleanup():
-        for inspection_id in created:
-            storage.remove(storage.inspection_dir(inspection_id))
+        def work():
+            row = create_acquired_inspection(
+                session=session,
+                storage=storage,
+                plate_id=plate_id,
+                cell=cell,
+                process=None if body.process is None else body.process.model_dump(mode="json"),
+                target_dir=staged.dir,
+                default_target=demo_target(settings),
+                limits=Limits.from_settings(settings),
+            )
+            staged.track(storage.inspection_dir(row.id))
+            return 202, {"id": row.id, "status": row.status}, lambda: jobs.enqueue(row.id)
 
-    def work():
-        row = create_acquired_inspection(
-            session=session,
-            storage=storage,
-            plate_id=plate_id,
-            cell=cell,
-            process=None if body.process is None else body.process.model_dump(mode="json"),
-            target_dir=staging,
-            default_target=demo_target(settings),
-            limits=Limits.from_settings(settings),
-        )
-        created.append(row.id)
-        return 202, {"id": row.id, "status": row.status}, lambda: jobs.enqueue(row.id)
-
-    try:
         return idempotent_write(
             request=request,
             session=session,
             writer=writer,
             key=idempotency_key,
             work=work,
-            cleanup=cleanup,
-            staging=staging,
+            cleanup=staged.undo,
+            staging=staged.dir,
             upload_field="target",
         )
-    finally:
-        storage.remove(staging)
 
 
 @router.get(

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from fastapi import APIRouter, Request, status
 from fastapi.concurrency import run_in_threadpool
 from starlette.datastructures import UploadFile
@@ -76,59 +78,56 @@ async def upload_light_calibration(
     was applied). Captures that give point lights keep their own.
     """
     content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
-    staging = storage.new_staging_dir()
-    try:
-        if content_type == "application/json":
-            (staging / LIGHT_CALIBRATION_FILE).write_bytes(await request.body())
-            file_name = None
-        elif content_type == "multipart/form-data":
-            upload = (await request.form()).get(UPLOAD_FIELD)
-            if not isinstance(upload, UploadFile):
-                raise ApiError(
-                    422,
-                    f"{UPLOAD_FIELD}: expected a light-calibration/1 JSON file upload",
-                    field=UPLOAD_FIELD,
-                )
-            (staging / LIGHT_CALIBRATION_FILE).write_bytes(await upload.read())
-            file_name = svc.upload_name(upload.filename)
-        else:
-            raise ApiError(
-                415,
-                f"Content-Type: expected application/json or multipart/form-data, got {content_type or 'none'!r}",
-                field="Content-Type",
+    with storage.staging() as staged:
+        file_name = await _stage_upload(request, content_type, staged.dir / LIGHT_CALIBRATION_FILE)
+
+        def work():
+            row = svc.create_light_calibration(
+                session=session,
+                storage=storage,
+                staging_dir=staged.dir,
+                file_name=file_name,
+                limits=Limits.from_settings(settings),
             )
-    except BaseException:
-        storage.remove(staging)
-        raise
+            staged.track(storage.light_calibration_dir(row.id))
+            return 201, light_calibration_out(row).model_dump(mode="json"), None
 
-    created: list[int] = []
-
-    def cleanup():
-        storage.remove(staging)
-        for light_calibration_id in created:
-            storage.remove(storage.light_calibration_dir(light_calibration_id))
-
-    def work():
-        row = svc.create_light_calibration(
+        return await run_in_threadpool(
+            idempotent_write,
+            request=request,
             session=session,
-            storage=storage,
-            staging_dir=staging,
-            file_name=file_name,
-            limits=Limits.from_settings(settings),
+            writer=writer,
+            key=idempotency_key,
+            work=work,
+            cleanup=staged.undo,
+            upload_field=UPLOAD_FIELD if file_name is not None else None,
+            staging=staged.dir,
         )
-        created.append(row.id)
-        return 201, light_calibration_out(row).model_dump(mode="json"), None
 
-    return await run_in_threadpool(
-        idempotent_write,
-        request=request,
-        session=session,
-        writer=writer,
-        key=idempotency_key,
-        work=work,
-        cleanup=cleanup,
-        upload_field=UPLOAD_FIELD if file_name is not None else None,
-        staging=staging,
+
+async def _stage_upload(request: Request, content_type: str, path: Path) -> str | None:
+    """Write the request's light-calibration/1 (a JSON body or a multipart upload) to ``path``.
+
+    Returns the uploaded file's name (None for a JSON body); 422 without the file part, 415 for
+    another Content-Type.
+    """
+    if content_type == "application/json":
+        path.write_bytes(await request.body())
+        return None
+    if content_type == "multipart/form-data":
+        upload = (await request.form()).get(UPLOAD_FIELD)
+        if not isinstance(upload, UploadFile):
+            raise ApiError(
+                422,
+                f"{UPLOAD_FIELD}: expected a light-calibration/1 JSON file upload",
+                field=UPLOAD_FIELD,
+            )
+        path.write_bytes(await upload.read())
+        return svc.upload_name(upload.filename)
+    raise ApiError(
+        415,
+        f"Content-Type: expected application/json or multipart/form-data, got {content_type or 'none'!r}",
+        field="Content-Type",
     )
 
 
