@@ -327,6 +327,37 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:
         "for a rounded rectangle; repeatable (the target is then written as a mesh); "
         "a negative X needs the = form: --cutout=-500,200,150",
     )
+    _add_surroundings_arguments(cap)
+    _add_light_and_camera_arguments(cap)
+    cap.add_argument(
+        "--texture", choices=["rusty", "painted", "uniform"], default="rusty", help="plate albedo"
+    )
+    cap.add_argument("--no-stereo", action="store_true", help="omit the stereo pair")
+    cap.add_argument(
+        "--no-working-distance",
+        action="store_true",
+        help="omit working_distance_mm from the bundle",
+    )
+    cap.add_argument(
+        "--tolerance", type=float, default=2.0, help="tolerance written to target.json, mm"
+    )
+    cap.add_argument("--plate-id", default="SIM-0001")
+    cap.add_argument("--seed", type=int, default=0)
+    cap.set_defaults(handler=_cmd_simulate_capture)
+    boards = sim_sub.add_parser(
+        "boards", help="render checkerboard pairs for `plate-inspect calibrate`"
+    )
+    boards.add_argument("out", help="output folder")
+    boards.add_argument("--pairs", type=int, default=12)
+    boards.add_argument("--board", default="9x6", help="inner corners COLSxROWS (default 9x6)")
+    boards.add_argument("--square", type=float, default=100.0, help="square size, mm (default 100)")
+    boards.add_argument("--size", default="1224x1024", help="image size WIDTHxHEIGHT px")
+    boards.add_argument("--seed", type=int, default=0)
+    boards.set_defaults(handler=_cmd_simulate_boards)
+
+
+def _add_surroundings_arguments(cap: argparse.ArgumentParser) -> None:
+    """``simulate capture``: what lies around and under the plate."""
     cap.add_argument(
         "--floor",
         type=float,
@@ -345,6 +376,10 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:
         metavar="N",
         help="with --floor: N rails 200-400 mm high (at most the floor's distance) across the plate",
     )
+
+
+def _add_light_and_camera_arguments(cap: argparse.ArgumentParser) -> None:
+    """``simulate capture``: the lights, the sensor and the working distance."""
     cap.add_argument(
         "--lights", type=int, default=12, help="number of light directions (default 12)"
     )
@@ -391,31 +426,6 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="with --near-field: write only each light's direction from the plate centre",
     )
-    cap.add_argument(
-        "--texture", choices=["rusty", "painted", "uniform"], default="rusty", help="plate albedo"
-    )
-    cap.add_argument("--no-stereo", action="store_true", help="omit the stereo pair")
-    cap.add_argument(
-        "--no-working-distance",
-        action="store_true",
-        help="omit working_distance_mm from the bundle",
-    )
-    cap.add_argument(
-        "--tolerance", type=float, default=2.0, help="tolerance written to target.json, mm"
-    )
-    cap.add_argument("--plate-id", default="SIM-0001")
-    cap.add_argument("--seed", type=int, default=0)
-    cap.set_defaults(handler=_cmd_simulate_capture)
-    boards = sim_sub.add_parser(
-        "boards", help="render checkerboard pairs for `plate-inspect calibrate`"
-    )
-    boards.add_argument("out", help="output folder")
-    boards.add_argument("--pairs", type=int, default=12)
-    boards.add_argument("--board", default="9x6", help="inner corners COLSxROWS (default 9x6)")
-    boards.add_argument("--square", type=float, default=100.0, help="square size, mm (default 100)")
-    boards.add_argument("--size", default="1224x1024", help="image size WIDTHxHEIGHT px")
-    boards.add_argument("--seed", type=int, default=0)
-    boards.set_defaults(handler=_cmd_simulate_boards)
 
 
 def _add_calibrate(sub: argparse._SubParsersAction) -> None:

@@ -401,9 +401,8 @@ def _capture_samples(
             f"{cap.source}: the plate covers {100 * plate_fraction:.1f} % of the image, expected at least "
             f"{100 * min_plate_fraction:.0f} % for a light calibration"
         )
-    images = (
-        pre.images
-    )  # ours: back to fractions of full scale (dark subtracted, undistorted) in place
+    # ours: back to fractions of full scale (dark subtracted, undistorted) in place
+    images = pre.images
     for k in range(cap.n_lights):
         images[k] *= np.float32(cap.lights.intensity[k])
     threshold = np.float32(SHADOW_FRACTION) * images.max(axis=0)
@@ -411,9 +410,8 @@ def _capture_samples(
     usable = mask.copy()
     lit = np.empty(cap.n_lights)
     for k in range(cap.n_lights):
-        valid = pre.valid[k] & (
-            images[k] >= threshold
-        )  # not saturated, seen, not in an attached shadow
+        # not saturated, seen, not in an attached shadow
+        valid = pre.valid[k] & (images[k] >= threshold)
         lit[k] = np.count_nonzero(valid & mask) / n_plate
         usable &= valid
     worst = int(np.argmin(lit))

@@ -412,23 +412,7 @@ def _judge(
     clock.begin("deviation")
     pose = registration.register_to_target(points, surface_mask, tgt)
     dev = deviation.deviation_map(points, surface_mask, tgt, pose)
-    writes += [
-        pool.submit(
-            artifacts.write_surface_ply,
-            out / ARTIFACT_FILES["surface"],
-            points,
-            surface_mask,
-            dev,
-            tolerance_mm=tgt.tolerance_mm,
-        ),
-        pool.submit(
-            artifacts.write_deviation_png,
-            out / ARTIFACT_FILES["deviation_map"],
-            dev,
-            surface_mask,
-            tolerance_mm=tgt.tolerance_mm,
-        ),
-    ]
+    writes += _write_deviation(pool, out, points, surface_mask, dev, tgt.tolerance_mm)
     pixel_area = area_job.result()
     judgement = verdict.judge(
         dev,
@@ -462,6 +446,34 @@ def _judge(
         curv=curv,
         pixel_area=pixel_area,
     )
+
+
+def _write_deviation(
+    pool: ThreadPoolExecutor,
+    out: Path,
+    points: np.ndarray,
+    mask: np.ndarray,
+    dev: np.ndarray,
+    tolerance_mm: float,
+) -> list:
+    """Submit the writes of surface.ply and deviation.png (the deviation known); their futures."""
+    return [
+        pool.submit(
+            artifacts.write_surface_ply,
+            out / ARTIFACT_FILES["surface"],
+            points,
+            mask,
+            dev,
+            tolerance_mm=tolerance_mm,
+        ),
+        pool.submit(
+            artifacts.write_deviation_png,
+            out / ARTIFACT_FILES["deviation_map"],
+            dev,
+            mask,
+            tolerance_mm=tolerance_mm,
+        ),
+    ]
 
 
 def _apply_light_calibration(

@@ -36,7 +36,7 @@ no history of its own gets its group's distribution; a group with no plates gets
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from itertools import pairwise
 
@@ -290,6 +290,87 @@ def measured_curvature(plate: PlateRecord, radius_mm: float) -> float:
     return 1.0 / r_mid if r_mid > 0 else np.inf
 
 
+@dataclass(frozen=True)
+class _Rows:
+    """The inspected states a round fits: pass index, observed curvature, its sd, plate index."""
+
+    state_pass: np.ndarray
+    state_obs: np.ndarray
+    sd_row: np.ndarray
+    state_plate: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Prior:
+    """Compliance and group priors (mean, sd), the plates' spread about their group, the groups."""
+
+    mu: np.ndarray
+    sd: np.ndarray
+    spread: float
+    plate_group: np.ndarray
+
+
+def _solve_round(
+    curvatures: Callable[..., tuple[np.ndarray, np.ndarray, np.ndarray]],
+    theta: np.ndarray,
+    rows: _Rows,
+    prior: _Prior,
+    sizes: tuple[int, int, int],
+) -> tuple[np.ndarray, np.ndarray]:
+    """One round of :func:`fit`: bounded least squares with the round's variances; (theta, cov)."""
+    M, G, P = sizes
+    n_rows = len(rows.state_pass)
+    state_pass, state_obs, sd_row, state_plate = (
+        rows.state_pass,
+        rows.state_obs,
+        rows.sd_row,
+        rows.state_plate,
+    )
+    prior_mu, prior_sd, spread, plate_group = prior.mu, prior.sd, prior.spread, prior.plate_group
+
+    def residuals(th: np.ndarray) -> np.ndarray:
+        k = curvatures(th)[2]
+        return np.concatenate(
+            [
+                (k[state_pass] - state_obs) / sd_row,
+                (th[: M + G] - prior_mu) / prior_sd,
+                (th[M + G :] - th[plate_group]) / spread,
+            ]
+        )
+
+    def jacobian(th: np.ndarray) -> np.ndarray:
+        J = np.zeros((n_rows + M + G + P, M + G + P))
+        k = curvatures(th)[2]
+        for m in range(M):
+            t2 = th.copy()
+            t2[m] += _H_C
+            J[:n_rows, m] = (curvatures(t2)[2] - k)[state_pass] / _H_C / sd_row
+        t2 = th.copy()
+        t2[M + G :] += _H_F
+        dk = (curvatures(t2)[2] - k)[state_pass] / _H_F / sd_row
+        J[np.arange(n_rows), M + G + state_plate] = dk
+        J[n_rows + np.arange(M + G), np.arange(M + G)] = 1.0 / prior_sd
+        J[n_rows + M + G + np.arange(P), M + G + np.arange(P)] = 1.0 / spread
+        J[n_rows + M + G + np.arange(P), plate_group] = -1.0 / spread
+        return J
+
+    sol = optimize.least_squares(
+        residuals,
+        theta,
+        jac=jacobian,
+        method="trf",
+        x_scale=1.0,
+        bounds=(
+            np.concatenate([np.full(M, -np.inf), np.full(G + P, 0.3)]),
+            np.concatenate([np.full(M, np.inf), np.full(G + P, 3.0)]),
+        ),
+    )
+    theta = sol.x
+    J = jacobian(theta)
+    cov = np.linalg.pinv(J.T @ J)
+    return theta, cov
+
+
 def _peaks(loaded: np.ndarray, starts: np.ndarray) -> np.ndarray:
     """Each pass's plate's largest loaded curvature so far (plates' passes contiguous from ``starts``)."""
     peak = [np.maximum.accumulate(loaded[a:b]) for a, b in pairwise(starts)]
@@ -337,11 +418,7 @@ def fit(
     plate_group = np.array([M + groups.index(p.group) for p in plates], dtype=int)
 
     x0 = np.concatenate(
-        [
-            np.full(M, priors.compliance_mm_per_mn),
-            np.full(G, priors.yield_factor),
-            np.full(P, priors.yield_factor),
-        ]
+        [np.full(M, priors.compliance_mm_per_mn), np.full(G + P, priors.yield_factor)]
     )
 
     def curvatures(
@@ -361,63 +438,28 @@ def fit(
     meas_var = np.array(
         [_inspection_variance(k, plates[i], priors) for k, i in zip(state_obs, state_plate)]
     ) / np.maximum(state_n, 1)
-    n_rows = len(state_pass)
     plates_with_rows = np.unique(state_plate)
-    dof_rows = max(n_rows - len(plates_with_rows), 0)
+    dof_rows = max(len(state_pass) - len(plates_with_rows), 0)
 
+    prior_mu = np.concatenate(
+        [np.full(M, priors.compliance_mm_per_mn), np.full(G, priors.yield_factor)]
+    )
+    prior_sd = np.concatenate(
+        [np.full(M, priors.compliance_sd_mm_per_mn), np.full(G, priors.yield_factor_sd)]
+    )
     scatter, spread = priors.scatter_mm, priors.plate_spread
     theta = x0
     for round_ in range(_ROUNDS):
         ku = curvatures(theta)[2]
         g = (curvatures(theta, _H_D)[2] - ku)[state_pass] / _H_D
         sd_row = np.sqrt(meas_var + (g * scatter) ** 2)
-        prior_sd = np.concatenate(
-            [np.full(M, priors.compliance_sd_mm_per_mn), np.full(G, priors.yield_factor_sd)]
-        )
-        prior_mu = np.concatenate(
-            [np.full(M, priors.compliance_mm_per_mn), np.full(G, priors.yield_factor)]
-        )
-
-        def residuals(th: np.ndarray) -> np.ndarray:
-            k = curvatures(th)[2]
-            return np.concatenate(
-                [
-                    (k[state_pass] - state_obs) / sd_row,
-                    (th[: M + G] - prior_mu) / prior_sd,
-                    (th[M + G :] - th[plate_group]) / spread,
-                ]
-            )
-
-        def jacobian(th: np.ndarray) -> np.ndarray:
-            J = np.zeros((n_rows + M + G + P, M + G + P))
-            k = curvatures(th)[2]
-            for m in range(M):
-                t2 = th.copy()
-                t2[m] += _H_C
-                J[:n_rows, m] = (curvatures(t2)[2] - k)[state_pass] / _H_C / sd_row
-            t2 = th.copy()
-            t2[M + G :] += _H_F
-            dk = (curvatures(t2)[2] - k)[state_pass] / _H_F / sd_row
-            J[np.arange(n_rows), M + G + state_plate] = dk
-            J[n_rows + np.arange(M + G), np.arange(M + G)] = 1.0 / prior_sd
-            J[n_rows + M + G + np.arange(P), M + G + np.arange(P)] = 1.0 / spread
-            J[n_rows + M + G + np.arange(P), plate_group] = -1.0 / spread
-            return J
-
-        sol = optimize.least_squares(
-            residuals,
+        theta, cov = _solve_round(
+            curvatures,
             theta,
-            jac=jacobian,
-            method="trf",
-            x_scale=1.0,
-            bounds=(
-                np.concatenate([np.full(M, -np.inf), np.full(G + P, 0.3)]),
-                np.concatenate([np.full(M, np.inf), np.full(G + P, 3.0)]),
-            ),
+            _Rows(state_pass, state_obs, sd_row, state_plate),
+            _Prior(prior_mu, prior_sd, spread, plate_group),
+            (M, G, P),
         )
-        theta = sol.x
-        J = jacobian(theta)
-        cov = np.linalg.pinv(J.T @ J)
         if round_ == _ROUNDS - 1:
             break
         # variance updates (module docstring)
@@ -434,7 +476,7 @@ def fit(
         cov,
         scatter,
         spread,
-        n_rows,
+        len(state_pass),
         rows_per_plate,
         priors.scatter_weight + dof_rows,
         priors.plate_spread_weight + len(plates_with_rows),

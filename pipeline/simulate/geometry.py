@@ -220,7 +220,6 @@ def intersect(
     o = R.T @ (np.asarray(origin, dtype=np.float64) - t)
     d = dirs @ R  # row-wise R^T d
     dx, dy, dz = d[..., 0], d[..., 1], d[..., 2]
-    half_w, half_h = plate.size_mm[0] / 2, plate.size_mm[1] / 2
     c = 1.0 if plate.convex else -1.0
 
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -243,22 +242,7 @@ def intersect(
             s = (-B - c * root) / (2.0 * A)
 
         if plate.shape == "saddle" or plate.dents:
-            # Newton on f(s) = z_p(s) - h(x_p(s), y_p(s)); h is evaluated inside the footprint only
-            # (constant continuation outside), off-plate rays are sorted out afterwards.
-            for _ in range(30):
-                x = o[0] + s * dx
-                y = o[1] + s * dy
-                xc = np.clip(x, -half_w, half_w)
-                yc = np.clip(y, -half_h, half_h)
-                h, hx, hy = plate_height(plate, xc, yc)
-                hx = np.where(xc == x, hx, 0.0)
-                hy = np.where(yc == y, hy, 0.0)
-                f = o[2] + s * dz - h
-                step = f / (dz - hx * dx - hy * dy)
-                s = s - step
-                moving = np.abs(step[np.isfinite(step)])
-                if moving.size == 0 or moving.max() <= 1e-9:
-                    break
+            s = _refine_on_height(plate, o, d, s)
 
         x = o[0] + s * dx
         y = o[1] + s * dy
@@ -296,6 +280,31 @@ def intersect(
     n_plate /= np.linalg.norm(n_plate, axis=-1, keepdims=True)
     normals = n_plate @ R.T
     return Hits(s=s, xyz_plate=xyz, normals=normals, on_plate=on_plate, surface=surface)
+
+
+def _refine_on_height(plate: PlateSpec, o: np.ndarray, d: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Ray parameters ``s`` refined onto the plate's height field (saddles, dents).
+
+    Newton on f(s) = z_p(s) - h(x_p(s), y_p(s)); h is evaluated inside the footprint only
+    (constant continuation outside), off-plate rays are sorted out by the caller.
+    """
+    dx, dy, dz = d[..., 0], d[..., 1], d[..., 2]
+    half_w, half_h = plate.size_mm[0] / 2, plate.size_mm[1] / 2
+    for _ in range(30):
+        x = o[0] + s * dx
+        y = o[1] + s * dy
+        xc = np.clip(x, -half_w, half_w)
+        yc = np.clip(y, -half_h, half_h)
+        h, hx, hy = plate_height(plate, xc, yc)
+        hx = np.where(xc == x, hx, 0.0)
+        hy = np.where(yc == y, hy, 0.0)
+        f = o[2] + s * dz - h
+        step = f / (dz - hx * dx - hy * dy)
+        s = s - step
+        moving = np.abs(step[np.isfinite(step)])
+        if moving.size == 0 or moving.max() <= 1e-9:
+            break
+    return s
 
 
 def _surroundings(
