@@ -72,7 +72,7 @@ def _choose_degree(rho: float) -> int:
 class _HeightPoly:
     """``h(x, y)`` as a total-degree Legendre polynomial on the normalised plate box."""
 
-    def __init__(self, q: np.ndarray, deg: int):
+    def __init__(self, q: np.ndarray, deg: int) -> None:
         lo, hi = q[:, :2].min(axis=0), q[:, :2].max(axis=0)
         self.mid = (lo + hi) / 2
         self.half = np.maximum((hi - lo) / 2, 1e-9)

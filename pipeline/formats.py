@@ -39,7 +39,7 @@ class InputError(ValueError):
     it and exits 2, the service answers 422 with it.
     """
 
-    def __init__(self, file: str, field: str, reason: str):
+    def __init__(self, file: str, field: str, reason: str) -> None:
         self.file = str(file)
         self.field = field
         self.reason = reason
@@ -66,7 +66,7 @@ class AcquisitionError(Exception):
     photometric image 3: no frame within 2.0 s"``); the CLI prints it and exits 4.
     """
 
-    def __init__(self, device: str, step: str, reason: str):
+    def __init__(self, device: str, step: str, reason: str) -> None:
         self.device = device
         self.step = step
         self.reason = reason

@@ -356,7 +356,7 @@ class _Blocks:
 class _Grid:
     """Uniform cubic B-splines over a box of pixels: ``nv x nu`` coefficients, knots ``spacing`` px apart."""
 
-    def __init__(self, shape: tuple[int, int], spacing: float):
+    def __init__(self, shape: tuple[int, int], spacing: float) -> None:
         self.shape = shape
         self.spacing = float(spacing)
         self.nv = int(np.ceil(shape[0] / self.spacing)) + 3
@@ -462,7 +462,7 @@ def _fit(grid: _Grid, blocks: _Blocks, *, degree: int | None):
 
 
 @nb.njit(cache=True, parallel=True)
-def _compose(z, c, mask, fused, correction):
+def _compose(z, c, mask, fused, correction) -> None:
     """fused = z exp(c) and correction = fused - z on the mask (left NaN elsewhere), in place."""
     h, w = mask.shape
     for i in nb.prange(h):

@@ -140,7 +140,7 @@ def _log_depth_gradients(normals, mask, kinv, unit_tol, p, q):
 
 
 @nb.njit(cache=True, parallel=True)
-def _fine_system(mask, p, q, wd, prior, shift, ex, ey, wdp, dg, idg, b):
+def _fine_system(mask, p, q, wd, prior, shift, ex, ey, wdp, dg, idg, b) -> None:
     """The normal equations on the padded grid from (H, W) inputs.
 
     Edge (a, c) with c the right/lower neighbour of a: x_c - x_a = (g_a + g_c) / 2; prior term
@@ -507,7 +507,7 @@ def _parts_with_prior(labels, wd, n):
 
 
 @nb.njit(cache=True, parallel=True)
-def _exp_depth(x, mask, shift, depth):
+def _exp_depth(x, mask, shift, depth) -> None:
     """depth = exp(x + shift) on the mask, NaN elsewhere."""
     h, w = mask.shape
     for i in nb.prange(h):
@@ -531,7 +531,7 @@ def _gather(values, labels, label, out):
 
 
 @nb.njit(cache=True)
-def _scale_parts(depth, labels, factor):
+def _scale_parts(depth, labels, factor) -> None:
     """depth *= factor[label] on the cells with label > 0."""
     h, w = labels.shape
     for i in range(h):
@@ -541,7 +541,7 @@ def _scale_parts(depth, labels, factor):
                 depth[i, j] *= factor[lab]
 
 
-def _scale_to_median(depth, mask, labels, n, n_floating, has_prior, reference):
+def _scale_to_median(depth, mask, labels, n, n_floating, has_prior, reference) -> None:
     """Scale each part of the mask without prior so that its median depth is ``reference``, in place."""
     factor = np.ones(n + 1)
     if n == 1:

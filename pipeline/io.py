@@ -217,7 +217,7 @@ def _parse_json(data: bytes, label: str) -> dict:
 class _LongInteger:
     """Stands in for an integer literal too long for Python to convert (found with its field after parsing)."""
 
-    def __init__(self, digits: int):
+    def __init__(self, digits: int) -> None:
         self.digits = digits
 
 
@@ -541,7 +541,7 @@ def _check_relative(name: str, *, label: str, field: str, what: str = "path") ->
 
 
 class _FolderBundle:
-    def __init__(self, root: Path):
+    def __init__(self, root: Path) -> None:
         self.root = root
         self._real_root = root.resolve()
         self.capture_label = str(root / "capture.json")
@@ -587,7 +587,7 @@ class _FolderBundle:
 
 
 class _ZipBundle:
-    def __init__(self, path: Path, *, max_total_bytes: int, max_ratio: float):
+    def __init__(self, path: Path, *, max_total_bytes: int, max_ratio: float) -> None:
         self.path = path
         try:
             self._zf = zipfile.ZipFile(path)
@@ -1050,7 +1050,7 @@ class InputLimitError(InputError):
         The parameter of :func:`read_capture_header` that refused the input (``max_<limit>``).
     """
 
-    def __init__(self, file: str, field: str, reason: str, *, limit: str):
+    def __init__(self, file: str, field: str, reason: str, *, limit: str) -> None:
         super().__init__(file, field, reason)
         self.limit = limit
 

@@ -242,7 +242,7 @@ def joint_fit(
 class _Problem:
     """The variable-projection least squares of :func:`joint_fit`: its cost and its normal equations."""
 
-    def __init__(self, start: Lights, data: Samples):
+    def __init__(self, start: Lights, data: Samples) -> None:
         self.I, self.X, self.nrm = data.intensity, data.points, data.normals
         self.P, self.N = self.I.shape
         self.n_par = self.N * _N_PARAMS

@@ -252,7 +252,7 @@ class Lights:
 @numba.njit(cache=True, fastmath={"nsz", "arcp", "contract", "reassoc"})
 def light_vectors_block(
     depth, kinv, geometry, axes, kind, mu, min_attenuation, i, j0, samples, usable, m, L
-):
+) -> None:
     """Per pixel (i, j0 + j) of a row block: the light model from the surface point it sees.
 
     ``depth`` (H, W) mm and ``kinv`` (3, 3) give the point X = depth * K^-1 (u, v, 1); ``geometry``,

@@ -157,7 +157,7 @@ def preprocess(
 
 
 @numba.njit(parallel=True, cache=True)
-def _brightest(images, out):
+def _brightest(images, out) -> None:
     """out (H, W) = the brightest of the N images (N, H, W) at each pixel."""
     n, h, w = images.shape
     for i in numba.prange(h):

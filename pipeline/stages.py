@@ -108,7 +108,7 @@ class StageClock:
         Called when each stage of :data:`STAGES` begins, with the fraction of the stages done.
     """
 
-    def __init__(self, progress: ProgressCallback | None):
+    def __init__(self, progress: ProgressCallback | None) -> None:
         self.progress = progress
         self.timings: dict[str, float] = {}
         self.start = time.perf_counter()

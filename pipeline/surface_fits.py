@@ -366,7 +366,7 @@ class _CurvedModel:
     gives the axis (the direction of least curvature) and the curvature.
     """
 
-    def __init__(self, sub: np.ndarray, *, cylinder: bool):
+    def __init__(self, sub: np.ndarray, *, cylinder: bool) -> None:
         c, frame = pca_frame(sub)
         q = (sub - c) @ frame.T
         a = local_quadric(q)

@@ -57,7 +57,7 @@ class AravisCamera(Camera):
         Aravis missing, or no camera answers to ``config.device_id``.
     """
 
-    def __init__(self, side: Side, config: CellCamera):
+    def __init__(self, side: Side, config: CellCamera) -> None:
         super().__init__(side, config)
         self._Aravis, self._GLib = _aravis(self.device)
         if config.device_id.startswith("Fake"):

@@ -58,7 +58,7 @@ class Camera(ABC):
     config : pipeline.formats.CellCamera
     """
 
-    def __init__(self, side: Side, config: CellCamera):
+    def __init__(self, side: Side, config: CellCamera) -> None:
         self.side = side
         self.config = config
         self.device = f"{side} camera {config.device_id or config.driver}"
@@ -177,7 +177,7 @@ class SimulatedCell:
         working_distance_mm: float,
         controller: LightController,
         plate_id: str,
-    ):
+    ) -> None:
         from ..simulate import CaptureSpec, PlateSpec
 
         self.rig = rig
@@ -232,7 +232,7 @@ class SimulatedCamera(Camera):
     cell : SimulatedCell
     """
 
-    def __init__(self, side: Side, config: CellCamera, cell: SimulatedCell):
+    def __init__(self, side: Side, config: CellCamera, cell: SimulatedCell) -> None:
         super().__init__(side, config)
         self.cell = cell
         self._format = "Mono16"

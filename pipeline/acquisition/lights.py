@@ -53,7 +53,7 @@ class LightController(ABC):
     #: How error messages name the controller.
     device: str = "light controller"
 
-    def __init__(self, n_lights: int, has_stereo_light: bool):
+    def __init__(self, n_lights: int, has_stereo_light: bool) -> None:
         self.n_lights = n_lights
         self.has_stereo_light = has_stereo_light
         self._lit: set[int] = set()
@@ -170,7 +170,7 @@ class TcpLightController(LightController):
         connect_timeout_s: float = CONNECT_TIMEOUT_S,
         command_timeout_s: float = COMMAND_TIMEOUT_S,
         first_reply_s: float = FIRST_REPLY_S,
-    ):
+    ) -> None:
         super().__init__(n_lights, config.stereo_on is not None)
         self.address = config.address
         self.device = f"light controller {config.address}"

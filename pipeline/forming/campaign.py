@@ -126,7 +126,7 @@ def random_batch(
 class _TruePlate:
     """A plate's hidden state: the largest loaded curvature so far and the yield of the pass that set it."""
 
-    def __init__(self, plate: SimPlate, machine: Machine, physics: TruePhysics):
+    def __init__(self, plate: SimPlate, machine: Machine, physics: TruePhysics) -> None:
         self.plate, self.physics = plate, physics
         self.setup = PassSetup.of([machine], [plate.record])
         self.peak, self.peak_factor = 0.0, plate.yield_factor

@@ -200,7 +200,7 @@ def _facing_away(normals, mask, kinv, min_cos, bad):
 
 
 @numba.njit(parallel=True, cache=True)
-def _finalize(b, status, normals, albedo):
+def _finalize(b, status, normals, albedo) -> None:
     """rho = |b|, n = b / rho into (H, W, 3) / (H, W); NaN where no estimate.
 
     A pixel with status OK whose b is not finite gets NONFINITE; one with rho = 0 or

@@ -52,7 +52,7 @@ def lstsq(
 
 
 @numba.njit(parallel=True, cache=True)
-def _lstsq_partial_kernel(images, valid, mask, L, min_samples, b, status):
+def _lstsq_partial_kernel(images, valid, mask, L, min_samples, b, status) -> None:
     """Least squares over the valid samples of every mask pixel that has an invalid one.
 
     (sum_k v_k l_k l_k^T) b = sum_k v_k I_k l_k, solved by the adjugate; b (3, H, W) and

@@ -179,7 +179,7 @@ def robust_kernel(
     pairs,
     b_out,
     status,
-):
+) -> None:
     """Robust fit of every mask pixel (see the module docstring). Fills b_out (3, H, W) with rho n and
     status (H, W) with a status code per pixel.
 
@@ -241,7 +241,7 @@ def _load_block(images, valid, use_valid, mask, i, j0, j1):
 @numba.njit(cache=True, fastmath=FASTMATH)
 def _robust_block(
     samples, usable, m, finite, mask, L, min_samples, params, pairs, b_out, status, i, j0
-):
+) -> None:
     """The robust fit of the pixels (i, j0:j0 + w) of one row from their samples (N, w), usability
     (N, w), counts and finiteness (see _load_block) under light vectors L (N, 3, w)."""
     # params: float64 (8,); the per-sample work is float32 (L too), the per-pixel quantities float32
@@ -362,7 +362,7 @@ def _refit(
     ok,
     keep,
     ranked,
-):
+) -> None:
     """``iterations`` re-selections and refits of a block, in place on b (3, w) and keep (N, w): each
     keeps the samples lit (n.l > cos_min) and within -outlier_k .. +outlier_k_high robust scales of
     the current fit (``ranked`` (N, w) is scratch)."""
@@ -412,7 +412,7 @@ def _refit(
 
 
 @numba.njit(cache=True, fastmath=FASTMATH)
-def _fit_row(samples, weight, L, b, ok):
+def _fit_row(samples, weight, L, b, ok) -> None:
     """Per pixel j of a block: weighted (0/1) least squares b[:, j] over the samples.
 
     samples, weight : (N, W) float32; L : (N, 3, W) float32, the light vector of each sample
@@ -470,7 +470,7 @@ def _fit_row(samples, weight, L, b, ok):
 
 
 @numba.njit(cache=True, fastmath=FASTMATH)
-def _sort_row(values, pairs):
+def _sort_row(values, pairs) -> None:
     """Sort every column of values (N, W) in place with the sorting network ``pairs`` (branch-free)."""
     w = values.shape[1]
     for c in range(pairs.shape[0]):

@@ -270,7 +270,9 @@ def _revert_turned(b, b_start, fit) -> int:
 
 
 @numba.njit(parallel=True, cache=True)
-def _lobe_search_kernel(samples, usable, b, view, L, g_tables, cos_min, shadow_fraction, out):
+def _lobe_search_kernel(
+    samples, usable, b, view, L, g_tables, cos_min, shadow_fraction, out
+) -> None:
     """Per search pixel p and lobe e: the residual the lobe removes from the Lambertian fit.
 
     samples, usable : (N, P); b : (3, P) current rho n; view : (P, 3); g_tables : (T+1, E), the
@@ -370,7 +372,7 @@ def _specular_pass_kernel(
     coef,
     num,
     den,
-):
+) -> None:
     """One joint Gauss-Newton linearisation of I_k = b.l_k + s g(n.h_k) at every pixel with fit True.
 
     b (3, H, W) = rho n and s_map (H, W) are the current estimate; lo < r_k < hi selects the samples;

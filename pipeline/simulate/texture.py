@@ -16,7 +16,7 @@ TEXEL_MM = 1.5
 class Texture:
     """A 2-D scalar texture over a rectangle of plane coordinates (mm), sampled bilinearly."""
 
-    def __init__(self, values: np.ndarray, x0_mm: float, y0_mm: float, texel_mm: float):
+    def __init__(self, values: np.ndarray, x0_mm: float, y0_mm: float, texel_mm: float) -> None:
         self.values = np.ascontiguousarray(values, dtype=np.float32)
         self.x0 = x0_mm
         self.y0 = y0_mm

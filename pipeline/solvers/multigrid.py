@@ -47,7 +47,7 @@ class Multigrid:
         idg: np.ndarray,
         *,
         edge_scale: float = 0.5,
-    ):
+    ) -> None:
         lv = _Level(ex, ey, wd, dg, idg, with_rhs=False)
         self.levels = [lv]
         while (lv.dg.shape[0] - 2) * (lv.dg.shape[1] - 2) > _COARSEST_CELLS:
@@ -93,7 +93,7 @@ class Multigrid:
 class _Level:
     """One level of the multigrid hierarchy: its operator and work buffers (padded grids)."""
 
-    def __init__(self, ex, ey, wd, dg, idg, *, with_rhs=True):
+    def __init__(self, ex, ey, wd, dg, idg, *, with_rhs=True) -> None:
         self.ex, self.ey, self.wd, self.dg, self.idg = ex, ey, wd, dg, idg
         self.x = np.zeros(dg.shape, dg.dtype)
         # the finest level's right-hand side is always given by the caller
@@ -101,7 +101,7 @@ class _Level:
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def _presmooth_restrict(ex, ey, dg, idg, x, b, bc, zero_start):
+def _presmooth_restrict(ex, ey, dg, idg, x, b, bc, zero_start) -> None:
     """Red then black Gauss-Seidel half-sweeps on A x = b, then bc = P^T (b - A x).
 
     One pass over the rows: at step t, red row t, black row t - 1, residual of row t - 2.
@@ -192,7 +192,7 @@ def _prolong_postsmooth(ex, ey, idg, x, b, xc):
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def _coarsen(ex, ey, wd, edge_scale, exc, eyc, wdc, dgc, idgc):
+def _coarsen(ex, ey, wd, edge_scale, exc, eyc, wdc, dgc, idgc) -> None:
     """Operator of the next level by 2x2 aggregation: coarse cell (I, J) is the block of fine cells
     2I - 1, 2I by 2J - 1, 2J (padded indices); fine edges between two blocks are summed. The
     coarse arrays must be zero on the padding."""
@@ -212,7 +212,7 @@ def _coarsen(ex, ey, wd, edge_scale, exc, eyc, wdc, dgc, idgc):
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def _restrict(r, rc):
+def _restrict(r, rc) -> None:
     """rc = P^T r: sums over the 2x2 blocks (padded grids)."""
     hc, wc = rc.shape[0] - 2, rc.shape[1] - 2
     for ic in range(1, hc + 1):
@@ -226,7 +226,7 @@ def _restrict(r, rc):
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def _interpolate(xc, dgc, idg, x):
+def _interpolate(xc, dgc, idg, x) -> None:
     """x = bilinear interpolation of the coarse cells in the system (cell-centred: a fine cell lies
     1/4 of a coarse cell from its block's centre); cells outside the system get 0. Used for the
     nested-iteration start only (the V-cycle uses piecewise-constant prolongation)."""
