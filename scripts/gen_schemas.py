@@ -26,7 +26,10 @@ OUT = ROOT / "docs" / "schemas"
 
 #: File name stem -> (the type that reads it, a one-line title).
 SCHEMAS: dict[str, tuple[Any, str]] = {
-    "stereo-calibration": (formats.StereoCalibrationFile, "calibration.json (stereo-calibration/1)"),
+    "stereo-calibration": (
+        formats.StereoCalibrationFile,
+        "calibration.json (stereo-calibration/1)",
+    ),
     "plate-capture": (formats.CaptureFile, "capture.json (plate-capture/1)"),
     "light-calibration": (formats.LightCalibrationFile, "lights.json (light-calibration/1)"),
     "cell-config": (formats.CellConfigFile, "cell.json (cell-config/1)"),
