@@ -172,7 +172,7 @@ class Inspection(Base):
     #: after its worker died goes to the back; one released by a graceful stop keeps its place.
     queued_at: Mapped[datetime] = mapped_column(default=utcnow, index=True)
     #: The consumer running the job (``host:pid:nonce``) and when its lease ends unless renewed;
-    #: both set while ``running`` only (see :mod:`app.services.inspections`).
+    #: both set while ``running`` only (see :mod:`app.services.leases`).
     lease_owner: Mapped[str | None] = mapped_column(String(128))
     lease_expires_at: Mapped[datetime | None]
     #: Times a worker died (or lost its lease) while running this job; the second sets it aside.

@@ -38,7 +38,7 @@ from app.db import database_unavailable, make_engine, make_session_factory, upgr
 from app.jobs import JobQueue
 from app.jobs.guards import ConsumerLock, exit_with_parent
 from app.jobs.memory import MemoryLimitError, apply_memory_limit
-from app.services import inspections as svc
+from app.services import leases as svc
 from app.settings import Settings
 from app.storage import Storage
 from pipeline.parallel import configure_process

@@ -20,7 +20,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from app.jobs.lease import LeaseKeeper
 from app.jobs.memory import is_out_of_memory, out_of_memory_message
 from app.services import inspections as svc
-from app.services import light_calibrations
+from app.services import leases, light_calibrations
 from app.services.acquisitions import ACQUIRED_SOURCE, capture_for_job
 from app.services.inspections import SIMULATION_FILE
 from app.settings import Settings
@@ -55,7 +55,7 @@ class ProgressWriter:
         self.session_factory = session_factory
         self.inspection_id = inspection_id
         self.interval_s = interval_s
-        self.owner = owner or svc.process_lease_owner()
+        self.owner = owner or leases.process_lease_owner()
         self._last_stage: str | None = None
         self._last_time = float("-inf")
 
@@ -65,7 +65,7 @@ class ProgressWriter:
             return
         try:
             with self.session_factory() as session:
-                svc.record_progress(
+                leases.record_progress(
                     session=session,
                     inspection_id=self.inspection_id,
                     stage=stage,
@@ -150,7 +150,7 @@ def execute_inspection(
     session_factory : sessionmaker
     storage : Storage
     owner : str, optional
-        Lease owner; default :func:`app.services.inspections.process_lease_owner`.
+        Lease owner; default :func:`app.services.leases.process_lease_owner`.
 
     Returns
     -------
@@ -167,7 +167,7 @@ def execute_inspection(
     ``"internal error: <type>: <message>"`` and logs the traceback. Stored messages name files
     relative to the inspection's inputs or the data dir, never by server path.
     """
-    owner = owner or svc.process_lease_owner()
+    owner = owner or leases.process_lease_owner()
     job = _claim(inspection_id, settings, session_factory, storage, owner=owner)
     if job is None:
         return "skipped"
@@ -216,7 +216,7 @@ def _claim(
     """Claim the row under a lease; the job's inputs (keyword arguments of :func:`_run`), or None
     when the row is not claimable (done, failed, or run by another consumer)."""
     with session_factory() as session:
-        if not svc.claim(
+        if not leases.claim(
             session=session, inspection_id=inspection_id, owner=owner, lease_s=settings.job_lease_s
         ):
             session.rollback()
@@ -254,11 +254,11 @@ def _store(
     """Store done (``message`` None) or failed; False when ``owner`` no longer holds the lease."""
     with session_factory() as session:
         if message is None:
-            stored = svc.mark_done(
+            stored = leases.mark_done(
                 session=session, inspection_id=inspection_id, document=document, owner=owner
             )
         else:
-            stored = svc.mark_failed(
+            stored = leases.mark_failed(
                 session=session, inspection_id=inspection_id, error=message, owner=owner
             )
         session.commit()

@@ -1,7 +1,7 @@
 """The running job's lease, renewed by a heartbeat thread while the pipeline works.
 
 A claim gives the consumer the job for ``Settings.job_lease_s`` seconds
-(:func:`app.services.inspections.claim`); :class:`LeaseKeeper` renews it every third of that,
+(:func:`app.services.leases.claim`); :class:`LeaseKeeper` renews it every third of that,
 so only a consumer that died or hung for a whole lease loses its job. A renewal the database
 refuses means the lease was lost (another consumer reclaimed the job): it is logged, and the
 job's later writes (progress, done, failed) are no-ops.
@@ -14,7 +14,7 @@ import threading
 
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.services import inspections as svc
+from app.services import leases as svc
 
 log = logging.getLogger(__name__)
 
@@ -27,7 +27,7 @@ class LeaseKeeper:
     session_factory : sessionmaker
     inspection_id : int
     owner : str
-        The lease owner (:func:`app.services.inspections.process_lease_owner` in the consumer).
+        The lease owner (:func:`app.services.leases.process_lease_owner` in the consumer).
     lease_s : float
         Lease length, s; renewed every ``lease_s / 3``.
     """

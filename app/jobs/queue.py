@@ -32,7 +32,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from app.jobs.execution import execute_inspection
 from app.jobs.queue_file import queue_file_lock, repair_if_corrupt
 from app.models import Inspection, utcnow
-from app.services import inspections as svc
+from app.services import leases as svc
 from app.settings import Settings
 from app.storage import Storage
 
@@ -169,7 +169,7 @@ class JobQueue:
         """Consumer start (holding the consumer lock): reclaim jobs of dead consumers, rebuild the queue.
 
         Jobs left running lost their consumer: each counts a worker death and is queued again at the
-        back, or set aside as failed at the second (:func:`app.services.inspections.reclaim_expired`).
+        back, or set aside as failed at the second (:func:`app.services.leases.reclaim_expired`).
         The queue file is then emptied and every queued row queued again in queue order, so the
         database alone decides what runs.
 
@@ -226,7 +226,7 @@ class JobQueue:
         """Queue again the jobs whose lease ran out (their worker died); set aside the poison ones.
 
         Any worker may call it at any time: each row changes in one conditional UPDATE
-        (:func:`app.services.inspections.reclaim_expired`), so a job is reclaimed once. Returns
+        (:func:`app.services.leases.reclaim_expired`), so a job is reclaimed once. Returns
         the ids queued again.
         """
         with self.session_factory() as session:

@@ -25,10 +25,9 @@ from app.schemas import ErrorOut, Page, PlateOut, TargetOut
 from app.services import plates as svc
 from app.services.targets import TARGET_FILE, create_target
 from app.storage import ARTIFACT_NAME_PATTERN
+from pipeline.io import MESH_SUFFIXES
 
 router = APIRouter(tags=["plates"])
-
-MESH_SUFFIXES = (".stl", ".ply", ".obj")
 
 
 @router.get("/plates", response_model=Page[PlateOut], summary="Plates with their latest verdict")

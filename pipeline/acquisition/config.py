@@ -14,13 +14,9 @@ from pathlib import Path
 
 from ..camera import StereoRig
 from ..formats import CELL_CONFIG_FORMAT, CellCamera, CellConfigFile, CellLights, InputError
-from ..io import (
-    _check_light_positions,
-    _validate,
-    load_calibration,
-    load_light_calibration,
-    read_json,
-)
+from ..io import load_calibration, load_light_calibration, read_json
+from ..io.capture import _check_light_positions
+from ..io.validation import _validate
 from ..lights import Lights
 
 

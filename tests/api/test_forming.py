@@ -50,7 +50,7 @@ def inspected_pass(
     client, plate_id: str, displacement_mm: float, radius_mm: float, verdict: str
 ) -> int:
     """A simulated inspection with a process, finished by the service as a job would finish it."""
-    from app.services import inspections as svc
+    from app.services import leases as svc
 
     r = client.post(
         f"/api/v1/plates/{plate_id}/inspections/simulated",

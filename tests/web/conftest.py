@@ -24,6 +24,7 @@ def seed_done_inspection(
 ) -> int:
     """A done inspection of ``plate_id`` whose artifacts are an analytic cylinder pair."""
     from app.services import inspections as svc
+    from app.services import leases
 
     with app.state.session_factory() as session:
         row = svc.create_simulated_inspection(
@@ -34,13 +35,13 @@ def seed_done_inspection(
         )
         inspection_id = row.id
         session.commit()
-        assert svc.claim(session=session, inspection_id=inspection_id)
+        assert leases.claim(session=session, inspection_id=inspection_id)
         folder = write_artifacts(
             app.state.storage.artifacts_dir(inspection_id),
             plate_id=plate_id,
             measured_radius_mm=measured_radius_mm,
         )
-        svc.mark_done(
+        leases.mark_done(
             session=session,
             inspection_id=inspection_id,
             document=json.loads((folder / "result.json").read_text()),

@@ -15,6 +15,7 @@ def _seed(
     from app.schemas import SimulatedInspectionIn
     from app.services import forming as forming_svc
     from app.services import inspections as svc
+    from app.services import leases
     from app.services.targets import TARGET_FILE, create_target
 
     storage = app.state.storage
@@ -35,7 +36,7 @@ def _seed(
                 session=session, storage=storage, plate_id=plate_id, simulation=simulation
             )
             session.commit()
-            assert svc.claim(session=session, inspection_id=row.id)
+            assert leases.claim(session=session, inspection_id=row.id)
             document = {
                 "format": "plate-result/1",
                 "plate_id": plate_id,
@@ -43,7 +44,7 @@ def _seed(
                 "target_radius_mm": 5000.0,
                 "verdict": verdict,
             }
-            assert svc.mark_done(session=session, inspection_id=row.id, document=document)
+            assert leases.mark_done(session=session, inspection_id=row.id, document=document)
             session.commit()
             last = row.id
     return last

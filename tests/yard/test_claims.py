@@ -11,7 +11,7 @@ from sqlalchemy import select
 
 from app.db import make_engine, make_session_factory
 from app.models import Inspection, Plate, utcnow
-from app.services import inspections as svc
+from app.services import leases as svc
 
 N_ROWS, N_WORKERS = 40, 8
 

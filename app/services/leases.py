@@ -1,0 +1,320 @@
+"""The job state of an inspection row: claims under a lease, progress, done / failed, reclaiming.
+
+The database row is the truth of a job; the queue only carries its id (see app/jobs/).
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+import socket
+from dataclasses import dataclass
+from datetime import datetime, timedelta
+from typing import Any
+
+from sqlalchemy import and_, case, or_, select, update
+from sqlalchemy.orm import Session
+
+from app.models import Inspection, utcnow
+
+# A job is claimed under a lease: ``lease_owner`` (the consumer, "host:pid:nonce") and
+# ``lease_expires_at``. The running job renews it; every later write of the job (progress,
+# done, failed) is conditional on still holding it, so a consumer that lost its job (its lease
+# expired and another claimed the row, or it was released) changes nothing. A lease that ran out
+# is taken as its worker's death: the row is claimed again, and the second death sets it aside.
+
+
+#: A job whose worker died this many times while running it is set aside (``failed``), not run again.
+MAX_WORKER_DEATHS = 2
+#: Lease of a claim when the caller gives none, s (the consumer passes ``Settings.job_lease_s``).
+DEFAULT_LEASE_S = 60.0
+
+_OWNER: dict[int, str] = {}
+
+
+def process_lease_owner() -> str:
+    """This process's lease owner id, ``"host:pid:nonce"`` (the nonce tells a reused pid apart)."""
+    pid = os.getpid()
+    if pid not in _OWNER:
+        _OWNER.clear()  # a forked child gets its own id
+        _OWNER[pid] = f"{socket.gethostname()[:80]}:{pid}:{secrets.token_hex(4)}"
+    return _OWNER[pid]
+
+
+def _now(now: datetime | None) -> datetime:
+    return utcnow() if now is None else now
+
+
+def _held_by(inspection_id: int, owner: str):
+    return (
+        Inspection.id == inspection_id,
+        Inspection.status == "running",
+        Inspection.lease_owner == owner,
+    )
+
+
+def _claimable(now: datetime):
+    """Queued, or running under a lease that ran out below the death limit (the reclaim counts a death)."""
+    expired = and_(
+        Inspection.status == "running",
+        Inspection.lease_expires_at <= now,
+        Inspection.deaths + 1 < MAX_WORKER_DEATHS,
+    )
+    return or_(Inspection.status == "queued", expired)
+
+
+def claim(
+    *,
+    session: Session,
+    inspection_id: int,
+    owner: str | None = None,
+    lease_s: float = DEFAULT_LEASE_S,
+    now: datetime | None = None,
+) -> bool:
+    """Take the job under a lease: queued (or running with an expired lease) -> running.
+
+    One conditional UPDATE: of two claims of one row, one wins. Reclaiming an expired lease
+    counts a worker death; a row whose next death would reach :data:`MAX_WORKER_DEATHS` is not
+    claimed (:func:`reclaim_expired` sets it aside).
+
+    Parameters
+    ----------
+    session : Session
+    inspection_id : int
+    owner : str, optional
+        The claiming consumer; default :func:`process_lease_owner`.
+    lease_s : float
+        How long the lease holds unless renewed (:func:`renew_lease`), s.
+    now : datetime, optional
+        The current time (UTC); tests pass it to step over a lease.
+
+    Returns
+    -------
+    bool
+        False when the row is not claimable (done, failed, or running under a live lease).
+    """
+    now = _now(now)
+    res = session.execute(
+        update(Inspection)
+        .where(Inspection.id == inspection_id, _claimable(now))
+        .values(
+            status="running",
+            lease_owner=owner or process_lease_owner(),
+            lease_expires_at=now + timedelta(seconds=lease_s),
+            deaths=case(
+                (Inspection.status == "running", Inspection.deaths + 1), else_=Inspection.deaths
+            ),
+            started_at=now,
+            finished_at=None,
+            progress=0.0,
+            stage=None,
+            error=None,
+            attempts=Inspection.attempts + 1,
+        )
+    )
+    return res.rowcount == 1
+
+
+def renew_lease(
+    *, session: Session, inspection_id: int, owner: str, lease_s: float, now: datetime | None = None
+) -> bool:
+    """Extend the lease of a running job; False if ``owner`` no longer holds it."""
+    res = session.execute(
+        update(Inspection)
+        .where(*_held_by(inspection_id, owner))
+        .values(lease_expires_at=_now(now) + timedelta(seconds=lease_s))
+    )
+    return res.rowcount == 1
+
+
+def record_progress(
+    *, session: Session, inspection_id: int, stage: str, progress: float, owner: str | None = None
+) -> None:
+    """The running job's stage name and overall progress (0..1); a no-op unless ``owner`` holds the lease."""
+    if not 0.0 <= progress <= 1.0:
+        raise ValueError(f"progress: expected a fraction in [0, 1], got {progress}")
+    session.execute(
+        update(Inspection)
+        .where(*_held_by(inspection_id, owner or process_lease_owner()))
+        .values(stage=stage[:32], progress=float(progress))
+    )
+
+
+def mark_done(
+    *, session: Session, inspection_id: int, document: dict[str, Any], owner: str | None = None
+) -> bool:
+    """running -> done with the ``plate-result/1`` document and its summary numbers.
+
+    Only while ``owner`` (default :func:`process_lease_owner`) holds the lease; returns whether it did.
+    """
+    dev = document.get("deviation_mm") or {}
+    res = session.execute(
+        update(Inspection)
+        .where(*_held_by(inspection_id, owner or process_lease_owner()))
+        .values(
+            status="done",
+            progress=1.0,
+            stage="done",
+            finished_at=utcnow(),
+            lease_owner=None,
+            lease_expires_at=None,
+            result=document,
+            timings_s=document.get("timings_s"),
+            radius_mm=document.get("radius_mm"),
+            target_radius_mm=document.get("target_radius_mm"),
+            radius_error_pct=document.get("radius_error_pct"),
+            rms_mm=dev.get("rms"),
+            max_abs_mm=dev.get("max_abs"),
+            p95_mm=dev.get("p95"),
+            within_tolerance_pct=document.get("within_tolerance_pct"),
+            tolerance_mm=document.get("tolerance_mm"),
+            verdict=document.get("verdict"),
+            error=document.get("error"),
+        )
+    )
+    return res.rowcount == 1
+
+
+def mark_failed(
+    *, session: Session, inspection_id: int, error: str, owner: str | None = None
+) -> bool:
+    """running -> failed with its message (verdict ``error``); the inputs stay on disk.
+
+    Only while ``owner`` (default :func:`process_lease_owner`) holds the lease; returns whether it did.
+    """
+    res = session.execute(
+        update(Inspection)
+        .where(*_held_by(inspection_id, owner or process_lease_owner()))
+        .values(
+            status="failed",
+            verdict="error",
+            error=error,
+            finished_at=utcnow(),
+            lease_owner=None,
+            lease_expires_at=None,
+        )
+    )
+    return res.rowcount == 1
+
+
+def release(*, session: Session, owner: str) -> list[int]:
+    """A graceful stop: the jobs ``owner`` runs go back to the queue, keeping their place.
+
+    Not a worker death (the job did nothing wrong): ``deaths`` is unchanged. Returns their ids.
+    """
+    ids = list(
+        session.scalars(
+            select(Inspection.id).where(
+                Inspection.status == "running", Inspection.lease_owner == owner
+            )
+        )
+    )
+    for inspection_id in ids:
+        session.execute(
+            update(Inspection)
+            .where(*_held_by(inspection_id, owner))
+            .values(
+                status="queued", stage=None, progress=0.0, lease_owner=None, lease_expires_at=None
+            )
+        )
+    return ids
+
+
+def expire_leases(*, session: Session, keep_owner: str, now: datetime | None = None) -> list[int]:
+    """End now the leases of running jobs not held by ``keep_owner``: their consumers are known dead.
+
+    The single consumer of an embedded queue calls it once it holds the consumer lock (the lock
+    proves that no other consumer lives). Returns the ids whose lease was ended.
+    """
+    now = _now(now)
+    others = or_(Inspection.lease_owner.is_(None), Inspection.lease_owner != keep_owner)
+    where = (Inspection.status == "running", others)
+    ids = list(session.scalars(select(Inspection.id).where(*where)))
+    if ids:
+        session.execute(
+            update(Inspection).where(Inspection.id.in_(ids), *where).values(lease_expires_at=now)
+        )
+    return ids
+
+
+@dataclass(frozen=True)
+class Reclaimed:
+    """What :func:`reclaim_expired` did: jobs queued again, and jobs set aside as failed."""
+
+    requeued: list[int]
+    set_aside: list[int]
+
+
+def reclaim_expired(*, session: Session, now: datetime | None = None) -> Reclaimed:
+    """Running jobs whose lease ran out (``lease_expires_at <= now``: their worker died): one more death each.
+
+    Below :data:`MAX_WORKER_DEATHS` the job is queued again at the back of the queue (so the jobs
+    behind it are not held up by a job that may kill its worker); at the limit it is set aside:
+    ``failed``, verdict ``error``, with the reason and its last stage. Each row changes in one
+    conditional UPDATE on the lease that ran out, so a concurrent claim or renewal wins cleanly.
+    """
+    now = _now(now)
+    rows = session.execute(
+        select(Inspection.id, Inspection.lease_owner, Inspection.deaths, Inspection.stage)
+        .where(Inspection.status == "running", Inspection.lease_expires_at <= now)
+        .order_by(Inspection.queued_at, Inspection.id)
+    ).all()
+    requeued: list[int] = []
+    set_aside: list[int] = []
+    for inspection_id, owner, deaths, stage in rows:
+        same_lease = (
+            Inspection.id == inspection_id,
+            Inspection.status == "running",
+            Inspection.lease_expires_at <= now,
+            Inspection.lease_owner.is_(None) if owner is None else Inspection.lease_owner == owner,
+        )
+        cleared = dict(lease_owner=None, lease_expires_at=None, deaths=deaths + 1)
+        if deaths + 1 >= MAX_WORKER_DEATHS:
+            values = dict(
+                cleared,
+                status="failed",
+                verdict="error",
+                finished_at=now,
+                error=poison_reason(deaths + 1, stage),
+            )
+            target = set_aside
+        else:
+            values = dict(cleared, status="queued", queued_at=now, stage=None, progress=0.0)
+            target = requeued
+        if session.execute(update(Inspection).where(*same_lease).values(**values)).rowcount == 1:
+            target.append(inspection_id)
+    return Reclaimed(requeued=requeued, set_aside=set_aside)
+
+
+def poison_reason(deaths: int, stage: str | None) -> str:
+    """The error stored on a job set aside after ``deaths`` worker deaths."""
+    times = {1: "once", 2: "twice"}.get(deaths, f"{deaths} times")
+    last = f"last stage: {stage}" if stage else "no stage reported"
+    return (
+        f"set aside: the worker died {times} while running this job ({last}); its inputs are kept"
+    )
+
+
+def requeue_interrupted(
+    *, session: Session, owner: str | None = None, now: datetime | None = None
+) -> Reclaimed:
+    """Consumer start: every job left running belongs to a dead consumer; reclaim them.
+
+    Call it only from the single consumer of an embedded queue, holding the consumer lock
+    (:func:`expire_leases`). Returns what :func:`reclaim_expired` did.
+    """
+    now = _now(now)
+    expire_leases(session=session, keep_owner=owner or process_lease_owner(), now=now)
+    return reclaim_expired(session=session, now=now)
+
+
+def queued_ids(*, session: Session, queued_before: datetime | None = None) -> list[int]:
+    """Every queued job (optionally only those queued before a time), in queue order (oldest first)."""
+    where = [Inspection.status == "queued"]
+    if queued_before is not None:
+        where.append(Inspection.queued_at < queued_before)
+    return list(
+        session.scalars(
+            select(Inspection.id).where(*where).order_by(Inspection.queued_at, Inspection.id)
+        )
+    )
