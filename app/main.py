@@ -28,7 +28,8 @@ from app.openapi import install_openapi
 from app.routes import api_router
 from app.routes.health import router as health_router
 from app.security_headers import SecurityHeaders, docs_csp
-from app.services.cell import CameraMonitor, ensure_demo_cell
+from app.services.camera_monitor import CameraMonitor
+from app.services.cell import ensure_demo_cell
 from app.settings import Settings
 from app.storage import Storage
 from app.throttle import TokenThrottle
@@ -76,7 +77,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     shutdown (an async context manager is exited, else its ``close()`` is called). ``app.state`` holds ``settings``, ``api_token``,
     ``engine``, ``session_factory``, ``storage``, ``jobs`` (:class:`app.jobs.JobQueue`),
     ``token_throttle`` (:class:`app.throttle.TokenThrottle`) and ``cell``
-    (:class:`app.services.cell.CameraMonitor`). In demo mode without a cell config the demo cell is
+    (:class:`app.services.camera_monitor.CameraMonitor`). In demo mode without a cell config the demo cell is
     written under the data dir (:func:`app.services.cell.ensure_demo_cell`).
     """
     settings = resolve_token(settings or Settings())

@@ -9,7 +9,7 @@ from sqlalchemy import text
 
 from app.deps import SessionDep
 from app.schemas import CameraHealth, CellHealth, Health
-from app.services.cell import CellState
+from app.services.camera_monitor import CellState
 from app.services.inspections import count_by_status
 
 router = APIRouter(tags=["health"])

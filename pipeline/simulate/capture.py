@@ -23,7 +23,7 @@ int8, what each pixel sees (:data:`~pipeline.simulate.geometry.SURFACE_PLATE`, `
 ``SURFACE_FLOOR``, ``SURFACE_SUPPORT + k`` for support k) and ``scene_depth_mm`` (H, W) float32, the
 depth of whatever it sees. ``mask`` is exactly ``surface == SURFACE_PLATE``.
 
-Kept as one module (~520 lines) on purpose: :class:`CaptureSpec` and the rendering that reads it change
+Kept as one module (~700 lines, half of them docstrings) on purpose: :class:`CaptureSpec` and the rendering that reads it change
 together; the scene, its geometry and textures, the rig, the target and the boards are apart.
 """
 

@@ -464,7 +464,7 @@ def test_a_camera_that_does_not_answer_in_time_is_reported_unreachable_without_w
     tmp_path,
 ):
     """Aravis looks for a missing camera for about a second; the check is waited for 0.1 s, then not at all."""
-    from app.services.cell import CameraMonitor
+    from app.services.camera_monitor import CameraMonitor
 
     missing = {"driver": "aravis", "device_id": "Nobody-0000"}
     config = write_cell(
