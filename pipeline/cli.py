@@ -8,6 +8,9 @@ Subcommands that live outside ``pipeline/`` (the service's ``serve``) are found
 through the entry-point group ``plate_inspect.commands``: each entry is a
 function ``register(subparsers)`` that adds its own subparser with a
 ``handler`` default. The pipeline never imports the service.
+
+Kept as one module (~530 lines): every command's arguments beside its handler, so the CLI's
+help and behaviour are read in one place.
 """
 
 from __future__ import annotations

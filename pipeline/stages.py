@@ -2,8 +2,11 @@
 
 :func:`pipeline.run.inspect` calls :func:`load_inputs`, :func:`preprocess_scene` and :func:`measure` in
 that order, then writes details.json and result.json from the :class:`Measurement`. Each stage is a
-module of the method (README: *How a plate is measured*); this module only chains them, decides what
-runs beside the main line, and times them.
+module of the method (docs/method.md); this module only chains them, decides what runs beside the
+main line, and times them.
+
+Kept as one module (~570 lines): which stage waits for which, and what runs beside the main line,
+are read together; the stages' own work lives in their modules.
 """
 
 from __future__ import annotations
