@@ -12,7 +12,6 @@ import importlib
 import logging
 import secrets
 from contextlib import AsyncExitStack, asynccontextmanager
-from pathlib import Path
 
 from fastapi import FastAPI, Request
 from fastapi.openapi.docs import get_swagger_ui_html
@@ -72,7 +71,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     Notes
     -----
-    On start (lifespan) the database is upgraded with Alembic, and the dashboard's viewer hook
+    When the app is built (before any request, also under a TestClient without lifespan) the
+    database is brought to the current schema with Alembic. On start (lifespan) the viewer hook
     ``app.viewer.attach(app, settings)`` runs if that module exists; what it returns is closed at
     shutdown (an async context manager is exited, else its ``close()`` is called). ``app.state`` holds ``settings``, ``api_token``,
     ``engine``, ``session_factory``, ``storage``, ``jobs`` (:class:`app.jobs.JobQueue`),
@@ -174,6 +174,6 @@ def _include_dashboard(app: FastAPI) -> None:
     routes = _optional_module("web.routes")
     if routes is not None and hasattr(routes, "router"):
         app.include_router(routes.router)
-    static_dir = Path(__file__).resolve().parents[1] / "web" / "static"
-    if static_dir.is_dir():
+    static_dir = getattr(_optional_module("web"), "STATIC_DIR", None)
+    if static_dir is not None and static_dir.is_dir():
         app.mount("/static", StaticFiles(directory=static_dir), name="static")

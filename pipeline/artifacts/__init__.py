@@ -6,7 +6,7 @@ measured surface lies on the cameras' side of the target ("above", red),
 negative where it lies away from the cameras ("below", blue).
 
 One colour map serves the PNG, the PLY vertex colours and the 3D viewer
-(``app/viewer.py`` uses the same stops): a diverging blue - white - red scale
+(the 3D view, ``app/viewer``, colours with it): a diverging blue - white - red scale
 saturated at ``+/- limit_mm``. With the default ``limit_mm = 2 * tolerance_mm``
 the light blue and orange stops sit exactly at ``-/+ tolerance_mm``, so
 everything out of tolerance is drawn in the darker half of the scale.

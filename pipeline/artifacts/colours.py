@@ -1,4 +1,4 @@
-"""The one colour map of signed deviations: PNG, PLY vertex colours and the 3D viewer (``app/viewer.py`` uses the same stops)."""
+"""The one colour map of signed deviations: PNG, PLY vertex colours and the 3D viewer (``app/viewer`` colours with :func:`deviation_colormap`)."""
 
 from __future__ import annotations
 
