@@ -212,6 +212,22 @@ class InspectionCreated(BaseModel):
     status: Status
 
 
+class DefectOut(BaseModel):
+    """A region out of tolerance that fails the plate (largest first; ``id`` is its rank)."""
+
+    id: int
+    #: Centroid (x, y) in the target's own frame (that of target.json), mm; null if unknown.
+    centroid_mm: list[float] | None
+    #: Centroid (column, row) in the left image, px.
+    centroid_px: list[float]
+    area_mm2: float
+    #: Signed deviation of largest magnitude, mm (positive: the plate stands proud of its target,
+    #: towards the cameras).
+    peak_mm: float
+    #: Area-weighted mean deviation, mm; null for inspections measured before it was recorded.
+    mean_mm: float | None
+
+
 class InspectionOut(BaseModel):
     """An inspection: its job state and, once done, its ``plate-result/1`` document."""
 
@@ -235,6 +251,10 @@ class InspectionOut(BaseModel):
     finished_at: datetime | None
     #: artifact name -> URL, for the files present on disk.
     artifacts: dict[str, str]
+    #: Once done: the regions that fail the plate, largest first (empty for a pass).
+    defects: list[DefectOut] = []
+    #: Once done: why the plate failed (empty for a pass).
+    reasons: list[str] = []
 
 
 class InspectionSummary(BaseModel):

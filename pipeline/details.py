@@ -8,7 +8,7 @@ says what each holds). The builders below make its parts from the stages' result
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
@@ -16,11 +16,19 @@ import numpy as np
 
 @dataclass(frozen=True)
 class RegionDetails:
-    """An out-of-tolerance region: centroid ``(u, v)`` px, area mm^2, signed peak deviation mm."""
+    """An out-of-tolerance region: centroid ``(u, v)`` px, area mm^2, signed peak deviation mm.
+
+    ``centroid_mm``: the centroid ``(x, y)`` in the target's own frame, mm (the frame of target.json:
+    for a simulated plate, the plate coordinates its dents are given in); ``mean_deviation_mm``: the
+    area-weighted mean deviation over the region. Both null in details.json files written before
+    they were added, and ``centroid_mm`` where no depth is known at the centroid.
+    """
 
     centroid_px: list[float]
     area_mm2: float
     peak_deviation_mm: float
+    mean_deviation_mm: float | None = field(default=None, kw_only=True)
+    centroid_mm: list[float] | None = field(default=None, kw_only=True)
 
 
 @dataclass(frozen=True)
@@ -134,12 +142,14 @@ class Details:
         return json.dumps(asdict(self), indent=2) + "\n"
 
 
-def region_details(region) -> RegionDetails:
-    """A :class:`pipeline.verdict.DefectRegion` for details.json."""
+def region_details(region, centroid_mm: tuple[float, float] | None = None) -> RegionDetails:
+    """A :class:`pipeline.verdict.DefectRegion` for details.json (``centroid_mm``: target frame)."""
     return RegionDetails(
         centroid_px=list(map(float, region.centroid_px)),
         area_mm2=float(region.area_mm2),
         peak_deviation_mm=float(region.peak_deviation_mm),
+        mean_deviation_mm=float(region.mean_deviation_mm),
+        centroid_mm=None if centroid_mm is None else [float(c) for c in centroid_mm],
     )
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
@@ -72,11 +73,26 @@ def _pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 def _in_plane_x(points: np.ndarray, z: np.ndarray, size_mm) -> np.ndarray:
-    """Target x axis: the measured plate's in-plane principal direction matching ``size_mm``, ``x_cam >= 0``."""
-    _, frame = pca_frame(points)
-    major = frame[0] - (frame[0] @ z) * z
-    major /= np.linalg.norm(major)
-    x = major if size_mm[0] >= size_mm[1] else np.cross(z, major)
+    """Target x axis in the plane normal to ``z``: along the side of the measured footprint's
+    minimum-area rectangle that matches ``size_mm[0]`` (a square: the side nearer the camera's x),
+    with ``x_cam >= 0``. The footprint's outline, unlike its principal direction, stays put when the
+    plate is square or the camera sees one side with more pixels."""
+    e1 = np.cross(z, [0.0, 1.0, 0.0])
+    if np.linalg.norm(e1) < 1e-6:
+        e1 = np.cross(z, [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(z, e1)
+    uv = np.stack([points @ e1, points @ e2], axis=1).astype(np.float32)
+    (_, _), (w, h), angle = cv2.minAreaRect(uv)
+    t = np.deg2rad(angle)
+    sides = [np.cos(t) * e1 + np.sin(t) * e2, -np.sin(t) * e1 + np.cos(t) * e2]
+    lengths = [w, h]
+    long_first = size_mm[0] >= size_mm[1]
+    if abs(w - h) <= 0.05 * max(w, h) or abs(size_mm[0] - size_mm[1]) <= 0.05 * max(size_mm):
+        x = max(sides, key=lambda d: abs(d[0]))  # square: the side nearer the camera's x
+    else:
+        i_long = int(np.argmax(lengths))
+        x = sides[i_long] if long_first else sides[1 - i_long]
     return -x if x[0] < 0 else x
 
 
@@ -134,8 +150,9 @@ def register_to_target(points_mm, mask, target) -> Registration:
     Plane, cylinder, sphere: a robust geometric fit of the shape with the target's radius fixed, started
     from the radius-free fit (its curvature picks convex or concave when it is at least half the target's;
     otherwise both are tried and the lower cost wins); the in-surface position is the measured plate's
-    centroid and the in-plane x axis its principal direction (these two do not change the deviation of a
-    rotationally or translationally symmetric target). Mesh: the mesh is rasterised to a height grid over
+    footprint's centre (the middle of its extent along the target's axes, not the pixels' centroid, which
+    leans to the side nearer the camera) and the in-plane x axis its principal direction (these two do
+    not change the deviation of a rotationally or translationally symmetric target). Mesh: the mesh is rasterised to a height grid over
     its own PCA plane; the measured PCA frame is matched to the mesh's under in-plane turns every 30 deg,
     with the plate's normal either way (24 starts, scored by the mean distance of the points to the
     grid's); the ICP_STARTS best are refined by point-to-point ICP (``trimesh.registration.icp``)
@@ -147,33 +164,26 @@ def register_to_target(points_mm, mask, target) -> Registration:
     sample = grid_sample(pts, m, MAX_FIT_POINTS)
     if tgt.shape == "mesh":
         return _register_mesh(sample, tgt)
-    centroid = sample.mean(axis=0)
     if tgt.shape == "plane":
         n, p0, _, _, rms, _ = fit_curved(
             sample, cylinder=False, radius_mm=None, max_points=MAX_FIT_POINTS, curvature_per_mm=0.0
         )
-        z = n  # the fit's normal points away from the camera
-        origin = p0 + ((centroid - p0) - ((centroid - p0) @ z) * z)
-        x = _in_plane_x(sample, z, tgt.size_mm)
+        fitted: tuple = (n, p0)
         convex = None
     elif tgt.shape == "cylinder":
         fit = fit_cylinder(sample, radius_mm=tgt.radius_mm)
-        a, c = fit.axis, fit.point_on_axis_mm
-        v = (centroid - c) - ((centroid - c) @ a) * a
-        v /= np.linalg.norm(v)
-        origin = c + ((centroid - c) @ a) * a + tgt.radius_mm * v
-        z = -v
-        y = a
-        x = np.cross(y, z)
+        fitted = (fit.axis, fit.point_on_axis_mm)
         rms, convex, k_free = fit.rms_mm, fit.convex_towards_camera, fit.free_curvature_per_mm
     else:  # sphere
         fit = fit_sphere(sample, radius_mm=tgt.radius_mm)
-        v = centroid - fit.center_mm
-        v /= np.linalg.norm(v)
-        origin = fit.center_mm + tgt.radius_mm * v
-        z = -v
-        x = _in_plane_x(sample, z, tgt.size_mm)
+        fitted = (fit.center_mm,)
         rms, convex, k_free = fit.rms_mm, fit.convex_towards_camera, fit.free_curvature_per_mm
+    # The frame at the pixels' centroid, then again at the centre of the plate's footprint in it: the
+    # pixels' centroid leans towards the side nearer the camera (more pixels per mm^2 there).
+    x, z, origin = _frame_at(tgt, fitted, sample, sample.mean(axis=0))
+    x, z, origin = _frame_at(
+        tgt, fitted, sample, _footprint_centre(sample, origin, x, np.cross(z, x))
+    )
     y = np.cross(z, x)
     R = np.stack([x, y, z], axis=1)
     free_radius = None if convex is None else (abs(1.0 / k_free) if k_free != 0 else math.inf)
@@ -184,6 +194,35 @@ def register_to_target(points_mm, mask, target) -> Registration:
         convex_towards_camera=convex,
         fitted_radius_mm=free_radius,
     )
+
+
+def _frame_at(
+    tgt: Target, fitted: tuple, sample: np.ndarray, centre: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Target axes x, z and origin on the fitted plane / cylinder / sphere nearest ``centre``."""
+    if tgt.shape == "plane":
+        z, p0 = fitted  # the fit's normal points away from the camera
+        origin = p0 + ((centre - p0) - ((centre - p0) @ z) * z)
+        return _in_plane_x(sample, z, tgt.size_mm), z, origin
+    if tgt.shape == "cylinder":
+        a, c = fitted
+        v = (centre - c) - ((centre - c) @ a) * a
+        v /= np.linalg.norm(v)
+        origin = c + ((centre - c) @ a) * a + tgt.radius_mm * v
+        return np.cross(a, -v), -v, origin
+    (c,) = fitted
+    v = (centre - c) / np.linalg.norm(centre - c)
+    return _in_plane_x(sample, -v, tgt.size_mm), -v, c + tgt.radius_mm * v
+
+
+def _footprint_centre(
+    sample: np.ndarray, origin: np.ndarray, x: np.ndarray, y: np.ndarray
+) -> np.ndarray:
+    """The middle of the points' extent along ``x`` and ``y`` (0.5 and 99.5 percentiles) from ``origin``."""
+    d = sample - origin
+    lo_x, hi_x = np.percentile(d @ x, [0.5, 99.5])
+    lo_y, hi_y = np.percentile(d @ y, [0.5, 99.5])
+    return origin + 0.5 * (lo_x + hi_x) * x + 0.5 * (lo_y + hi_y) * y
 
 
 def _register_mesh(sample: np.ndarray, target: Target) -> Registration:
@@ -285,3 +324,25 @@ def _mesh_rms(T_target_cam: np.ndarray, pts: np.ndarray, grid: MeshGrid) -> floa
     r = _mesh_residuals(T_target_cam, pts, grid, filled=False)
     r = r[np.isfinite(r)]
     return float(np.sqrt(np.mean(r * r))) if r.size else math.nan
+
+
+def pixel_in_target_frame(
+    points_mm: np.ndarray,
+    mask: np.ndarray,
+    pixel: tuple[float, float],
+    T_cam_target: np.ndarray,
+) -> tuple[float, float] | None:
+    """``(x, y)`` in the target's frame, mm, of the measured point at ``pixel`` ``(u, v)``.
+
+    The point is the one of the nearest pixel on ``mask`` with a finite position (a region's
+    centroid may fall just off the plate, in an opening); None when the mask holds no point.
+    """
+    valid = mask & np.isfinite(points_mm).all(axis=-1)
+    rows, cols = np.nonzero(valid)
+    if rows.size == 0:
+        return None
+    u, v = pixel
+    k = int(np.argmin((cols - u) ** 2 + (rows - v) ** 2))
+    T = np.asarray(T_cam_target, dtype=np.float64)
+    x = T[:3, :3].T @ (points_mm[rows[k], cols[k]] - T[:3, 3])
+    return float(x[0]), float(x[1])

@@ -33,6 +33,7 @@ from .io import Capture, Target, load_capture, load_target
 from .lights import Lights
 from .parallel import default_workers
 from .preprocess import Preprocessed
+from .registration import pixel_in_target_frame
 from .stages import (
     DISAGREEMENT_FRACTION,
     STAGES,
@@ -169,7 +170,13 @@ def _details(m: Measurement, pre: Preprocessed, tgt: Target, *, near_field: bool
         T_cam_target=m.pose.T_cam_target.tolist(),
         registration_rms_mm=float(m.pose.rms_mm),
         principal_directions=np.asarray(m.curv.principal_directions).tolist(),
-        defects=[region_details(d) for d in judgement.defects],
+        defects=[
+            region_details(
+                d,
+                pixel_in_target_frame(m.points, surface.mask, d.centroid_px, m.pose.T_cam_target),
+            )
+            for d in judgement.defects
+        ],
         reasons=list(judgement.reasons),
         excluded_regions=[excluded_region_details(r) for r in judgement.excluded],
         segmentation=segmentation_details(

@@ -171,6 +171,8 @@ class Measurement:
     judgement: verdict.Judgement
     curv: curvature.CurvatureResult
     pixel_area: np.ndarray
+    #: (H, W, 3) measured points, mm, left camera frame (NaN off the plate).
+    points: np.ndarray
 
 
 def load_inputs(
@@ -448,6 +450,7 @@ def _judge(
         judgement=judgement,
         curv=curv,
         pixel_area=pixel_area,
+        points=points,
     )
 
 

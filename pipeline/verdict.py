@@ -30,12 +30,15 @@ class DefectRegion:
     peak_deviation_mm : float
         Signed deviation of largest magnitude in the region, mm.
     n_pixels : int
+    mean_deviation_mm : float
+        Area-weighted mean of the signed deviation over the region, mm.
     """
 
     centroid_px: tuple[float, float]
     area_mm2: float
     peak_deviation_mm: float
     n_pixels: int
+    mean_deviation_mm: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -307,6 +310,7 @@ def _defect_regions(
     reg_row = np.bincount(lab, weights=rows, minlength=n_lab + 1)
     reg_col = np.bincount(lab, weights=cols, minlength=n_lab + 1)
     vals = dev[rows, cols]
+    reg_dev = np.bincount(lab, weights=px_area * vals, minlength=n_lab + 1)
     for k in np.nonzero(reg_area >= min_defect_area_mm2)[0]:
         if k == 0:
             continue
@@ -318,6 +322,7 @@ def _defect_regions(
                 area_mm2=float(reg_area[k]),
                 peak_deviation_mm=peak,
                 n_pixels=int(reg_count[k]),
+                mean_deviation_mm=float(reg_dev[k] / reg_area[k]),
             )
         )
     defects.sort(key=lambda d: -d.area_mm2)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import shutil
 from collections.abc import Callable
@@ -20,6 +21,7 @@ from app.models import Inspection, Target
 from app.schemas import (
     PLATE_ID_MAX_LENGTH,
     PLATE_ID_REGEX,
+    DefectOut,
     InspectionOut,
     InspectionSummary,
     PlateOut,
@@ -196,7 +198,31 @@ def inspection_out(row: Inspection, *, storage: Storage) -> InspectionOut:
         started_at=row.started_at,
         finished_at=row.finished_at,
         artifacts={name: artifact_url(row.id, name) for name in names},
+        **_defects_and_reasons(storage, row, names),
     )
+
+
+def _defects_and_reasons(storage: Storage, row: Inspection, names: list[str]) -> dict[str, list]:
+    """``defects`` and ``reasons`` of a done inspection, from its details.json."""
+    if row.status != "done" or "details.json" not in names:
+        return {"defects": [], "reasons": []}
+    try:
+        details = json.loads((storage.artifacts_dir(row.id) / "details.json").read_text())
+    except (OSError, ValueError) as err:
+        log.warning("inspection %s: details.json unreadable: %s", row.id, err)
+        return {"defects": [], "reasons": []}
+    defects = [
+        DefectOut(
+            id=k,
+            centroid_mm=d.get("centroid_mm"),
+            centroid_px=d["centroid_px"],
+            area_mm2=d["area_mm2"],
+            peak_mm=d["peak_deviation_mm"],
+            mean_mm=d.get("mean_deviation_mm"),
+        )
+        for k, d in enumerate(details.get("defects", []), start=1)
+    ]
+    return {"defects": defects, "reasons": list(details.get("reasons", []))}
 
 
 def inspection_summary(row: Inspection) -> InspectionSummary:

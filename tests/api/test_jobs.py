@@ -247,3 +247,37 @@ def test_real_pipeline_inspection(tmp_path, consumer_factory, bundle_zip):
     finally:
         consumer.stop()
         app.state.engine.dispose()
+
+
+def test_a_dented_plate_fails_and_the_api_lists_its_defect(tmp_path):
+    """The real pipeline: the inspection document names the dent's place (target frame) and depth."""
+    from fastapi.testclient import TestClient
+
+    from app.main import create_app
+    from app.settings import Settings
+    from tests.api.conftest import TOKEN, Consumer
+
+    settings = Settings(data_dir=tmp_path / "dent", api_token=TOKEN)
+    app = create_app(settings)
+    consumer = Consumer(settings).start()
+    dent = {"x_mm": -600.0, "y_mm": 300.0, "radius_mm": 150.0, "depth_mm": -6.0}
+    try:
+        with TestClient(app) as client:
+            r = client.post(
+                "/api/v1/plates/DENT-1/inspections/simulated",
+                json={"width": 612, "height": 512, "dents": [dent], "seed": 8},
+                headers=AUTH,
+            )
+            assert r.status_code == 202, r.text
+            body = wait_for(client, r.json()["id"], timeout_s=180, consumer=consumer)
+    finally:
+        consumer.stop()
+        app.state.engine.dispose()
+    assert body["status"] == "done" and body["verdict"] == "fail", body
+    assert body["reasons"] and "tolerance" in body["reasons"][0]
+    [defect] = body["defects"]
+    assert defect["id"] == 1
+    assert defect["peak_mm"] == pytest.approx(6.0, abs=1.0)  # a bump: towards the cameras
+    assert 0 < defect["mean_mm"] < defect["peak_mm"]
+    x, y = defect["centroid_mm"]
+    assert abs(x - dent["x_mm"]) < 30.0 and abs(y - dent["y_mm"]) < 30.0
