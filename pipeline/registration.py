@@ -209,7 +209,8 @@ def _frame_at(
         v = (centre - c) - ((centre - c) @ a) * a
         v /= np.linalg.norm(v)
         origin = c + ((centre - c) @ a) * a + tgt.radius_mm * v
-        return np.cross(a, -v), -v, origin
+        x = np.cross(a, -v)  # the axis's sign is the fit's: x points to the camera's +x
+        return (-x if x[0] < 0 else x), -v, origin
     (c,) = fitted
     v = (centre - c) / np.linalg.norm(centre - c)
     return _in_plane_x(sample, -v, tgt.size_mm), -v, c + tgt.radius_mm * v
