@@ -15,8 +15,16 @@ from pipeline.simulate import CaptureSpec, Dent, PlateSpec, simulate_capture
 @pytest.mark.parametrize(
     ("shape", "size_mm", "dent"),
     [
-        ("cylinder", (3000.0, 2000.0), Dent(x_mm=-600.0, y_mm=300.0, radius_mm=150.0, depth_mm=-6.0)),
-        ("sphere", (3000.0, 3000.0), Dent(x_mm=-500.0, y_mm=-300.0, radius_mm=150.0, depth_mm=-5.0)),
+        (
+            "cylinder",
+            (3000.0, 2000.0),
+            Dent(x_mm=-600.0, y_mm=300.0, radius_mm=150.0, depth_mm=-6.0),
+        ),
+        (
+            "sphere",
+            (3000.0, 3000.0),
+            Dent(x_mm=-500.0, y_mm=-300.0, radius_mm=150.0, depth_mm=-5.0),
+        ),
         ("plane", (2500.0, 2000.0), Dent(x_mm=700.0, y_mm=450.0, radius_mm=180.0, depth_mm=5.0)),
     ],
 )
