@@ -19,7 +19,7 @@ from app import viewer
 from app.deps import SessionDep, StorageDep, has_dashboard_session, start_dashboard_session
 from app.errors import scrub_paths
 from app.models import Inspection
-from app.routes.common import InspectionIdPath
+from app.routes.common import InspectionIdPath, defects_and_reasons
 from app.services import calibrations as calibration_svc
 from app.services import cell as cell_svc
 from app.services import forming as forming_svc
@@ -166,6 +166,7 @@ def result_page(
         "spacing_mm": spacing_mm,
         "spacings": SPACINGS_MM,
         "next_pass": next_pass(session, row.plate_id),
+        **defects_and_reasons(storage, row, names),
         **_templates_context(storage, row, spacing_mm),
     }
     return _page(request, session, "result.html", context)

@@ -198,11 +198,11 @@ def inspection_out(row: Inspection, *, storage: Storage) -> InspectionOut:
         started_at=row.started_at,
         finished_at=row.finished_at,
         artifacts={name: artifact_url(row.id, name) for name in names},
-        **_defects_and_reasons(storage, row, names),
+        **defects_and_reasons(storage, row, names),
     )
 
 
-def _defects_and_reasons(storage: Storage, row: Inspection, names: list[str]) -> dict[str, list]:
+def defects_and_reasons(storage: Storage, row: Inspection, names: list[str]) -> dict[str, list]:
     """``defects`` and ``reasons`` of a done inspection, from its details.json."""
     if row.status != "done" or "details.json" not in names:
         return {"defects": [], "reasons": []}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 
 from fastapi.testclient import TestClient
@@ -103,3 +104,40 @@ def test_no_outside_url_in_pages_static_files_or_the_viewer_client():
     )
     # The only URL in viser's bundled client is the SVG namespace (an identifier, never fetched).
     assert set(re.findall(r"https?://[A-Za-z0-9.-]+", client_page)) <= {"http://www.w3.org"}
+
+
+def test_result_page_says_why_and_where_a_plate_failed(demo_app):
+    """The reasons and the defect table come from the inspection's details.json."""
+    inspection_id = seed_done_inspection(demo_app)
+    details = {
+        "reasons": ["1 region(s) out of the 2 mm tolerance over 100 mm^2 (largest 13786 mm^2)"],
+        "defects": [
+            {
+                "centroid_px": [352.0, 224.5],
+                "centroid_mm": [-596.2, 301.4],
+                "area_mm2": 13785.7,
+                "peak_deviation_mm": 5.93,
+                "mean_deviation_mm": 3.74,
+            }
+        ],
+    }
+    folder = demo_app.state.storage.artifacts_dir(inspection_id)
+    (folder / "details.json").write_text(json.dumps(details))
+    with TestClient(demo_app) as client:
+        html = client.get(f"/inspections/{inspection_id}").text
+        api = client.get(f"/api/v1/inspections/{inspection_id}").json()
+    assert 'id="defects"' in html and "largest 13786 mm^2" in html
+    row = html.split('class="defect-table"')[1].split("</tbody>")[0]
+    for cell in ("<td>1</td>", "<td>-596</td>", "<td>301</td>", "<td>137.9</td>", "+5.9", "+3.7"):
+        assert cell in row, (cell, row)
+    assert api["defects"] == [
+        {
+            "id": 1,
+            "centroid_mm": [-596.2, 301.4],
+            "centroid_px": [352.0, 224.5],
+            "area_mm2": 13785.7,
+            "peak_mm": 5.93,
+            "mean_mm": 3.74,
+        }
+    ]
+    assert api["reasons"] == details["reasons"]
