@@ -245,3 +245,11 @@ def plate_out(view: PlateOverview) -> PlateOut:
         latest_inspection=inspection_summary(latest) if latest is not None else None,
         target=target_out(view.target) if view.target is not None else None,
     )
+
+
+def csv_cell(value) -> str:
+    """A CSV cell; text a spreadsheet would run as a formula (``=``, ``+``, ``-``, ``@``) is quoted with ``'``."""
+    if value is None:
+        return ""
+    text = str(value)
+    return "'" + text if isinstance(value, str) and text[:1] in ("=", "+", "-", "@") else text

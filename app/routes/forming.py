@@ -12,7 +12,7 @@ from pydantic import AfterValidator
 
 from app.deps import SessionDep, WriterDep
 from app.errors import ApiError
-from app.routes.common import IdempotencyKeyHeader, PlateIdPath, idempotent_write
+from app.routes.common import IdempotencyKeyHeader, PlateIdPath, csv_cell, idempotent_write
 from app.schemas import (
     MACHINE_ID_MAX_LENGTH,
     MACHINE_ID_REGEX,
@@ -144,17 +144,9 @@ def forming_history_csv(session: SessionDep):
     writer = csv.writer(out, lineterminator="\n")
     writer.writerow(svc.HISTORY_COLUMNS)
     for row in svc.exported_passes(session=session):
-        writer.writerow([_cell(v) for v in svc.export_row(row)])
+        writer.writerow([csv_cell(v) for v in svc.export_row(row)])
     return Response(
         out.getvalue(),
         media_type="text/csv; charset=utf-8",
         headers={"Content-Disposition": 'attachment; filename="forming-history.csv"'},
     )
-
-
-def _cell(value) -> str:
-    """A CSV cell; text a spreadsheet would run as a formula (``=``, ``+``, ``-``, ``@``) is quoted with ``'``."""
-    if value is None:
-        return ""
-    text = str(value)
-    return "'" + text if isinstance(value, str) and text[:1] in ("=", "+", "-", "@") else text

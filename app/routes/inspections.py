@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import csv
+import io
 import json
 import mimetypes
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, File, Form, Query, Request, UploadFile, status
-from fastapi.responses import FileResponse
+from fastapi.responses import FileResponse, Response
 from pydantic import ValidationError
 
 from app.deps import JobsDep, SessionDep, SettingsDep, StorageDep, WriterDep
@@ -18,6 +20,7 @@ from app.routes.common import (
     InspectionIdPath,
     OffsetQuery,
     PlateIdPath,
+    csv_cell,
     idempotent_write,
     inspection_out,
     inspection_summary,
@@ -34,6 +37,7 @@ from app.schemas import (
     SimulatedInspectionIn,
 )
 from app.services import inspections as svc
+from app.services import plates as plates_svc
 from app.services.acquisitions import create_acquired_inspection
 from app.services.cell import CELL_SETTING, CellUnavailable, demo_target, load_cell
 from app.services.inspections import CAPTURE_FILE
@@ -277,6 +281,74 @@ def list_plate_inspections(
     return Page[InspectionSummary](
         items=[inspection_summary(r) for r in items], total=total, limit=limit, offset=offset
     )
+
+
+#: Columns of a plate's inspections.csv, in order.
+PLATE_CSV_COLUMNS = (
+    "inspection_id",
+    "created_at",
+    "finished_at",
+    "status",
+    "verdict",
+    "source",
+    "radius_mm",
+    "target_radius_mm",
+    "radius_error_pct",
+    "rms_mm",
+    "p95_mm",
+    "max_abs_mm",
+    "within_tolerance_pct",
+    "tolerance_mm",
+    "process_method",
+    "machine_id",
+    "top_roll_displacement_mm",
+    "error",
+)
+
+
+@router.get(
+    "/plates/{plate_id}/inspections.csv",
+    response_class=Response,
+    responses={
+        200: {"content": {"text/csv": {}}, "description": "one row per inspection, oldest first"},
+        404: {"model": ErrorOut},
+    },
+    summary="A plate's inspections as CSV, for a spreadsheet",
+)
+def plate_inspections_csv(plate_id: PlateIdPath, session: SessionDep):
+    """Columns: see ``PLATE_CSV_COLUMNS`` (times in UTC with their offset, lengths in mm)."""
+    if plates_svc.get_plate(session=session, plate_id=plate_id) is None:
+        raise ApiError(404, f"plate_id: no plate {plate_id!r}", field="plate_id")
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(PLATE_CSV_COLUMNS)
+    for row in svc.plate_history(session=session, plate_id=plate_id):
+        process = row.process or {}
+        values = [getattr(row, name, None) for name in PLATE_CSV_COLUMNS[3:14]]
+        writer.writerow(
+            [
+                csv_cell(v)
+                for v in (
+                    row.id,
+                    _iso(row.created_at),
+                    _iso(row.finished_at),
+                    *values,
+                    process.get("method"),
+                    process.get("machine_id"),
+                    process.get("top_roll_displacement_mm"),
+                    row.error,
+                )
+            ]
+        )
+    return Response(
+        out.getvalue(),
+        media_type="text/csv; charset=utf-8",
+        headers={"Content-Disposition": f'attachment; filename="{plate_id}-inspections.csv"'},
+    )
+
+
+def _iso(when) -> str | None:
+    return None if when is None else when.isoformat(timespec="seconds")
 
 
 @router.get(

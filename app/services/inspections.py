@@ -303,6 +303,15 @@ def list_inspections(
     return items, total
 
 
+def plate_history(*, session: Session, plate_id: str) -> list[Inspection]:
+    """Every inspection of a plate, oldest first."""
+    return list(
+        session.scalars(
+            select(Inspection).where(Inspection.plate_id == plate_id).order_by(Inspection.id)
+        )
+    )
+
+
 def artifact_names(*, storage: Storage, inspection: Inspection) -> list[str]:
     """Names of the files in the inspection's artifacts folder (sorted)."""
     folder = storage.artifacts_dir(inspection.id)

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import csv
+import io
 import json
 import re
 
+import pytest
 from fastapi.testclient import TestClient
 
 from tests.web.conftest import seed_done_inspection, seed_queued_inspection
@@ -141,3 +144,21 @@ def test_result_page_says_why_and_where_a_plate_failed(demo_app):
         }
     ]
     assert api["reasons"] == details["reasons"]
+
+
+def test_a_plates_inspections_as_csv(demo_app):
+    first = seed_done_inspection(demo_app, plate_id="CSV-1", measured_radius_mm=5050.0)
+    second = seed_done_inspection(demo_app, plate_id="CSV-1", measured_radius_mm=5010.0)
+    with TestClient(demo_app) as client:
+        r = client.get("/api/v1/plates/CSV-1/inspections.csv")
+        missing = client.get("/api/v1/plates/NO-SUCH/inspections.csv")
+    assert r.status_code == 200, r.text
+    assert r.headers["content-type"].startswith("text/csv")
+    assert 'filename="CSV-1-inspections.csv"' in r.headers["content-disposition"]
+    rows = list(csv.DictReader(io.StringIO(r.text)))
+    assert [int(row["inspection_id"]) for row in rows] == [first, second]  # oldest first
+    assert [float(row["radius_mm"]) for row in rows] == pytest.approx([5050.0, 5010.0], abs=1.0)
+    assert all(row["status"] == "done" and row["verdict"] in ("pass", "fail") for row in rows)
+    assert rows[0]["created_at"].endswith("+00:00")  # the time zone is said
+    assert rows[0]["target_radius_mm"] == "5000.0"
+    assert missing.status_code == 404 and missing.json()["field"] == "plate_id"
