@@ -29,6 +29,10 @@ variance estimates, each weighted with its prior as pseudo-observations::
 and the fit repeated (three rounds). Predictions use Student's t with the corresponding degrees of freedom
 (:meth:`Fit.predict`): with little data the tails are wide, and the advice aims further to the safe side.
 
+A plate's next pass is predicted from its latest measured shape plus the model's increment to the new
+pass (:meth:`Fit.predict`, :func:`latest_state`): the model is never exact, and a fit that compromises
+between a plate's passes must not move the starting point of its correction.
+
 A plate's own passes pin its factor; passes of other plates on the same machine pin the machine's
 compliance, and those of the same grade and thickness the group's mean factor and spread. A plate with
 no history of its own gets its group's distribution; a group with no plates gets the prior.
@@ -234,8 +238,11 @@ class Fit:
     ) -> Prediction:
         """Distribution of the plate's curvature after one more pass (``plate`` must be in the fit).
 
-        The parameters' uncertainty is propagated to first order (numerical gradient), the new pass adds
-        its scatter and the inspection its noise. Degrees of freedom: the scatter's when the plate has
+        A plate with an inspected shape starts from it (:func:`latest_state`): the latest measured
+        curvature plus the model's increment from that shape to the new pass. The parameters'
+        uncertainty is propagated to first order (numerical gradient) through that increment (through
+        the curvature itself for a plate never inspected), the new pass adds its scatter, the pass that
+        set the old peak its own when the new pass goes beyond it, and the inspections their noise. Degrees of freedom: the scatter's when the plate has
         inspected passes of its own or its factor is given, else the fewer of the scatter's and the
         plates' spread's.
 
@@ -255,11 +262,15 @@ class Fit:
             col = cov[:, i_plate] / max(cov[i_plate, i_plate], 1e-300)
             theta = theta + col * (yield_factor - theta[i_plate])
             cov = cov - np.outer(col, cov[i_plate, :])
+        anchor = latest_state(plate, self.curvatures(plate, theta)[0])
 
         def model(th: np.ndarray, d_shift: float = 0.0) -> tuple[float, float]:
+            """Loaded curvature of the new pass and the predicted curvature after it (anchored)."""
             trial = plate.with_pass(RollPass(machine_id, displacement_mm + d_shift))
             kl, ku = self.curvatures(trial, th)
-            return float(kl[-1]), float(ku[-1])
+            if anchor is None:
+                return float(kl[-1]), float(ku[-1])
+            return float(kl[-1]), float(ku[-1] - ku[anchor.pass_index])
 
         k_loaded, mean = model(theta)
         grad = np.zeros(len(idx))
@@ -270,12 +281,31 @@ class Fit:
             grad[j] = (model(th)[1] - mean) / step
         var_par = max(float(grad @ cov[np.ix_(idx, idx)] @ grad), 0.0)
         g_d = (model(theta, _H_D)[1] - mean) / _H_D
-        var = (
-            var_par + (g_d * self.scatter_mm) ** 2 + _inspection_variance(mean, plate, self.priors)
-        )
+        var = var_par + (g_d * self.scatter_mm) ** 2
+        if anchor is not None:
+            # the increment starts from the measured state; when the new pass loads the plate beyond
+            # it, where that state's peak really was (its pass's scatter) shifts the increment too
+            mean += anchor.curvature
+            var += _inspection_variance(anchor.curvature, plate, self.priors) / anchor.inspections
+            if k_loaded > anchor.peak_loaded:
+                g_peak = self._peak_sensitivity(plate, theta, anchor)
+                var += (g_peak * self.scatter_mm) ** 2
+        var += _inspection_variance(mean, plate, self.priors)
         own = self.rows_per_plate.get(plate.plate_id, 0) > 0 or yield_factor is not None
         dof = self.scatter_dof if own else min(self.scatter_dof, self.spread_dof)
         return Prediction(k_loaded, mean, float(np.sqrt(var)), dof)
+
+    def _peak_sensitivity(self, plate: PlateRecord, theta: np.ndarray, anchor: State) -> float:
+        """Curvature of the anchor's state per mm of the displacement of the pass that set its peak."""
+        passes = list(plate.passes)
+        q = passes[anchor.peak_pass]
+        passes[anchor.peak_pass] = RollPass(
+            q.machine_id, q.top_roll_displacement_mm + _H_D, q.measured_radius_mm, q.verdict
+        )
+        shifted = PlateRecord(plate.plate_id, plate.target, tuple(passes))
+        ku0 = self.curvatures(plate, theta)[1][anchor.pass_index]
+        ku1 = self.curvatures(shifted, theta)[1][anchor.pass_index]
+        return float((ku1 - ku0) / _H_D)
 
     def yield_factor_quantile(self, plate_id: str, p: float) -> float:
         """Quantile of a plate's factor (Student-t: the plates' spread's degrees of freedom when it has no
@@ -283,6 +313,50 @@ class Fit:
         mean, sd = self.parameter("plate", plate_id)
         dof = self.scatter_dof if self.rows_per_plate.get(plate_id, 0) else self.spread_dof
         return float(mean + sd * stats.t.ppf(p, dof))
+
+
+@dataclass(frozen=True)
+class State:
+    """A plate's latest inspected shape: where a prediction of its next pass starts.
+
+    Attributes
+    ----------
+    pass_index : int
+        The latest inspected pass.
+    peak_pass : int
+        The pass that loaded the plate most up to it (the shape's origin).
+    peak_loaded : float
+        That pass's loaded curvature, 1/mm.
+    curvature : float
+        The mean measured curvature of the inspections of that shape, 1/mm.
+    inspections : int
+        How many were averaged.
+    """
+
+    pass_index: int
+    peak_pass: int
+    peak_loaded: float
+    curvature: float
+    inspections: int
+
+
+def latest_state(plate: PlateRecord, loaded: np.ndarray) -> State | None:
+    """The plate's latest inspected shape given its passes' loaded curvatures; None: never inspected.
+
+    The shape is the one left by the pass that loaded the plate most so far (the history rule); every
+    inspection since that pass saw it and is averaged.
+    """
+    inspected = [j for j, q in enumerate(plate.passes) if q.inspected]
+    if not inspected:
+        return None
+    last = inspected[-1]
+    peak_pass = int(np.argmax(loaded[: last + 1]))
+    ks = [
+        measured_curvature(plate, plate.passes[j].measured_radius_mm)
+        for j in inspected
+        if j >= peak_pass
+    ]
+    return State(last, peak_pass, float(loaded[peak_pass]), float(np.mean(ks)), len(ks))
 
 
 def measured_curvature(plate: PlateRecord, radius_mm: float) -> float:

@@ -73,3 +73,33 @@ def test_learning_saves_passes(campaigns):
     # later plates rest on the history and say so
     last = campaigns[0][-1].advice[0]["basis"]
     assert last["machine_plates"] == 19 and last["data"] != "nominal only: no history"
+
+
+def test_a_correction_pass_starts_from_the_measured_shape():
+    # two passes whose radii no single yield factor explains (the model is never exact): the fit
+    # compromises, but the next pass is predicted from the latest measured shape, so a pass that does
+    # not load the plate beyond its latest peak is predicted to leave exactly that shape
+    from pipeline.forming.learning import fit, latest_state, measured_curvature
+    from pipeline.forming.records import FormingTarget, Material, PlateRecord, RollPass
+
+    plate = PlateRecord(
+        "A1",
+        FormingTarget(6000.0, 2.0, 3000.0, 6000.0, Material("AH36", 20.0, 355.0)),
+        (
+            RollPass("R3-01", 70.0, 15000.0, "fail"),
+            RollPass("R3-01", 80.0, 6900.0, "fail"),
+        ),
+    )
+    fitted = fit([plate], {"R3-01": MACHINE})
+    model_now = fitted.curvatures(plate)[1][-1]
+    measured = measured_curvature(plate, 6900.0)
+    assert abs(model_now - measured) > 1e-7  # the fit does not pass through the latest shape
+
+    state = latest_state(plate, fitted.curvatures(plate)[0])
+    assert (state.pass_index, state.peak_pass, state.inspections) == (1, 1, 1)
+    same = fitted.predict(plate, "R3-01", 79.0)  # below the latest peak: nothing changes
+    assert same.mean == pytest.approx(measured, rel=1e-9)
+    deeper = fitted.predict(plate, "R3-01", 81.0)
+    increment = fitted.curvatures(plate.with_pass(RollPass("R3-01", 81.0)))[1][-1] - model_now
+    assert deeper.mean == pytest.approx(measured + increment, rel=1e-9)
+    assert deeper.sd > same.sd  # the new pass and the old peak's scatter
