@@ -13,10 +13,12 @@ Z. Zhang, "A flexible new technique for camera calibration", IEEE TPAMI 22(11), 
 
 from __future__ import annotations
 
+import os
 import re
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -83,11 +85,13 @@ class CalibrationReport:
 # --------------------------------------------------------------------------- finding the pairs
 
 
-def _natural_key(text: str):
+def _natural_key(text: str) -> list[int | str]:
     return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", text)]
 
 
-def _scan_board_dir(directory) -> tuple[list[tuple[str, Path, Path]], list[tuple[str, str]]]:
+def _scan_board_dir(
+    directory: str | os.PathLike[str],
+) -> tuple[list[tuple[str, Path, Path]], list[tuple[str, str]]]:
     folder = Path(directory)
     if not folder.is_dir():
         raise ValueError(
@@ -118,7 +122,7 @@ def _scan_board_dir(directory) -> tuple[list[tuple[str, Path, Path]], list[tuple
     return pairs, unmatched
 
 
-def find_board_pairs(directory) -> list[tuple[str, Path, Path]]:
+def find_board_pairs(directory: str | os.PathLike[str]) -> list[tuple[str, Path, Path]]:
     """List the chessboard image pairs of a calibration folder.
 
     A pair is ``left<KEY>.<ext>`` with ``right<KEY>.<ext>`` (docs/formats.md), the
@@ -169,7 +173,8 @@ def _read_grey8(path: Path) -> np.ndarray:
     lo, hi = np.percentile(data, [0.5, 99.5])
     if hi <= lo:
         return np.zeros(data.shape, np.uint8)
-    return np.clip((data - lo) * (255.0 / (hi - lo)), 0, 255).astype(np.uint8)
+    grey: np.ndarray = np.clip((data - lo) * (255.0 / (hi - lo)), 0, 255).astype(np.uint8)
+    return grey
 
 
 def _subpix_half_window(corners: np.ndarray, inner_corners: tuple[int, int]) -> int:
@@ -220,7 +225,9 @@ def _board_points(inner_corners: tuple[int, int], square_mm: float) -> np.ndarra
     return pts
 
 
-def _check_board(inner_corners, square_mm, min_pairs) -> tuple[tuple[int, int], float, int]:
+def _check_board(
+    inner_corners: tuple[int, int], square_mm: float, min_pairs: int
+) -> tuple[tuple[int, int], float, int]:
     try:
         cols, rows = (int(v) for v in inner_corners)
     except (TypeError, ValueError):
@@ -252,7 +259,7 @@ def _check_board(inner_corners, square_mm, min_pairs) -> tuple[tuple[int, int], 
 
 
 def calibrate_stereo(
-    directory,
+    directory: str | os.PathLike[str],
     *,
     inner_corners: tuple[int, int] = (9, 6),
     square_mm: float,
@@ -323,6 +330,8 @@ def calibrate_stereo(
             f"{directory}: expected at least {min_pairs} usable board pairs, got {len(keys)} "
             f"of {len(pairs)} pairs ({reasons})"
         )
+    if image_size is None:  # impossible: min_pairs >= 3 pairs were detected, the first set it
+        raise AssertionError("image_size: no pair was detected")
 
     rms_l, rms_r, rms, K_l, dist_l, K_r, dist_r, R, T, per_view = _calibrate(
         directory, object_pts, left_pts, right_pts, image_size
@@ -349,7 +358,9 @@ def calibrate_stereo(
     )
 
 
-def _detected_pairs(pairs, board: tuple[int, int], rejected: list[tuple[str, str]]):
+def _detected_pairs(
+    pairs: list[tuple[str, Path, Path]], board: tuple[int, int], rejected: list[tuple[str, str]]
+) -> tuple[tuple[int, int] | None, list[str], list[np.ndarray], list[np.ndarray]]:
     """The board's inner corners in every pair where both images show it whole.
 
     Returns the image size (the first pair's), the pairs' keys and the corners (N, 1, 2) float32 of
@@ -389,12 +400,12 @@ def _detected_pairs(pairs, board: tuple[int, int], rejected: list[tuple[str, str
             continue
         corners_l = _detect(grey_l, board)
         corners_r = _detect(grey_r, board)
-        missing = [
-            name
-            for name, c in ((left_path.name, corners_l), (right_path.name, corners_r))
-            if c is None
-        ]
-        if missing:
+        if corners_l is None or corners_r is None:
+            missing = [
+                name
+                for name, c in ((left_path.name, corners_l), (right_path.name, corners_r))
+                if c is None
+            ]
             rejected.append(
                 (key, f"no {board[0]}x{board[1]} chessboard found in {' and '.join(missing)}")
             )
@@ -408,8 +419,23 @@ def _detected_pairs(pairs, board: tuple[int, int], rejected: list[tuple[str, str
 
 
 def _calibrate(
-    directory, object_pts: np.ndarray, left_pts: list, right_pts: list, image_size: tuple[int, int]
-):
+    directory: str | os.PathLike[str],
+    object_pts: np.ndarray,
+    left_pts: list[np.ndarray],
+    right_pts: list[np.ndarray],
+    image_size: tuple[int, int],
+) -> tuple[
+    float,
+    float,
+    float,
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+]:
     """Zhang's calibration of each camera, then the stereo calibration from the corners of the pairs.
 
     Returns the left, right and stereo RMS (px), ``K_l, dist_l, K_r, dist_r, R, T`` and the per-view
@@ -444,7 +470,7 @@ def _calibrate(
     return rms_l, rms_r, rms, K_l, dist_l, K_r, dist_r, R, T, per_view
 
 
-def calibration_document(report: CalibrationReport) -> dict:
+def calibration_document(report: CalibrationReport) -> dict[str, Any]:
     """The ``stereo-calibration/1`` JSON object of a calibration.
 
     Parameters

@@ -8,12 +8,14 @@ camera is the reference frame of everything; the stereo extrinsics follow
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 
-def _as_matrix(name: str, value, shape: tuple[int, ...]) -> np.ndarray:
+def _as_matrix(name: str, value: npt.ArrayLike, shape: tuple[int, ...]) -> np.ndarray:
     arr = np.asarray(value, dtype=np.float64)
     if arr.shape != shape:
         raise ValueError(f"{name}: expected shape {shape}, got {arr.shape}")
@@ -175,7 +177,7 @@ class StereoRig:
     R: np.ndarray
     T: np.ndarray
     rms_px: float | None = None
-    board: dict | None = field(default=None, compare=False)
+    board: dict[str, Any] | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         R = _as_matrix("R", self.R, (3, 3))

@@ -20,12 +20,17 @@ import json
 import logging
 import sys
 import traceback
+from collections.abc import Callable
 from dataclasses import replace
 from importlib.metadata import entry_points
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .formats import AcquisitionError, InputError, PipelineError
 from .parallel import configure_process
+
+if TYPE_CHECKING:
+    from .simulate import Cutout, Dent, Floor
 
 EXIT_OK, EXIT_INTERNAL, EXIT_BAD_INPUT, EXIT_NOT_MEASURABLE, EXIT_HARDWARE = 0, 1, 2, 3, 4
 
@@ -34,17 +39,20 @@ class BadArgument(ValueError):
     """A command-line value that cannot be used; reported like bad input (exit 2)."""
 
 
-def _pair(text: str, *, sep: str = "x", kind=int, name: str) -> tuple:
+def _pair(
+    text: str, *, sep: str = "x", kind: Callable[[str], int] = int, name: str
+) -> tuple[int, int]:
     parts = text.lower().split(sep)
     try:
         if len(parts) != 2:
             raise ValueError
-        return tuple(kind(p) for p in parts)
+        first, second = parts
+        return kind(first), kind(second)
     except ValueError:
         raise BadArgument(f"{name}: expected two numbers as A{sep}B, got {text!r}") from None
 
 
-def _dent(text: str):
+def _dent(text: str) -> Dent:
     from .simulate import Dent
 
     try:
@@ -54,7 +62,7 @@ def _dent(text: str):
     return Dent(x_mm=x, y_mm=y, radius_mm=r, depth_mm=d)
 
 
-def _cutout(text: str):
+def _cutout(text: str) -> Cutout:
     from .simulate import Cutout
 
     try:
@@ -72,7 +80,7 @@ def _cutout(text: str):
         ) from None
 
 
-def _floor(args: argparse.Namespace, size_mm: tuple[float, float]):
+def _floor(args: argparse.Namespace, size_mm: tuple[float, float]) -> Floor | None:
     from .simulate import Floor, rail_supports
 
     if args.floor is None:
@@ -292,7 +300,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _add_simulate(sub: argparse._SubParsersAction) -> None:
+def _add_simulate(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """``plate-inspect simulate capture | boards``."""
     sim = sub.add_parser("simulate", help="render simulated captures or calibration boards")
     sim_sub = sim.add_subparsers(dest="what", required=True, metavar="WHAT")
@@ -431,7 +439,7 @@ def _add_light_and_camera_arguments(cap: argparse.ArgumentParser) -> None:
     )
 
 
-def _add_calibrate(sub: argparse._SubParsersAction) -> None:
+def _add_calibrate(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """``plate-inspect calibrate`` and ``plate-inspect calibrate-lights``."""
     cal = sub.add_parser("calibrate", help="stereo calibration from checkerboard pairs (Zhang)")
     cal.add_argument("dir", help="folder of left<KEY>.<ext> / right<KEY>.<ext> pairs")
@@ -454,7 +462,7 @@ def _add_calibrate(sub: argparse._SubParsersAction) -> None:
     lc.set_defaults(handler=_cmd_calibrate_lights)
 
 
-def _add_acquire(sub: argparse._SubParsersAction) -> None:
+def _add_acquire(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """``plate-inspect acquire``."""
     acq = sub.add_parser(
         "acquire", help="photograph a plate in the cell and write a capture bundle"
@@ -472,7 +480,7 @@ def _add_acquire(sub: argparse._SubParsersAction) -> None:
     acq.set_defaults(handler=_cmd_acquire)
 
 
-def _add_inspect(sub: argparse._SubParsersAction) -> None:
+def _add_inspect(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """``plate-inspect inspect``."""
     ins = sub.add_parser("inspect", help="measure a capture bundle against its target")
     ins.add_argument("capture", help="capture bundle: folder or .zip (plate-capture/1)")

@@ -9,9 +9,15 @@ from __future__ import annotations
 
 import json
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from .fusion import Fusion
+    from .light_refinement import LightRefinement
+    from .segmentation import Segmentation
+    from .verdict import DefectRegion, ExcludedRegion
 
 
 @dataclass(frozen=True)
@@ -142,7 +148,9 @@ class Details:
         return json.dumps(asdict(self), indent=2) + "\n"
 
 
-def region_details(region, centroid_mm: tuple[float, float] | None = None) -> RegionDetails:
+def region_details(
+    region: DefectRegion, centroid_mm: tuple[float, float] | None = None
+) -> RegionDetails:
     """A :class:`pipeline.verdict.DefectRegion` for details.json (``centroid_mm``: target frame)."""
     return RegionDetails(
         centroid_px=list(map(float, region.centroid_px)),
@@ -153,7 +161,7 @@ def region_details(region, centroid_mm: tuple[float, float] | None = None) -> Re
     )
 
 
-def excluded_region_details(region) -> ExcludedRegionDetails:
+def excluded_region_details(region: ExcludedRegion) -> ExcludedRegionDetails:
     """A :class:`pipeline.verdict.ExcludedRegion` for details.json."""
     return ExcludedRegionDetails(
         centroid_px=list(map(float, region.centroid_px)),
@@ -164,7 +172,7 @@ def excluded_region_details(region) -> ExcludedRegionDetails:
 
 
 def segmentation_details(
-    seg, target_area_mm2: float, *, plain: bool, measured_area_mm2: float
+    seg: Segmentation | None, target_area_mm2: float, *, plain: bool, measured_area_mm2: float
 ) -> SegmentationDetails | BrightnessSegmentationDetails:
     """How the plate was told from its surroundings, and its area against the target's.
 
@@ -208,7 +216,7 @@ def segmentation_details(
     )
 
 
-def fusion_details(fused) -> FusionDetails | None:
+def fusion_details(fused: Fusion | None) -> FusionDetails | None:
     """How the stereo pair corrected the photometric shape (a :class:`pipeline.fusion.Fusion` or None)."""
     if fused is None:
         return None
@@ -223,7 +231,7 @@ def fusion_details(fused) -> FusionDetails | None:
     )
 
 
-def refinement_details(refined) -> RefinementDetails | None:
+def refinement_details(refined: LightRefinement | None) -> RefinementDetails | None:
     """The lights refitted on the stereo geometry (a :class:`pipeline.light_refinement.LightRefinement` or None)."""
     if refined is None:
         return None

@@ -9,7 +9,7 @@ field) lives in :mod:`pipeline.io`.
 from __future__ import annotations
 
 import math
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Final, Literal, Self
 
 from pydantic import (
     BaseModel,
@@ -24,7 +24,7 @@ from pydantic import (
 CALIBRATION_FORMAT = "stereo-calibration/1"
 CAPTURE_FORMAT = "plate-capture/1"
 TARGET_FORMAT = "plate-target/1"
-RESULT_FORMAT = "plate-result/1"
+RESULT_FORMAT: Final = "plate-result/1"
 LIGHT_CALIBRATION_FORMAT = "light-calibration/1"
 CELL_CONFIG_FORMAT = "cell-config/1"
 
@@ -81,7 +81,7 @@ Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 Mat3 = Annotated[list[Vec3], Field(min_length=3, max_length=3)]
 
 
-def _finite(values) -> bool:
+def _finite(values: float | list[float] | list[list[float]] | None) -> bool:
     if isinstance(values, (list, tuple)):
         return all(_finite(v) for v in values)
     return values is None or math.isfinite(values)
@@ -96,7 +96,7 @@ class CameraIntrinsics(_Strict):
 
     @field_validator("K", "dist")
     @classmethod
-    def _check_finite(cls, v):
+    def _check_finite(cls, v: list[float] | list[list[float]]) -> list[float] | list[list[float]]:
         if not _finite(v):
             raise ValueError("expected finite numbers")
         return v
@@ -119,7 +119,7 @@ class StereoCalibrationFile(_Strict):
 
     @field_validator("image_size")
     @classmethod
-    def _positive_size(cls, v):
+    def _positive_size(cls, v: list[int]) -> list[int]:
         if any(x <= 0 for x in v):
             raise ValueError(f"expected positive [width, height], got {v}")
         return v
@@ -128,7 +128,9 @@ class StereoCalibrationFile(_Strict):
 # --------------------------------------------------------------------------- capture
 
 
-def _unit_vector(v, what: str = "a unit vector", tolerance: float = UNIT_TOLERANCE):
+def _unit_vector(
+    v: list[float], what: str = "a unit vector", tolerance: float = UNIT_TOLERANCE
+) -> list[float]:
     if not _finite(v):
         raise ValueError(f"expected finite numbers, got {v}")
     norm = math.sqrt(sum(x * x for x in v))
@@ -154,25 +156,25 @@ class Light(_Strict):
 
     @field_validator("direction", "axis")
     @classmethod
-    def _unit(cls, v):
+    def _unit(cls, v: list[float] | None) -> list[float] | None:
         return None if v is None else _unit_vector(v)
 
     @field_validator("position_mm")
     @classmethod
-    def _finite_position(cls, v):
+    def _finite_position(cls, v: list[float] | None) -> list[float] | None:
         if v is not None and not _finite(v):
             raise ValueError(f"expected finite numbers, got {v}")
         return v
 
     @field_validator("intensity", "mu")
     @classmethod
-    def _finite_intensity(cls, v):
+    def _finite_intensity(cls, v: float | None) -> float | None:
         if v is not None and not math.isfinite(v):
             raise ValueError(f"expected a finite number, got {v}")
         return v
 
     @model_validator(mode="after")
-    def _one_kind(self):
+    def _one_kind(self) -> Self:
         if (self.direction is None) == (self.position_mm is None):
             raise ValueError(
                 "direction, position_mm: expected exactly one of them (a distant light or a point light), got "
@@ -191,7 +193,7 @@ class Photometric(_Strict):
     dark: str | None = None
 
     @model_validator(mode="after")
-    def _counts(self):
+    def _counts(self) -> Self:
         if len(self.lights) < 3:
             raise ValueError(f"lights: expected at least 3 lights, got {len(self.lights)}")
         if len(self.lights) != len(self.images):
@@ -228,12 +230,12 @@ class CalibratedLight(_Strict):
 
     @field_validator("axis")
     @classmethod
-    def _unit(cls, v):
+    def _unit(cls, v: list[float]) -> list[float]:
         return _unit_vector(v)
 
     @field_validator("position_mm")
     @classmethod
-    def _finite_position(cls, v):
+    def _finite_position(cls, v: list[float]) -> list[float]:
         if not _finite(v):
             raise ValueError(f"expected finite numbers, got {v}")
         return v
@@ -258,13 +260,13 @@ class CellCamera(_Strict):
 
     @field_validator("exposure_us", "gain_db")
     @classmethod
-    def _finite(cls, v):
+    def _finite(cls, v: float | None) -> float | None:
         if v is not None and not math.isfinite(v):
             raise ValueError(f"expected a finite number, got {v}")
         return v
 
     @model_validator(mode="after")
-    def _device(self):
+    def _device(self) -> Self:
         if self.driver == "aravis" and self.device_id is None:
             raise ValueError(
                 "device_id: missing required key (an aravis camera is opened by its device id)"
@@ -317,7 +319,7 @@ class CellLight(Light):
 
     @field_validator("direction", "axis")
     @classmethod
-    def _unit(cls, v):
+    def _unit(cls, v: list[float] | None) -> list[float] | None:
         if v is None:
             return None
         _unit_vector(v, tolerance=CELL_UNIT_TOLERANCE)
@@ -328,7 +330,7 @@ class CellLight(Light):
 _LightList = Annotated[list[CellLight], Field(min_length=3)]
 
 
-def _lights_kind(v) -> str:
+def _lights_kind(v: object) -> str:
     return "file" if isinstance(v, str) else "list"
 
 
@@ -348,7 +350,7 @@ class CellLights(_Strict):
 
     @field_validator("address")
     @classmethod
-    def _host_port(cls, v):
+    def _host_port(cls, v: str | None) -> str | None:
         if v is None:
             return v
         host, sep, port = v.rpartition(":")
@@ -358,16 +360,16 @@ class CellLights(_Strict):
 
     @field_validator("on", "off")
     @classmethod
-    def _per_light(cls, v):
+    def _per_light(cls, v: str | None) -> str | None:
         return _one_line_command(v, per_light=True)
 
     @field_validator("stereo_on", "stereo_off")
     @classmethod
-    def _stereo(cls, v):
+    def _stereo(cls, v: str | None) -> str | None:
         return _one_line_command(v, per_light=False)
 
     @model_validator(mode="after")
-    def _complete(self):
+    def _complete(self) -> Self:
         if self.driver == "tcp":
             for key in ("address", "on", "off"):
                 if getattr(self, key) is None:
@@ -428,7 +430,7 @@ class TargetMaterial(_Strict):
     poisson: float = Field(default=0.3, ge=0, lt=0.5)
 
     @model_validator(mode="after")
-    def _yield_below_modulus(self):
+    def _yield_below_modulus(self) -> Self:
         if self.yield_mpa >= self.youngs_mpa:
             raise ValueError(
                 f"yield_mpa: expected less than youngs_mpa ({self.youngs_mpa:g}), got {self.yield_mpa:g}"
@@ -445,7 +447,7 @@ class TargetFile(_Strict):
 
     @field_validator("size_mm")
     @classmethod
-    def _positive(cls, v):
+    def _positive(cls, v: list[float]) -> list[float]:
         if any(not math.isfinite(x) or x <= 0 for x in v):
             raise ValueError(f"expected two positive sizes in mm, got {v}")
         return v

@@ -32,7 +32,7 @@ from threadpoolctl import threadpool_limits
 from . import stereo
 from .formats import CaptureError, InputError
 from .io import Capture
-from .light_fit import PlatePose, Samples, initial_point_lights, joint_fit
+from .light_fit import JointFit, PlatePose, Samples, initial_point_lights, joint_fit
 from .lights import Lights
 from .preprocess import preprocess
 from .surface_fits import fit_plane
@@ -209,12 +209,12 @@ def calibrate_lights(
 
 def _check_arguments(
     captures: list[Capture],
-    max_samples,
-    block_px,
-    min_lit_fraction,
-    min_plate_fraction,
-    max_position_std_mm,
-    initial_mu,
+    max_samples: int,
+    block_px: int | None,
+    min_lit_fraction: float,
+    min_plate_fraction: float,
+    max_position_std_mm: float,
+    initial_mu: float,
 ) -> None:
     """ValueError (InputError for captures of different cells) naming what :func:`calibrate_lights` cannot use."""
     if not captures:
@@ -243,7 +243,9 @@ def _check_arguments(
             )
 
 
-def _fit(given: Lights, pose: PlatePose, data: Samples, initial_mu: float):
+def _fit(
+    given: Lights, pose: PlatePose, data: Samples, initial_mu: float
+) -> tuple[JointFit, Samples, int]:
     """The joint fit from the capture's lights: mu held, then free, then once more without the outliers.
 
     Returns the fit, the samples it used and the Jacobian evaluations of all rounds.
@@ -271,7 +273,7 @@ def _fit(given: Lights, pose: PlatePose, data: Samples, initial_mu: float):
 
 
 def _check_fit(
-    fit, captures: list[Capture], plates: list[PlatePose], max_position_std_mm: float
+    fit: JointFit, captures: list[Capture], plates: list[PlatePose], max_position_std_mm: float
 ) -> None:
     """CaptureError when a light's position is not determined, the fit did not converge, or a light was
     fitted behind the reference plate."""
@@ -326,12 +328,12 @@ def plate_pose(capture: Capture, mask: np.ndarray) -> PlatePose:
     CaptureError
         No stereo pair, or fewer than ``MIN_STEREO_POINTS`` matched points on the plate.
     """
-    if not capture.has_stereo:
+    left, right, stereo_mask = capture.stereo_left, capture.stereo_right, mask
+    if left is None or right is None:  # not capture.has_stereo
         raise CaptureError(
             f"{capture.source}: stereo: a light calibration needs the stereo pair (the plate's pose)"
         )
     rig = capture.rig
-    left, right, stereo_mask = capture.stereo_left, capture.stereo_right, mask
     width, height = rig.image_size
     step = -(-width // STEREO_MAX_WIDTH)
     if step > 1:

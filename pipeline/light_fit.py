@@ -29,6 +29,7 @@ References
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal, overload
 
 import numpy as np
 
@@ -115,9 +116,21 @@ def _irradiance_of(lights: Lights, points: np.ndarray, normals: np.ndarray) -> n
     return _irradiance(param.vector(lights), param, points, normals, jac=False)[0]
 
 
+@overload
+def _irradiance(
+    x: np.ndarray, param: _Param, points: np.ndarray, normals: np.ndarray, *, jac: Literal[False]
+) -> tuple[np.ndarray, None]: ...
+
+
+@overload
+def _irradiance(
+    x: np.ndarray, param: _Param, points: np.ndarray, normals: np.ndarray, *, jac: Literal[True]
+) -> tuple[np.ndarray, np.ndarray]: ...
+
+
 def _irradiance(
     x: np.ndarray, param: _Param, points: np.ndarray, normals: np.ndarray, *, jac: bool
-):
+) -> tuple[np.ndarray, np.ndarray | None]:
     """E (P, N) of every light at every sample and, with ``jac``, dE/d(parameters of its light) (P, N, 7)."""
     p = x.reshape(-1, _N_PARAMS)
     axes, length = param.axes(x)

@@ -73,7 +73,7 @@ class LightRefinement:
     rms_given: float
     rms_distant: float
     rms_point: float
-    corrections: list
+    corrections: list[dict[str, float | list[float]]]
     n_samples: int
 
 
@@ -125,10 +125,11 @@ def refine_lights(
         distant = _refine_distant(data, lights)
         rms_distant = _rms(data, distant)
         point, rms_point = _fit_points(data, lights, light_fit.PlatePose(normal, centre, 0.0, 0))
-    model = (
-        "point" if point is not None and rms_point < POINT_MODEL_GAIN * rms_distant else "distant"
-    )
-    chosen = point if model == "point" else distant
+    chosen: Lights
+    if point is not None and rms_point < POINT_MODEL_GAIN * rms_distant:
+        model, chosen = "point", point
+    else:
+        model, chosen = "distant", distant
     # the given scale: the same mean irradiance at the plate's centre, facing the light
     given_at_c = lights.intensity * lights.attenuation_at(centre)
     chosen_at_c = chosen.intensity * chosen.attenuation_at(centre)
@@ -139,7 +140,7 @@ def refine_lights(
     before, after = lights.directions_at(centre), chosen.directions_at(centre)
     corrections = []
     for k in range(lights.n):
-        item = {
+        item: dict[str, float | list[float]] = {
             "light": k,
             "turn_deg": round(
                 float(np.degrees(np.arccos(np.clip(before[k] @ after[k], -1.0, 1.0)))), 3
@@ -160,7 +161,17 @@ def refine_lights(
     )
 
 
-def _samples(images, valid, mask, lights, depth_mm, K, *, max_samples, seed):
+def _samples(
+    images: np.ndarray,
+    valid: np.ndarray | None,
+    mask: np.ndarray,
+    lights: Lights,
+    depth_mm: np.ndarray,
+    K: np.ndarray,
+    *,
+    max_samples: int,
+    seed: int,
+) -> light_fit.Samples | None:
     """Block means of the images in counts (P, N), with the smooth surface's points and normals."""
     n, h, w = images.shape
     usable = mask & np.isfinite(depth_mm)
@@ -172,7 +183,7 @@ def _samples(images, valid, mask, lights, depth_mm, K, *, max_samples, seed):
     block = max(2, int(np.sqrt(count / max_samples)))
     hb, wb = h // block, w // block
 
-    def blocks(img):
+    def blocks(img: np.ndarray) -> np.ndarray:
         return cv2.resize(
             np.ascontiguousarray(img[: hb * block, : wb * block]),
             (wb, hb),
@@ -195,7 +206,7 @@ def _samples(images, valid, mask, lights, depth_mm, K, *, max_samples, seed):
     z = blocks(np.where(usable, depth_mm, 0.0).astype(np.float64))[ii, jj]
     kinv = np.linalg.inv(K)
 
-    def point(du, dv):
+    def point(du: float, dv: float) -> np.ndarray:
         pix = np.stack([u + du, v + dv, np.ones_like(u)], axis=1)
         ui = np.clip(np.rint(u + du).astype(int), 0, w - 1)
         vi = np.clip(np.rint(v + dv).astype(int), 0, h - 1)
@@ -214,13 +225,13 @@ def _samples(images, valid, mask, lights, depth_mm, K, *, max_samples, seed):
     return light_fit.Samples(intensity=intensity[ok], points=points[ok], normals=normals[ok])
 
 
-def _rms(data, lights: Lights) -> float:
+def _rms(data: light_fit.Samples, lights: Lights) -> float:
     E = lights.irradiance(data.points, data.normals).T  # (P, N)
     _, _, r = light_fit.albedo_projected(data.intensity, E)
     return float(np.sqrt(np.mean(r * r)) / np.mean(data.intensity))
 
 
-def _refine_distant(data, lights: Lights) -> Lights:
+def _refine_distant(data: light_fit.Samples, lights: Lights) -> Lights:
     """Distant lights g_k = e_k d_k refitted by alternating least squares (see the module docstring)."""
     I, nrm = data.intensity, data.normals
     centre = data.points.mean(axis=0)
@@ -242,7 +253,9 @@ def _refine_distant(data, lights: Lights) -> Lights:
     return Lights.distant(g / e[:, None], e)
 
 
-def _fit_points(data, lights: Lights, pose) -> tuple[Lights | None, float]:
+def _fit_points(
+    data: light_fit.Samples, lights: Lights, pose: light_fit.PlatePose
+) -> tuple[Lights | None, float]:
     """Point lights fitted from the given ones (directions: along them from the plate's centre)."""
     try:
         start = light_fit.initial_point_lights(lights, pose, data, initial_mu=1.0)

@@ -25,10 +25,16 @@ References
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numba
 import numpy as np
+import numpy.typing as npt
+
+if TYPE_CHECKING:
+    from .formats import CalibratedLight, Light
 
 #: The irradiance of a point light is given at this distance (mm) from it.
 REFERENCE_DISTANCE_MM = 1000.0
@@ -86,7 +92,7 @@ class Lights:
     # ------------------------------------------------------------------ construction
 
     @classmethod
-    def distant(cls, directions, intensity=None) -> Lights:
+    def distant(cls, directions: npt.ArrayLike, intensity: npt.ArrayLike | None = None) -> Lights:
         """Distant lights from (N, 3) unit directions (surface -> light) and (N,) intensities (default 1)."""
         d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
         n = len(d)
@@ -95,7 +101,14 @@ class Lights:
         return cls(directions=d, positions_mm=nan, axes=nan.copy(), mu=np.zeros(n), intensity=e)
 
     @classmethod
-    def points(cls, positions_mm, intensity=None, *, axes=None, mu=None) -> Lights:
+    def points(
+        cls,
+        positions_mm: npt.ArrayLike,
+        intensity: npt.ArrayLike | None = None,
+        *,
+        axes: npt.ArrayLike | None = None,
+        mu: npt.ArrayLike | None = None,
+    ) -> Lights:
         """Point lights at (N, 3) positions (mm), with optional (N, 3) unit axes and (N,) exponents."""
         p = np.asarray(positions_mm, dtype=np.float64).reshape(-1, 3)
         n = len(p)
@@ -109,7 +122,7 @@ class Lights:
         return cls(directions=np.full((n, 3), np.nan), positions_mm=p, axes=a, mu=m, intensity=e)
 
     @classmethod
-    def from_documents(cls, lights: list) -> Lights:
+    def from_documents(cls, lights: Sequence[Light | CalibratedLight]) -> Lights:
         """From the ``lights`` entries of a capture (``pipeline.formats.Light``) or a light calibration."""
         n = len(lights)
         out = {k: np.full((n, 3), np.nan) for k in ("directions", "positions_mm", "axes")}
@@ -129,9 +142,10 @@ class Lights:
             intensity[k] = light.intensity
         return cls(mu=mu, intensity=intensity, **out)
 
-    def documents(self) -> list[dict]:
+    def documents(self) -> list[dict[str, list[float] | float]]:
         """The lights as ``lights[k]`` objects of a ``plate-capture/1`` (JSON-ready)."""
         docs = []
+        doc: dict[str, list[float] | float]
         for k in range(self.n):
             if self.is_point[k]:
                 doc = {"position_mm": [float(v) for v in self.positions_mm[k]]}
@@ -151,15 +165,16 @@ class Lights:
         return len(self.intensity)
 
     @property
-    def is_point(self) -> np.ndarray:
+    def is_point(self) -> npt.NDArray[np.bool_]:
         """(N,) bool, True for point lights."""
-        return np.isfinite(self.positions_mm).all(axis=1)
+        point: npt.NDArray[np.bool_] = np.isfinite(self.positions_mm).all(axis=1)
+        return point
 
     @property
     def any_point(self) -> bool:
         return bool(self.is_point.any())
 
-    def with_intensity(self, intensity) -> Lights:
+    def with_intensity(self, intensity: npt.ArrayLike) -> Lights:
         return Lights(
             self.directions,
             self.positions_mm,
@@ -231,13 +246,14 @@ class Lights:
         """``e_k a_k(X) max(0, n . l_k(X))`` for every light: (N, ...) float64 (see the module docstring)."""
         n = np.asarray(normals, dtype=np.float64)
         shading = np.maximum(np.einsum("k...c,...c->k...", self.directions_at(points_mm), n), 0.0)
-        return (
+        irradiance: npt.NDArray[np.float64] = (
             self.intensity.reshape((-1,) + (1,) * (shading.ndim - 1))
             * self.attenuation_at(points_mm)
             * shading
         )
+        return irradiance
 
-    def nominal_directions(self, centre_mm) -> Lights:
+    def nominal_directions(self, centre_mm: npt.ArrayLike) -> Lights:
         """Distant lights pointing where these lights are seen from ``centre_mm`` (3,), mm.
 
         Point lights become distant ones with the direction from the centre; the intensity is the
@@ -251,7 +267,19 @@ class Lights:
 
 @numba.njit(cache=True, fastmath={"nsz", "arcp", "contract", "reassoc"})
 def light_vectors_block(
-    depth, kinv, geometry, axes, kind, mu, min_attenuation, i, j0, samples, usable, m, L
+    depth: npt.NDArray[np.floating[Any]],
+    kinv: npt.NDArray[np.float64],
+    geometry: npt.NDArray[np.float64],
+    axes: npt.NDArray[np.float64],
+    kind: npt.NDArray[np.int64],
+    mu: npt.NDArray[np.float64],
+    min_attenuation: float,
+    i: int,
+    j0: int,
+    samples: npt.NDArray[np.float32],
+    usable: npt.NDArray[np.float32],
+    m: npt.NDArray[np.int64],
+    L: npt.NDArray[np.float32],
 ) -> None:
     """Per pixel (i, j0 + j) of a row block: the light model from the surface point it sees.
 

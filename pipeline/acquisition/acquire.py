@@ -35,12 +35,21 @@ from contextlib import ExitStack
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 
 from ..formats import CAPTURE_FORMAT, AcquisitionError, CaptureFile, CellCamera, InputError
-from .cameras import PIXEL_FORMATS, Camera, Frame, SimulatedCell, choose_pixel_format, open_camera
+from .cameras import (
+    PIXEL_FORMATS,
+    Camera,
+    Frame,
+    Side,
+    SimulatedCell,
+    choose_pixel_format,
+    open_camera,
+)
 from .config import CellConfig, load_cell_config
 from .lights import LightController, open_light_controller
 
@@ -80,9 +89,9 @@ class _Run:
     n_frames: int
     bit_depth: int
     t0: float = field(default_factory=time.monotonic)
-    frames: list[dict] = field(default_factory=list)
-    writes: list[Future] = field(default_factory=list)
-    exposure_us: dict[str, float] = field(default_factory=dict)
+    frames: list[dict[str, Any]] = field(default_factory=list)
+    writes: list[Future[None]] = field(default_factory=list)
+    exposure_us: dict[Side, float] = field(default_factory=dict)
     pre_shots: int = 0
 
     def elapsed(self) -> float:
@@ -124,12 +133,13 @@ def brightest_fraction(image: np.ndarray, bit_depth: int) -> float:
 
     A percentile, not the maximum, so that a few hot pixels or glints do not set the exposure.
     """
-    return float(np.percentile(image[::2, ::2], BRIGHTEST_PERCENTILE)) / (2**bit_depth - 1)
+    full_scale: int = 2**bit_depth - 1
+    return float(np.percentile(image[::2, ::2], BRIGHTEST_PERCENTILE)) / full_scale
 
 
 def auto_exposure(
     cameras: list[Camera], *, bit_depth: int, timeout_s: float, step: str
-) -> tuple[dict[str, float], int]:
+) -> tuple[dict[Side, float], int]:
     """Pre-shots under the present lighting until each camera's brightest samples lie between
     :data:`EXPOSURE_FLOOR` and :data:`EXPOSURE_LIMIT` of full scale.
 
@@ -208,9 +218,9 @@ def auto_exposure(
 
 
 def acquire(
-    config_path: str | os.PathLike,
+    config_path: str | os.PathLike[str],
     plate_id: str,
-    out_dir: str | os.PathLike,
+    out_dir: str | os.PathLike[str],
     *,
     progress: Progress | None = None,
     frame_timeout_s: float = FRAME_TIMEOUT_S,
@@ -302,8 +312,9 @@ def _open(
         cell = SimulatedCell(
             config.rig, config.lights, config.working_distance_mm, controller, plate_id
         )
-    cameras = {}
-    for side, cam_config in (("left", config.left), ("right", config.right)):
+    cameras: dict[Side, Camera] = {}
+    sides: tuple[tuple[Side, CellCamera], ...] = (("left", config.left), ("right", config.right))
+    for side, cam_config in sides:
         cameras[side] = open_camera(side, cam_config, cell=cell)
         stack.callback(cameras[side].close)
     left, right = cameras["left"], cameras["right"]
@@ -378,7 +389,7 @@ def _stereo_lighting(run: _Run, on: bool, *, step: str) -> None:
         _all_lights(run, on, step=step)
 
 
-def _exposures(run: _Run) -> tuple[float, dict[str, float], dict[str, str]]:
+def _exposures(run: _Run) -> tuple[float, dict[Side, float], dict[Side, str]]:
     """The left camera's photometric exposure, both cameras' stereo exposures (by side), and where
     each camera's came from: the configuration, or auto-exposure pre-shots."""
     config, left, right = run.config, run.left, run.right
@@ -398,38 +409,39 @@ def _exposures(run: _Run) -> tuple[float, dict[str, float], dict[str, str]]:
         if us is not None
     }
     auto = [cam for cam in (left, right) if configured[cam.side] is None]
-    if not auto:
+    if not auto and photometric is not None:  # (photometric is None only when the left one meters)
         return photometric, stereo, source
     run.progress("auto-exposure", 0.0)
-    meter = dict(bit_depth=run.bit_depth, timeout_s=run.timeout_s)
+    bit_depth, timeout_s = run.bit_depth, run.timeout_s
     if (
         not stereo_light
     ):  # one metering under all lights: the left camera's serves its photometric frames too
         step = "auto-exposure pre-shot, all photometric lights on"
         _all_lights(run, True, step=step)
-        metered, shots = auto_exposure(auto, step=step, **meter)
+        metered, shots = auto_exposure(auto, step=step, bit_depth=bit_depth, timeout_s=timeout_s)
         _all_lights(run, False, step=step)
         run.pre_shots += shots
         stereo.update(metered)
-        photometric = metered.get("left", photometric)
+        if photometric is None:  # the left camera metered
+            photometric = metered["left"]
         return photometric, stereo, source
     if photometric is None:
         step = "auto-exposure pre-shot, all photometric lights on"
         _all_lights(run, True, step=step)
-        metered, shots = auto_exposure([left], step=step, **meter)
+        metered, shots = auto_exposure([left], step=step, bit_depth=bit_depth, timeout_s=timeout_s)
         _all_lights(run, False, step=step)
         run.pre_shots += shots
         photometric = metered["left"]
     step = "auto-exposure pre-shot, stereo light on"
     _stereo_lighting(run, True, step=step)
-    metered, shots = auto_exposure(auto, step=step, **meter)
+    metered, shots = auto_exposure(auto, step=step, bit_depth=bit_depth, timeout_s=timeout_s)
     _stereo_lighting(run, False, step=step)
     run.pre_shots += shots
     stereo.update(metered)
     return photometric, stereo, source
 
 
-def _sequence(run: _Run) -> dict:
+def _sequence(run: _Run) -> dict[str, Any]:
     """Take every frame of the bundle; returns the acquisition record (without total times)."""
     config, controller, left, right = run.config, run.controller, run.left, run.right
     photometric_us, stereo_us, source = _exposures(run)
@@ -472,7 +484,7 @@ def _sequence(run: _Run) -> dict:
     run.keep("stereo_right.png", right, right_frame, lighting, t_right)
     sequence_s = time.monotonic() - t_first
 
-    cameras = {}
+    cameras: dict[str, dict[str, Any]] = {}
     for cam in (left, right):
         cameras[cam.side] = cam.describe() | {
             "exposure_source": source[cam.side],
@@ -496,7 +508,7 @@ def _sequence(run: _Run) -> dict:
     }
 
 
-def _write_manifest(run: _Run, plate_id: str, started_at: datetime, record: dict) -> None:
+def _write_manifest(run: _Run, plate_id: str, started_at: datetime, record: dict[str, Any]) -> None:
     """``calibration.json`` (the configuration's, as it is) and ``capture.json``."""
     config = run.config
     shutil.copyfile(config.calibration_path, run.folder / "calibration.json")

@@ -15,7 +15,9 @@ that Aravis received before the trigger (its system time stamp) is put back, not
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 from contextlib import contextmanager, suppress
+from typing import Any
 
 import numpy as np
 
@@ -26,7 +28,7 @@ from .cameras import PIXEL_FORMATS, Camera, Frame, Side
 N_BUFFERS = 4
 
 
-def _aravis(device: str):
+def _aravis(device: str) -> tuple[Any, Any]:
     """The Aravis and GLib modules, or an error saying how to install them."""
     try:
         import gi
@@ -60,20 +62,23 @@ class AravisCamera(Camera):
     def __init__(self, side: Side, config: CellCamera) -> None:
         super().__init__(side, config)
         self._Aravis, self._GLib = _aravis(self.device)
-        if config.device_id.startswith("Fake"):
+        device_id = config.device_id
+        if device_id is None:  # impossible: CellCamera requires it of an aravis camera
+            raise AcquisitionError(self.device, "opening", "no device_id in the configuration")
+        if device_id.startswith("Fake"):
             self._Aravis.enable_interface("Fake")
         with self._errors("opening"):
-            self._cam = self._Aravis.Camera.new(config.device_id)
+            self._cam = self._Aravis.Camera.new(device_id)
             self._format = self._cam.get_pixel_format_as_string()
             region = self._cam.get_region()
         self._region = [int(region.x), int(region.y), int(region.width), int(region.height)]
-        self._stream = None
+        self._stream: Any = None  # an Aravis stream once started
         self._trigger_ns = 0
         self._started = False
         self._can_trigger = False
 
     @contextmanager
-    def _errors(self, step: str):
+    def _errors(self, step: str) -> Iterator[None]:
         """GLib errors from Aravis as :class:`AcquisitionError` naming this camera and ``step``."""
         try:
             yield
@@ -204,7 +209,7 @@ class AravisCamera(Camera):
                     self._cam.stop_acquisition()
                 self._started = False
 
-    def _frame(self, buffer, step: str) -> Frame:
+    def _frame(self, buffer: Any, step: str) -> Frame:
         status = buffer.get_status()
         if status != self._Aravis.BufferStatus.SUCCESS:
             raise AcquisitionError(
@@ -244,7 +249,7 @@ class AravisCamera(Camera):
             frame_id=int(buffer.get_frame_id()),
         )
 
-    def describe(self) -> dict:
+    def describe(self) -> dict[str, Any]:
         cam = self._cam
         with self._errors("reading the camera's description"):
             gain = float(cam.get_gain()) if cam.is_gain_available() else None

@@ -15,7 +15,7 @@ from __future__ import annotations
 import zlib
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -109,7 +109,7 @@ class Camera(ABC):
         """The frame the last :meth:`trigger` started; an error after ``timeout_s`` seconds."""
 
     @abstractmethod
-    def describe(self) -> dict:
+    def describe(self) -> dict[str, Any]:
         """The camera for the acquisition record (JSON-ready): driver, device_id, vendor, model, serial,
         pixel_format, bit_depth, region ``[x, y, width, height]``, gain_db, trigger."""
 
@@ -219,7 +219,8 @@ class SimulatedCell:
         noise = np.float32(self.spec.noise) * self._rng.standard_normal(signal.shape, np.float32)
         full = float(2**bit_depth - 1)
         counts = np.clip(np.rint((self._dark[side] + scale * signal + noise) * full), 0.0, full)
-        return counts.astype(np.uint8 if bit_depth == 8 else np.uint16)
+        frame: np.ndarray = counts.astype(np.uint8 if bit_depth == 8 else np.uint16)
+        return frame
 
 
 class SimulatedCamera(Camera):
@@ -292,7 +293,7 @@ class SimulatedCamera(Camera):
         self._frames += 1
         return Frame(image=image, device_timestamp_ns=None, frame_id=self._frames)
 
-    def describe(self) -> dict:
+    def describe(self) -> dict[str, Any]:
         w, h = self.cell.rig.image_size
         return {
             "driver": "simulated",

@@ -57,7 +57,7 @@ class CellConfig:
         return str(self.path)
 
 
-def load_cell_config(path: str | os.PathLike) -> CellConfig:
+def load_cell_config(path: str | os.PathLike[str]) -> CellConfig:
     """Read a ``cell-config/1`` file and the calibration and light calibration it names.
 
     Parameters

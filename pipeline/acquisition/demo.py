@@ -16,7 +16,7 @@ DEMO_LED_HEIGHT_MM = 2000.0
 
 
 def write_demo_cell(
-    folder: str | os.PathLike,
+    folder: str | os.PathLike[str],
     *,
     n_lights: int = 8,
     width: int = 1224,

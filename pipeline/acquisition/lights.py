@@ -19,7 +19,7 @@ from __future__ import annotations
 import socket
 import time
 from abc import ABC, abstractmethod
-from typing import Literal
+from typing import Any, Literal
 
 from ..formats import AcquisitionError, CellLights
 
@@ -106,7 +106,7 @@ class LightController(ABC):
             self._disconnect()
 
     @abstractmethod
-    def describe(self) -> dict:
+    def describe(self) -> dict[str, Any]:
         """The controller for the acquisition record: ``{"driver": ..., ...}`` (JSON-ready)."""
 
     @abstractmethod
@@ -135,7 +135,7 @@ class SimulatedLightController(LightController):
 
     device = "simulated light controller"
 
-    def describe(self) -> dict:
+    def describe(self) -> dict[str, Any]:
         return {"driver": "simulated", "n_lights": self.n_lights}
 
     def _send(self, command: Command, index: int | None, *, step: str) -> None:
@@ -172,9 +172,12 @@ class TcpLightController(LightController):
         first_reply_s: float = FIRST_REPLY_S,
     ) -> None:
         super().__init__(n_lights, config.stereo_on is not None)
-        self.address = config.address
+        address = config.address
+        if address is None:  # impossible: CellLights requires it of a tcp controller
+            raise ValueError("config.address: a tcp light controller needs HOST:PORT")
+        self.address = address
         self.device = f"light controller {config.address}"
-        self._templates = {
+        self._templates: dict[Command, str | None] = {
             "on": config.on,
             "off": config.off,
             "stereo_on": config.stereo_on,
@@ -185,7 +188,7 @@ class TcpLightController(LightController):
         self._replies: bool | None = None  # unknown until the first command
         self._pending = b""
         self._sent: set[str] = set()  # commands sent: a line that repeats one is an echo
-        host, _, port = config.address.rpartition(":")
+        host, _, port = address.rpartition(":")
         try:
             self._sock = socket.create_connection(
                 (host.strip("[]"), int(port)), timeout=connect_timeout_s
@@ -198,7 +201,7 @@ class TcpLightController(LightController):
             raise AcquisitionError(self.device, "connecting", exc.strerror or str(exc)) from None
         self._sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
 
-    def describe(self) -> dict:
+    def describe(self) -> dict[str, Any]:
         return {
             "driver": "tcp",
             "address": self.address,
@@ -209,6 +212,10 @@ class TcpLightController(LightController):
 
     def _send(self, command: Command, index: int | None, *, step: str) -> None:
         text = self._templates[command]
+        if text is None:  # impossible: CellLights requires on/off, _check_stereo the stereo pair
+            raise AcquisitionError(
+                self.device, step, f"the configuration names no {command} command"
+            )
         line = text.format(index=index) if index is not None else text
         if not line.endswith("\n"):
             line += "\n"

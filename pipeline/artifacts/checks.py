@@ -5,9 +5,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import numpy.typing as npt
 
 
-def check_mask(mask, shape) -> np.ndarray:
+def check_mask(mask: npt.ArrayLike, shape: tuple[int, ...]) -> npt.NDArray[np.bool_]:
     """A bool mask of ``shape``; ValueError otherwise."""
     m = np.asarray(mask)
     if m.dtype != bool:
@@ -17,7 +18,7 @@ def check_mask(mask, shape) -> np.ndarray:
     return m
 
 
-def check_positive(name: str, value) -> None:
+def check_positive(name: str, value: object) -> None:
     """ValueError naming ``name`` unless ``value`` is a positive finite number."""
     if not (
         isinstance(value, (int, float, np.floating, np.integer))

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import numpy.typing as npt
 
 #: Colour stops (RGB) at t = -1, -1/2, 0, 1/2, 1 of ``deviation / limit_mm``; the viewer uses the same.
 COLOUR_STOPS = ((33, 102, 172), (146, 197, 222), (247, 247, 247), (244, 165, 130), (178, 24, 43))
@@ -13,7 +14,7 @@ _STOP_T = (-1.0, -0.5, 0.0, 0.5, 1.0)
 NO_DATA_RGB = (128, 128, 128)
 
 
-def deviation_colormap(deviation_mm, *, limit_mm: float) -> np.ndarray:
+def deviation_colormap(deviation_mm: npt.ArrayLike, *, limit_mm: float) -> npt.NDArray[np.uint8]:
     """Colour signed deviations on a diverging blue - white - red scale.
 
     Parameters
@@ -50,14 +51,16 @@ def deviation_colormap(deviation_mm, *, limit_mm: float) -> np.ndarray:
     index = np.rint((dev / float(limit_mm) + 1.0) * (0.5 * (_LUT_SIZE - 1)))
     np.clip(index, 0, _LUT_SIZE - 1, out=index)
     index[np.isnan(dev)] = _LUT_SIZE
-    return _COLOUR_LUT[index.astype(np.intp)]
+    rgb: npt.NDArray[np.uint8] = _COLOUR_LUT[index.astype(np.intp)]
+    return rgb
 
 
-def _colour_lut(size: int) -> np.ndarray:
+def _colour_lut(size: int) -> npt.NDArray[np.uint8]:
     t = np.linspace(-1.0, 1.0, size)
     stops = np.asarray(COLOUR_STOPS, dtype=np.float64)
     rgb = np.stack([np.interp(t, _STOP_T, stops[:, k]) for k in range(3)], axis=-1)
-    return np.rint(np.vstack([rgb, NO_DATA_RGB])).astype(np.uint8)
+    lut: npt.NDArray[np.uint8] = np.rint(np.vstack([rgb, NO_DATA_RGB])).astype(np.uint8)
+    return lut
 
 
 _LUT_SIZE = 2049

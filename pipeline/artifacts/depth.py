@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
+import numpy.typing as npt
 
 
-def save_depth(path, depth_mm) -> None:
+def save_depth(path: str | os.PathLike[str], depth_mm: npt.ArrayLike) -> None:
     """Save a depth map as ``.npy`` float32, NaN where there is no depth.
 
     Parameters

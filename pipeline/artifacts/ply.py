@@ -3,18 +3,22 @@
 from __future__ import annotations
 
 import math
+import os
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from .checks import check_mask, check_positive
 from .colours import default_limit_mm, deviation_colormap
 
 
 def write_surface_ply(
-    path,
-    points_mm,
-    mask,
-    deviation_mm,
+    path: str | os.PathLike[str],
+    points_mm: npt.ArrayLike,
+    mask: npt.ArrayLike,
+    deviation_mm: npt.ArrayLike,
     *,
     max_vertices: int = 250_000,
     tolerance_mm: float | None = None,
@@ -121,7 +125,12 @@ def write_surface_ply(
     _write_ply(path, vertices, faces, comments=comments, colours=colours, deviation=vdev)
 
 
-def write_target_ply(path, vertices_mm, faces, T_cam_target) -> None:
+def write_target_ply(
+    path: str | os.PathLike[str],
+    vertices_mm: npt.ArrayLike,
+    faces: npt.ArrayLike,
+    T_cam_target: npt.ArrayLike,
+) -> None:
     """Write the CAD target, moved into the left camera frame, as a binary PLY mesh.
 
     Parameters
@@ -177,7 +186,15 @@ def write_target_ply(path, vertices_mm, faces, T_cam_target) -> None:
     _write_ply(path, cam, faces, comments=comments)
 
 
-def _write_ply(path, vertices, faces, *, comments, colours=None, deviation=None) -> None:
+def _write_ply(
+    path: str | os.PathLike[str],
+    vertices: npt.NDArray[np.float64],
+    faces: npt.NDArray[Any],
+    *,
+    comments: Sequence[str],
+    colours: npt.NDArray[np.uint8] | None = None,
+    deviation: npt.NDArray[np.float64] | None = None,
+) -> None:
     fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
     props = ["property float x", "property float y", "property float z"]
     if colours is not None:

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import math
+import os
 
 import cv2
 import numba
 import numpy as np
+import numpy.typing as npt
 
 from .checks import check_mask, check_positive
 from .colours import default_limit_mm, deviation_colormap
@@ -21,7 +23,12 @@ MAX_PNG_WIDTH = 4000
 
 
 def write_deviation_png(
-    path, deviation_mm, mask, *, tolerance_mm: float, limit_mm: float | None = None
+    path: str | os.PathLike[str],
+    deviation_mm: npt.ArrayLike,
+    mask: npt.ArrayLike,
+    *,
+    tolerance_mm: float,
+    limit_mm: float | None = None,
 ) -> None:
     """Write the deviation map as an RGB PNG with a scale bar in mm and the tolerance marked.
 
@@ -170,7 +177,9 @@ def _scale_panel(height: int, *, limit_mm: float, tolerance_mm: float) -> np.nda
 # =========================================================================== normals
 
 
-def write_normals_png(path, normals, mask) -> None:
+def write_normals_png(
+    path: str | os.PathLike[str], normals: npt.ArrayLike, mask: npt.ArrayLike
+) -> None:
     """Write a normal field as the usual RGB normal map.
 
     Parameters
@@ -216,7 +225,9 @@ def write_normals_png(path, normals, mask) -> None:
 
 
 @numba.njit(cache=True)
-def _encode_normals(n, mask, bgr):
+def _encode_normals(
+    n: npt.NDArray[np.float32], mask: npt.NDArray[np.bool_], bgr: npt.NDArray[np.uint8]
+) -> tuple[int, float]:
     """The normal map of :func:`write_normals_png` into ``bgr`` (H, W, 3) uint8, in OpenCV's channel order.
 
     Returns (the number of non-finite normals inside the mask, the largest | |n| - 1 | there).
@@ -244,7 +255,7 @@ def _encode_normals(n, mask, bgr):
     return int(bad_rows.sum()), float(worst_rows.max()) if h else 0.0
 
 
-def _imwrite(path, rgb: np.ndarray) -> None:
+def _imwrite(path: str | os.PathLike[str], rgb: npt.NDArray[np.uint8]) -> None:
     """Write an RGB image (OpenCV writes BGR); OSError naming the path when it cannot."""
     if not cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
         raise OSError(

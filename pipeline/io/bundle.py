@@ -10,6 +10,7 @@ import threading
 import zipfile
 import zlib
 from pathlib import Path
+from typing import IO
 
 from ..formats import (
     InputError,
@@ -70,7 +71,7 @@ class _FolderBundle:
         with self.open(rel, field=field) as fh:
             return fh.read()
 
-    def open(self, rel: str, *, field: str):
+    def open(self, rel: str, *, field: str) -> IO[bytes]:
         """The file ``rel`` of the bundle as an open binary file."""
         path = self.root / rel
         real = path.resolve()
@@ -191,7 +192,7 @@ class _ZipBundle:
                 self.capture_label, field, f"{rel!r}: corrupt zip member: {exc}"
             ) from None
 
-    def open(self, rel: str, *, field: str):
+    def open(self, rel: str, *, field: str) -> IO[bytes]:
         """The member ``rel`` as a binary stream (decompressed as it is read; seeking forward reads on)."""
         info = self._members.get(self.prefix + rel)
         if info is None:
@@ -207,7 +208,11 @@ class _ZipBundle:
         self._zf.close()
 
 
-def _open_bundle(path: Path, *, max_total_bytes: int, max_ratio: float):
+#: An open capture bundle: a folder or a zip.
+_Bundle = _FolderBundle | _ZipBundle
+
+
+def _open_bundle(path: Path, *, max_total_bytes: int, max_ratio: float) -> _Bundle:
     if path.name == "capture.json" and path.is_file():
         return _FolderBundle(path.parent)
     if path.is_dir():

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import re
+from typing import Any
 
 import numpy as np
 
@@ -17,7 +18,9 @@ from .jsonfile import read_json
 from .validation import _validate
 
 
-def load_calibration(source, *, file_label: str | None = None) -> StereoRig:
+def load_calibration(
+    source: str | os.PathLike[str] | dict[str, Any], *, file_label: str | None = None
+) -> StereoRig:
     """Read a ``stereo-calibration/1`` document into a :class:`StereoRig`.
 
     Parameters
@@ -50,7 +53,7 @@ def load_calibration(source, *, file_label: str | None = None) -> StereoRig:
     raise TypeError(f"source: expected a path or a dict, got {type(source).__name__}")
 
 
-def _calibration_from_doc(doc: dict, *, label: str, prefix: str = "") -> StereoRig:
+def _calibration_from_doc(doc: dict[str, Any], *, label: str, prefix: str = "") -> StereoRig:
     cal = _validate(
         StereoCalibrationFile, doc, label=label, expected_format=CALIBRATION_FORMAT, prefix=prefix
     )
@@ -84,7 +87,7 @@ def _value_error_to_input(exc: ValueError, label: str, field: str) -> InputError
     return InputError(label, field, str(exc))
 
 
-def calibration_document(rig: StereoRig) -> dict:
+def calibration_document(rig: StereoRig) -> dict[str, Any]:
     """A :class:`StereoRig` as a ``stereo-calibration/1`` object (inverse of :func:`load_calibration`).
 
     Parameters
@@ -99,7 +102,7 @@ def calibration_document(rig: StereoRig) -> dict:
     """
     if not isinstance(rig, StereoRig):
         raise TypeError(f"rig: expected a StereoRig, got {type(rig).__name__}")
-    doc: dict = {
+    doc: dict[str, Any] = {
         "format": CALIBRATION_FORMAT,
         "image_size": [int(rig.image_size[0]), int(rig.image_size[1])],
         "left": {"K": rig.left.K.tolist(), "dist": rig.left.dist.tolist()},

@@ -17,7 +17,7 @@ from ..formats import (
     StereoCalibrationFile,
 )
 from ..lights import CAMERA_HEAD_RADIUS_MM, Lights
-from .bundle import MAX_ZIP_RATIO, MAX_ZIP_TOTAL_BYTES, _check_relative, _open_bundle
+from .bundle import MAX_ZIP_RATIO, MAX_ZIP_TOTAL_BYTES, _Bundle, _check_relative, _open_bundle
 from .calibration import _calibration_from_doc
 from .images import _ImageJob, _load_images
 from .jsonfile import _json_type, _parse_json
@@ -83,7 +83,7 @@ class Capture:
 
 
 def load_capture(
-    path,
+    path: str | os.PathLike[str],
     *,
     max_total_bytes: int = MAX_ZIP_TOTAL_BYTES,
     max_ratio: float = MAX_ZIP_RATIO,
@@ -142,7 +142,9 @@ def load_capture(
         bundle.close()
 
 
-def _read_capture_json(bundle) -> tuple[CaptureFile, StereoRig, list[tuple[str | None, _ImageJob]]]:
+def _read_capture_json(
+    bundle: _Bundle,
+) -> tuple[CaptureFile, StereoRig, list[tuple[str | None, _ImageJob]]]:
     """capture.json and its calibration, validated; the image files it names, every path checked.
 
     Returns ``(capture file, rig, [(key, job), ...])``: photometric images first (key None),
@@ -180,7 +182,7 @@ def _read_capture_json(bundle) -> tuple[CaptureFile, StereoRig, list[tuple[str |
 
     # Every path is checked before any image is read.
     size = rig.image_size
-    wanted = [
+    wanted: list[tuple[str | None, str, str, tuple[int, int], str]] = [
         (None, name, f"photometric.images[{k}]", size, "photometric image")
         for k, name in enumerate(cap.photometric.images)
     ]
@@ -208,7 +210,7 @@ def _read_capture_json(bundle) -> tuple[CaptureFile, StereoRig, list[tuple[str |
     )
 
 
-def _load_capture(bundle, source: Path, *, workers: int | None) -> Capture:
+def _load_capture(bundle: _Bundle, source: Path, *, workers: int | None) -> Capture:
     label = bundle.capture_label
     cap, rig, wanted = _read_capture_json(bundle)
     size = rig.image_size

@@ -6,14 +6,14 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from PIL import Image
+from PIL import Image, UnidentifiedImageError
 
 from ..camera import StereoRig
 from ..formats import (
     InputError,
 )
 from ..lights import Lights
-from .bundle import MAX_ZIP_RATIO, MAX_ZIP_TOTAL_BYTES, _open_bundle
+from .bundle import MAX_ZIP_RATIO, MAX_ZIP_TOTAL_BYTES, _Bundle, _open_bundle
 from .capture import _check_light_positions, _read_capture_json
 from .images import _ImageJob
 
@@ -85,7 +85,7 @@ class CaptureHeader:
 
 
 def read_capture_header(
-    path,
+    path: str | os.PathLike[str],
     *,
     max_lights: int | None = None,
     max_image_pixels: int | None = None,
@@ -162,7 +162,9 @@ def read_capture_header(
     )
 
 
-def _image_header(bundle, job: _ImageJob, *, label: str, max_pixels: int | None) -> ImageHeader:
+def _image_header(
+    bundle: _Bundle, job: _ImageJob, *, label: str, max_pixels: int | None
+) -> ImageHeader:
     """Format and size of one image from its header (Pillow's lazy open); nothing is decoded."""
     name = repr(job.rel)
     with bundle.open(job.rel, field=job.field) as fh:
@@ -170,13 +172,16 @@ def _image_header(bundle, job: _ImageJob, *, label: str, max_pixels: int | None)
             with Image.open(fh, formats=("PNG", "TIFF")) as img:
                 width, height = img.size
         except Image.DecompressionBombError:
-            bomb = 2 * Image.MAX_IMAGE_PIXELS  # Pillow refuses to open more
+            max_pixels_limit = Image.MAX_IMAGE_PIXELS
+            if max_pixels_limit is None:  # Pillow raises this only when the limit is set
+                raise
+            bomb = 2 * max_pixels_limit  # Pillow refuses to open more
             raise InputError(
                 label,
                 job.field,
                 f"{name} ({job.what}): its header declares more than {bomb} px (a decompression bomb?)",
             ) from None
-        except Image.UnidentifiedImageError:
+        except UnidentifiedImageError:
             raise InputError(
                 label,
                 job.field,

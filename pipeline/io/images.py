@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Literal
 
 import cv2
 import numpy as np
@@ -12,6 +13,9 @@ import numpy as np
 from ..formats import (
     InputError,
 )
+
+if TYPE_CHECKING:
+    from .bundle import _Bundle
 
 
 @dataclass(frozen=True)
@@ -31,7 +35,7 @@ def _header_size(data: bytes) -> tuple[int, int] | None:
     if data.startswith(_PNG_MAGIC) and len(data) >= 24 and data[12:16] == b"IHDR":
         return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
     if data[:4] in _TIFF_MAGICS:
-        order = "little" if data[:2] == b"II" else "big"
+        order: Literal["little", "big"] = "little" if data[:2] == b"II" else "big"
         ifd = int.from_bytes(data[4:8], order)
         if ifd + 2 > len(data):
             return None
@@ -128,7 +132,12 @@ def _decode_into(
 
 
 def _load_images(
-    bundle, jobs: list[_ImageJob], outs: list[np.ndarray], *, bit_depth: int, workers: int | None
+    bundle: _Bundle,
+    jobs: list[_ImageJob],
+    outs: list[np.ndarray],
+    *,
+    bit_depth: int,
+    workers: int | None,
 ) -> None:
     """Read and decode ``jobs`` into ``outs`` (float32 (H, W) each) in a thread pool.
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -15,7 +16,7 @@ from ..formats import (
 MAX_JSON_DEPTH = 32
 
 
-def read_json(path, *, label: str | None = None) -> dict:
+def read_json(path: str | os.PathLike[str], *, label: str | None = None) -> dict[str, Any]:
     """Read a JSON file that must hold one object.
 
     Parameters
@@ -48,7 +49,7 @@ def read_json(path, *, label: str | None = None) -> dict:
     return _parse_json(data, label)
 
 
-def _parse_json(data: bytes, label: str) -> dict:
+def _parse_json(data: bytes, label: str) -> dict[str, Any]:
     if not data.strip():
         raise InputError(label, "", "file is empty, expected a JSON object")
     try:
@@ -78,14 +79,14 @@ class _LongInteger:
         self.digits = digits
 
 
-def _parse_int(literal: str):
+def _parse_int(literal: str) -> int | _LongInteger:
     try:
         return int(literal)
     except ValueError:  # more digits than sys.get_int_max_str_digits()
         return _LongInteger(len(literal.lstrip("-")))
 
 
-def _check_json_tree(doc: dict, label: str) -> None:
+def _check_json_tree(doc: dict[str, Any], label: str) -> None:
     """Refuse nesting deeper than :data:`MAX_JSON_DEPTH` and over-long integers, naming the field.
 
     Walks the tree without recursion, so no document can exhaust the stack here.
@@ -113,7 +114,7 @@ def _check_json_tree(doc: dict, label: str) -> None:
         stack.extend((item, name, depth + 1) for name, item in items)
 
 
-def _json_type(value) -> str:
+def _json_type(value: object) -> str:
     if value is None:
         return "null"
     names = {
@@ -127,7 +128,7 @@ def _json_type(value) -> str:
     return names.get(type(value), type(value).__name__)
 
 
-def _reject_non_finite(value, label: str, field: str = "") -> None:
+def _reject_non_finite(value: object, label: str, field: str = "") -> None:
     """Raise on the first NaN/Infinity anywhere in a parsed JSON document."""
     if isinstance(value, float) and not math.isfinite(value):
         raise InputError(label, field, f"expected a finite number, got {value}")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from typing import Any
 
 import numpy as np
 
@@ -15,7 +16,9 @@ from .jsonfile import read_json
 from .validation import _validate
 
 
-def load_light_calibration(source, *, file_label: str | None = None) -> tuple[Lights, float | None]:
+def load_light_calibration(
+    source: str | os.PathLike[str] | dict[str, Any], *, file_label: str | None = None
+) -> tuple[Lights, float | None]:
     """Read a ``light-calibration/1`` document.
 
     Parameters
@@ -50,18 +53,19 @@ def load_light_calibration(source, *, file_label: str | None = None) -> tuple[Li
     return Lights.from_documents(cal.lights), cal.rms
 
 
-def light_calibration_document(lights: Lights, rms: float | None) -> dict:
+def light_calibration_document(lights: Lights, rms: float | None) -> dict[str, Any]:
     """Point lights as a ``light-calibration/1`` object (inverse of :func:`load_light_calibration`)."""
     if not lights.is_point.all():
         raise ValueError("lights: a light calibration holds point lights only, got distant ones")
-    doc = {
+    light_docs: list[dict[str, Any]] = []
+    doc: dict[str, Any] = {
         "format": LIGHT_CALIBRATION_FORMAT,
-        "lights": [],
+        "lights": light_docs,
         "rms": None if rms is None else float(rms),
     }
     for k in range(lights.n):
         axis = lights.axes[k] if np.isfinite(lights.axes[k]).all() else np.array([0.0, 0.0, 1.0])
-        doc["lights"].append(
+        light_docs.append(
             {
                 "position_mm": [float(v) for v in lights.positions_mm[k]],
                 "axis": [float(v) for v in axis],

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -48,7 +49,12 @@ class Target:
     source: Path | None = None
 
 
-def load_target(source, *, base_dir=None, file_label: str | None = None) -> Target:
+def load_target(
+    source: str | os.PathLike[str] | dict[str, Any],
+    *,
+    base_dir: str | os.PathLike[str] | None = None,
+    file_label: str | None = None,
+) -> Target:
     """Read a ``plate-target/1`` document.
 
     Parameters

@@ -5,18 +5,22 @@ from __future__ import annotations
 import json
 import re
 import types
-from typing import Annotated, Any, Union, get_args, get_origin
+from collections.abc import Iterable
+from typing import Annotated, Any, TypeVar, Union, get_args, get_origin
 
 import pydantic
 from pydantic import BaseModel
+from pydantic_core import ErrorDetails
 
 from ..formats import (
     InputError,
 )
 from .jsonfile import _reject_non_finite
 
+_Model = TypeVar("_Model", bound=BaseModel)
 
-def _unwrap(tp):
+
+def _unwrap(tp: Any) -> Any:
     """Strip ``Annotated[...]`` and ``X | None`` down to the type pydantic walks into."""
     while True:
         origin = get_origin(tp)
@@ -31,11 +35,11 @@ def _unwrap(tp):
         return tp
 
 
-def _is_model(tp) -> bool:
+def _is_model(tp: object) -> bool:
     return isinstance(tp, type) and issubclass(tp, BaseModel)
 
 
-def _union_member(members, tag):
+def _union_member(members: Iterable[Any], tag: object) -> Any:
     """The member of a union that pydantic's loc element ``tag`` names (class name or discriminator)."""
     for member in members:
         member = _unwrap(member)
@@ -50,13 +54,14 @@ def _union_member(members, tag):
     return None
 
 
-def _walk_loc(model, loc) -> tuple[str, Any, Any]:
+def _walk_loc(model: type[BaseModel], loc: Iterable[int | str]) -> tuple[str, Any, Any]:
     """Dotted field path of a pydantic error ``loc``; union branch tags are dropped.
 
     Returns ``(field, type at the end of loc, type holding the last element)``.
     """
     parts: list[str] = []
-    tp, parent = model, None
+    tp: Any = model  # a model, a list[...] or union annotation, or None past the schema
+    parent: Any = None
     for item in loc:
         tp = _unwrap(tp)
         if isinstance(item, int):
@@ -78,7 +83,7 @@ def _walk_loc(model, loc) -> tuple[str, Any, Any]:
     return "".join(parts), _unwrap(tp) if tp is not None else None, parent
 
 
-def _short(value, limit: int = 60) -> str:
+def _short(value: object, limit: int = 60) -> str:
     text = (
         json.dumps(value)
         if isinstance(value, (dict, list, str, int, float, bool, type(None)))
@@ -87,7 +92,7 @@ def _short(value, limit: int = 60) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
-def _describe_error(model, err: dict) -> tuple[str, str]:
+def _describe_error(model: type[BaseModel], err: ErrorDetails) -> tuple[str, str]:
     field, end_tp, parent = _walk_loc(model, err["loc"])
     kind = err["type"]
     ctx = err.get("ctx") or {}
@@ -115,7 +120,14 @@ def _describe_error(model, err: dict) -> tuple[str, str]:
     return field, reason
 
 
-def _validate(model, doc: dict, *, label: str, expected_format: str, prefix: str = ""):
+def _validate(
+    model: type[_Model],
+    doc: dict[str, Any],
+    *,
+    label: str,
+    expected_format: str,
+    prefix: str = "",
+) -> _Model:
     """Validate ``doc`` against ``model``; the first problem becomes an InputError."""
     fmt_field = prefix + "format"
     if "format" not in doc:
