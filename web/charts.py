@@ -1,4 +1,5 @@
-"""Server-side drawing data for the dashboard's SVGs: template sections and the history trend.
+"""Server-side drawing data for the dashboard's SVGs: template sections, the history trend and the
+forming passes (radius against setting).
 
 Functions here turn numbers into screen coordinates; the templates draw them.
 Nothing here builds markup.
@@ -230,4 +231,122 @@ def trend_chart(
         right=width - right,
         series=series,
         x_labels=[(x, r[1]) for x, r in zip(xs, rows)],
+    )
+
+
+def _padded(values: list[float]) -> tuple[float, float]:
+    """The values' range widened by 4 % each side: points and lines stay off the panel's edge."""
+    if not values:
+        return 0.0, 1.0
+    lo, hi = min(values), max(values)
+    margin = 0.04 * (hi - lo)
+    return lo - margin, hi + margin
+
+
+@dataclass(frozen=True)
+class FormingPoint:
+    """One inspected pass on the forming chart (px) and its numbers."""
+
+    x: float
+    y: float
+    number: int  # the pass's place among the plate's passes, 1 first
+    setting_mm: float
+    radius_mm: float
+    verdict: str | None
+    inspection_id: int
+
+
+@dataclass(frozen=True)
+class NextMarker:
+    """The advised next pass: its setting, the expected radius and its 95 % range (px)."""
+
+    x: float
+    y: float
+    y_lo: float
+    y_hi: float
+    setting_mm: float
+    radius_mm: float
+
+
+@dataclass(frozen=True)
+class FormingChart:
+    """Radius after each pass against the pass's setting (px, y down), with the target's band."""
+
+    width: float
+    height: float
+    left: float
+    right: float
+    top: float
+    bottom: float
+    points: list[FormingPoint]
+    polyline: str
+    x_ticks: list[tuple[float, str]]
+    y_ticks: list[tuple[float, str]]
+    target_y: float
+    band_y: tuple[float, float] | None  # (tight edge, open edge): the band's top and bottom
+    next_pass: NextMarker | None
+    flat_passes: int  # inspected passes that left the plate flat (not drawn)
+
+
+def forming_chart(
+    passes: list[tuple[int, float, float | None, str | None]],
+    *,
+    target_radius_mm: float,
+    band_mm: tuple[float, float | None] | None = None,
+    next_pass: tuple[float, float, tuple[float, float | None]] | None = None,
+    width: float = 900.0,
+) -> FormingChart:
+    """The plate's passes as radius (y) against top-roll displacement (x), oldest first.
+
+    Parameters
+    ----------
+    passes : (inspection_id, setting_mm, measured radius_mm or None/inf for flat, verdict) per pass.
+    target_radius_mm : drawn as a line, with ``band_mm`` (tight, open radius; open None: any) shaded.
+    next_pass : (setting_mm, expected radius_mm, (lo, hi) of its 95 % range, hi None: may stay flat),
+        drawn as a hollow marker with its range.
+    """
+    left, right, top, bottom, height = 80.0, 20.0, 28.0, 36.0, 300.0
+    drawn = [p for p in passes if p[2] is not None and np.isfinite(p[2])]
+    xs_mm = [p[1] for p in passes] + ([next_pass[0]] if next_pass else [])
+    ys_mm = [p[2] for p in drawn] + [target_radius_mm]
+    if band_mm is not None:
+        ys_mm += [v for v in band_mm if v is not None and np.isfinite(v)]
+    if next_pass is not None:
+        ys_mm += [v for v in (next_pass[1], *next_pass[2]) if v is not None and np.isfinite(v)]
+    x_ticks, x_dec = nice_ticks(*_padded(xs_mm))
+    y_ticks, y_dec = nice_ticks(*_padded(ys_mm))
+    x0, x1 = x_ticks[0], x_ticks[-1]
+    y0, y1 = y_ticks[0], y_ticks[-1]
+
+    def x_of(v: float) -> float:
+        return left + (width - left - right) * (v - x0) / (x1 - x0)
+
+    def y_of(v: float | None) -> float:
+        v = y1 if v is None or not np.isfinite(v) else min(max(v, y0), y1)
+        return top + (height - top - bottom) * (y1 - v) / (y1 - y0)
+
+    points = [
+        FormingPoint(x_of(s), y_of(r), k + 1, s, r, verdict, iid)
+        for k, (iid, s, r, verdict) in enumerate(passes)
+        if r is not None and np.isfinite(r)
+    ]
+    marker = None
+    if next_pass is not None:
+        setting, expected, (lo, hi) = next_pass
+        marker = NextMarker(x_of(setting), y_of(expected), y_of(lo), y_of(hi), setting, expected)
+    return FormingChart(
+        width=width,
+        height=height,
+        left=left,
+        right=width - right,
+        top=top,
+        bottom=height - bottom,
+        points=points,
+        polyline=" ".join(f"{p.x:.1f},{p.y:.1f}" for p in points),
+        x_ticks=[(x_of(v), f"{v:.{x_dec}f}") for v in x_ticks],
+        y_ticks=[(y_of(v), f"{v:.{y_dec}f}") for v in y_ticks],
+        target_y=y_of(target_radius_mm),
+        band_y=(y_of(band_mm[0]), y_of(band_mm[1])) if band_mm is not None else None,
+        next_pass=marker,
+        flat_passes=len(passes) - len(drawn),
     )

@@ -29,7 +29,7 @@ from app.services import plates as plate_svc
 from app.services.errors import ServiceError
 from pipeline.formats import InputError
 from web import TEMPLATES_DIR
-from web.charts import section_drawings, trend_chart
+from web.charts import forming_chart, section_drawings, trend_chart
 from web.lights import light_plan, light_rows
 from web.sections import load_sections
 
@@ -217,6 +217,7 @@ def plate_page(request: Request, plate_id: str, session: SessionDep) -> Response
     chart = trend_chart(
         [(r.id, f"#{r.id}", r.radius_error_pct, r.max_abs_mm) for r in done], tolerance_mm=tolerance
     )
+    advice = next_pass(session, plate_id)
     return _page(
         request,
         session,
@@ -227,9 +228,38 @@ def plate_page(request: Request, plate_id: str, session: SessionDep) -> Response
             "rows": rows,
             "total": total,
             "chart": chart,
+            "forming": passes_chart(session, plate_id, overview.target, advice.get("advice")),
             "plate_id": plate_id,
-            "next_pass": next_pass(session, plate_id),
+            "next_pass": advice,
         },
+    )
+
+
+def passes_chart(session, plate_id: str, target, advice: dict | None):
+    """Radius after each roll-bending pass against its setting, with the target's band and the advised
+    next pass; None for a plate without such passes or without a radius target."""
+    passes = forming_svc.plate_passes(session=session, plate_id=plate_id)
+    if not passes or target is None or not target.radius_mm:
+        return None
+    band, nxt = None, None
+    if advice is not None:
+        lo, hi = advice["basis"]["tolerance_band_radius_mm"]
+        band = (lo, hi)
+        if advice["action"] == "bend":
+            nxt = (
+                advice["top_roll_displacement_mm"],
+                advice["expected_radius_mm"],
+                tuple(advice["expected_radius_range_mm"]),
+            )
+    return forming_chart(
+        [
+            (r.id, r.process["top_roll_displacement_mm"], r.radius_mm, r.verdict)
+            for r in passes
+            if r.process and r.process.get("top_roll_displacement_mm") is not None
+        ],
+        target_radius_mm=target.radius_mm,
+        band_mm=band,
+        next_pass=nxt,
     )
 
 

@@ -394,3 +394,90 @@ def test_api_docs_run_under_their_csp(live_server, browser):
 
 def _token(live_server) -> str:
     return live_server["token"]
+
+
+def _api(live_server, method: str, path: str, body: dict | None = None) -> dict:
+    """A JSON request to the live server's API with its token; the decoded answer."""
+    request = urllib.request.Request(
+        f"{live_server['base']}{path}",
+        data=None if body is None else json.dumps(body).encode(),
+        method=method,
+        headers={
+            "Authorization": f"Bearer {_token(live_server)}",
+            "Content-Type": "application/json",
+        },
+    )
+    with urllib.request.urlopen(request, timeout=30) as response:
+        return json.loads(response.read())
+
+
+def test_next_pass_panel_and_passes_chart(live_server, browser):
+    """Issue 14 in the browser: a machine and a plate whose target has a material, one roll-bending pass
+    inspected by the real pipeline (an under-bent plate judged against its target), then the plate page's
+    "Next pass" panel advises bending, and the chart draws the pass and the advised next one."""
+    SHOTS.mkdir(exist_ok=True)
+    _api(
+        live_server,
+        "PUT",
+        "/api/v1/machines/R3-07",
+        {
+            "kind": "three-roll-pyramid",
+            "bottom_roll_spacing_mm": 1400,
+            "bottom_roll_diameter_mm": 420,
+            "top_roll_diameter_mm": 500,
+        },
+    )
+    material = {"grade": "AH36", "thickness_mm": 20, "yield_mpa": 355}
+    _api(
+        live_server,
+        "PUT",
+        "/api/v1/plates/H14-NP1/target",
+        {
+            "format": "plate-target/1",
+            "shape": {"type": "cylinder", "radius_mm": 5000.0},
+            "size_mm": [3000.0, 3000.0],
+            "tolerance_mm": 2.0,
+            "material": material,
+        },
+    )
+    process = {"method": "roll-bending", "machine_id": "R3-07", "top_roll_displacement_mm": 90.0}
+    job = _api(
+        live_server,
+        "POST",
+        "/api/v1/plates/H14-NP1/inspections/simulated",
+        {"n_lights": 6, "width": 320, "height": 256, "radius_mm": 6500.0, "process": process},
+    )
+    deadline = time.monotonic() + 120
+    while (doc := _api(live_server, "GET", f"/api/v1/inspections/{job['id']}"))["status"] not in (
+        "done",
+        "failed",
+    ):
+        assert time.monotonic() < deadline, "the inspection did not finish"
+        time.sleep(0.5)
+    assert doc["status"] == "done", (live_server["logs"] / "worker.log").read_text()[-3000:]
+
+    page = browser.new_page(viewport={"width": 1920, "height": 1080})
+    errors = []
+    page.on("pageerror", lambda err: errors.append(str(err)))
+    violations = _watch_csp(page)
+    page.goto(f"{live_server['base']}/plates/H14-NP1")
+    panel = page.locator("#next-pass")
+    assert panel.locator("[data-action]").get_attribute("data-action") == "bend"
+    text = panel.inner_text()
+    assert "Top-roll displacement" in text and "Expected radius" in text and "R3-07" in text
+    assert "1 inspected pass of this plate" in text
+    setting = float(re.search(r"Top-roll displacement\s+([\d.]+) mm", text).group(1))
+    assert setting > 90.0  # under-bent: the next pass goes deeper
+    chart = page.locator("svg.forming")
+    assert chart.is_visible()
+    assert chart.locator("circle[data-pass='1']").count() == 1
+    assert float(chart.locator("g.next").get_attribute("data-setting")) == pytest.approx(
+        setting, abs=0.05
+    )
+    box = chart.bounding_box()
+    assert box["width"] > 600 and box["height"] > 150
+    page.screenshot(path=SHOTS / "next-pass.png", full_page=True)
+
+    page.goto(f"{live_server['base']}/inspections/{job['id']}")
+    assert page.locator("#next-pass [data-action]").get_attribute("data-action") == "bend"
+    assert not errors and not violations, (errors, violations)

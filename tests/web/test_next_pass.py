@@ -76,3 +76,38 @@ def test_first_pass_without_history_says_the_data_is_nominal(demo_app):
         html = client.get("/plates/P-W4").text
         assert 'data-action="bend"' in html and "nominal only: no history" in html
         assert "no inspected pass of this plate or of this machine" in html
+
+
+def test_plate_page_draws_radius_against_setting_with_the_next_pass(demo_app):
+    _seed(
+        demo_app,
+        plate_id="P-W5",
+        passes=[(90.0, 9000.0, "fail"), (96.0, 6200.0, "fail")],
+    )
+    with TestClient(demo_app) as client:
+        html = client.get("/plates/P-W5").text
+    assert 'id="forming-passes"' in html and 'class="forming"' in html
+    # both passes drawn in order, with their setting and radius, and the advised next one
+    assert 'data-pass="1"' in html and 'data-pass="2"' in html
+    assert "pass 1" in html and "90.0 mm → 9000 mm" in html and "96.0 mm → 6200 mm" in html
+    assert 'class="next"' in html and 'class="band"' in html and ">target<" in html
+
+
+def test_forming_chart_places_passes_band_and_next_pass():
+    from web.charts import forming_chart
+
+    chart = forming_chart(
+        [(1, 90.0, 9000.0, "fail"), (2, 95.0, None, None), (3, 96.0, 5200.0, "fail")],
+        target_radius_mm=5000.0,
+        band_mm=(4900.0, 5100.0),
+        next_pass=(97.0, 5010.0, (4950.0, None)),
+    )
+    assert [p.number for p in chart.points] == [1, 3] and chart.flat_passes == 1
+    a, b = chart.points
+    assert a.x < b.x and a.y < b.y  # deeper setting to the right, smaller radius lower
+    assert chart.top <= a.y <= chart.bottom and chart.top <= b.y <= chart.bottom
+    tight, open_ = chart.band_y
+    assert open_ < chart.target_y < tight  # the band straddles the target line
+    n = chart.next_pass
+    assert n.x > b.x and n.y_hi == chart.top  # a range open to flat reaches the top
+    assert chart.x_ticks[0][0] == chart.left and chart.x_ticks[-1][0] == chart.right
