@@ -48,7 +48,7 @@ from scipy import optimize
 
 from ..formats import InputError, PipelineError
 from . import bender
-from .learning import Fit, Priors, fit, measured_curvature
+from .learning import Fit, Prediction, Priors, fit, measured_curvature
 from .records import FormingTarget, Machine, PlateRecord
 
 Action = Literal["bend", "done", "reverse"]
@@ -121,14 +121,15 @@ class Advice:
     top_roll_displacement_mm: float | None
     expected_radius_mm: float | None
     expected_radius_range_mm: tuple[float, float] | None
-    basis: dict = field(default_factory=dict)
+    basis: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready: tuples become lists, an infinite radius (a flat plate) None."""
-        return _jsonable(asdict(self))
+        document: dict[str, Any] = _jsonable(asdict(self))
+        return document
 
 
-def _jsonable(value):
+def _jsonable(value: Any) -> Any:
     if isinstance(value, dict):
         return {k: _jsonable(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
@@ -163,7 +164,7 @@ def state_action(plate: PlateRecord) -> tuple[Action, str] | None:
     if not plate.passes:
         return None
     last = plate.passes[-1]
-    if not last.inspected:
+    if last.measured_radius_mm is None:
         raise InputError(
             "plate",
             f"passes[{len(plate.passes) - 1}].measured_radius_mm",
@@ -187,7 +188,7 @@ def state_action(plate: PlateRecord) -> tuple[Action, str] | None:
 
 def aim(
     fitted: Fit, plate: PlateRecord, machine: Machine, settings: AimSettings = AimSettings()
-) -> dict:
+) -> dict[str, Any]:
     """The next displacement of a plate that needs bending (module docstring), with its prediction.
 
     Returns
@@ -214,8 +215,13 @@ def aim(
             fitted.priors.yield_factor_floor,
             fitted.yield_factor_quantile(plate.plate_id, settings.first_pass_quantile),
         )
-    predict = lambda d: fitted.predict(plate, machine.machine_id, d)  # noqa: E731
-    predict_safe = lambda d: fitted.predict(plate, machine.machine_id, d, yield_factor=factor)  # noqa: E731
+
+    def predict(d: float) -> Prediction:
+        return fitted.predict(plate, machine.machine_id, d)
+
+    def predict_safe(d: float) -> Prediction:
+        return fitted.predict(plate, machine.machine_id, d, yield_factor=factor)
+
     warnings: list[str] = []
     # the least displacement that loads the plate beyond its earlier passes
     peak = float(np.max(fitted.curvatures(plate)[0], initial=0.0))
@@ -232,8 +238,13 @@ def aim(
             f"radius {target.radius_mm:g} mm needs more than {machine.machine_id}'s deepest setting "
             f"({d_max:.1f} mm, loaded radius {bender.min_loaded_radius_mm(machine, t):.0f} mm)"
         )
-    safe = lambda d: predict_safe(d).quantile(p_hi) - limit  # noqa: E731
-    centre = lambda d: predict(d).mean - kt  # noqa: E731
+
+    def safe(d: float) -> float:
+        return predict_safe(d).quantile(p_hi) - limit
+
+    def centre(d: float) -> float:
+        return predict(d).mean - kt
+
     candidates = []
     for g in (safe, centre):
         if g(d_lo) >= 0:

@@ -48,18 +48,22 @@ All functions take and return mm (and N, N mm); they broadcast over numpy arrays
 from __future__ import annotations
 
 import numpy as np
+import numpy.typing as npt
 
 from .records import Machine
+from .springback import Floats
 
 
-def _check_thickness(thickness_mm) -> None:
+def _check_thickness(thickness_mm: npt.ArrayLike) -> None:
     if not np.all(np.isfinite(thickness_mm)) or np.any(np.asarray(thickness_mm) <= 0):
         raise ValueError(
             f"thickness_mm: expected a positive finite thickness, got {thickness_mm!r}"
         )
 
 
-def loaded_radius_mm(displacement_mm, machine: Machine, thickness_mm: float):
+def loaded_radius_mm(
+    displacement_mm: npt.ArrayLike, machine: Machine, thickness_mm: float
+) -> Floats:
     """Loaded mid-surface radius of the plate for a top-roll displacement.
 
     Parameters
@@ -92,7 +96,9 @@ def loaded_radius_mm(displacement_mm, machine: Machine, thickness_mm: float):
     return float(r) if r.ndim == 0 else r
 
 
-def displacement_for_radius_mm(radius_mm, machine: Machine, thickness_mm: float):
+def displacement_for_radius_mm(
+    radius_mm: npt.ArrayLike, machine: Machine, thickness_mm: float
+) -> Floats:
     """Top-roll displacement that loads the plate's mid-surface to a radius (inverse of :func:`loaded_radius_mm`).
 
     Parameters
@@ -143,7 +149,9 @@ def min_loaded_radius_mm(machine: Machine, thickness_mm: float) -> float:
     return float((a * a + d * d) / (2 * d) - machine.bottom_roll_radius_mm - 0.5 * thickness_mm)
 
 
-def roll_force_n(moment_nmm, radius_mm, machine: Machine, thickness_mm: float):
+def roll_force_n(
+    moment_nmm: npt.ArrayLike, radius_mm: npt.ArrayLike, machine: Machine, thickness_mm: float
+) -> Floats:
     """Top-roll force that holds a bending moment under the top roll (module docstring: ``2 M / (R tan(phi))``).
 
     Parameters

@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any, Literal
 
 import numpy as np
 
@@ -86,7 +87,7 @@ class PlateOutcome:
     final: str
     over_bent: bool
     record: PlateRecord
-    advice: list = field(default_factory=list)
+    advice: list[dict[str, Any]] = field(default_factory=list)
 
 
 def random_batch(
@@ -95,7 +96,7 @@ def random_batch(
     *,
     radii_mm: tuple[float, float] = (3000.0, 15000.0),
     thicknesses_mm: Sequence[float] = THICKNESSES_MM,
-    grades=GRADES,
+    grades: Sequence[tuple[str, float]] = GRADES,
     yield_factors: tuple[float, float] = (1.05, 1.35),
     prefix: str = "P",
 ) -> list[SimPlate]:
@@ -105,8 +106,8 @@ def random_batch(
     """
     out = []
     for i in range(n):
-        grade, yield_mpa = grades[rng.integers(len(grades))]
-        t = float(thicknesses_mm[rng.integers(len(thicknesses_mm))])
+        grade, yield_mpa = grades[int(rng.integers(len(grades)))]
+        t = float(thicknesses_mm[int(rng.integers(len(thicknesses_mm)))])
         radius = float(math.exp(rng.uniform(math.log(radii_mm[0]), math.log(radii_mm[1]))))
         target = FormingTarget(
             round(radius, -1),
@@ -148,7 +149,7 @@ class _TruePlate:
 
 def inspect(
     plate: PlateRecord, curvature: float, physics: TruePhysics, rng: np.random.Generator
-) -> tuple[float, str]:
+) -> tuple[float, Literal["pass", "fail"]]:
     """A simulated inspection of a plate of true mid-surface curvature: (measured radius, verdict)."""
     target = plate.target
     if curvature <= 0:
@@ -216,7 +217,7 @@ def run_campaign(
             if advice.action != "bend":
                 final = advice.action
                 break
-            if len(record.passes) >= max_passes:
+            if len(record.passes) >= max_passes or advice.top_roll_displacement_mm is None:
                 break
             k = truth.roll(advice.top_roll_displacement_mm, rng)
             over |= k > band_hi
@@ -229,7 +230,7 @@ def run_campaign(
     return out
 
 
-def summary(outcomes: Sequence[PlateOutcome]) -> dict:
+def summary(outcomes: Sequence[PlateOutcome]) -> dict[str, Any]:
     """Counts of a campaign: plates, done, over-bent, passes (all, mean, mean after the first plate, max)."""
     passes = np.array([o.passes for o in outcomes], dtype=float)
     return {

@@ -186,20 +186,22 @@ class Fit:
     scatter_mm: float
     plate_spread: float
     n_rows: int
-    rows_per_plate: dict
+    rows_per_plate: dict[str, int]
     scatter_dof: float
     spread_dof: float
-    machines: dict
+    machines: dict[str, Machine]
     priors: Priors
 
-    def _index(self, kind: str, key) -> int:
-        if kind == "machine":
+    def _index(self, kind: str, key: str | tuple[str, float]) -> int:
+        if kind == "machine" and isinstance(key, str):
             return self.machine_ids.index(key)
-        if kind == "group":
+        if kind == "group" and isinstance(key, tuple):
             return len(self.machine_ids) + self.groups.index(key)
-        return len(self.machine_ids) + len(self.groups) + self.plate_ids.index(key)
+        if kind == "plate" and isinstance(key, str):
+            return len(self.machine_ids) + len(self.groups) + self.plate_ids.index(key)
+        raise ValueError(f"kind: no {kind!r} parameter for {key!r}")
 
-    def parameter(self, kind: str, key) -> tuple[float, float]:
+    def parameter(self, kind: str, key: str | tuple[str, float]) -> tuple[float, float]:
         """(mean, sd) of a machine's compliance, a group's mean factor, or a plate's factor.
 
         Parameters
@@ -346,16 +348,16 @@ def latest_state(plate: PlateRecord, loaded: np.ndarray) -> State | None:
     The shape is the one left by the pass that loaded the plate most so far (the history rule); every
     inspection since that pass saw it and is averaged.
     """
-    inspected = [j for j, q in enumerate(plate.passes) if q.inspected]
+    inspected = [
+        (j, q.measured_radius_mm)
+        for j, q in enumerate(plate.passes)
+        if q.measured_radius_mm is not None
+    ]
     if not inspected:
         return None
-    last = inspected[-1]
+    last = inspected[-1][0]
     peak_pass = int(np.argmax(loaded[: last + 1]))
-    ks = [
-        measured_curvature(plate, plate.passes[j].measured_radius_mm)
-        for j in inspected
-        if j >= peak_pass
-    ]
+    ks = [measured_curvature(plate, r) for j, r in inspected if j >= peak_pass]
     return State(last, peak_pass, float(loaded[peak_pass]), float(np.mean(ks)), len(ks))
 
 
@@ -571,14 +573,18 @@ def _inspected_states(
     which pass raised a plate's peak. Returns the state's pass index, mean measured curvature,
     number of inspections and plate index (arrays of one length).
     """
-    state_pass, state_obs, state_n, state_plate = [], [], [], []
+    state_pass: list[int] = []
+    state_obs: list[float] = []
+    state_n: list[int] = []
+    state_plate: list[int] = []
     for i, p in enumerate(plates):
-        peak, current, seen = 0.0, -1, {}
+        peak, current = 0.0, -1
+        seen: dict[int, list[float]] = {}
         for j, q in enumerate(p.passes):
             n = starts[i] + j
             if kl0[n] > peak * (1 + 1e-9):
                 peak, current = kl0[n], n
-            if q.inspected:
+            if q.measured_radius_mm is not None:
                 k = measured_curvature(p, q.measured_radius_mm)
                 if not np.isfinite(k):
                     raise ValueError(

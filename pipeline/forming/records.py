@@ -18,9 +18,12 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from ..formats import InputError
+
+if TYPE_CHECKING:
+    from ..io import Target
 
 MACHINE_KIND = "three-roll-pyramid"
 PASS_METHOD = "roll-bending"
@@ -125,11 +128,8 @@ class Machine:
         data = _mapping("machine", data)
         keys = ("kind", "bottom_roll_spacing_mm", "bottom_roll_diameter_mm", "top_roll_diameter_mm")
         _known_keys("machine", data, keys)
-        return cls(
-            machine_id,
-            *(_required("machine", data, k) for k in keys[1:]),
-            kind=_required("machine", data, "kind"),
-        )
+        spacing, bottom, top = (_required("machine", data, k) for k in keys[1:])
+        return cls(machine_id, spacing, bottom, top, kind=_required("machine", data, "kind"))
 
 
 @dataclass(frozen=True)
@@ -257,7 +257,7 @@ class FormingTarget:
     @classmethod
     def from_target(
         cls,
-        target,
+        target: Target,
         material: Material | Mapping[str, Any] | None,
         surface: Literal["convex", "concave", "mid"] = "convex",
     ) -> FormingTarget:
@@ -268,7 +268,7 @@ class FormingTarget:
         InputError
             Not a cylinder, or no material (field ``material``: the model needs thickness and yield).
         """
-        if getattr(target, "shape", None) != "cylinder":
+        if getattr(target, "shape", None) != "cylinder" or target.radius_mm is None:
             raise InputError(
                 "target",
                 "shape",

@@ -23,6 +23,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from . import springback
 from .records import Machine, PlateRecord
@@ -44,12 +45,12 @@ class PassSetup:
         *nominal* yield stress ``S`` (von Mises).
     """
 
-    half_span_mm: np.ndarray
-    bottom_roll_radius_mm: np.ndarray
-    thickness_mm: np.ndarray
-    length_mm: np.ndarray
-    modulus_mpa: np.ndarray
-    yield_mpa: np.ndarray
+    half_span_mm: npt.NDArray[np.float64]
+    bottom_roll_radius_mm: npt.NDArray[np.float64]
+    thickness_mm: npt.NDArray[np.float64]
+    length_mm: npt.NDArray[np.float64]
+    modulus_mpa: npt.NDArray[np.float64]
+    yield_mpa: npt.NDArray[np.float64]
 
     @classmethod
     def of(cls, machines: Sequence[Machine], plates: Sequence[PlateRecord]) -> PassSetup:
@@ -71,12 +72,12 @@ class PassSetup:
             np.array([springback.plane_strain_yield(m.yield_mpa) for m in mats], dtype=np.float64),
         )
 
-    def geometric_curvature(self, displacement_mm) -> np.ndarray:
+    def geometric_curvature(self, displacement_mm: npt.ArrayLike) -> npt.NDArray[np.float64]:
         """Loaded mid-surface curvature of the rigid machine, ``1/R = 2 d / (a^2 + d^2 - 2 d (r_b + t/2))``.
 
         :func:`.bender.loaded_radius_mm` inverted without its checks (0 for ``d <= 0``).
         """
-        d = np.maximum(np.asarray(displacement_mm, dtype=np.float64), 0.0)
+        d: npt.NDArray[np.float64] = np.maximum(np.asarray(displacement_mm, dtype=np.float64), 0.0)
         a = self.half_span_mm
         return (
             2.0
@@ -84,7 +85,9 @@ class PassSetup:
             / (a * a + d * d - 2.0 * d * (self.bottom_roll_radius_mm + 0.5 * self.thickness_mm))
         )
 
-    def force_n(self, curvature, yield_factor) -> np.ndarray:
+    def force_n(
+        self, curvature: npt.ArrayLike, yield_factor: npt.ArrayLike
+    ) -> npt.NDArray[np.float64]:
         """Top-roll force at a loaded curvature, N (:func:`.bender.roll_force_n` in curvature form)."""
         k = np.asarray(curvature, dtype=np.float64)
         s = self.yield_mpa * np.asarray(yield_factor, dtype=np.float64)
@@ -100,7 +103,12 @@ class PassSetup:
         )
         return 2.0 * m * root / a
 
-    def loaded_curvature(self, displacement_mm, yield_factor, compliance_mm_per_mn) -> np.ndarray:
+    def loaded_curvature(
+        self,
+        displacement_mm: npt.ArrayLike,
+        yield_factor: npt.ArrayLike,
+        compliance_mm_per_mn: npt.ArrayLike,
+    ) -> npt.NDArray[np.float64]:
         """Loaded mid-surface curvature with the machine's give, 1/mm (module docstring)."""
         d = np.asarray(displacement_mm, dtype=np.float64)
         c = 1e-6 * np.asarray(compliance_mm_per_mn, dtype=np.float64)
@@ -113,7 +121,9 @@ class PassSetup:
                 break
         return k
 
-    def unloaded_curvature(self, peak_loaded_curvature, yield_factor) -> np.ndarray:
+    def unloaded_curvature(
+        self, peak_loaded_curvature: npt.ArrayLike, yield_factor: npt.ArrayLike
+    ) -> npt.NDArray[np.float64]:
         """Curvature after springback from the largest loaded curvature so far, 1/mm."""
         s = self.yield_mpa * np.asarray(yield_factor, dtype=np.float64)
         return np.asarray(

@@ -45,16 +45,25 @@ References
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import Literal, TypeAlias, cast
 
 import numpy as np
+import numpy.typing as npt
 from scipy import optimize
+
+#: A scalar in, a scalar out; an array in, an array out.
+Floats: TypeAlias = float | npt.NDArray[np.float64]
 
 #: Plane-strain yield stress over the uniaxial one, von Mises (Tresca: 1).
 VON_MISES_PLANE_STRAIN = 2.0 / math.sqrt(3.0)
 
 
-def _check_positive(name: str, value) -> None:
+def _out(values: npt.NDArray[np.float64]) -> Floats:
+    """A 0-d result as a scalar, any other as the array."""
+    return cast(Floats, values[()])
+
+
+def _check_positive(name: str, value: npt.ArrayLike) -> None:
     v = np.asarray(value, dtype=np.float64)
     if not np.all(np.isfinite(v)) or np.any(v <= 0):
         raise ValueError(f"{name}: expected positive finite values, got {value!r}")
@@ -68,25 +77,35 @@ def plane_strain_modulus(youngs_mpa: float, poisson: float) -> float:
     return youngs_mpa / (1.0 - poisson * poisson)
 
 
-def plane_strain_yield(yield_mpa, criterion: Literal["von-mises", "tresca"] = "von-mises"):
+def plane_strain_yield(
+    yield_mpa: npt.ArrayLike, criterion: Literal["von-mises", "tresca"] = "von-mises"
+) -> Floats:
     """In-plane yield stress of a plate in plane strain, ``S``, MPa (``2 Y / sqrt(3)`` or ``Y``)."""
     _check_positive("yield_mpa", yield_mpa)
     if criterion == "von-mises":
-        return VON_MISES_PLANE_STRAIN * np.asarray(yield_mpa, dtype=np.float64)[()]
+        return _out(VON_MISES_PLANE_STRAIN * np.asarray(yield_mpa, dtype=np.float64))
     if criterion == "tresca":
-        return np.asarray(yield_mpa, dtype=np.float64)[()]
+        return _out(np.asarray(yield_mpa, dtype=np.float64))
     raise ValueError(f"criterion: expected 'von-mises' or 'tresca', got {criterion!r}")
 
 
-def yield_curvature(yield_stress_mpa, modulus_mpa: float, thickness_mm: float):
+def yield_curvature(
+    yield_stress_mpa: npt.ArrayLike, modulus_mpa: npt.ArrayLike, thickness_mm: npt.ArrayLike
+) -> Floats:
     """Curvature at first yield, ``k_y = 2 S / (E' t)``, 1/mm."""
     _check_positive("yield_stress_mpa", yield_stress_mpa)
     _check_positive("modulus_mpa", modulus_mpa)
     _check_positive("thickness_mm", thickness_mm)
-    return 2.0 * np.asarray(yield_stress_mpa, dtype=np.float64)[()] / (modulus_mpa * thickness_mm)
+    s = np.asarray(yield_stress_mpa, dtype=np.float64)
+    return _out(2.0 * s / (np.asarray(modulus_mpa) * np.asarray(thickness_mm)))
 
 
-def bending_moment(curvature, yield_stress_mpa, modulus_mpa: float, thickness_mm: float):
+def bending_moment(
+    curvature: npt.ArrayLike,
+    yield_stress_mpa: npt.ArrayLike,
+    modulus_mpa: Floats,
+    thickness_mm: Floats,
+) -> Floats:
     """Elastic-perfectly-plastic bending moment per unit width, N mm / mm.
 
     Parameters
@@ -95,9 +114,9 @@ def bending_moment(curvature, yield_stress_mpa, modulus_mpa: float, thickness_mm
         Loaded curvature, 1/mm (>= 0).
     yield_stress_mpa : float or array_like
         The yield stress in the bending direction (``S`` in plane strain), MPa.
-    modulus_mpa : float
+    modulus_mpa : float or ndarray
         The modulus (``E'`` in plane strain), MPa.
-    thickness_mm : float
+    thickness_mm : float or ndarray
 
     Returns
     -------
@@ -114,10 +133,15 @@ def bending_moment(curvature, yield_stress_mpa, modulus_mpa: float, thickness_mm
         m = np.where(
             k <= ky, modulus_mpa * t**3 / 12.0 * k, s * t * t / 4.0 * (1.0 - (ky / k) ** 2 / 3.0)
         )
-    return m[()]
+    return _out(m)
 
 
-def unloaded_curvature(loaded_curvature, yield_stress_mpa, modulus_mpa: float, thickness_mm: float):
+def unloaded_curvature(
+    loaded_curvature: npt.ArrayLike,
+    yield_stress_mpa: npt.ArrayLike,
+    modulus_mpa: Floats,
+    thickness_mm: Floats,
+) -> Floats:
     """Curvature after springback from a loaded curvature (Gardiner; 0 below first yield).
 
     Parameters
@@ -138,10 +162,15 @@ def unloaded_curvature(loaded_curvature, yield_stress_mpa, modulus_mpa: float, t
     k = np.asarray(loaded_curvature, dtype=np.float64)
     m = bending_moment(k, yield_stress_mpa, modulus_mpa, thickness_mm)
     ku = k - m / (modulus_mpa * thickness_mm**3 / 12.0)
-    return np.maximum(ku, 0.0)[()]
+    return _out(np.maximum(ku, 0.0))
 
 
-def gardiner_ratio(loaded_radius_mm, yield_stress_mpa, modulus_mpa: float, thickness_mm: float):
+def gardiner_ratio(
+    loaded_radius_mm: npt.ArrayLike,
+    yield_stress_mpa: npt.ArrayLike,
+    modulus_mpa: float,
+    thickness_mm: float,
+) -> Floats:
     """Gardiner's ``R / R' = 1 - 3 x + 4 x^3``, ``x = R S / (E' t)``; 0 (flat) for ``x >= 1/2``.
 
     The same relation as :func:`unloaded_curvature`, written as in [1]_ and [3]_; with uniaxial ``Y``
@@ -153,11 +182,11 @@ def gardiner_ratio(loaded_radius_mm, yield_stress_mpa, modulus_mpa: float, thick
         * np.asarray(yield_stress_mpa)
         / (modulus_mpa * thickness_mm)
     )
-    return np.where(x >= 0.5, 0.0, 1.0 - 3.0 * x + 4.0 * x**3)[()]
+    return _out(np.where(x >= 0.5, 0.0, 1.0 - 3.0 * x + 4.0 * x**3))
 
 
 def loaded_curvature_for(
-    unloaded, yield_stress_mpa: float, modulus_mpa: float, thickness_mm: float
+    unloaded: float, yield_stress_mpa: float, modulus_mpa: float, thickness_mm: float
 ) -> float:
     """The loaded curvature that springs back to ``unloaded`` (inverse of :func:`unloaded_curvature`), 1/mm.
 
@@ -173,17 +202,20 @@ def loaded_curvature_for(
     """
     _check_positive("unloaded", unloaded)
     ky = float(yield_curvature(yield_stress_mpa, modulus_mpa, thickness_mm))
-    f = lambda k: k - 1.5 * ky + 0.5 * ky**3 / (k * k) - unloaded  # noqa: E731
+
+    def f(k: float) -> float:
+        return k - 1.5 * ky + 0.5 * ky**3 / (k * k) - unloaded
+
     return float(optimize.brentq(f, ky, unloaded + 1.5 * ky, xtol=1e-16, rtol=1e-13))
 
 
 def curvatures_after_passes(
-    loaded_curvatures,
-    yield_stress_mpa,
+    loaded_curvatures: npt.ArrayLike,
+    yield_stress_mpa: npt.ArrayLike,
     modulus_mpa: float,
     thickness_mm: float,
     initial_loaded: float = 0.0,
-) -> np.ndarray:
+) -> npt.NDArray[np.float64]:
     """The plate's curvature after each of a sequence of same-direction passes (the history rule).
 
     Parameters
