@@ -12,11 +12,12 @@ from __future__ import annotations
 import logging
 import re
 import sys
+from collections.abc import Callable
 from typing import Any
 
 from fastapi import FastAPI, HTTPException, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 from sqlalchemy.exc import DBAPIError
 from starlette.exceptions import HTTPException as StarletteHTTPException
@@ -168,8 +169,32 @@ def _validation_field(loc) -> str | None:
     return ".".join(parts) or None
 
 
+#: Renders an error as a dashboard page: (request, status, detail) -> the page, or None if it cannot.
+HtmlErrorPage = Callable[[Request, int, str], Response | None]
+
+
+def wants_page(request: Request) -> bool:
+    """A browser navigating to a dashboard page (GET, HTML accepted, not the API, files or viewer)."""
+    path = request.url.path
+    return (
+        request.method == "GET"
+        and "text/html" in request.headers.get("accept", "")
+        and not path.startswith(("/api/", "/static/", "/viewer", "/docs", "/openapi", "/healthz"))
+    )
+
+
 def install_error_handlers(app: FastAPI) -> None:
-    """JSON error bodies for HTTP errors, validation errors, service errors and bugs."""
+    """JSON error bodies for HTTP errors, validation errors, service errors and bugs.
+
+    A browser navigating to a dashboard page gets the error as a page in the dashboard's layout
+    instead, when the dashboard set ``app.state.html_error_page`` (:data:`HtmlErrorPage`).
+    """
+
+    def page(request: Request, status: int, detail: str) -> Response | None:
+        render = getattr(request.app.state, "html_error_page", None)
+        if render is None or not wants_page(request):
+            return None
+        return render(request, status, detail)
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException):
@@ -184,7 +209,9 @@ def install_error_handlers(app: FastAPI) -> None:
                     f"method: {request.method} is not allowed here; allowed: {', '.join(allowed)}",
                     "method",
                 )
-        return JSONResponse(body, status_code=status, headers=headers)
+        return page(request, status, body["detail"]) or JSONResponse(
+            body, status_code=status, headers=headers
+        )
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError):
@@ -224,7 +251,8 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(Exception)
     async def _bug(request: Request, exc: Exception):
         log.exception("internal error on %s %s", request.method, request.url.path)
-        return JSONResponse(error_body(f"internal error: {type(exc).__name__}"), status_code=500)
+        detail = f"internal error: {type(exc).__name__}"
+        return page(request, 500, detail) or JSONResponse(error_body(detail), status_code=500)
 
 
 def jsonable(errors: list[dict]) -> list[dict]:

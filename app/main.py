@@ -174,6 +174,7 @@ def _include_dashboard(app: FastAPI) -> None:
     routes = _optional_module("web.routes")
     if routes is not None and hasattr(routes, "router"):
         app.include_router(routes.router)
+        app.state.html_error_page = getattr(routes, "error_page", None)
     static_dir = getattr(_optional_module("web"), "STATIC_DIR", None)
     if static_dir is not None and static_dir.is_dir():
         app.mount("/static", StaticFiles(directory=static_dir), name="static")

@@ -2,12 +2,13 @@
 
 Plates are named by the yard (the MES's plate id). Targets, calibrations and light calibrations
 are versioned: a new upload is a new row, the newest row is the current one. An inspection row is the source
-of truth for its job: ``queued -> running -> done | failed``.
+of truth for its job: ``queued -> running -> done | error`` (:class:`JobStatus`).
 """
 
 from __future__ import annotations
 
 from datetime import UTC, datetime
+from enum import StrEnum
 from typing import Any
 
 from sqlalchemy import (
@@ -25,10 +26,31 @@ from sqlalchemy import (
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 
-#: Job states of an inspection.
-STATUSES = ("queued", "running", "done", "failed")
-#: Verdicts: the pipeline's pass/fail, or error for a failed job.
-VERDICTS = ("pass", "fail", "error")
+
+class JobStatus(StrEnum):
+    """An inspection job's state: ``queued -> running -> done | error``.
+
+    ``error``: the job could not measure the plate (a bad bundle, a device, a crash); its inputs are
+    kept and ``error`` says why. It has no verdict: a verdict is the plate's (:class:`Verdict`).
+    """
+
+    QUEUED = "queued"
+    RUNNING = "running"
+    DONE = "done"
+    ERROR = "error"
+
+
+#: States of a job that will not change again (its folder is complete).
+FINISHED = (JobStatus.DONE, JobStatus.ERROR)
+#: States of a job still to run or running.
+ACTIVE = (JobStatus.QUEUED, JobStatus.RUNNING)
+
+
+class Verdict(StrEnum):
+    """A measured plate's verdict (a done job's)."""
+
+    PASS = "pass"
+    FAIL = "fail"
 
 
 #: Numeric row ids: 64-bit on PostgreSQL (the API takes ids up to 2^63 - 1; migration 0007),
@@ -162,7 +184,7 @@ class Inspection(Base):
     #: The cell (its configuration's ``cell_id``) an acquired inspection is photographed in; None otherwise.
     cell_id: Mapped[str | None] = mapped_column(String(64), index=True)
 
-    status: Mapped[str] = mapped_column(String(16), default="queued", index=True)
+    status: Mapped[str] = mapped_column(String(16), default=JobStatus.QUEUED, index=True)
     progress: Mapped[float] = mapped_column(Float, default=0.0)
     stage: Mapped[str | None] = mapped_column(String(32))
     #: Runs started (claims), whatever their end.

@@ -24,8 +24,8 @@ T = TypeVar("T")
 #: is not true, ``"5"`` is not a number), finite numbers only (no NaN, no Infinity).
 STRICT_BODY = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
 
-Status = Literal["queued", "running", "done", "failed"]
-Verdict = Literal["pass", "fail", "error"]
+Status = Literal["queued", "running", "done", "error"]
+Verdict = Literal["pass", "fail"]
 
 
 class ErrorOut(BaseModel):

@@ -9,6 +9,7 @@ API token (``/login``).
 from __future__ import annotations
 
 import logging
+from datetime import UTC, datetime
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, HTTPException, Query, Request
@@ -18,7 +19,7 @@ from fastapi.templating import Jinja2Templates
 from app import viewer
 from app.deps import SessionDep, StorageDep, has_dashboard_session, start_dashboard_session
 from app.errors import scrub_paths
-from app.models import Inspection
+from app.models import ACTIVE, FINISHED, Inspection, JobStatus
 from app.routes.common import InspectionIdPath, defects_and_reasons
 from app.services import calibrations as calibration_svc
 from app.services import cell as cell_svc
@@ -40,7 +41,6 @@ router.include_router(viewer.router)
 templates = Jinja2Templates(directory=TEMPLATES_DIR)
 
 #: Statuses of jobs shown as "in the queue".
-ACTIVE = ("queued", "running")
 #: Frame spacings offered for the virtual templates, mm.
 SPACINGS_MM = (300, 500, 700, 1000)
 DEFAULT_SPACING_MM = 700
@@ -58,7 +58,17 @@ def _fmt(value, digits: int = 1, unit: str = "", signed: bool = False) -> str:
 
 
 templates.env.filters["fmt"] = _fmt
-templates.env.filters["when"] = lambda dt: "—" if dt is None else dt.strftime("%Y-%m-%d %H:%M:%S")
+
+
+def _when(dt: datetime | None) -> str:
+    """A stored time as UTC with its zone said (SQLite gives naive UTC times, PostgreSQL aware ones)."""
+    if dt is None:
+        return "—"
+    aware = dt if dt.tzinfo is not None else dt.replace(tzinfo=UTC)
+    return aware.astimezone(UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
+
+
+templates.env.filters["when"] = _when
 
 
 def _page(
@@ -66,16 +76,12 @@ def _page(
 ) -> Response:
     """Render a full page: the side list (plates, jobs) plus the page's own context."""
     settings = request.app.state.settings
-    plates, plate_total = plate_svc.list_plates(session=session, limit=40)
-    jobs, _ = inspection_svc.list_inspections(session=session, statuses=ACTIVE, limit=20)
     signed_in = has_dashboard_session(request, db=session)
     response = templates.TemplateResponse(
         request,
         name,
         {
-            "side_plates": plates,
-            "side_plate_total": plate_total,
-            "side_jobs": jobs,
+            **_side_context(session),
             "demo": settings.demo,
             "signed_in": signed_in or settings.demo,
             **context,
@@ -85,6 +91,48 @@ def _page(
     if settings.demo and not signed_in:
         start_dashboard_session(response, request, db=session)
     return response
+
+
+def _side_context(session) -> dict:
+    """The side lists: active jobs (all of them, up to 20) and the plates (40 most recent)."""
+    plates, plate_total = plate_svc.list_plates(session=session, limit=40)
+    jobs, job_total = inspection_svc.list_inspections(session=session, statuses=ACTIVE, limit=20)
+    return {
+        "side_plates": plates,
+        "side_plate_total": plate_total,
+        "side_jobs": jobs,
+        "side_job_total": job_total,
+    }
+
+
+@router.get("/side", response_class=HTMLResponse)
+def side_lists(request: Request, session: SessionDep, current: str | None = None) -> Response:
+    """The side lists alone (polled by side.js on every page); ``current`` is the page's plate."""
+    return templates.TemplateResponse(
+        request, "_side_body.html", {**_side_context(session), "current_plate": current}
+    )
+
+
+def error_page(request: Request, status_code: int, detail: str) -> Response | None:
+    """An error (404, 500, ...) as a page in the dashboard's layout (app.errors calls it for a browser
+    navigating to a page); None when the page cannot be drawn (the database down): the JSON error."""
+    try:
+        with request.app.state.session_factory() as session:
+            return _page(
+                request,
+                session,
+                "error.html",
+                {
+                    "page": "error",
+                    "status_code": status_code,
+                    "detail": scrub_paths(detail),
+                    "now": datetime.now(UTC),
+                },
+                status_code=status_code,
+            )
+    except Exception:
+        logger.exception("could not draw the error page for %s", request.url.path)
+        return None
 
 
 def _inspection_or_404(session, inspection_id: int) -> Inspection:
@@ -153,9 +201,11 @@ def result_page(
     row = _inspection_or_404(session, inspection_id)
     plate_viewer = getattr(request.app.state, "viewer", None)
     has_view = (
-        row.status == "done" and plate_viewer is not None and plate_viewer.has_view(inspection_id)
+        row.status == JobStatus.DONE
+        and plate_viewer is not None
+        and plate_viewer.has_view(inspection_id)
     )
-    finished = row.status in ("done", "failed")  # a running job's folder holds partial files
+    finished = row.status in FINISHED  # a running job's folder holds partial files
     names = inspection_svc.artifact_names(storage=storage, inspection=row) if finished else []
     context = {
         "page": "result",
@@ -190,7 +240,7 @@ def templates_partial(
 
 
 def _templates_context(storage, row: Inspection, spacing_mm: int) -> dict:
-    if row.status != "done":
+    if row.status != JobStatus.DONE:
         return {"drawings": [], "templates_error": None}
     folder = storage.artifacts_dir(row.id)
     try:
@@ -208,7 +258,7 @@ def plate_page(request: Request, plate_id: str, session: SessionDep) -> Response
     if overview is None:
         raise HTTPException(404, f"plate {plate_id!r} not found")
     rows, total = inspection_svc.list_inspections(session=session, plate_id=plate_id, limit=200)
-    done = [r for r in reversed(rows) if r.status == "done"]
+    done = [r for r in reversed(rows) if r.status == JobStatus.DONE]
     tolerance = (
         overview.target.tolerance_mm
         if overview.target is not None

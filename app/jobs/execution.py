@@ -19,6 +19,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from app.jobs.lease import LeaseKeeper
 from app.jobs.memory import is_out_of_memory, out_of_memory_message
+from app.models import JobStatus
 from app.services import inspections as svc
 from app.services import leases, light_calibrations
 from app.services.acquisitions import ACQUIRED_SOURCE, capture_for_job
@@ -155,7 +156,7 @@ def execute_inspection(
     Returns
     -------
     str
-        The row's final status (``"done"``, ``"failed"``); ``"skipped"`` when the row was not
+        The row's final status (``"done"``, ``"error"``); ``"skipped"`` when the row was not
         claimable (done, failed, or run by another consumer: a duplicate delivery); ``"lost"`` when
         the lease was lost while the job ran (another consumer or a stop took it over).
 
@@ -200,9 +201,9 @@ def execute_inspection(
         )
         return "lost"
     if message is not None:
-        return "failed"
+        return JobStatus.ERROR
     log.info("inspection %s: done, verdict %s", inspection_id, document.get("verdict"))
-    return "done"
+    return JobStatus.DONE
 
 
 def _claim(
@@ -258,7 +259,7 @@ def _store(
                 session=session, inspection_id=inspection_id, document=document, owner=owner
             )
         else:
-            stored = leases.mark_failed(
+            stored = leases.mark_error(
                 session=session, inspection_id=inspection_id, error=message, owner=owner
             )
         session.commit()

@@ -14,7 +14,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from app.limits import Limits, setting_name
-from app.models import Inspection
+from app.models import FINISHED, Inspection, JobStatus
 from app.services.errors import ServiceError
 
 #: A job's run time assumed before any job has finished, s.
@@ -47,7 +47,7 @@ def check_queue(*, session: Session, plate_id: str, limits: Limits) -> None:
     QueueFullError
         Over ``max_queued_per_plate`` (field ``plate_id``) or ``max_queued`` (no field).
     """
-    queued = Inspection.status == "queued"
+    queued = Inspection.status == JobStatus.QUEUED
     per_plate = _count(session, queued, Inspection.plate_id == plate_id)
     if per_plate > limits.max_queued_per_plate:
         oldest = session.scalar(
@@ -82,7 +82,7 @@ def _retry_after(session: Session, *, jobs_ahead: int) -> int:
     rows = session.execute(
         select(Inspection.started_at, Inspection.finished_at)
         .where(
-            Inspection.status.in_(("done", "failed")),
+            Inspection.status.in_(FINISHED),
             Inspection.started_at.is_not(None),
             Inspection.finished_at.is_not(None),
         )

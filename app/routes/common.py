@@ -17,7 +17,7 @@ from sqlalchemy.orm import Session
 from app.deps import Writer
 from app.errors import error_body, known_error, relabel_input_error
 from app.limits.queue import QueueFullError
-from app.models import Inspection, Target
+from app.models import FINISHED, Inspection, JobStatus, Target
 from app.schemas import (
     PLATE_ID_MAX_LENGTH,
     PLATE_ID_REGEX,
@@ -178,9 +178,7 @@ def artifact_url(inspection_id: int, name: str) -> str:
 
 
 def inspection_out(row: Inspection, *, storage: Storage) -> InspectionOut:
-    names = (
-        artifact_names(storage=storage, inspection=row) if row.status in ("done", "failed") else []
-    )
+    names = artifact_names(storage=storage, inspection=row) if row.status in FINISHED else []
     return InspectionOut(
         id=row.id,
         plate_id=row.plate_id,
@@ -204,7 +202,7 @@ def inspection_out(row: Inspection, *, storage: Storage) -> InspectionOut:
 
 def defects_and_reasons(storage: Storage, row: Inspection, names: list[str]) -> dict[str, list]:
     """``defects`` and ``reasons`` of a done inspection, from its details.json."""
-    if row.status != "done" or "details.json" not in names:
+    if row.status != JobStatus.DONE or "details.json" not in names:
         return {"defects": [], "reasons": []}
     try:
         details = json.loads((storage.artifacts_dir(row.id) / "details.json").read_text())

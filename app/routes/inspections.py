@@ -6,7 +6,7 @@ import csv
 import io
 import json
 import mimetypes
-from typing import Annotated, Literal
+from typing import Annotated
 
 from fastapi import APIRouter, File, Form, Query, Request, UploadFile, status
 from fastapi.responses import FileResponse, Response
@@ -35,6 +35,7 @@ from app.schemas import (
     Page,
     ProcessIn,
     SimulatedInspectionIn,
+    Status,
 )
 from app.services import inspections as svc
 from app.services import plates as plates_svc
@@ -357,7 +358,7 @@ def _iso(when) -> str | None:
 def list_inspections(
     session: SessionDep,
     status_: Annotated[
-        list[Literal["queued", "running", "done", "failed"]] | None,
+        list[Status] | None,
         Query(alias="status", description="only these statuses (repeat the parameter)"),
     ] = None,
     limit: Annotated[int, Query(ge=1, le=200)] = 20,

@@ -19,7 +19,7 @@ from sqlalchemy.orm import Session
 
 from app.limits import DEFAULT_LIMITS, Limits
 from app.limits.queue import check_queue
-from app.models import Inspection
+from app.models import Inspection, JobStatus
 from app.services.cell import (
     CellLock,
     CellUnavailable,
@@ -105,7 +105,7 @@ def create_acquired_inspection(
             source=ACQUIRED_SOURCE,
             cell_id=cell.cell_id,
             process=process,
-            status="queued",
+            status=JobStatus.QUEUED,
             progress=0.0,
             tolerance_mm=target.tolerance_mm,
             target_radius_mm=target.radius_mm,

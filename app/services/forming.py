@@ -14,7 +14,7 @@ from typing import Any
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from app.models import Inspection, Machine, Target, utcnow
+from app.models import Inspection, JobStatus, Machine, Target, utcnow
 from app.services.errors import ConflictError, NotFoundError, UnprocessableError
 from app.services.plates import current_target, get_plate
 from pipeline import forming
@@ -145,7 +145,7 @@ def plate_passes(*, session: Session, plate_id: str) -> list[Inspection]:
             select(Inspection)
             .where(
                 Inspection.plate_id == plate_id,
-                Inspection.status == "done",
+                Inspection.status == JobStatus.DONE,
                 Inspection.process.is_not(None),
             )
             .order_by(Inspection.id)
@@ -176,7 +176,7 @@ def history(
     latest = (
         select(Inspection.plate_id, func.max(Inspection.id).label("last_id"))
         .where(
-            Inspection.status == "done",
+            Inspection.status == JobStatus.DONE,
             Inspection.process.is_not(None),
             Inspection.plate_id != exclude,
         )
@@ -261,7 +261,7 @@ def exported_passes(*, session: Session) -> list[Inspection]:
     return list(
         session.scalars(
             select(Inspection)
-            .where(Inspection.status == "done", Inspection.process.is_not(None))
+            .where(Inspection.status == JobStatus.DONE, Inspection.process.is_not(None))
             .order_by(Inspection.id)
         )
     )

@@ -2,7 +2,7 @@
 
 The row is the source of truth of its job: ``queued -> running -> done | failed``.
 The state changes used by the job (:func:`claim`, :func:`renew_lease`, :func:`record_progress`,
-:func:`mark_done`, :func:`mark_failed`, :func:`release`, :func:`reclaim_expired`) are conditional
+:func:`mark_done`, :func:`mark_error`, :func:`release`, :func:`reclaim_expired`) are conditional
 UPDATEs on the job's lease, so a job delivered twice (at-least-once queue) runs once, and two
 consumers never run one job.
 """
@@ -20,7 +20,7 @@ from app.limits import DEFAULT_LIMITS, Limits
 from app.limits.physical import check_lights
 from app.limits.queue import check_queue
 from app.limits.work import check_simulation, read_capture_header
-from app.models import Inspection
+from app.models import Inspection, JobStatus
 from app.services.errors import UnprocessableError
 from app.services.forming import check_process
 from app.services.light_calibrations import light_calibration_for_capture
@@ -113,7 +113,7 @@ def create_uploaded_inspection(
         target_id=target.id,
         source="upload",
         process=process,
-        status="queued",
+        status=JobStatus.QUEUED,
         progress=0.0,
     )
     try:
@@ -183,7 +183,7 @@ def create_simulated_inspection(
         source="simulated",
         simulation=simulation,
         process=process,
-        status="queued",
+        status=JobStatus.QUEUED,
         progress=0.0,
     )
     if target is None:

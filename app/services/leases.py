@@ -1,4 +1,4 @@
-"""The job state of an inspection row: claims under a lease, progress, done / failed, reclaiming.
+"""The job state of an inspection row: claims under a lease, progress, done / error, reclaiming.
 
 The database row is the truth of a job; the queue only carries its id (see app/jobs/).
 """
@@ -15,16 +15,16 @@ from typing import Any
 from sqlalchemy import and_, case, or_, select, update
 from sqlalchemy.orm import Session
 
-from app.models import Inspection, utcnow
+from app.models import Inspection, JobStatus, utcnow
 
 # A job is claimed under a lease: ``lease_owner`` (the consumer, "host:pid:nonce") and
 # ``lease_expires_at``. The running job renews it; every later write of the job (progress,
-# done, failed) is conditional on still holding it, so a consumer that lost its job (its lease
+# done, error) is conditional on still holding it, so a consumer that lost its job (its lease
 # expired and another claimed the row, or it was released) changes nothing. A lease that ran out
 # is taken as its worker's death: the row is claimed again, and the second death sets it aside.
 
 
-#: A job whose worker died this many times while running it is set aside (``failed``), not run again.
+#: A job whose worker died this many times while running it is set aside (``error``), not run again.
 MAX_WORKER_DEATHS = 2
 #: Lease of a claim when the caller gives none, s (the consumer passes ``Settings.job_lease_s``).
 DEFAULT_LEASE_S = 60.0
@@ -48,7 +48,7 @@ def _now(now: datetime | None) -> datetime:
 def _held_by(inspection_id: int, owner: str):
     return (
         Inspection.id == inspection_id,
-        Inspection.status == "running",
+        Inspection.status == JobStatus.RUNNING,
         Inspection.lease_owner == owner,
     )
 
@@ -56,11 +56,11 @@ def _held_by(inspection_id: int, owner: str):
 def _claimable(now: datetime):
     """Queued, or running under a lease that ran out below the death limit (the reclaim counts a death)."""
     expired = and_(
-        Inspection.status == "running",
+        Inspection.status == JobStatus.RUNNING,
         Inspection.lease_expires_at <= now,
         Inspection.deaths + 1 < MAX_WORKER_DEATHS,
     )
-    return or_(Inspection.status == "queued", expired)
+    return or_(Inspection.status == JobStatus.QUEUED, expired)
 
 
 def claim(
@@ -91,18 +91,19 @@ def claim(
     Returns
     -------
     bool
-        False when the row is not claimable (done, failed, or running under a live lease).
+        False when the row is not claimable (done, error, or running under a live lease).
     """
     now = _now(now)
     res = session.execute(
         update(Inspection)
         .where(Inspection.id == inspection_id, _claimable(now))
         .values(
-            status="running",
+            status=JobStatus.RUNNING,
             lease_owner=owner or process_lease_owner(),
             lease_expires_at=now + timedelta(seconds=lease_s),
             deaths=case(
-                (Inspection.status == "running", Inspection.deaths + 1), else_=Inspection.deaths
+                (Inspection.status == JobStatus.RUNNING, Inspection.deaths + 1),
+                else_=Inspection.deaths,
             ),
             started_at=now,
             finished_at=None,
@@ -152,7 +153,7 @@ def mark_done(
         update(Inspection)
         .where(*_held_by(inspection_id, owner or process_lease_owner()))
         .values(
-            status="done",
+            status=JobStatus.DONE,
             progress=1.0,
             stage="done",
             finished_at=utcnow(),
@@ -175,10 +176,10 @@ def mark_done(
     return res.rowcount == 1
 
 
-def mark_failed(
+def mark_error(
     *, session: Session, inspection_id: int, error: str, owner: str | None = None
 ) -> bool:
-    """running -> failed with its message (verdict ``error``); the inputs stay on disk.
+    """running -> error with its message (no verdict: nothing was measured); the inputs stay on disk.
 
     Only while ``owner`` (default :func:`process_lease_owner`) holds the lease; returns whether it did.
     """
@@ -186,8 +187,8 @@ def mark_failed(
         update(Inspection)
         .where(*_held_by(inspection_id, owner or process_lease_owner()))
         .values(
-            status="failed",
-            verdict="error",
+            status=JobStatus.ERROR,
+            verdict=None,
             error=error,
             finished_at=utcnow(),
             lease_owner=None,
@@ -205,7 +206,7 @@ def release(*, session: Session, owner: str) -> list[int]:
     ids = list(
         session.scalars(
             select(Inspection.id).where(
-                Inspection.status == "running", Inspection.lease_owner == owner
+                Inspection.status == JobStatus.RUNNING, Inspection.lease_owner == owner
             )
         )
     )
@@ -214,7 +215,11 @@ def release(*, session: Session, owner: str) -> list[int]:
             update(Inspection)
             .where(*_held_by(inspection_id, owner))
             .values(
-                status="queued", stage=None, progress=0.0, lease_owner=None, lease_expires_at=None
+                status=JobStatus.QUEUED,
+                stage=None,
+                progress=0.0,
+                lease_owner=None,
+                lease_expires_at=None,
             )
         )
     return ids
@@ -228,7 +233,7 @@ def expire_leases(*, session: Session, keep_owner: str, now: datetime | None = N
     """
     now = _now(now)
     others = or_(Inspection.lease_owner.is_(None), Inspection.lease_owner != keep_owner)
-    where = (Inspection.status == "running", others)
+    where = (Inspection.status == JobStatus.RUNNING, others)
     ids = list(session.scalars(select(Inspection.id).where(*where)))
     if ids:
         session.execute(
@@ -239,7 +244,7 @@ def expire_leases(*, session: Session, keep_owner: str, now: datetime | None = N
 
 @dataclass(frozen=True)
 class Reclaimed:
-    """What :func:`reclaim_expired` did: jobs queued again, and jobs set aside as failed."""
+    """What :func:`reclaim_expired` did: jobs queued again, and jobs set aside as errors."""
 
     requeued: list[int]
     set_aside: list[int]
@@ -250,13 +255,13 @@ def reclaim_expired(*, session: Session, now: datetime | None = None) -> Reclaim
 
     Below :data:`MAX_WORKER_DEATHS` the job is queued again at the back of the queue (so the jobs
     behind it are not held up by a job that may kill its worker); at the limit it is set aside:
-    ``failed``, verdict ``error``, with the reason and its last stage. Each row changes in one
+    ``error``, without a verdict, with the reason and its last stage. Each row changes in one
     conditional UPDATE on the lease that ran out, so a concurrent claim or renewal wins cleanly.
     """
     now = _now(now)
     rows = session.execute(
         select(Inspection.id, Inspection.lease_owner, Inspection.deaths, Inspection.stage)
-        .where(Inspection.status == "running", Inspection.lease_expires_at <= now)
+        .where(Inspection.status == JobStatus.RUNNING, Inspection.lease_expires_at <= now)
         .order_by(Inspection.queued_at, Inspection.id)
     ).all()
     requeued: list[int] = []
@@ -264,7 +269,7 @@ def reclaim_expired(*, session: Session, now: datetime | None = None) -> Reclaim
     for inspection_id, owner, deaths, stage in rows:
         same_lease = (
             Inspection.id == inspection_id,
-            Inspection.status == "running",
+            Inspection.status == JobStatus.RUNNING,
             Inspection.lease_expires_at <= now,
             Inspection.lease_owner.is_(None) if owner is None else Inspection.lease_owner == owner,
         )
@@ -272,14 +277,14 @@ def reclaim_expired(*, session: Session, now: datetime | None = None) -> Reclaim
         if deaths + 1 >= MAX_WORKER_DEATHS:
             values = dict(
                 cleared,
-                status="failed",
-                verdict="error",
+                status=JobStatus.ERROR,
+                verdict=None,
                 finished_at=now,
                 error=poison_reason(deaths + 1, stage),
             )
             target = set_aside
         else:
-            values = dict(cleared, status="queued", queued_at=now, stage=None, progress=0.0)
+            values = dict(cleared, status=JobStatus.QUEUED, queued_at=now, stage=None, progress=0.0)
             target = requeued
         if session.execute(update(Inspection).where(*same_lease).values(**values)).rowcount == 1:
             target.append(inspection_id)
@@ -310,7 +315,7 @@ def requeue_interrupted(
 
 def queued_ids(*, session: Session, queued_before: datetime | None = None) -> list[int]:
     """Every queued job (optionally only those queued before a time), in queue order (oldest first)."""
-    where = [Inspection.status == "queued"]
+    where = [Inspection.status == JobStatus.QUEUED]
     if queued_before is not None:
         where.append(Inspection.queued_at < queued_before)
     return list(

@@ -187,7 +187,7 @@ def wait_for(
     client,
     inspection_id: int,
     *,
-    statuses=("done", "failed"),
+    statuses=("done", "error"),
     timeout_s: float = 60.0,
     consumer=None,
 ) -> dict:

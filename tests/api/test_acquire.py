@@ -266,7 +266,7 @@ def test_controller_refusing_fails_the_job_naming_device_and_step(
     assert r.status_code == 202, r.text
     body = wait_for(client, r.json()["id"], consumer=consumer)
 
-    assert (body["status"], body["verdict"], body["stage"]) == ("failed", "error", "capture")
+    assert (body["status"], body["verdict"], body["stage"]) == ("error", None, "capture")
     assert body["error"] == (
         f"acquisition failed: light controller {server.address}: photometric image 2 (ps_02.png): "
         "refused 'L2 ON': answered 'ERR refused'"
@@ -300,7 +300,7 @@ def test_consumer_of_another_cell_fails_the_job(service, tmp_path):
             session_factory=state.session_factory,
             storage=state.storage,
         )
-        == "failed"
+        == "error"
     )
     assert client.get(f"/api/v1/inspections/{inspection_id}").json()["error"] == (
         "cell_id: the job was queued for cell 'demo', this consumer's cell (cell.json) is 'cell-test'"

@@ -57,3 +57,38 @@ def test_migrated_database_is_at_the_single_head_and_matches_the_models(client):
         context = MigrationContext.configure(connection)
         assert {context.get_current_revision()} == heads
         assert compare_metadata(context, Base.metadata) == []
+
+
+def test_job_status_vocabulary_migrates_both_ways(tmp_path):
+    """0008: a job that could not measure was ``failed`` with verdict ``error``; it is ``error`` without
+    a verdict, and a downgrade gives the old pair back. Done jobs keep their verdict."""
+    from alembic import command
+    from sqlalchemy.orm import Session
+
+    from app.db import alembic_config
+    from app.models import Inspection, JobStatus, Plate
+
+    url = f"sqlite:///{tmp_path / 'plate_inspect.db'}"
+    cfg = alembic_config(url)
+    command.upgrade(cfg, "head")
+    engine = sa.create_engine(url)
+    with Session(engine) as session:
+        session.add(Plate(id="P1"))
+        session.add_all(
+            [
+                Inspection(plate_id="P1", source="upload", status=JobStatus.ERROR, error="bad"),
+                Inspection(plate_id="P1", source="upload", status=JobStatus.DONE, verdict="fail"),
+            ]
+        )
+        session.commit()
+
+    def rows() -> list[tuple[str, str | None]]:
+        with engine.connect() as conn:
+            q = sa.text("SELECT status, verdict FROM inspections ORDER BY id")
+            return [tuple(r) for r in conn.execute(q)]
+
+    command.downgrade(cfg, "0007")
+    assert rows() == [("failed", "error"), ("done", "fail")]
+    command.upgrade(cfg, "head")
+    assert rows() == [("error", None), ("done", "fail")]
+    engine.dispose()

@@ -136,13 +136,13 @@ def test_failed_job_keeps_inputs_and_error(
     r = _post_bundle(client, plate_id, bundle)
     assert r.status_code == 202, r.text
     body = wait_for(client, r.json()["id"], consumer=consumer)
-    assert body["status"] == "failed"
+    assert body["status"] == "error"
     assert body["error"] == message
-    assert body["verdict"] == "error"
+    assert body["verdict"] is None
     assert body["result"] is None
     inputs = settings.data_dir / "inspections" / str(body["id"]) / "inputs"
     assert (inputs / "capture.zip").is_file()
-    assert client.get("/api/v1/plates").json()["items"][0]["latest_verdict"] == "error"
+    assert client.get("/api/v1/plates").json()["items"][0]["latest_verdict"] is None
 
 
 def _capture_json_with_plate(bundle: bytes, plate_id: str) -> bytes:
@@ -236,7 +236,7 @@ def test_real_pipeline_inspection(tmp_path, consumer_factory, bundle_zip):
             r = _post_bundle(client, "P-100", no_scale)
             assert r.status_code == 202, r.text  # a valid bundle: refused only when measured
             body = wait_for(client, r.json()["id"], timeout_s=120, consumer=consumer)
-            assert body["status"] == "failed" and body["verdict"] == "error"
+            assert body["status"] == "error" and body["verdict"] is None
             assert body["error"] == (
                 "capture.zip: stereo, working_distance_mm: a metric result needs a stereo pair or a working distance"
             )

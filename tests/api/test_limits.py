@@ -223,7 +223,7 @@ def test_image_corrupt_past_its_header_fails_the_job_with_its_inputs(
     r = _upload(client, "P-CUT", capture_zip(plate_id="P-CUT", width=320, height=256, n_lights=3))
     assert r.status_code == 202, r.text
     body = wait_for(client, r.json()["id"], consumer=consumer)
-    assert body["status"] == "failed" and body["verdict"] == "error"
+    assert body["status"] == "error" and body["verdict"] is None
     assert "'img_00.png'" in body["error"] and "cannot decode" in body["error"], body["error"]
     assert not body["error"].startswith("internal error")
     inputs = settings.data_dir / "inspections" / str(body["id"]) / "inputs"
@@ -361,7 +361,7 @@ def test_a_refused_retry_is_admitted_once_the_queue_moves(client, settings, cons
     first = client.get("/api/v1/plates/P-R/inspections", params={"limit": 200}).json()["items"][-1][
         "id"
     ]
-    wait_for(client, first, statuses=("running", "done", "failed"), consumer=consumer)
+    wait_for(client, first, statuses=("running", "done", "error"), consumer=consumer)
     r = _simulated(client, "P-R", headers=headers, seed=99, **SIMULATED_SMALL)
     assert r.status_code == 202, r.text
     again = _simulated(client, "P-R", headers=headers, seed=99, **SIMULATED_SMALL)

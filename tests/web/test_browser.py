@@ -191,7 +191,7 @@ def test_cell_to_result_to_history(live_server, browser):
     )
     page.screenshot(path=SHOTS / "cell-running.png")
     page.wait_for_selector(
-        f"#queue tr[data-id='{inspection_id}'][data-status='done'], #queue tr[data-id='{inspection_id}'][data-status='failed']",
+        f"#queue tr[data-id='{inspection_id}'][data-status='done'], #queue tr[data-id='{inspection_id}'][data-status='error']",
         timeout=90_000,
     )
     status = page.locator(f"#queue tr[data-id='{inspection_id}']").get_attribute("data-status")
@@ -258,7 +258,7 @@ def test_two_browsers_see_their_own_plates(live_server, browser):
         deadline = time.monotonic() + 90
         while json.load(urllib.request.urlopen(f"{base}/api/v1/inspections/{inspection_id}"))[
             "status"
-        ] not in ("done", "failed"):
+        ] not in ("done", "error"):
             assert time.monotonic() < deadline
             time.sleep(0.5)
     pages = []
@@ -348,7 +348,7 @@ def test_capture_button_photographs_and_inspects_with_the_demo_cell(live_server,
     inspection_id = int(re.search(r"#(\d+)", page.locator("#start-message").inner_text()).group(1))
     row = f"#queue tr[data-id='{inspection_id}']"
     page.wait_for_selector(
-        f"{row}[data-status='done'], {row}[data-status='failed']", timeout=120_000
+        f"{row}[data-status='done'], {row}[data-status='error']", timeout=120_000
     )
     page.screenshot(path=SHOTS / "cell-captured.png")
     assert page.locator(row).get_attribute("data-status") == "done", (
@@ -450,7 +450,7 @@ def test_next_pass_panel_and_passes_chart(live_server, browser):
     deadline = time.monotonic() + 120
     while (doc := _api(live_server, "GET", f"/api/v1/inspections/{job['id']}"))["status"] not in (
         "done",
-        "failed",
+        "error",
     ):
         assert time.monotonic() < deadline, "the inspection did not finish"
         time.sleep(0.5)

@@ -162,3 +162,33 @@ def test_a_plates_inspections_as_csv(demo_app):
     assert rows[0]["created_at"].endswith("+00:00")  # the time zone is said
     assert rows[0]["target_radius_mm"] == "5000.0"
     assert missing.status_code == 404 and missing.json()["field"] == "plate_id"
+
+
+def test_dashboard_errors_are_pages_in_the_layout_and_the_api_keeps_json(demo_app):
+    html = {"Accept": "text/html,application/xhtml+xml"}
+    with TestClient(demo_app) as client:
+        page = client.get("/plates/NO-SUCH-PLATE", headers=html)
+        assert page.status_code == 404 and page.headers["content-type"].startswith("text/html")
+        assert 'id="error-page"' in page.text and "Not found" in page.text
+        assert "plate &#39;NO-SUCH-PLATE&#39; not found" in page.text
+        assert 'id="side"' in page.text  # the layout, with its side lists
+        missing = client.get("/inspections/999999", headers=html)
+        assert missing.status_code == 404 and 'id="error-page"' in missing.text
+        # the API, a script asking for JSON, and the static files answer as before
+        api = client.get("/api/v1/plates/NO-SUCH-PLATE", headers=html)
+        assert api.status_code == 404 and api.json()["detail"]
+        assert client.get("/plates/NO-SUCH-PLATE").json()["detail"]
+        assert client.get("/static/nope.css", headers=html).status_code == 404
+
+
+def test_side_lists_partial_and_time_zone(demo_app):
+    inspection_id = seed_done_inspection(demo_app, plate_id="H1-SIDE")
+    queued = seed_queued_inspection(demo_app, plate_id="H1-SIDE")
+    with TestClient(demo_app) as client:
+        side = client.get("/side", params={"current": "H1-SIDE"}).text
+        assert "(1 active)" in side and f"#{queued} H1-SIDE" in side
+        assert 'class="current"' in side
+        page = client.get("/plates/H1-SIDE").text
+        assert 'data-src="/side?current=H1-SIDE"' in page and "/static/js/layout.js" in page
+        assert " UTC</td>" in page  # times say their zone
+        assert client.get(f"/inspections/{inspection_id}").status_code == 200

@@ -88,7 +88,7 @@ class Yard:
         deadline = time.monotonic() + timeout_s
         while True:
             bodies = [self.inspection(i) for i in ids]
-            if all(b["status"] in ("done", "failed") for b in bodies):
+            if all(b["status"] in ("done", "error") for b in bodies):
                 return bodies
             if time.monotonic() > deadline:
                 states = {b["id"]: b["status"] for b in bodies}

@@ -24,9 +24,11 @@ if (spacing && templates) {
 async function poll() {
   try {
     const job = await getJSON(watch.dataset.watch);
+    document.getElementById("live-status").textContent = job.status.toUpperCase();
+    watch.dataset.status = job.status;
     document.getElementById("live-stage").textContent = job.stage ?? job.status;
     document.getElementById("live-progress").value = job.progress;
-    if (job.status === "done" || job.status === "failed") {
+    if (job.status === "done" || job.status === "error") {
       window.location.reload();
       return;
     }
