@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 from numpy.polynomial import legendre as leg
 from scipy import ndimage
 
@@ -98,7 +99,7 @@ class _HeightPoly:
             "yy": leg.legder(self.C, 2, sy, axis=1),
         }
 
-    def _norm(self, x, y):
+    def _norm(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return (x - self.mid[0]) / self.half[0], (y - self.mid[1]) / self.half[1]
 
     def tensor(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -132,7 +133,11 @@ def _eig_sym2(b: np.ndarray) -> np.ndarray:
 
 
 def principal_curvatures(
-    points_mm, mask, *, flat_sagitta_mm: float = FLAT_SAGITTA_MM, max_points: int = MAX_FIT_POINTS
+    points_mm: npt.ArrayLike,
+    mask: npt.ArrayLike,
+    *,
+    flat_sagitta_mm: float = FLAT_SAGITTA_MM,
+    max_points: int = MAX_FIT_POINTS,
 ) -> CurvatureResult:
     """Principal radii and a per-pixel principal-curvature map of the measured surface.
 
@@ -250,7 +255,7 @@ def _curvature_map(
     coarse_mask = m[o::step, o::step]
     if n_valid <= 200_000 or not coarse_mask.any():
         qv = (pts[m] - c) @ frame.T
-        kmap = np.full((H, W, 2), np.nan, dtype=np.float32)
+        kmap: np.ndarray = np.full((H, W, 2), np.nan, dtype=np.float32)
         kmap[m] = _eig_sym2(-poly.tensor(qv[:, 0], qv[:, 1]))
     else:
         qc = (pts[o::step, o::step][coarse_mask] - c) @ frame.T

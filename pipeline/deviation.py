@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 from .io import Target
 from .registration import Registration
@@ -22,7 +23,7 @@ from .surface_fits import check_grid
 from .target_geometry import check_target, mesh_grid
 
 
-def _check_registration(registration) -> np.ndarray:
+def _check_registration(registration: Registration) -> np.ndarray:
     """``registration.T_cam_target`` checked as a finite rigid (4, 4) transform."""
     if not isinstance(registration, Registration):
         raise TypeError(f"registration: expected a Registration, got {type(registration).__name__}")
@@ -39,7 +40,9 @@ def _check_registration(registration) -> np.ndarray:
     return T
 
 
-def deviation_map(points_mm, mask, target, registration) -> np.ndarray:
+def deviation_map(
+    points_mm: npt.ArrayLike, mask: npt.ArrayLike, target: Target, registration: Registration
+) -> np.ndarray:
     """Signed deviation of the measured surface from the registered target, per pixel.
 
     Parameters
@@ -81,9 +84,9 @@ def deviation_map(points_mm, mask, target, registration) -> np.ndarray:
                 -1, 3
             )
             out[start : start + _CHUNK] = _analytic_deviation(x, tgt, cam)
-        out = out.reshape(m.shape)
-        out[~m] = np.nan
-        return out
+        dev: np.ndarray = out.reshape(m.shape)
+        dev[~m] = np.nan
+        return dev
     # Mesh: camera frame -> plate coordinates of the mesh grid in one transform, in chunks as above.
     grid = mesh_grid(tgt)
     to_plate = grid.frame @ np.hstack(
@@ -101,9 +104,9 @@ def deviation_map(points_mm, mask, target, registration) -> np.ndarray:
             ).reshape(-1, 3)
             h, slope = grid.sample(q)
             out[start : start + _MESH_CHUNK] = side * (q[:, 2] - h) * slope
-    out = out.reshape(m.shape)
-    out[~m] = np.nan
-    return out
+    dev = out.reshape(m.shape)
+    dev[~m] = np.nan
+    return dev
 
 
 _CHUNK = 1 << 16  # pixels per chunk of deviation_map's analytic shapes
@@ -119,6 +122,8 @@ def _analytic_deviation(x: np.ndarray, tgt: Target, cam: np.ndarray) -> np.ndarr
             outward = -zz
         else:
             # |p - c| - R = (|p|^2 - 2 R z) / (|p - c| + R) for c = (0, 0, R): no cancellation at large R
+            if Rt is None:
+                raise ValueError(f"target.radius_mm: a {tgt.shape} needs its radius, got none")
             r2 = xx * xx + zz * zz if tgt.shape == "cylinder" else xx * xx + yy * yy + zz * zz
             num = r2 - 2.0 * Rt * zz
             outward = num / (np.sqrt(np.maximum(num + Rt * Rt, 0.0)) + Rt)

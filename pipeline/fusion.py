@@ -32,6 +32,7 @@ from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
+import numpy.typing as npt
 
 #: Finest knot spacing of the correction spline as a fraction of the plate's larger extent in the
 #: image: at most, the stereo pair governs shape wider than about this.
@@ -46,8 +47,10 @@ KNOT_LADDER = (1.0 / 2.0, 1.0 / 4.0, 1.0 / 8.0, 1.0 / 16.0)
 RESOLVE_MM = 0.05
 #: The polynomial rungs of the ladder: a plane (scale and tilt) and a quadric (and bend) in (u, v).
 PLANE, QUADRIC = "plane", "quadric"
-_POLYNOMIAL = {PLANE: 3, QUADRIC: 6}
-_DEGREE = {PLANE: 1, QUADRIC: 2}
+#: A rung of the ladder: the plane, the quadric, or a spline of a knot spacing (fraction of the extent).
+Rung = str | float
+_POLYNOMIAL: dict[Rung, int] = {PLANE: 3, QUADRIC: 6}
+_DEGREE: dict[Rung, int] = {PLANE: 1, QUADRIC: 2}
 #: The finer corrections of the ladder fit the stereo noise too: each coefficient takes the variance of
 #: about this many blocks (noise correlated between neighbouring blocks) out of the residual.
 NOISE_CORRELATION = 2.0
@@ -175,58 +178,63 @@ def fuse_low_frequencies(
         noise_floor_mm=float(3.0 * sigma_pix / np.sqrt(per_cell) * z_typ),
         n_stereo=int(blocks.n_pixels),
         knot_spacing_px=None if fraction is None else float(grid.spacing),
-        model=rung if rung in _POLYNOMIAL else "spline",
+        model=rung if isinstance(rung, str) else "spline",
     )
 
 
 def _check_inputs(
-    depth_ps_mm, stereo_depth_mm, mask, knot_fraction
+    depth_ps_mm: npt.ArrayLike,
+    stereo_depth_mm: npt.ArrayLike,
+    mask: npt.ArrayLike,
+    knot_fraction: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The arrays of :func:`fuse_low_frequencies` checked: photometric and stereo depth float64, mask."""
     z = np.asarray(depth_ps_mm, dtype=np.float64)
     zs = np.asarray(stereo_depth_mm, dtype=np.float64)
-    mask = np.asarray(mask)
-    if z.ndim != 2 or zs.shape != z.shape or mask.shape != z.shape or mask.dtype != bool:
+    m = np.asarray(mask)
+    if z.ndim != 2 or zs.shape != z.shape or m.shape != z.shape or m.dtype != bool:
         raise ValueError(
             f"depth_ps_mm, stereo_depth_mm, mask: expected (H, W) arrays of one shape (mask bool), got "
-            f"{z.shape}, {zs.shape}, {mask.shape} {mask.dtype}"
+            f"{z.shape}, {zs.shape}, {m.shape} {m.dtype}"
         )
     if not 0 < knot_fraction <= 1:
         raise ValueError(f"knot_fraction: expected in (0, 1], got {knot_fraction}")
-    if not mask.any():
+    if not m.any():
         raise ValueError("mask: expected at least one surface pixel, got none")
-    return z, zs, mask
+    return z, zs, m
+
+
+#: One fitted rung: (rung, grid, coefficients, robust RMS, per-pixel robust sd), log depth.
+LadderFit = tuple[Rung, "_Grid", np.ndarray, float, float]
 
 
 def _ladder_fits(
     blocks: _Blocks, shape: tuple[int, int], knot_fraction: float, resolve_mm: float | None
-) -> list:
+) -> list[LadderFit]:
     """The fits ``(rung, grid, coef, rms, sigma_pix)`` of every rung of the ladder that the blocks can carry
     (``resolve_mm`` None: only the spline of ``knot_fraction``, or the finest rung the blocks carry)."""
     extent = float(max(shape))
 
-    def fit(rung):
-        grid = _Grid.over(shape, extent * (1.0 if rung in _POLYNOMIAL else rung))
+    def fit(rung: Rung) -> LadderFit | None:
+        grid = _Grid.over(shape, extent * (1.0 if isinstance(rung, str) else rung))
         if blocks.n_used < 4 * _POLYNOMIAL.get(rung, grid.size):
             return None
         return (rung, grid, *_fit(grid, blocks, degree=_DEGREE.get(rung)))
 
     if resolve_mm is None:
-        for rung in [
+        ladder: list[Rung] = [
             knot_fraction,
             *(f for f in KNOT_LADDER[::-1] if f > knot_fraction),
             QUADRIC,
             PLANE,
-        ]:
+        ]
+        for rung in ladder:
             fits = [f for f in (fit(rung),) if f is not None]
             if fits:
                 break
     else:
-        fits = [
-            f
-            for f in map(fit, [PLANE, QUADRIC, *(f for f in KNOT_LADDER if f >= knot_fraction)])
-            if f is not None
-        ]
+        rungs: list[Rung] = [PLANE, QUADRIC, *(k for k in KNOT_LADDER if k >= knot_fraction)]
+        fits = [f for f in map(fit, rungs) if f is not None]
     if not fits:
         raise ValueError(
             f"stereo_depth_mm: expected stereo depth over at least {4 * _POLYNOMIAL[PLANE]} blocks of {blocks.size} px of "
@@ -235,15 +243,17 @@ def _ladder_fits(
     return fits
 
 
-def _chosen(fits: list, blocks: _Blocks, resolve_mm: float | None, z_typ: float) -> tuple:
+def _chosen(
+    fits: list[LadderFit], blocks: _Blocks, resolve_mm: float | None, z_typ: float
+) -> LadderFit:
     """The fit taken: each is scored by its residual plus what its coefficients would take out of pure noise
     (an information criterion); the best if it is the plane, else the coarsest from the quadric on within
     ``resolve_mm`` RMS of the best score."""
     noise2 = min(f[3] for f in fits) ** 2
     slack = 0.0 if resolve_mm is None else (resolve_mm / z_typ) ** 2
 
-    def score(f):
-        return (
+    def score(f: LadderFit) -> float:
+        return float(
             f[3] ** 2
             + 2.0 * NOISE_CORRELATION * noise2 * _POLYNOMIAL.get(f[0], f[1].size) / blocks.n_used
         )
@@ -323,7 +333,7 @@ class _Blocks:
             mask[::stride, ::stride] & np.isfinite(r), r, np.inf
         )
         tiles = padded[::stride, ::stride].reshape(nbv, k, nbu, k)
-        tiles = tiles.transpose(0, 2, 1, 3).reshape(nbv, nbu, k * k)
+        tiles = tiles.transpose(0, 2, 1, 3).reshape(nbv, nbu, k * k)  # type: ignore[assignment]  # numpy's stubs keep the 4-d shape type
         have = np.isfinite(tiles)
         count = have.sum(axis=2)
         # a block's median stands for its centre only if its samples are spread around the centre
@@ -391,19 +401,20 @@ class _Grid:
         """The spline on every pixel of the box: (H, W), separably."""
         Bv = self.basis(np.arange(self.shape[0]), self.nv)
         Bu = self.basis(np.arange(self.shape[1]), self.nu)
-        return (Bv @ coef.reshape(self.nv, self.nu)) @ Bu.T
+        values: np.ndarray = (Bv @ coef.reshape(self.nv, self.nu)) @ Bu.T
+        return values
 
     def penalty(self) -> np.ndarray:
         """P^T P of the second differences of the coefficients along both grid directions (dense)."""
 
-        def dtd(n):
+        def dtd(n: int) -> np.ndarray:
             d = np.diff(np.eye(n), 2, axis=0)
             return d.T @ d
 
         return np.kron(dtd(self.nv), np.eye(self.nu)) + np.kron(np.eye(self.nv), dtd(self.nu))
 
 
-def _fit(grid: _Grid, blocks: _Blocks, *, degree: int | None):
+def _fit(grid: _Grid, blocks: _Blocks, *, degree: int | None) -> tuple[np.ndarray, float, float]:
     """Robust penalised least squares of the spline to the block medians (weights: pixel counts).
 
     With ``degree`` (1 or 2) the correction is a polynomial of that degree in (u, v) (scale and tilt;
@@ -462,7 +473,9 @@ def _fit(grid: _Grid, blocks: _Blocks, *, degree: int | None):
 
 
 @nb.njit(cache=True, parallel=True)
-def _compose(z, c, mask, fused, correction) -> None:
+def _compose(
+    z: np.ndarray, c: np.ndarray, mask: np.ndarray, fused: np.ndarray, correction: np.ndarray
+) -> None:
     """fused = z exp(c) and correction = fused - z on the mask (left NaN elsewhere), in place."""
     h, w = mask.shape
     for i in nb.prange(h):

@@ -40,12 +40,22 @@ solver is already apart (:mod:`pipeline.solvers`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numba as nb
 import numpy as np
+import numpy.typing as npt
 import scipy.ndimage
 
 from .solvers import solve_grid_system
+
+#: An array argument of the kernels (their dtypes are set by the callers).
+Arr = npt.NDArray[Any]
+#: The normal equations on the padded grid: (ex, ey, wd, dg, idg) float32 and b float64.
+System = tuple[Arr, Arr, Arr, Arr, Arr, Arr]
+#: Parts of the mask a prior does not reach: (labels, number of parts, parts without a prior,
+#: has_prior per label).
+Floating = tuple[Arr, int, int, Arr]
 
 __all__ = ["DepthResult", "HeightResult", "integrate_gradient", "integrate_normals"]
 
@@ -106,7 +116,9 @@ class HeightResult:
 
 
 @nb.njit(cache=True, parallel=True)
-def _log_depth_gradients(normals, mask, kinv, unit_tol, p, q):
+def _log_depth_gradients(
+    normals: Arr, mask: Arr, kinv: Arr, unit_tol: float, p: Arr, q: Arr
+) -> int:
     """p = d(log z)/du, q = d(log z)/dv on the mask (0 outside); returns the count of unusable normals."""
     h, w = mask.shape
     bad = 0
@@ -140,7 +152,20 @@ def _log_depth_gradients(normals, mask, kinv, unit_tol, p, q):
 
 
 @nb.njit(cache=True, parallel=True)
-def _fine_system(mask, p, q, wd, prior, shift, ex, ey, wdp, dg, idg, b) -> None:
+def _fine_system(
+    mask: Arr,
+    p: Arr,
+    q: Arr,
+    wd: Arr,
+    prior: Arr,
+    shift: float,
+    ex: Arr,
+    ey: Arr,
+    wdp: Arr,
+    dg: Arr,
+    idg: Arr,
+    b: Arr,
+) -> None:
     """The normal equations on the padded grid from (H, W) inputs.
 
     Edge (a, c) with c the right/lower neighbour of a: x_c - x_a = (g_a + g_c) / 2; prior term
@@ -179,7 +204,7 @@ def _fine_system(mask, p, q, wd, prior, shift, ex, ey, wdp, dg, idg, b) -> None:
                 idg[i + 1, j + 1] = 1.0 / d
 
 
-def _assemble(mask, p, q, wd, log_prior, shift):
+def _assemble(mask: Arr, p: Arr, q: Arr, wd: Arr, log_prior: Arr, shift: float) -> System:
     """The normal equations on the padded grid: (ex, ey, wd, dg, idg) float32 and b float64."""
     h, w = mask.shape
     ex, ey, wdp, dg, idg = (np.zeros((h + 2, w + 2), np.float32) for _ in range(5))
@@ -188,18 +213,18 @@ def _assemble(mask, p, q, wd, log_prior, shift):
     return ex, ey, wdp, dg, idg, b
 
 
-def _check_mask(mask, shape_hw, name="mask") -> np.ndarray:
-    mask = np.asarray(mask)
-    if mask.shape != shape_hw:
-        raise ValueError(f"{name}: expected shape {shape_hw}, got {mask.shape}")
-    if mask.dtype != np.bool_:
-        raise ValueError(f"{name}: expected dtype bool, got {mask.dtype}")
-    if not mask.any():
+def _check_mask(mask: npt.ArrayLike, shape_hw: tuple[int, ...], name: str = "mask") -> Arr:
+    m: Arr = np.asarray(mask)
+    if m.shape != shape_hw:
+        raise ValueError(f"{name}: expected shape {shape_hw}, got {m.shape}")
+    if m.dtype != np.bool_:
+        raise ValueError(f"{name}: expected dtype bool, got {m.dtype}")
+    if not m.any():
         raise ValueError(f"{name}: expected at least one valid (True) pixel, got none")
-    return mask
+    return m
 
 
-def _check_options(tol, max_iter) -> None:
+def _check_options(tol: float, max_iter: int) -> None:
     if not (np.isfinite(tol) and 0.0 < tol < 1.0):
         raise ValueError(f"tol: expected a relative residual in (0, 1), got {tol}")
     if int(max_iter) != max_iter or max_iter < 1:
@@ -285,20 +310,28 @@ def integrate_normals(
     return DepthResult(depth_mm=depth, mask=result_mask, iterations=it, residual=rel)
 
 
-def _check_normals_inputs(normals, mask, K, prior_depth_mm, reference_depth_mm, tol, max_iter):
+def _check_normals_inputs(
+    normals: npt.ArrayLike,
+    mask: npt.ArrayLike,
+    K: npt.ArrayLike,
+    prior_depth_mm: npt.ArrayLike | None,
+    reference_depth_mm: float | None,
+    tol: float,
+    max_iter: int,
+) -> tuple[Arr, Arr, Arr]:
     """The arguments of :func:`integrate_normals` checked: (normals, mask, K) as contiguous arrays."""
-    normals = np.asarray(normals)
-    if normals.ndim != 3 or normals.shape[2] != 3:
-        raise ValueError(f"normals: expected shape (H, W, 3), got {normals.shape}")
-    if normals.dtype not in (np.float32, np.float64):
-        raise ValueError(f"normals: expected dtype float32 or float64, got {normals.dtype}")
-    mask = _check_mask(mask, normals.shape[:2])
-    K = np.asarray(K, dtype=np.float64)
-    if K.shape != (3, 3) or not np.all(np.isfinite(K)):
-        raise ValueError(f"K: expected a finite (3, 3) matrix, got shape {K.shape}")
-    if K[0, 0] <= 0 or K[1, 1] <= 0 or K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
+    n = np.asarray(normals)
+    if n.ndim != 3 or n.shape[2] != 3:
+        raise ValueError(f"normals: expected shape (H, W, 3), got {n.shape}")
+    if n.dtype not in (np.float32, np.float64):
+        raise ValueError(f"normals: expected dtype float32 or float64, got {n.dtype}")
+    m = _check_mask(mask, n.shape[:2])
+    k = np.asarray(K, dtype=np.float64)
+    if k.shape != (3, 3) or not np.all(np.isfinite(k)):
+        raise ValueError(f"K: expected a finite (3, 3) matrix, got shape {k.shape}")
+    if k[0, 0] <= 0 or k[1, 1] <= 0 or k[1, 0] != 0 or k[2, 0] != 0 or k[2, 1] != 0 or k[2, 2] != 1:
         raise ValueError(
-            f"K: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, got {K.tolist()}"
+            f"K: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, got {k.tolist()}"
         )
     _check_options(tol, max_iter)
     if reference_depth_mm is not None and not (
@@ -311,10 +344,10 @@ def _check_normals_inputs(normals, mask, K, prior_depth_mm, reference_depth_mm, 
         raise ValueError(
             "prior_depth_mm, reference_depth_mm: expected at least one to fix the scale of the depth, got neither"
         )
-    return np.ascontiguousarray(normals), np.ascontiguousarray(mask), K
+    return np.ascontiguousarray(n), np.ascontiguousarray(m), k
 
 
-def _gradients(normals, mask, K):
+def _gradients(normals: Arr, mask: Arr, K: Arr) -> tuple[Arr, Arr]:
     """The log-depth gradients p = d(log z)/du, q = d(log z)/dv (H, W) float64 of the normals on the mask."""
     p = np.empty(mask.shape)
     q = np.empty(mask.shape)
@@ -327,7 +360,9 @@ def _gradients(normals, mask, K):
     return p, q
 
 
-def _metric_depth(x, mask, shift, floating, reference_depth_mm):
+def _metric_depth(
+    x: Arr, mask: Arr, shift: float, floating: Floating | None, reference_depth_mm: float | None
+) -> tuple[Arr, Arr]:
     """The depth (mm) of the solved log depth ``x`` and the mask of the pixels that have one.
 
     Parts of the mask without a prior pixel (``floating``, see :func:`_integrate`) are scaled to
@@ -403,6 +438,8 @@ def integrate_gradient(
     wd = np.zeros(grad_u.shape, np.float32)
     system = _assemble(mask, p, q, wd, np.zeros(grad_u.shape), 0.0)
     x, it, rel, floating = _integrate(mask, system, wd, tol=tol, max_iter=max_iter)
+    if floating is None:
+        raise RuntimeError("integrate_gradient: without a prior every part floats, got none")
     labels, n = floating[0], floating[1]
     sums = np.bincount(labels.ravel(), weights=x.ravel(), minlength=n + 1)
     counts = np.bincount(labels.ravel(), minlength=n + 1)
@@ -413,7 +450,9 @@ def integrate_gradient(
     return HeightResult(height=x, mask=mask.copy(), iterations=it, residual=rel)
 
 
-def _prior_terms(prior_depth_mm, prior_weight, mask):
+def _prior_terms(
+    prior_depth_mm: npt.ArrayLike | None, prior_weight: npt.ArrayLike, mask: Arr
+) -> tuple[Arr, Arr, float, int]:
     """Prior weights ``wd`` (H, W) float32 (0 where no prior is used), log prior (H, W) float64, a
     shift (the median log prior of a subsample) that centres the unknowns, and the count of pixels
     with a prior."""
@@ -451,7 +490,9 @@ def _prior_terms(prior_depth_mm, prior_weight, mask):
 
 
 @nb.njit(cache=True, parallel=True)
-def _prior_arrays(mask, prior, weight, wd, log_prior):
+def _prior_arrays(
+    mask: Arr, prior: Arr, weight: Arr, wd: Arr, log_prior: Arr
+) -> tuple[int, int, int]:
     """wd = weight and log_prior = log(prior) where the mask and a prior are given (0 elsewhere);
     ``weight`` is (1, 1) for a scalar. Returns the counts of bad priors, of bad weights and of the
     pixels with a prior."""
@@ -482,7 +523,9 @@ def _prior_arrays(mask, prior, weight, wd, log_prior):
     return bad_prior, bad_weight, used
 
 
-def _integrate(mask, system, wd, *, tol, max_iter):
+def _integrate(
+    mask: Arr, system: System, wd: Arr, *, tol: float, max_iter: int
+) -> tuple[Arr, int, float, Floating | None]:
     """Solve and find the parts without prior; returns (x, iterations, residual, floating) with
     ``x`` (H, W) float64 (a view) and ``floating = (labels, n, n_floating, has_prior)`` describing
     the connected parts of the mask that have no prior pixel, or None when every part has one."""
@@ -496,7 +539,7 @@ def _integrate(mask, system, wd, *, tol, max_iter):
 
 
 @nb.njit(cache=True)
-def _parts_with_prior(labels, wd, n):
+def _parts_with_prior(labels: Arr, wd: Arr, n: int) -> Arr:
     out = np.zeros(n + 1, np.bool_)
     h, w = labels.shape
     for i in range(h):
@@ -507,7 +550,7 @@ def _parts_with_prior(labels, wd, n):
 
 
 @nb.njit(cache=True, parallel=True)
-def _exp_depth(x, mask, shift, depth) -> None:
+def _exp_depth(x: Arr, mask: Arr, shift: float, depth: Arr) -> None:
     """depth = exp(x + shift) on the mask, NaN elsewhere."""
     h, w = mask.shape
     for i in nb.prange(h):
@@ -516,7 +559,7 @@ def _exp_depth(x, mask, shift, depth) -> None:
 
 
 @nb.njit(cache=True)
-def _gather(values, labels, label, out):
+def _gather(values: Arr, labels: Arr, label: int | np.integer[Any], out: Arr) -> int:
     """The values of the cells with ``labels == label`` (label -1: every cell with label > 0), in
     row-major order; returns how many."""
     k = 0
@@ -531,7 +574,7 @@ def _gather(values, labels, label, out):
 
 
 @nb.njit(cache=True)
-def _scale_parts(depth, labels, factor) -> None:
+def _scale_parts(depth: Arr, labels: Arr, factor: Arr) -> None:
     """depth *= factor[label] on the cells with label > 0."""
     h, w = labels.shape
     for i in range(h):
@@ -541,7 +584,15 @@ def _scale_parts(depth, labels, factor) -> None:
                 depth[i, j] *= factor[lab]
 
 
-def _scale_to_median(depth, mask, labels, n, n_floating, has_prior, reference) -> None:
+def _scale_to_median(
+    depth: Arr,
+    mask: Arr,
+    labels: Arr,
+    n: int,
+    n_floating: int,
+    has_prior: Arr,
+    reference: float,
+) -> None:
     """Scale each part of the mask without prior so that its median depth is ``reference``, in place."""
     factor = np.ones(n + 1)
     if n == 1:

@@ -8,14 +8,19 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numba
 import numpy as np
+import numpy.typing as npt
 
 from .formats import CaptureError
 from .io import Capture
 from .parallel import default_workers
+
+#: An array argument of the kernels (their dtypes are set by the callers).
+Arr = npt.NDArray[Any]
 
 #: A raw sample at or above this fraction of full scale counts as saturated.
 SATURATION_FRACTION = 0.98
@@ -157,7 +162,7 @@ def preprocess(
 
 
 @numba.njit(parallel=True, cache=True)
-def _brightest(images, out) -> None:
+def _brightest(images: Arr, out: Arr) -> None:
     """out (H, W) = the brightest of the N images (N, H, W) at each pixel."""
     n, h, w = images.shape
     for i in numba.prange(h):
@@ -169,7 +174,16 @@ def _brightest(images, out) -> None:
 
 
 @numba.njit(parallel=True, cache=True)
-def _validity(images, brightest, saturated, use_saturated, seen, mask, shadow_fraction, valid):
+def _validity(
+    images: Arr,
+    brightest: Arr,
+    saturated: Arr,
+    use_saturated: bool,
+    seen: Arr,
+    mask: Arr,
+    shadow_fraction: float | np.floating[Any],
+    valid: Arr,
+) -> tuple[int, int]:
     """valid (N, H, W) = lit (not darker than shadow_fraction * brightest), not saturated, seen.
 
     Returns (samples inside ``mask`` that are lit and not saturated, saturated samples inside
@@ -264,4 +278,5 @@ def _fill_holes(mask: np.ndarray) -> np.ndarray:
     framed = np.zeros((h + 2, w + 2), np.uint8)
     framed[1:-1, 1:-1] = mask
     cv2.floodFill(framed, None, (0, 0), 2, flags=4)
-    return framed[1:-1, 1:-1] != 2
+    inside: npt.NDArray[np.bool_] = framed[1:-1, 1:-1] != 2
+    return inside

@@ -19,6 +19,7 @@ Normals that still face away from their pixel's ray are filled from their neighb
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -111,6 +112,10 @@ def integrate_and_fuse(
         mask = depth.mask & np.isfinite(depth.depth_mm)
         fused = fusion.fuse_low_frequencies(depth.depth_mm, prior_mm, mask)
         return fused.depth_mm, mask, field, fused, dropped
+    if working_distance_mm is None:
+        raise ValueError(
+            "working_distance_mm: expected a distance without a stereo prior, got none"
+        )
     depth = integration.integrate_normals(
         field.normals, field.mask, K, reference_depth_mm=working_distance_mm, tol=tol
     )
@@ -118,7 +123,7 @@ def integrate_and_fuse(
     return z, depth.mask & np.isfinite(z), field, None, dropped
 
 
-def distant_surface(field: normals.NormalField, K: np.ndarray, **kwargs) -> Surface:
+def distant_surface(field: normals.NormalField, K: np.ndarray, **kwargs: Any) -> Surface:
     """The surface of normals estimated under distant lights (see :func:`integrate_and_fuse` for kwargs)."""
     depth, mask, field, fused, dropped = integrate_and_fuse(field, K, **kwargs)
     return Surface(depth, mask, field, fused, 1, (), dropped)
@@ -177,8 +182,12 @@ def near_field_surface(
         start = start_mm
     elif prior_mm is not None:
         start = fusion.smooth_stereo_depth(prior_mm, mask)
-    else:
+    elif working_distance_mm is not None:
         start = np.where(mask, float(working_distance_mm), np.nan)
+    else:
+        raise ValueError(
+            "working_distance_mm: expected a distance without a stereo prior, got none"
+        )
     _check_lights_in_front(lights, start, mask)
     depth = np.where(mask, start, np.nan)
     steps: list[float] = []
@@ -208,6 +217,8 @@ def near_field_surface(
         depth = new_depth
         if step < step_tol_mm:
             break
+    if field is None:
+        raise ValueError(f"max_iterations: expected at least 1, got {max_iterations}")
     return Surface(depth, surface_mask, field, fused, it, tuple(steps), dropped)
 
 
@@ -260,7 +271,7 @@ def remeasure_with_refined_lights(
     # the images were divided by the given intensities: by the refined ones instead
     gain = (lights.intensity / refined.lights.intensity).astype(np.float32)
     scaled = images * gain[:, None, None]
-    solve = dict(
+    solve: dict[str, Any] = dict(
         prior_mm=prior_mm,
         working_distance_mm=working_distance_mm,
         stereo_weight=stereo_weight,
@@ -276,7 +287,9 @@ def remeasure_with_refined_lights(
         )
         second = distant_surface(field, K, **solve)
     better = (
-        second.fusion is not None and second.fusion.disagreement_mm < first.fusion.disagreement_mm
+        second.fusion is not None
+        and first.fusion is not None
+        and second.fusion.disagreement_mm < first.fusion.disagreement_mm
     )
     return replace(second if better else first, refinement=refined)
 

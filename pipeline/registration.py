@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
@@ -72,7 +73,9 @@ def _pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return T
 
 
-def _in_plane_x(points: np.ndarray, z: np.ndarray, size_mm) -> np.ndarray:
+def _in_plane_x(
+    points: np.ndarray, z: np.ndarray, size_mm: tuple[float, float] | list[float]
+) -> np.ndarray:
     """Target x axis in the plane normal to ``z``: along the side of the measured footprint's
     minimum-area rectangle that matches ``size_mm[0]`` (a square: the side nearer the camera's x),
     with ``x_cam >= 0``. The footprint's outline, unlike its principal direction, stays put when the
@@ -93,13 +96,16 @@ def _in_plane_x(points: np.ndarray, z: np.ndarray, size_mm) -> np.ndarray:
     else:
         i_long = int(np.argmax(lengths))
         x = sides[i_long] if long_first else sides[1 - i_long]
-    return -x if x[0] < 0 else x
+    facing: np.ndarray = -x if x[0] < 0 else x
+    return facing
 
 
 # --------------------------------------------------------------------------- registration
 
 
-def fitted_target_radius(points_mm, mask, target) -> float | None:
+def fitted_target_radius(
+    points_mm: npt.ArrayLike, mask: npt.ArrayLike, target: Target
+) -> float | None:
     """Radius of the target's own shape fitted, radius free, to the measured surface (``radius_mm`` of the result).
 
     Parameters
@@ -124,7 +130,9 @@ def fitted_target_radius(points_mm, mask, target) -> float | None:
     return None
 
 
-def register_to_target(points_mm, mask, target) -> Registration:
+def register_to_target(
+    points_mm: npt.ArrayLike, mask: npt.ArrayLike, target: Target
+) -> Registration:
     """Best-fit rigid registration of the measured surface to the target.
 
     Parameters
@@ -168,16 +176,17 @@ def register_to_target(points_mm, mask, target) -> Registration:
         n, p0, _, _, rms, _ = fit_curved(
             sample, cylinder=False, radius_mm=None, max_points=MAX_FIT_POINTS, curvature_per_mm=0.0
         )
-        fitted: tuple = (n, p0)
-        convex = None
+        fitted: tuple[np.ndarray, ...] = (n, p0)
+        convex: bool | None = None
+        k_free: float | None = None
     elif tgt.shape == "cylinder":
-        fit = fit_cylinder(sample, radius_mm=tgt.radius_mm)
-        fitted = (fit.axis, fit.point_on_axis_mm)
-        rms, convex, k_free = fit.rms_mm, fit.convex_towards_camera, fit.free_curvature_per_mm
+        cyl = fit_cylinder(sample, radius_mm=tgt.radius_mm)
+        fitted = (cyl.axis, cyl.point_on_axis_mm)
+        rms, convex, k_free = cyl.rms_mm, cyl.convex_towards_camera, cyl.free_curvature_per_mm
     else:  # sphere
-        fit = fit_sphere(sample, radius_mm=tgt.radius_mm)
-        fitted = (fit.center_mm,)
-        rms, convex, k_free = fit.rms_mm, fit.convex_towards_camera, fit.free_curvature_per_mm
+        sph = fit_sphere(sample, radius_mm=tgt.radius_mm)
+        fitted = (sph.center_mm,)
+        rms, convex, k_free = sph.rms_mm, sph.convex_towards_camera, sph.free_curvature_per_mm
     # The frame at the pixels' centroid, then again at the centre of the plate's footprint in it: the
     # pixels' centroid leans towards the side nearer the camera (more pixels per mm^2 there).
     x, z, origin = _frame_at(tgt, fitted, sample, sample.mean(axis=0))
@@ -186,7 +195,11 @@ def register_to_target(points_mm, mask, target) -> Registration:
     )
     y = np.cross(z, x)
     R = np.stack([x, y, z], axis=1)
-    free_radius = None if convex is None else (abs(1.0 / k_free) if k_free != 0 else math.inf)
+    free_radius = (
+        None
+        if convex is None or k_free is None
+        else (abs(1.0 / k_free) if k_free != 0 else math.inf)
+    )
     return Registration(
         T_cam_target=_pose(R, origin),
         shape=tgt.shape,
@@ -197,7 +210,7 @@ def register_to_target(points_mm, mask, target) -> Registration:
 
 
 def _frame_at(
-    tgt: Target, fitted: tuple, sample: np.ndarray, centre: np.ndarray
+    tgt: Target, fitted: tuple[np.ndarray, ...], sample: np.ndarray, centre: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Target axes x, z and origin on the fitted plane / cylinder / sphere nearest ``centre``."""
     if tgt.shape == "plane":
@@ -223,7 +236,8 @@ def _footprint_centre(
     d = sample - origin
     lo_x, hi_x = np.percentile(d @ x, [0.5, 99.5])
     lo_y, hi_y = np.percentile(d @ y, [0.5, 99.5])
-    return origin + 0.5 * (lo_x + hi_x) * x + 0.5 * (lo_y + hi_y) * y
+    centre: np.ndarray = origin + 0.5 * (lo_x + hi_x) * x + 0.5 * (lo_y + hi_y) * y
+    return centre
 
 
 def _register_mesh(sample: np.ndarray, target: Target) -> Registration:
@@ -259,11 +273,11 @@ def _register_mesh(sample: np.ndarray, target: Target) -> Registration:
         dist, _ = tree.query(icp_pts @ R0.T + T0[:3, 3])
         scored.append((float(np.mean(dist)), T0))
     scored.sort(key=lambda item: item[0])
-    best = None
+    best: tuple[np.ndarray, float] | None = None
     # ICP from the four best starts: a saddle turned upside down and by 90 deg is nearly itself (R1 ~ R2), and
     # such near-symmetric poses can score better before ICP than the true one
     for _, T0 in scored[:ICP_STARTS]:
-        T, _, cost = trimesh.registration.icp(
+        T, _, cost = trimesh.registration.icp(  # type: ignore[no-untyped-call]  # trimesh is untyped
             icp_pts,
             target_pts,
             initial=T0,
@@ -274,6 +288,8 @@ def _register_mesh(sample: np.ndarray, target: Target) -> Registration:
         )
         if best is None or cost < best[1]:
             best = (T, cost)
+    if best is None:
+        raise ValueError(f"target: no start pose for the mesh among {len(scored)}")
     T_target_cam = _refine_mesh_pose(best[0], sample, grid)
     rms = _mesh_rms(T_target_cam, sample, grid)
     return Registration(
@@ -290,7 +306,8 @@ def _mesh_residuals(
     x_t = pts @ T_target_cam[:3, :3].T + T_target_cam[:3, 3]
     q = (x_t - grid.origin) @ grid.frame.T
     h, s = grid.sample(q, filled=filled)
-    return (q[:, 2] - h) * s
+    residuals: np.ndarray = (q[:, 2] - h) * s
+    return residuals
 
 
 def _refine_mesh_pose(T0: np.ndarray, pts: np.ndarray, grid: MeshGrid) -> np.ndarray:
@@ -301,13 +318,13 @@ def _refine_mesh_pose(T0: np.ndarray, pts: np.ndarray, grid: MeshGrid) -> np.nda
     centre = x0.mean(axis=0)
     hold = 1e-2 * math.sqrt(pts.shape[0])
 
-    def pose(p):
+    def pose(p: np.ndarray) -> np.ndarray:
         Rs = Rotation.from_rotvec(p[:3]).as_matrix()
         R = Rs @ T0[:3, :3]
         t = Rs @ (T0[:3, 3] - centre) + centre + p[3:]
         return _pose(R, t)
 
-    def fun(p):
+    def fun(p: np.ndarray) -> np.ndarray:
         r = _mesh_residuals(pose(p), pts, grid, filled=True)
         return np.concatenate([r, hold * (grid.frame[:2] @ p[3:])])
 

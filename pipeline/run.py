@@ -14,6 +14,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -72,17 +73,17 @@ class InspectionResult:
     out_dir : Path
     """
 
-    document: dict
+    document: dict[str, Any]
     out_dir: Path
 
     @property
     def verdict(self) -> str:
-        return self.document["verdict"]
+        return str(self.document["verdict"])
 
 
 def inspect(
     capture: Capture | str | Path,
-    target: Target | dict | str | Path,
+    target: Target | dict[str, Any] | str | Path,
     *,
     out_dir: str | Path,
     progress: ProgressCallback | None = None,
@@ -138,7 +139,12 @@ def inspect(
 
 
 def _inspect(
-    capture, target, out: Path, clock: StageClock, opts: InspectOptions, light_calibration
+    capture: Capture | str | Path,
+    target: Target | dict[str, Any] | str | Path,
+    out: Path,
+    clock: StageClock,
+    opts: InspectOptions,
+    light_calibration: Lights | None,
 ) -> InspectionResult:
     """:func:`inspect` inside its BLAS limit and error handling: every stage, then the two documents."""
     warnings: list[str] = []
@@ -234,7 +240,7 @@ def _warnings(surface: reconstruct.Surface, tgt: Target, details: Details) -> li
 
 def _result_document(
     cap: Capture, tgt: Target, m: Measurement, warnings: list[str], clock: StageClock
-) -> dict:
+) -> dict[str, Any]:
     """The ``plate-result/1`` document of a measured plate (``warnings`` only when there are some)."""
     # the registration fits the target's shape radius-free on its way (= registration.fitted_target_radius)
     fitted_radius = m.pose.fitted_radius_mm
@@ -291,10 +297,16 @@ def warm_up() -> float:
     return time.perf_counter() - t
 
 
-def _write_error_result(out: Path, capture, target, err: Exception, clock: StageClock) -> None:
+def _write_error_result(
+    out: Path,
+    capture: Capture | str | Path,
+    target: Target | dict[str, Any] | str | Path,
+    err: Exception,
+    clock: StageClock,
+) -> None:
     """Write a ``plate-result/1`` with verdict ``error`` saying why the capture could not be measured."""
     plate_id = capture.plate_id if isinstance(capture, Capture) else None
-    if plate_id is None:
+    if plate_id is None and not isinstance(capture, Capture):
         try:
             plate_id = load_capture(capture).plate_id
         except Exception:

@@ -13,9 +13,10 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -176,7 +177,11 @@ class Measurement:
 
 
 def load_inputs(
-    capture, target, light_calibration, warnings: list[str], clock: StageClock
+    capture: Capture | str | Path,
+    target: Target | dict[str, Any] | str | Path,
+    light_calibration: Lights | None,
+    warnings: list[str],
+    clock: StageClock,
 ) -> tuple[Capture, Target]:
     """Stage *load*: the capture (with ``light_calibration`` applied, see :func:`pipeline.run.inspect`) and the target.
 
@@ -200,7 +205,7 @@ def preprocess_scene(cap: Capture, opts: InspectOptions, clock: StageClock) -> S
     clock.begin("preprocess")
     pre = preprocess(cap, workers=opts.workers)
     candidates = (
-        segmentation.candidate_mask(pre.brightest, seen=pre.seen) if cap.has_stereo else pre.mask
+        segmentation.candidate_mask(_brightest(pre), seen=pre.seen) if cap.has_stereo else pre.mask
     )
     plain_outline = cap.has_stereo and segmentation.plain_outline(pre.mask, candidates)
     region = pre.mask if plain_outline else candidates
@@ -259,7 +264,7 @@ def measure(
 
 
 def _plate(
-    stereo_job,
+    stereo_job: Future[tuple[np.ndarray, float, int]] | None,
     scene: Scene,
     field: normals.NormalField | None,
     K: np.ndarray,
@@ -285,6 +290,7 @@ def _plate(
     if depth_c is not None and not plain:
         seg = _segment(pre, depth_c, K, scene.candidates, depth_scale, field, tgt)
     mask = pre.mask if seg is None else seg.mask
+    prior: np.ndarray | None
     if seg is not None:
         prior = seg.stereo_prior(depth_c)
     else:
@@ -309,7 +315,11 @@ def _plate(
 def _check_stereo_share(plate: Plate, cap: Capture, opts: InspectOptions) -> None:
     """Too little of the plate matched in the stereo pair to trust it: the working distance sets the scale
     (the prior is dropped; details.json says so), or the capture cannot be measured without one."""
-    if plate.prior is not None and plate.matched_pct < opts.min_stereo_pct:
+    if (
+        plate.prior is not None
+        and plate.matched_pct is not None
+        and plate.matched_pct < opts.min_stereo_pct
+    ):
         if cap.working_distance_mm is None:
             raise CaptureError(
                 f"{cap.source}: stereo: {plate.matched_pct:.1f} % of the plate matched in the stereo pair, expected "
@@ -330,7 +340,7 @@ def _surface(
     """Stages *normals* (point lights) and *depth*: the metric surface, with the lights refitted on the stereo
     geometry when they bend it away from the stereo pair's (``plate`` then holds the segmented plate)."""
     pre, K = scene.pre, cap.rig.left.K
-    solve = dict(
+    solve: dict[str, Any] = dict(
         prior_mm=plate.prior,
         working_distance_mm=cap.working_distance_mm,
         stereo_weight=opts.stereo_weight,
@@ -353,6 +363,8 @@ def _surface(
         clock.begin("depth")
         return surface
     clock.begin("depth")
+    if field is None:
+        raise ValueError("normals: distant lights need the normals estimated before the surface")
     surface = reconstruct.distant_surface(field, K, **solve)
     if plate.prior is None or not reconstruct.disagrees(
         surface, tgt.tolerance_mm, DISAGREEMENT_FRACTION
@@ -391,7 +403,7 @@ def _judge(
     K: np.ndarray,
     out: Path,
     pool: ThreadPoolExecutor,
-    writes: list,
+    writes: list[Future[Any]],
     clock: StageClock,
 ) -> Measurement:
     """Stages *curvature*, *deviation* and *artifacts* (its files but details.json): curvature and the pixel
@@ -461,7 +473,7 @@ def _write_deviation(
     mask: np.ndarray,
     dev: np.ndarray,
     tolerance_mm: float,
-) -> list:
+) -> list[Future[Any]]:
     """Submit the writes of surface.ply and deviation.png (the deviation known); their futures."""
     return [
         pool.submit(
@@ -498,7 +510,7 @@ def _apply_light_calibration(
     return replace(cap, lights=calibration)
 
 
-def _curvature(points: np.ndarray, mask: np.ndarray):
+def _curvature(points: np.ndarray, mask: np.ndarray) -> tuple[curvature.CurvatureResult, float]:
     """Principal curvatures and their run time (s)."""
     t = time.perf_counter()
     curv = curvature.principal_curvatures(points, mask)
@@ -513,6 +525,8 @@ def _stereo_depth(
     t = time.perf_counter()
     z_nominal = cap.working_distance_mm or NOMINAL_DISTANCE_MM
     left, right, rig, stereo_mask = cap.stereo_left, cap.stereo_right, cap.rig, mask
+    if left is None or right is None:
+        raise ValueError("capture: the stereo pair is needed for stereo depth, got none")
     width, height = rig.image_size
     step = -(-width // opts.stereo_max_width)  # the smallest whole reduction that fits
     if step > 1:
@@ -537,10 +551,18 @@ def _stereo_depth(
     return np.where(mask, depth, np.nan), round(time.perf_counter() - t, 4), step
 
 
-def _segment(pre, depth_mm, K, candidates, depth_scale, field, tgt):
+def _segment(
+    pre: Preprocessed,
+    depth_mm: np.ndarray,
+    K: np.ndarray,
+    candidates: np.ndarray,
+    depth_scale: int,
+    field: normals.NormalField | None,
+    tgt: Target,
+) -> segmentation.Segmentation:
     """The plate told from its surroundings (:func:`pipeline.segmentation.segment_plate`)."""
     return segmentation.segment_plate(
-        pre.brightest,
+        _brightest(pre),
         depth_mm,
         K,
         seen=pre.seen,
@@ -549,6 +571,13 @@ def _segment(pre, depth_mm, K, candidates, depth_scale, field, tgt):
         normals=None if field is None else field.normals,  # NaN off the field's mask (NormalField)
         target_area_mm2=target_geometry.target_area_mm2(tgt),
     )
+
+
+def _brightest(pre: Preprocessed) -> np.ndarray:
+    """The brightest image of the photometric set (preprocess always computes it)."""
+    if pre.brightest is None:
+        raise ValueError("preprocess: the brightest image is missing")
+    return pre.brightest
 
 
 def _restricted(field: normals.NormalField, mask: np.ndarray) -> normals.NormalField:
@@ -577,4 +606,5 @@ def _pixel_area_mm2(
     """
     n_dot_r = np.abs(np.einsum("hwc,hwc->hw", normals, rays))
     with np.errstate(divide="ignore", invalid="ignore"):
-        return depth_mm**2 / (K[0, 0] * K[1, 1] * n_dot_r)
+        area: np.ndarray = depth_mm**2 / (K[0, 0] * K[1, 1] * n_dot_r)
+    return area

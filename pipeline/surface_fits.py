@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
+import numpy.typing as npt
 
 from .solvers import robust_gauss_newton, robust_scale
 
@@ -154,7 +155,9 @@ class CurvedFit(NamedTuple):
 # --------------------------------------------------------------------------- input checks
 
 
-def _check_points(points_mm, *, name: str = "points_mm", min_points: int) -> np.ndarray:
+def _check_points(
+    points_mm: npt.ArrayLike, *, name: str = "points_mm", min_points: int
+) -> np.ndarray:
     pts = np.asarray(points_mm, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"{name}: expected shape (M, 3), got {pts.shape}")
@@ -166,7 +169,7 @@ def _check_points(points_mm, *, name: str = "points_mm", min_points: int) -> np.
     return pts
 
 
-def _check_radius(radius_mm) -> float | None:
+def _check_radius(radius_mm: float | None) -> float | None:
     if radius_mm is None:
         return None
     r = float(radius_mm)
@@ -177,7 +180,9 @@ def _check_radius(radius_mm) -> float | None:
     return r
 
 
-def check_grid(points_mm, mask, *, min_points: int = 10) -> tuple[np.ndarray, np.ndarray]:
+def check_grid(
+    points_mm: npt.ArrayLike, mask: npt.ArrayLike, *, min_points: int = 10
+) -> tuple[np.ndarray, np.ndarray]:
     """Check a measured surface grid and return it as float64 points and a bool mask.
 
     Parameters
@@ -236,7 +241,8 @@ def grid_sample(points_mm: np.ndarray, mask: np.ndarray, max_points: int) -> np.
     """
     n = int(np.count_nonzero(mask))
     step = max(1, int(math.floor(math.sqrt(n / max_points))))
-    return points_mm[::step, ::step][mask[::step, ::step]]
+    sample: np.ndarray = points_mm[::step, ::step][mask[::step, ::step]]
+    return sample
 
 
 def _subsample(pts: np.ndarray, max_points: int) -> np.ndarray:
@@ -267,7 +273,8 @@ def local_quadric(q: np.ndarray) -> np.ndarray:
     A = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=1)
     scale = np.abs(A).max(axis=0)
     coef, *_ = np.linalg.lstsq(A / scale, q[:, 2], rcond=None)
-    return coef / scale
+    scaled: np.ndarray = coef / scale
+    return scaled
 
 
 def _orthonormal_pair(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -284,13 +291,14 @@ def _signed_distance(w: np.ndarray, n: np.ndarray, k: float, axis: np.ndarray | 
     if axis is not None:
         w = w - np.outer(w @ axis, axis)
     g = k * np.einsum("ij,ij->i", w, w) - 2.0 * (w @ n)
-    return g / (1.0 + np.sqrt(np.maximum(1.0 + k * g, 0.0)))
+    sag: np.ndarray = g / (1.0 + np.sqrt(np.maximum(1.0 + k * g, 0.0)))
+    return sag
 
 
 # --------------------------------------------------------------------------- plane
 
 
-def fit_plane(points_mm) -> PlaneFit:
+def fit_plane(points_mm: npt.ArrayLike) -> PlaneFit:
     """Least-squares (total least squares) plane through 3-D points.
 
     Parameters
@@ -427,7 +435,8 @@ class _CurvedModel:
             wn = wa[:, 0]
             s2 = self.ww - wa[:, 1] * wa[:, 1] - 2.0 * t * wn + t * t
         g = k * s2 - 2.0 * (wn - t)
-        return g / (1.0 + np.sqrt(np.maximum(1.0 + k * g, 0.0)))
+        sag: np.ndarray = g / (1.0 + np.sqrt(np.maximum(1.0 + k * g, 0.0)))
+        return sag
 
     def solve(
         self, x0: np.ndarray, k_fixed: float | None, f_scale: float, max_iter: int = 60
@@ -465,19 +474,20 @@ class _CurvedModel:
         """
         k_abs = 1.0 / radius_mm
         sides = (math.copysign(k_abs, k_free),) if abs(k_free) >= 0.5 * k_abs else (k_abs, -k_abs)
-        best = (x[: self.n_shape].copy(), sides[0], None)
+        start, k_start = x[: self.n_shape].copy(), sides[0]
         if len(sides) > 1:
-            best = None
+            best_cost = math.inf
             for k_try in sides:
                 xs, cost = self.solve(x[: self.n_shape].copy(), k_try, f_scale, max_iter=6)
-                if best is None or cost < best[2]:
-                    best = (xs, k_try, cost)
-        xs, _ = self.solve(best[0], best[1], f_scale)
-        return np.append(xs, best[1])
+                if cost < best_cost or k_try == sides[0]:
+                    start, k_start, best_cost = xs, k_try, cost
+        xs, _ = self.solve(start, k_start, f_scale)
+        fitted: np.ndarray = np.append(xs, k_start)
+        return fitted
 
 
 def fit_sphere(
-    points_mm, *, radius_mm: float | None = None, max_points: int = MAX_FIT_POINTS
+    points_mm: npt.ArrayLike, *, radius_mm: float | None = None, max_points: int = MAX_FIT_POINTS
 ) -> SphereFit:
     """Geometric least-squares sphere through 3-D points of a (possibly small) spherical cap.
 
@@ -522,7 +532,7 @@ def fit_sphere(
 
 
 def fit_cylinder(
-    points_mm, *, radius_mm: float | None = None, max_points: int = MAX_FIT_POINTS
+    points_mm: npt.ArrayLike, *, radius_mm: float | None = None, max_points: int = MAX_FIT_POINTS
 ) -> CylinderFit:
     """Geometric least-squares circular cylinder through 3-D points of a (possibly small) arc.
 
@@ -557,6 +567,8 @@ def fit_cylinder(
     pts = _check_points(points_mm, min_points=6)
     r = _check_radius(radius_mm)
     n, p0, k, ax, rms, k_free = fit_curved(pts, cylinder=True, radius_mm=r, max_points=max_points)
+    if ax is None:
+        raise ValueError("points_mm: the cylinder fit found no axis")
     if ax[1] < 0 or (ax[1] == 0 and ax[0] < 0):
         ax = -ax
     if k != 0:

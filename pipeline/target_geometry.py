@@ -33,7 +33,7 @@ MESH_GRID_MM = 10.0
 _SHAPES = ("plane", "cylinder", "sphere", "mesh")
 
 
-def check_target(target) -> Target:
+def check_target(target: Target) -> Target:
     """The target checked for what registration and deviation need (shape, radius, mesh arrays, size)."""
     if not isinstance(target, Target):
         raise TypeError(f"target: expected a pipeline.io.Target, got {type(target).__name__}")
@@ -66,7 +66,7 @@ def check_target(target) -> Target:
     return target
 
 
-def target_surface(target, *, spacing_mm: float = 50.0) -> tuple[np.ndarray, np.ndarray]:
+def target_surface(target: Target, *, spacing_mm: float = 50.0) -> tuple[np.ndarray, np.ndarray]:
     """The target surface as a triangle mesh in the target frame (for the 3D view).
 
     Parameters
@@ -97,6 +97,8 @@ def target_surface(target, *, spacing_mm: float = 50.0) -> tuple[np.ndarray, np.
         gz = np.zeros_like(gx)
     else:
         Rt = tgt.radius_mm
+        if Rt is None:
+            raise ValueError(f"target.radius_mm: a {tgt.shape} needs its radius, got none")
         r2 = gx * gx if tgt.shape == "cylinder" else gx * gx + gy * gy
         if np.any(r2 >= Rt * Rt):
             raise ValueError(
@@ -117,7 +119,7 @@ def target_surface(target, *, spacing_mm: float = 50.0) -> tuple[np.ndarray, np.
     return vertices, faces
 
 
-def target_area_mm2(target) -> float:
+def target_area_mm2(target: Target) -> float:
     """Surface area of a target plate, mm^2: what a complete segmentation of it would measure.
 
     Parameters
@@ -149,6 +151,8 @@ def target_area_mm2(target) -> float:
     sx, sy = (float(v) for v in target.size_mm)
     if target.shape == "plane":
         return sx * sy
+    if target.radius_mm is None:
+        raise ValueError(f"target.radius_mm: a {target.shape} needs its radius, got none")
     R = float(target.radius_mm)
     if target.shape == "cylinder":
         return 2.0 * R * math.asin(min(1.0, sx / (2.0 * R))) * sy
@@ -201,7 +205,9 @@ class MeshGrid:
         return h.ravel()[:n].astype(np.float64), s.ravel()[:n].astype(np.float64)
 
 
-def _rasterise(q_vertices: np.ndarray, faces: np.ndarray, step: float):
+def _rasterise(
+    q_vertices: np.ndarray, faces: np.ndarray, step: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Heights of a triangle mesh (plate coordinates) on a regular grid by barycentric interpolation."""
     lo = q_vertices[:, :2].min(axis=0)
     hi = q_vertices[:, :2].max(axis=0)

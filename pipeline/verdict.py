@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 from scipy import ndimage
 
 #: Default smallest out-of-tolerance region (mm^2) that fails a plate: 100 mm^2 = 1 cm^2, i.e. tens of
@@ -150,11 +151,11 @@ class Judgement:
 
 
 def judge(
-    deviation_mm,
-    mask,
+    deviation_mm: npt.ArrayLike,
+    mask: npt.ArrayLike,
     tolerance_mm: float,
     *,
-    pixel_area_mm2,
+    pixel_area_mm2: float | npt.ArrayLike,
     min_defect_area_mm2: float = MIN_DEFECT_AREA_MM2,
     max_outside_pct: float = MAX_OUTSIDE_PCT,
     edge_artefacts: EdgeArtefacts | None = None,
@@ -224,7 +225,7 @@ def judge(
     rms = float(np.sqrt(np.mean(a * a)))
     max_abs = float(a.max())
     p95 = float(np.percentile(a, 95))
-    w = np.full(n, float(area)) if area.ndim == 0 else area_judged
+    w = np.full(n, float(area)) if area_judged is None else area_judged
     outside = a > tolerance_mm
     total_area = float(w.sum())
     outside_area = float(w[outside].sum())
@@ -257,7 +258,12 @@ def judge(
 
 
 def _check_inputs(
-    deviation_mm, mask, tolerance_mm, pixel_area_mm2, min_defect_area_mm2, max_outside_pct
+    deviation_mm: npt.ArrayLike,
+    mask: npt.ArrayLike,
+    tolerance_mm: float,
+    pixel_area_mm2: float | npt.ArrayLike,
+    min_defect_area_mm2: float,
+    max_outside_pct: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The arguments of :func:`judge` checked: deviation (H, W) float64, mask, pixel area (scalar or (H, W))."""
     dev = np.asarray(deviation_mm, dtype=np.float64)

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
+import numpy.typing as npt
 
 from ..formats import UNIT_TOLERANCE
 from .field import NormalField, field_from_fit
@@ -10,6 +13,9 @@ from .lstsq import lstsq
 from .robust import robust
 from .solve3 import MIN_FIT
 from .specular import specular
+
+#: An array argument of the kernels (their dtypes are set by the callers).
+Arr = npt.NDArray[Any]
 
 METHODS = ("robust", "lstsq")
 
@@ -98,7 +104,14 @@ def estimate_normals(
     return field_from_fit(b, status, mask, specular=fitted)
 
 
-def _check_inputs(images, light_dirs, mask, valid, method, min_samples):
+def _check_inputs(
+    images: npt.ArrayLike,
+    light_dirs: npt.ArrayLike,
+    mask: npt.ArrayLike | None,
+    valid: npt.ArrayLike | None,
+    method: str,
+    min_samples: int,
+) -> tuple[Arr, Arr, Arr, Arr | None]:
     """The inputs of :func:`estimate_normals` checked: (images float32, light_dirs float64, mask, valid)."""
     if method not in METHODS:
         raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
@@ -158,7 +171,7 @@ def _check_inputs(images, light_dirs, mask, valid, method, min_samples):
     return images.astype(np.float32, copy=False), light_dirs, mask, valid
 
 
-def _view_map(view_dirs, camera_matrix) -> np.ndarray | None:
+def _view_map(view_dirs: npt.ArrayLike | None, camera_matrix: npt.ArrayLike | None) -> Arr | None:
     """None, or A (3, 3) float64 with the view direction of pixel (u, v) = normalize(A (u, v, 1)).
 
     A distant camera v: A = [0 | 0 | v]; a pinhole camera K: A = -K^-1.

@@ -10,13 +10,17 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numba
 import numpy as np
+import numpy.typing as npt
 
 from ..formats import CaptureError
 from .fill import harmonic_fill
+
+#: An array argument of the kernels (their dtypes are set by the callers).
+Arr = npt.NDArray[Any]
 
 if TYPE_CHECKING:
     from .specular import SpecularFit
@@ -178,7 +182,7 @@ def drop_facing_away(
 
 
 @numba.njit(parallel=True, cache=True)
-def _facing_away(normals, mask, kinv, min_cos, bad):
+def _facing_away(normals: Arr, mask: Arr, kinv: Arr, min_cos: float, bad: Arr) -> int:
     """bad = mask pixels whose normal is not within acos(min_cos) of facing its ray (NaN: bad); returns the count."""
     h, w = mask.shape
     count = 0
@@ -200,7 +204,7 @@ def _facing_away(normals, mask, kinv, min_cos, bad):
 
 
 @numba.njit(parallel=True, cache=True)
-def _finalize(b, status, normals, albedo) -> None:
+def _finalize(b: Arr, status: Arr, normals: Arr, albedo: Arr) -> None:
     """rho = |b|, n = b / rho into (H, W, 3) / (H, W); NaN where no estimate.
 
     A pixel with status OK whose b is not finite gets NONFINITE; one with rho = 0 or

@@ -72,12 +72,12 @@ def harmonic_fill(
         rhs[nb_known] += values[nb[nb_known]]
         ii.append(np.flatnonzero(nb_fill))
         jj.append(index[nb[nb_fill]])
-    ii, jj = np.concatenate(ii), np.concatenate(jj)
+    ii_all, jj_all = np.concatenate(ii), np.concatenate(jj)
     diag_idx = np.arange(fill_flat.size)
     A = sp.csc_matrix(
         (
-            np.concatenate([diag, -np.ones(ii.size)]),
-            (np.concatenate([diag_idx, ii]), np.concatenate([diag_idx, jj])),
+            np.concatenate([diag, -np.ones(ii_all.size)]),
+            (np.concatenate([diag_idx, ii_all]), np.concatenate([diag_idx, jj_all])),
         ),
         shape=(fill_flat.size, fill_flat.size),
     )

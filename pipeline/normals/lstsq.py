@@ -7,11 +7,17 @@ their own 3x3 system (adjugate, a compiled loop over pixels).
 
 from __future__ import annotations
 
+from typing import Any
+
 import numba
 import numpy as np
+import numpy.typing as npt
 
 from .field import DEGENERATE, FEW, OK, OUTSIDE
 from .solve3 import DEGENERATE_RATIO, adjugate3, adjugate_times
+
+#: An array argument of the kernels (their dtypes are set by the callers).
+Arr = npt.NDArray[Any]
 
 
 def lstsq(
@@ -52,7 +58,9 @@ def lstsq(
 
 
 @numba.njit(parallel=True, cache=True)
-def _lstsq_partial_kernel(images, valid, mask, L, min_samples, b, status) -> None:
+def _lstsq_partial_kernel(
+    images: Arr, valid: Arr, mask: Arr, L: Arr, min_samples: int, b: Arr, status: Arr
+) -> None:
     """Least squares over the valid samples of every mask pixel that has an invalid one.
 
     (sum_k v_k l_k l_k^T) b = sum_k v_k I_k l_k, solved by the adjugate; b (3, H, W) and

@@ -20,13 +20,18 @@ vectors of a block are then computed per pixel from the current surface
 from __future__ import annotations
 
 import functools
+from typing import Any
 
 import numba
 import numpy as np
+import numpy.typing as npt
 
 from ..lights import light_vectors_block
 from .field import DEGENERATE, FEW, NONFINITE, OK, OUTSIDE
 from .solve3 import DEGENERATE_RATIO, MIN_FIT
+
+#: An array argument of the kernels (their dtypes are set by the callers).
+Arr = npt.NDArray[Any]
 
 # Constants chosen on DiLiGenT cat/pot1/ball (8-bit crops, 96 lights) and on synthetic spheres
 # and plates with 12-24 lights, shadows and specular lobes (tests/pipeline/test_normals.py).
@@ -163,22 +168,22 @@ def sorting_network(n: int) -> np.ndarray:
 
 @numba.njit(parallel=True, cache=True)
 def robust_kernel(
-    images,
-    valid,
-    use_valid,
-    mask,
-    depth,
-    kinv,
-    geometry,
-    axes,
-    kind,
-    mu,
-    min_attenuation,
-    min_samples,
-    params,
-    pairs,
-    b_out,
-    status,
+    images: Arr,
+    valid: Arr,
+    use_valid: bool,
+    mask: Arr,
+    depth: Arr,
+    kinv: Arr,
+    geometry: Arr,
+    axes: Arr,
+    kind: Arr,
+    mu: Arr,
+    min_attenuation: float,
+    min_samples: int,
+    params: Arr,
+    pairs: Arr,
+    b_out: Arr,
+    status: Arr,
 ) -> None:
     """Robust fit of every mask pixel (see the module docstring). Fills b_out (3, H, W) with rho n and
     status (H, W) with a status code per pixel.
@@ -217,7 +222,9 @@ def robust_kernel(
 
 
 @numba.njit(cache=True, fastmath=FASTMATH)
-def _load_block(images, valid, use_valid, mask, i, j0, j1):
+def _load_block(
+    images: Arr, valid: Arr, use_valid: bool, mask: Arr, i: int, j0: int, j1: int
+) -> tuple[Arr, Arr, Arr, Arr]:
     """The samples of pixels (i, j0:j1): (N, w) float32 values (0 where unusable), (N, w) float32
     usability (1: a valid sample of a mask pixel), (w,) int64 counts and (w,) finiteness."""
     n = images.shape[0]
@@ -240,7 +247,19 @@ def _load_block(images, valid, use_valid, mask, i, j0, j1):
 
 @numba.njit(cache=True, fastmath=FASTMATH)
 def _robust_block(
-    samples, usable, m, finite, mask, L, min_samples, params, pairs, b_out, status, i, j0
+    samples: Arr,
+    usable: Arr,
+    m: Arr,
+    finite: Arr,
+    mask: Arr,
+    L: Arr,
+    min_samples: int,
+    params: Arr,
+    pairs: Arr,
+    b_out: Arr,
+    status: Arr,
+    i: int,
+    j0: int,
 ) -> None:
     """The robust fit of the pixels (i, j0:j0 + w) of one row from their samples (N, w), usability
     (N, w), counts and finiteness (see _load_block) under light vectors L (N, 3, w)."""
@@ -292,7 +311,16 @@ def _robust_block(
 
 
 @numba.njit(cache=True, fastmath=FASTMATH)
-def _trim_levels(samples, usable, m, ranked, pairs, shadow_fraction, ref_quantile, trim_top):
+def _trim_levels(
+    samples: Arr,
+    usable: Arr,
+    m: Arr,
+    ranked: Arr,
+    pairs: Arr,
+    shadow_fraction: float | np.floating[Any],
+    ref_quantile: float,
+    trim_top: float,
+) -> tuple[Arr, Arr]:
     """Per pixel of a block: the shadow level ``low`` and the highlight cut ``top`` (w,) float32 from
     its order statistics (``ranked`` (N, w) is scratch)."""
     n, w = samples.shape
@@ -312,7 +340,9 @@ def _trim_levels(samples, usable, m, ranked, pairs, shadow_fraction, ref_quantil
 
 
 @numba.njit(cache=True, fastmath=FASTMATH)
-def _first_fit(samples, usable, m, L, low, top, keep):
+def _first_fit(
+    samples: Arr, usable: Arr, m: Arr, L: Arr, low: Arr, top: Arr, keep: Arr
+) -> tuple[Arr, Arr]:
     """The first fit of a block: without shadows and highlights; else without shadows; else all samples.
 
     Returns b (3, w) float32 and ok (w,) float32 (1: fitted); ``keep`` (N, w) receives the weights
@@ -349,19 +379,19 @@ def _first_fit(samples, usable, m, L, low, top, keep):
 
 @numba.njit(cache=True, fastmath=FASTMATH)
 def _refit(
-    samples,
-    usable,
-    L,
-    pairs,
-    iterations,
-    cos_min,
-    outlier_k,
-    outlier_k_high,
-    scale_floor,
-    b,
-    ok,
-    keep,
-    ranked,
+    samples: Arr,
+    usable: Arr,
+    L: Arr,
+    pairs: Arr,
+    iterations: int,
+    cos_min: float | np.floating[Any],
+    outlier_k: float | np.floating[Any],
+    outlier_k_high: float | np.floating[Any],
+    scale_floor: float | np.floating[Any],
+    b: Arr,
+    ok: Arr,
+    keep: Arr,
+    ranked: Arr,
 ) -> None:
     """``iterations`` re-selections and refits of a block, in place on b (3, w) and keep (N, w): each
     keeps the samples lit (n.l > cos_min) and within -outlier_k .. +outlier_k_high robust scales of
@@ -412,7 +442,7 @@ def _refit(
 
 
 @numba.njit(cache=True, fastmath=FASTMATH)
-def _fit_row(samples, weight, L, b, ok) -> None:
+def _fit_row(samples: Arr, weight: Arr, L: Arr, b: Arr, ok: Arr) -> None:
     """Per pixel j of a block: weighted (0/1) least squares b[:, j] over the samples.
 
     samples, weight : (N, W) float32; L : (N, 3, W) float32, the light vector of each sample
@@ -470,7 +500,7 @@ def _fit_row(samples, weight, L, b, ok) -> None:
 
 
 @numba.njit(cache=True, fastmath=FASTMATH)
-def _sort_row(values, pairs) -> None:
+def _sort_row(values: Arr, pairs: Arr) -> None:
     """Sort every column of values (N, W) in place with the sorting network ``pairs`` (branch-free)."""
     w = values.shape[1]
     for c in range(pairs.shape[0]):

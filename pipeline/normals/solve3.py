@@ -22,7 +22,9 @@ DEGENERATE_RATIO = 1e-4
 
 
 @numba.njit(cache=True, inline="always")
-def adjugate3(m00, m01, m02, m11, m12, m22):
+def adjugate3(
+    m00: float, m01: float, m02: float, m11: float, m12: float, m22: float
+) -> tuple[float, float, float, float, float, float, float]:
     """The adjugate and the determinant of the symmetric matrix ``[[m00, m01, m02], [m01, m11, m12], [m02, m12, m22]]``.
 
     Returns
@@ -42,7 +44,17 @@ def adjugate3(m00, m01, m02, m11, m12, m22):
 
 
 @numba.njit(cache=True, inline="always")
-def adjugate_times(c00, c01, c02, c11, c12, c22, r0, r1, r2):
+def adjugate_times(
+    c00: float,
+    c01: float,
+    c02: float,
+    c11: float,
+    c12: float,
+    c22: float,
+    r0: float,
+    r1: float,
+    r2: float,
+) -> tuple[float, float, float]:
     """``adj r`` for the symmetric adjugate of :func:`adjugate3` and a right-hand side ``(r0, r1, r2)``.
 
     Divided by ``det`` (or multiplied by its reciprocal) it is the solution of ``M b = r``.

@@ -21,14 +21,19 @@ smoothed normal bias falls from ~1 deg to ~0.01 deg.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numba
 import numpy as np
+import numpy.typing as npt
 
 from .field import OK
 from .robust import COS_MIN, FASTMATH, SHADOW_FRACTION
 from .solve3 import DEGENERATE_RATIO, MIN_FIT, adjugate3, adjugate_times
+
+#: An array argument of the kernels (their dtypes are set by the callers).
+Arr = npt.NDArray[Any]
 
 #: Candidate lobe exponents e of g(c) = c^e, c = n.h (1-D search on the summed residual;
 #: the minimum is refined by a parabola in log e). 2 ~ a very broad sheen, 1000 ~ a mirror-like glint.
@@ -90,12 +95,13 @@ def _lobe_tables(exponent: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 @numba.njit(cache=True, fastmath=FASTMATH, inline="always")
-def _lookup(table, c):
+def _lookup(table: Arr, c: float) -> float:
     """Linear interpolation of a lobe table at c (clamped to [0, 1]: the lobe is 0 for c <= 0)."""
     x = min(max(c, 0.0), 1.0) * (_LOBE_TABLE - 1)
     i = int(x)
     f = x - i
-    return table[i] + f * (table[i + 1] - table[i])
+    value: float = table[i] + f * (table[i + 1] - table[i])
+    return value
 
 
 def specular(
@@ -148,7 +154,9 @@ def specular(
     )
 
 
-def _lobe_search(images, valid, b, sel, w, view_map, L) -> tuple[float, float, float]:
+def _lobe_search(
+    images: Arr, valid: Arr | None, b: Arr, sel: Arr, w: int, view_map: Arr, L: Arr
+) -> tuple[float, float, float]:
     """The lobe exponent over the search pixels ``sel`` (flat indices into rows of width ``w``).
 
     Returns (exponent, F-ratio, noise sigma): the exponent refined by a parabola in log e; NaN,
@@ -196,7 +204,18 @@ def _lobe_search(images, valid, b, sel, w, view_map, L) -> tuple[float, float, f
     return float(np.exp(log_e)), f_ratio, float(np.sqrt(max(sigma2, 0.0)))
 
 
-def _joint_fit(images, valid, fit, sel, L, view_map, b, exponent, f_ratio, sigma):
+def _joint_fit(
+    images: Arr,
+    valid: Arr | None,
+    fit: Arr,
+    sel: Arr,
+    L: Arr,
+    view_map: Arr,
+    b: Arr,
+    exponent: float,
+    f_ratio: float,
+    sigma: float,
+) -> tuple[Arr, float, float]:
     """SPECULAR_ITERATIONS joint Gauss-Newton passes over b (in place) and the pooled amplitude.
 
     Returns the amplitude s (H, W) float32 and the exponent and F-ratio in use at the end (the
@@ -204,7 +223,7 @@ def _joint_fit(images, valid, fit, sel, L, view_map, b, exponent, f_ratio, sigma
     """
     _n, h, w = images.shape
     use_valid = valid is not None
-    v = valid if use_valid else np.ones((1, 1, 1), dtype=bool)
+    v = valid if valid is not None else np.ones((1, 1, 1), dtype=bool)
     s = np.zeros((h, w), dtype=np.float32)
     db0 = np.empty((3, h, w), dtype=np.float32)
     coef = np.empty((3, h, w), dtype=np.float32)
@@ -255,7 +274,7 @@ def _joint_fit(images, valid, fit, sel, L, view_map, b, exponent, f_ratio, sigma
     return s, exponent, f_ratio
 
 
-def _revert_turned(b, b_start, fit) -> int:
+def _revert_turned(b: Arr, b_start: Arr, fit: Arr) -> int:
     """Pixels the lobe turned by more than MAX_SPECULAR_TURN_DEG (or away from the camera) get their
     Lambertian estimate back: the lobe did not describe them (saturated peak, another material).
     Returns how many."""
@@ -271,7 +290,15 @@ def _revert_turned(b, b_start, fit) -> int:
 
 @numba.njit(parallel=True, cache=True)
 def _lobe_search_kernel(
-    samples, usable, b, view, L, g_tables, cos_min, shadow_fraction, out
+    samples: Arr,
+    usable: Arr,
+    b: Arr,
+    view: Arr,
+    L: Arr,
+    g_tables: Arr,
+    cos_min: float,
+    shadow_fraction: float,
+    out: Arr,
 ) -> None:
     """Per search pixel p and lobe e: the residual the lobe removes from the Lambertian fit.
 
@@ -355,23 +382,23 @@ def _lobe_search_kernel(
 
 @numba.njit(parallel=True, cache=True, fastmath=FASTMATH, error_model="numpy")
 def _specular_pass_kernel(
-    images,
-    valid,
-    use_valid,
-    fit,
-    L,
-    view_map,
-    g_table,
-    dg_table,
-    b,
-    s_map,
-    cos_min,
-    lo,
-    hi,
-    db0,
-    coef,
-    num,
-    den,
+    images: Arr,
+    valid: Arr,
+    use_valid: bool,
+    fit: Arr,
+    L: Arr,
+    view_map: Arr,
+    g_table: Arr,
+    dg_table: Arr,
+    b: Arr,
+    s_map: Arr,
+    cos_min: float,
+    lo: float,
+    hi: float,
+    db0: Arr,
+    coef: Arr,
+    num: Arr,
+    den: Arr,
 ) -> None:
     """One joint Gauss-Newton linearisation of I_k = b.l_k + s g(n.h_k) at every pixel with fit True.
 

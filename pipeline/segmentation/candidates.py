@@ -6,6 +6,7 @@ import math
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 from .checks import check_bool_image, check_image
 
@@ -18,7 +19,12 @@ DARK_FRACTION = 0.2
 DARK_SPECK_PX = 9
 
 
-def candidate_mask(brightness, *, seen=None, dark_fraction: float = DARK_FRACTION) -> np.ndarray:
+def candidate_mask(
+    brightness: npt.ArrayLike,
+    *,
+    seen: npt.ArrayLike | None = None,
+    dark_fraction: float = DARK_FRACTION,
+) -> np.ndarray:
     """Pixels bright enough to be the plate: not dark against the image's bright level.
 
     Parameters
@@ -65,4 +71,5 @@ def candidate_mask(brightness, *, seen=None, dark_fraction: float = DARK_FRACTIO
     )
     speck = stats[:, cv2.CC_STAT_AREA] <= DARK_SPECK_PX
     speck[0] = False  # label 0: the bright pixels
-    return (bright | speck[labels]) & ok
+    candidates: np.ndarray = (bright | speck[labels]) & ok
+    return candidates

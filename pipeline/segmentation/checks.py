@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import numpy as np
+import numpy.typing as npt
 
 
-def check_image(name: str, value, shape: tuple[int, int] | None = None) -> np.ndarray:
+def check_image(
+    name: str, value: npt.ArrayLike, shape: tuple[int, int] | None = None
+) -> np.ndarray:
     """A real-valued (H, W) image (of ``shape`` when given); ValueError naming ``name`` otherwise."""
     arr = np.asarray(value)
     if arr.ndim != 2:
@@ -17,7 +20,7 @@ def check_image(name: str, value, shape: tuple[int, int] | None = None) -> np.nd
     return arr
 
 
-def check_bool_image(name: str, value, shape: tuple[int, int]) -> np.ndarray:
+def check_bool_image(name: str, value: npt.ArrayLike, shape: tuple[int, int]) -> np.ndarray:
     """A bool image of ``shape``; ValueError naming ``name`` otherwise."""
     arr = np.asarray(value)
     if arr.dtype != np.bool_ or arr.shape != shape:
@@ -27,7 +30,7 @@ def check_bool_image(name: str, value, shape: tuple[int, int]) -> np.ndarray:
     return arr
 
 
-def check_camera_matrix(K) -> np.ndarray:
+def check_camera_matrix(K: npt.ArrayLike) -> np.ndarray:
     """A finite (3, 3) float64 camera matrix with fx, fy > 0; ValueError otherwise."""
     K = np.asarray(K, dtype=np.float64)
     if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:

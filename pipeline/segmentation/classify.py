@@ -10,7 +10,14 @@ import cv2
 import numpy as np
 
 from ..formats import CaptureError
-from .surface import Surface, fit_surface, largest_component, surface_depth, surface_geometry
+from .surface import (
+    Geometry,
+    Surface,
+    fit_surface,
+    largest_component,
+    surface_depth,
+    surface_geometry,
+)
 
 #: Default width (mm) under which a part of the matched plate that leaves the smooth surface is taken for a
 #: support reaching out beside the plate (rails and blocks are 100-200 mm wide).
@@ -72,12 +79,12 @@ class Parts:
 
 
 def classify(
-    b,
-    depth,
-    K,
-    ok,
-    cand,
-    normals,
+    b: np.ndarray,
+    depth: np.ndarray,
+    K: np.ndarray,
+    ok: np.ndarray,
+    cand: np.ndarray,
+    normals: np.ndarray | None,
     *,
     depth_band_mm: float,
     max_dropout_mm2: float,
@@ -158,8 +165,8 @@ def _enclosed(
     core: np.ndarray,
     offish: np.ndarray,
     area: np.ndarray,
-    geometry,
-    normals,
+    geometry: Geometry,
+    normals: np.ndarray | None,
     max_dropout_mm2: float,
 ) -> _Enclosed:
     """Step 4: small dropouts are filled, openings and large unmatched areas stay holes.
@@ -214,9 +221,10 @@ def _with_rim(
     kernel = np.ones((3, 3), np.uint8)
     near_dark = cv2.distanceTransform((~dark).view(np.uint8), cv2.DIST_L2, 3) <= reach_px + 1
     reachable = (reachable & near_dark).view(np.uint8)
-    grown = region.view(np.uint8).copy()
+    grown: np.ndarray = region.view(np.uint8).copy()
     for _ in range(reach_px):
-        grown = cv2.dilate(grown, kernel) & (reachable | grown)
+        dilated: np.ndarray = cv2.dilate(grown, kernel)
+        grown = dilated & (reachable | grown)
     return grown.astype(bool)
 
 
@@ -272,7 +280,7 @@ def _protrusions(
         small.view(np.uint8), cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
     )
     back = cv2.resize(opened, (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
-    parts = core & ~back
+    parts: np.ndarray = core & ~back
     if not parts.any():
         return parts
     n, labels = cv2.connectedComponents(parts.view(np.uint8), connectivity=8)
@@ -285,7 +293,8 @@ def _protrusions(
     counted = np.bincount(lab, minlength=n)
     out = above > PROTRUSION_SHARE * counted
     out[0] = False
-    return out[labels] & parts
+    kept: np.ndarray = out[labels] & parts
+    return kept
 
 
 def _wide_parts(parts: np.ndarray, min_half_width_px: float) -> np.ndarray:
@@ -299,7 +308,8 @@ def _wide_parts(parts: np.ndarray, min_half_width_px: float) -> np.ndarray:
     np.maximum.at(widest, labels[parts], inside[parts])
     wide = widest >= min_half_width_px
     wide[0] = False
-    return wide[labels]
+    widened: np.ndarray = wide[labels]
+    return widened
 
 
 def _nearest(outside: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -10,7 +10,7 @@ import numpy as np
 
 from .classify import DROPOUT_NORMAL_DEG, Parts
 from .result import Segmentation
-from .surface import surface_depth, surface_geometry
+from .surface import Geometry, surface_depth, surface_geometry
 
 #: Near the boundary (``edge_px`` + this many px) a pixel whose photometric normal is more than
 #: EDGE_NORMAL_DEG from the fitted surface's is not measured: a bent edge turns its normal by far less
@@ -21,13 +21,13 @@ EDGE_NORMAL_DEG = 35.0
 
 def finish(
     parts: Parts,
-    b,
-    depth,
-    K,
-    ok,
-    cand,
-    dark,
-    normals,
+    b: np.ndarray,
+    depth: np.ndarray,
+    K: np.ndarray,
+    ok: np.ndarray,
+    cand: np.ndarray,
+    dark: np.ndarray,
+    normals: np.ndarray | None,
     reasons: list[str],
     *,
     edge_px: int,
@@ -107,7 +107,13 @@ def inner_region(region: np.ndarray, edge_px: int) -> np.ndarray:
 
 
 def _measured(
-    parts: Parts, ok, normals, geometry, edge_px: int, depth_scale_px: int, support_width_mm: float
+    parts: Parts,
+    ok: np.ndarray,
+    normals: np.ndarray | None,
+    geometry: Geometry,
+    edge_px: int,
+    depth_scale_px: int,
+    support_width_mm: float,
 ) -> tuple[np.ndarray, int]:
     """The plate's pixels to measure (the edge band left out, wider where a support met the plate), and how
     many pixels near the boundary the normals check put in the band."""

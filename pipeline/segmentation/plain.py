@@ -21,7 +21,7 @@ PLAIN_OFF_SURFACE_SHARE = 0.002
 PLAIN_MARGIN_PX = 5
 
 
-def plain_outline(bright_mask, candidates) -> bool:
+def plain_outline(bright_mask: np.ndarray, candidates: np.ndarray) -> bool:
     """Whether the plate looks alone in the image: nothing lit around the brightness mask, no opening in it.
 
     The usual cell: a plate over a dark conveyor. Then the stereo pair and the normals need only the
@@ -51,7 +51,11 @@ def plain_outline(bright_mask, candidates) -> bool:
 
 
 def plain_depth(
-    bright_mask, depth_mm, camera_matrix, *, depth_band_mm: float = DEPTH_BAND_MM
+    bright_mask: np.ndarray,
+    depth_mm: np.ndarray,
+    camera_matrix: np.ndarray,
+    *,
+    depth_band_mm: float = DEPTH_BAND_MM,
 ) -> bool:
     """Whether the stereo depth over the brightness mask is one smooth sheet (no floor taken in).
 
@@ -87,4 +91,5 @@ def plain_depth(
     X = design(x[inside], y[inside], surface.degree, surface.scale)
     with np.errstate(divide="ignore", invalid="ignore"):
         off = np.abs(z[inside] - 1.0 / (X @ surface.coef)) > depth_band_mm
-    return bool(np.count_nonzero(off) <= PLAIN_OFF_SURFACE_SHARE * max(np.count_nonzero(inside), 1))
+    n_inside = int(np.count_nonzero(inside))
+    return bool(np.count_nonzero(off) <= PLAIN_OFF_SURFACE_SHARE * max(n_inside, 1))

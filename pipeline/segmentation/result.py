@@ -73,7 +73,7 @@ class Segmentation:
     method: str
     reasons: tuple[str, ...]
 
-    def stereo_prior(self, depth_mm) -> np.ndarray:
+    def stereo_prior(self, depth_mm: np.ndarray | None) -> np.ndarray:
         """The stereo depth to fuse with the normals: ``depth_mm`` (H, W) where the mask is and the depth lies
         within the band of the plate's surface, NaN elsewhere (mm; so a filled dropout, an edge band or a
         stray match of the floor never pulls the surface)."""
@@ -89,7 +89,8 @@ class Segmentation:
     @property
     def region(self) -> np.ndarray:
         """(H, W) bool: every pixel segmented as plate, ``mask | edge_band``."""
-        return self.mask | self.edge_band
+        both: np.ndarray = self.mask | self.edge_band
+        return both
 
     def area_ratio(self, target_area_mm2: float) -> float:
         """Segmented plate area (mask and edge band) over the target's area (dimensionless)."""

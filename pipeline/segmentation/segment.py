@@ -4,14 +4,16 @@ alone when there is no usable depth."""
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 from ..formats import CaptureError
 from .candidates import DARK_FRACTION, candidate_mask
 from .checks import check_bool_image, check_camera_matrix, check_image
-from .classify import SUPPORT_WIDTH_MM, classify
+from .classify import SUPPORT_WIDTH_MM, Parts, classify
 from .edge_band import finish, inner_region
 from .result import Segmentation
 from .surface import DEPTH_BAND_MM, largest_component
@@ -25,13 +27,13 @@ MIN_MATCHED_SHARE = 0.1
 
 
 def segment_plate(
-    brightness,
-    depth_mm,
-    camera_matrix,
+    brightness: npt.ArrayLike,
+    depth_mm: npt.ArrayLike | None,
+    camera_matrix: npt.ArrayLike,
     *,
-    seen=None,
-    candidates=None,
-    normals=None,
+    seen: npt.ArrayLike | None = None,
+    candidates: npt.ArrayLike | None = None,
+    normals: npt.ArrayLike | None = None,
     depth_band_mm: float = DEPTH_BAND_MM,
     edge_px: int = EDGE_PX,
     depth_scale_px: int = 1,
@@ -147,13 +149,13 @@ def segment_plate(
 
 
 def _segmented(
-    b,
-    depth,
-    K,
-    ok,
-    cand,
-    normals,
-    params: dict,
+    b: np.ndarray,
+    depth: np.ndarray | None,
+    K: np.ndarray,
+    ok: np.ndarray,
+    cand: np.ndarray,
+    normals: np.ndarray | None,
+    params: dict[str, Any],
     *,
     edge_px: int,
     depth_scale_px: int,
@@ -200,7 +202,13 @@ def _segmented(
     return _by_brightness(cand, dark, ok, reasons, edge_px=edge_px)
 
 
-def _inputs(brightness, camera_matrix, seen, depth_mm, normals):
+def _inputs(
+    brightness: npt.ArrayLike,
+    camera_matrix: npt.ArrayLike,
+    seen: npt.ArrayLike | None,
+    depth_mm: npt.ArrayLike | None,
+    normals: npt.ArrayLike | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
     """The images of :func:`segment_plate` checked: brightness float32, K, seen pixels, depth or None, normals or None."""
     b = check_image("brightness", brightness).astype(np.float32)
     shape = b.shape
@@ -209,24 +217,23 @@ def _inputs(brightness, camera_matrix, seen, depth_mm, normals):
     depth = (
         None if depth_mm is None else check_image("depth_mm", depth_mm, shape).astype(np.float32)
     )
-    if normals is not None:
-        normals = np.asarray(normals)
-        if normals.shape != (*shape, 3):
-            raise ValueError(
-                f"normals: expected shape {(*shape, 3)} to match brightness, got {normals.shape}"
-            )
-    return b, K, ok, depth, normals
+    n = None if normals is None else np.asarray(normals)
+    if n is not None and n.shape != (*shape, 3):
+        raise ValueError(
+            f"normals: expected shape {(*shape, 3)} to match brightness, got {n.shape}"
+        )
+    return b, K, ok, depth, n
 
 
 def _check_options(
-    depth_band_mm,
-    max_dropout_mm2,
-    support_width_mm,
-    edge_px,
-    reach_px,
-    step_zone_px,
-    depth_scale_px,
-    target_area_mm2,
+    depth_band_mm: float,
+    max_dropout_mm2: float,
+    support_width_mm: float,
+    edge_px: int,
+    reach_px: int,
+    step_zone_px: int,
+    depth_scale_px: int,
+    target_area_mm2: float | None,
 ) -> None:
     """ValueError naming the first option of :func:`segment_plate` out of its range."""
     for name, value in (
@@ -253,7 +260,16 @@ def _check_options(
         )
 
 
-def _classified(b, depth, K, ok, cand, normals, s: int, params: dict):
+def _classified(
+    b: np.ndarray,
+    depth: np.ndarray,
+    K: np.ndarray,
+    ok: np.ndarray,
+    cand: np.ndarray,
+    normals: np.ndarray | None,
+    s: int,
+    params: dict[str, Any],
+) -> Parts | None:
     """:func:`classify` on the grid the depth was matched at (``s`` times coarser), its decisions brought
     back to this grid; None if no smooth surface fits."""
     if s == 1:

@@ -69,7 +69,8 @@ def largest_component(mask: np.ndarray, connectivity: int = 8) -> np.ndarray:
     )
     if n <= 1:
         return np.zeros_like(mask)
-    return labels == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    largest: np.ndarray = labels == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    return largest
 
 
 @dataclass(frozen=True)
@@ -125,6 +126,8 @@ def fit_surface(
         inliers = new
         if np.count_nonzero(inliers) < 50:
             return None
+    if coef is None or r is None:
+        return None
     r = r[inliers]
     rms = 1.4826 * float(np.median(np.abs(r - np.median(r))))
     return Surface(coef=coef, degree=degree, scale=scale, rms_mm=rms)
@@ -180,19 +183,20 @@ class Geometry:
         map_y = np.zeros(width * height, np.float32)
         map_x[:m] = cols / self.step
         map_y[:m] = rows / self.step
-        map_x, map_y = map_x.reshape(height, width), map_y.reshape(height, width)
+        grid_x, grid_y = map_x.reshape(height, width), map_y.reshape(height, width)
         comps = [
             cv2.remap(
                 self.normal[..., i].astype(np.float32),
-                map_x,
-                map_y,
+                grid_x,
+                grid_y,
                 cv2.INTER_LINEAR,
                 borderMode=cv2.BORDER_REPLICATE,
             ).ravel()[:m]
             for i in range(3)
         ]
         n = np.stack(comps, axis=-1)
-        return n / np.linalg.norm(n, axis=-1, keepdims=True)
+        unit: np.ndarray = n / np.linalg.norm(n, axis=-1, keepdims=True)
+        return unit
 
 
 def surface_geometry(

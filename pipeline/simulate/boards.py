@@ -61,12 +61,14 @@ def _board_view(
     wa = np.clip(wa, 1e-3, None)
     wb = np.clip(wb, 1e-3, None)
 
-    def box_square_wave(x, width):
+    def box_square_wave(x: np.ndarray, width: np.ndarray) -> np.ndarray:
         d = np.arcsin(np.sin(np.pi * x)) / np.pi  # signed distance to the nearest edge, squares
-        return np.clip(2.0 * d / width, -1.0, 1.0)
+        wave: np.ndarray = np.clip(2.0 * d / width, -1.0, 1.0)
+        return wave
 
-    def box_inside(x, lo, hi, width):
-        return np.clip(0.5 + np.minimum(x - lo, hi - x) / width, 0.0, 1.0)
+    def box_inside(x: np.ndarray, lo: float, hi: float, width: np.ndarray) -> np.ndarray:
+        inside: np.ndarray = np.clip(0.5 + np.minimum(x - lo, hi - x) / width, 0.0, 1.0)
+        return inside
 
     checker = box_square_wave(a, wa) * box_square_wave(b, wb)
     black, white = 0.08, 0.85
@@ -81,7 +83,8 @@ def _board_view(
     # Uneven illumination: brighter in the middle of the image.
     yy, xx = np.mgrid[0:h, 0:w]
     r2 = ((xx - w / 2) / (w / 2)) ** 2 + ((yy - h / 2) / (h / 2)) ** 2
-    return (img * (1.0 - 0.12 * r2)).astype(np.float32)
+    shaded: np.ndarray = (img * (1.0 - 0.12 * r2)).astype(np.float32)
+    return shaded
 
 
 def render_calibration_pairs(
@@ -149,7 +152,7 @@ def render_calibration_pairs(
     Rs, ts = [], []
     for i in range(n_pairs):
         R_lb, t_lb = _pose_in_both(rng, rig, outline, dist_range)
-        if R_lb is None:
+        if R_lb is None or t_lb is None:
             raise ValueError(
                 f"square_mm: no board pose of {squares[0]} x {squares[1]} squares of {square_mm} mm fits both images"
             )
@@ -185,7 +188,14 @@ def _write_view(
     return path
 
 
-def _check_arguments(rig, n_pairs, inner_corners, square_mm, blur_px, noise) -> StereoRig:
+def _check_arguments(
+    rig: StereoRig | None,
+    n_pairs: int,
+    inner_corners: tuple[int, int],
+    square_mm: float,
+    blur_px: float,
+    noise: float,
+) -> StereoRig:
     """The arguments of :func:`render_calibration_pairs` checked; returns the rig (the default one for None)."""
     if rig is None:
         rig = default_rig()

@@ -31,10 +31,10 @@ from __future__ import annotations
 
 import json
 import math
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import cv2
 import numpy as np
@@ -299,9 +299,9 @@ def _shade(
 def _floor_span_mm(plate: PlateSpec, rig: StereoRig) -> float:
     """Side (mm) of a floor square centred under the plate that covers what both cameras see of it."""
     w, h = rig.image_size
-    far = plate.distance_mm + conveyor_z(plate) + plate.floor.gap_mm
+    far = plate.distance_mm + conveyor_z(plate) + plate.lit_floor.gap_mm
     field = max(w / rig.left.K[0, 0], h / rig.left.K[1, 1]) * far
-    return 1.2 * field + BASELINE_MM
+    return float(1.2 * field + BASELINE_MM)
 
 
 def _bumped(
@@ -471,7 +471,13 @@ def render_radiance(
     return _shade(hits, albedo, eye + hits.s[..., None] * rays, eye, lights, capture)
 
 
-def _check_arguments(plate, capture, rig, plate_id, tolerance_mm) -> StereoRig:
+def _check_arguments(
+    plate: PlateSpec,
+    capture: CaptureSpec,
+    rig: StereoRig | None,
+    plate_id: str,
+    tolerance_mm: float,
+) -> StereoRig:
     """The arguments of :func:`simulate_capture` checked; returns the rig (the default one for None)."""
     if not isinstance(plate, PlateSpec):
         raise TypeError(f"plate: expected a PlateSpec, got {type(plate).__name__}")
@@ -589,7 +595,7 @@ def _write_stereo_pair(
     dark_map: np.ndarray,
     rngs: tuple[np.random.Generator, ...],
     pool: ThreadPoolExecutor,
-) -> list:
+) -> list[Future[Any]]:
     """Submit the stereo pair's writes; ``flash`` is the left camera's radiance with all lights on, ``rngs``
     the generators of the dark frame and of the pair's noise. Returns the futures."""
     rng_dark, rng_stereo = rngs
@@ -682,7 +688,7 @@ def _write_documents(
     StereoCalibrationFile.model_validate(calibration_doc)
     (out / "calibration.json").write_text(json.dumps(calibration_doc, indent=2))
     (out / "target.json").write_text(json.dumps(target_object(plate, tolerance_mm, out), indent=2))
-    capture_obj = {
+    capture_obj: dict[str, Any] = {
         "format": CAPTURE_FORMAT,
         "plate_id": plate_id,
         "captured_at": _CAPTURED_AT,

@@ -85,15 +85,18 @@ def inside_outline(plate: PlateSpec, x: np.ndarray, y: np.ndarray) -> np.ndarray
     half_w, half_h = plate.size_mm[0] / 2, plate.size_mm[1] / 2
     box = (np.abs(x) <= half_w) & (np.abs(y) <= half_h)
     if plate.outline == "rectangle":
-        return box
+        rect: np.ndarray = box
+        return rect
     if plate.outline == "trapezoid":
         with np.errstate(invalid="ignore"):
-            return box & (
+            trapezoid: np.ndarray = box & (
                 np.abs(x) <= half_w * (1.0 - 0.5 * (1.0 - TRAPEZOID_TOP) * (1.0 + y / half_h))
             )
+        return trapezoid
     if plate.outline == "curved":
         yc, rho = _curved_edge(plate)
-        return box & (x * x + (y - yc) ** 2 <= rho * rho)
+        curved: np.ndarray = box & (x * x + (y - yc) ** 2 <= rho * rho)
+        return curved
     # a polygon: even-odd crossing count over its edges
     vertices = np.array(plate.outline, dtype=np.float64)
     inside = np.zeros(np.shape(x), dtype=bool)
@@ -103,7 +106,8 @@ def inside_outline(plate: PlateSpec, x: np.ndarray, y: np.ndarray) -> np.ndarray
                 continue
             crosses = ((y0 > y) != (y1 > y)) & (x < x0 + (y - y0) * (x1 - x0) / (y1 - y0))
             inside ^= crosses
-    return inside & box
+    polygon: np.ndarray = inside & box
+    return polygon
 
 
 def plate_region(plate: PlateSpec, x_mm: np.ndarray, y_mm: np.ndarray) -> np.ndarray:
@@ -163,19 +167,20 @@ def plate_height(
         hx = np.zeros_like(x)
         hy = np.zeros_like(x)
     elif plate.shape == "cylinder":
-        R = plate.radius_mm
+        R = plate.curved_radius_mm
         root = np.sqrt(R * R - x * x)
         h = c * (R - root)
         hx = c * x / root
         hy = np.zeros_like(x)
     elif plate.shape == "sphere":
-        R = plate.radius_mm
+        R = plate.curved_radius_mm
         root = np.sqrt(R * R - x * x - y * y)
         h = c * (R - root)
         hx = c * x / root
         hy = c * y / root
     else:  # saddle
-        R1, R2 = plate.radius_mm, plate.radius2
+        R1 = plate.curved_radius_mm
+        R2 = plate.radius2 if plate.radius2 is not None else R1
         r1 = np.sqrt(R1 * R1 - x * x)
         r2 = np.sqrt(R2 * R2 - y * y)
         h = c * ((R1 - r1) - (R2 - r2))
@@ -225,7 +230,7 @@ def intersect(
     with np.errstate(invalid="ignore", divide="ignore"):
         s = -o[2] / dz  # plane z_p = 0
         if plate.shape in ("cylinder", "sphere"):
-            Rr = plate.radius_mm
+            Rr = plate.curved_radius_mm
             oc = o - np.array([0.0, 0.0, c * Rr])
             if plate.shape == "cylinder":
                 A = dx * dx + dz * dz
@@ -312,7 +317,7 @@ def _surroundings(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rays ``o + s d`` (plate frame) against the floor and the supports: nearest hit ``s`` (...,), its
     outward normal (..., 3) (plate frame, towards the rays' side) and surface code (...,) int8."""
-    floor = plate.floor
+    floor = plate.lit_floor
     z_floor = conveyor_z(plate) - CONVEYOR_GAP_MM + floor.gap_mm
     with np.errstate(invalid="ignore", divide="ignore"):
         s = (z_floor - o[2]) / d[..., 2]

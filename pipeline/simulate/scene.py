@@ -106,7 +106,10 @@ class Cutout:
             n_arc = int(math.ceil(r * math.pi / 2 / step_mm)) if r > 0 else 0
             t = k * math.pi / 2 + np.linspace(0.0, math.pi / 2, n_arc + 1)
             corners.append(np.stack([cx + r * np.cos(t), cy + r * np.sin(t)], axis=1))
-        return densify(np.concatenate(corners), step_mm) + np.array([self.x_mm, self.y_mm])
+        edge: np.ndarray = densify(np.concatenate(corners), step_mm) + np.array(
+            [self.x_mm, self.y_mm]
+        )
+        return edge
 
 
 @dataclass(frozen=True)
@@ -372,6 +375,22 @@ class PlateSpec:
             raise TypeError(
                 f"PlateSpec.floor: expected a Floor or None, got {type(self.floor).__name__}"
             )
+
+    @property
+    def curved_radius_mm(self) -> float:
+        """The radius of a curved plate (a saddle's along x_p), mm; ValueError for a plane."""
+        if self.radius_mm is None:
+            raise ValueError(
+                f"PlateSpec.radius_mm: a {self.shape} plate needs its radius, got none"
+            )
+        return self.radius_mm
+
+    @property
+    def lit_floor(self) -> Floor:
+        """The shop floor of a plate over one; ValueError over the dark conveyor (``floor`` None)."""
+        if self.floor is None:
+            raise ValueError("PlateSpec.floor: the plate lies on the dark conveyor, not a floor")
+        return self.floor
 
     @property
     def radius2(self) -> float | None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -11,18 +12,21 @@ from ..formats import TARGET_FORMAT, TargetFile
 from .geometry import inside_outline, outline_polygon, plate_height, plate_region
 from .scene import PlateSpec
 
+if TYPE_CHECKING:
+    import trimesh
 
-def target_object(plate: PlateSpec, tolerance_mm: float, out: Path) -> dict:
+
+def target_object(plate: PlateSpec, tolerance_mm: float, out: Path) -> dict[str, Any]:
     """The ``plate-target/1`` object of the nominal plate (no dents); writes ``target.stl`` for a saddle
     and for a plate with a non-rectangular outline or with openings (see :func:`plate_mesh`)."""
     if plate.outline != "rectangle" or plate.cutouts:
         # the analytic shapes know only a size: the outline and the openings need a mesh
         plate_mesh(plate).export(out / "target.stl")
-        shape = {"type": "mesh", "file": "target.stl"}
+        shape: dict[str, Any] = {"type": "mesh", "file": "target.stl"}
     elif plate.shape == "plane":
         shape = {"type": "plane"}
     elif plate.shape in ("cylinder", "sphere"):
-        shape = {"type": plate.shape, "radius_mm": float(plate.radius_mm)}
+        shape = {"type": plate.shape, "radius_mm": float(plate.curved_radius_mm)}
     else:
         _saddle_mesh(plate).export(out / "target.stl")
         shape = {"type": "mesh", "file": "target.stl"}
@@ -36,7 +40,7 @@ def target_object(plate: PlateSpec, tolerance_mm: float, out: Path) -> dict:
     return obj
 
 
-def plate_mesh(plate: PlateSpec, *, spacing_mm: float = 50.0):
+def plate_mesh(plate: PlateSpec, *, spacing_mm: float = 50.0) -> trimesh.Trimesh:
     """The nominal plate (its shape without dents) over its outline, openings cut out, as a triangle mesh.
 
     Parameters
@@ -102,7 +106,7 @@ def plate_mesh(plate: PlateSpec, *, spacing_mm: float = 50.0):
     return trimesh.Trimesh(vertices=np.column_stack([xy, z]), faces=remap[tri], process=False)
 
 
-def _saddle_mesh(plate: PlateSpec, n: int = 61):
+def _saddle_mesh(plate: PlateSpec, n: int = 61) -> trimesh.Trimesh:
     """Nominal saddle as a triangle mesh in the plate frame (mm), ``n x n`` vertices."""
     import trimesh
 

@@ -50,7 +50,8 @@ def smooth_noise(rng: np.random.Generator, shape: tuple[int, int], cells: int) -
     off_y = (big.shape[0] - h) // 2
     off_x = (big.shape[1] - w) // 2
     out = big[off_y : off_y + h, off_x : off_x + w]
-    return (out - out.mean()) / (out.std() + 1e-12)
+    normalised: np.ndarray = (out - out.mean()) / (out.std() + 1e-12)
+    return normalised
 
 
 def plate_albedo_texture(plate: PlateSpec, kind: str, seed: int, texel_mm: float) -> Texture:
@@ -67,7 +68,7 @@ def plate_albedo_texture(plate: PlateSpec, kind: str, seed: int, texel_mm: float
     rng = np.random.default_rng(seed)
     paint = 0.62 + 0.05 * smooth_noise(rng, (ny, nx), 6)  # slow variation of the paint
     grain_noise = rng.standard_normal((ny, nx)).astype(np.float32)
-    grain = cv2.GaussianBlur(grain_noise, (0, 0), 1.0)
+    grain: np.ndarray = cv2.GaussianBlur(grain_noise, (0, 0), 1.0)
     grain /= grain.std() + 1e-12
     albedo = paint + 0.05 * grain  # few-mm grain (primer, mill scale)
     if kind == "rusty":
@@ -95,7 +96,9 @@ def conveyor_texture(plate: PlateSpec, seed: int) -> Texture:
     n = int(math.ceil(span / texel)) + 1
     rng = np.random.default_rng(seed)
     low = smooth_noise(rng, (n, n), 10)
-    grain = cv2.GaussianBlur(rng.standard_normal((n, n)).astype(np.float32), (0, 0), 1.0)
+    grain: np.ndarray = cv2.GaussianBlur(
+        rng.standard_normal((n, n)).astype(np.float32), (0, 0), 1.0
+    )
     grain /= grain.std() + 1e-12
     y = np.arange(n, dtype=np.float32)[:, None] * texel
     slats = (np.sin(2 * np.pi * y / 300.0) > 0.92).astype(np.float32)
@@ -106,17 +109,22 @@ def conveyor_texture(plate: PlateSpec, seed: int) -> Texture:
 def floor_texture(plate: PlateSpec, seed: int, texel_mm: float, span_mm: float) -> Texture:
     """Concrete shop floor (plate frame x_p, y_p over ``span_mm`` square, centred): grain, slow
     variation, oil stains, joints every 3 m and a painted safety line, mean ``floor.albedo``."""
-    floor = plate.floor
+    floor = plate.lit_floor
     n = int(math.ceil(span_mm / texel_mm)) + 1
     rng = np.random.default_rng(seed)
-    grain = cv2.GaussianBlur(rng.standard_normal((n, n)).astype(np.float32), (0, 0), 0.8)
+    grain: np.ndarray = cv2.GaussianBlur(
+        rng.standard_normal((n, n)).astype(np.float32), (0, 0), 0.8
+    )
     grain /= grain.std() + 1e-12
     slow = smooth_noise(rng, (n, n), max(2, int(span_mm / 800)))
     stains = smooth_noise(rng, (n, n), max(2, int(span_mm / 300)))
     stain = np.clip((stains - 1.3) / 0.5, 0.0, 1.0)
     stain = stain * stain * (3.0 - 2.0 * stain)
     coords = np.arange(n, dtype=np.float32) * texel_mm - span_mm / 2
-    joint = lambda c: (np.abs(((c + 1500.0) % 3000.0) - 1500.0) < 8.0).astype(np.float32)  # noqa: E731
+
+    def joint(c: np.ndarray) -> np.ndarray:
+        return (np.abs(((c + 1500.0) % 3000.0) - 1500.0) < 8.0).astype(np.float32)
+
     joints = np.maximum(joint(coords)[None, :], joint(coords)[:, None])
     line_x = plate.size_mm[0] / 2 + 350.0
     line = (np.abs(coords - line_x) < 50.0).astype(np.float32)[None, :]

@@ -9,8 +9,14 @@ wavefront; the solve is memory-bound).
 
 from __future__ import annotations
 
+from typing import Any
+
 import numba as nb
 import numpy as np
+import numpy.typing as npt
+
+#: An array argument of the kernels (their dtypes are set by the callers).
+Arr = npt.NDArray[Any]
 
 #: LLVM fast-math flags for the solver kernels: reassociation lets sums and dot products
 #: vectorise; NaN/Inf semantics are kept (inputs are checked before).
@@ -70,7 +76,7 @@ class Multigrid:
         """Approximate solution of A x = b by nested iteration (coarse solve, interpolated, one
         V-cycle per level); float32 padded grid, a buffer that the next call overwrites."""
         lv = self.levels
-        rhs = [b] + [lv[k].b for k in range(1, len(lv))]
+        rhs = [b] + [lv[k].rhs for k in range(1, len(lv))]
         for k in range(len(lv) - 1):
             _restrict(rhs[k], rhs[k + 1])
         self._vcycle(len(lv) - 1, rhs[-1], zero_start=True)
@@ -83,25 +89,36 @@ class Multigrid:
     def _vcycle(self, k: int, b: np.ndarray, *, zero_start: bool) -> float:
         lv = self.levels[k]
         if k == len(self.levels) - 1:
-            return _coarsest_solve(lv.ex, lv.ey, lv.idg, lv.x, b, _COARSEST_SWEEPS)
+            return float(_coarsest_solve(lv.ex, lv.ey, lv.idg, lv.x, b, _COARSEST_SWEEPS))
         nxt = self.levels[k + 1]
-        _presmooth_restrict(lv.ex, lv.ey, lv.dg, lv.idg, lv.x, b, nxt.b, zero_start)
-        self._vcycle(k + 1, nxt.b, zero_start=True)
-        return _prolong_postsmooth(lv.ex, lv.ey, lv.idg, lv.x, b, nxt.x)
+        _presmooth_restrict(lv.ex, lv.ey, lv.dg, lv.idg, lv.x, b, nxt.rhs, zero_start)
+        self._vcycle(k + 1, nxt.rhs, zero_start=True)
+        return float(_prolong_postsmooth(lv.ex, lv.ey, lv.idg, lv.x, b, nxt.x))
 
 
 class _Level:
     """One level of the multigrid hierarchy: its operator and work buffers (padded grids)."""
 
-    def __init__(self, ex, ey, wd, dg, idg, *, with_rhs=True) -> None:
+    def __init__(
+        self, ex: Arr, ey: Arr, wd: Arr, dg: Arr, idg: Arr, *, with_rhs: bool = True
+    ) -> None:
         self.ex, self.ey, self.wd, self.dg, self.idg = ex, ey, wd, dg, idg
         self.x = np.zeros(dg.shape, dg.dtype)
         # the finest level's right-hand side is always given by the caller
         self.b = np.zeros(dg.shape, dg.dtype) if with_rhs else None
 
+    @property
+    def rhs(self) -> Arr:
+        """The level's right-hand side buffer (a coarse level's; the finest one's is the caller's)."""
+        if self.b is None:
+            raise ValueError("the finest level has no right-hand side buffer: the caller gives it")
+        return self.b
+
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def _presmooth_restrict(ex, ey, dg, idg, x, b, bc, zero_start) -> None:
+def _presmooth_restrict(
+    ex: Arr, ey: Arr, dg: Arr, idg: Arr, x: Arr, b: Arr, bc: Arr, zero_start: bool
+) -> None:
     """Red then black Gauss-Seidel half-sweeps on A x = b, then bc = P^T (b - A x).
 
     One pass over the rows: at step t, red row t, black row t - 1, residual of row t - 2.
@@ -155,7 +172,7 @@ def _presmooth_restrict(ex, ey, dg, idg, x, b, bc, zero_start) -> None:
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def _prolong_postsmooth(ex, ey, idg, x, b, xc):
+def _prolong_postsmooth(ex: Arr, ey: Arr, idg: Arr, x: Arr, b: Arr, xc: Arr) -> float:
     """x += P xc, then black then red Gauss-Seidel half-sweeps; returns b . x (final x).
 
     One pass over the rows: at step t, prolongation into row t, black row t - 1, red row t - 2.
@@ -192,7 +209,17 @@ def _prolong_postsmooth(ex, ey, idg, x, b, xc):
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def _coarsen(ex, ey, wd, edge_scale, exc, eyc, wdc, dgc, idgc) -> None:
+def _coarsen(
+    ex: Arr,
+    ey: Arr,
+    wd: Arr,
+    edge_scale: float | np.floating[Any],
+    exc: Arr,
+    eyc: Arr,
+    wdc: Arr,
+    dgc: Arr,
+    idgc: Arr,
+) -> None:
     """Operator of the next level by 2x2 aggregation: coarse cell (I, J) is the block of fine cells
     2I - 1, 2I by 2J - 1, 2J (padded indices); fine edges between two blocks are summed. The
     coarse arrays must be zero on the padding."""
@@ -212,7 +239,7 @@ def _coarsen(ex, ey, wd, edge_scale, exc, eyc, wdc, dgc, idgc) -> None:
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def _restrict(r, rc) -> None:
+def _restrict(r: Arr, rc: Arr) -> None:
     """rc = P^T r: sums over the 2x2 blocks (padded grids)."""
     hc, wc = rc.shape[0] - 2, rc.shape[1] - 2
     for ic in range(1, hc + 1):
@@ -226,7 +253,7 @@ def _restrict(r, rc) -> None:
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def _interpolate(xc, dgc, idg, x) -> None:
+def _interpolate(xc: Arr, dgc: Arr, idg: Arr, x: Arr) -> None:
     """x = bilinear interpolation of the coarse cells in the system (cell-centred: a fine cell lies
     1/4 of a coarse cell from its block's centre); cells outside the system get 0. Used for the
     nested-iteration start only (the V-cycle uses piecewise-constant prolongation)."""
@@ -251,7 +278,7 @@ def _interpolate(xc, dgc, idg, x) -> None:
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def _coarsest_solve(ex, ey, idg, x, b, sweeps):
+def _coarsest_solve(ex: Arr, ey: Arr, idg: Arr, x: Arr, b: Arr, sweeps: int) -> float:
     """x ~ A^-1 b on the coarsest grid by ``sweeps`` symmetric red-black Gauss-Seidel sweeps from
     zero, in the palindromic order red, black, red, ..., black, red (a symmetric operator);
     returns b . x."""

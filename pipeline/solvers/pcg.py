@@ -5,10 +5,16 @@ The per-cell kernels (matrix-vector product, residual, vector updates) are paral
 
 from __future__ import annotations
 
+from typing import Any
+
 import numba as nb
 import numpy as np
+import numpy.typing as npt
 
 from .multigrid import FASTMATH, Multigrid
+
+#: An array argument of the kernels (their dtypes are set by the callers).
+Arr = npt.NDArray[Any]
 
 
 def solve_grid_system(
@@ -106,7 +112,7 @@ def pcg(
 
 
 @nb.njit(cache=True, fastmath=FASTMATH, parallel=True)
-def _residual_norm2(ex, ey, wd, x, b, r):
+def _residual_norm2(ex: Arr, ey: Arr, wd: Arr, x: Arr, b: Arr, r: Arr) -> float:
     """r = b - A x with the diagonal summed in float64 from the weights; returns ||r||^2."""
     h, w = wd.shape[0] - 2, wd.shape[1] - 2
     acc = 0.0
@@ -128,7 +134,7 @@ def _residual_norm2(ex, ey, wd, x, b, r):
 
 
 @nb.njit(cache=True, fastmath=FASTMATH, parallel=True)
-def _direction_matvec(z, beta, pdir, ex, ey, wd, ap):
+def _direction_matvec(z: Arr, beta: float, pdir: Arr, ex: Arr, ey: Arr, wd: Arr, ap: Arr) -> float:
     """p = z + beta p, then ap = A p (diagonal summed in float64 from the weights); returns p . A p."""
     h, w = wd.shape[0] - 2, wd.shape[1] - 2
     for i in nb.prange(1, h + 1):
@@ -151,7 +157,7 @@ def _direction_matvec(z, beta, pdir, ex, ey, wd, ap):
 
 
 @nb.njit(cache=True, fastmath=FASTMATH, parallel=True)
-def _norm2(a):
+def _norm2(a: Arr) -> float:
     h, w = a.shape
     acc = 0.0
     for i in nb.prange(h):
@@ -161,7 +167,7 @@ def _norm2(a):
 
 
 @nb.njit(cache=True, fastmath=FASTMATH, parallel=True)
-def _cg_step(alpha, pdir, ap, x, r):
+def _cg_step(alpha: float, pdir: Arr, ap: Arr, x: Arr, r: Arr) -> float:
     """x += alpha p, r -= alpha A p; returns ||r||^2."""
     h, w = x.shape
     acc = 0.0

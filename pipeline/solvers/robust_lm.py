@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
+import numpy.typing as npt
 
 
 def robust_gauss_newton(
@@ -43,7 +44,7 @@ def robust_gauss_newton(
     cost : float
     """
 
-    def cost_of(r):
+    def cost_of(r: npt.NDArray[np.float64]) -> float:
         return float(np.sum(2 * f_scale**2 * (np.sqrt(1 + (r / f_scale) ** 2) - 1)))
 
     x = np.asarray(x0, dtype=np.float64).copy()

@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 from ..camera import StereoRig
 from .matching import (
@@ -106,7 +107,7 @@ class StereoDepth:
     timings: dict[str, float] = field(default_factory=dict)
 
 
-def _grey(name: str, image, size: tuple[int, int]) -> np.ndarray:
+def _grey(name: str, image: npt.ArrayLike, size: tuple[int, int]) -> np.ndarray:
     arr = np.asarray(image)
     if arr.ndim == 3 and arr.shape[2] in (3, 4):
         arr = cv2.cvtColor(
@@ -215,7 +216,14 @@ def stereo_depth(
     )
 
 
-def _check_inputs(left_raw, right_raw, rig, z_min_mm, z_max_mm, mask):
+def _check_inputs(
+    left_raw: npt.ArrayLike,
+    right_raw: npt.ArrayLike,
+    rig: StereoRig,
+    z_min_mm: float,
+    z_max_mm: float,
+    mask: npt.ArrayLike | None,
+) -> tuple[np.ndarray, np.ndarray, float, float, np.ndarray | None]:
     """The arguments of :func:`stereo_depth` checked: (left, right float32 grey, z_min, z_max, mask or None)."""
     if not isinstance(rig, StereoRig):
         raise TypeError(f"rig: expected a StereoRig, got {type(rig).__name__}")
@@ -239,8 +247,16 @@ def _check_inputs(left_raw, right_raw, rig, z_min_mm, z_max_mm, mask):
 
 
 def _two_passes(
-    left, right, rig, rect, mask, K_inv, z_min, z_max, timings
-) -> tuple[MatchPass, int, int, tuple | None]:
+    left: np.ndarray,
+    right: np.ndarray,
+    rig: StereoRig,
+    rect: tuple[np.ndarray, np.ndarray, float, float],
+    mask: np.ndarray | None,
+    K_inv: np.ndarray,
+    z_min: float,
+    z_max: float,
+    timings: dict[str, float],
+) -> tuple[MatchPass, int, int, tuple[float, float] | None]:
     """The coarse pass over the given depth range, then the fine pass over the span it found: the fine pass,
     its SGBM ``shift`` and ``num_disp``, and the coarse span (None: the given range was searched).
     ``rect``: :func:`rectification` of the rig; ``timings`` receives ``coarse``, ``rectify`` and ``match``."""
@@ -272,7 +288,16 @@ def _two_passes(
     return fp, shift, num_disp, coarse_span
 
 
-def _search_region(rig, mask, K_inv, R1, f, bx, z_min, z_max) -> tuple[np.ndarray, float, float]:
+def _search_region(
+    rig: StereoRig,
+    mask: np.ndarray | None,
+    K_inv: np.ndarray,
+    R1: np.ndarray,
+    f: float,
+    bx: float,
+    z_min: float,
+    z_max: float,
+) -> tuple[np.ndarray, float, float]:
     """The region to match and the disparities the given depth range allows.
 
     The region is the mask's bounding box (the whole image without a mask) seen in the rectified-left
@@ -291,7 +316,17 @@ def _search_region(rig, mask, K_inv, R1, f, bx, z_min, z_max) -> tuple[np.ndarra
 
 
 def _coarse_span(
-    left, right, rig, R1, R2, f, rays, user_lo, user_hi, mask, K_inv
+    left: np.ndarray,
+    right: np.ndarray,
+    rig: StereoRig,
+    R1: np.ndarray,
+    R2: np.ndarray,
+    f: float,
+    rays: np.ndarray,
+    user_lo: float,
+    user_hi: float,
+    mask: np.ndarray | None,
+    K_inv: np.ndarray,
 ) -> tuple[float, float] | None:
     """The coarse pass: where is the scene? The ``COARSE_PERCENTILES`` of the trusted disparities of the pair
     reduced ``COARSE_FACTOR`` times (full-size pixels), or None with too few matches or too small a pair."""
@@ -340,7 +375,7 @@ def _coarse_span(
 
 
 def _fine_range(
-    coarse_span, user_lo: float, user_hi: float
+    coarse_span: tuple[float, float] | None, user_lo: float, user_hi: float
 ) -> tuple[int, int, tuple[float, float] | None]:
     """The fine pass's SGBM ``(shift, num_disp)``: the coarse span widened by ``FINE_MARGIN_PX`` and rounded
     outward to multiples of 16, never beyond the given range (all of it without a coarse span); and the

@@ -219,7 +219,7 @@ def _sgbm(
     """SGBM disparities (float32, pixels of the window pair, 0 .. num_disp - 1) of rectified 8-bit images;
     NaN where SGBM found no match or either camera does not see the matched pixel."""
     win = (img_l.shape[1], img_l.shape[0])
-    matcher = cv2.StereoSGBM_create(
+    matcher = cv2.StereoSGBM_create(  # type: ignore[attr-defined]  # not in OpenCV 5's stubs
         minDisparity=0,
         numDisparities=num_disp,
         blockSize=BLOCK_SIZE,
@@ -247,9 +247,10 @@ def _levels_uint8(image: np.ndarray, lo: float, hi: float) -> np.ndarray:
     """``image`` mapped so ``lo`` / ``hi`` become 0 / 255, saturating beyond (all 0 if ``hi <= lo``)."""
     if not hi > lo:
         return np.zeros(image.shape, np.uint8)
-    return np.clip((image - np.float32(lo)) * np.float32(255.0 / (hi - lo)) + 0.5, 0, 255).astype(
-        np.uint8
-    )
+    levels: np.ndarray = np.clip(
+        (image - np.float32(lo)) * np.float32(255.0 / (hi - lo)) + 0.5, 0, 255
+    ).astype(np.uint8)
+    return levels
 
 
 def search_range(d_lo: float, d_hi: float, quantum: int = 1) -> tuple[int, int]:
@@ -269,4 +270,5 @@ def reduced_camera(K: np.ndarray, factor: int) -> np.ndarray:
             [0, 0, 1],
         ]
     )
-    return S @ K
+    scaled: np.ndarray = S @ K
+    return scaled

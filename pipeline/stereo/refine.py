@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 #: Sub-pixel refinement: Gaussian window std (pixels) and Gauss-Newton iterations.
 REFINE_SIGMA_PX = 3.0
@@ -114,8 +117,9 @@ def match_correlation(
     warped = cv2.remap(right, map_x, ys, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
     wgt = valid.astype(np.float32)
 
-    def mean(x):
-        return cv2.GaussianBlur(wgt * x, (0, 0), sigma_px)
+    def mean(x: npt.NDArray[Any]) -> npt.NDArray[Any]:
+        blurred: npt.NDArray[Any] = cv2.GaussianBlur(wgt * x, (0, 0), sigma_px)
+        return blurred
 
     norm = mean(np.ones_like(left))
     with np.errstate(divide="ignore", invalid="ignore"):
