@@ -30,6 +30,8 @@ import numpy as np
 import trimesh
 from trimesh.intersections import mesh_plane
 
+from .artifacts.ply import read_mesh_ply
+
 #: Samples along each section.
 SAMPLES = 241
 
@@ -202,7 +204,9 @@ def _profile(
 
     NaN where the cut has no segment within one sample step of ``u``.
     """
-    segments = mesh_plane(mesh, plane_normal=frame.along, plane_origin=origin)
+    segments = mesh_plane(  # type: ignore[no-untyped-call]  # trimesh's own annotations stop here
+        mesh, plane_normal=frame.along, plane_origin=origin
+    )
     out = np.full(u.shape, np.nan)
     if len(segments) == 0:
         return out
@@ -235,17 +239,7 @@ def load_sections(
     artifact_dir = Path(artifact_dir)
     document = json.loads((artifact_dir / "result.json").read_text())
     names = document.get("artifacts", {})
-    surface = trimesh.load(
-        artifact_dir / names.get("surface", "surface.ply"), process=False, force="mesh"
-    )
-    target = trimesh.load(
-        artifact_dir / names.get("target_surface", "target.ply"), process=False, force="mesh"
-    )
-    frame, sections = cut_sections(
-        np.asarray(surface.vertices),
-        np.asarray(surface.faces),
-        np.asarray(target.vertices),
-        np.asarray(target.faces),
-        spacing_mm=spacing_mm,
-    )
+    surface = read_mesh_ply(artifact_dir / names.get("surface", "surface.ply"))
+    target = read_mesh_ply(artifact_dir / names.get("target_surface", "target.ply"))
+    frame, sections = cut_sections(*surface, *target, spacing_mm=spacing_mm)
     return frame, sections, float(document["tolerance_mm"])

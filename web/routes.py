@@ -29,10 +29,10 @@ from app.services import light_calibrations as light_calibration_svc
 from app.services import plates as plate_svc
 from app.services.errors import ServiceError
 from pipeline.formats import InputError
+from pipeline.sections import load_sections
 from web import TEMPLATES_DIR
 from web.charts import forming_chart, section_drawings, trend_chart
 from web.lights import light_plan, light_rows
-from web.sections import load_sections
 
 logger = logging.getLogger(__name__)
 

@@ -43,16 +43,15 @@ from app.viewer.bridge import (
     viewer_page,
 )
 from app.viewer.meshes import (
-    DEVIATION_PROPERTIES,
     SCALE_TOLERANCES,
     PlateMeshes,
     decimate_mesh,
     deviation_colours,
     legend_html,
     load_plate_meshes,
-    read_surface_ply,
 )
 from app.viewer.pool import PlateViewer, ViewerBusyError
+from pipeline.artifacts.ply import DEVIATION_PROPERTIES, read_surface_ply
 
 __all__ = [
     "CLOSE_NOT_FOUND",

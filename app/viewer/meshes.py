@@ -1,4 +1,4 @@
-"""The surfaces the 3D view shows: PLY reading, decimation to display size, deviation colours."""
+"""The surfaces the 3D view shows: the PLYs read (pipeline.artifacts.ply), decimation to display size, colours."""
 
 from __future__ import annotations
 
@@ -11,12 +11,11 @@ import numpy as np
 import trimesh
 
 from pipeline.artifacts.colours import COLOUR_STOPS, deviation_colormap
+from pipeline.artifacts.ply import read_surface_ply
 
 logger = logging.getLogger(__name__)
 
 
-#: Vertex properties of surface.ply that may carry the signed deviation in mm, in order of preference.
-DEVIATION_PROPERTIES = ("deviation_mm", "deviation", "quality")
 #: The colour scale saturates at this multiple of the tolerance.
 SCALE_TOLERANCES = 2.0
 
@@ -180,36 +179,6 @@ def legend_html(scale_mm: float, tolerance_mm: float) -> str:
         f'<div style="position:relative;height:14px">{ticks}</div>'
         f'<div style="margin-top:6px;color:#555">red: proud of target (cameras\' side); '
         f"tolerance ±{tolerance_mm:g} mm; colours saturate beyond ±{scale_mm:g} mm</div></div>"
-    )
-
-
-def read_surface_ply(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Read the measured surface written by the pipeline.
-
-    Returns
-    -------
-    vertices : (V, 3) float64, mm, left camera frame; faces : (F, 3) int64;
-    deviation_mm : (V,) float64, the vertex property named in :data:`DEVIATION_PROPERTIES`.
-
-    Raises
-    ------
-    ValueError
-        If the file has no faces or no deviation property.
-    """
-    mesh = trimesh.load(path, process=False, force="mesh")
-    raw = mesh.metadata.get("_ply_raw", {}).get("vertex", {}).get("data")
-    names = () if raw is None or raw.dtype.names is None else raw.dtype.names
-    found = next((n for n in DEVIATION_PROPERTIES if n in names), None)
-    if found is None:
-        raise ValueError(
-            f"{path.name}: vertex: expected a property among {DEVIATION_PROPERTIES}, got {names}"
-        )
-    if len(mesh.faces) == 0:
-        raise ValueError(f"{path.name}: face: expected a triangle mesh, got no faces")
-    return (
-        np.asarray(mesh.vertices, dtype=np.float64),
-        np.asarray(mesh.faces),
-        np.asarray(raw[found], dtype=np.float64),
     )
 
 

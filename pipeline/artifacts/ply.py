@@ -1,4 +1,5 @@
-"""surface.ply (the measured surface, per-vertex deviation and colour) and target.ply (the registered target), binary PLY."""
+"""surface.ply (the measured surface, per-vertex deviation and colour) and target.ply (the registered target), binary PLY:
+written here, and read back (any PLY triangle mesh with a deviation property) with plyfile."""
 
 from __future__ import annotations
 
@@ -9,9 +10,14 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+from plyfile import PlyData, PlyElementParseError, PlyHeaderParseError
 
 from .checks import check_mask, check_positive
 from .colours import default_limit_mm, deviation_colormap
+
+#: Vertex properties of a surface PLY that may carry the signed deviation in mm, in order of
+#: preference (ours first; ``quality`` is CloudCompare's and MeshLab's scalar field).
+DEVIATION_PROPERTIES = ("deviation_mm", "deviation", "quality")
 
 
 def write_surface_ply(
@@ -228,3 +234,66 @@ def _write_ply(
         fh.write(header.encode("ascii") + b"\n")
         fh.write(vdata.tobytes())
         fh.write(fdata.tobytes())
+
+
+def read_mesh_ply(
+    path: str | os.PathLike[str],
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.int64]]:
+    """Read a PLY triangle mesh (surface.ply, target.ply): vertices (V, 3) float64 mm, faces (F, 3) int64.
+
+    Raises
+    ------
+    ValueError
+        Not a PLY, no vertex or face element, or faces that are not triangles (naming the file).
+    """
+    _, vertices, faces = _read_ply(path)
+    return vertices, faces
+
+
+def read_surface_ply(
+    path: str | os.PathLike[str],
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.int64], npt.NDArray[np.float64]]:
+    """Read a surface PLY: the pipeline's surface.ply, or any triangle mesh with a deviation property.
+
+    Returns
+    -------
+    vertices : (V, 3) float64, mm; faces : (F, 3) int64; deviation_mm : (V,) float64, the vertex
+    property named first among :data:`DEVIATION_PROPERTIES`.
+
+    Raises
+    ------
+    ValueError
+        As :func:`read_mesh_ply`, and a mesh without a deviation property.
+    """
+    vertex, vertices, faces = _read_ply(path)
+    names = vertex.dtype.names or ()
+    found = next((n for n in DEVIATION_PROPERTIES if n in names), None)
+    if found is None:
+        name = os.path.basename(os.fspath(path))
+        raise ValueError(
+            f"{name}: vertex: expected a property among {DEVIATION_PROPERTIES}, got {names}"
+        )
+    return vertices, faces, np.asarray(vertex[found], dtype=np.float64)
+
+
+def _read_ply(
+    path: str | os.PathLike[str],
+) -> tuple[npt.NDArray[Any], npt.NDArray[np.float64], npt.NDArray[np.int64]]:
+    """The vertex element's records, the vertices and the triangles of a PLY (plyfile)."""
+    name = os.path.basename(os.fspath(path))
+    try:
+        ply = PlyData.read(os.fspath(path))
+    except (PlyHeaderParseError, PlyElementParseError) as err:
+        raise ValueError(f"{name}: not a readable PLY: {err}") from err
+    elements = {e.name: e for e in ply.elements}
+    if "vertex" not in elements:
+        raise ValueError(f"{name}: vertex: expected a vertex element, got none")
+    vertex: npt.NDArray[Any] = elements["vertex"].data
+    face = elements.get("face")
+    if face is None or len(face.data) == 0:
+        raise ValueError(f"{name}: face: expected a triangle mesh, got no faces")
+    lists = face.data[face.data.dtype.names[0]]
+    if any(len(f) != 3 for f in lists):
+        raise ValueError(f"{name}: face: expected triangles only")
+    vertices = np.column_stack([vertex["x"], vertex["y"], vertex["z"]]).astype(np.float64)
+    return vertex, vertices, np.vstack(lists).astype(np.int64)

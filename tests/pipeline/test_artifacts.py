@@ -297,3 +297,45 @@ def test_save_depth_round_trip(tmp_path):
         save_depth(path, np.where(np.arange(30).reshape(5, 6) == 3, np.inf, 1.0))
     with pytest.raises(ValueError, match=r"depth_mm: expected a float array of shape \(H, W\)"):
         save_depth(path, np.zeros(4))
+
+
+def test_surface_ply_reads_back_and_refuses_what_it_cannot_show(tmp_path):
+    from pipeline.artifacts.ply import read_surface_ply, write_surface_ply
+
+    h, w = 20, 30
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    points = np.dstack([xx * 10.0, yy * 10.0, np.full((h, w), 2000.0)])
+    dev = (xx - 15.0) * 0.1
+    write_surface_ply(tmp_path / "surface.ply", points, np.ones((h, w), bool), dev)
+    vertices, faces, deviation = read_surface_ply(tmp_path / "surface.ply")
+    assert vertices.shape[1] == 3 and faces.shape[1] == 3 and faces.max() < len(vertices)
+    assert deviation.shape == (len(vertices),)
+    # every vertex carries the deviation of its grid point
+    cols = np.rint(vertices[:, 0] / 10.0).astype(int)
+    np.testing.assert_allclose(deviation, (cols - 15.0) * 0.1, atol=1e-5)
+
+    (tmp_path / "notes.ply").write_text("not a mesh\n")
+    with pytest.raises(ValueError, match=r"notes.ply: not a readable PLY"):
+        read_surface_ply(tmp_path / "notes.ply")
+    quads = "\n".join(
+        [
+            "ply",
+            "format ascii 1.0",
+            "element vertex 4",
+            "property float x",
+            "property float y",
+            "property float z",
+            "property float quality",
+            "element face 1",
+            "property list uchar int vertex_indices",
+            "end_header",
+            "0 0 0 0",
+            "1 0 0 0",
+            "1 1 0 0",
+            "0 1 0 0",
+            "4 0 1 2 3",
+        ]
+    )
+    (tmp_path / "quads.ply").write_text(quads + "\n")
+    with pytest.raises(ValueError, match=r"quads.ply: face: expected triangles only"):
+        read_surface_ply(tmp_path / "quads.ply")

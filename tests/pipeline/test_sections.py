@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from pipeline.sections import cut_sections, plate_frame, section_positions
 from tests.web.plates import cylinder_grid
-from web.sections import cut_sections, plate_frame, section_positions
 
 
 def _sag(radius_mm, x):
@@ -104,8 +104,8 @@ def test_trend_axis_ticks_are_round_numbers():
 
 
 def test_template_gap_enlargement_follows_the_tolerance_or_the_gap():
+    from pipeline.sections import Section
     from web.charts import section_drawings
-    from web.sections import Section
 
     u = np.linspace(0.0, 3000.0, 61)
     target_h = 225.0 - (5000.0 - np.sqrt(5000.0**2 - (u - 1500.0) ** 2))  # a 5 m arc, mm
