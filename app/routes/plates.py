@@ -117,49 +117,37 @@ async def put_target(
     the mesh) or the fields ``size_x_mm``, ``size_y_mm``, ``tolerance_mm``.
     """
     content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
-    staging = storage.new_staging_dir()
-    try:
+    with storage.staging() as staged:
+        staging = staged.dir
         if content_type == "application/json":
-            body = await request.body()
-            (staging / TARGET_FILE).write_bytes(body)
+            (staging / TARGET_FILE).write_bytes(await request.body())
         elif content_type == "multipart/form-data":
-            form = await request.form()
-            await _stage_mesh_form(form, staging)
+            await _stage_mesh_form(await request.form(), staging)
         else:
             raise ApiError(
                 415,
                 f"Content-Type: expected application/json or multipart/form-data, got {content_type or 'none'!r}",
                 field="Content-Type",
             )
-    except BaseException:
-        storage.remove(staging)
-        raise
 
-    created: list[int] = []
+        def work():
+            row = create_target(
+                session=session, storage=storage, plate_id=plate_id, staging_dir=staging
+            )
+            staged.track(storage.target_dir(plate_id, row.id))
+            return 200, target_out(row).model_dump(mode="json"), None
 
-    def cleanup():
-        storage.remove(staging)
-        for target_id in created:
-            storage.remove(storage.target_dir(plate_id, target_id))
-
-    def work():
-        row = create_target(
-            session=session, storage=storage, plate_id=plate_id, staging_dir=staging
+        return await run_in_threadpool(
+            idempotent_write,
+            request=request,
+            session=session,
+            writer=writer,
+            key=idempotency_key,
+            work=work,
+            cleanup=staged.undo,
+            upload_field="target",
+            staging=staging,
         )
-        created.append(row.id)
-        return 200, target_out(row).model_dump(mode="json"), None
-
-    return await run_in_threadpool(
-        idempotent_write,
-        request=request,
-        session=session,
-        writer=writer,
-        key=idempotency_key,
-        work=work,
-        cleanup=cleanup,
-        upload_field="target",
-        staging=staging,
-    )
 
 
 async def _stage_mesh_form(form, staging) -> None:
