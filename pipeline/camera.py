@@ -24,6 +24,26 @@ def _as_matrix(name: str, value: npt.ArrayLike, shape: tuple[int, ...]) -> np.nd
     return arr
 
 
+def check_camera_matrix(value: npt.ArrayLike, name: str = "K") -> np.ndarray:
+    """A pinhole camera matrix checked: finite (3, 3) float64 ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]``
+    with fx, fy > 0 (the one check of K; ``name`` is the argument's name in the error)."""
+    K = np.asarray(value, dtype=np.float64)
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)):
+        raise ValueError(f"{name}: expected a finite (3, 3) matrix, got shape {K.shape}")
+    if (
+        K[0, 0] <= 0
+        or K[1, 1] <= 0
+        or K[2, 2] != 1.0
+        or K[1, 0] != 0
+        or K[2, 0] != 0
+        or K[2, 1] != 0
+    ):
+        raise ValueError(
+            f"{name}: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, got {K.tolist()}"
+        )
+    return K
+
+
 @dataclass(frozen=True)
 class CameraModel:
     """A calibrated pinhole camera with Brown-Conrady distortion.
@@ -43,18 +63,7 @@ class CameraModel:
     image_size: tuple[int, int]
 
     def __post_init__(self) -> None:
-        K = _as_matrix("K", self.K, (3, 3))
-        if (
-            K[0, 0] <= 0
-            or K[1, 1] <= 0
-            or K[2, 2] != 1.0
-            or K[1, 0] != 0
-            or K[2, 0] != 0
-            or K[2, 1] != 0
-        ):
-            raise ValueError(
-                f"K: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, got {K.tolist()}"
-            )
+        K = check_camera_matrix(self.K)
         dist = np.asarray(self.dist, dtype=np.float64).ravel()
         if dist.shape != (5,):
             raise ValueError(f"dist: expected 5 coefficients k1 k2 p1 p2 k3, got {dist.shape[0]}")

@@ -47,6 +47,7 @@ import numpy as np
 import numpy.typing as npt
 import scipy.ndimage
 
+from .camera import check_camera_matrix
 from .solvers import solve_grid_system
 
 #: An array argument of the kernels (their dtypes are set by the callers).
@@ -326,13 +327,7 @@ def _check_normals_inputs(
     if n.dtype not in (np.float32, np.float64):
         raise ValueError(f"normals: expected dtype float32 or float64, got {n.dtype}")
     m = _check_mask(mask, n.shape[:2])
-    k = np.asarray(K, dtype=np.float64)
-    if k.shape != (3, 3) or not np.all(np.isfinite(k)):
-        raise ValueError(f"K: expected a finite (3, 3) matrix, got shape {k.shape}")
-    if k[0, 0] <= 0 or k[1, 1] <= 0 or k[1, 0] != 0 or k[2, 0] != 0 or k[2, 1] != 0 or k[2, 2] != 1:
-        raise ValueError(
-            f"K: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, got {k.tolist()}"
-        )
+    k = check_camera_matrix(K)
     _check_options(tol, max_iter)
     if reference_depth_mm is not None and not (
         np.isfinite(reference_depth_mm) and reference_depth_mm > 0

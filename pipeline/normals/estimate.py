@@ -7,6 +7,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from ..camera import check_camera_matrix
 from ..formats import UNIT_TOLERANCE
 from .field import NormalField, field_from_fit
 from .lstsq import lstsq
@@ -179,17 +180,9 @@ def _view_map(view_dirs: npt.ArrayLike | None, camera_matrix: npt.ArrayLike | No
     if view_dirs is not None and camera_matrix is not None:
         raise ValueError("view_dirs, camera_matrix: expected at most one of them, got both")
     if camera_matrix is not None:
-        K = np.asarray(camera_matrix, dtype=np.float64)
-        if K.shape != (3, 3) or not np.all(np.isfinite(K)):
-            raise ValueError(f"camera_matrix: expected a finite (3, 3) matrix, got shape {K.shape}")
-        if not (
-            K[0, 0] > 0 and K[1, 1] > 0 and K[1, 0] == K[2, 0] == K[2, 1] == 0 and K[2, 2] == 1
-        ):
-            raise ValueError(
-                f"camera_matrix: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, "
-                f"got {K.tolist()}"
-            )
-        return -np.linalg.inv(K)
+        K = check_camera_matrix(camera_matrix, "camera_matrix")
+        inverse: np.ndarray = -np.linalg.inv(K)
+        return inverse
     if view_dirs is None:
         return None
     v = np.asarray(view_dirs)

@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
+from .. import camera
+
 
 def check_image(
     name: str, value: npt.ArrayLike, shape: tuple[int, int] | None = None
@@ -31,10 +33,5 @@ def check_bool_image(name: str, value: npt.ArrayLike, shape: tuple[int, int]) ->
 
 
 def check_camera_matrix(K: npt.ArrayLike) -> np.ndarray:
-    """A finite (3, 3) float64 camera matrix with fx, fy > 0; ValueError otherwise."""
-    K = np.asarray(K, dtype=np.float64)
-    if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise ValueError(
-            f"camera_matrix: expected a (3, 3) K with fx, fy > 0, got {np.asarray(K).tolist()}"
-        )
-    return K
+    """The camera matrix argument checked (:func:`pipeline.camera.check_camera_matrix`)."""
+    return camera.check_camera_matrix(K, "camera_matrix")

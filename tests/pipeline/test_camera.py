@@ -34,7 +34,7 @@ def test_undistort_image_keeps_dtype_and_shape():
 @pytest.mark.parametrize(
     "kwargs, match",
     [
-        ({"K": np.eye(2)}, r"K: expected shape \(3, 3\)"),
+        ({"K": np.eye(2)}, r"K: expected a finite \(3, 3\) matrix, got shape \(2, 2\)"),
         ({"K": np.array([[0.0, 0, 1], [0, 1, 1], [0, 0, 1]])}, "fx, fy > 0"),
         ({"dist": np.zeros(4)}, "dist: expected 5 coefficients"),
         ({"image_size": (0, 10)}, "image_size: expected positive"),
