@@ -2,12 +2,13 @@
 # Installs what plate-inspect needs on a fresh Debian machine that has python3 (3.11) and apt:
 # Aravis (GenICam cameras: gir1.2-aravis-0.8; its fake GigE Vision camera and arv-tool for the
 # tests and for setting up a cell: aravis-tools, aravis-tools-cli), what building PyGObject in the
-# virtual environment needs, Debian's Chromium (browser tests only: pass --with-browser), and a
+# virtual environment needs, Debian's Chromium, PostgreSQL, Redis and poppler-utils (the tests that
+# drive them: pass --with-browser), and a
 # virtual environment in .venv. Packages already installed are not asked for again.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 packages=(gir1.2-aravis-0.8 aravis-tools aravis-tools-cli libgirepository1.0-dev libcairo2-dev pkg-config gcc)
-[ "${1:-}" = "--with-browser" ] && packages+=(chromium postgresql redis-server)
+[ "${1:-}" = "--with-browser" ] && packages+=(chromium postgresql redis-server poppler-utils)
 python3 -c 'import os, sys, sysconfig; sys.exit(not os.path.isfile(os.path.join(sysconfig.get_paths()["include"], "Python.h")))' \
   || packages+=(python3-dev)
 if command -v apt-get >/dev/null 2>&1; then

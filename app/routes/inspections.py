@@ -15,6 +15,7 @@ from pydantic import ValidationError
 from app.deps import JobsDep, SessionDep, SettingsDep, StorageDep, WriterDep
 from app.errors import ApiError
 from app.limits import Limits
+from app.models import JobStatus
 from app.routes.common import (
     IdempotencyKeyHeader,
     InspectionIdPath,
@@ -42,6 +43,7 @@ from app.services import plates as plates_svc
 from app.services.acquisitions import create_acquired_inspection
 from app.services.cell import CELL_SETTING, CellUnavailable, demo_target, load_cell
 from app.services.inspections import CAPTURE_FILE
+from app.services.reports import inspection_report
 from app.services.targets import TARGET_FILE
 from pipeline.formats import InputError
 
@@ -383,6 +385,39 @@ def get_inspection(inspection_id: InspectionIdPath, session: SessionDep, storage
     if row is None:
         raise ApiError(404, f"inspection_id: no inspection {inspection_id}", field="inspection_id")
     return inspection_out(row, storage=storage)
+
+
+@router.get(
+    "/inspections/{inspection_id}/report.pdf",
+    response_class=Response,
+    responses={
+        200: {"content": {"application/pdf": {}}, "description": "the report, A4"},
+        404: {"model": ErrorOut},
+        409: {"model": ErrorOut},
+    },
+)
+def get_report(inspection_id: InspectionIdPath, session: SessionDep, storage: StorageDep):
+    """The inspection report to sign (A4 PDF): plate, verdict and why, statistics, the deviation map
+    with its defects numbered, the defect table, the templates, the calibrations used, signature lines.
+    Only a done inspection has one (409 otherwise)."""
+    row = svc.get_inspection(session=session, inspection_id=inspection_id)
+    if row is None:
+        raise ApiError(404, f"inspection_id: no inspection {inspection_id}", field="inspection_id")
+    if row.status != JobStatus.DONE:
+        raise ApiError(
+            409,
+            f"inspection_id: inspection {inspection_id} is {row.status}; only a done inspection "
+            "has a report",
+            field="inspection_id",
+        )
+    document = inspection_out(row, storage=storage).model_dump(mode="json")
+    pdf = inspection_report(session=session, storage=storage, row=row, document=document)
+    name = f"inspection-{row.plate_id}-{row.id}.pdf"
+    return Response(
+        pdf,
+        media_type="application/pdf",
+        headers={"Content-Disposition": f'inline; filename="{name}"'},
+    )
 
 
 @router.get(

@@ -74,14 +74,11 @@ def write_deviation_png(
     check_positive("tolerance_mm", tolerance_mm)
     limit = default_limit_mm(tolerance_mm) if limit_mm is None else limit_mm
     check_positive("limit_mm", limit)
-    # a map taller than a screen is shown reduced anyway: sample it down by a whole stride
-    stride = math.ceil(dev.shape[0] / MAX_PNG_HEIGHT)
+    stride, k = deviation_png_layout(dev.shape)
     if stride > 1:
         dev, mask = dev[::stride, ::stride], mask[::stride, ::stride]
-    h, w = dev.shape
 
     rgb = deviation_colormap(np.where(mask, dev, np.nan), limit_mm=limit)
-    k = max(1, min(math.ceil(MIN_PNG_HEIGHT / h), MAX_PNG_WIDTH // w))
     if k > 1:
         rgb = np.repeat(np.repeat(rgb, k, axis=0), k, axis=1)
     height = max(rgb.shape[0], MIN_PNG_HEIGHT)
@@ -90,6 +87,18 @@ def write_deviation_png(
     canvas[: rgb.shape[0], : rgb.shape[1]] = rgb
     canvas[:, rgb.shape[1] :] = panel
     _imwrite(path, canvas)
+
+
+def deviation_png_layout(shape_hw: tuple[int, ...]) -> tuple[int, int]:
+    """How deviation.png draws an (H, W) map: ``(stride, k)``.
+
+    A map taller than a screen is shown reduced anyway: it is sampled every ``stride`` pixels; the
+    sampled map is then enlarged ``k`` times (nearest neighbour), so image pixel ``(r, c)`` lands at
+    PNG pixel ``(r * k / stride, c * k / stride)`` (:func:`write_deviation_png`).
+    """
+    stride = math.ceil(shape_hw[0] / MAX_PNG_HEIGHT)
+    h, w = -(-shape_hw[0] // stride), -(-shape_hw[1] // stride)
+    return stride, max(1, min(math.ceil(MIN_PNG_HEIGHT / h), MAX_PNG_WIDTH // w))
 
 
 def _scale_panel(height: int, *, limit_mm: float, tolerance_mm: float) -> np.ndarray:

@@ -12,8 +12,8 @@ from pipeline.acquisition import acquire, write_demo_cell
 from pipeline.cli import EXIT_BAD_INPUT, EXIT_HARDWARE, EXIT_NOT_MEASURABLE, EXIT_OK, main
 from pipeline.formats import AcquisitionError
 from pipeline.io import load_capture
-from tests.acquisition.conftest import HEIGHT, WIDTH, tcp_lights, write_cell
 from tests.acquisition.devices import FakeGigECamera
+from tests.acquisition.helpers import HEIGHT, WIDTH, tcp_lights, write_cell
 
 N = 6
 FAKE_1 = {"driver": "aravis", "device_id": "Fake_1"}

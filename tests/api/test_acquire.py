@@ -21,8 +21,8 @@ from app.services.cell import CELL_DIR, DEMO_CELL_DIR, CellLock
 from app.settings import Settings
 from pipeline.acquisition import write_demo_cell
 from pipeline.io import load_capture
-from tests.acquisition.conftest import HEIGHT, WIDTH, tcp_lights, write_cell
-from tests.api.conftest import (
+from tests.acquisition.helpers import HEIGHT, WIDTH, tcp_lights, write_cell
+from tests.api.helpers import (
     AUTH,
     FAKE_INSPECT,
     TOKEN,

@@ -11,7 +11,7 @@ import pytest
 from sqlalchemy import func, select
 
 from app.models import Inspection, Plate
-from tests.api.conftest import AUTH, rezip, stored_files, target_json
+from tests.api.helpers import AUTH, rezip, stored_files, target_json
 
 
 def _count(client, model) -> int:

@@ -12,7 +12,7 @@ from fastapi.testclient import TestClient
 
 from app.errors import scrub_paths
 from pipeline.formats import InputError
-from tests.api.conftest import AUTH
+from tests.api.helpers import AUTH
 
 API = "/api/v1"
 

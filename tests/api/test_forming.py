@@ -9,7 +9,7 @@ import json
 
 import pytest
 
-from tests.api.conftest import AUTH, target_json
+from tests.api.helpers import AUTH, target_json
 
 MACHINE = {
     "kind": "three-roll-pyramid",
@@ -293,7 +293,7 @@ def test_under_bent_simulated_plate_fails(tmp_path):
     from app.jobs import execute_inspection
     from app.main import create_app
     from app.settings import Settings
-    from tests.api.conftest import TOKEN
+    from tests.api.helpers import TOKEN
 
     settings = Settings(data_dir=tmp_path / "real", api_token=TOKEN, progress_interval_s=0.05)
     app = create_app(settings)

@@ -18,7 +18,7 @@ from app.models import Inspection, LightCalibration, Plate, Target
 from app.routes.common import MAX_ROW_ID
 from app.schemas import PLATE_ID_MAX_LENGTH, PLATE_ID_REGEX
 from app.storage import check_plate_id
-from tests.api.conftest import AUTH, rezip, stored_files, target_json
+from tests.api.helpers import AUTH, rezip, stored_files, target_json
 
 JSON = {**AUTH, "Content-Type": "application/json"}
 PAST_64_BITS = str(2**63)

@@ -9,7 +9,15 @@ import zipfile
 
 import pytest
 
-from tests.api.conftest import AUTH, invocations, rezip, target_json, wait_for
+from tests.api.helpers import (
+    AUTH,
+    invocations,
+    pdf_text,
+    rendered_page_ink,
+    rezip,
+    target_json,
+    wait_for,
+)
 
 
 def _post_bundle(client, plate_id, bundle, *, target=True, headers=None):
@@ -208,7 +216,7 @@ def test_real_pipeline_inspection(tmp_path, consumer_factory, bundle_zip):
 
     from app.main import create_app
     from app.settings import Settings
-    from tests.api.conftest import TOKEN, Consumer
+    from tests.api.helpers import TOKEN, Consumer
 
     settings = Settings(data_dir=tmp_path / "real", api_token=TOKEN, progress_interval_s=0.05)
     app = create_app(settings)
@@ -255,7 +263,7 @@ def test_a_dented_plate_fails_and_the_api_lists_its_defect(tmp_path):
 
     from app.main import create_app
     from app.settings import Settings
-    from tests.api.conftest import TOKEN, Consumer
+    from tests.api.helpers import TOKEN, Consumer
 
     settings = Settings(data_dir=tmp_path / "dent", api_token=TOKEN)
     app = create_app(settings)
@@ -270,10 +278,19 @@ def test_a_dented_plate_fails_and_the_api_lists_its_defect(tmp_path):
             )
             assert r.status_code == 202, r.text
             body = wait_for(client, r.json()["id"], timeout_s=180, consumer=consumer)
+            page = client.get(f"/inspections/{body['id']}").text
+            report = client.get(f"/api/v1/inspections/{body['id']}/report.pdf")
     finally:
         consumer.stop()
         app.state.engine.dispose()
     assert body["status"] == "done" and body["verdict"] == "fail", body
+    # the result page and the signed report show the defect's peak as the table prints it
+    peak = f"{body['defects'][0]['peak_mm']:+.1f}"
+    assert f">{peak}</td>" in page
+    assert report.status_code == 200 and report.headers["content-type"] == "application/pdf"
+    text = pdf_text(report.content, tmp_path)
+    assert "DENT-1" in text and "FAIL" in text and peak in text and "Signature" in text
+    assert rendered_page_ink(report.content, tmp_path) > 0.02
     assert body["reasons"] and "tolerance" in body["reasons"][0]
     [defect] = body["defects"]
     assert defect["id"] == 1

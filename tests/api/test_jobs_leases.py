@@ -13,7 +13,7 @@ from sqlalchemy import create_engine, text
 from app.db import alembic_config, make_engine, make_session_factory
 from app.models import Base, Inspection, utcnow
 from app.services import leases as svc
-from tests.api.conftest import AUTH
+from tests.api.helpers import AUTH
 
 SIM = {"n_lights": 3, "width": 160, "height": 128}
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import subprocess
 import sys
 
-from tests.api.conftest import AUTH, ROOT, Consumer, rezip, target_json, wait_for
+from tests.api.helpers import AUTH, ROOT, Consumer, rezip, target_json, wait_for
 from tests.api.test_jobs import _capture_json_with_plate
 
 #: The test double asks for 2048 MiB (PLATE_INSPECT_TEST_ALLOCATE_MB's default): the limit leaves less room.

@@ -11,7 +11,7 @@ import sys
 from collections import Counter
 from pathlib import Path
 
-from tests.api.conftest import AUTH, ROOT, Consumer, invocations, pid_alive, wait_for, wait_until
+from tests.api.helpers import AUTH, ROOT, Consumer, invocations, pid_alive, wait_for, wait_until
 
 PLATE_INSPECT = Path(sys.executable).parent / "plate-inspect"
 SIM = {"n_lights": 3, "width": 160, "height": 128}

@@ -11,7 +11,7 @@ from sqlalchemy import select
 
 from app.cli import ConsumerProcess
 from app.models import Inspection
-from tests.api.conftest import AUTH, invocations, rezip, target_json, wait_for
+from tests.api.helpers import AUTH, invocations, rezip, target_json, wait_for
 from tests.api.test_jobs import _capture_json_with_plate
 
 

@@ -11,7 +11,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from app.main import create_app
-from tests.api.conftest import AUTH, ROOT, wait_for
+from tests.api.helpers import AUTH, ROOT, wait_for
 
 SIM = {"n_lights": 3, "width": 160, "height": 128}
 

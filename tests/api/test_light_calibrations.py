@@ -11,7 +11,7 @@ import pytest
 from sqlalchemy import func, select
 
 from app.models import LightCalibration
-from tests.api.conftest import (
+from tests.api.helpers import (
     AUTH,
     TOKEN,
     Consumer,

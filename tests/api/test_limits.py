@@ -16,7 +16,7 @@ from app.limits import Limits
 from app.limits.work import read_capture_header
 from app.models import Inspection, Target
 from app.settings import Settings
-from tests.api.conftest import AUTH, stored_files, target_json, wait_for
+from tests.api.helpers import AUTH, stored_files, target_json, wait_for
 
 SIMULATED_SMALL = {"n_lights": 3, "width": 64, "height": 64}
 

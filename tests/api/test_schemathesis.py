@@ -25,7 +25,7 @@ from schemathesis.checks import (
 
 from app.main import create_app
 from app.settings import Settings
-from tests.api.conftest import AUTH, FAKE_INSPECT, TOKEN
+from tests.api.helpers import AUTH, FAKE_INSPECT, TOKEN
 
 #: Generated requests per operation (valid and invalid ones together).
 MAX_EXAMPLES = 25

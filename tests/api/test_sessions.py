@@ -17,7 +17,7 @@ from app.deps import SESSION_COOKIE
 from app.main import create_app
 from app.models import DashboardSession, utcnow
 from app.throttle import FIRST_DELAY_S, TokenThrottle, client_key
-from tests.api.conftest import AUTH, TOKEN
+from tests.api.helpers import AUTH, TOKEN
 
 SIMULATED = "/api/v1/plates/P-1/inspections/simulated"
 

@@ -481,3 +481,49 @@ def test_next_pass_panel_and_passes_chart(live_server, browser):
     page.goto(f"{live_server['base']}/inspections/{job['id']}")
     assert page.locator("#next-pass [data-action]").get_attribute("data-action") == "bend"
     assert not errors and not violations, (errors, violations)
+
+
+def test_result_page_report_button_and_print_layout(live_server, browser):
+    """A done plate's page links its PDF report (which the server answers), and printed (print media)
+    it drops the toolbar and side lists and keeps the deviation map wide on the page."""
+    SHOTS.mkdir(exist_ok=True)
+    job = _api(
+        live_server,
+        "POST",
+        "/api/v1/plates/H13-RPT/inspections/simulated",
+        {
+            "n_lights": 6,
+            "width": 320,
+            "height": 256,
+            "dents": [{"x_mm": 400.0, "y_mm": -200.0, "radius_mm": 200.0, "depth_mm": -8.0}],
+        },
+    )
+    deadline = time.monotonic() + 120
+    while (doc := _api(live_server, "GET", f"/api/v1/inspections/{job['id']}"))["status"] not in (
+        "done",
+        "error",
+    ):
+        assert time.monotonic() < deadline, "the inspection did not finish"
+        time.sleep(0.5)
+    assert doc["status"] == "done", (live_server["logs"] / "worker.log").read_text()[-3000:]
+
+    page = browser.new_page(viewport={"width": 1366, "height": 768})
+    errors = []
+    page.on("pageerror", lambda err: errors.append(str(err)))
+    page.goto(f"{live_server['base']}/inspections/{job['id']}")
+    button = page.locator("a#report")
+    assert button.is_visible() and button.inner_text() == "Report (PDF)"
+    href = button.get_attribute("href")
+    assert href == f"/api/v1/inspections/{job['id']}/report.pdf"
+    response = page.request.get(f"{live_server['base']}{href}")
+    assert response.status == 200 and response.headers["content-type"] == "application/pdf"
+    assert response.body()[:5] == b"%PDF-"
+
+    page.emulate_media(media="print")
+    assert not page.locator("header.toolbar").is_visible()
+    assert not page.locator("aside.side").is_visible()
+    assert not button.is_visible()
+    map_width = page.locator("img[alt^='deviation colour map']").bounding_box()["width"]
+    assert map_width > 0.6 * page.viewport_size["width"], map_width
+    page.screenshot(path=SHOTS / "result-print.png", full_page=True)
+    assert not errors, errors

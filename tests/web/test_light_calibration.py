@@ -8,7 +8,7 @@ import re
 import numpy as np
 from fastapi.testclient import TestClient
 
-from tests.web.conftest import seed_done_inspection
+from tests.web.helpers import seed_done_inspection
 
 APPLIED = "a light calibration was applied to the capture's nominal light directions"
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi.testclient import TestClient
 
-from tests.api.conftest import target_json
+from tests.api.helpers import target_json
 from tests.api.test_forming import MACHINE, MATERIAL, process
 
 

@@ -10,7 +10,7 @@ import re
 import pytest
 from fastapi.testclient import TestClient
 
-from tests.web.conftest import seed_done_inspection, seed_queued_inspection
+from tests.web.helpers import seed_done_inspection, seed_queued_inspection
 
 
 def test_cell_page_has_form_queue_and_no_external_assets(demo_app):

@@ -13,7 +13,7 @@ from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
 from app.viewer import CLOSE_TRY_AGAIN_LATER, VISER_SUBPROTOCOL
-from tests.web.conftest import seed_done_inspection
+from tests.web.helpers import seed_done_inspection
 
 TOKEN = "viewer-limits-token-0123"
 

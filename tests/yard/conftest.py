@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from app.settings import Settings
-from tests.api.conftest import FAKE_INSPECT, TOKEN
+from tests.api.helpers import FAKE_INSPECT, TOKEN
 from tests.yard import servers
 
 

@@ -12,7 +12,7 @@ from sqlalchemy import create_engine, select
 
 from app.models import Inspection
 from pipeline.artifacts import ARTIFACT_FILES
-from tests.api.conftest import wait_until
+from tests.api.helpers import wait_until
 from tests.yard.cluster import Yard
 
 SIM = {"n_lights": 6, "width": 160, "height": 128}

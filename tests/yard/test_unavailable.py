@@ -6,7 +6,7 @@ from fastapi.testclient import TestClient
 
 from app.main import create_app
 from app.settings import Settings
-from tests.api.conftest import TOKEN
+from tests.api.helpers import TOKEN
 from tests.yard import servers
 
 

@@ -16,7 +16,7 @@ from app.jobs import JobQueue
 from app.main import create_app
 from app.models import Inspection, Plate
 from app.storage import Storage
-from tests.api.conftest import AUTH, Consumer, invocations, wait_for, wait_until
+from tests.api.helpers import AUTH, Consumer, invocations, wait_for, wait_until
 
 SIM = {"n_lights": 3, "width": 160, "height": 128}
 

@@ -1,0 +1,331 @@
+"""The inspection report to sign: one PDF per done inspection (``GET /api/v1/inspections/{id}/report.pdf``).
+
+Built with ReportLab: pure Python (no browser, TeX or system fonts to install on a cell PC), long
+maintained, and its platypus layer flows paragraphs and tables over A4 pages while its canvas draws
+the deviation map with numbered callouts at the defects. The report is built from plain data (the
+inspection's API document, its target and light calibration, its artifact folder); the route reads
+the database, this module only draws.
+
+Contents, following the conventions of deviation reports (plate, part, verdict first): plate,
+inspection, time (with its zone), software version; verdict and why; target (shape, radius, size,
+tolerance, material); radius and deviation statistics; the deviation map with callouts; the defect
+table; the virtual templates' largest gaps; the calibrations used; operator, date and signature lines.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from reportlab.lib import colors
+from reportlab.lib.pagesizes import A4
+from reportlab.lib.styles import ParagraphStyle, getSampleStyleSheet
+from reportlab.lib.units import mm
+from reportlab.platypus import Flowable, Paragraph, SimpleDocTemplate, Spacer, Table, TableStyle
+from reportlab.platypus.flowables import KeepTogether
+
+from pipeline.artifacts.png import deviation_png_layout
+
+#: Width of the page's text block, points (A4 less 18 mm margins).
+TEXT_WIDTH = A4[0] - 36 * mm
+
+
+@dataclass(frozen=True)
+class ReportData:
+    """What a report shows.
+
+    Attributes
+    ----------
+    inspection : dict
+        The inspection's API document (``InspectionOut`` as JSON): result, defects, reasons, times.
+    artifacts_dir : Path
+        Its artifact folder (deviation.png, depth.npy for the map's size).
+    target : dict or None
+        The ``plate-target/1`` document it was judged against (with its ``material``, if any).
+    light_calibration : dict or None
+        ``{"id", "rms", "file_name"}`` of the light calibration applied; None: the bundle's lights.
+    sections : list of (float, float or None)
+        The virtual templates: frame position (mm) and largest gap there (mm).
+    software_version : str
+    printed_at : datetime
+        Aware; shown with its zone.
+    """
+
+    inspection: dict[str, Any]
+    artifacts_dir: Path
+    target: dict[str, Any] | None
+    light_calibration: dict[str, Any] | None
+    software_version: str
+    printed_at: datetime
+    sections: list[tuple[float, float | None]] = field(default_factory=list)
+
+
+def build_report(data: ReportData) -> bytes:
+    """The PDF (A4) of a done inspection."""
+    styles = getSampleStyleSheet()
+    doc = data.inspection
+    buffer = io.BytesIO()
+    pdf = SimpleDocTemplate(
+        buffer,
+        pagesize=A4,
+        leftMargin=18 * mm,
+        rightMargin=18 * mm,
+        topMargin=16 * mm,
+        bottomMargin=16 * mm,
+        title=f"Inspection report {doc['plate_id']} #{doc['id']}",
+        author="plate-inspect",
+    )
+    story: list[Flowable] = [
+        Paragraph(f"Forming inspection report: plate {doc['plate_id']}", styles["Title"]),
+        _table(_header_rows(data), widths=(45 * mm, None)),
+        Spacer(1, 4 * mm),
+        *_verdict(doc, styles),
+        _section("Target and measurement", styles),
+        _table(_measurement_rows(doc, data.target), widths=(60 * mm, None)),
+        _section("Deviation map", styles),
+        *_deviation_map(data, styles),
+        *_defects(doc, styles),
+        *_templates(data.sections, styles),
+        _section("Calibrations", styles),
+        _table(_calibration_rows(data), widths=(45 * mm, None)),
+        KeepTogether(_signature(styles)),
+    ]
+    pdf.build(story)
+    return buffer.getvalue()
+
+
+def _header_rows(data: ReportData) -> list[list[str]]:
+    doc = data.inspection
+    finished = doc.get("finished_at")
+    return [
+        ["Plate", str(doc["plate_id"])],
+        ["Inspection", f"#{doc['id']} ({doc.get('source', '')})"],
+        ["Measured", _when(finished) if finished else "—"],
+        ["Report printed", _when(data.printed_at)],
+        ["Software", f"plate-inspect {data.software_version}"],
+    ]
+
+
+def _verdict(doc: dict[str, Any], styles: Any) -> list[Flowable]:
+    verdict = (doc.get("verdict") or "").upper() or "—"
+    colour = "#1b7f3b" if verdict == "PASS" else "#b3261e"
+    out: list[Flowable] = [
+        Paragraph(
+            f'<font size="20" color="{colour}"><b>{verdict}</b></font>',
+            ParagraphStyle("verdict", parent=styles["Normal"], leading=26),
+        )
+    ]
+    for reason in doc.get("reasons") or []:
+        out.append(Paragraph(f"• {_escape(reason)}", styles["Normal"]))
+    return out
+
+
+def _measurement_rows(doc: dict[str, Any], target: dict[str, Any] | None) -> list[list[str]]:
+    result = doc.get("result") or {}
+    dev = result.get("deviation_mm") or {}
+    shape = (target or {}).get("shape", {})
+    rows = [
+        ["Target shape", _shape_text(shape)],
+        ["Target size", _size_text((target or {}).get("size_mm"))],
+        ["Tolerance", _mm(result.get("tolerance_mm"), 1, prefix="±")],
+    ]
+    material = (target or {}).get("material")
+    if material:
+        rows.append(
+            [
+                "Material",
+                f"{material.get('grade', '')}, {_num(material.get('thickness_mm'), 0)} mm, "
+                f"yield {_num(material.get('yield_mpa'), 0)} MPa",
+            ]
+        )
+    rows += [
+        ["Measured radius", _mm(result.get("radius_mm"), 1)],
+        ["Target radius", _mm(result.get("target_radius_mm"), 1)],
+        ["Radius error", _signed(result.get("radius_error_pct"), 2, "%")],
+        ["Deviation RMS / p95", f"{_mm(dev.get('rms'), 2)} / {_mm(dev.get('p95'), 2)}"],
+        ["Largest |deviation|", _mm(dev.get("max_abs"), 2)],
+        ["Within tolerance", _num(result.get("within_tolerance_pct"), 2, "%")],
+    ]
+    return rows
+
+
+def _deviation_map(data: ReportData, styles: Any) -> list[Flowable]:
+    png = data.artifacts_dir / "deviation.png"
+    depth = data.artifacts_dir / "depth.npy"
+    if not png.is_file() or not depth.is_file():
+        return [Paragraph("No deviation map was written for this inspection.", styles["Normal"])]
+    shape_hw = np.load(depth, mmap_mode="r").shape[:2]
+    return [
+        DeviationMap(png, shape_hw, data.inspection.get("defects") or [], TEXT_WIDTH),
+        Paragraph(
+            "Numbers mark the defects of the table below (red: proud of the target, towards the "
+            "cameras; blue: below it).",
+            styles["Italic"],
+        ),
+    ]
+
+
+def _defects(doc: dict[str, Any], styles: Any) -> list[Flowable]:
+    defects = doc.get("defects") or []
+    if not defects:
+        return [
+            _section("Defects", styles),
+            Paragraph("No region out of tolerance.", styles["Normal"]),
+        ]
+    rows = [["#", "x, mm", "y, mm", "area, cm²", "peak, mm", "mean, mm"]]
+    for d in defects:
+        x, y = d.get("centroid_mm") or (None, None)
+        rows.append(
+            [
+                str(d["id"]),
+                _num(x, 0),
+                _num(y, 0),
+                _num(d["area_mm2"] / 100.0, 1),
+                _signed(d["peak_mm"], 1),
+                _signed(d.get("mean_mm"), 1),
+            ]
+        )
+    note = Paragraph(
+        "Position in the target's frame (its centre, x along its first side); peak and mean "
+        "deviation signed: + proud of the target (towards the cameras), − below it.",
+        styles["Italic"],
+    )
+    return [_section("Defects", styles), _table(rows, header=True), note]
+
+
+def _templates(sections: list[tuple[float, float | None]], styles: Any) -> list[Flowable]:
+    if not sections:
+        return []
+    rows = [["Frame at, mm", "Largest gap, mm"]]
+    rows += [[_num(p, 0), _signed(g, 2)] for p, g in sections]
+    return [_section("Virtual templates", styles), _table(rows, header=True)]
+
+
+def _calibration_rows(data: ReportData) -> list[list[str]]:
+    light = data.light_calibration
+    return [
+        ["Stereo calibration", "the capture bundle's own (calibration.json in its inputs)"],
+        [
+            "Light calibration",
+            "none: the light positions of the capture bundle"
+            if light is None
+            else f"#{light['id']} {light.get('file_name') or ''} (fit RMS {_num(light.get('rms'), 4)})",
+        ],
+    ]
+
+
+def _signature(styles: Any) -> list[Flowable]:
+    line = "_" * 38
+    rows = [["Operator", line], ["Date", line], ["Signature", line]]
+    return [Spacer(1, 10 * mm), _section("Approval", styles), _table(rows, widths=(45 * mm, None))]
+
+
+class DeviationMap(Flowable):  # type: ignore[misc]  # ReportLab is untyped
+    """deviation.png at the text width, a numbered circle at each defect's centroid."""
+
+    def __init__(
+        self, png: Path, shape_hw: tuple[int, ...], defects: list[dict[str, Any]], width: float
+    ) -> None:
+        super().__init__()
+        from PIL import Image
+
+        with Image.open(png) as image:
+            self.png_size = image.size
+        self.png, self.defects = png, defects
+        self.stride, self.k = deviation_png_layout(shape_hw)
+        self.width = width
+        self.height = width * self.png_size[1] / self.png_size[0]
+
+    def draw(self) -> None:
+        c = self.canv
+        c.drawImage(str(self.png), 0, 0, width=self.width, height=self.height)
+        scale = self.width / self.png_size[0] * self.k / self.stride  # points per image pixel
+        radius = max(7.0, 0.012 * self.width)
+        for d in self.defects:
+            col, row = d["centroid_px"]
+            x, y = col * scale, self.height - row * scale
+            c.setStrokeColor(colors.black)
+            c.setFillColor(colors.white)
+            c.setLineWidth(1.2)
+            c.circle(x + 2.2 * radius, y + 2.2 * radius, radius, stroke=1, fill=1)
+            c.line(x, y, x + 1.5 * radius, y + 1.5 * radius)
+            c.setFillColor(colors.black)
+            c.setFont("Helvetica-Bold", radius * 1.1)
+            c.drawCentredString(x + 2.2 * radius, y + 1.8 * radius, str(d["id"]))
+
+
+def _table(
+    rows: list[list[str]], *, widths: tuple[float | None, ...] | None = None, header: bool = False
+) -> Table:
+    table = Table(rows, colWidths=widths, hAlign="LEFT")
+    style = [
+        ("FONT", (0, 0), (-1, -1), "Helvetica", 9.5),
+        ("VALIGN", (0, 0), (-1, -1), "TOP"),
+        ("BOTTOMPADDING", (0, 0), (-1, -1), 3),
+        ("TOPPADDING", (0, 0), (-1, -1), 3),
+    ]
+    if header:
+        style += [
+            ("FONT", (0, 0), (-1, 0), "Helvetica-Bold", 9.5),
+            ("LINEBELOW", (0, 0), (-1, 0), 0.8, colors.black),
+            ("LINEBELOW", (0, 1), (-1, -1), 0.3, colors.lightgrey),
+            ("ALIGN", (1, 0), (-1, -1), "RIGHT"),
+        ]
+    else:
+        style += [("TEXTCOLOR", (0, 0), (0, -1), colors.HexColor("#555555"))]
+    table.setStyle(TableStyle(style))
+    return table
+
+
+def _section(title: str, styles: Any) -> Paragraph:
+    return Paragraph(title, styles["Heading3"])
+
+
+def _when(value: datetime | str) -> str:
+    moment = datetime.fromisoformat(value) if isinstance(value, str) else value
+    if moment.tzinfo is None:
+        from datetime import UTC
+
+        moment = moment.replace(tzinfo=UTC)
+    return moment.strftime("%Y-%m-%d %H:%M:%S %Z").replace("+00:00", "")
+
+
+def _num(value: Any, digits: int, unit: str = "") -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "—"
+    return f"{float(value):.{digits}f}{(' ' + unit) if unit else ''}"
+
+
+def _mm(value: Any, digits: int, *, prefix: str = "") -> str:
+    text = _num(value, digits, "mm")
+    return text if text == "—" else prefix + text
+
+
+def _signed(value: Any, digits: int, unit: str = "") -> str:
+    if value is None:
+        return "—"
+    return f"{float(value):+.{digits}f}{(' ' + unit) if unit else ''}"
+
+
+def _shape_text(shape: dict[str, Any]) -> str:
+    kind = shape.get("type", "—")
+    if shape.get("radius_mm") is not None:
+        return f"{kind}, radius {float(shape['radius_mm']):.0f} mm"
+    if kind == "mesh":
+        return f"mesh {shape.get('file', '')}"
+    return str(kind)
+
+
+def _size_text(size: Any) -> str:
+    if not size:
+        return "—"
+    return " × ".join(f"{float(v):.0f}" for v in size) + " mm"
+
+
+def _escape(text: str) -> str:
+    return text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
