@@ -169,7 +169,7 @@ class JobQueue:
         """Consumer start (holding the consumer lock): reclaim jobs of dead consumers, rebuild the queue.
 
         Jobs left running lost their consumer: each counts a worker death and is queued again at the
-        back, or set aside as failed at the second (:func:`app.services.leases.reclaim_expired`).
+        back, or set aside (error) at the second (:func:`app.services.leases.reclaim_expired`).
         The queue file is then emptied and every queued row queued again in queue order, so the
         database alone decides what runs.
 
@@ -283,7 +283,7 @@ class JobQueue:
             )
         for inspection_id in reclaimed.set_aside:
             log.error(
-                "inspection %s: set aside as failed: its worker died %d times while running it "
+                "inspection %s: set aside (error): its worker died %d times while running it "
                 "(the reason and last stage are in its error; its inputs are kept)",
                 inspection_id,
                 svc.MAX_WORKER_DEATHS,
