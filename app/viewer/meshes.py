@@ -8,10 +8,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import trimesh
 
 from pipeline.artifacts.colours import COLOUR_STOPS, deviation_colormap
-from pipeline.artifacts.ply import read_surface_ply
+from pipeline.artifacts.ply import read_mesh_ply, read_surface_ply
 
 logger = logging.getLogger(__name__)
 
@@ -204,7 +203,7 @@ def load_plate_meshes(artifact_dir: Path, *, max_vertices: int = 150_000) -> Pla
     surface_path = artifact_dir / names.get("surface", "surface.ply")
     target_path = artifact_dir / names.get("target_surface", "target.ply")
     vertices, faces, deviation = read_surface_ply(surface_path)
-    target = trimesh.load(target_path, process=False, force="mesh")
+    target_vertices, target_faces = read_mesh_ply(target_path)
 
     lo, hi = vertices.min(axis=0), vertices.max(axis=0)
     centre = (lo + hi) / 2.0
@@ -213,9 +212,7 @@ def load_plate_meshes(artifact_dir: Path, *, max_vertices: int = 150_000) -> Pla
         return ((v_mm - centre) @ _CAM_TO_DISPLAY.T / 1000.0).astype(np.float32)
 
     mv, mf, md = decimate_mesh(vertices, faces, deviation, max_vertices=max_vertices)
-    tv, tf, _ = decimate_mesh(
-        np.asarray(target.vertices), np.asarray(target.faces), max_vertices=max_vertices
-    )
+    tv, tf, _ = decimate_mesh(target_vertices, target_faces, max_vertices=max_vertices)
     mv, tv = to_display(mv), to_display(tv)
     return PlateMeshes(
         measured_vertices=mv,
