@@ -527,3 +527,20 @@ def test_result_page_report_button_and_print_layout(live_server, browser):
     assert map_width > 0.6 * page.viewport_size["width"], map_width
     page.screenshot(path=SHOTS / "result-print.png", full_page=True)
     assert not errors, errors
+
+
+def test_pages_fit_a_1366x768_screen(live_server, browser):
+    """On a 1366x768 cell PC no page is wider than the screen (the queue scrolls in its panel)."""
+    base = live_server["base"]
+    job = _api(
+        live_server,
+        "POST",
+        "/api/v1/plates/H13-NARROW/inspections/simulated",
+        {"n_lights": 6, "width": 160, "height": 128},
+    )
+    page = browser.new_page(viewport={"width": 1366, "height": 768})
+    for path in ("/cell", "/calibration", f"/inspections/{job['id']}", "/plates/H13-NARROW"):
+        page.goto(f"{base}{path}")
+        page.wait_for_timeout(300)
+        width = page.evaluate("document.documentElement.scrollWidth")
+        assert width <= 1366, (path, width)
