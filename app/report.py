@@ -49,8 +49,8 @@ class ReportData:
         The ``plate-target/1`` document it was judged against (with its ``material``, if any).
     light_calibration : dict or None
         ``{"id", "rms", "file_name"}`` of the light calibration applied; None: the bundle's lights.
-    sections : list of (float, float or None)
-        The virtual templates: frame position (mm) and largest gap there (mm).
+    sections : list of (float, float or None, int or None)
+        The virtual templates: frame position (mm), largest gap there (mm), the defect it goes through.
     software_version : str
     printed_at : datetime
         Aware; shown with its zone.
@@ -62,7 +62,7 @@ class ReportData:
     light_calibration: dict[str, Any] | None
     software_version: str
     printed_at: datetime
-    sections: list[tuple[float, float | None]] = field(default_factory=list)
+    sections: list[tuple[float, float | None, int | None]] = field(default_factory=list)
 
 
 def build_report(data: ReportData) -> bytes:
@@ -198,11 +198,13 @@ def _defects(doc: dict[str, Any], styles: Any) -> list[Flowable]:
     return [_section("Defects", styles), _table(rows, header=True), note]
 
 
-def _templates(sections: list[tuple[float, float | None]], styles: Any) -> list[Flowable]:
+def _templates(
+    sections: list[tuple[float, float | None, int | None]], styles: Any
+) -> list[Flowable]:
     if not sections:
         return []
-    rows = [["Frame at, mm", "Largest gap, mm"]]
-    rows += [[_num(p, 0), _signed(g, 2)] for p, g in sections]
+    rows = [["Frame at, mm", "Largest gap, mm", "Through"]]
+    rows += [[_num(p, 0), _signed(g, 2), f"defect {d}" if d else ""] for p, g, d in sections]
     return [_section("Virtual templates", styles), _table(rows, header=True)]
 
 

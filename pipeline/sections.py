@@ -23,6 +23,7 @@ the local surface normal, it differs from the normal distance by a factor
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -66,6 +67,7 @@ class Section:
     target_h_mm, measured_h_mm : (N,) float, height along ``normal`` (towards the cameras), mm;
         NaN where the mesh does not reach.
     gap_mm : (N,) float, ``measured_h_mm - target_h_mm`` (deviation sign), mm; NaN where either is.
+    defect : int or None, the defect (its number) this frame was placed through, if any.
     """
 
     position_mm: float
@@ -73,6 +75,7 @@ class Section:
     target_h_mm: np.ndarray
     measured_h_mm: np.ndarray
     gap_mm: np.ndarray
+    defect: int | None = None
 
 
 def plate_frame(target_vertices_mm: np.ndarray) -> PlateFrame:
@@ -155,6 +158,7 @@ def cut_sections(
     *,
     spacing_mm: float,
     samples: int = SAMPLES,
+    through_mm: Sequence[tuple[int, np.ndarray]] = (),
 ) -> tuple[PlateFrame, list[Section]]:
     """Cut the measured and the target surfaces along frame lines.
 
@@ -166,6 +170,8 @@ def cut_sections(
     target_faces : (G, 3) int.
     spacing_mm : float > 0, distance between frames, mm.
     samples : int >= 2, points per section.
+    through_mm : sequence of (number, (3,) point), one more frame through each point (left camera
+        frame, mm; a defect's centroid), labelled with its number; points off the plate are skipped.
 
     Returns
     -------
@@ -175,13 +181,21 @@ def cut_sections(
     if samples < 2:
         raise ValueError(f"samples: expected >= 2, got {samples}")
     frame = plate_frame(target_vertices_mm)
-    positions = section_positions(frame, spacing_mm)
+    lo, hi = frame.along_range_mm
+    placed: list[tuple[float, int | None]] = [
+        (float(p), None) for p in section_positions(frame, spacing_mm)
+    ]
+    for number, point in through_mm:
+        pos = float((np.asarray(point, dtype=np.float64) - frame.origin_mm) @ frame.along) - lo
+        if 0.0 < pos < hi - lo:
+            placed.append((pos, number))
+    placed.sort(key=lambda item: item[0])
     surface = trimesh.Trimesh(surface_vertices_mm, surface_faces, process=False)
     target = trimesh.Trimesh(target_vertices_mm, target_faces, process=False)
     a0, a1 = frame.across_range_mm
     u = np.linspace(a0, a1, samples)
     sections = []
-    for pos in positions:
+    for pos, defect in placed:
         origin = frame.origin_mm + (frame.along_range_mm[0] + pos) * frame.along
         h_target = _profile(target, origin, frame, u)
         h_measured = _profile(surface, origin, frame, u)
@@ -192,6 +206,7 @@ def cut_sections(
                 target_h_mm=h_target,
                 measured_h_mm=h_measured,
                 gap_mm=h_measured - h_target,
+                defect=defect,
             )
         )
     return frame, sections
@@ -241,5 +256,25 @@ def load_sections(
     names = document.get("artifacts", {})
     surface = read_mesh_ply(artifact_dir / names.get("surface", "surface.ply"))
     target = read_mesh_ply(artifact_dir / names.get("target_surface", "target.ply"))
-    frame, sections = cut_sections(*surface, *target, spacing_mm=spacing_mm)
+    frame, sections = cut_sections(
+        *surface, *target, spacing_mm=spacing_mm, through_mm=_defect_points(artifact_dir)
+    )
     return frame, sections, float(document["tolerance_mm"])
+
+
+def _defect_points(artifact_dir: Path) -> list[tuple[int, np.ndarray]]:
+    """The defects' centroids (numbered as in details.json, 1 first) in the left camera frame, mm:
+    their target-frame positions moved by the registration; none without details.json."""
+    import json
+
+    path = artifact_dir / "details.json"
+    if not path.is_file():
+        return []
+    details = json.loads(path.read_text())
+    T = np.asarray(details.get("T_cam_target", np.eye(4)), dtype=np.float64)
+    out = []
+    for k, d in enumerate(details.get("defects", []), start=1):
+        if d.get("centroid_mm") is not None:
+            x, y = d["centroid_mm"]
+            out.append((k, T[:3, :3] @ np.array([x, y, 0.0]) + T[:3, 3]))
+    return out

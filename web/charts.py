@@ -40,6 +40,7 @@ class SectionDrawing:
     exaggeration: int
     length_mm: float
     max_gap_mm: float | None
+    defect: int | None = None  # the defect this frame goes through
 
 
 def _points(xs: np.ndarray, ys: np.ndarray) -> str:
@@ -115,6 +116,7 @@ def section_drawings(
                 exaggeration=exaggeration,
                 length_mm=length,
                 max_gap_mm=float(np.nanmax(np.abs(gap))) if has.any() else None,
+                defect=s.defect,
             )
         )
     return drawings

@@ -51,8 +51,11 @@ def inspection_report(
     return build_report(data)
 
 
-def _section_gaps(storage: Storage, inspection_id: int) -> list[tuple[float, float | None]]:
-    """Each virtual template's position and its gap of largest magnitude (signed), mm."""
+def _section_gaps(
+    storage: Storage, inspection_id: int
+) -> list[tuple[float, float | None, int | None]]:
+    """Each virtual template's position and its gap of largest magnitude (signed), mm, and the defect
+    it goes through (frames are placed through every defect besides the spaced ones)."""
     try:
         _frame, sections, _tol = load_sections(
             storage.artifacts_dir(inspection_id), spacing_mm=REPORT_SPACING_MM
@@ -60,11 +63,12 @@ def _section_gaps(storage: Storage, inspection_id: int) -> list[tuple[float, flo
     except (OSError, ValueError, KeyError) as err:
         log.warning("inspection %s: report without templates: %s", inspection_id, err)
         return []
-    out: list[tuple[float, float | None]] = []
+    out: list[tuple[float, float | None, int | None]] = []
     for s in sections:
         gaps = s.gap_mm[np.isfinite(s.gap_mm)]
         worst = float(gaps[np.argmax(np.abs(gaps))]) if gaps.size else None
-        out.append((float(s.position_mm), worst if worst is None or math.isfinite(worst) else None))
+        gap = worst if worst is None or math.isfinite(worst) else None
+        out.append((float(s.position_mm), gap, s.defect))
     return out
 
 

@@ -287,6 +287,7 @@ def test_a_dented_plate_fails_and_the_api_lists_its_defect(tmp_path):
     # the result page and the signed report show the defect's peak as the table prints it
     peak = f"{body['defects'][0]['peak_mm']:+.1f}"
     assert f">{peak}</td>" in page
+    assert 'data-defect="1"' in page and "through defect 1" in page  # a template crosses the dent
     assert report.status_code == 200 and report.headers["content-type"] == "application/pdf"
     text = pdf_text(report.content, tmp_path)
     assert "DENT-1" in text and "FAIL" in text and peak in text and "Signature" in text

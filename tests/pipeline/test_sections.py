@@ -125,3 +125,44 @@ def test_template_gap_enlargement_follows_the_tolerance_or_the_gap():
         section_drawings(
             [Section(100.0, u, target_h, target_h, np.zeros_like(u))], tolerance_mm=0.0
         )
+
+
+def test_a_frame_goes_through_each_defect(tmp_path):
+    """Frames at a spacing miss a small dent; the frame through its centroid (details.json, target
+    frame moved by the registration) crosses it and shows its depth."""
+    import json
+
+    from pipeline.artifacts.ply import write_surface_ply, write_target_ply
+    from pipeline.sections import load_sections
+
+    h, w = 60, 80
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    x_mm, y_mm = (xx - (w - 1) / 2) * 25.0, (yy - (h - 1) / 2) * 25.0
+    dent = 5.0 * np.exp(-((x_mm - 330.0) ** 2 + (y_mm - 140.0) ** 2) / (2 * 40.0**2))
+    z = 3000.0 - dent  # flat plate 3 m from the cameras, a 5 mm bump towards them at (330, 140)
+    points = np.dstack([x_mm, y_mm, z])
+    write_surface_ply(tmp_path / "surface.ply", points, np.ones((h, w), bool), dent)
+    gx, gy = np.meshgrid(np.linspace(-990.0, 990.0, 12), np.linspace(-740.0, 740.0, 9))
+    tv = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)])
+    idx = np.arange(gx.size).reshape(gx.shape)
+    a, b, c, d = (
+        idx[:-1, :-1].ravel(),
+        idx[:-1, 1:].ravel(),
+        idx[1:, 1:].ravel(),
+        idx[1:, :-1].ravel(),
+    )
+    tf = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    T = np.eye(4)
+    T[2, 3] = 3000.0  # target frame -> camera frame: 3 m along the optical axis
+    write_target_ply(tmp_path / "target.ply", tv, tf, T)
+    (tmp_path / "result.json").write_text(json.dumps({"tolerance_mm": 2.0, "artifacts": {}}))
+    details = {"T_cam_target": T.tolist(), "defects": [{"centroid_mm": [330.0, 140.0]}]}
+    (tmp_path / "details.json").write_text(json.dumps(details))
+
+    _frame, sections, _tol = load_sections(tmp_path, spacing_mm=700.0)
+    through = [s for s in sections if s.defect == 1]
+    assert len(through) == 1
+    worst = float(np.nanmax(np.abs(through[0].gap_mm)))
+    assert worst == pytest.approx(5.0, abs=0.5)
+    others = [float(np.nanmax(np.abs(s.gap_mm))) for s in sections if s.defect is None]
+    assert others and max(others) < worst
