@@ -12,6 +12,7 @@ import logging
 from datetime import UTC, datetime
 from typing import Annotated, Literal
 
+import numpy as np
 from fastapi import APIRouter, HTTPException, Query, Request
 from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse, Response
 from fastapi.templating import Jinja2Templates
@@ -28,6 +29,7 @@ from app.services import inspections as inspection_svc
 from app.services import light_calibrations as light_calibration_svc
 from app.services import plates as plate_svc
 from app.services.errors import ServiceError
+from pipeline.artifacts.png import deviation_png_layout
 from pipeline.formats import InputError
 from pipeline.sections import load_sections
 from web import TEMPLATES_DIR
@@ -207,6 +209,7 @@ def result_page(
     )
     finished = row.status in FINISHED  # a running job's folder holds partial files
     names = inspection_svc.artifact_names(storage=storage, inspection=row) if finished else []
+    found = defects_and_reasons(storage, row, names)
     context = {
         "page": "result",
         "row": row,
@@ -216,7 +219,8 @@ def result_page(
         "spacing_mm": spacing_mm,
         "spacings": SPACINGS_MM,
         "next_pass": next_pass(session, row.plate_id),
-        **defects_and_reasons(storage, row, names),
+        **found,
+        "callouts": map_callouts(storage.artifacts_dir(row.id), found["defects"]),
         **_templates_context(storage, row, spacing_mm),
     }
     return _page(request, session, "result.html", context)
@@ -237,6 +241,29 @@ def templates_partial(
         "_templates.html",
         {"row": row, "spacing_mm": spacing_mm, **_templates_context(storage, row, spacing_mm)},
     )
+
+
+def map_callouts(folder, defects) -> list[dict]:
+    """Where each defect's number goes on deviation.png: ``{"id", "left", "top", "peak_mm"}`` with
+    left/top in % of the PNG (its map is the image enlarged ``k / stride`` times, at its top left)."""
+    png, depth = folder / "deviation.png", folder / "depth.npy"
+    if not defects or not png.is_file() or not depth.is_file():
+        return []
+    from PIL import Image
+
+    with Image.open(png) as image:
+        width, height = image.size
+    stride, k = deviation_png_layout(np.load(depth, mmap_mode="r").shape[:2])
+    scale = k / stride
+    return [
+        {
+            "id": d.id,
+            "left": 100.0 * d.centroid_px[0] * scale / width,
+            "top": 100.0 * d.centroid_px[1] * scale / height,
+            "peak_mm": d.peak_mm,
+        }
+        for d in defects
+    ]
 
 
 def _templates_context(storage, row: Inspection, spacing_mm: int) -> dict:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import json
+import re
 import time
 import zipfile
 
@@ -288,6 +289,14 @@ def test_a_dented_plate_fails_and_the_api_lists_its_defect(tmp_path):
     peak = f"{body['defects'][0]['peak_mm']:+.1f}"
     assert f">{peak}</td>" in page
     assert 'data-defect="1"' in page and "through defect 1" in page  # a template crosses the dent
+    # the map's callout sits on the dent: its place on the PNG is the dent's pixel, in % of the figure
+    left, top = (
+        float(v)
+        for v in re.search(
+            r'class="callout" data-defect="1" style="left: ([\d.]+)%; top: ([\d.]+)%', page
+        ).groups()
+    )
+    assert 0 < left < 100 and 0 < top < 100
     assert report.status_code == 200 and report.headers["content-type"] == "application/pdf"
     text = pdf_text(report.content, tmp_path)
     assert "DENT-1" in text and "FAIL" in text and peak in text and "Signature" in text
