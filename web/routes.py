@@ -244,8 +244,9 @@ def templates_partial(
 
 
 def map_callouts(folder, defects) -> list[dict]:
-    """Where each defect's number goes on deviation.png: ``{"id", "left", "top", "peak_mm"}`` with
-    left/top in % of the PNG (its map is the image enlarged ``k / stride`` times, at its top left)."""
+    """Where each defect's number goes on deviation.png: ``{"id", "left", "top", "rx", "ry",
+    "peak_mm"}``, in % of the PNG's width and height (its map is the image enlarged ``k / stride``
+    times, at its top left; the page draws them in an SVG stretched over the image)."""
     png, depth = folder / "deviation.png", folder / "depth.npy"
     if not defects or not png.is_file() or not depth.is_file():
         return []
@@ -255,11 +256,14 @@ def map_callouts(folder, defects) -> list[dict]:
         width, height = image.size
     stride, k = deviation_png_layout(np.load(depth, mmap_mode="r").shape[:2])
     scale = k / stride
+    marker_px = 0.025 * max(width, height)  # the marker's radius on the PNG, px
     return [
         {
             "id": d.id,
             "left": 100.0 * d.centroid_px[0] * scale / width,
             "top": 100.0 * d.centroid_px[1] * scale / height,
+            "rx": 100.0 * marker_px / width,
+            "ry": 100.0 * marker_px / height,
             "peak_mm": d.peak_mm,
         }
         for d in defects

@@ -8,6 +8,7 @@ import re
 import time
 import zipfile
 
+import numpy as np
 import pytest
 
 from tests.api.helpers import (
@@ -293,10 +294,20 @@ def test_a_dented_plate_fails_and_the_api_lists_its_defect(tmp_path):
     left, top = (
         float(v)
         for v in re.search(
-            r'class="callout" data-defect="1" style="left: ([\d.]+)%; top: ([\d.]+)%', page
+            r'class="callout" data-defect="1" data-left="([\d.]+)" data-top="([\d.]+)"', page
         ).groups()
     )
-    assert 0 < left < 100 and 0 < top < 100
+    from PIL import Image
+
+    png = settings.data_dir / "inspections" / str(body["id"]) / "artifacts" / "deviation.png"
+    with Image.open(png) as image:
+        rgb = np.asarray(image.convert("RGB")).astype(int)
+    redness = rgb[..., 0] - rgb[..., 2]  # the dent is the reddest place of the map
+    in_map = redness[:, : int(rgb.shape[1] * 0.7)]  # left of the colour bar
+    row, col = np.unravel_index(np.argmax(in_map), in_map.shape)
+    assert (
+        abs(left - 100.0 * col / rgb.shape[1]) < 2.0 and abs(top - 100.0 * row / rgb.shape[0]) < 2.0
+    )
     assert report.status_code == 200 and report.headers["content-type"] == "application/pdf"
     text = pdf_text(report.content, tmp_path)
     assert "DENT-1" in text and "FAIL" in text and peak in text and "Signature" in text
