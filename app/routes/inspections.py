@@ -6,6 +6,7 @@ import csv
 import io
 import json
 import mimetypes
+from pathlib import Path
 from typing import Annotated
 
 from fastapi import APIRouter, File, Form, Query, Request, UploadFile, status
@@ -13,7 +14,7 @@ from fastapi.responses import FileResponse, Response
 from pydantic import ValidationError
 
 from app.deps import JobsDep, SessionDep, SettingsDep, StorageDep, WriterDep
-from app.errors import ApiError
+from app.errors import ApiError, relabel_input_error
 from app.limits import Limits
 from app.models import JobStatus
 from app.routes.common import (
@@ -108,14 +109,19 @@ def create_inspection(
             if target is not None:
                 (staged.dir / "target").mkdir()
                 save_upload(target, staged.dir / "target" / TARGET_FILE)
-            row = svc.create_uploaded_inspection(
-                session=session,
-                storage=storage,
-                plate_id=plate_id,
-                staging_dir=staged.dir,
-                limits=Limits.from_settings(settings),
-                process=pass_,
-            )
+            try:
+                row = svc.create_uploaded_inspection(
+                    session=session,
+                    storage=storage,
+                    plate_id=plate_id,
+                    staging_dir=staged.dir,
+                    limits=Limits.from_settings(settings),
+                    process=pass_,
+                )
+            except InputError as err:
+                raise _named_as_sent(
+                    relabel_input_error(err, staged.dir), capture.filename
+                ) from None
             staged.track(storage.inspection_dir(row.id))
             return 202, {"id": row.id, "status": row.status}, lambda: jobs.enqueue(row.id)
 
@@ -146,6 +152,14 @@ def parse_process(text: str) -> dict:
         loc = ".".join(str(p) for p in first["loc"])
         field = f"process.{loc}" if loc and first["type"] != "json_invalid" else "process"
         raise ApiError(422, f"{field}: {first['msg']}", field=field) from None
+
+
+def _named_as_sent(err: InputError, filename: str | None) -> InputError:
+    """The error with the bundle named as the client sent it (``bad.zip``), not as it is stored."""
+    sent = Path(filename or "").name
+    if not sent or sent == CAPTURE_FILE or not err.file.startswith(CAPTURE_FILE):
+        return err
+    return InputError(sent + err.file[len(CAPTURE_FILE) :], err.field, err.reason)
 
 
 def _upload_part(err: InputError) -> str:

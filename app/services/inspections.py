@@ -79,7 +79,8 @@ def create_uploaded_inspection(
         raise InputError(
             "capture.json",
             "plate_id",
-            f"expected {plate_id!r} (the plate of the URL), got {capture.plate_id!r}",
+            f"the bundle is of plate {capture.plate_id!r}, not of {plate_id!r}, the plate this "
+            "inspection was started for",
         )
     target_staging = staging_dir / "target"
     new_target_dir = None

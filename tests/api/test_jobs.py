@@ -319,3 +319,20 @@ def test_a_dented_plate_fails_and_the_api_lists_its_defect(tmp_path):
     assert 0 < defect["mean_mm"] < defect["peak_mm"]
     x, y = defect["centroid_mm"]
     assert abs(x - dent["x_mm"]) < 30.0 and abs(y - dent["y_mm"]) < 30.0
+
+
+def test_an_upload_error_names_the_bundle_as_sent_and_the_plate_mismatch_plainly(client):
+    files = {
+        "capture": ("bad.zip", b"this is not a zip archive", "application/zip"),
+        "target": ("target.json", target_json(), "application/json"),
+    }
+    r = client.post("/api/v1/plates/P-NAMED/inspections", files=files, headers=AUTH)
+    assert r.status_code == 422, r.text
+    assert r.json()["file"].startswith("bad.zip") and "capture.zip" not in r.text
+
+
+def test_a_bundle_of_another_plate_is_refused_in_plain_words(client, bundle_zip):
+    r = _post_bundle(client, "HULL-UP1", bundle_zip)  # the bundle is of plate P-100
+    assert r.status_code == 422
+    detail = r.json()["detail"]
+    assert "the bundle is of plate 'P-100', not of 'HULL-UP1'" in detail and "URL" not in detail

@@ -168,7 +168,7 @@ def test_huge_declared_images_are_refused_from_their_header(client, settings):
     assert f"limit of {settings.max_image_pixels} px" in body["detail"]
     assert "PLATE_INSPECT_MAX_IMAGE_PIXELS" in body["detail"]
     assert body["field"] == "capture: photometric.images[0]"
-    assert body["file"] == "capture.zip:capture.json"
+    assert body["file"] == "bundle.zip:capture.json"  # the bundle as the client named it
     assert str(settings.data_dir) not in body["detail"]
     assert _count(client, Inspection) == 0 and stored_files(settings.data_dir) == before
 

@@ -3,7 +3,9 @@
 /** Error thrown for a non-2xx answer; `message` is the API's detail (names the field). */
 export class ApiError extends Error {
   constructor(status, detail, field) {
-    super(field && !String(detail).includes(field) ? `${field}: ${detail}` : String(detail));
+    // the field is said once: not again when the detail already names it (or its last part)
+    const last = field ? String(field).split(": ").pop() : "";
+    super(field && !String(detail).includes(last) ? `${field}: ${detail}` : String(detail));
     this.status = status;
     this.field = field;
   }
