@@ -411,6 +411,20 @@ def _api(live_server, method: str, path: str, body: dict | None = None) -> dict:
         return json.loads(response.read())
 
 
+def _inspected(live_server, plate_id: str, body: dict) -> int:
+    """A simulated inspection through the live server's API, run by its worker; its id once done."""
+    job = _api(live_server, "POST", f"/api/v1/plates/{plate_id}/inspections/simulated", body)
+    deadline = time.monotonic() + 120
+    while (doc := _api(live_server, "GET", f"/api/v1/inspections/{job['id']}"))["status"] not in (
+        "done",
+        "error",
+    ):
+        assert time.monotonic() < deadline, "the inspection did not finish"
+        time.sleep(0.5)
+    assert doc["status"] == "done", (live_server["logs"] / "worker.log").read_text()[-3000:]
+    return int(job["id"])
+
+
 def test_next_pass_panel_and_passes_chart(live_server, browser):
     """Issue 14 in the browser: a machine and a plate whose target has a material, one roll-bending pass
     inspected by the real pipeline (an under-bent plate judged against its target), then the plate page's
@@ -441,20 +455,11 @@ def test_next_pass_panel_and_passes_chart(live_server, browser):
         },
     )
     process = {"method": "roll-bending", "machine_id": "R3-07", "top_roll_displacement_mm": 90.0}
-    job = _api(
+    job_id = _inspected(
         live_server,
-        "POST",
-        "/api/v1/plates/H14-NP1/inspections/simulated",
+        "H14-NP1",
         {"n_lights": 6, "width": 320, "height": 256, "radius_mm": 6500.0, "process": process},
     )
-    deadline = time.monotonic() + 120
-    while (doc := _api(live_server, "GET", f"/api/v1/inspections/{job['id']}"))["status"] not in (
-        "done",
-        "error",
-    ):
-        assert time.monotonic() < deadline, "the inspection did not finish"
-        time.sleep(0.5)
-    assert doc["status"] == "done", (live_server["logs"] / "worker.log").read_text()[-3000:]
 
     page = browser.new_page(viewport={"width": 1920, "height": 1080})
     errors = []
@@ -478,7 +483,7 @@ def test_next_pass_panel_and_passes_chart(live_server, browser):
     assert box["width"] > 600 and box["height"] > 150
     page.screenshot(path=SHOTS / "next-pass.png", full_page=True)
 
-    page.goto(f"{live_server['base']}/inspections/{job['id']}")
+    page.goto(f"{live_server['base']}/inspections/{job_id}")
     assert page.locator("#next-pass [data-action]").get_attribute("data-action") == "bend"
     assert not errors and not violations, (errors, violations)
 
@@ -487,10 +492,9 @@ def test_result_page_report_button_and_print_layout(live_server, browser):
     """A done plate's page links its PDF report (which the server answers), and printed (print media)
     it drops the toolbar and side lists and keeps the deviation map wide on the page."""
     SHOTS.mkdir(exist_ok=True)
-    job = _api(
+    job_id = _inspected(
         live_server,
-        "POST",
-        "/api/v1/plates/H13-RPT/inspections/simulated",
+        "H13-RPT",
         {
             "n_lights": 6,
             "width": 320,
@@ -498,23 +502,15 @@ def test_result_page_report_button_and_print_layout(live_server, browser):
             "dents": [{"x_mm": 400.0, "y_mm": -200.0, "radius_mm": 200.0, "depth_mm": -8.0}],
         },
     )
-    deadline = time.monotonic() + 120
-    while (doc := _api(live_server, "GET", f"/api/v1/inspections/{job['id']}"))["status"] not in (
-        "done",
-        "error",
-    ):
-        assert time.monotonic() < deadline, "the inspection did not finish"
-        time.sleep(0.5)
-    assert doc["status"] == "done", (live_server["logs"] / "worker.log").read_text()[-3000:]
 
     page = browser.new_page(viewport={"width": 1366, "height": 768})
     errors = []
     page.on("pageerror", lambda err: errors.append(str(err)))
-    page.goto(f"{live_server['base']}/inspections/{job['id']}")
+    page.goto(f"{live_server['base']}/inspections/{job_id}")
     button = page.locator("a#report")
     assert button.is_visible() and button.inner_text() == "Report (PDF)"
     href = button.get_attribute("href")
-    assert href == f"/api/v1/inspections/{job['id']}/report.pdf"
+    assert href == f"/api/v1/inspections/{job_id}/report.pdf"
     response = page.request.get(f"{live_server['base']}{href}")
     assert response.status == 200 and response.headers["content-type"] == "application/pdf"
     assert response.body()[:5] == b"%PDF-"
