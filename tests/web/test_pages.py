@@ -164,6 +164,22 @@ def test_a_plates_inspections_as_csv(demo_app):
     assert missing.status_code == 404 and missing.json()["field"] == "plate_id"
 
 
+def test_pages_say_which_calibration_applies(demo_app):
+    inspection_id = seed_done_inspection(demo_app, plate_id="H1-CAL")
+    with TestClient(demo_app) as client:
+        calibration = client.get("/calibration").text
+        result = client.get(f"/inspections/{inspection_id}").text
+    assert 'id="calibration-use"' in calibration and "<b>not</b> applied" in calibration
+    assert (
+        "stereo calibration: the bundle&#39;s own" in result
+        or "stereo calibration: the bundle's own" in result
+    )
+    assert (
+        "no light calibration (the bundle&#39;s lights)" in result
+        or "no light calibration (the bundle's lights)" in result
+    )
+
+
 def test_dashboard_errors_are_pages_in_the_layout_and_the_api_keeps_json(demo_app):
     html = {"Accept": "text/html,application/xhtml+xml"}
     with TestClient(demo_app) as client:
