@@ -95,23 +95,31 @@ def _page(
     return response
 
 
-def _side_context(session) -> dict:
-    """The side lists: active jobs (all of them, up to 20) and the plates (40 most recent)."""
-    plates, plate_total = plate_svc.list_plates(session=session, limit=40)
+def _side_context(session, search: str | None = None) -> dict:
+    """The side lists: active jobs (all of them, up to 20) and the plates (40 most recent, or those
+    whose id contains ``search``)."""
+    plates, plate_total = plate_svc.list_plates(session=session, limit=40, search=search or None)
     jobs, job_total = inspection_svc.list_inspections(session=session, statuses=ACTIVE, limit=20)
     return {
         "side_plates": plates,
         "side_plate_total": plate_total,
         "side_jobs": jobs,
         "side_job_total": job_total,
+        "side_search": search or "",
     }
 
 
 @router.get("/side", response_class=HTMLResponse)
-def side_lists(request: Request, session: SessionDep, current: str | None = None) -> Response:
-    """The side lists alone (polled by side.js on every page); ``current`` is the page's plate."""
+def side_lists(
+    request: Request,
+    session: SessionDep,
+    current: str | None = None,
+    q: Annotated[str | None, Query(max_length=64)] = None,
+) -> Response:
+    """The side lists alone (polled by layout.js on every page); ``current`` is the page's plate,
+    ``q`` the plate search."""
     return templates.TemplateResponse(
-        request, "_side_body.html", {**_side_context(session), "current_plate": current}
+        request, "_side_body.html", {**_side_context(session, q), "current_plate": current}
     )
 
 

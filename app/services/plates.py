@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from sqlalchemy import func, select
+from sqlalchemy import ColumnElement, func, select
 from sqlalchemy.orm import Session
 
 from app.models import Inspection, Plate, Target
@@ -74,20 +74,30 @@ def overview(*, session: Session, plate_id: str) -> PlateOverview | None:
     )
 
 
+def _id_contains(text: str) -> ColumnElement[bool]:
+    """Plate ids containing ``text`` in any case (``%`` and ``_`` in it taken literally)."""
+    escaped = text.replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_")
+    return Plate.id.ilike(f"%{escaped}%", escape="\\")
+
+
 def list_plates(
-    *, session: Session, limit: int = 50, offset: int = 0
+    *, session: Session, limit: int = 50, offset: int = 0, search: str | None = None
 ) -> tuple[list[PlateOverview], int]:
     """Plates, the most recently inspected (or created) first, with their latest inspection.
 
+    ``search``: only plates whose id contains it (any case).
+
     Returns
     -------
-    (overviews, total)
+    (overviews, total) with ``total`` the plates that match
     """
     if limit < 1 or offset < 0:
         raise ValueError(
             f"paging: expected limit >= 1 and offset >= 0, got limit={limit}, offset={offset}"
         )
-    total = int(session.scalar(select(func.count()).select_from(Plate)) or 0)
+    matching = _id_contains(search) if search else None
+    counted = select(func.count()).select_from(Plate)
+    total = int(session.scalar(counted if matching is None else counted.where(matching)) or 0)
     last = (
         select(
             Inspection.plate_id, func.max(Inspection.id).label("last_id"), func.count().label("n")
@@ -95,10 +105,11 @@ def list_plates(
         .group_by(Inspection.plate_id)
         .subquery()
     )
+    query = select(Plate, last.c.last_id, last.c.n).outerjoin(last, last.c.plate_id == Plate.id)
+    if matching is not None:
+        query = query.where(matching)
     rows = session.execute(
-        select(Plate, last.c.last_id, last.c.n)
-        .outerjoin(last, last.c.plate_id == Plate.id)
-        .order_by(last.c.last_id.desc().nulls_last(), Plate.created_at.desc(), Plate.id)
+        query.order_by(last.c.last_id.desc().nulls_last(), Plate.created_at.desc(), Plate.id)
         .limit(limit)
         .offset(offset)
     ).all()

@@ -540,3 +540,10 @@ def test_pages_fit_a_1366x768_screen(live_server, browser):
         page.wait_for_timeout(300)
         width = page.evaluate("document.documentElement.scrollWidth")
         assert width <= 1366, (path, width)
+    # the side list's search keeps only the plates whose id contains the text, without a reload
+    page.fill("#plate-search", "narrow")
+    page.wait_for_function(
+        "[...document.querySelectorAll('#side-body .side-list a[href^=\"/plates/\"]')]"
+        ".map((a) => a.textContent.trim()).join() === 'H13-NARROW'",
+        timeout=10_000,
+    )

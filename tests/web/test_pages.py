@@ -208,3 +208,16 @@ def test_side_lists_partial_and_time_zone(demo_app):
         assert 'data-src="/side?current=H1-SIDE"' in page and "/static/js/layout.js" in page
         assert " UTC</td>" in page  # times say their zone
         assert client.get(f"/inspections/{inspection_id}").status_code == 200
+
+
+def test_side_list_searches_plates(demo_app):
+    for plate in ("HULL-A1", "HULL-B2", "DECK-C3"):
+        seed_queued_inspection(demo_app, plate_id=plate)
+    with TestClient(demo_app) as client:
+        side = client.get("/side", params={"q": "hull"}).text.split("<h2>Plates")[1]
+        assert "HULL-A1" in side and "HULL-B2" in side and "DECK-C3" not in side
+        assert "(2 matching)" in side
+        none = client.get("/side", params={"q": "50%_"}).text  # taken literally, not as a pattern
+        assert "No plate id contains" in none
+        page = client.get("/cell").text
+    assert 'id="plate-search"' in page and 'id="side-body"' in page

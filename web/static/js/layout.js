@@ -6,15 +6,23 @@ const side = document.getElementById("side");
 const logout = document.getElementById("logout");
 const POLL_MS = 2000;
 
+const search = document.getElementById("plate-search");
+const body = document.getElementById("side-body");
+
 async function refresh() {
   try {
-    await refreshPartial(side, side.dataset.src);
+    const url = new URL(side.dataset.src, window.location.origin);
+    if (search && search.value.trim()) url.searchParams.set("q", search.value.trim());
+    await refreshPartial(body, url.pathname + url.search);
   } catch (err) {
     console.warn("side lists refresh failed:", err);
   }
 }
 
-if (side) setInterval(refresh, POLL_MS);
+if (side && body) {
+  setInterval(refresh, POLL_MS);
+  if (search) search.addEventListener("input", () => refresh());
+}
 
 if (logout) {
   logout.addEventListener("click", async () => {
