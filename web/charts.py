@@ -160,7 +160,7 @@ class TrendSeries:
     points: list[TrendPoint]
     polyline: str
     ticks: list[tuple[float, str]]  # (y px, label)
-    limit_y: float | None  # px of the tolerance line, if any
+    limits: list[tuple[float, str]]  # tolerance lines: (y px, label)
     y0: float  # panel top, px
     y1: float  # panel bottom, px
 
@@ -179,6 +179,7 @@ def trend_chart(
     rows: list[tuple[int, str, float | None, float | None]],
     *,
     tolerance_mm: float | None,
+    radius_band_pct: float | None = None,
     width: float = 900.0,
 ) -> TrendChart:
     """Two stacked panels: radius error (%) and max |deviation| (mm) per inspection, oldest left.
@@ -187,20 +188,29 @@ def trend_chart(
     ----------
     rows : (inspection_id, label, radius_error_pct, max_abs_mm) per done inspection, oldest first.
     tolerance_mm : drawn as a line on the deviation panel when given.
+    radius_band_pct : the radius error at which a plate leaves the tolerance at its edges, drawn as
+        lines at ± it on the radius panel when given (a trend inside them is noise, not a fault).
     """
     left, right, panel_h, gap, top = 64.0, 20.0, 130.0, 40.0, 20.0
     n = len(rows)
     inner = width - left - right
     xs = [left + (inner * (i + 0.5) / n if n else 0.0) for i in range(n)]
     series = []
-    for k, (name, unit, index, limit) in enumerate(
-        (("Radius error", "%", 2, None), ("Max |deviation|", "mm", 3, tolerance_mm))
+    radius_lines = (
+        [(radius_band_pct, "edges at tolerance"), (-radius_band_pct, "")] if radius_band_pct else []
+    )
+    tolerance_lines = [(tolerance_mm, "tolerance")] if tolerance_mm else []
+    for k, (name, unit, index, lines) in enumerate(
+        (
+            ("Radius error", "%", 2, radius_lines),
+            ("Max |deviation|", "mm", 3, tolerance_lines),
+        )
     ):
         y0 = top + k * (panel_h + gap)
         values = [r[index] for r in rows]
         finite = [v for v in values if v is not None]
-        lo = min(finite + [0.0] + ([limit] if limit else []))
-        hi = max(finite + [0.0] + ([limit] if limit else []))
+        lo = min(finite + [0.0] + [v for v, _ in lines])
+        hi = max(finite + [0.0] + [v for v, _ in lines])
         margin = 0.04 * (hi - lo)  # keep points and the tolerance line off the panel's edge
         tick_values, decimals = nice_ticks(
             lo - margin if lo < 0 else lo, hi + margin if hi > 0 else hi
@@ -221,7 +231,7 @@ def trend_chart(
                 points=points,
                 polyline=" ".join(f"{p.x:.1f},{p.y:.1f}" for p in points),
                 ticks=ticks,
-                limit_y=y_of(limit) if limit else None,
+                limits=[(y_of(v), label) for v, label in lines],
                 y0=y0,
                 y1=y0 + panel_h,
             )

@@ -304,7 +304,12 @@ def plate_page(request: Request, plate_id: str, session: SessionDep) -> Response
         else (done[-1].tolerance_mm if done else None)
     )
     chart = trend_chart(
-        [(r.id, f"#{r.id}", r.radius_error_pct, r.max_abs_mm) for r in done], tolerance_mm=tolerance
+        [
+            (r.id, f"{k} · {_when(r.created_at)[5:16]}", r.radius_error_pct, r.max_abs_mm)
+            for k, r in enumerate(done, start=1)
+        ],
+        tolerance_mm=tolerance,
+        radius_band_pct=_radius_band_pct(overview.target),
     )
     advice = next_pass(session, plate_id)
     return _page(
@@ -322,6 +327,17 @@ def plate_page(request: Request, plate_id: str, session: SessionDep) -> Response
             "next_pass": advice,
         },
     )
+
+
+def _radius_band_pct(target) -> float | None:
+    """The radius error (%) at which a cylinder target's plate leaves its tolerance at its edges:
+    ``100 R 8 tol / w^2`` over the width ``w`` across the bend (None for other targets)."""
+    if target is None or target.shape != "cylinder" or not target.radius_mm:
+        return None
+    size = (target.document or {}).get("size_mm") or []
+    if not size:
+        return None
+    return 100.0 * target.radius_mm * 8.0 * target.tolerance_mm / float(size[0]) ** 2
 
 
 def passes_chart(session, plate_id: str, target, advice: dict | None):

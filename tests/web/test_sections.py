@@ -99,8 +99,15 @@ def test_trend_axis_ticks_are_round_numbers():
         "0.1",
     ]
     assert [label for _, label in deviation.ticks] == ["0", "1", "2", "3"]
-    # the tolerance line lies inside the panel
-    assert deviation.y0 < deviation.limit_y < deviation.y1
+    # the tolerance line lies inside the panel; without a radius band, none on the radius panel
+    [(y_tol, label)] = deviation.limits
+    assert deviation.y0 < y_tol < deviation.y1 and label == "tolerance" and radius.limits == []
+    banded = trend_chart(
+        [(1, "1", 0.017, 0.22), (2, "2", -0.4, 2.6)], tolerance_mm=2.0, radius_band_pct=0.9
+    )
+    (y_hi, _), (y_lo, _) = banded.series[0].limits
+    panel = banded.series[0]
+    assert panel.y0 <= y_hi < y_lo <= panel.y1  # +0.9 % above -0.9 %, both drawn in the panel
 
 
 def test_template_gap_enlargement_follows_the_tolerance_or_the_gap():
