@@ -32,7 +32,7 @@ References
 .. [3] D. Nehab, S. Rusinkiewicz, J. Davis, R. Ramamoorthi, "Efficiently combining positions and
    normals for precise 3D geometry", SIGGRAPH 2005.
 
-Kept as one module (~540 lines) on purpose: the equations, their prior terms and the scaling of the
+Kept as one module (~600 lines) on purpose: the equations, their prior terms and the scaling of the
 parts without a prior are one problem, and its public functions share every kernel; the generic
 solver is already apart (:mod:`pipeline.solvers`).
 """

@@ -19,7 +19,7 @@ References
 .. [1] Al-Sharadqah, A., Chernov, N., "Error analysis for circle fitting algorithms", Electronic Journal of
    Statistics 3 (2009) -- the curvature parametrisation of the geometric circle/sphere fit.
 
-Kept as one module (~550 lines) on purpose: the three fits share one parametrised model
+Kept as one module (~590 lines) on purpose: the three fits share one parametrised model
 (:func:`fit_curved`) and its checks, and half of the module is their result types' documentation.
 """
 

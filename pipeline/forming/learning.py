@@ -37,7 +37,7 @@ A plate's own passes pin its factor; passes of other plates on the same machine 
 compliance, and those of the same grade and thickness the group's mean factor and spread. A plate with
 no history of its own gets its group's distribution; a group with no plates gets the prior.
 
-Kept as one module (~600 lines, a third of them this derivation and the numpydoc): the rows, the
+Kept as one module (~680 lines, a third of them this derivation and the numpydoc): the rows, the
 rounds of the fit and the variance updates are one estimator and change together.
 """
 

@@ -15,6 +15,9 @@ slightly worse than least squares.
 The same kernel serves point lights (:func:`pipeline.nearfield.estimate_normals_near`): the light
 vectors of a block are then computed per pixel from the current surface
 (:func:`pipeline.lights.light_vectors_block`).
+
+Kept as one module (~510 lines, a tenth of them the typed signatures of its kernels, one argument per
+line): the kernels call each other and numba compiles them together.
 """
 
 from __future__ import annotations
