@@ -542,8 +542,8 @@ def test_pages_fit_a_1366x768_screen(live_server, browser):
         assert width <= 1366, (path, width)
     # the side list's search keeps only the plates whose id contains the text, without a reload
     page.fill("#plate-search", "narrow")
-    page.wait_for_function(
-        "[...document.querySelectorAll('#side-body .side-list a[href^=\"/plates/\"]')]"
-        ".map((a) => a.textContent.trim()).join() === 'H13-NARROW'",
-        timeout=10_000,
-    )
+    plates = page.locator("#side-body .side-list a[href^='/plates/']")
+    deadline = time.monotonic() + 10
+    while [name.strip() for name in plates.all_inner_texts()] != ["H13-NARROW"]:
+        assert time.monotonic() < deadline, plates.all_inner_texts()
+        time.sleep(0.2)
