@@ -70,3 +70,51 @@ _COLOUR_LUT = _colour_lut(_LUT_SIZE)
 def default_limit_mm(tolerance_mm: float) -> float:
     """The colour scale of a plate judged against ``tolerance_mm``: ``2 * tolerance_mm``."""
     return 2.0 * float(tolerance_mm)
+
+
+#: Tolerance-band colours (RGB): one calm band within tolerance, saturated beyond it.
+IN_TOLERANCE_RGB = (199, 226, 196)
+#: Above the target beyond tolerance: from the tolerance (first) to the scale's limit (second).
+ABOVE_RGB = ((253, 174, 97), (165, 0, 38))
+#: Below the target beyond tolerance: from the tolerance (first) to the scale's limit (second).
+BELOW_RGB = ((116, 173, 209), (49, 54, 149))
+
+
+def tolerance_band_colormap(
+    deviation_mm: npt.ArrayLike, *, tolerance_mm: float, limit_mm: float
+) -> npt.NDArray[np.uint8]:
+    """Colour signed deviations by tolerance band, as deviation reports do.
+
+    Within ``±tolerance_mm`` one calm colour (:data:`IN_TOLERANCE_RGB`): nothing to act on there.
+    Beyond it, saturated colours that deepen with the deviation up to ``limit_mm``: orange to dark
+    red above the target (:data:`ABOVE_RGB`), light to dark blue below it (:data:`BELOW_RGB`).
+    NaN -> :data:`NO_DATA_RGB`.
+
+    Returns
+    -------
+    (..., 3) uint8 RGB, the shape of ``deviation_mm`` plus a colour axis.
+
+    Raises
+    ------
+    ValueError
+        ``tolerance_mm`` or ``limit_mm`` not positive and finite, or ``limit_mm <= tolerance_mm``.
+    """
+    tol, limit = float(tolerance_mm), float(limit_mm)
+    if not (math.isfinite(tol) and tol > 0):
+        raise ValueError(
+            f"tolerance_mm: expected a positive finite number of mm, got {tolerance_mm!r}"
+        )
+    if not (math.isfinite(limit) and limit > tol):
+        raise ValueError(
+            f"limit_mm: expected a finite number above tolerance_mm ({tol:g}), got {limit_mm!r}"
+        )
+    dev = np.asarray(deviation_mm, dtype=np.float64)
+    out = np.empty((*dev.shape, 3), dtype=np.float64)
+    out[...] = IN_TOLERANCE_RGB
+    t = np.clip((np.abs(np.nan_to_num(dev)) - tol) / (limit - tol), 0.0, 1.0)[..., None]
+    for mask, (start, end) in ((dev > tol, ABOVE_RGB), (dev < -tol, BELOW_RGB)):
+        a, b = np.asarray(start, dtype=np.float64), np.asarray(end, dtype=np.float64)
+        out[mask] = (a + t * (b - a))[mask]
+    out[np.isnan(dev)] = NO_DATA_RGB
+    rgb: npt.NDArray[np.uint8] = np.rint(out).astype(np.uint8)
+    return rgb

@@ -173,3 +173,65 @@ def test_a_frame_goes_through_each_defect(tmp_path):
     assert worst == pytest.approx(5.0, abs=0.5)
     others = [float(np.nanmax(np.abs(s.gap_mm))) for s in sections if s.defect is None]
     assert others and max(others) < worst
+
+
+def _sphere_grid(radius_mm, size_mm, n):
+    x = np.linspace(-size_mm[0] / 2, size_mm[0] / 2, n[0])
+    y = np.linspace(-size_mm[1] / 2, size_mm[1] / 2, n[1])
+    xx, yy = np.meshgrid(x, y)
+    z = radius_mm - np.sqrt(radius_mm**2 - xx**2 - yy**2)
+    tv = np.column_stack([xx.ravel(), yy.ravel(), z.ravel()])
+    idx = np.arange(xx.size).reshape(xx.shape)
+    a, b, c, d = (
+        idx[:-1, :-1].ravel(),
+        idx[:-1, 1:].ravel(),
+        idx[1:, 1:].ravel(),
+        idx[1:, :-1].ravel(),
+    )
+    return tv, np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+
+
+@pytest.mark.parametrize("turn_deg", [0.0, 30.0, 45.0])
+def test_frames_on_a_sphere_run_square_to_the_plate(turn_deg):
+    """A sphere bends alike every way: the frame lines follow the target's x (its first side), not
+    a diagonal the curvature fit happens to pick, however the plate lies under the cameras."""
+    tv, tf = _sphere_grid(8000.0, (3000.0, 2000.0), (61, 41))
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xz", [180.0, turn_deg], degrees=True).as_matrix()
+    T[:3, 3] = [100.0, -50.0, 3000.0]
+    cam = tv @ T[:3, :3].T + T[:3, 3]
+    frame, sections = cut_sections(cam, tf, cam, tf, spacing_mm=500.0, target_axes=T[:3, :3])
+    assert abs(frame.across @ T[:3, 0]) > 0.999
+    np.testing.assert_allclose(np.diff(frame.across_range_mm), [3000.0], atol=30.0)
+    for s in sections:
+        ok = np.isfinite(s.gap_mm)
+        assert ok.mean() > 0.95 and np.abs(s.gap_mm[ok]).max() < 1e-6
+
+
+def test_frames_follow_the_target_axis_it_bends_along():
+    """A cylinder bent along the target's y (a mesh target need not bend along x): the frame lines
+    run along y, frames are stacked along x."""
+    tv, _tf, _ = cylinder_grid(radius_mm=5000.0, size_mm=(3000.0, 2000.0), n=(61, 41))
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("z", 90.0, degrees=True).as_matrix()  # target y = camera -x
+    frame = plate_frame(tv, T[:3, :3])
+    assert abs(frame.across @ T[:3, 1]) > 0.999
+    with pytest.raises(ValueError, match=r"target_axes: expected a finite \(3, 3\) rotation"):
+        plate_frame(tv, np.eye(2))
+
+
+def test_a_frame_goes_through_a_chosen_point():
+    tv, tf, _ = cylinder_grid(radius_mm=5000.0, size_mm=(3000.0, 2000.0), n=(61, 41))
+    frame, sections = cut_sections(
+        tv,
+        tf,
+        tv,
+        tf,
+        spacing_mm=700.0,
+        chosen_mm=[np.array([0.0, 333.0, 3000.0]), np.array([0.0, 5000.0, 3000.0])],
+    )
+    chosen = [s for s in sections if s.chosen]
+    assert len(chosen) == 1  # the point off the plate is skipped
+    assert chosen[0].defect is None
+    line = frame.line_mm(chosen[0].position_mm)
+    np.testing.assert_allclose(line[:, 1], [333.0, 333.0], atol=1.0)
