@@ -228,6 +228,25 @@ class DefectOut(BaseModel):
     mean_mm: float | None
 
 
+class PlateMapOut(BaseModel):
+    """The deviation map in the target's own frame (x along its first side, y along its second, mm):
+    the mean deviation in square cells, as the dashboard's map draws and reads it."""
+
+    frame: Literal["target"]
+    #: Corner of cell [0][0] (its smallest x and y), mm.
+    x0_mm: float
+    y0_mm: float
+    cell_mm: float
+    #: [x_min, x_max, y_min, y_max] of the grid, mm.
+    extent_mm: list[float]
+    nx: int
+    ny: int
+    tolerance_mm: float
+    #: ny rows of nx cells, row 0 at the smallest y; mean signed deviation, mm; null where no data.
+    deviation_mm: list[list[float | None]]
+    defects: list[DefectOut]
+
+
 class InspectionOut(BaseModel):
     """An inspection: its job state and, once done, its ``plate-result/1`` document."""
 

@@ -41,6 +41,10 @@ class SectionDrawing:
     length_mm: float
     max_gap_mm: float | None
     defect: int | None = None  # the defect this frame goes through
+    chosen: bool = False  # placed through a point the operator chose on the map
+    line_mm: str = (
+        ""  # "x1 y1 x2 y2": the frame line's ends in the target's frame, mm (for the map)
+    )
 
 
 def _points(xs: np.ndarray, ys: np.ndarray) -> str:
@@ -92,18 +96,16 @@ def section_drawings(
         plate_polygon = (
             _points(np.r_[xp, xp[::-1]], np.r_[yp, yp[::-1] + plate_px]) if xp.size else ""
         )
-        labels = []
-        for k in np.linspace(0, len(x) - 1, n_labels).round().astype(int):
-            if np.isfinite(gap[k]):
-                labels.append(
-                    GapLabel(
-                        float(x[k]),
-                        float(y_t[k]),
-                        float(y_p[k]),
-                        float(gap[k]),
-                        bool(abs(gap[k]) > tolerance_mm),
-                    )
-                )
+        labels = [
+            GapLabel(
+                float(x[k]),
+                float(y_t[k]),
+                float(y_p[k]),
+                float(gap[k]),
+                bool(abs(gap[k]) > tolerance_mm),
+            )
+            for k in _label_indices(x, gap, n_labels)
+        ]
         drawings.append(
             SectionDrawing(
                 position_mm=s.position_mm,
@@ -117,9 +119,30 @@ def section_drawings(
                 length_mm=length,
                 max_gap_mm=float(np.nanmax(np.abs(gap))) if has.any() else None,
                 defect=s.defect,
+                chosen=s.chosen,
             )
         )
     return drawings
+
+
+#: Least distance between two gap labels' centres, px of the drawing: "+0.00" at 14 px is ~42 px wide.
+LABEL_SPACING_PX = 56.0
+
+
+def _label_indices(x: np.ndarray, gap: np.ndarray, n_labels: int) -> list[int]:
+    """Where a section's gaps are written: the largest gap first (the place a template shows its
+    worst fit), then up to ``n_labels`` evenly spread over the measured part, each kept only if it
+    stays :data:`LABEL_SPACING_PX` from every label already placed, so that labels never overlap."""
+    finite = np.flatnonzero(np.isfinite(gap))
+    if finite.size == 0:
+        return []
+    worst = int(finite[np.argmax(np.abs(gap[finite]))])
+    spread = finite[np.linspace(0, finite.size - 1, n_labels).round().astype(int)]
+    chosen: list[int] = []
+    for k in [worst, *(int(i) for i in spread)]:
+        if all(abs(x[k] - x[j]) >= LABEL_SPACING_PX for j in chosen):
+            chosen.append(k)
+    return sorted(chosen)
 
 
 def nice_ticks(lo: float, hi: float, *, max_ticks: int = 6) -> tuple[list[float], int]:

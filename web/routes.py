@@ -12,7 +12,6 @@ import logging
 from datetime import UTC, datetime
 from typing import Annotated, Literal
 
-import numpy as np
 from fastapi import APIRouter, HTTPException, Query, Request
 from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse, Response
 from fastapi.templating import Jinja2Templates
@@ -29,27 +28,24 @@ from app.services import inspections as inspection_svc
 from app.services import light_calibrations as light_calibration_svc
 from app.services import plates as plate_svc
 from app.services.errors import ServiceError
-from pipeline.artifacts.png import deviation_png_layout
 from pipeline.formats import InputError
-from pipeline.sections import load_sections
 from web import TEMPLATES_DIR
-from web.charts import forming_chart, section_drawings, trend_chart
+from web.charts import forming_chart, trend_chart
 from web.lights import light_plan, light_rows
+from web.template_views import (
+    DEFAULT_SPACING_MM,
+    SPACINGS_MM,
+    PointQuery,
+    SpacingQuery,
+    chosen_point,
+    templates_context,
+)
 
 logger = logging.getLogger(__name__)
 
 router = APIRouter(include_in_schema=False)
 router.include_router(viewer.router)
 templates = Jinja2Templates(directory=TEMPLATES_DIR)
-
-#: Statuses of jobs shown as "in the queue".
-#: Frame spacings offered for the virtual templates, mm.
-SPACINGS_MM = (300, 500, 700, 1000)
-DEFAULT_SPACING_MM = 700
-#: The ``spacing_mm`` query parameter of the virtual templates, mm.
-SpacingQuery = Annotated[
-    int, Query(ge=50, le=10_000, description="frame spacing of the virtual templates, mm")
-]
 
 
 def _fmt(value, digits: int = 1, unit: str = "", signed: bool = False) -> str:
@@ -206,8 +202,11 @@ def result_page(
     session: SessionDep,
     storage: StorageDep,
     spacing_mm: SpacingQuery = DEFAULT_SPACING_MM,
+    at_x: PointQuery = None,
+    at_y: PointQuery = None,
 ) -> Response:
-    """Verdict, radius, deviation, the 3D view and the virtual templates of one inspection."""
+    """Verdict, radius, deviation, the 3D view and the virtual templates of one inspection
+    (``at_x``, ``at_y``: one more template through that point of the plate, target frame, mm)."""
     row = _inspection_or_404(session, inspection_id)
     plate_viewer = getattr(request.app.state, "viewer", None)
     has_view = (
@@ -228,8 +227,7 @@ def result_page(
         "spacings": SPACINGS_MM,
         "next_pass": next_pass(session, row.plate_id),
         **found,
-        "callouts": map_callouts(storage.artifacts_dir(row.id), found["defects"]),
-        **_templates_context(storage, row, spacing_mm),
+        **templates_context(storage, row, spacing_mm, chosen_point(at_x, at_y)),
     }
     return _page(request, session, "result.html", context)
 
@@ -241,53 +239,15 @@ def templates_partial(
     session: SessionDep,
     storage: StorageDep,
     spacing_mm: SpacingQuery = DEFAULT_SPACING_MM,
+    at_x: PointQuery = None,
+    at_y: PointQuery = None,
 ) -> Response:
-    """The virtual templates at another spacing (fetched by result.js)."""
+    """The virtual templates at another spacing, or through a point chosen on the map (result.js)."""
     row = _inspection_or_404(session, inspection_id)
+    context = templates_context(storage, row, spacing_mm, chosen_point(at_x, at_y))
     return templates.TemplateResponse(
-        request,
-        "_templates.html",
-        {"row": row, "spacing_mm": spacing_mm, **_templates_context(storage, row, spacing_mm)},
+        request, "_templates.html", {"row": row, "spacing_mm": spacing_mm, **context}
     )
-
-
-def map_callouts(folder, defects) -> list[dict]:
-    """Where each defect's number goes on deviation.png: ``{"id", "left", "top", "rx", "ry",
-    "peak_mm"}``, in % of the PNG's width and height (its map is the image enlarged ``k / stride``
-    times, at its top left; the page draws them in an SVG stretched over the image)."""
-    png, depth = folder / "deviation.png", folder / "depth.npy"
-    if not defects or not png.is_file() or not depth.is_file():
-        return []
-    from PIL import Image
-
-    with Image.open(png) as image:
-        width, height = image.size
-    stride, k = deviation_png_layout(np.load(depth, mmap_mode="r").shape[:2])
-    scale = k / stride
-    marker_px = 0.025 * max(width, height)  # the marker's radius on the PNG, px
-    return [
-        {
-            "id": d.id,
-            "left": 100.0 * d.centroid_px[0] * scale / width,
-            "top": 100.0 * d.centroid_px[1] * scale / height,
-            "rx": 100.0 * marker_px / width,
-            "ry": 100.0 * marker_px / height,
-            "peak_mm": d.peak_mm,
-        }
-        for d in defects
-    ]
-
-
-def _templates_context(storage, row: Inspection, spacing_mm: int) -> dict:
-    if row.status != JobStatus.DONE:
-        return {"drawings": [], "templates_error": None}
-    folder = storage.artifacts_dir(row.id)
-    try:
-        _frame, sections, tolerance = load_sections(folder, spacing_mm=float(spacing_mm))
-    except (OSError, ValueError, KeyError) as err:
-        logger.warning("inspection %s: no virtual templates: %s", row.id, err)
-        return {"drawings": [], "templates_error": scrub_paths(str(err))}
-    return {"drawings": section_drawings(sections, tolerance_mm=tolerance), "templates_error": None}
 
 
 @router.get("/plates/{plate_id}", response_class=HTMLResponse)

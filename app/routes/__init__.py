@@ -2,7 +2,15 @@
 
 from fastapi import APIRouter
 
-from app.routes import calibrations, forming, inspections, light_calibrations, plates, session
+from app.routes import (
+    calibrations,
+    forming,
+    inspections,
+    light_calibrations,
+    plate_maps,
+    plates,
+    session,
+)
 from app.routes.common import API_PREFIX
 
 api_router = APIRouter(prefix=API_PREFIX)
@@ -12,5 +20,6 @@ api_router.include_router(calibrations.router)
 api_router.include_router(light_calibrations.router)
 api_router.include_router(session.router)
 api_router.include_router(forming.router)
+api_router.include_router(plate_maps.router)
 
 __all__ = ["api_router"]

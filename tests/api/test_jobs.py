@@ -282,6 +282,10 @@ def test_a_dented_plate_fails_and_the_api_lists_its_defect(tmp_path):
             body = wait_for(client, r.json()["id"], timeout_s=180, consumer=consumer)
             page = client.get(f"/inspections/{body['id']}").text
             report = client.get(f"/api/v1/inspections/{body['id']}/report.pdf")
+            plate_map = client.get(f"/api/v1/inspections/{body['id']}/plate-map")
+            map_png = client.get(f"/api/v1/inspections/{body['id']}/plate-map.png")
+            chosen = client.get(f"/inspections/{body['id']}?at_x=200&at_y=-450").text
+            missing = client.get("/api/v1/inspections/999/plate-map")
     finally:
         consumer.stop()
         app.state.engine.dispose()
@@ -290,24 +294,31 @@ def test_a_dented_plate_fails_and_the_api_lists_its_defect(tmp_path):
     peak = f"{body['defects'][0]['peak_mm']:+.1f}"
     assert f">{peak}</td>" in page
     assert 'data-defect="1"' in page and "through defect 1" in page  # a template crosses the dent
-    # the map's callout sits on the dent: its place on the PNG is the dent's pixel, in % of the figure
-    left, top = (
-        float(v)
-        for v in re.search(
-            r'class="callout" data-defect="1" data-left="([\d.]+)" data-top="([\d.]+)"', page
-        ).groups()
-    )
+    # the plate map (target frame, mm) is reddest at the dent, and beyond tolerance there
+    assert plate_map.status_code == 200, plate_map.text
+    m = plate_map.json()
+    grid = np.array([[np.nan if v is None else v for v in row] for row in m["deviation_mm"]])
+    assert grid.shape == (m["ny"], m["nx"]) and np.isfinite(grid).mean() > 0.5
+    j, i = np.unravel_index(np.nanargmax(grid), grid.shape)
+    x_peak = m["x0_mm"] + (i + 0.5) * m["cell_mm"]
+    y_peak = m["y0_mm"] + (j + 0.5) * m["cell_mm"]
+    assert abs(x_peak - dent["x_mm"]) < 40.0 and abs(y_peak - dent["y_mm"]) < 40.0
+    assert grid[j, i] == pytest.approx(6.0, abs=1.0)
+    assert [d["id"] for d in m["defects"]] == [1]
     from PIL import Image
 
-    png = settings.data_dir / "inspections" / str(body["id"]) / "artifacts" / "deviation.png"
-    with Image.open(png) as image:
-        rgb = np.asarray(image.convert("RGB")).astype(int)
-    redness = rgb[..., 0] - rgb[..., 2]  # the dent is the reddest place of the map
-    in_map = redness[:, : int(rgb.shape[1] * 0.7)]  # left of the colour bar
-    row, col = np.unravel_index(np.argmax(in_map), in_map.shape)
-    assert (
-        abs(left - 100.0 * col / rgb.shape[1]) < 2.0 and abs(top - 100.0 * row / rgb.shape[0]) < 2.0
-    )
+    with Image.open(io.BytesIO(map_png.content)) as image:
+        assert image.size == (m["nx"], m["ny"]) and image.mode == "RGBA"
+        # y up: the dent's cell is drawn at row ny - 1 - j, saturated red beyond tolerance
+        r, g, b, a = image.getpixel((int(i), int(m["ny"] - 1 - j)))
+    assert a == 255 and r > 150 and g < 80 and b < 80
+    assert missing.status_code == 404 and missing.json()["field"] == "inspection_id"
+    # a template through the chosen point: its frame line on the map crosses it
+    assert "through the point you chose" in chosen
+    line = re.search(r'class="template chosen" data-line="([-\d. ]+)"', chosen).group(1)
+    x1, y1, x2, y2 = (float(v) for v in line.split())
+    t = (200.0 - x1) / (x2 - x1)
+    assert abs(y1 + t * (y2 - y1) - -450.0) < 15.0
     assert report.status_code == 200 and report.headers["content-type"] == "application/pdf"
     text = pdf_text(report.content, tmp_path)
     assert "DENT-1" in text and "FAIL" in text and peak in text and "Signature" in text

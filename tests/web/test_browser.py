@@ -519,7 +519,8 @@ def test_result_page_report_button_and_print_layout(live_server, browser):
     assert not page.locator("header.toolbar").is_visible()
     assert not page.locator("aside.side").is_visible()
     assert not button.is_visible()
-    map_width = page.locator("img[alt^='deviation colour map']").bounding_box()["width"]
+    page.wait_for_selector("#plate-map[data-ready=true]")
+    map_width = page.locator("#plate-map-svg").bounding_box()["width"]
     assert map_width > 0.6 * page.viewport_size["width"], map_width
     page.screenshot(path=SHOTS / "result-print.png", full_page=True)
     assert not errors, errors
@@ -547,3 +548,57 @@ def test_pages_fit_a_1366x768_screen(live_server, browser):
     while [name.strip() for name in plates.all_inner_texts()] != ["H13-NARROW"]:
         assert time.monotonic() < deadline, plates.all_inner_texts()
         time.sleep(0.2)
+
+
+def test_plate_map_reads_zooms_and_places_a_template(live_server, browser):
+    """The deviation map in the plate's frame: mm axes, the defect numbered at its place, the value
+    under the pointer, zoom, and a click that puts a template through the point clicked."""
+    SHOTS.mkdir(exist_ok=True)
+    dent = {"x_mm": -500.0, "y_mm": 300.0, "radius_mm": 200.0, "depth_mm": -8.0}
+    job_id = _inspected(
+        live_server, "H13-MAP", {"n_lights": 6, "width": 320, "height": 256, "dents": [dent]}
+    )
+    page = browser.new_page(viewport={"width": 1920, "height": 1080})
+    errors = []
+    page.on("pageerror", lambda err: errors.append(str(err)))
+    violations = _watch_csp(page)
+    page.goto(f"{live_server['base']}/inspections/{job_id}")
+    page.wait_for_selector("#plate-map[data-ready=true]", timeout=15_000)
+    ticks = [float(t) for t in page.locator(".map-axes .tick-x").all_text_contents()]
+    assert min(ticks) < 0 < max(ticks) and 0.0 in ticks  # mm of the target frame, its centre at 0
+    assert page.locator(".map-axes .axis-name").all_text_contents() == ["x, mm", "y, mm"]
+    assert page.locator(".map-origin text").all_text_contents() == ["x", "y"]
+
+    # the defect's number sits at its place: the pointer there reads a value beyond tolerance
+    spot = page.locator(".map-defect[data-defect='1'] .spot").bounding_box()
+    page.mouse.move(spot["x"] + spot["width"] / 2, spot["y"] + spot["height"] / 2)
+    readout = page.locator("#map-readout")
+    deadline = time.monotonic() + 5
+    while "beyond tolerance" not in readout.inner_text():
+        assert time.monotonic() < deadline, readout.inner_text()
+        time.sleep(0.1)
+    text = readout.inner_text()
+    x, y = (float(v) for v in re.search(r"x (-?\d+) mm, y (-?\d+) mm", text).groups())
+    assert abs(x - dent["x_mm"]) < 60 and abs(y - dent["y_mm"]) < 60, text
+    assert float(page.locator("#map-readout").get_attribute("data-value")) > 2.0
+    page.screenshot(path=SHOTS / "plate-map.png")
+
+    # zoom in: finer ticks over a smaller span
+    span = max(ticks) - min(ticks)
+    page.click("[data-zoom=in]")
+    page.click("[data-zoom=in]")
+    assert page.locator("#plate-map").get_attribute("data-zoom") == "2.25"
+    zoomed = [float(t) for t in page.locator(".map-axes .tick-x").all_text_contents()]
+    assert max(zoomed) - min(zoomed) < span
+    page.click("[data-zoom=fit]")
+
+    # a click on the plate away from the defect: a template through that point, drawn on the map
+    box = page.locator("#plate-map-svg image").bounding_box()
+    page.mouse.click(box["x"] + 0.75 * box["width"], box["y"] + 0.8 * box["height"])
+    page.wait_for_selector("figure.template.chosen", timeout=15_000)
+    assert "at_x=" in page.url and "at_y=" in page.url
+    assert page.locator(".map-frame-line.chosen").count() == 1
+    assert page.locator(".map-frame-line.defect").count() == 1
+    page.screenshot(path=SHOTS / "plate-map-chosen.png", full_page=True)
+    assert not errors, errors
+    assert not violations, violations

@@ -46,12 +46,12 @@ def test_result_page_shows_verdict_numbers_view_and_templates(demo_app):
         assert "5050.0 mm" in html and "5000.0 mm" in html and "+1.00 %" in html
         assert f'src="/viewer/{inspection_id}/?hideViserLogo"' in html
         # Frames every 700 mm over the 2000 mm axis: 3 templates (300, 1000, 1700 mm).
-        assert html.count('<figure class="template">') == 3
+        assert html.count('<figure class="template"') == 3
         assert "Frame at 1000 mm" in html
         # The largest true gap is at the edges: sagitta difference 2.2 mm, labelled in red.
         assert 'class="gap-label bad"' in html
         partial = client.get(f"/inspections/{inspection_id}/templates", params={"spacing_mm": 300})
-        assert partial.text.count('<figure class="template">') == 7 and "<html" not in partial.text
+        assert partial.text.count('<figure class="template"') == 7 and "<html" not in partial.text
         assert (
             client.get(
                 f"/inspections/{inspection_id}/templates", params={"spacing_mm": 10}

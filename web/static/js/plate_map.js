@@ -1,0 +1,247 @@
+// The deviation map in the plate's own frame (target frame, mm; y up): axes in mm, an orientation
+// mark at the origin, the defects numbered, the template frames, zoom and pan, the value under the
+// pointer. A click (not a drag) asks the page to put a template through that point.
+import { getJSON } from "./api.js";
+
+// the SVG namespace, read from the page's own <svg> (the map's) when a map is made
+let SVG = null;
+const ZOOM_STEP = 1.5;
+
+function el(name, attrs = {}, text) {
+  const node = document.createElementNS(SVG, name);
+  for (const [k, v] of Object.entries(attrs)) node.setAttribute(k, String(v));
+  if (text !== undefined) node.textContent = text;
+  return node;
+}
+
+/** Round tick values over [lo, hi]: steps of 1, 2, 2.5 or 5 times a power of ten. */
+export function niceTicks(lo, hi, maxTicks = 7) {
+  const raw = (hi - lo) / maxTicks;
+  const power = 10 ** Math.floor(Math.log10(raw));
+  const step = [1, 2, 2.5, 5, 10].map((m) => m * power).find((s) => s >= raw);
+  const out = [];
+  for (let v = Math.ceil(lo / step) * step; v <= hi + 1e-9; v += step) out.push(Math.abs(v) < 1e-9 ? 0 : v);
+  return out;
+}
+
+function signed(v, digits) {
+  return `${v >= 0 ? "+" : "−"}${Math.abs(v).toFixed(digits)}`;
+}
+
+export class PlateMap {
+  constructor(figure, { onPick } = {}) {
+    this.figure = figure;
+    this.svg = figure.querySelector("svg");
+    SVG = this.svg.namespaceURI;
+    this.readout = figure.querySelector(".map-readout");
+    this.onPick = onPick;
+    this.frames = [];
+    this.picked = null;
+  }
+
+  async load() {
+    this.data = await getJSON(this.figure.dataset.src);
+    const [x0, x1, y0, y1] = this.data.extent_mm;
+    this.full = { x: x0, y: y0, w: x1 - x0, h: y1 - y0 };
+    this.view = { ...this.full };
+    this.layers();
+    this.bind();
+    this.render();
+    this.figure.dataset.ready = "true";
+    return this;
+  }
+
+  // Static content lives in mm with y flipped (SVG y = -plate y); the axes are redrawn per view.
+  layers() {
+    const { x0_mm: x0, extent_mm: e } = this.data;
+    this.content = el("g", { class: "map-content" });
+    this.content.append(el("image", {
+      href: this.figure.dataset.png, x: x0, y: -e[3], width: e[1] - e[0], height: e[3] - e[2],
+      preserveAspectRatio: "none",
+    }));
+    this.frameLayer = el("g", { class: "map-frames" });
+    this.markLayer = el("g", { class: "map-marks" });
+    this.content.append(this.frameLayer, this.markLayer);
+    this.axes = el("g", { class: "map-axes" });
+    this.svg.replaceChildren(this.content, this.axes);
+  }
+
+  /** Template frame lines: [{x1, y1, x2, y2, label, kind}] in target mm. */
+  setFrames(frames) {
+    this.frames = frames;
+    if (this.data) this.render();
+  }
+
+  setPicked(point) {
+    this.picked = point;
+    if (this.data) this.render();
+  }
+
+  valueAt(x, y) {
+    const { x0_mm: x0, y0_mm: y0, cell_mm: cell, nx, ny, deviation_mm: grid } = this.data;
+    const i = Math.floor((x - x0) / cell);
+    const j = Math.floor((y - y0) / cell);
+    if (i < 0 || j < 0 || i >= nx || j >= ny) return null;
+    return grid[j][i];
+  }
+
+  // The view box: the visible plate rectangle plus a margin for the axes' labels, in SVG units.
+  viewBox() {
+    const { x, y, w, h } = this.view;
+    const pad = 0.11 * Math.max(w, h);
+    return [x - pad, -(y + h) - 0.04 * Math.max(w, h), w + 1.15 * pad, h + pad + 0.04 * Math.max(w, h)];
+  }
+
+  render() {
+    const box = this.viewBox();
+    this.svg.setAttribute("viewBox", box.join(" "));
+    const unit = Math.max(this.view.w, this.view.h) / 100; // 1 % of the view, in mm
+    this.drawFrames(unit);
+    this.drawMarks(unit);
+    this.drawAxes(unit);
+  }
+
+  drawFrames(unit) {
+    const lines = this.frames.map((f) => {
+      const g = el("g", { class: `map-frame-line ${f.kind}` });
+      g.append(el("line", { x1: f.x1, y1: -f.y1, x2: f.x2, y2: -f.y2, "stroke-width": 0.3 * unit }));
+      g.append(el("text", { x: f.x2 + unit, y: -f.y2, "font-size": 2.4 * unit, "dominant-baseline": "central" }, f.label));
+      return g;
+    });
+    this.frameLayer.replaceChildren(...lines);
+  }
+
+  drawMarks(unit) {
+    const marks = [];
+    // orientation: the target's origin and its x and y axes
+    const len = 8 * unit;
+    const o = el("g", { class: "map-origin" });
+    o.append(
+      el("line", { x1: 0, y1: 0, x2: len, y2: 0, "stroke-width": 0.35 * unit }),
+      el("line", { x1: 0, y1: 0, x2: 0, y2: -len, "stroke-width": 0.35 * unit }),
+      el("path", { d: `M ${len + 1.5 * unit} 0 l ${-1.8 * unit} ${-unit} v ${2 * unit} z` }),
+      el("path", { d: `M 0 ${-len - 1.5 * unit} l ${-unit} ${1.8 * unit} h ${2 * unit} z` }),
+      el("text", { x: len + 2.2 * unit, y: 0, "font-size": 3 * unit, "dominant-baseline": "central" }, "x"),
+      el("text", { x: 0, y: -len - 2.6 * unit, "font-size": 3 * unit, "text-anchor": "middle" }, "y"),
+    );
+    marks.push(o);
+    for (const d of this.data.defects) {
+      if (!d.centroid_mm) continue;
+      const [x, y] = d.centroid_mm;
+      const g = el("g", { class: "map-defect", "data-defect": d.id, "data-x": x, "data-y": y });
+      const r = 2.4 * unit;
+      const lx = x + 4 * unit, ly = -y - 4 * unit;
+      g.append(
+        el("title", {}, `defect ${d.id}: peak ${signed(d.peak_mm, 1)} mm at x ${x.toFixed(0)}, y ${y.toFixed(0)} mm`),
+        el("circle", { class: "spot", cx: x, cy: -y, r: 0.9 * unit }),
+        el("line", { x1: x, y1: -y, x2: lx, y2: ly, "stroke-width": 0.25 * unit }),
+        el("circle", { class: "badge", cx: lx, cy: ly, r, "stroke-width": 0.25 * unit }),
+        el("text", { x: lx, y: ly, "font-size": 2.8 * unit, "text-anchor": "middle", "dominant-baseline": "central" }, String(d.id)),
+      );
+      marks.push(g);
+    }
+    if (this.picked) {
+      const [x, y] = this.picked;
+      marks.push(el("circle", { class: "map-picked", cx: x, cy: -y, r: 1.2 * unit, "stroke-width": 0.4 * unit }));
+    }
+    this.markLayer.replaceChildren(...marks);
+  }
+
+  drawAxes(unit) {
+    const { x, y, w, h } = this.view;
+    const nodes = [];
+    const base = -y + 1.2 * unit; // just below the plate's lowest visible y
+    const left = x - 1.2 * unit;
+    nodes.push(el("line", { class: "axis-line", x1: x, y1: base, x2: x + w, y2: base, "stroke-width": 0.15 * unit }));
+    nodes.push(el("line", { class: "axis-line", x1: left, y1: -y, x2: left, y2: -(y + h), "stroke-width": 0.15 * unit }));
+    for (const t of niceTicks(x, x + w)) {
+      nodes.push(el("line", { class: "tick", x1: t, y1: base, x2: t, y2: base + unit, "stroke-width": 0.15 * unit }));
+      nodes.push(el("text", { class: "tick-x", x: t, y: base + 3.4 * unit, "font-size": 2.6 * unit, "text-anchor": "middle" }, t.toFixed(0)));
+    }
+    for (const t of niceTicks(y, y + h)) {
+      nodes.push(el("line", { class: "tick", x1: left - unit, y1: -t, x2: left, y2: -t, "stroke-width": 0.15 * unit }));
+      nodes.push(el("text", { class: "tick-y", x: left - 1.6 * unit, y: -t, "font-size": 2.6 * unit, "text-anchor": "end", "dominant-baseline": "central" }, t.toFixed(0)));
+    }
+    nodes.push(el("text", { class: "axis-name", x: x + w, y: base + 6.6 * unit, "font-size": 2.6 * unit, "text-anchor": "end" }, "x, mm"));
+    nodes.push(el("text", { class: "axis-name", x: left - 1.6 * unit, y: -(y + h) - 1.6 * unit, "font-size": 2.6 * unit, "text-anchor": "end" }, "y, mm"));
+    this.axes.replaceChildren(...nodes);
+  }
+
+  /** The plate point (target mm) under a client position. */
+  toPlate(clientX, clientY) {
+    const m = this.svg.getScreenCTM();
+    if (!m) return null;
+    const p = new DOMPoint(clientX, clientY).matrixTransform(m.inverse());
+    return [p.x, -p.y];
+  }
+
+  zoom(factor, centre) {
+    const [cx, cy] = centre ?? [this.view.x + this.view.w / 2, this.view.y + this.view.h / 2];
+    const w = Math.min(this.full.w * 1.5, Math.max(this.full.w / 40, this.view.w / factor));
+    const h = w * (this.full.h / this.full.w);
+    const fx = (cx - this.view.x) / this.view.w, fy = (cy - this.view.y) / this.view.h;
+    this.view = { x: cx - fx * w, y: cy - fy * h, w, h };
+    this.figure.dataset.zoom = (this.full.w / w).toFixed(2);
+    this.render();
+  }
+
+  fit() {
+    this.view = { ...this.full };
+    this.figure.dataset.zoom = "1.00";
+    this.render();
+  }
+
+  show(point) {
+    if (!point) return;
+    const [x, y] = point;
+    const v = this.valueAt(x, y);
+    const where = `x ${x.toFixed(0)} mm, y ${y.toFixed(0)} mm`;
+    if (v === null) {
+      this.readout.textContent = `${where}: not measured`;
+      return;
+    }
+    const tol = this.data.tolerance_mm;
+    const band = Math.abs(v) <= tol ? "within tolerance" : v > 0 ? "above the target, beyond tolerance" : "below the target, beyond tolerance";
+    this.readout.textContent = `${where}: ${signed(v, 2)} mm (${band})`;
+    this.readout.dataset.value = String(v);
+  }
+
+  bind() {
+    let drag = null;
+    this.figure.querySelectorAll("[data-zoom]").forEach((button) => {
+      button.addEventListener("click", () => {
+        const how = button.dataset.zoom;
+        if (how === "fit") this.fit();
+        else this.zoom(how === "in" ? ZOOM_STEP : 1 / ZOOM_STEP);
+      });
+    });
+    this.svg.addEventListener("wheel", (event) => {
+      event.preventDefault();
+      this.zoom(event.deltaY < 0 ? ZOOM_STEP : 1 / ZOOM_STEP, this.toPlate(event.clientX, event.clientY));
+    }, { passive: false });
+    this.svg.addEventListener("pointerdown", (event) => {
+      // a drag pans: its moves are read in the view it started from
+      const inverse = this.svg.getScreenCTM()?.inverse();
+      if (inverse) drag = { x: event.clientX, y: event.clientY, view: { ...this.view }, inverse, moved: false };
+    });
+    this.svg.addEventListener("pointermove", (event) => {
+      if (drag && (drag.moved || Math.abs(event.clientX - drag.x) + Math.abs(event.clientY - drag.y) > 4)) {
+        drag.moved = true;
+        const a = new DOMPoint(drag.x, drag.y).matrixTransform(drag.inverse);
+        const b = new DOMPoint(event.clientX, event.clientY).matrixTransform(drag.inverse);
+        this.view = { ...drag.view, x: drag.view.x - (b.x - a.x), y: drag.view.y + (b.y - a.y) };
+        this.render();
+        return;
+      }
+      this.show(this.toPlate(event.clientX, event.clientY));
+    });
+    this.svg.addEventListener("pointerup", (event) => {
+      const click = drag && !drag.moved;
+      drag = null;
+      if (!click || !this.onPick) return;
+      const point = this.toPlate(event.clientX, event.clientY);
+      if (point && this.valueAt(...point) !== null) this.onPick(point);
+    });
+    this.svg.addEventListener("pointerleave", () => { drag = null; });
+  }
+}
