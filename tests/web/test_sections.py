@@ -235,3 +235,23 @@ def test_a_frame_goes_through_a_chosen_point():
     assert chosen[0].defect is None
     line = frame.line_mm(chosen[0].position_mm)
     np.testing.assert_allclose(line[:, 1], [333.0, 333.0], atol=1.0)
+
+
+def test_gap_labels_never_overlap_and_the_worst_gap_is_labelled():
+    """A section measured over only a fifth of its length (a plate partly off the camera) with a
+    sharp gap between two evenly spread label places: the labels keep apart, the worst gap has one."""
+    from pipeline.sections import Section
+    from web.charts import LABEL_SPACING_PX, section_drawings
+
+    u = np.linspace(0.0, 3000.0, 241)
+    target_h = np.zeros_like(u)
+    gap = np.full_like(u, np.nan)
+    part = slice(100, 149)
+    gap[part] = 0.1 * np.sin(u[part] / 50.0)
+    gap[131] = -3.2
+    section = Section(1000.0, u, target_h, target_h + gap, gap)
+    [drawing] = section_drawings([section], tolerance_mm=2.0)
+    xs = sorted(label.x for label in drawing.labels)
+    assert len(xs) >= 2 and np.diff(xs).min() >= LABEL_SPACING_PX
+    worst = [label for label in drawing.labels if label.gap_mm == pytest.approx(-3.2)]
+    assert len(worst) == 1 and worst[0].out_of_tolerance
