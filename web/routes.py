@@ -31,6 +31,7 @@ from app.services.errors import ServiceError
 from pipeline.formats import InputError
 from web import TEMPLATES_DIR
 from web.charts import forming_chart, trend_chart
+from web.compare import CannotCompare, compare_context, done_inspections
 from web.lights import light_plan, light_rows
 from web.template_views import (
     DEFAULT_SPACING_MM,
@@ -285,7 +286,28 @@ def plate_page(request: Request, plate_id: str, session: SessionDep) -> Response
             "forming": passes_chart(session, plate_id, overview.target, advice.get("advice")),
             "plate_id": plate_id,
             "next_pass": advice,
+            "done_rows": done_inspections(session, plate_id),
         },
+    )
+
+
+@router.get("/plates/{plate_id}/compare", response_class=HTMLResponse)
+def compare_page(
+    request: Request,
+    plate_id: str,
+    session: SessionDep,
+    a: Annotated[int | None, Query(ge=1, description="the earlier inspection's id")] = None,
+    b: Annotated[int | None, Query(ge=1, description="the later inspection's id")] = None,
+) -> Response:
+    """Two done inspections of a plate side by side (default: its last two)."""
+    if plate_svc.overview(session=session, plate_id=plate_id) is None:
+        raise HTTPException(404, f"plate {plate_id!r} not found")
+    try:
+        context = compare_context(session, plate_id, a, b)
+    except CannotCompare as err:
+        raise HTTPException(err.status_code, err.detail) from None
+    return _page(
+        request, session, "compare.html", {"page": "plate", "plate_id": plate_id, **context}
     )
 
 

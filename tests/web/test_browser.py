@@ -602,3 +602,37 @@ def test_plate_map_reads_zooms_and_places_a_template(live_server, browser):
     page.screenshot(path=SHOTS / "plate-map-chosen.png", full_page=True)
     assert not errors, errors
     assert not violations, violations
+
+
+def test_compare_two_passes_side_by_side(live_server, browser):
+    """A plate rolled twice (under-bent, then on its radius): the plate page's Compare opens both maps
+    in the plate's frame side by side with the change of each number; zooming one zooms the other."""
+    SHOTS.mkdir(exist_ok=True)
+    size = {"n_lights": 6, "width": 320, "height": 256}
+    target = {
+        "format": "plate-target/1",
+        "shape": {"type": "cylinder", "radius_mm": 5000.0},
+        "size_mm": [3000.0, 3000.0],
+        "tolerance_mm": 2.0,
+    }
+    _api(live_server, "PUT", "/api/v1/plates/H13-TWICE/target", target)
+    first = _inspected(live_server, "H13-TWICE", {**size, "radius_mm": 6200.0})
+    second = _inspected(live_server, "H13-TWICE", {**size, "radius_mm": 5000.0})
+    page = browser.new_page(viewport={"width": 1920, "height": 1080})
+    errors = []
+    page.on("pageerror", lambda err: errors.append(str(err)))
+    violations = _watch_csp(page)
+    page.goto(f"{live_server['base']}/plates/H13-TWICE")
+    page.click("#compare-form button[type=submit]")
+    page.wait_for_selector("#plate-map-a[data-ready=true]", timeout=15_000)
+    page.wait_for_selector("#plate-map-b[data-ready=true]", timeout=15_000)
+    assert f"a={first}" in page.url and f"b={second}" in page.url
+    change = page.locator("tr[data-quantity='Max |dev|'] td").nth(2)
+    assert "better" in change.get_attribute("class")  # the second pass brought it to its target
+    page.click("#plate-map-a [data-zoom=in]")
+    assert page.locator("#plate-map-a").get_attribute("data-zoom") == "1.50"
+    view_a = page.locator("#plate-map-svg-a").get_attribute("viewBox")
+    assert page.locator("#plate-map-svg-b").get_attribute("viewBox") == view_a  # the same place
+    page.screenshot(path=SHOTS / "compare.png", full_page=True)
+    assert not errors, errors
+    assert not violations, violations

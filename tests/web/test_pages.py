@@ -221,3 +221,38 @@ def test_side_list_searches_plates(demo_app):
         assert "No plate id contains" in none
         page = client.get("/cell").text
     assert 'id="plate-search"' in page and 'id="side-body"' in page
+
+
+def test_compare_two_inspections_of_a_plate(demo_app):
+    """The plate page offers to compare its done inspections; the compare page puts two side by side
+    with the change of each number, and refuses what cannot be compared in plain words."""
+    first = seed_done_inspection(demo_app, plate_id="H13-CMP", measured_radius_mm=5300.0)
+    second = seed_done_inspection(demo_app, plate_id="H13-CMP", measured_radius_mm=5050.0)
+    other = seed_done_inspection(demo_app, plate_id="H13-OTHER")
+    queued = seed_queued_inspection(demo_app, plate_id="H13-CMP")
+    with TestClient(demo_app) as client:
+        history = client.get("/plates/H13-CMP").text
+        assert 'id="compare-form"' in history and 'action="/plates/H13-CMP/compare"' in history
+        page = client.get("/plates/H13-CMP/compare")  # the last two by default
+        assert page.status_code == 200
+        html = page.text
+        assert f'href="/inspections/{first}">#{first}</a>' in html
+        assert f'href="/inspections/{second}">#{second}</a>' in html
+        assert 'id="plate-map-a"' in html and 'id="plate-map-b"' in html
+        assert f'data-src="/api/v1/inspections/{second}/plate-map"' in html
+        radius = re.search(r'data-quantity="Radius error">(.*?)</tr>', html, re.S).group(1)
+        cells = re.findall(r'<td class="num[^"]*">([^<]*)</td>', radius)
+        a, b, change = (float(c.replace("%", "").replace("+", "").strip()) for c in cells)
+        assert b < a and change == pytest.approx(b - a, abs=0.011)
+        assert 'class="num better"' in radius  # the radius error shrank
+
+        same = client.get(
+            f"/plates/H13-CMP/compare?a={first}&b={first}", headers={"Accept": "text/html"}
+        )
+        assert same.status_code == 422 and "two different inspections" in same.text
+        foreign = client.get(f"/plates/H13-CMP/compare?a={first}&b={other}")
+        assert foreign.status_code == 404 and f"has no inspection {other}" in foreign.text
+        pending = client.get(f"/plates/H13-CMP/compare?a={first}&b={queued}")
+        assert pending.status_code == 422 and "only done ones have results" in pending.text
+        alone = client.get("/plates/H13-OTHER/compare")
+        assert alone.status_code == 422 and "comparing needs two" in alone.text

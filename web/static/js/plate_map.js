@@ -92,7 +92,15 @@ export class PlateMap {
     return [x - pad, -(y + h) - 0.04 * Math.max(w, h), w + 1.15 * pad, h + pad + 0.04 * Math.max(w, h)];
   }
 
-  render() {
+  /** Show the same plate rectangle as another map (the compare page keeps its maps together). */
+  follow(view) {
+    this.view = { ...view };
+    this.figure.dataset.zoom = (this.full.w / view.w).toFixed(2);
+    this.render(false);
+  }
+
+  render(tell = true) {
+    if (tell && this.onView) this.onView(this.view);
     const box = this.viewBox();
     this.svg.setAttribute("viewBox", box.join(" "));
     const unit = Math.max(this.view.w, this.view.h) / 100; // 1 % of the view, in mm
