@@ -9,7 +9,12 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.artifacts.colours import COLOUR_STOPS, deviation_colormap
+from pipeline.artifacts.colours import (
+    ABOVE_RGB,
+    BELOW_RGB,
+    IN_TOLERANCE_RGB,
+    tolerance_band_colormap,
+)
 from pipeline.artifacts.ply import read_mesh_ply, read_surface_ply
 
 logger = logging.getLogger(__name__)
@@ -142,42 +147,45 @@ def decimate_mesh(
     return out_vertices, out_faces.astype(np.int32), out_values
 
 
-def deviation_colours(deviation_mm: np.ndarray, scale_mm: float) -> np.ndarray:
-    """Colour signed deviations on a diverging blue - white - red scale.
+def deviation_colours(deviation_mm: np.ndarray, scale_mm: float, tolerance_mm: float) -> np.ndarray:
+    """Colour signed deviations by tolerance band, as the result page's map does.
 
     Parameters
     ----------
     deviation_mm : (V,) float array, mm. NaN is drawn grey.
-    scale_mm : float > 0, deviation drawn in full colour; larger magnitudes saturate
-        (the legend says so).
+    scale_mm : float > tolerance_mm, deviation drawn in the deepest colour; larger magnitudes
+        saturate (the legend says so).
+    tolerance_mm : float > 0, within it one calm green.
 
     Returns
     -------
-    (V, 3) uint8 RGB: blue below the target (away from the cameras), red above it.
+    (V, 3) uint8 RGB (:func:`pipeline.artifacts.colours.tolerance_band_colormap`): green within
+    tolerance, orange to dark red above the target (towards the cameras), light to dark blue below.
     """
     deviation_mm = np.asarray(deviation_mm, dtype=np.float64)
     if deviation_mm.ndim != 1:
         raise ValueError(f"deviation_mm: expected shape (V,), got {deviation_mm.shape}")
-    if not (np.isfinite(scale_mm) and scale_mm > 0):
-        raise ValueError(f"scale_mm: expected a positive number, got {scale_mm}")
-    return deviation_colormap(deviation_mm, limit_mm=scale_mm)
+    return tolerance_band_colormap(deviation_mm, tolerance_mm=tolerance_mm, limit_mm=scale_mm)
 
 
 def legend_html(scale_mm: float, tolerance_mm: float) -> str:
-    """HTML of the colour legend shown in the viewer's panel (ticks in mm)."""
-    stops = ", ".join(f"rgb{c}" for c in COLOUR_STOPS)
-    ticks = "".join(
-        f'<span style="position:absolute;left:{100 * (v + scale_mm) / (2 * scale_mm):.1f}%;'
-        f'transform:translateX(-50%)">{v:+.1f}</span>'
-        for v in (-scale_mm, -tolerance_mm, 0.0, tolerance_mm, scale_mm)
-    )
+    """HTML of the viewer panel's legend: which surface is which, and the colour bands in mm."""
+
+    def swatch(rgb: tuple[int, int, int]) -> str:
+        return (
+            f'<span style="display:inline-block;width:14px;height:10px;margin:0 3px 0 8px;'
+            f'vertical-align:middle;border:1px solid #999;background:rgb{rgb}"></span>'
+        )
+
     return (
-        '<div style="font:12px sans-serif;padding:4px 14px 4px 14px">'
-        "<div>Deviation from target, mm</div>"
-        f'<div style="height:14px;margin-top:4px;background:linear-gradient(to right, {stops})"></div>'
-        f'<div style="position:relative;height:14px">{ticks}</div>'
-        f'<div style="margin-top:6px;color:#555">red: proud of target (cameras\' side); '
-        f"tolerance ±{tolerance_mm:g} mm; colours saturate beyond ±{scale_mm:g} mm</div></div>"
+        '<div style="font:12px sans-serif;padding:4px 14px 4px 14px;line-height:1.6">'
+        '<div id="viewer-surfaces"><b>Side by side:</b> left the measured plate (coloured), right the '
+        "CAD target (grey). <b>Overlaid:</b> the target is drawn as a grid over the measured plate.</div>"
+        '<div style="margin-top:6px">Deviation from target, mm</div>'
+        f"<div>{swatch(BELOW_RGB[1])}below −{scale_mm:g}{swatch(BELOW_RGB[0])}below −{tolerance_mm:g}</div>"
+        f"<div>{swatch(IN_TOLERANCE_RGB)}within ±{tolerance_mm:g} (tolerance)</div>"
+        f"<div>{swatch(ABOVE_RGB[0])}above +{tolerance_mm:g}{swatch(ABOVE_RGB[1])}above +{scale_mm:g}</div>"
+        '<div style="margin-top:4px;color:#555">above: proud of the target (cameras\' side)</div></div>'
     )
 
 

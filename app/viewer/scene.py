@@ -19,6 +19,8 @@ logger = logging.getLogger(__name__)
 
 
 _TARGET_COLOUR = (176, 180, 188)
+#: The target's grid over the measured plate (overlaid layout): dark, to read on every band colour.
+_TARGET_GRID_COLOUR = (40, 48, 58)
 # Scene background: a vertical gradient from light grey-blue (top) to a darker one (bottom).
 _BACKGROUND = (
     np.linspace((236, 240, 245), (196, 205, 216), 64)
@@ -81,6 +83,17 @@ class InspectionView:
             side="double",
             position=half,
         )
+        # Overlaid, a solid target on the measured plate would z-fight into speckle where they
+        # meet (everywhere within tolerance): the target is then drawn as its grid instead.
+        target_grid = client.scene.add_mesh_simple(
+            "/plate/target-grid",
+            meshes.target_vertices,
+            meshes.target_faces,
+            color=_TARGET_GRID_COLOUR,
+            wireframe=True,
+            opacity=0.45,
+            visible=False,
+        )
         # A tinted background and a floor grid (0.5 m cells): a plate within tolerance is
         # coloured near white, which must not vanish into a white page.
         client.scene.set_background_image(_BACKGROUND, format="png")
@@ -97,14 +110,14 @@ class InspectionView:
         layout = client.gui.add_dropdown("Layout", _LAYOUTS, initial_value=_LAYOUTS[0])
         client.gui.add_html(legend_html(meshes.scale_mm, meshes.tolerance_mm))
 
-        self._client_nodes[client.client_id] = (measured.name, target.name)
+        self._client_nodes[client.client_id] = (measured.name, target.name, target_grid.name)
 
         @layout.on_update
         def _(_event) -> None:
             overlaid = layout.value == _LAYOUTS[1]
             measured.position = np.zeros(3) if overlaid else -half
-            target.position = np.zeros(3) if overlaid else half
-            target.opacity = 0.35 if overlaid else 1.0
+            target.visible = not overlaid
+            target_grid.visible = overlaid
 
     def client_count(self) -> int:
         return len(self.server.get_clients())
@@ -120,6 +133,7 @@ class InspectionView:
 def _measured_glb(meshes: PlateMeshes) -> bytes:
     mesh = trimesh.Trimesh(meshes.measured_vertices, meshes.measured_faces, process=False)
     mesh.visual = trimesh.visual.ColorVisuals(
-        mesh, vertex_colors=deviation_colours(meshes.deviation_mm, meshes.scale_mm)
+        mesh,
+        vertex_colors=deviation_colours(meshes.deviation_mm, meshes.scale_mm, meshes.tolerance_mm),
     )
     return mesh.export(file_type="glb")

@@ -205,6 +205,8 @@ def test_cell_to_result_to_history(live_server, browser):
     frame = page.frame_locator("#viewer")
     # viser's client says so in its panel once connected and the scene arrived.
     frame.get_by_text("Layout", exact=True).wait_for(timeout=30_000)
+    # the panel says which surface is the measured plate and which the CAD target
+    frame.get_by_text("left the measured plate (coloured), right the CAD target").wait_for()
     # the scene's title comes with the scene: as in the two-viewer test, software WebGL on a loaded
     # 2-core machine may take longer than 10 s to get there (one CI run timed out at 10 s)
     frame.get_by_text(f"Inspection {inspection_id}", exact=True).wait_for(timeout=30_000)

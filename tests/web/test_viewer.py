@@ -20,6 +20,7 @@ from app.viewer import (
     read_surface_ply,
     router,
 )
+from pipeline.artifacts.colours import ABOVE_RGB, BELOW_RGB, IN_TOLERANCE_RGB
 from tests.web.plates import cylinder_grid, write_artifacts
 
 
@@ -59,14 +60,14 @@ def test_decimate_refuses_bad_input():
         decimate_mesh(v, f, max_vertices=0)
 
 
-def test_deviation_colours_are_diverging_and_saturate():
-    rgb = deviation_colours(np.array([-9.0, -4.0, 0.0, 4.0, 9.0, np.nan]), 4.0)
-    assert tuple(rgb[0]) == tuple(rgb[1]) == (33, 102, 172)  # saturated blue at and beyond -scale
-    assert tuple(rgb[3]) == tuple(rgb[4]) == (178, 24, 43)
-    assert tuple(rgb[2]) == (247, 247, 247)
-    assert tuple(rgb[5]) == (128, 128, 128)
-    with pytest.raises(ValueError, match="scale_mm: expected a positive number"):
-        deviation_colours(np.zeros(3), 0.0)
+def test_deviation_colours_are_tolerance_bands_and_saturate():
+    rgb = deviation_colours(np.array([-9.0, -4.0, 0.0, 1.9, 4.0, 9.0, np.nan]), 4.0, 2.0)
+    assert tuple(rgb[0]) == tuple(rgb[1]) == BELOW_RGB[1]  # saturated blue at and beyond -scale
+    assert tuple(rgb[4]) == tuple(rgb[5]) == ABOVE_RGB[1]
+    assert tuple(rgb[2]) == tuple(rgb[3]) == IN_TOLERANCE_RGB  # one calm band within tolerance
+    assert tuple(rgb[6]) == (128, 128, 128)
+    with pytest.raises(ValueError, match="limit_mm: expected a finite number above tolerance_mm"):
+        deviation_colours(np.zeros(3), 2.0, 2.0)
 
 
 def test_load_plate_meshes_in_display_frame(tmp_path):
