@@ -181,6 +181,8 @@ class Inspection(Base):
     #: The forming pass that produced the inspected shape (issue 14), e.g. ``{"method": "roll-bending",
     #: "machine_id": "R3-01", "top_roll_displacement_mm": 97.0}``; None when not given.
     process: Mapped[dict[str, Any] | None] = mapped_column(JSON(none_as_null=True))
+    #: Who started the inspection (the name typed at the cell or sent by the MES); None when not given.
+    operator: Mapped[str | None] = mapped_column(String(80))
     #: The cell (its configuration's ``cell_id``) an acquired inspection is photographed in; None otherwise.
     cell_id: Mapped[str | None] = mapped_column(String(64), index=True)
 

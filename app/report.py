@@ -93,7 +93,7 @@ def build_report(data: ReportData) -> bytes:
         *_templates(data.sections, styles),
         _section("Calibrations", styles),
         _table(_calibration_rows(data), widths=(45 * mm, None)),
-        KeepTogether(_signature(styles)),
+        KeepTogether(_signature(styles, doc.get("operator"))),
     ]
     pdf.build(story)
     return buffer.getvalue()
@@ -221,9 +221,10 @@ def _calibration_rows(data: ReportData) -> list[list[str]]:
     ]
 
 
-def _signature(styles: Any) -> list[Flowable]:
+def _signature(styles: Any, operator: str | None) -> list[Flowable]:
+    """Approval lines; the operator who started the inspection is printed when known."""
     line = "_" * 38
-    rows = [["Operator", line], ["Date", line], ["Signature", line]]
+    rows = [["Operator", operator or line], ["Date", line], ["Signature", line]]
     return [Spacer(1, 10 * mm), _section("Approval", styles), _table(rows, widths=(45 * mm, None))]
 
 

@@ -3,9 +3,16 @@
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Any, Generic, Literal, TypeVar
+from typing import Annotated, Any, Generic, Literal, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StringConstraints,
+    field_validator,
+    model_validator,
+)
 
 from app.limits.physical import (
     MAX_DENT_DEPTH_MM,
@@ -25,6 +32,13 @@ T = TypeVar("T")
 STRICT_BODY = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
 
 Status = Literal["queued", "running", "done", "error"]
+#: An operator's name as typed at the cell: 1-80 printable characters, spaces around it dropped.
+OperatorName = Annotated[
+    str,
+    StringConstraints(
+        strip_whitespace=True, min_length=1, max_length=80, pattern=r"^[^\x00-\x1f\x7f]+$"
+    ),
+]
 Verdict = Literal["pass", "fail"]
 
 
@@ -177,6 +191,9 @@ class SimulatedInspectionIn(BaseModel):
     process: ProcessIn | None = Field(
         default=None, description="the forming pass that produced this shape"
     )
+    operator: OperatorName | None = Field(
+        default=None, description="who starts the inspection (printed on the signed report)"
+    )
 
     @field_validator("radius_mm")
     @classmethod
@@ -204,6 +221,9 @@ class AcquireInspectionIn(BaseModel):
     )
     process: ProcessIn | None = Field(
         default=None, description="the forming pass that produced this shape"
+    )
+    operator: OperatorName | None = Field(
+        default=None, description="who starts the inspection (printed on the signed report)"
     )
 
 
@@ -261,6 +281,8 @@ class InspectionOut(BaseModel):
     verdict: Verdict | None
     #: The forming pass that produced the inspected shape (``process`` of the request), or null.
     process: dict[str, Any] | None
+    #: Who started the inspection, or null.
+    operator: str | None = None
     #: The light calibration the inspection is run with (see GET /light-calibrations/{id}), or null.
     light_calibration_id: int | None
     #: The cell an acquired inspection is photographed in (its configuration's cell_id), or null.
@@ -295,6 +317,7 @@ class InspectionSummary(BaseModel):
     within_tolerance_pct: float | None
     tolerance_mm: float | None
     process: dict[str, Any] | None
+    operator: str | None = None
     error: str | None
     created_at: datetime
     started_at: datetime | None

@@ -190,6 +190,7 @@ def inspection_out(row: Inspection, *, storage: Storage) -> InspectionOut:
         source=row.source,
         verdict=row.verdict,
         process=row.process,
+        operator=row.operator,
         light_calibration_id=row.light_calibration_id,
         cell_id=row.cell_id,
         created_at=row.created_at,

@@ -11,7 +11,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, File, Form, Query, Request, UploadFile, status
 from fastapi.responses import FileResponse, Response
-from pydantic import ValidationError
+from pydantic import TypeAdapter, ValidationError
 
 from app.deps import JobsDep, SessionDep, SettingsDep, StorageDep, WriterDep
 from app.errors import ApiError, relabel_input_error
@@ -34,6 +34,7 @@ from app.schemas import (
     InspectionCreated,
     InspectionOut,
     InspectionSummary,
+    OperatorName,
     Page,
     ProcessIn,
     SimulatedInspectionIn,
@@ -91,6 +92,12 @@ def create_inspection(
             '"machine_id": "R3-01", "top_roll_displacement_mm": 97.0}'
         ),
     ] = None,
+    operator: Annotated[
+        str | None,
+        Form(
+            description="who starts the inspection (printed on the signed report), 1-80 characters"
+        ),
+    ] = None,
 ):
     """Check the bundle (and target), store them and queue the inspection: 202 ``{"id", "status"}``.
 
@@ -105,6 +112,7 @@ def create_inspection(
 
         def work():
             pass_ = None if process is None else parse_process(process)
+            who = None if operator is None else parse_operator(operator)
             save_upload(capture, staged.dir / CAPTURE_FILE)
             if target is not None:
                 (staged.dir / "target").mkdir()
@@ -122,6 +130,7 @@ def create_inspection(
                 raise _named_as_sent(
                     relabel_input_error(err, staged.dir), capture.filename
                 ) from None
+            row.operator = who
             staged.track(storage.inspection_dir(row.id))
             return 202, {"id": row.id, "status": row.status}, lambda: jobs.enqueue(row.id)
 
@@ -152,6 +161,27 @@ def parse_process(text: str) -> dict:
         loc = ".".join(str(p) for p in first["loc"])
         field = f"process.{loc}" if loc and first["type"] != "json_invalid" else "process"
         raise ApiError(422, f"{field}: {first['msg']}", field=field) from None
+
+
+_OPERATOR = TypeAdapter(OperatorName)
+
+
+def parse_operator(text: str) -> str:
+    """The multipart field ``operator`` checked as :data:`app.schemas.OperatorName`.
+
+    Raises
+    ------
+    ApiError
+        422 naming ``operator``: empty, over 80 characters, or with control characters.
+    """
+    try:
+        return _OPERATOR.validate_python(text)
+    except ValidationError:
+        raise ApiError(
+            422,
+            f"operator: expected a name of 1-80 printable characters, got {text[:100]!r}",
+            field="operator",
+        ) from None
 
 
 def _named_as_sent(err: InputError, filename: str | None) -> InputError:
@@ -196,9 +226,10 @@ def create_simulated_inspection(
                 session=session,
                 storage=storage,
                 plate_id=plate_id,
-                simulation=body.model_dump(mode="json"),
+                simulation=body.model_dump(mode="json", exclude={"operator"}),
                 limits=Limits.from_settings(settings),
             )
+            row.operator = body.operator
             staged.track(storage.inspection_dir(row.id))
             return 202, {"id": row.id, "status": row.status}, lambda: jobs.enqueue(row.id)
 
@@ -266,6 +297,7 @@ def acquire_inspection(
                 default_target=demo_target(settings),
                 limits=Limits.from_settings(settings),
             )
+            row.operator = body.operator
             staged.track(storage.inspection_dir(row.id))
             return 202, {"id": row.id, "status": row.status}, lambda: jobs.enqueue(row.id)
 

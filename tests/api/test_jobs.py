@@ -275,7 +275,13 @@ def test_a_dented_plate_fails_and_the_api_lists_its_defect(tmp_path):
         with TestClient(app) as client:
             r = client.post(
                 "/api/v1/plates/DENT-1/inspections/simulated",
-                json={"width": 612, "height": 512, "dents": [dent], "seed": 8},
+                json={
+                    "width": 612,
+                    "height": 512,
+                    "dents": [dent],
+                    "seed": 8,
+                    "operator": "  A. Welder ",
+                },
                 headers=AUTH,
             )
             assert r.status_code == 202, r.text
@@ -322,6 +328,7 @@ def test_a_dented_plate_fails_and_the_api_lists_its_defect(tmp_path):
     assert report.status_code == 200 and report.headers["content-type"] == "application/pdf"
     text = pdf_text(report.content, tmp_path)
     assert "DENT-1" in text and "FAIL" in text and peak in text and "Signature" in text
+    assert body["operator"] == "A. Welder" and "A. Welder" in text  # who started it signs
     assert rendered_page_ink(report.content, tmp_path) > 0.02
     assert body["reasons"] and "tolerance" in body["reasons"][0]
     [defect] = body["defects"]

@@ -177,6 +177,7 @@ def test_cell_to_result_to_history(live_server, browser):
     response = page.goto(f"{base}/cell")
     assert "script-src 'self'" in response.headers["content-security-policy"]
     page.fill("input[name=plate_id]", "H7-P11")
+    page.fill("input[name=operator]", "A. Welder")
     page.fill("input[name=width]", "320")
     page.fill("input[name=height]", "256")
     page.check("input[name=dent]")
@@ -201,6 +202,7 @@ def test_cell_to_result_to_history(live_server, browser):
     page.click(f"#queue tr[data-id='{inspection_id}'] a[href='/inspections/{inspection_id}']")
     page.wait_for_selector("#verdict")
     assert page.locator(".verdict-word").inner_text() in ("PASS", "FAIL")
+    assert page.locator("#operator").inner_text() == "started by A. Welder"
     assert page.locator("figure.template").count() >= 1
     frame = page.frame_locator("#viewer")
     # viser's client says so in its panel once connected and the scene arrived.

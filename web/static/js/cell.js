@@ -55,6 +55,17 @@ function simulationBody() {
   return body;
 }
 
+// The operator's name stays filled in on this screen (the cell's PC) from one plate to the next.
+const OPERATOR_KEY = "plate-inspect.operator";
+form.elements.operator.value = localStorage.getItem(OPERATOR_KEY) ?? "";
+
+/** The operator's name as typed (remembered), or null when empty. */
+function operatorName() {
+  const name = form.elements.operator.value.trim();
+  localStorage.setItem(OPERATOR_KEY, name);
+  return name || null;
+}
+
 async function start(event) {
   event.preventDefault();
   const plateId = form.elements.plate_id.value.trim();
@@ -65,13 +76,18 @@ async function start(event) {
   try {
     let created;
     if (form.elements.source.value === "simulated") {
-      created = await postJSON(`${base}/simulated`, simulationBody());
+      const body = simulationBody();
+      const operator = operatorName();
+      if (operator) body.operator = operator;
+      created = await postJSON(`${base}/simulated`, body);
     } else {
       const data = new FormData();
       const capture = form.elements.capture.files[0];
       if (!capture) throw new Error("capture: choose a bundle .zip");
       data.append("capture", capture);
       if (form.elements.target.files[0]) data.append("target", form.elements.target.files[0]);
+      const operator = operatorName();
+      if (operator) data.append("operator", operator);
       created = await postForm(base, data);
     }
     say(message, `Inspection #${created.id} queued.`, "ok");
@@ -91,7 +107,9 @@ async function capture() {
   captureButton.disabled = true;
   say(message, "Sending…", "ok");
   try {
-    const created = await postJSON(`/api/v1/plates/${encodeURIComponent(plateId)}/inspections/acquire`, {});
+    const operator = operatorName();
+    const created = await postJSON(
+      `/api/v1/plates/${encodeURIComponent(plateId)}/inspections/acquire`, operator ? { operator } : {});
     say(message, `Inspection #${created.id} queued: the cell photographs plate ${plateId}.`, "ok");
     await refresh();
   } catch (err) {
