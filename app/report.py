@@ -29,7 +29,10 @@ from reportlab.lib.units import mm
 from reportlab.platypus import Flowable, Paragraph, SimpleDocTemplate, Spacer, Table, TableStyle
 from reportlab.platypus.flowables import KeepTogether
 
+from app.axes import nice_ticks
+from pipeline.artifacts.colours import default_limit_mm, tolerance_band_colormap
 from pipeline.artifacts.png import deviation_png_layout
+from pipeline.plate_map import PlateMap
 
 #: Width of the page's text block, points (A4 less 18 mm margins).
 TEXT_WIDTH = A4[0] - 36 * mm
@@ -54,6 +57,8 @@ class ReportData:
     software_version : str
     printed_at : datetime
         Aware; shown with its zone.
+    plate_map : PlateMap or None
+        The deviation map in the target's frame (:mod:`pipeline.plate_map`).
     """
 
     inspection: dict[str, Any]
@@ -62,6 +67,9 @@ class ReportData:
     light_calibration: dict[str, Any] | None
     software_version: str
     printed_at: datetime
+    #: The deviation map in the target's frame (mm axes), when the artifacts give one; the camera's
+    #: deviation.png is printed otherwise.
+    plate_map: PlateMap | None = None
     sections: list[tuple[float, float | None, int | None]] = field(default_factory=list)
 
 
@@ -87,8 +95,7 @@ def build_report(data: ReportData) -> bytes:
         *_verdict(doc, styles),
         _section("Target and measurement", styles),
         _table(_measurement_rows(doc, data.target), widths=(60 * mm, None)),
-        _section("Deviation map", styles),
-        *_deviation_map(data, styles),
+        KeepTogether([_section("Deviation map", styles), *_deviation_map(data, styles)]),
         *_defects(doc, styles),
         *_templates(data.sections, styles),
         _section("Calibrations", styles),
@@ -155,6 +162,21 @@ def _measurement_rows(doc: dict[str, Any], target: dict[str, Any] | None) -> lis
 
 
 def _deviation_map(data: ReportData, styles: Any) -> list[Flowable]:
+    tolerance = (data.inspection.get("result") or {}).get("tolerance_mm")
+    if data.plate_map is not None and tolerance:
+        return [
+            PlateMapFigure(
+                data.plate_map, float(tolerance), data.inspection.get("defects") or [], TEXT_WIDTH
+            ),
+            Paragraph(
+                f"The plate in its target's frame, mm (x along the target's first side, y along its "
+                f"second, origin at its centre). Green: within ±{float(tolerance):g} mm; orange to "
+                "dark red: proud of the target (towards the cameras); light to dark blue: below it, "
+                f"deepest at ±{default_limit_mm(float(tolerance)):g} mm; grey: not measured. "
+                "Numbers mark the defects of the table below.",
+                styles["Italic"],
+            ),
+        ]
     png = data.artifacts_dir / "deviation.png"
     depth = data.artifacts_dir / "depth.npy"
     if not png.is_file() or not depth.is_file():
@@ -260,6 +282,97 @@ class DeviationMap(Flowable):  # type: ignore[misc]  # ReportLab is untyped
             c.setFillColor(colors.black)
             c.setFont("Helvetica-Bold", radius * 1.1)
             c.drawCentredString(x + 2.2 * radius, y + 1.8 * radius, str(d["id"]))
+
+
+class PlateMapFigure(Flowable):  # type: ignore[misc]  # ReportLab is untyped
+    """The deviation map in the target's frame: tolerance-band colours, mm axes, the origin, and a
+    numbered circle at each defect's ``centroid_mm``."""
+
+    MAX_HEIGHT = 108 * mm  # with the heading above it, it still fits under page 1's tables
+    LEFT, BOTTOM, TOP = 16 * mm, 11 * mm, 7 * mm
+
+    def __init__(
+        self, plate: PlateMap, tolerance_mm: float, defects: list[dict[str, Any]], width: float
+    ) -> None:
+        super().__init__()
+        self.plate, self.defects = plate, defects
+        x0, x1, y0, y1 = plate.extent_mm
+        self.scale = min(  # points per mm
+            (width - self.LEFT - 6 * mm) / (x1 - x0),
+            (self.MAX_HEIGHT - self.BOTTOM - self.TOP) / (y1 - y0),
+        )
+        self.width = width
+        self.height = self.BOTTOM + (y1 - y0) * self.scale + self.TOP
+        rows = plate.deviation_mm[::-1]  # first row at the largest y: y up on the page
+        rgb = tolerance_band_colormap(
+            rows, tolerance_mm=tolerance_mm, limit_mm=default_limit_mm(tolerance_mm)
+        )
+        alpha = np.where(np.isfinite(rows), 255, 0).astype(np.uint8)
+        from PIL import Image
+        from reportlab.lib.utils import ImageReader
+
+        image = Image.fromarray(np.dstack([rgb, alpha]), mode="RGBA")
+        k = max(1, 1200 // max(image.size))  # enlarged: cells stay square in any PDF viewer
+        self.image = ImageReader(image.resize((image.width * k, image.height * k), Image.NEAREST))
+
+    def _at(self, x_mm: float, y_mm: float) -> tuple[float, float]:
+        x0, _, y0, _ = self.plate.extent_mm
+        return self.LEFT + (x_mm - x0) * self.scale, self.BOTTOM + (y_mm - y0) * self.scale
+
+    def draw(self) -> None:
+        c = self.canv
+        x0, x1, y0, y1 = self.plate.extent_mm
+        c.drawImage(
+            self.image,
+            *self._at(x0, y0),
+            width=(x1 - x0) * self.scale,
+            height=(y1 - y0) * self.scale,
+            mask="auto",
+        )
+        c.setStrokeColor(colors.HexColor("#555555"))
+        c.setFillColor(colors.black)
+        c.setLineWidth(0.5)
+        c.setFont("Helvetica", 7)
+        left, bottom = self._at(x0, y0)
+        right, top = self._at(x1, y1)
+        c.line(left, bottom - 2, right, bottom - 2)
+        c.line(left - 2, bottom, left - 2, top)
+        for t in (v for v in nice_ticks(x0, x1, max_ticks=8)[0] if x0 <= v <= x1):
+            px, _ = self._at(t, y0)
+            c.line(px, bottom - 2, px, bottom - 5)
+            c.drawCentredString(px, bottom - 12, f"{t:.0f}")
+        for t in (v for v in nice_ticks(y0, y1, max_ticks=7)[0] if y0 <= v <= y1):
+            _, py = self._at(x0, t)
+            c.line(left - 2, py, left - 5, py)
+            c.drawRightString(left - 7, py - 2.5, f"{t:.0f}")
+        c.drawRightString(right, bottom - 22, "x, mm")
+        c.drawString(left - 7, top + 9, "y, mm")
+        self._origin(c)
+        for d in self.defects:
+            if d.get("centroid_mm"):
+                self._badge(c, *self._at(*d["centroid_mm"]), str(d["id"]))
+
+    def _origin(self, c: Any) -> None:
+        ox, oy = self._at(0.0, 0.0)
+        arm = 9 * mm
+        c.setStrokeColor(colors.black)
+        c.setLineWidth(1.0)
+        c.line(ox, oy, ox + arm, oy)
+        c.line(ox, oy, ox, oy + arm)
+        c.setFont("Helvetica-Bold", 8)
+        c.drawString(ox + arm + 2, oy - 3, "x")
+        c.drawCentredString(ox, oy + arm + 3, "y")
+
+    def _badge(self, c: Any, x: float, y: float, label: str) -> None:
+        radius = 6.0
+        c.setStrokeColor(colors.black)
+        c.setLineWidth(1.0)
+        c.line(x, y, x + 1.6 * radius, y + 1.6 * radius)
+        c.setFillColor(colors.white)
+        c.circle(x + 2.2 * radius, y + 2.2 * radius, radius, stroke=1, fill=1)
+        c.setFillColor(colors.black)
+        c.setFont("Helvetica-Bold", 7.5)
+        c.drawCentredString(x + 2.2 * radius, y + 1.9 * radius, label)
 
 
 def _table(

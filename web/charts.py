@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from app.axes import nice_ticks
 from pipeline.sections import Section
 
 #: Nice exaggeration factors for drawing mm-scale gaps on metre-scale sections.
@@ -143,29 +144,6 @@ def _label_indices(x: np.ndarray, gap: np.ndarray, n_labels: int) -> list[int]:
         if all(abs(x[k] - x[j]) >= LABEL_SPACING_PX for j in chosen):
             chosen.append(k)
     return sorted(chosen)
-
-
-def nice_ticks(lo: float, hi: float, *, max_ticks: int = 6) -> tuple[list[float], int]:
-    """Round axis ticks covering ``[lo, hi]``: a step of 1, 2, 2.5 or 5 times a power of ten.
-
-    Returns
-    -------
-    ticks : the tick values, ascending, the first <= lo and the last >= hi (at least 2).
-    decimals : digits after the point that print every tick exactly.
-    """
-    if not (np.isfinite(lo) and np.isfinite(hi)) or hi < lo:
-        raise ValueError(f"axis range: expected finite lo <= hi, got [{lo}, {hi}]")
-    if hi - lo < 1e-12:
-        lo, hi = lo - 0.5 * max(abs(lo), 1.0), hi + 0.5 * max(abs(hi), 1.0)
-    raw = (hi - lo) / (max_ticks - 1)
-    power = 10.0 ** np.floor(np.log10(raw))
-    step = next(m * power for m in (1.0, 2.0, 2.5, 5.0, 10.0) if m * power >= raw * (1 - 1e-9))
-    first, last = np.floor(lo / step + 1e-9), np.ceil(hi / step - 1e-9)
-    ticks = [float(k * step) + 0.0 for k in np.arange(first, last + 1)]
-    decimals = max(
-        0, int(-np.floor(np.log10(step) + 1e-9)) + (1 if round(step / power) * power != step else 0)
-    )
-    return ticks, decimals
 
 
 @dataclass(frozen=True)

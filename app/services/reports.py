@@ -18,7 +18,9 @@ from sqlalchemy.orm import Session
 
 from app.models import Inspection, LightCalibration, Target
 from app.report import ReportData, build_report
+from app.services.plate_maps import NoPlateMap, plate_map_of
 from app.storage import Storage
+from pipeline.plate_map import PlateMap
 from pipeline.sections import load_sections
 
 log = logging.getLogger(__name__)
@@ -47,6 +49,7 @@ def inspection_report(
         software_version=_software_version(),
         printed_at=datetime.now(UTC),
         sections=_section_gaps(storage, row.id),
+        plate_map=_plate_map(storage, row),
     )
     return build_report(data)
 
@@ -70,6 +73,16 @@ def _section_gaps(
         gap = worst if worst is None or math.isfinite(worst) else None
         out.append((float(s.position_mm), gap, s.defect))
     return out
+
+
+def _plate_map(storage: Storage, row: Inspection) -> PlateMap | None:
+    """The deviation map in the target's frame; None (the camera's map is printed) when the
+    artifacts cannot give one."""
+    try:
+        return plate_map_of(storage, row)
+    except NoPlateMap as err:
+        log.warning("inspection %s: report with the camera's map: %s", row.id, err)
+        return None
 
 
 def _software_version() -> str:

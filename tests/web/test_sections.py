@@ -80,7 +80,8 @@ def test_plate_frame_refuses_bad_input():
 
 
 def test_trend_axis_ticks_are_round_numbers():
-    from web.charts import nice_ticks, trend_chart
+    from app.axes import nice_ticks
+    from web.charts import trend_chart
 
     assert nice_ticks(0.0, 0.017) == ([0.0, 0.005, 0.01, 0.015, 0.02], 3)
     assert nice_ticks(-0.16, 2.16) == ([-0.5, 0.0, 0.5, 1.0, 1.5, 2.0, 2.5], 1)
