@@ -92,10 +92,16 @@ def _page(
     return response
 
 
-def _side_context(session, search: str | None = None) -> dict:
-    """The side lists: active jobs (all of them, up to 20) and the plates (40 most recent, or those
-    whose id contains ``search``)."""
-    plates, plate_total = plate_svc.list_plates(session=session, limit=40, search=search or None)
+#: Plates per page of the side list.
+SIDE_PLATES = 40
+
+
+def _side_context(session, search: str | None = None, page: int = 0) -> dict:
+    """The side lists: active jobs (all of them, up to 20) and a page of the plates (40 at a time,
+    the most recently inspected first, or those whose id contains ``search``)."""
+    plates, plate_total = plate_svc.list_plates(
+        session=session, limit=SIDE_PLATES, offset=page * SIDE_PLATES, search=search or None
+    )
     jobs, job_total = inspection_svc.list_inspections(session=session, statuses=ACTIVE, limit=20)
     return {
         "side_plates": plates,
@@ -103,6 +109,9 @@ def _side_context(session, search: str | None = None) -> dict:
         "side_jobs": jobs,
         "side_job_total": job_total,
         "side_search": search or "",
+        "side_page": page,
+        "side_pages": max(1, -(-plate_total // SIDE_PLATES)),
+        "side_first": page * SIDE_PLATES + 1,
     }
 
 
@@ -112,11 +121,12 @@ def side_lists(
     session: SessionDep,
     current: str | None = None,
     q: Annotated[str | None, Query(max_length=64)] = None,
+    page: Annotated[int, Query(ge=0, le=100_000)] = 0,
 ) -> Response:
     """The side lists alone (polled by layout.js on every page); ``current`` is the page's plate,
-    ``q`` the plate search."""
+    ``q`` the plate search, ``page`` the page of plates (0: the most recent)."""
     return templates.TemplateResponse(
-        request, "_side_body.html", {**_side_context(session, q), "current_plate": current}
+        request, "_side_body.html", {**_side_context(session, q, page), "current_plate": current}
     )
 
 

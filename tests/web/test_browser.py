@@ -640,3 +640,26 @@ def test_compare_two_passes_side_by_side(live_server, browser):
     page.screenshot(path=SHOTS / "compare.png", full_page=True)
     assert not errors, errors
     assert not violations, violations
+
+
+def test_side_list_pages_without_reload(live_server, browser):
+    """Past 40 plates the side list pages: "older ›" shows the next ones, and keeps them while the
+    list refreshes itself."""
+    target = {
+        "format": "plate-target/1",
+        "shape": {"type": "plane"},
+        "size_mm": [2000.0, 1000.0],
+        "tolerance_mm": 2.0,
+    }
+    for k in range(42):
+        _api(live_server, "PUT", f"/api/v1/plates/PG-{k:02d}/target", target)
+    page = browser.new_page(viewport={"width": 1920, "height": 1080})
+    page.goto(f"{live_server['base']}/calibration")
+    page.click("#side-pages [data-side-page='1']")
+    pages = page.locator("#side-pages")
+    deadline = time.monotonic() + 10
+    while "41–" not in pages.inner_text():
+        assert time.monotonic() < deadline, pages.inner_text()
+        time.sleep(0.2)
+    time.sleep(2.5)  # one more refresh of the side lists: still the older page
+    assert "41–" in pages.inner_text() and "newer" in pages.inner_text()

@@ -210,6 +210,21 @@ def test_side_lists_partial_and_time_zone(demo_app):
         assert client.get(f"/inspections/{inspection_id}").status_code == 200
 
 
+def test_side_list_pages_through_the_plates(demo_app):
+    """42 plates: the side list shows the 40 most recent, and a page of the older ones on request."""
+    for k in range(42):
+        seed_queued_inspection(demo_app, plate_id=f"PG-{k:02d}")
+    with TestClient(demo_app) as client:
+        first = client.get("/side").text.split("<h2>Plates")[1]
+        older = client.get("/side", params={"page": 1}).text.split("<h2>Plates")[1]
+        bad = client.get("/side", params={"page": -1})
+    assert "PG-41" in first and "PG-02" in first and "PG-01" not in first
+    assert "1–40 of 42" in first and 'data-side-page="1"' in first and "newer" not in first
+    assert "PG-01" in older and "PG-00" in older and "PG-02" not in older
+    assert "41–42 of 42" in older and 'data-side-page="0"' in older and "older ›" not in older
+    assert bad.status_code == 422
+
+
 def test_side_list_searches_plates(demo_app):
     for plate in ("HULL-A1", "HULL-B2", "DECK-C3"):
         seed_queued_inspection(demo_app, plate_id=plate)
