@@ -178,6 +178,8 @@ def create_simulated_inspection(
     check_process(session=session, process=process)
     get_or_create_plate(session=session, plate_id=plate_id)
     target = current_target(session=session, plate_id=plate_id)
+    if target is not None and "size_mm" not in simulation:
+        simulation = {**simulation, "size_mm": _simulated_size(target.document)}
     row = Inspection(
         plate_id=plate_id,
         target_id=None if target is None else target.id,
@@ -216,6 +218,17 @@ def create_simulated_inspection(
     return row
 
 
+#: The demo cell's field of view takes a plate up to this size a side, mm.
+SIMULATED_MAX_SIDE_MM = 3000.0
+
+
+def _simulated_size(target_document: dict[str, Any] | None) -> list[float]:
+    """The size the demo cell renders a plate with a target at: the target's, each side at most
+    :data:`SIMULATED_MAX_SIDE_MM` (what the simulated cameras see); 3000 x 3000 mm without one."""
+    size = (target_document or {}).get("size_mm") or [SIMULATED_MAX_SIDE_MM] * 2
+    return [min(float(v), SIMULATED_MAX_SIDE_MM) for v in size]
+
+
 def simulation_specs(simulation: dict):
     """The simulator's ``(PlateSpec, CaptureSpec)`` for a simulated inspection's parameters.
 
@@ -228,7 +241,9 @@ def simulation_specs(simulation: dict):
 
     floor_mm = simulation.get("floor_mm")
     cutout_mm = simulation.get("cutout_radius_mm")
+    size = tuple(float(v) for v in simulation.get("size_mm", (3000.0, 3000.0)))
     plate = PlateSpec(
+        size_mm=size,
         shape=simulation["shape"],
         radius_mm=None if simulation.get("radius_mm") is None else float(simulation["radius_mm"]),
         convex=bool(simulation["convex"]),
@@ -237,9 +252,7 @@ def simulation_specs(simulation: dict):
         ),
         floor=None
         if floor_mm is None
-        else Floor(
-            gap_mm=float(floor_mm), supports=rail_supports((3000.0, 3000.0), float(floor_mm), 3)
-        ),
+        else Floor(gap_mm=float(floor_mm), supports=rail_supports(size, float(floor_mm), 3)),
         cutouts=() if cutout_mm is None else (Cutout.circle(400.0, -300.0, float(cutout_mm)),),
     )
     near = (

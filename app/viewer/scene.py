@@ -8,6 +8,7 @@ Display frame: metres, origin at the centre of the measured surface's bounding b
 from __future__ import annotations
 
 import logging
+from typing import Any
 
 import numpy as np
 import trimesh
@@ -18,6 +19,14 @@ from app.viewer.meshes import PlateMeshes, deviation_colours, legend_html
 logger = logging.getLogger(__name__)
 
 
+#: viser's panel docked beside the view ("fixed"), not floating over it: on a 1366x768 screen a
+#: floating panel covered the target plate. No share button (no outside host), no logo.
+_THEME: dict[str, Any] = {
+    "show_share_button": False,
+    "show_logo": False,
+    "control_width": "small",
+    "control_layout": "fixed",
+}
 _TARGET_COLOUR = (176, 180, 188)
 #: The target's grid over the measured plate (overlaid layout): dark, to read on every band colour.
 _TARGET_GRID_COLOUR = (40, 48, 58)
@@ -49,13 +58,13 @@ class InspectionView:
         self.server = _OfflineViserServer(
             host=host, port=0, label=f"Inspection {inspection_id}", verbose=False
         )
-        self.server.gui.configure_theme(
-            show_share_button=False, show_logo=False, control_width="medium"
-        )
+        self.server.gui.configure_theme(**_THEME)
         extent = max(meshes.extent_m, 0.1)
-        # Far enough back that both plates side by side (about 2.2 extents wide) fit a
-        # landscape panel (viser's vertical field of view is 75 deg), seen from the front, above.
-        self.server.initial_camera.position = (0.0, -1.25 * extent, 1.0 * extent)
+        # Both plates side by side are about 2.3 extents wide. The view spans the page's width
+        # (viser's vertical field of view is 75 deg): at a distance of 1.1 extents they fill it
+        # from a view 1.45 wide by 1 high (a 1366x768 screen, the panel docked) up, seen from
+        # the front, above.
+        self.server.initial_camera.position = (0.0, -0.85 * extent, 0.7 * extent)
         self.server.initial_camera.look_at = (0.0, 0.0, 0.0)
         self._client_nodes: dict[int, tuple[str, ...]] = {}
         self.server.on_client_connect(self._build_client_scene)
@@ -72,7 +81,7 @@ class InspectionView:
         meshes = self.meshes
         extent = max(meshes.extent_m, 0.1)
         half = np.array([0.575 * extent, 0.0, 0.0])
-        client.gui.configure_theme(show_share_button=False, show_logo=False, control_width="medium")
+        client.gui.configure_theme(**_THEME)
         measured = client.scene.add_glb("/plate/measured", self._glb, position=-half)
         target = client.scene.add_mesh_simple(
             "/plate/target",

@@ -286,6 +286,25 @@ def test_simulated_inspection_uses_the_plates_target(client, settings):
     assert summary["target_radius_mm"] == 5000.0 and summary["tolerance_mm"] == 3.0
 
 
+@pytest.mark.parametrize(
+    ("size", "rendered"),
+    [([2000.0, 1500.0], [2000.0, 1500.0]), ([6000.0, 2500.0], [3000.0, 2500.0])],
+)
+def test_a_simulated_plate_has_its_targets_size(client, settings, size, rendered):
+    """The demo cell renders the plate at its target's size (so that outline and target agree), each
+    side at most the 3 m its cameras see."""
+    from app.services.inspections import simulation_specs
+
+    put_target(client, "P-SIZE", size_mm=size)
+    r = client.post("/api/v1/plates/P-SIZE/inspections/simulated", json=SMALL, headers=AUTH)
+    assert r.status_code == 202, r.text
+    folder = settings.data_dir / "inspections" / str(r.json()["id"]) / "inputs"
+    simulation = json.loads((folder / "simulation.json").read_text())
+    assert simulation["size_mm"] == rendered
+    plate, _capture = simulation_specs(simulation)
+    assert plate.size_mm == tuple(rendered)
+
+
 def test_under_bent_simulated_plate_fails(tmp_path):
     """The real pipeline: a plate rendered at 7 m against its 5 m target fails."""
     from fastapi.testclient import TestClient
