@@ -5,7 +5,8 @@
 Starts the demo service (web process and worker, a fresh data dir) on a free port, inspects three
 simulated plates through the real pipeline (one that passes, one with a dent that fails, one rolled
 in two passes for its history), then photographs with Debian's Chromium (Playwright) the Cell page,
-both results, the plate history, the Calibration page, and renders the first page of the failed
+both results (and the failed one's 3D view), the plate history, the comparison of its two passes,
+the Calibration page, and renders the first page of the failed
 plate's PDF report (pdftoppm). Needs ``scripts/setup.sh --with-browser``.
 """
 
@@ -102,6 +103,7 @@ def _photograph(base: str, ids: dict[str, int | str], out: Path) -> None:
         "result-pass": f"/inspections/{ids['pass']}",
         "result-fail": f"/inspections/{ids['fail']}",
         "history": f"/plates/{ids['history']}",
+        "compare": f"/plates/{ids['history']}/compare",
         "calibration": "/calibration",
     }
     with sync_playwright() as p:
@@ -113,6 +115,11 @@ def _photograph(base: str, ids: dict[str, int | str], out: Path) -> None:
                 page.wait_for_load_state("networkidle")
                 time.sleep(3.0 if name.startswith("result") else 0.5)  # the 3D view draws
                 page.screenshot(path=out / f"{name}-{w}x{h}.png")
+                if name == "result-fail":  # the 3D view, below the map
+                    view = page.locator(".view3d")
+                    view.scroll_into_view_if_needed()
+                    time.sleep(3.0)
+                    view.screenshot(path=out / f"view3d-{w}x{h}.png")
             page.close()
         browser.close()
 
@@ -197,7 +204,7 @@ def main() -> None:
             for proc in (worker, web):
                 proc.terminate()
                 proc.wait(20)
-    print("\n".join(sorted(str(p.relative_to(ROOT)) for p in args.out.glob("*.png"))))
+    print("\n".join(sorted(str(p) for p in args.out.glob("*.png"))))
 
 
 if __name__ == "__main__":

@@ -61,10 +61,10 @@ class InspectionView:
         self.server.gui.configure_theme(**_THEME)
         extent = max(meshes.extent_m, 0.1)
         # Both plates side by side are about 2.3 extents wide. The view spans the page's width
-        # (viser's vertical field of view is 75 deg): at a distance of 1.1 extents they fill it
-        # from a view 1.45 wide by 1 high (a 1366x768 screen, the panel docked) up, seen from
-        # the front, above.
-        self.server.initial_camera.position = (0.0, -0.85 * extent, 0.7 * extent)
+        # (viser's vertical field of view is 75 deg): at a distance of 1.25 extents they fit a
+        # view 1.45 wide by 1 high (a 1366x768 screen, the panel docked), seen from the front,
+        # above.
+        self.server.initial_camera.position = (0.0, -0.97 * extent, 0.8 * extent)
         self.server.initial_camera.look_at = (0.0, 0.0, 0.0)
         self._client_nodes: dict[int, tuple[str, ...]] = {}
         self.server.on_client_connect(self._build_client_scene)
