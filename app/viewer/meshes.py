@@ -16,6 +16,7 @@ from pipeline.artifacts.colours import (
     tolerance_band_colormap,
 )
 from pipeline.artifacts.ply import read_mesh_ply, read_surface_ply
+from pipeline.plate_map import to_target_frame
 
 logger = logging.getLogger(__name__)
 
@@ -43,6 +44,8 @@ class PlateMeshes:
     target_faces : (G, 3) int32
     tolerance_mm : float
     extent_m : float, largest side of the measured or the target surface's bounding box, m.
+    defects : tuple of (int, (3,) float32), each defect's number (as on the result page) and its
+        place on the measured surface (display frame, m).
     """
 
     measured_vertices: np.ndarray
@@ -52,6 +55,7 @@ class PlateMeshes:
     target_faces: np.ndarray
     tolerance_mm: float
     extent_m: float
+    defects: tuple[tuple[int, np.ndarray], ...] = ()
 
     @property
     def floor_z_m(self) -> float:
@@ -230,7 +234,26 @@ def load_plate_meshes(artifact_dir: Path, *, max_vertices: int = 150_000) -> Pla
         target_faces=_facing_up(tv, tf),
         tolerance_mm=float(document["tolerance_mm"]),
         extent_m=float(max(np.ptp(mv, axis=0).max(), np.ptp(tv, axis=0).max())),
+        defects=tuple(
+            (k, to_display(p[None])[0]) for k, p in _defect_places(artifact_dir, vertices)
+        ),
     )
+
+
+def _defect_places(artifact_dir: Path, vertices_mm: np.ndarray) -> list[tuple[int, np.ndarray]]:
+    """Each defect of details.json (numbered from 1) at the measured vertex nearest its centroid in
+    the target's x, y (camera frame, mm); none without details.json or a registration."""
+    try:
+        details = json.loads((artifact_dir / "details.json").read_text())
+        in_target = to_target_frame(vertices_mm, details["T_cam_target"])[:, :2]
+    except (OSError, ValueError, KeyError):
+        return []
+    places = []
+    for k, d in enumerate(details.get("defects", []), start=1):
+        if d.get("centroid_mm") is not None:
+            nearest = int(np.argmin(((in_target - np.asarray(d["centroid_mm"])) ** 2).sum(axis=1)))
+            places.append((k, vertices_mm[nearest]))
+    return places
 
 
 def _facing_up(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

@@ -119,7 +119,13 @@ class InspectionView:
         layout = client.gui.add_dropdown("Layout", _LAYOUTS, initial_value=_LAYOUTS[0])
         client.gui.add_html(legend_html(meshes.scale_mm, meshes.tolerance_mm))
 
-        self._client_nodes[client.client_id] = (measured.name, target.name, target_grid.name)
+        labels = scene_labels(client.scene, meshes)
+        self._client_nodes[client.client_id] = (
+            measured.name,
+            target.name,
+            target_grid.name,
+            *(label.name for label in labels),
+        )
 
         @layout.on_update
         def _(_event) -> None:
@@ -127,6 +133,7 @@ class InspectionView:
             measured.position = np.zeros(3) if overlaid else -half
             target.visible = not overlaid
             target_grid.visible = overlaid
+            labels[1].visible = not overlaid  # "CAD target" would sit on the measured plate
 
     def client_count(self) -> int:
         return len(self.server.get_clients())
@@ -146,3 +153,27 @@ def _measured_glb(meshes: PlateMeshes) -> bytes:
         vertex_colors=deviation_colours(meshes.deviation_mm, meshes.scale_mm, meshes.tolerance_mm),
     )
     return mesh.export(file_type="glb")
+
+
+def scene_labels(scene: viser.SceneApi, meshes: PlateMeshes) -> list[viser.LabelHandle]:
+    """Labels in the scene: "Measured" and "CAD target" above their plates, and each defect's
+    number at its place (children of the plates' nodes: they follow the layout)."""
+    extent = max(meshes.extent_m, 0.1)
+    above = 0.08 * extent
+    top_m = float(meshes.measured_vertices[:, 2].max()) + above
+    top_t = float(meshes.target_vertices[:, 2].max()) + above
+    back = 0.5 * extent
+    labels = [
+        scene.add_label("/plate/measured/label", "Measured", position=(0.0, back, top_m)),
+        scene.add_label("/plate/target/label", "CAD target", position=(0.0, back, top_t)),
+    ]
+    for number, place in meshes.defects:
+        labels.append(
+            scene.add_label(
+                f"/plate/measured/defect-{number}",
+                f"defect {number}",
+                position=tuple(float(v) for v in place),
+                anchor="bottom-center",
+            )
+        )
+    return labels

@@ -73,7 +73,7 @@ def default_limit_mm(tolerance_mm: float) -> float:
 
 
 #: Tolerance-band colours (RGB): one calm band within tolerance, saturated beyond it.
-IN_TOLERANCE_RGB = (199, 226, 196)
+IN_TOLERANCE_RGB = (156, 206, 156)
 #: Above the target beyond tolerance: from the tolerance (first) to the scale's limit (second).
 ABOVE_RGB = ((253, 174, 97), (165, 0, 38))
 #: Below the target beyond tolerance: from the tolerance (first) to the scale's limit (second).

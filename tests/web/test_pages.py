@@ -271,3 +271,25 @@ def test_compare_two_inspections_of_a_plate(demo_app):
         assert pending.status_code == 422 and "only done ones have results" in pending.text
         alone = client.get("/plates/H13-OTHER/compare")
         assert alone.status_code == 422 and "comparing needs two" in alone.text
+
+
+def test_map_legend_colours_are_the_maps():
+    """The page's legend (app.css) shows the very colours the map and the 3D view are drawn with."""
+    from pathlib import Path
+
+    from pipeline.artifacts.colours import ABOVE_RGB, BELOW_RGB, IN_TOLERANCE_RGB
+
+    css = (Path(__file__).resolve().parents[2] / "web" / "static" / "css" / "app.css").read_text()
+    bands = {
+        name: tuple(int(v) for v in rgb.split(","))
+        for name, rgb in re.findall(
+            r"\.map-legend \.band-([a-z-]+) \{ background: rgb\(([^)]+)\)", css
+        )
+    }
+    assert bands == {
+        "in": IN_TOLERANCE_RGB,
+        "above": ABOVE_RGB[0],
+        "above-far": ABOVE_RGB[1],
+        "below": BELOW_RGB[0],
+        "below-far": BELOW_RGB[1],
+    }

@@ -192,3 +192,40 @@ def test_viewer_page_says_when_every_server_is_busy(tmp_path):
             assert client.get("/viewer/1/").status_code == 200
     finally:
         app.state.viewer.close()
+
+
+def test_the_scene_labels_the_plates_and_numbers_the_defects(tmp_path):
+    """The scene's labels: "Measured" and "CAD target" above their plates, and one per defect, on the
+    measured surface at the defect's centroid (children of the plates' nodes; a real viser server)."""
+    import json
+
+    from app.viewer.meshes import load_plate_meshes
+
+    folder = write_artifacts(tmp_path / "7", n=(31, 21))
+    T = np.diag([1.0, -1.0, -1.0, 1.0])  # target frame (z towards the cameras) -> camera frame
+    T[2, 3] = 3000.0
+    details = {"T_cam_target": T.tolist(), "defects": [{"centroid_mm": [600.0, -300.0]}]}
+    (folder / "details.json").write_text(json.dumps(details))
+    meshes = load_plate_meshes(folder)
+    [(number, place)] = meshes.defects
+    # the vertex nearest (600, -300) of the target frame: camera (600, 300), display (x, -y) from
+    # the measured surface's centre (the origin here), in metres
+    assert number == 1 and place[:2] == pytest.approx([0.6, -0.3], abs=0.06)
+
+    import viser
+
+    from app.viewer.scene import scene_labels
+
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    try:
+        labels = scene_labels(server.scene, meshes)
+    finally:
+        server.stop()
+    assert [(label.name, label.text) for label in labels] == [
+        ("/plate/measured/label", "Measured"),
+        ("/plate/target/label", "CAD target"),
+        ("/plate/measured/defect-1", "defect 1"),
+    ]
+    assert np.allclose(labels[2].position, place)  # on the measured surface, in its node's frame
+    top = float(meshes.measured_vertices[:, 2].max())
+    assert labels[0].position[2] > top  # above the plate
