@@ -9,7 +9,7 @@ the database, this module only draws.
 Contents, following the conventions of deviation reports (plate, part, verdict first): plate,
 inspection, time (with its zone), software version; verdict and why; target (shape, radius, size,
 tolerance, material); radius and deviation statistics; the deviation map with callouts; the defect
-table; the virtual templates' largest gaps; the calibrations used; operator, date and signature lines.
+table; the virtual templates (largest gaps, and each one's gap along its frame); the calibrations used; operator, date and signature lines.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ import io
 import math
 from dataclasses import dataclass, field
 from datetime import datetime
+from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +34,7 @@ from app.axes import nice_ticks
 from pipeline.artifacts.colours import default_limit_mm, tolerance_band_colormap
 from pipeline.artifacts.png import deviation_png_layout
 from pipeline.plate_map import PlateMap
+from pipeline.sections import Section
 
 #: Width of the page's text block, points (A4 less 18 mm margins).
 TEXT_WIDTH = A4[0] - 36 * mm
@@ -52,8 +54,8 @@ class ReportData:
         The ``plate-target/1`` document it was judged against (with its ``material``, if any).
     light_calibration : dict or None
         ``{"id", "rms", "file_name"}`` of the light calibration applied; None: the bundle's lights.
-    sections : list of (float, float or None, int or None)
-        The virtual templates: frame position (mm), largest gap there (mm), the defect it goes through.
+    sections : list of Section
+        The virtual templates (:mod:`pipeline.sections`): each frame's gap along it.
     software_version : str
     printed_at : datetime
         Aware; shown with its zone.
@@ -70,7 +72,7 @@ class ReportData:
     #: The deviation map in the target's frame (mm axes), when the artifacts give one; the camera's
     #: deviation.png is printed otherwise.
     plate_map: PlateMap | None = None
-    sections: list[tuple[float, float | None, int | None]] = field(default_factory=list)
+    sections: list[Section] = field(default_factory=list)
 
 
 def build_report(data: ReportData) -> bytes:
@@ -97,7 +99,7 @@ def build_report(data: ReportData) -> bytes:
         _table(_measurement_rows(doc, data.target), widths=(60 * mm, None)),
         KeepTogether([_section("Deviation map", styles), *_deviation_map(data, styles)]),
         *_defects(doc, styles),
-        *_templates(data.sections, styles),
+        *_templates(data.sections, _tolerance(data), styles),
         _section("Calibrations", styles),
         _table(_calibration_rows(data), widths=(45 * mm, None)),
         KeepTogether(_signature(styles, doc.get("operator"))),
@@ -220,14 +222,42 @@ def _defects(doc: dict[str, Any], styles: Any) -> list[Flowable]:
     return [_section("Defects", styles), _table(rows, header=True), note]
 
 
-def _templates(
-    sections: list[tuple[float, float | None, int | None]], styles: Any
-) -> list[Flowable]:
+def _tolerance(data: ReportData) -> float | None:
+    value = (data.inspection.get("result") or {}).get("tolerance_mm")
+    return None if value is None else float(value)
+
+
+def _worst_gap(section: Section) -> float | None:
+    gaps = section.gap_mm[np.isfinite(section.gap_mm)]
+    return float(gaps[np.argmax(np.abs(gaps))]) if gaps.size else None
+
+
+def _templates(sections: list[Section], tolerance: float | None, styles: Any) -> list[Flowable]:
+    """The table of frames and their largest gaps, then each frame's gap along it (defects first)."""
     if not sections:
         return []
     rows = [["Frame at, mm", "Largest gap, mm", "Through"]]
-    rows += [[_num(p, 0), _signed(g, 2), f"defect {d}" if d else ""] for p, g, d in sections]
-    return [_section("Virtual templates", styles), _table(rows, header=True)]
+    rows += [
+        [
+            _num(s.position_mm, 0),
+            _signed(_worst_gap(s), 2),
+            f"defect {s.defect}" if s.defect else "",
+        ]
+        for s in sections
+    ]
+    out: list[Flowable] = [_section("Virtual templates", styles), _table(rows, header=True)]
+    if tolerance is None:
+        return out
+    out.append(
+        Paragraph(
+            "The gap under each template along its frame line (mm, + where the plate stands proud of "
+            f"the target); the band is the ±{tolerance:g} mm tolerance, red beyond it.",
+            styles["Italic"],
+        )
+    )
+    ordered = sorted(sections, key=lambda s: (s.defect is None, s.position_mm))
+    out += [GapProfile(s, tolerance, TEXT_WIDTH) for s in ordered]
+    return out
 
 
 def _calibration_rows(data: ReportData) -> list[list[str]]:
@@ -373,6 +403,56 @@ class PlateMapFigure(Flowable):  # type: ignore[misc]  # ReportLab is untyped
         c.setFillColor(colors.black)
         c.setFont("Helvetica-Bold", 7.5)
         c.drawCentredString(x + 2.2 * radius, y + 1.9 * radius, label)
+
+
+class GapProfile(Flowable):  # type: ignore[misc]  # ReportLab is untyped
+    """One virtual template's gap along its frame line: the tolerance band, the gap (red beyond it),
+    the frame's position and, if it goes through one, its defect."""
+
+    HEIGHT = 24 * mm
+    LABEL = 34 * mm
+
+    def __init__(self, section: Section, tolerance_mm: float, width: float) -> None:
+        super().__init__()
+        self.section, self.tolerance = section, tolerance_mm
+        self.width, self.height = width, self.HEIGHT + 3 * mm
+        gaps = section.gap_mm[np.isfinite(section.gap_mm)]
+        self.limit = max(2.0 * tolerance_mm, float(np.abs(gaps).max()) if gaps.size else 0.0)
+
+    def draw(self) -> None:
+        c, s = self.canv, self.section
+        plot_w = self.width - self.LABEL
+        length = float(s.u_mm[-1]) or 1.0
+        mid = self.HEIGHT / 2
+
+        def xy(u: float, gap: float) -> tuple[float, float]:
+            return self.LABEL + u / length * plot_w, mid + gap / self.limit * (self.HEIGHT / 2 - 1)
+
+        c.setFont("Helvetica", 7.5)
+        c.setFillColor(colors.black)
+        c.drawString(0, mid + 2, f"Frame at {s.position_mm:.0f} mm")
+        if s.defect:
+            c.setFont("Helvetica-Bold", 7.5)
+            c.drawString(0, mid - 8, f"through defect {s.defect}")
+        x0, band_lo = xy(0.0, -self.tolerance)
+        _, band_hi = xy(0.0, self.tolerance)
+        c.setFillColor(colors.HexColor("#e3f1e3"))
+        c.rect(x0, band_lo, plot_w, band_hi - band_lo, stroke=0, fill=1)
+        c.setStrokeColor(colors.HexColor("#999999"))
+        c.setLineWidth(0.4)
+        c.line(x0, mid, x0 + plot_w, mid)
+        c.setFont("Helvetica", 6)
+        c.setFillColor(colors.HexColor("#555555"))
+        c.drawRightString(x0 - 2, band_hi - 2, f"+{self.tolerance:g}")
+        c.drawRightString(x0 - 2, band_lo - 2, f"−{self.tolerance:g}")
+        c.drawRightString(x0 + plot_w, -2 * mm, f"{length:.0f} mm")
+        c.setLineWidth(1.0)
+        for (u0, g0), (u1, g1) in pairwise(zip(s.u_mm, s.gap_mm, strict=True)):
+            if not (np.isfinite(g0) and np.isfinite(g1)):
+                continue
+            bad = max(abs(g0), abs(g1)) > self.tolerance
+            c.setStrokeColor(colors.HexColor("#b3261e") if bad else colors.HexColor("#1d2733"))
+            c.line(*xy(float(u0), float(g0)), *xy(float(u1), float(g1)))
 
 
 def _table(

@@ -8,12 +8,10 @@ the meshes cannot be cut: the report says less, it is still printed).
 from __future__ import annotations
 
 import logging
-import math
 from datetime import UTC, datetime
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
-import numpy as np
 from sqlalchemy.orm import Session
 
 from app.models import Inspection, LightCalibration, Target
@@ -21,7 +19,7 @@ from app.report import ReportData, build_report
 from app.services.plate_maps import NoPlateMap, plate_map_of
 from app.storage import Storage
 from pipeline.plate_map import PlateMap
-from pipeline.sections import load_sections
+from pipeline.sections import Section, load_sections
 
 log = logging.getLogger(__name__)
 
@@ -48,17 +46,15 @@ def inspection_report(
         else {"id": light.id, "rms": light.rms, "file_name": light.file_name},
         software_version=_software_version(),
         printed_at=datetime.now(UTC),
-        sections=_section_gaps(storage, row.id),
+        sections=_sections(storage, row.id),
         plate_map=_plate_map(storage, row),
     )
     return build_report(data)
 
 
-def _section_gaps(
-    storage: Storage, inspection_id: int
-) -> list[tuple[float, float | None, int | None]]:
-    """Each virtual template's position and its gap of largest magnitude (signed), mm, and the defect
-    it goes through (frames are placed through every defect besides the spaced ones)."""
+def _sections(storage: Storage, inspection_id: int) -> list[Section]:
+    """The virtual templates at the report's spacing (and through every defect); none when the
+    meshes cannot be cut (the report says less, it is still printed)."""
     try:
         _frame, sections, _tol = load_sections(
             storage.artifacts_dir(inspection_id), spacing_mm=REPORT_SPACING_MM
@@ -66,13 +62,7 @@ def _section_gaps(
     except (OSError, ValueError, KeyError) as err:
         log.warning("inspection %s: report without templates: %s", inspection_id, err)
         return []
-    out: list[tuple[float, float | None, int | None]] = []
-    for s in sections:
-        gaps = s.gap_mm[np.isfinite(s.gap_mm)]
-        worst = float(gaps[np.argmax(np.abs(gaps))]) if gaps.size else None
-        gap = worst if worst is None or math.isfinite(worst) else None
-        out.append((float(s.position_mm), gap, s.defect))
-    return out
+    return sections
 
 
 def _plate_map(storage: Storage, row: Inspection) -> PlateMap | None:

@@ -330,6 +330,7 @@ def test_a_dented_plate_fails_and_the_api_lists_its_defect(tmp_path):
     assert "DENT-1" in text and "FAIL" in text and peak in text and "Signature" in text
     assert body["operator"] == "A. Welder" and "A. Welder" in text  # who started it signs
     assert "x, mm" in text and "y, mm" in text and "target's frame" in text  # the map in mm
+    assert "through defect 1" in text  # the template through the defect, drawn with its gap
     assert rendered_page_ink(report.content, tmp_path) > 0.02
     assert body["reasons"] and "tolerance" in body["reasons"][0]
     [defect] = body["defects"]
