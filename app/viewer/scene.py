@@ -19,14 +19,8 @@ from app.viewer.meshes import PlateMeshes, deviation_colours, legend_html
 logger = logging.getLogger(__name__)
 
 
-#: viser's panel docked beside the view ("fixed"), not floating over it: on a 1366x768 screen a
-#: floating panel covered the target plate. No share button (no outside host), no logo.
-_THEME: dict[str, Any] = {
-    "show_share_button": False,
-    "show_logo": False,
-    "control_width": "small",
-    "control_layout": "fixed",
-}
+#: No share button (no outside host), no logo, a narrow panel (docked: :func:`_theme`).
+_THEME: dict[str, Any] = {"show_share_button": False, "show_logo": False, "control_width": "small"}
 _TARGET_COLOUR = (176, 180, 188)
 #: The target's grid over the measured plate (overlaid layout): dark, to read on every band colour.
 _TARGET_GRID_COLOUR = (40, 48, 58)
@@ -58,7 +52,7 @@ class InspectionView:
         self.server = _OfflineViserServer(
             host=host, port=0, label=f"Inspection {inspection_id}", verbose=False
         )
-        self.server.gui.configure_theme(**_THEME)
+        _theme(self.server.gui)
         extent = max(meshes.extent_m, 0.1)
         # Both plates side by side are about 2.3 extents wide. The view spans the page's width
         # (viser's vertical field of view is 75 deg): at a distance of 1.25 extents they fit a
@@ -81,7 +75,7 @@ class InspectionView:
         meshes = self.meshes
         extent = max(meshes.extent_m, 0.1)
         half = np.array([0.575 * extent, 0.0, 0.0])
-        client.gui.configure_theme(**_THEME)
+        _theme(client.gui)
         measured = client.scene.add_glb("/plate/measured", self._glb, position=-half)
         target = client.scene.add_mesh_simple(
             "/plate/target",
@@ -144,6 +138,13 @@ class InspectionView:
 
     def stop(self) -> None:
         self.server.stop()
+
+
+def _theme(gui: viser.GuiApi) -> None:
+    """The panel's theme, docked to the right of the view rather than floating over it (on a
+    1366x768 screen a floating panel covered the target plate)."""
+    gui.configure_theme(**_THEME)
+    gui.main_panel.dock_right()
 
 
 def _measured_glb(meshes: PlateMeshes) -> bytes:
