@@ -411,8 +411,9 @@ def _data_basis(
     else:
         data = "this plate's passes" + (" and history of this machine" if machine_rows else "")
         if machine_rows == 0 and own < settings.min_rows:
-            warnings.append("no history of this machine: its compliance is the prior's")
+            warnings.append("no history of this machine: its compliance and gain are the prior's")
     c, c_sd = fitted.parameter("machine", machine_id)
+    gain, gain_sd = fitted.parameter("gain", machine_id)
     f, f_sd = fitted.parameter("plate", plate.plate_id)
     g, g_sd = fitted.parameter("group", plate.group)
     return {
@@ -427,6 +428,7 @@ def _data_basis(
             "yield_factor": {"mean": f, "sd": f_sd},
             "group_yield_factor": {"mean": g, "sd": g_sd, "plate_spread": fitted.plate_spread},
             "compliance_mm_per_mn": {"mean": c, "sd": c_sd},
+            "displacement_gain": {"mean": gain, "sd": gain_sd},
             "scatter_mm": fitted.scatter_mm,
         },
         "warnings": warnings,

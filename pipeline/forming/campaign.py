@@ -3,7 +3,8 @@
 The truth is the model's physics (:mod:`.rolling`) with values the advice does not see:
 
 - each plate's yield factor (drawn by :func:`random_batch`, 1.05-1.35 times the nominal yield);
-- the machine's compliance;
+- the machine's compliance and displacement gain (how far the plate is really pushed per mm of the
+  reading: a bender geometry a few per cent off the model's);
 - per pass: a displacement scatter (the roll's repeatability, the plate's feed) and a scatter of the
   yield factor of the material that pass yields (local variation);
 - per inspection: relative radius noise; the inspection's verdict passes a curvature error up to
@@ -38,6 +39,8 @@ class TruePhysics:
     ----------
     compliance_mm_per_mn : float
         The machine's real compliance.
+    displacement_gain : float
+        The machine's real displacement gain (1: the model's geometry).
     displacement_scatter_mm : float
         Sd of a pass's effective displacement.
     yield_scatter : float
@@ -49,6 +52,7 @@ class TruePhysics:
     """
 
     compliance_mm_per_mn: float = 2.0
+    displacement_gain: float = 1.0
     displacement_scatter_mm: float = 0.1
     yield_scatter: float = 0.0
     radius_noise: float = 5e-4
@@ -137,7 +141,12 @@ class _TruePlate:
         f = self.plate.yield_factor * (1.0 + self.physics.yield_scatter * rng.standard_normal())
         d = displacement_mm + self.physics.displacement_scatter_mm * rng.standard_normal()
         k = float(
-            self.setup.loaded_curvature(np.array([d]), f, self.physics.compliance_mm_per_mn)[0]
+            self.setup.loaded_curvature(
+                np.array([d]),
+                f,
+                self.physics.compliance_mm_per_mn,
+                self.physics.displacement_gain,
+            )[0]
         )
         if k > self.peak:
             self.peak, self.peak_factor = k, f

@@ -3,6 +3,10 @@
 Parameters
 ----------
 - ``c_m``: each machine's compliance, mm/MN (:mod:`.rolling`); prior ``N(c0, sc^2)``.
+- ``g_m``: each machine's displacement gain (:mod:`.rolling`); prior ``N(1, sg^2)``. Where the compliance
+  takes up a shortfall that grows with the force (thick plates), the gain takes one that grows with the
+  displacement (the geometry): a model a few per cent off in either way is learned from the machine's
+  history instead of being taken for pass scatter (which makes every aim timid).
 - ``mu_g``: the mean yield factor of a group of plates of one grade and thickness (plates of a heat, of a
   mill, of a thickness behave alike); prior ``N(f0, sf^2)``. ``f0 - 2 sf`` lies near 1 (nominal yield is a
   minimum) and ``f0`` near mill plates' typical 15 % above it.
@@ -76,6 +80,8 @@ class Priors:
         How many plates that guess is worth (``nu_t``).
     compliance_mm_per_mn, compliance_sd_mm_per_mn : float
         Prior mean and sd of a machine's compliance.
+    gain_sd : float
+        Prior sd of a machine's displacement gain about 1.
     scatter_mm : float
         Prior guess of a pass's displacement scatter (``sigma0``).
     scatter_weight : float
@@ -94,7 +100,8 @@ class Priors:
     plate_spread: float = 0.09
     plate_spread_weight: float = 4.0
     compliance_mm_per_mn: float = 1.0
-    compliance_sd_mm_per_mn: float = 1.0
+    compliance_sd_mm_per_mn: float = 2.0
+    gain_sd: float = 0.02
     scatter_mm: float = 0.1
     scatter_weight: float = 4.0
     radius_noise: float = 5e-4
@@ -109,6 +116,7 @@ class Priors:
             "plate_spread",
             "plate_spread_weight",
             "compliance_sd_mm_per_mn",
+            "gain_sd",
             "scatter_mm",
             "scatter_weight",
             "radius_noise",
@@ -160,7 +168,7 @@ class Fit:
     Attributes
     ----------
     machine_ids, groups, plate_ids : tuple
-        The parameters' order: compliances, group means, plate factors.
+        The parameters' order: compliances, gains (one per machine each), group means, plate factors.
     mean : (n,) ndarray
     cov : (n, n) ndarray
     scatter_mm : float
@@ -193,20 +201,23 @@ class Fit:
     priors: Priors
 
     def _index(self, kind: str, key: str | tuple[str, float]) -> int:
+        m = len(self.machine_ids)
         if kind == "machine" and isinstance(key, str):
             return self.machine_ids.index(key)
+        if kind == "gain" and isinstance(key, str):
+            return m + self.machine_ids.index(key)
         if kind == "group" and isinstance(key, tuple):
-            return len(self.machine_ids) + self.groups.index(key)
+            return 2 * m + self.groups.index(key)
         if kind == "plate" and isinstance(key, str):
-            return len(self.machine_ids) + len(self.groups) + self.plate_ids.index(key)
+            return 2 * m + len(self.groups) + self.plate_ids.index(key)
         raise ValueError(f"kind: no {kind!r} parameter for {key!r}")
 
     def parameter(self, kind: str, key: str | tuple[str, float]) -> tuple[float, float]:
-        """(mean, sd) of a machine's compliance, a group's mean factor, or a plate's factor.
+        """(mean, sd) of a machine's compliance or gain, a group's mean factor, or a plate's factor.
 
         Parameters
         ----------
-        kind : {"machine", "group", "plate"}
+        kind : {"machine", "gain", "group", "plate"}
         key : machine id, (grade, thickness) or plate id
         """
         i = self._index(kind, key)
@@ -220,14 +231,13 @@ class Fit:
         ``plate`` (its id) must be in the fit, and its passes' machines.
         """
         th = self.mean if theta is None else theta
-        comp = {
-            m: float(th[self._index("machine", m)]) for m in {p.machine_id for p in plate.passes}
-        }
+        used = {p.machine_id for p in plate.passes}
         return plate_curvatures(
             plate,
             self.machines,
             yield_factor=float(th[self._index("plate", plate.plate_id)]),
-            compliance_mm_per_mn=comp,
+            compliance_mm_per_mn={m: float(th[self._index("machine", m)]) for m in used},
+            gain={m: float(th[self._index("gain", m)]) for m in used},
         )
 
     def predict(
@@ -258,7 +268,8 @@ class Fit:
         """
         machines_used = sorted({p.machine_id for p in plate.passes} | {machine_id})
         i_plate = self._index("plate", plate.plate_id)
-        idx = [self._index("machine", m) for m in machines_used] + [i_plate]
+        idx = [self._index(kind, m) for kind in ("machine", "gain") for m in machines_used]
+        idx.append(i_plate)
         theta, cov = self.mean, self.cov
         if yield_factor is not None:  # condition the Gaussian posterior on the plate's factor
             col = cov[:, i_plate] / max(cov[i_plate, i_plate], 1e-300)
@@ -491,13 +502,19 @@ def fit(
     """
     ids, machine_ids = _checked_ids(plates, machines, also_machines)
     groups = tuple(sorted({p.group for p in plates}))
-    M, G, P = len(machine_ids), len(groups), len(plates)
+    # theta: compliances and gains (the machine block, 2 per machine), group means, plate factors
+    m_ = len(machine_ids)
+    M, G, P = 2 * m_, len(groups), len(plates)
 
     pass_plate, pass_machine, d, setup, starts = _pass_rows(plates, machines, machine_ids)
     plate_group = np.array([M + groups.index(p.group) for p in plates], dtype=int)
 
     x0 = np.concatenate(
-        [np.full(M, priors.compliance_mm_per_mn), np.full(G + P, priors.yield_factor)]
+        [
+            np.full(m_, priors.compliance_mm_per_mn),
+            np.ones(m_),
+            np.full(G + P, priors.yield_factor),
+        ]
     )
 
     def curvatures(
@@ -505,7 +522,7 @@ def fit(
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Each pass's loaded curvature, the largest so far, the curvature after it."""
         f = theta[M + G + pass_plate]
-        kl = setup.loaded_curvature(d + d_shift, f, theta[pass_machine])
+        kl = setup.loaded_curvature(d + d_shift, f, theta[pass_machine], theta[m_ + pass_machine])
         peak = _peaks(kl, starts)
         return kl, peak, setup.unloaded_curvature(peak, f)
 
@@ -521,10 +538,14 @@ def fit(
     dof_rows = max(len(state_pass) - len(plates_with_rows), 0)
 
     prior_mu = np.concatenate(
-        [np.full(M, priors.compliance_mm_per_mn), np.full(G, priors.yield_factor)]
+        [np.full(m_, priors.compliance_mm_per_mn), np.ones(m_), np.full(G, priors.yield_factor)]
     )
     prior_sd = np.concatenate(
-        [np.full(M, priors.compliance_sd_mm_per_mn), np.full(G, priors.yield_factor_sd)]
+        [
+            np.full(m_, priors.compliance_sd_mm_per_mn),
+            np.full(m_, priors.gain_sd),
+            np.full(G, priors.yield_factor_sd),
+        ]
     )
     scatter, spread = priors.scatter_mm, priors.plate_spread
     theta = x0

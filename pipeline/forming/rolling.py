@@ -6,9 +6,13 @@ nominal model does not know:
 - the plate's **yield factor** ``f``: its effective yield stress is ``f`` times the nominal one (the
   nominal yield is a guaranteed minimum; mill plates are typically 5-35 % above it). It also absorbs
   what the elastic-perfectly-plastic model leaves out (hardening, Bauschinger, the arc idealisation).
+- the machine's **displacement gain** ``g`` (dimensionless, nominally 1): how far the plate is really
+  pushed per mm the top roll's reading moves. It absorbs what the ideal three-point geometry leaves out
+  (the plate between the rolls is not one circular arc, contact points move round the rolls, a worn roll
+  or a reading's scale), which scale with the displacement rather than with the force.
 - the machine's **compliance** ``c`` (mm per MN): the frame and rolls give under the bending force, so the
-  plate sees the displacement ``d - c F``. ``F`` depends on the loaded curvature (it holds the plate's
-  moment, :func:`.bender.roll_force_n`), so the loaded curvature solves ``k = k_geom(d - c F(k))``, found
+  plate sees the displacement ``g d - c F``. ``F`` depends on the loaded curvature (it holds the plate's
+  moment, :func:`.bender.roll_force_n`), so the loaded curvature solves ``k = k_geom(g d - c F(k))``, found
   by fixed-point iteration: a contraction while ``c dF/dd < 1``; ``dF/dd`` is at most the plate's elastic
   three-point stiffness ``48 E' I b / L^3`` (0.1 MN/mm for 30 mm x 12 m on a 1.4 m span) and nearly 0 once
   the plate yields through.
@@ -108,9 +112,10 @@ class PassSetup:
         displacement_mm: npt.ArrayLike,
         yield_factor: npt.ArrayLike,
         compliance_mm_per_mn: npt.ArrayLike,
+        gain: npt.ArrayLike = 1.0,
     ) -> npt.NDArray[np.float64]:
-        """Loaded mid-surface curvature with the machine's give, 1/mm (module docstring)."""
-        d = np.asarray(displacement_mm, dtype=np.float64)
+        """Loaded mid-surface curvature with the machine's gain and give, 1/mm (module docstring)."""
+        d = np.asarray(displacement_mm, dtype=np.float64) * np.asarray(gain, dtype=np.float64)
         c = 1e-6 * np.asarray(compliance_mm_per_mn, dtype=np.float64)
         k = self.geometric_curvature(d)
         for _ in range(_MAX_ITER):
@@ -140,6 +145,7 @@ def plate_curvatures(
     *,
     yield_factor: float,
     compliance_mm_per_mn: Mapping[str, float],
+    gain: Mapping[str, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Loaded and unloaded mid-surface curvature after each of a plate's passes (history rule included).
 
@@ -152,6 +158,8 @@ def plate_curvatures(
         The plate's effective yield over its nominal yield.
     compliance_mm_per_mn : mapping of machine id to float
         Each machine's compliance.
+    gain : mapping of machine id to float, optional
+        Each machine's displacement gain (default 1).
 
     Returns
     -------
@@ -168,5 +176,6 @@ def plate_curvatures(
     )
     d = np.array([p.top_roll_displacement_mm for p in plate.passes])
     c = np.array([compliance_mm_per_mn[p.machine_id] for p in plate.passes])
-    loaded = setup.loaded_curvature(d, yield_factor, c)
+    g = np.array([(gain or {}).get(p.machine_id, 1.0) for p in plate.passes])
+    loaded = setup.loaded_curvature(d, yield_factor, c, g)
     return loaded, setup.unloaded_curvature(np.maximum.accumulate(loaded), yield_factor)

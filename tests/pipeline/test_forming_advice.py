@@ -81,22 +81,42 @@ def test_narrow_plate_band_reaches_flat():
     json.dumps(advice, allow_nan=False)
 
 
+def _finished(plate_id: str, radius: float, t: float, *, factor: float, compliance: float):
+    """A plate rolled as advised (no history) until done: a machine's history of one plate."""
+    plate = PlateRecord(plate_id, target(radius, t))
+    for _ in range(4):
+        advice = advise(plate, MACHINES, machine_id="R3-01")
+        if advice.action != "bend":
+            break
+        plate = rolled(plate, advice.top_roll_displacement_mm, factor=factor, compliance=compliance)
+    return plate, advice
+
+
+def test_a_fresh_machines_plate_reaches_the_band_from_below():
+    """No history: the first pass probes, the corrections close in from the open side, never over."""
+    plate, advice = _finished("p", 6000.0, 15.0, factor=1.25, compliance=2.0)
+    assert advice.action == "done" and len(plate.passes) <= 3
+    assert all(q.measured_radius_mm > 5936.0 for q in plate.passes)  # never past the tight edge
+
+
 def test_second_pass_reaches_the_band():
+    # one earlier plate on the machine pins its gain and compliance: the second pass lands
+    earlier, _ = _finished("e", 8000.0, 20.0, factor=1.15, compliance=2.0)
     plate = PlateRecord("p", target(6000.0, 15.0))
-    first = advise(plate, MACHINES, machine_id="R3-01")
+    first = advise(plate, MACHINES, machine_id="R3-01", history=[earlier])
     plate = rolled(plate, first.top_roll_displacement_mm, factor=1.25, compliance=2.0)
     assert (
         plate.passes[-1].verdict == "fail" and plate.passes[-1].measured_radius_mm > 6000.0
     )  # under-bent probe
-    second = advise(plate, MACHINES)
+    second = advise(plate, MACHINES, history=[earlier])
     assert (
         second.action == "bend" and second.top_roll_displacement_mm > first.top_roll_displacement_mm
     )
     assert second.basis["plate_passes_inspected"] == 1
-    assert second.basis["data"] == "this plate's passes"
+    assert second.basis["machine_plates"] == 1
     plate = rolled(plate, second.top_roll_displacement_mm, factor=1.25, compliance=2.0)
     assert plate.passes[-1].verdict == "pass"
-    assert advise(plate, MACHINES).action == "done"
+    assert advise(plate, MACHINES, history=[earlier]).action == "done"
 
 
 def test_over_bent_on_purpose_is_told_reverse():
