@@ -41,7 +41,7 @@ A plate's own passes pin its factor; passes of other plates on the same machine 
 compliance, and those of the same grade and thickness the group's mean factor and spread. A plate with
 no history of its own gets its group's distribution; a group with no plates gets the prior.
 
-Kept as one module (~680 lines, a third of them this derivation and the numpydoc): the rows, the
+Kept as one module (~700 lines, a third of them this derivation and the numpydoc): the rows, the
 rounds of the fit and the variance updates are one estimator and change together.
 """
 
@@ -509,13 +509,8 @@ def fit(
     pass_plate, pass_machine, d, setup, starts = _pass_rows(plates, machines, machine_ids)
     plate_group = np.array([M + groups.index(p.group) for p in plates], dtype=int)
 
-    x0 = np.concatenate(
-        [
-            np.full(m_, priors.compliance_mm_per_mn),
-            np.ones(m_),
-            np.full(G + P, priors.yield_factor),
-        ]
-    )
+    prior_mu, prior_sd = _prior_block(m_, G, priors)
+    x0 = np.concatenate([prior_mu, np.full(P, priors.yield_factor)])
 
     def curvatures(
         theta: np.ndarray, d_shift: float = 0.0
@@ -537,16 +532,6 @@ def fit(
     plates_with_rows = np.unique(state_plate)
     dof_rows = max(len(state_pass) - len(plates_with_rows), 0)
 
-    prior_mu = np.concatenate(
-        [np.full(m_, priors.compliance_mm_per_mn), np.ones(m_), np.full(G, priors.yield_factor)]
-    )
-    prior_sd = np.concatenate(
-        [
-            np.full(m_, priors.compliance_sd_mm_per_mn),
-            np.full(m_, priors.gain_sd),
-            np.full(G, priors.yield_factor_sd),
-        ]
-    )
     scatter, spread = priors.scatter_mm, priors.plate_spread
     theta = x0
     for round_ in range(_ROUNDS):
@@ -583,6 +568,26 @@ def fit(
         {m: machines[m] for m in machine_ids},
         priors,
     )
+
+
+def _prior_block(n_machines: int, n_groups: int, priors: Priors) -> tuple[np.ndarray, np.ndarray]:
+    """Prior means and sds of the machines' compliances and gains and the groups' mean factors, in
+    the parameters' order (the plates' factors are tied to their groups instead)."""
+    mu = np.concatenate(
+        [
+            np.full(n_machines, priors.compliance_mm_per_mn),
+            np.ones(n_machines),
+            np.full(n_groups, priors.yield_factor),
+        ]
+    )
+    sd = np.concatenate(
+        [
+            np.full(n_machines, priors.compliance_sd_mm_per_mn),
+            np.full(n_machines, priors.gain_sd),
+            np.full(n_groups, priors.yield_factor_sd),
+        ]
+    )
+    return mu, sd
 
 
 def _inspected_states(
