@@ -45,6 +45,12 @@ def test_eight_inspections_two_workers_one_killed_all_complete_once(tmp_path, pg
         )
         victim.send_signal(signal.SIGKILL)
         victim.wait(30)
+        # The job it was running when it died: started in its log and never finished there (the
+        # job seen running above may have ended between that look and the signal).
+        victim_log = yard.log("worker0.log")
+        killed_mid_job = _ids(r"inspection (\d+): running", victim_log) - _ids(
+            r"inspection (\d+): done, verdict", victim_log
+        )
         bodies = yard.wait_all(ids, timeout_s=600)
     finally:
         yard.stop()
@@ -55,7 +61,8 @@ def test_eight_inspections_two_workers_one_killed_all_complete_once(tmp_path, pg
         assert (
             yard.data_dir / "inspections" / str(b["id"]) / "artifacts" / "result.json"
         ).is_file()
-    killed = running[0]
+    assert running and len(killed_mid_job) == 1, (running, killed_mid_job)
+    (killed,) = killed_mid_job
     done_lines = collections.Counter(
         int(m.group(1))
         for k in (0, 1)
@@ -75,3 +82,8 @@ def test_eight_inspections_two_workers_one_killed_all_complete_once(tmp_path, pg
         if p.suffix in (".db", ".sqlite", ".lock") and "cell" not in p.parts
     ]
     assert survivor.returncode is not None
+
+
+def _ids(pattern: str, text: str) -> set[int]:
+    """The inspection ids that ``pattern`` (one group) finds in a worker's log."""
+    return {int(m.group(1)) for m in re.finditer(pattern, text)}
