@@ -275,7 +275,7 @@ class Fit:
             col = cov[:, i_plate] / max(cov[i_plate, i_plate], 1e-300)
             theta = theta + col * (yield_factor - theta[i_plate])
             cov = cov - np.outer(col, cov[i_plate, :])
-        anchor = latest_state(plate, self.curvatures(plate, theta)[0])
+        anchor = latest_state(plate, self.curvatures(plate, theta)[0], self.priors)
 
         def model(th: np.ndarray, d_shift: float = 0.0) -> tuple[float, float]:
             """Loaded curvature of the new pass and the predicted curvature after it (anchored)."""
@@ -283,7 +283,7 @@ class Fit:
             kl, ku = self.curvatures(trial, th)
             if anchor is None:
                 return float(kl[-1]), float(ku[-1])
-            return float(kl[-1]), float(ku[-1] - ku[anchor.pass_index])
+            return float(kl[-1]), float(ku[-1] - ku[anchor.peak_pass])
 
         k_loaded, mean = model(theta)
         grad = np.zeros(len(idx))
@@ -301,24 +301,43 @@ class Fit:
             mean += anchor.curvature
             var += _inspection_variance(anchor.curvature, plate, self.priors) / anchor.inspections
             if k_loaded > anchor.peak_loaded:
-                g_peak = self._peak_sensitivity(plate, theta, anchor)
-                var += (g_peak * self.scatter_mm) ** 2
+                g_peak, shift_mm, sd_mm = self._peak_error(plate, theta, anchor)
+                mean -= g_peak * shift_mm
+                var += (g_peak * sd_mm) ** 2
         var += _inspection_variance(mean, plate, self.priors)
         own = self.rows_per_plate.get(plate.plate_id, 0) > 0 or yield_factor is not None
         dof = self.scatter_dof if own else min(self.scatter_dof, self.spread_dof)
         return Prediction(k_loaded, mean, float(np.sqrt(var)), dof)
 
-    def _peak_sensitivity(self, plate: PlateRecord, theta: np.ndarray, anchor: State) -> float:
-        """Curvature of the anchor's state per mm of the displacement of the pass that set its peak."""
+    def _peak_error(
+        self, plate: PlateRecord, theta: np.ndarray, anchor: State
+    ) -> tuple[float, float, float]:
+        """How the anchor's unknown true peak shifts a prediction: ``(g, mean, sd)``.
+
+        ``g`` is the anchor's curvature per mm of the displacement of the pass that set its peak; the
+        error ``e`` of that pass's displacement is ``N(0, s^2)`` (``s`` the fitted scatter), unless
+        passes that loaded the plate beyond it by the model left the shape unchanged
+        (``anchor.unchanged``): each says ``e - e_j >= L_j``, the mm the model put it beyond the peak,
+        and ``e`` is then the normal conditioned on the largest of those bounds (mean and sd in mm,
+        moments of the truncated normal of ``e - e_j ~ N(0, 2 s^2)``).
+        """
         passes = list(plate.passes)
-        q = passes[anchor.peak_pass]
-        passes[anchor.peak_pass] = RollPass(
+        p = anchor.peak_pass
+        q = passes[p]
+        passes[p] = RollPass(
             q.machine_id, q.top_roll_displacement_mm + _H_D, q.measured_radius_mm, q.verdict
         )
-        shifted = PlateRecord(plate.plate_id, plate.target, tuple(passes))
-        ku0 = self.curvatures(plate, theta)[1][anchor.pass_index]
-        ku1 = self.curvatures(shifted, theta)[1][anchor.pass_index]
-        return float((ku1 - ku0) / _H_D)
+        kl0, ku0 = self.curvatures(plate, theta)
+        kl1, ku1 = self.curvatures(PlateRecord(plate.plate_id, plate.target, tuple(passes)), theta)
+        g_peak = float((ku1[p] - ku0[p]) / _H_D)
+        s = self.scatter_mm
+        slope = float((kl1[p] - kl0[p]) / _H_D)
+        if not anchor.unchanged or slope <= 0:
+            return g_peak, 0.0, s
+        lower_mm = max(float(kl0[j] - kl0[p]) / slope for j in anchor.unchanged)
+        su = float(np.sqrt(2.0) * s)
+        m, v = stats.truncnorm.stats(lower_mm / su, np.inf, moments="mv")
+        return g_peak, 0.5 * su * float(m), float(np.sqrt(0.5 * s * s + 0.25 * su * su * float(v)))
 
     def yield_factor_quantile(self, plate_id: str, p: float) -> float:
         """Quantile of a plate's factor (Student-t: the plates' spread's degrees of freedom when it has no
@@ -330,20 +349,24 @@ class Fit:
 
 @dataclass(frozen=True)
 class State:
-    """A plate's latest inspected shape: where a prediction of its next pass starts.
+    """One shape of a plate that its inspections saw (where a prediction of its next pass starts).
 
     Attributes
     ----------
     pass_index : int
-        The latest inspected pass.
+        The latest inspected pass of that shape.
     peak_pass : int
-        The pass that loaded the plate most up to it (the shape's origin).
+        The pass that gave the shape: the one that loaded the plate most before it.
     peak_loaded : float
         That pass's loaded curvature, 1/mm.
     curvature : float
         The mean measured curvature of the inspections of that shape, 1/mm.
     inspections : int
         How many were averaged.
+    unchanged : tuple of int
+        Passes after ``peak_pass`` that the model says loaded the plate beyond it, but whose
+        inspection found the shape unchanged (:func:`plate_states`): the peak pass really loaded
+        the plate further than its setting says.
     """
 
     pass_index: int
@@ -351,25 +374,69 @@ class State:
     peak_loaded: float
     curvature: float
     inspections: int
+    unchanged: tuple[int, ...] = ()
 
 
-def latest_state(plate: PlateRecord, loaded: np.ndarray) -> State | None:
-    """The plate's latest inspected shape given its passes' loaded curvatures; None: never inspected.
+#: A pass that may have loaded the plate beyond its peak (by the model, at least as far) left the shape
+#: unchanged when its inspection exceeds the shape's by less than this many sd of the two
+#: inspections' difference.
+UNCHANGED_Z = 2.0
 
-    The shape is the one left by the pass that loaded the plate most so far (the history rule); every
-    inspection since that pass saw it and is averaged.
+
+def plate_states(plate: PlateRecord, loaded: np.ndarray, priors: Priors) -> list[State]:
+    """The shapes a plate's inspections saw, in order, given its passes' loaded curvatures.
+
+    A pass makes a new shape when it loads the plate at least as far as every earlier pass (the
+    history rule; a pass repeating the peak's setting may go beyond it by its scatter), unless its
+    inspection says otherwise: a pass a little deeper than the peak (by its setting) can still fall
+    short of it, the peak pass's own displacement having scattered upwards. Such a pass's inspection
+    joins the shape it did not change and is listed in :attr:`State.unchanged`.
     """
-    inspected = [
-        (j, q.measured_radius_mm)
-        for j, q in enumerate(plate.passes)
-        if q.measured_radius_mm is not None
-    ]
-    if not inspected:
-        return None
-    last = inspected[-1][0]
-    peak_pass = int(np.argmax(loaded[: last + 1]))
-    ks = [measured_curvature(plate, r) for j, r in inspected if j >= peak_pass]
-    return State(last, peak_pass, float(loaded[peak_pass]), float(np.mean(ks)), len(ks))
+    states: list[State] = []
+    ks: list[float] = []
+    unchanged: list[int] = []
+    peak_pass, last, peak = -1, -1, 0.0
+
+    def close() -> None:
+        if ks:
+            states.append(
+                State(last, peak_pass, peak, float(np.mean(ks)), len(ks), tuple(unchanged))
+            )
+
+    for j, q in enumerate(plate.passes):
+        k = (
+            None
+            if q.measured_radius_mm is None
+            else measured_curvature(plate, q.measured_radius_mm)
+        )
+        if loaded[j] >= peak * (1 - 1e-9):
+            if k is not None and ks and _unchanged(k, ks, plate, priors):
+                unchanged.append(j)
+            else:
+                close()
+                peak_pass, peak, ks, unchanged = j, float(loaded[j]), [], []
+        if k is not None:
+            ks.append(k)
+            last = j
+    close()
+    return states
+
+
+def _unchanged(k: float, ks: list[float], plate: PlateRecord, priors: Priors) -> bool:
+    """An inspection ``k`` after a pass that may have loaded the plate beyond its peak found the shape
+    inspected as ``ks`` (:data:`UNCHANGED_Z`)."""
+    k_state = float(np.mean(ks))
+    noise = np.sqrt(
+        _inspection_variance(k_state, plate, priors) / len(ks)
+        + _inspection_variance(k, plate, priors)
+    )
+    return bool(k - k_state < UNCHANGED_Z * noise)
+
+
+def latest_state(plate: PlateRecord, loaded: np.ndarray, priors: Priors) -> State | None:
+    """The plate's latest inspected shape (:func:`plate_states`); None: never inspected."""
+    states = plate_states(plate, loaded, priors)
+    return states[-1] if states else None
 
 
 def measured_curvature(plate: PlateRecord, radius_mm: float) -> float:
@@ -522,9 +589,9 @@ def fit(
         return kl, peak, setup.unloaded_curvature(peak, f)
 
     # states: the passes after which an inspection saw a new shape (nominal parameters decide which pass
-    # raised the peak), with the mean of their inspections
+    # raised the peak, the inspections whether it did), with the mean of their inspections
     state_pass, state_obs, state_n, state_plate = _inspected_states(
-        plates, starts, curvatures(x0)[0]
+        plates, starts, curvatures(x0)[0], priors
     )
     meas_var = np.array(
         [_inspection_variance(k, plates[i], priors) for k, i in zip(state_obs, state_plate)]
@@ -591,37 +658,39 @@ def _prior_block(n_machines: int, n_groups: int, priors: Priors) -> tuple[np.nda
 
 
 def _inspected_states(
-    plates: Sequence[PlateRecord], starts: np.ndarray, kl0: np.ndarray
+    plates: Sequence[PlateRecord],
+    starts: np.ndarray,
+    loaded: np.ndarray,
+    priors: Priors,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The passes after which an inspection saw a new shape, with the mean of their inspections.
+    """The plates' shapes (:func:`plate_states`) as the fit's rows.
 
-    The nominal loaded curvatures ``kl0`` (one per pass, plates contiguous from ``starts``) decide
-    which pass raised a plate's peak. Returns the state's pass index, mean measured curvature,
-    number of inspections and plate index (arrays of one length).
+    ``loaded`` are the nominal loaded curvatures, one per pass, plates contiguous from ``starts``. Returns each shape's pass index (the pass that gave it, among all passes), mean
+    measured curvature, number of inspections and plate index (arrays of one length).
+
+    Raises
+    ------
+    ValueError
+        An inspected radius tighter than half the plate's thickness.
     """
     state_pass: list[int] = []
     state_obs: list[float] = []
     state_n: list[int] = []
     state_plate: list[int] = []
     for i, p in enumerate(plates):
-        peak, current = 0.0, -1
-        seen: dict[int, list[float]] = {}
-        for j, q in enumerate(p.passes):
-            n = starts[i] + j
-            if kl0[n] > peak * (1 + 1e-9):
-                peak, current = kl0[n], n
-            if q.measured_radius_mm is not None:
-                k = measured_curvature(p, q.measured_radius_mm)
-                if not np.isfinite(k):
-                    raise ValueError(
-                        f"measured_radius_mm: expected more than half the thickness, "
-                        f"got {q.measured_radius_mm!r} (plate {p.plate_id})"
-                    )
-                seen.setdefault(current, []).append(k)
-        for n, ks in seen.items():
-            state_pass.append(n)
-            state_obs.append(float(np.mean(ks)))
-            state_n.append(len(ks))
+        for q in p.passes:
+            if q.measured_radius_mm is not None and not np.isfinite(
+                measured_curvature(p, q.measured_radius_mm)
+            ):
+                raise ValueError(
+                    f"measured_radius_mm: expected more than half the thickness, "
+                    f"got {q.measured_radius_mm!r} (plate {p.plate_id})"
+                )
+        a, b = starts[i], starts[i + 1]
+        for state in plate_states(p, loaded[a:b], priors):
+            state_pass.append(a + state.peak_pass)
+            state_obs.append(state.curvature)
+            state_n.append(state.inspections)
             state_plate.append(i)
     return (
         np.array(state_pass, dtype=int),

@@ -109,7 +109,7 @@ def test_a_correction_pass_starts_from_the_measured_shape():
     measured = measured_curvature(plate, 6900.0)
     assert abs(model_now - measured) > 1e-7  # the fit does not pass through the latest shape
 
-    state = latest_state(plate, fitted.curvatures(plate)[0])
+    state = latest_state(plate, fitted.curvatures(plate)[0], fitted.priors)
     assert (state.pass_index, state.peak_pass, state.inspections) == (1, 1, 1)
     same = fitted.predict(plate, "R3-01", 79.0)  # below the latest peak: nothing changes
     assert same.mean == pytest.approx(measured, rel=1e-9)
@@ -117,3 +117,42 @@ def test_a_correction_pass_starts_from_the_measured_shape():
     increment = fitted.curvatures(plate.with_pass(RollPass("R3-01", 81.0)))[1][-1] - model_now
     assert deeper.mean == pytest.approx(measured + increment, rel=1e-9)
     assert deeper.sd > same.sd  # the new pass and the old peak's scatter
+
+
+def _plate_after(*passes):
+    from pipeline.forming.records import FormingTarget, Material, PlateRecord, RollPass
+
+    target = FormingTarget(6000.0, 2.0, 3000.0, 6000.0, Material("AH36", 20.0, 355.0))
+    return PlateRecord("B1", target, tuple(RollPass("R3-01", d, r, "fail") for d, r in passes))
+
+
+def test_a_pass_that_changed_nothing_joins_the_shape_and_raises_the_old_peak():
+    # a pass 0.2 mm deeper than the first (the model expects ~0.5 of the band more curvature) finds
+    # the plate as it was: the first pass really loaded it deeper than its setting says
+    from pipeline.forming.learning import fit, plate_states
+
+    machines = {"R3-01": MACHINE}
+    one = _plate_after((70.0, 15000.0))
+    unchanged = _plate_after((70.0, 15000.0), (70.2, 15010.0))
+    bent = _plate_after((70.0, 15000.0), (70.2, 14820.0))
+
+    def states(plate):
+        fitted = fit([plate], machines)
+        return fitted, plate_states(plate, fitted.curvatures(plate)[0], fitted.priors)
+
+    fitted_u, states_u = states(unchanged)
+    assert [(s.peak_pass, s.inspections, s.unchanged) for s in states_u] == [(0, 2, (1,))]
+    _, states_b = states(bent)
+    assert [(s.peak_pass, s.inspections, s.unchanged) for s in states_b] == [
+        (0, 1, ()),
+        (1, 1, ()),
+    ]
+    # the next pass: from a peak known to lie beyond 70.2 mm, it bends less and more surely than
+    # from the first pass alone
+    fitted_1 = fit([one], machines)
+    after_one = fitted_1.predict(one, "R3-01", 71.0)
+    after_unchanged = fitted_u.predict(unchanged, "R3-01", 71.0)
+    assert after_unchanged.mean < after_one.mean
+    assert after_unchanged.sd < after_one.sd
+    # and the fit does not take the unchanged pass for scatter
+    assert fitted_u.scatter_mm <= fitted_1.scatter_mm + 1e-12
