@@ -80,6 +80,11 @@ class Priors:
         How many plates that guess is worth (``nu_t``).
     compliance_mm_per_mn, compliance_sd_mm_per_mn : float
         Prior mean and sd of a machine's compliance.
+    compliance_floor_mm_per_mn : float
+        The least compliance a machine can have: its frame and rolls give under the force, they never
+        push further (0). The first pass of a plate is never aimed for a compliance below it
+        (:func:`.advice.aim`); the Gaussian prior alone would put a fresh machine's 0.5 % quantile
+        at -4 mm/MN.
     gain_sd : float
         Prior sd of a machine's displacement gain about 1.
     scatter_mm : float
@@ -101,6 +106,7 @@ class Priors:
     plate_spread_weight: float = 4.0
     compliance_mm_per_mn: float = 1.0
     compliance_sd_mm_per_mn: float = 2.0
+    compliance_floor_mm_per_mn: float = 0.0
     gain_sd: float = 0.02
     scatter_mm: float = 0.1
     scatter_weight: float = 4.0
@@ -125,10 +131,9 @@ class Priors:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"{name}: expected a positive finite number, got {v!r}")
-        if not np.isfinite(self.compliance_mm_per_mn):
-            raise ValueError(
-                f"compliance_mm_per_mn: expected a finite number, got {self.compliance_mm_per_mn!r}"
-            )
+        for name in ("compliance_mm_per_mn", "compliance_floor_mm_per_mn"):
+            if not np.isfinite(getattr(self, name)):
+                raise ValueError(f"{name}: expected a finite number, got {getattr(self, name)!r}")
         if not (isinstance(self.max_plates, int) and self.max_plates >= 0):
             raise ValueError(
                 f"max_plates: expected a non-negative integer, got {self.max_plates!r}"
@@ -247,6 +252,7 @@ class Fit:
         displacement_mm: float,
         *,
         yield_factor: float | None = None,
+        compliance_mm_per_mn: float | None = None,
     ) -> Prediction:
         """Distribution of the plate's curvature after one more pass (``plate`` must be in the fit).
 
@@ -254,9 +260,10 @@ class Fit:
         curvature plus the model's increment from that shape to the new pass. The parameters'
         uncertainty is propagated to first order (numerical gradient) through that increment (through
         the curvature itself for a plate never inspected), the new pass adds its scatter, the pass that
-        set the old peak its own when the new pass goes beyond it, and the inspections their noise. Degrees of freedom: the scatter's when the plate has
-        inspected passes of its own or its factor is given, else the fewer of the scatter's and the
-        plates' spread's.
+        set the old peak its own when the new pass goes beyond it, and the inspections their noise.
+        Degrees of freedom (:func:`_effective_dof`): the scatter's for the scatter's share of the
+        variance; the parameters' share is known, or as well as the plates' spread when the plate has
+        no inspected passes of its own and its factor is not given.
 
         Parameters
         ----------
@@ -265,16 +272,17 @@ class Fit:
         displacement_mm : float
         yield_factor : float, optional
             Predict for the plate's factor fixed at this value (the other parameters conditioned on it).
+        compliance_mm_per_mn : float, optional
+            Likewise for the compliance of ``machine_id``.
         """
         machines_used = sorted({p.machine_id for p in plate.passes} | {machine_id})
         i_plate = self._index("plate", plate.plate_id)
         idx = [self._index(kind, m) for kind in ("machine", "gain") for m in machines_used]
         idx.append(i_plate)
-        theta, cov = self.mean, self.cov
-        if yield_factor is not None:  # condition the Gaussian posterior on the plate's factor
-            col = cov[:, i_plate] / max(cov[i_plate, i_plate], 1e-300)
-            theta = theta + col * (yield_factor - theta[i_plate])
-            cov = cov - np.outer(col, cov[i_plate, :])
+        fixed = {i_plate: yield_factor, self._index("machine", machine_id): compliance_mm_per_mn}
+        theta, cov = _conditioned(
+            self.mean, self.cov, {i: v for i, v in fixed.items() if v is not None}
+        )
         anchor = latest_state(plate, self.curvatures(plate, theta)[0], self.priors)
 
         def model(th: np.ndarray, d_shift: float = 0.0) -> tuple[float, float]:
@@ -294,7 +302,8 @@ class Fit:
             grad[j] = (model(th)[1] - mean) / step
         var_par = max(float(grad @ cov[np.ix_(idx, idx)] @ grad), 0.0)
         g_d = (model(theta, _H_D)[1] - mean) / _H_D
-        var = var_par + (g_d * self.scatter_mm) ** 2
+        var_scatter = (g_d * self.scatter_mm) ** 2
+        var = 0.0
         if anchor is not None:
             # the increment starts from the measured state; when the new pass loads the plate beyond
             # it, where that state's peak really was (its pass's scatter) shifts the increment too
@@ -303,10 +312,14 @@ class Fit:
             if k_loaded > anchor.peak_loaded:
                 g_peak, shift_mm, sd_mm = self._peak_error(plate, theta, anchor)
                 mean -= g_peak * shift_mm
-                var += (g_peak * sd_mm) ** 2
-        var += _inspection_variance(mean, plate, self.priors)
+                var_scatter += (g_peak * sd_mm) ** 2
+        var += var_par + var_scatter + _inspection_variance(mean, plate, self.priors)
         own = self.rows_per_plate.get(plate.plate_id, 0) > 0 or yield_factor is not None
-        dof = self.scatter_dof if own else min(self.scatter_dof, self.spread_dof)
+        dof = _effective_dof(
+            var,
+            (var_scatter, self.scatter_dof),
+            (var_par, np.inf if own else self.spread_dof),
+        )
         return Prediction(k_loaded, mean, float(np.sqrt(var)), dof)
 
     def _peak_error(
@@ -345,6 +358,30 @@ class Fit:
         mean, sd = self.parameter("plate", plate_id)
         dof = self.scatter_dof if self.rows_per_plate.get(plate_id, 0) else self.spread_dof
         return float(mean + sd * stats.t.ppf(p, dof))
+
+
+#: Degrees of freedom of a prediction whose variance is all known (a Student-t that is a normal).
+_KNOWN_DOF = 1e6
+
+
+def _effective_dof(total: float, *parts: tuple[float, float]) -> float:
+    """Welch-Satterthwaite degrees of freedom of a variance ``total`` whose ``parts`` (variance, dof) are
+    estimated; the rest of it is known. A prior's share (a fresh machine's gain) keeps its normal
+    tails instead of taking the few degrees of freedom of the scatter's estimate."""
+    spread = sum(v * v / nu for v, nu in parts if v > 0 and np.isfinite(nu))
+    return _KNOWN_DOF if spread <= 0 else float(min(total * total / spread, _KNOWN_DOF))
+
+
+def _conditioned(
+    theta: np.ndarray, cov: np.ndarray, fixed: Mapping[int, float]
+) -> tuple[np.ndarray, np.ndarray]:
+    """The Gaussian posterior ``(theta, cov)`` conditioned on the parameters ``fixed`` (index: value)."""
+    if not fixed:
+        return theta, cov
+    idx = list(fixed)
+    gain = cov[:, idx] @ np.linalg.pinv(cov[np.ix_(idx, idx)])
+    theta = theta + gain @ (np.array([fixed[i] for i in idx]) - theta[idx])
+    return theta, cov - gain @ cov[idx, :]
 
 
 @dataclass(frozen=True)

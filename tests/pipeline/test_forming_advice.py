@@ -189,3 +189,22 @@ def test_unreachable_target_raises():
     )  # loaded radius >= 660 mm for 20 mm plates
     with pytest.raises(FormingError, match="deepest setting"):
         advise(PlateRecord("p", target(500.0, 20.0)), {"R3-09": big_top_roll}, machine_id="R3-09")
+
+
+def test_a_fresh_machines_first_pass_takes_its_compliance_at_the_floor():
+    # the compliance prior 1 +- 2 mm/MN reaches -4 mm/MN at its 0.5 % quantile: a machine that pushes
+    # further than its reading. The first pass is aimed for no less than 0 (it gives, never pushes)
+    from pipeline.forming.advice import AimSettings, aim
+    from pipeline.forming.learning import fit
+
+    plate = PlateRecord("new", target(4000.0, 30.0))
+    fitted = fit([plate], MACHINES, also_machines=["R3-01"])
+    settings = AimSettings()
+    aimed = aim(fitted, plate, MACHINE, settings)
+    d, p_hi = aimed["displacement_mm"], 1 - settings.over_probability
+    limit = target_curvature(plate.target) + settings.over_band * curvature_band(plate.target)
+    at_floor = fitted.predict(plate, "R3-01", d, yield_factor=1.0, compliance_mm_per_mn=0.0)
+    gaussian = fitted.predict(plate, "R3-01", d, yield_factor=1.0)
+    assert at_floor.quantile(p_hi) == pytest.approx(limit, rel=1e-5)
+    assert gaussian.quantile(p_hi) > limit  # the Gaussian alone would have aimed shallower
+    assert aimed["safe_prediction"] == at_floor

@@ -156,3 +156,23 @@ def test_a_pass_that_changed_nothing_joins_the_shape_and_raises_the_old_peak():
     assert after_unchanged.sd < after_one.sd
     # and the fit does not take the unchanged pass for scatter
     assert fitted_u.scatter_mm <= fitted_1.scatter_mm + 1e-12
+
+
+def test_only_the_scatters_share_of_a_prediction_takes_its_few_degrees_of_freedom():
+    # a fresh machine's first pass: its spread is the priors' (known), not the scatter's estimate
+    # (4 pseudo-rows), so its tails are normal; a correction pass's spread is mostly scatter
+    from pipeline.forming.learning import _KNOWN_DOF, _effective_dof, fit
+
+    machines = {"R3-01": MACHINE}
+    fresh = _plate_after()
+    fitted = fit([fresh], machines, also_machines=["R3-01"])
+    first = fitted.predict(fresh, "R3-01", 90.0, yield_factor=1.0)
+    assert first.dof > 100
+    corrected = _plate_after((70.0, 15000.0))
+    fitted = fit([corrected], machines)
+    second = fitted.predict(corrected, "R3-01", 71.0)
+    assert fitted.scatter_dof <= second.dof < 3 * fitted.scatter_dof
+    # Welch-Satterthwaite: all estimated -> its dof; half known -> four times it
+    assert _effective_dof(2.0, (2.0, 5.0)) == pytest.approx(5.0)
+    assert _effective_dof(2.0, (1.0, 5.0)) == pytest.approx(20.0)
+    assert _effective_dof(2.0, (0.0, 5.0)) == _KNOWN_DOF
