@@ -128,7 +128,7 @@ def random_batch(
     return out
 
 
-class _TruePlate:
+class TruePlate:
     """A plate's hidden state: the largest loaded curvature so far and the yield of the pass that set it."""
 
     def __init__(self, plate: SimPlate, machine: Machine, physics: TruePhysics) -> None:
@@ -208,7 +208,7 @@ def run_campaign(
     finished: list[PlateRecord] = []
     out = []
     for sim in plates:
-        record, truth = sim.record, _TruePlate(sim, machine, physics)
+        record, truth = sim.record, TruePlate(sim, machine, physics)
         band_hi = target_curvature(record.target) + physics.verdict_band * curvature_band(
             record.target
         )
