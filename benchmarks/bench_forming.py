@@ -2,17 +2,20 @@
 
 Run from the project root:  .venv/bin/python benchmarks/bench_forming.py [--plates 20] [--seeds 0 1 2]
                             [--compliance 2.0] [--gain 1.0] [--scatter 0.1] [--yield-scatter 0]
+                            [--hardening 1.0] [--batch]
 
 Each seed draws a batch (``pipeline.forming.campaign.random_batch``: radii 3-15 m, thickness 10-30 mm,
 AH36/DH36, hidden yield 1.05-1.35 x nominal) and rolls it plate after plate on issue 14's machine against
 the hidden physics (compliance, displacement gain, displacement scatter per pass, 0.05 % radius noise). "learning": the
 advice sees the finished plates; "alone": each plate from the nominal model and its own passes only.
-Prints the passes of every plate of the first seed, then a summary per seed and mode.
+``--batch``: each seed one grade and thickness with close yields, as plates of one heat. Prints the
+passes of every plate of the first seed, a summary per seed and mode, and the totals over the seeds.
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import sys
 import time
 from pathlib import Path
@@ -21,7 +24,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.forming.campaign import TruePhysics, random_batch, run_campaign, summary
+from pipeline.forming.campaign import GRADES, TruePhysics, random_batch, run_campaign, summary
 from pipeline.forming.records import Machine
 
 MACHINE = Machine(
@@ -61,16 +64,28 @@ def main():
         default=0.0,
         help="hidden relative scatter of the yield a pass sees (not in the advice's model)",
     )
+    ap.add_argument(
+        "--hardening",
+        type=float,
+        default=1.0,
+        help="hidden factor on the permanent curvature (0.98: 2 %% work hardening, not in the model)",
+    )
+    ap.add_argument(
+        "--batch",
+        action="store_true",
+        help="each seed one grade and thickness (20-30 mm), yields 1.15-1.25 x nominal (one heat)",
+    )
     args = ap.parse_args()
     physics = TruePhysics(
         compliance_mm_per_mn=args.compliance,
         displacement_gain=args.gain,
         displacement_scatter_mm=args.scatter,
         yield_scatter=args.yield_scatter,
+        hardening=args.hardening,
     )
-    rows = []
+    rows, passes = [], {"learning": collections.Counter(), "alone": collections.Counter()}
     for k, seed in enumerate(args.seeds):
-        plates = random_batch(args.plates, np.random.default_rng(seed))
+        plates = batch(args.plates, seed, one_heat=args.batch)
         runs = {}
         for mode in ("learning", "alone"):
             t0 = time.perf_counter()
@@ -82,11 +97,12 @@ def main():
                 learning=mode == "learning",
             )
             rows.append((seed, mode, summary(runs[mode]), time.perf_counter() - t0))
+            passes[mode].update(o.passes for o in runs[mode])
         if k == 0:
             print(
                 f"seed {seed}: compliance {args.compliance:g} mm/MN, gain {args.gain:g}, "
                 f"scatter {args.scatter:g} mm, "
-                f"yield scatter {args.yield_scatter:g}\n"
+                f"yield scatter {args.yield_scatter:g}, hardening {args.hardening:g}\n"
             )
             print(
                 "| plate | grade | t mm | target R mm | yield x | passes learning | passes alone "
@@ -110,6 +126,27 @@ def main():
             f"| {seed} | {mode} | {s['plates']} | {s['done']} | {s['over_bent']} | {s['max_passes']} "
             f"| {s['mean_passes']:.2f} | {s['mean_passes_after_first']:.2f} | {t:.0f} |"
         )
+    print()
+    for mode, counts in passes.items():
+        after_first = [s["mean_passes_after_first"] for _, m, s, _ in rows if m == mode]
+        print(
+            f"{mode}: plates by passes {dict(sorted(counts.items()))}, over-bent "
+            f"{sum(s['over_bent'] for _, m, s, _ in rows if m == mode)}, not done "
+            f"{sum(s['plates'] - s['done'] for _, m, s, _ in rows if m == mode)}; mean after the "
+            f"first plate {np.mean(after_first):.3f}, worst seed {max(after_first):.3f}"
+        )
+
+
+def batch(n: int, seed: int, *, one_heat: bool) -> list:
+    """The seed's plates: a mixed batch, or (``one_heat``) one grade and thickness of close yields."""
+    rng = np.random.default_rng(seed)
+    if not one_heat:
+        return random_batch(n, rng)
+    thickness = float(rng.choice([20.0, 25.0, 30.0]))
+    grade = GRADES[int(rng.integers(len(GRADES)))]
+    return random_batch(
+        n, rng, thicknesses_mm=[thickness], grades=[grade], yield_factors=(1.15, 1.25)
+    )
 
 
 if __name__ == "__main__":

@@ -5,6 +5,7 @@ The truth is the model's physics (:mod:`.rolling`) with values the advice does n
 - each plate's yield factor (drawn by :func:`random_batch`, 1.05-1.35 times the nominal yield);
 - the machine's compliance and displacement gain (how far the plate is really pushed per mm of the
   reading: a bender geometry a few per cent off the model's);
+- the material's hardening (a factor on the permanent curvature);
 - per pass: a displacement scatter (the roll's repeatability, the plate's feed) and a scatter of the
   yield factor of the material that pass yields (local variation);
 - per inspection: relative radius noise; the inspection's verdict passes a curvature error up to
@@ -45,6 +46,9 @@ class TruePhysics:
         Sd of a pass's effective displacement.
     yield_scatter : float
         Relative sd of the yield factor of the material a pass yields.
+    hardening : float
+        Factor on the permanent curvature the model's elastic-perfectly-plastic section leaves (0.98:
+        2 % less, as a hardening section springs back more).
     radius_noise : float
         Relative sd of an inspected radius.
     verdict_band : float
@@ -55,6 +59,7 @@ class TruePhysics:
     displacement_gain: float = 1.0
     displacement_scatter_mm: float = 0.1
     yield_scatter: float = 0.0
+    hardening: float = 1.0
     radius_noise: float = 5e-4
     verdict_band: float = 0.95
 
@@ -153,7 +158,8 @@ class TruePlate:
         return self.curvature()
 
     def curvature(self) -> float:
-        return float(self.setup.unloaded_curvature(np.array([self.peak]), self.peak_factor)[0])
+        unloaded = self.setup.unloaded_curvature(np.array([self.peak]), self.peak_factor)[0]
+        return float(self.physics.hardening * unloaded)
 
 
 def inspect(
