@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import dataclasses
 import sys
 import tempfile
 import time
@@ -45,13 +46,12 @@ MACHINE = {
 
 
 def put_target(client: TestClient, plate_id: str, target) -> None:
-    m = target.material
     body = {
         "format": "plate-target/1",
         "shape": {"type": "cylinder", "radius_mm": target.radius_mm},
         "size_mm": [target.width_mm, target.length_mm],
         "tolerance_mm": target.tolerance_mm,
-        "material": {"grade": m.grade, "thickness_mm": m.thickness_mm, "yield_mpa": m.yield_mpa},
+        "material": dataclasses.asdict(target.material),
     }
     r = client.put(f"/api/v1/plates/{plate_id}/target", json=body, headers=AUTH)
     r.raise_for_status()
