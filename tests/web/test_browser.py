@@ -663,3 +663,26 @@ def test_side_list_pages_without_reload(live_server, browser):
         time.sleep(0.2)
     time.sleep(2.5)  # one more refresh of the side lists: still the older page
     assert "41–" in pages.inner_text() and "newer" in pages.inner_text()
+
+
+def test_side_list_keeps_its_links_while_nothing_changes(live_server, browser):
+    """A poll that brings the same side list leaves its nodes alone (a link is not swapped from under
+    a click, as it was every 2 s on a loaded machine); a new plate still appears without a reload."""
+    target = {
+        "format": "plate-target/1",
+        "shape": {"type": "plane"},
+        "size_mm": [2000.0, 1000.0],
+        "tolerance_mm": 2.0,
+    }
+    _api(live_server, "PUT", "/api/v1/plates/SIDE-STILL/target", target)
+    page = browser.new_page(viewport={"width": 1920, "height": 1080})
+    page.goto(f"{live_server['base']}/calibration")
+    link = page.locator("#side-body a[href='/plates/SIDE-STILL']")
+    link.wait_for()
+    time.sleep(2.5)  # the first poll may re-render the page's own copy of the list
+    handle = link.element_handle()
+    time.sleep(4.5)  # two more polls, nothing changed
+    assert handle.evaluate("node => node.isConnected")
+    _api(live_server, "PUT", "/api/v1/plates/SIDE-NEW/target", target)
+    page.locator("#side-body a[href='/plates/SIDE-NEW']").wait_for(timeout=10_000)
+    assert not handle.evaluate("node => node.isConnected")  # the changed list was swapped in

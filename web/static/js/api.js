@@ -39,13 +39,20 @@ export async function postForm(url, formData) {
   return parse(await fetch(url, { method: "POST", credentials: "same-origin", body: formData }));
 }
 
-/** Replace the children of `element` with a server-rendered partial fetched from `url`. */
+const shownPartials = new WeakMap(); // element -> the partial's HTML it shows
+
+/** Replace the children of `element` with a server-rendered partial fetched from `url`, unless the
+ * partial is the one it shows already (a poll that changed nothing leaves the nodes alone: a link
+ * under the pointer is not swapped from under a click, a hover does not flicker). */
 export async function refreshPartial(element, url) {
   const response = await fetch(url, { credentials: "same-origin", headers: { Accept: "text/html" } });
   if (!response.ok) throw new ApiError(response.status, await response.text());
+  const html = await response.text();
+  if (shownPartials.get(element) === html) return;
   const template = document.createElement("template");
-  template.innerHTML = await response.text();
+  template.innerHTML = html;
   element.replaceChildren(template.content);
+  shownPartials.set(element, html);
 }
 
 /** Show a message in an <output>; kind is "ok" or "error". */
