@@ -2,7 +2,7 @@
 
 Run from the project root:  .venv/bin/python benchmarks/bench_forming.py [--plates 20] [--seeds 0 1 2]
                             [--compliance 2.0] [--gain 1.0] [--scatter 0.1] [--yield-scatter 0]
-                            [--hardening 1.0] [--batch]
+                            [--hardening 1.0] [--batch] [--over-probability 0.005]
 
 Each seed draws a batch (``pipeline.forming.campaign.random_batch``: radii 3-15 m, thickness 10-30 mm,
 AH36/DH36, hidden yield 1.05-1.35 x nominal) and rolls it plate after plate on issue 14's machine against
@@ -24,6 +24,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from pipeline.forming.advice import AimSettings
 from pipeline.forming.campaign import GRADES, TruePhysics, random_batch, run_campaign, summary
 from pipeline.forming.records import Machine
 
@@ -71,6 +72,12 @@ def main():
         help="hidden factor on the permanent curvature (0.98: 2 %% work hardening, not in the model)",
     )
     ap.add_argument(
+        "--over-probability",
+        type=float,
+        default=AimSettings.over_probability,
+        help="the aim's risk of ending tighter than 0.8 of the band (AimSettings)",
+    )
+    ap.add_argument(
         "--batch",
         action="store_true",
         help="each seed one grade and thickness (20-30 mm), yields 1.15-1.25 x nominal (one heat)",
@@ -95,6 +102,7 @@ def main():
                 physics,
                 np.random.default_rng(seed + 100),
                 learning=mode == "learning",
+                settings=AimSettings(over_probability=args.over_probability),
             )
             rows.append((seed, mode, summary(runs[mode]), time.perf_counter() - t0))
             passes[mode].update(o.passes for o in runs[mode])
