@@ -24,7 +24,7 @@ from collections.abc import Callable
 from dataclasses import replace
 from importlib.metadata import entry_points
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from .formats import AcquisitionError, InputError, PipelineError
 from .parallel import configure_process
@@ -280,6 +280,46 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _cmd_gauge_study(args: argparse.Namespace) -> int:
+    from . import gauge
+    from .run import warm_up
+
+    warm_up()
+    if args.bundles:
+        if args.target is None:
+            raise BadArgument("--target: expected the plate's target with --bundles")
+        if len(args.bundles) < 2:
+            raise BadArgument(f"--bundles: expected at least 2 bundles, got {len(args.bundles)}")
+        with _workdir(args.out) as work:
+            result = gauge.bundles_study(args.bundles, args.target, workdir=work)
+    else:
+        width, height = _pair(args.size, name="--size")
+        if args.n < 2:
+            raise BadArgument(f"--n: expected at least 2 repeats, got {args.n}")
+        result = gauge.simulated_study(
+            n=args.n,
+            width=width,
+            height=height,
+            n_lights=args.lights,
+            near_field_mm=args.near_field_mm,
+            seed=args.seed,
+            workdir=args.out,
+        )
+    print(result.table())
+    return EXIT_OK
+
+
+def _workdir(out: str | None) -> Any:
+    """A context giving the study's working folder: ``out`` (kept) or a temporary one."""
+    import contextlib
+    import tempfile
+
+    if out is not None:
+        Path(out).mkdir(parents=True, exist_ok=True)
+        return contextlib.nullcontext(Path(out))
+    return tempfile.TemporaryDirectory(prefix="plate-inspect-gauge-")
+
+
 # --------------------------------------------------------------------------- parser
 
 
@@ -295,6 +335,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_calibrate(sub)
     _add_acquire(sub)
     _add_inspect(sub)
+    _add_gauge_study(sub)
     for entry in entry_points(group="plate_inspect.commands"):
         entry.load()(sub)
     return parser
@@ -496,6 +537,29 @@ def _add_inspect(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         "the first inspection of a process then includes that loading in its timings",
     )
     ins.set_defaults(handler=_cmd_inspect)
+
+
+def _add_gauge_study(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """``plate-inspect gauge-study``."""
+    gs = sub.add_parser(
+        "gauge-study",
+        help="type-1 gauge study: one plate measured n times, Cg and Cgk of its radius and deviation",
+    )
+    gs.add_argument(
+        "--bundles", nargs="+", help="capture bundles of one plate (else the simulated cell)"
+    )
+    gs.add_argument("--target", help="the plate's target (with --bundles)")
+    gs.add_argument("--n", type=int, default=25, help="simulated repeats (default 25)")
+    gs.add_argument("--size", default="1224x1024", help="simulated image size WIDTHxHEIGHT px")
+    gs.add_argument("--lights", type=int, default=12, help="simulated lights (default 12)")
+    gs.add_argument(
+        "--near-field-mm",
+        type=float,
+        help="simulated LEDs this high above the plate, positions given (default: distant lights)",
+    )
+    gs.add_argument("--seed", type=int, default=0, help="first seed of the simulated repeats")
+    gs.add_argument("--out", help="keep the bundles and results here (default: a temporary folder)")
+    gs.set_defaults(handler=_cmd_gauge_study)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -35,6 +35,8 @@ class RegionDetails:
     peak_deviation_mm: float
     mean_deviation_mm: float | None = field(default=None, kw_only=True)
     centroid_mm: list[float] | None = field(default=None, kw_only=True)
+    #: Expanded uncertainty (k = 2) of the measurement at the peak, mm (null before it was added).
+    uncertainty_mm: float | None = field(default=None, kw_only=True)
 
 
 @dataclass(frozen=True)
@@ -83,6 +85,23 @@ class FusionDetails:
     stereo_pixels: int
     correction: str
     knot_spacing_px: float | None
+    #: The lack-of-fit test per rung: {rung: [statistic, threshold]} (pipeline.fusion.Fusion.evidence).
+    evidence: dict[str, list[float]] = field(default_factory=dict)
+    #: Variance inflation of the stereo noise by its correlation between neighbouring blocks.
+    noise_inflation: float = 1.0
+
+
+@dataclass(frozen=True)
+class UncertaintyDetails:
+    """How the expanded uncertainties were made (:mod:`pipeline.uncertainty`): ``k``, the figures (mm)
+    and the standard uncertainties behind them (``components``), and the edge band left out by
+    geometry (mm from the plate's outline and openings)."""
+
+    k: float
+    deviation_mm: float
+    radius_mm: float | None
+    components: dict[str, float]
+    edge_band_mm: float
 
 
 @dataclass(frozen=True)
@@ -122,6 +141,7 @@ class Details:
     samples_saturated, samples_shadowed : int
     stereo_matched_pct : float or None
     metric_scale : {"stereo", "working_distance"}
+    uncertainty : UncertaintyDetails or None
     """
 
     T_cam_target: list[list[float]]
@@ -142,6 +162,7 @@ class Details:
     samples_shadowed: int
     stereo_matched_pct: float | None
     metric_scale: str
+    uncertainty: UncertaintyDetails | None = None
 
     def to_json(self) -> str:
         """The text of ``details.json`` (indented JSON, a final newline)."""
@@ -158,6 +179,9 @@ def region_details(
         peak_deviation_mm=float(region.peak_deviation_mm),
         mean_deviation_mm=float(region.mean_deviation_mm),
         centroid_mm=None if centroid_mm is None else [float(c) for c in centroid_mm],
+        uncertainty_mm=round(region.uncertainty_mm, 3)
+        if np.isfinite(region.uncertainty_mm)
+        else None,
     )
 
 
@@ -228,6 +252,8 @@ def fusion_details(fused: Fusion | None) -> FusionDetails | None:
         stereo_pixels=fused.n_stereo,
         correction=fused.model,
         knot_spacing_px=None if fused.knot_spacing_px is None else round(fused.knot_spacing_px, 1),
+        evidence=fused.evidence,
+        noise_inflation=round(fused.noise_inflation, 3),
     )
 
 

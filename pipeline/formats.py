@@ -462,6 +462,14 @@ class DeviationStats(_Strict):
     p95: float
 
 
+class ResultUncertainty(_Strict):
+    """Expanded uncertainties (GUM, coverage factor ``k``) of the radius and the deviation, mm."""
+
+    k: float = 2.0
+    radius_mm: float | None
+    deviation_mm: float
+
+
 class ResultFile(_Strict):
     format: Literal["plate-result/1"] = RESULT_FORMAT
     plate_id: str
@@ -475,5 +483,6 @@ class ResultFile(_Strict):
     verdict: Literal["pass", "fail", "error"]
     error: str | None = None
     warnings: list[str] | None = None
+    uncertainty: ResultUncertainty | None = None
     timings_s: dict[str, float]
     artifacts: dict[str, str]

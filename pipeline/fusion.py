@@ -13,9 +13,17 @@ coarse grid of knots, fitted robustly to the medians of that difference over sma
 spline can represent -- scale, tilt, bend, twist, any shape error wider than about a knot spacing --
 comes from the stereo pair; everything finer from the normals. The spline averages thousands of
 stereo pixels per coefficient, so the stereo noise that reaches the surface is small, and a shape
-feature that both see (a dent) is not in the difference at all. The knot spacing is chosen per
-surface: the coarsest that explains the stereo pair as well as the finest (so correct normals keep
-the shape, and only wrong ones hand it to the stereo pair).
+feature that both see (a dent) is not in the difference at all.
+
+The correction is chosen by the evidence (a lack-of-fit test): from a plane in (u, v) (scale and
+tilt, always the stereo pair's), a quadric (and bend) and splines of finer knots, the coarsest rung
+that the finest one does not beat by more than the stereo noise explains. The noise is measured on
+the data: the robust spread of the finest rung's block residuals and their correlation between
+neighbouring blocks (a stereo matcher's errors are correlated over its window and smoothness
+term), which inflates what pure noise takes out of the residual. So exact normals keep their shape
+(and their noise is all that reaches it), while wrong lights, whose bend the stereo pair proves,
+hand the plate's overall shape to it. The fit's covariance gives the correction's own standard
+deviation at every pixel and the bend's, for the uncertainty (:mod:`pipeline.uncertainty`).
 
 References
 ----------
@@ -28,32 +36,32 @@ References
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
+import cv2
 import numba as nb
 import numpy as np
 import numpy.typing as npt
+from scipy import stats
 
 #: Finest knot spacing of the correction spline as a fraction of the plate's larger extent in the
 #: image: at most, the stereo pair governs shape wider than about this.
 KNOT_FRACTION = 1.0 / 16.0
 #: Knot spacings tried, coarsest first (after a plane and a quadric in (u, v)).
 KNOT_LADDER = (1.0 / 2.0, 1.0 / 4.0, 1.0 / 8.0, 1.0 / 16.0)
-#: Shape disagreement (RMS, mm) below which the normals keep the shape (see fuse_low_frequencies): the
-#: noise the finer rungs would fit is charged separately (NOISE_CORRELATION), so this only breaks
-#: near-ties. Measured at 1224x1024: 0.25 left corner errors of 3-4 mm in place (small in RMS) with
-#: LEDs refitted from nominal directions; 0.05 takes them out and still keeps exact normals' shape
-#: (plane or quadric chosen with lights known).
-RESOLVE_MM = 0.05
+#: Significance level of the lack-of-fit test that lets a finer correction in (see :func:`_chosen`): a
+#: coarser rung is kept unless the finest explains the stereo pair better than noise would with
+#: probability 1 - SIGNIFICANCE.
+SIGNIFICANCE = 1e-3
+#: Largest neighbour correlation of the block residuals taken from the data (beyond it the
+#: inflation of the noise would grow without bound).
+MAX_NEIGHBOUR_CORRELATION = 0.9
 #: The polynomial rungs of the ladder: a plane (scale and tilt) and a quadric (and bend) in (u, v).
 PLANE, QUADRIC = "plane", "quadric"
 #: A rung of the ladder: the plane, the quadric, or a spline of a knot spacing (fraction of the extent).
 Rung = str | float
 _POLYNOMIAL: dict[Rung, int] = {PLANE: 3, QUADRIC: 6}
 _DEGREE: dict[Rung, int] = {PLANE: 1, QUADRIC: 2}
-#: The finer corrections of the ladder fit the stereo noise too: each coefficient takes the variance of
-#: about this many blocks (noise correlated between neighbouring blocks) out of the residual.
-NOISE_CORRELATION = 2.0
 #: The difference is reduced to medians over square blocks of pixels; about this many blocks.
 TARGET_BLOCKS = 12_000
 #: Blocks are at least this wide (px): wider than the stereo matcher's window and the reach of its
@@ -75,7 +83,7 @@ SMOOTHING = 1e-6
 
 @dataclass(frozen=True)
 class Fusion:
-    """The fused surface and how far the two shapes disagreed.
+    """The fused surface, how far the two shapes disagreed, and how sure the correction is.
 
     Attributes
     ----------
@@ -89,16 +97,31 @@ class Fusion:
         disagreement of shape.
     stereo_noise_mm : float
         Robust standard deviation of a stereo sample about the fused surface, mm (from the block
-        medians' residuals, as if the noise were independent between samples).
+        medians' residuals of the finest rung, as if the noise were independent between samples).
     noise_floor_mm : float
-        How much disagreement the stereo noise alone explains: 3 standard errors of the spline's
-        value (the noise of the stereo samples of a knot cell, as if independent), mm.
+        How much disagreement the stereo noise alone explains: 3 standard deviations of the chosen
+        correction's value (its covariance, the noise's correlation included), 95th percentile over
+        the surface, mm.
     n_stereo : int
         Stereo pixels in the fit.
     knot_spacing_px : float or None
         Knot spacing of the correction chosen; None: a polynomial (see ``model``).
     model : {"plane", "quadric", "spline"}
         The correction chosen: scale and tilt; and bend; or a spline of ``knot_spacing_px``.
+    noise_inflation : float
+        How much the block residuals' correlation between neighbours inflates the variance of a
+        smooth fit over pure, independent noise (1: independent), measured on the data.
+    evidence : dict
+        The lack-of-fit test per rung tried: ``{rung: [statistic, threshold]}`` (chi-square, its
+        quantile at 1 - :data:`SIGNIFICANCE`); the rung chosen is the coarsest whose statistic is
+        within its threshold.
+    correction_sd_mm : (H, W) float32 or None
+        Standard deviation of the chosen correction at every pixel from the stereo noise (its fit's
+        covariance), mm; NaN outside the mask.
+    bend_cov : (3, 3) float64 or None
+        Covariance of the quadric correction's second derivatives ``(d2/du2, d2/dudv, d2/dv2)`` of
+        log depth at the plate's centre, per px^2 squared: how well the stereo pair fixes the bend,
+        whichever rung was chosen (the radius's uncertainty).
     """
 
     depth_mm: np.ndarray
@@ -109,6 +132,10 @@ class Fusion:
     n_stereo: int
     knot_spacing_px: float | None
     model: str = "spline"
+    noise_inflation: float = 1.0
+    evidence: dict[str, list[float]] = field(default_factory=dict)
+    correction_sd_mm: np.ndarray | None = None
+    bend_cov: np.ndarray | None = None
 
 
 def fuse_low_frequencies(
@@ -117,9 +144,9 @@ def fuse_low_frequencies(
     mask: np.ndarray,
     *,
     knot_fraction: float = KNOT_FRACTION,
-    resolve_mm: float | None = RESOLVE_MM,
+    select: bool = True,
 ) -> Fusion:
-    """Replace the low frequencies of a photometric surface by the stereo pair's.
+    """Replace the low frequencies of a photometric surface by what the stereo pair proves of them.
 
     Parameters
     ----------
@@ -131,14 +158,11 @@ def fuse_low_frequencies(
         The surface's pixels.
     knot_fraction : float
         The finest knot spacing tried, as a fraction of the mask's larger extent (0 < . <= 1).
-    resolve_mm : float or None
-        The correction is chosen from a ladder: a plane in (u, v) (scale and tilt), a quadric (and
-        bend), then splines of knot spacing 1/2, 1/4, ... of the extent down to ``knot_fraction``.
-        Each rung is scored by its robust residual against the stereo pair plus what its
-        coefficients would take out of pure noise (an information criterion); the best one is
-        taken if it is the plane, else the coarsest from the quadric on whose score is within this
-        RMS (mm) of the best: where the normals agree with the stereo pair to that, the stereo pair
-        sets only scale, tilt and bend, and its noise does not reach the shape. None: the spline of
+    select : bool
+        True: the correction is chosen from a ladder, a plane in (u, v) (scale and tilt), a quadric
+        (and bend), then splines of knot spacing 1/2, 1/4, ... of the extent down to
+        ``knot_fraction``, by a lack-of-fit test (:func:`_chosen`): the coarsest rung that the
+        finest does not beat beyond the measured stereo noise. False: the spline of
         ``knot_fraction`` (or, with too few stereo blocks for it, the finest rung they carry).
 
     Returns
@@ -161,24 +185,32 @@ def fuse_low_frequencies(
     sparse = max(1, int(np.sqrt(mb.size / 100_000)))
     z_typ = float(np.median(zb[::sparse, ::sparse][mb[::sparse, ::sparse]]))
     blocks = _Blocks.of(zb, zsb, mb)
-    rung, grid, coef, _, sigma_pix = _chosen(
-        _ladder_fits(blocks, mb.shape, knot_fraction, resolve_mm), blocks, resolve_mm, z_typ
-    )
-    fraction = rung if rung not in _POLYNOMIAL else None
+    fits = _ladder_fits(blocks, mb.shape, knot_fraction, select)
+    chosen, inflation, evidence = _chosen(fits, blocks) if select else (fits[0], 1.0, {})
+    fraction = chosen.rung if chosen.rung not in _POLYNOMIAL else None
     fused = np.full(z.shape, np.nan)
     correction = np.full(z.shape, np.nan, np.float32)
-    _compose(zb, grid.evaluate(coef), mb, fused[box], correction[box])
-    cells = max((grid.nv - 3) * (grid.nu - 3), 1) if fraction is not None else 1
-    per_cell = max(float(blocks.samples.sum()) / cells, 1.0)
+    _compose(zb, chosen.grid.evaluate(chosen.coef), mb, fused[box], correction[box])
+    sigma_pix = fits[-1].sigma_pix if select else chosen.sigma_pix  # the finest rung's: the noise
+    scale2 = _noise_variance(sigma_pix, blocks) * inflation
+    sd = None
+    if select:
+        sd = np.full(z.shape, np.nan, np.float32)
+        sd[box] = np.where(mb, _value_sd(chosen, scale2) * zb, np.nan)
+    quadric = next((f for f in fits if f.rung == QUADRIC), None)
     return Fusion(
         depth_mm=fused,
         correction_mm=correction,
         disagreement_mm=_disagreement(zb, correction[box], mb),
         stereo_noise_mm=float(sigma_pix * z_typ),
-        noise_floor_mm=float(3.0 * sigma_pix / np.sqrt(per_cell) * z_typ),
+        noise_floor_mm=float(3.0 * np.nanpercentile(sd[box][mb], 95)) if sd is not None else 0.0,
         n_stereo=int(blocks.n_pixels),
-        knot_spacing_px=None if fraction is None else float(grid.spacing),
-        model=rung if isinstance(rung, str) else "spline",
+        knot_spacing_px=None if fraction is None else float(chosen.grid.spacing),
+        model=chosen.rung if isinstance(chosen.rung, str) else "spline",
+        noise_inflation=float(inflation),
+        evidence=evidence,
+        correction_sd_mm=sd,
+        bend_cov=None if quadric is None or not select else _bend_cov(quadric, scale2),
     )
 
 
@@ -204,24 +236,41 @@ def _check_inputs(
     return z, zs, m
 
 
-#: One fitted rung: (rung, grid, coefficients, robust RMS, per-pixel robust sd), log depth.
-LadderFit = tuple[Rung, "_Grid", np.ndarray, float, float]
+@dataclass(frozen=True)
+class _Fitted:
+    """One rung of the ladder fitted to the blocks (log depth).
+
+    ``coef`` the spline coefficients; ``sigma_pix`` the per-sample robust standard deviation;
+    ``residual`` (nbv, nbu) the block residuals; ``normal``
+    the normal equations' matrix of the last pass (with the penalty), ``basis`` the polynomial
+    basis in coefficient space (None for a spline); ``n_params`` the free parameters.
+    """
+
+    rung: Rung
+    grid: _Grid
+    coef: np.ndarray
+    sigma_pix: float
+    residual: np.ndarray
+    normal: np.ndarray
+    basis: np.ndarray | None
+    n_params: int
 
 
 def _ladder_fits(
-    blocks: _Blocks, shape: tuple[int, int], knot_fraction: float, resolve_mm: float | None
-) -> list[LadderFit]:
-    """The fits ``(rung, grid, coef, rms, sigma_pix)`` of every rung of the ladder that the blocks can carry
-    (``resolve_mm`` None: only the spline of ``knot_fraction``, or the finest rung the blocks carry)."""
+    blocks: _Blocks, shape: tuple[int, int], knot_fraction: float, select: bool
+) -> list[_Fitted]:
+    """The fits of every rung of the ladder that the blocks can carry, coarsest first (``select`` False:
+    only the spline of ``knot_fraction``, or the finest rung the blocks carry)."""
     extent = float(max(shape))
 
-    def fit(rung: Rung) -> LadderFit | None:
+    def fit(rung: Rung) -> _Fitted | None:
         grid = _Grid.over(shape, extent * (1.0 if isinstance(rung, str) else rung))
-        if blocks.n_used < 4 * _POLYNOMIAL.get(rung, grid.size):
+        n_params = _POLYNOMIAL.get(rung, grid.size)
+        if blocks.n_used < 4 * n_params:
             return None
-        return (rung, grid, *_fit(grid, blocks, degree=_DEGREE.get(rung)))
+        return _fit(grid, blocks, rung=rung, n_params=n_params)
 
-    if resolve_mm is None:
+    if not select:
         ladder: list[Rung] = [
             knot_fraction,
             *(f for f in KNOT_LADDER[::-1] if f > knot_fraction),
@@ -243,29 +292,140 @@ def _ladder_fits(
     return fits
 
 
-def _chosen(
-    fits: list[LadderFit], blocks: _Blocks, resolve_mm: float | None, z_typ: float
-) -> LadderFit:
-    """The fit taken: each is scored by its residual plus what its coefficients would take out of pure noise
-    (an information criterion); the best if it is the plane, else the coarsest from the quadric on within
-    ``resolve_mm`` RMS of the best score."""
-    noise2 = min(f[3] for f in fits) ** 2
-    slack = 0.0 if resolve_mm is None else (resolve_mm / z_typ) ** 2
+def _chosen(fits: list[_Fitted], blocks: _Blocks) -> tuple[_Fitted, float, dict[str, list[float]]]:
+    """The rung taken by a lack-of-fit test against the finest, the noise inflation and the evidence.
 
-    def score(f: LadderFit) -> float:
-        return float(
-            f[3] ** 2
-            + 2.0 * NOISE_CORRELATION * noise2 * _POLYNOMIAL.get(f[0], f[1].size) / blocks.n_used
-        )
+    Under pure noise, the drop of the standardised residual sum from a rung with ``p`` parameters to
+    the finest (``p_f``) is chi-square with ``p_f - p`` degrees of freedom, once divided by the
+    noise variance (the finest rung's residual sum over its ``n - p_f`` degrees of freedom, residuals
+    clipped at one robust scale for all rungs) and by the inflation that the residuals' correlation
+    between neighbouring blocks brings (measured on the finest rung's residuals). The coarsest rung whose drop is within the
+    ``1 - SIGNIFICANCE`` quantile is taken: a finer correction enters only where the stereo pair
+    proves it.
+    """
+    finest = fits[-1]
+    inflation = _noise_inflation(finest.residual, blocks)
+    used = blocks.count > 0
+    root_n = np.sqrt(blocks.samples[used]) / 1.2533
+    # one clip for every rung (the finest's robust scale), so that the sums compare
+    clip = HUBER_K * max(finest.sigma_pix, 1e-12)
 
-    best = min(fits, key=score)
-    # the slack applies between the bend and the finer corrections: the bend itself needs no more than
-    # its score (a bent plate must get the stereo pair's radius)
-    return (
-        best
-        if best[0] == PLANE
-        else next(f for f in fits if f[0] != PLANE and score(f) <= score(best) + slack)
+    def rss(f: _Fitted) -> float:
+        return float(np.sum(np.minimum(np.abs(f.residual[used] * root_n), clip) ** 2))
+
+    rss_finest = rss(finest)
+    dof_noise = max(int(np.count_nonzero(used)) - finest.n_params, 1)
+    noise2 = rss_finest / dof_noise * inflation
+    evidence: dict[str, list[float]] = {}
+    chosen = finest
+    for f in fits[:-1]:
+        dof = finest.n_params - f.n_params
+        statistic = (rss(f) - rss_finest) / noise2 if noise2 > 0 else np.inf
+        threshold = float(stats.chi2.ppf(1.0 - SIGNIFICANCE, dof))
+        evidence[_rung_name(f.rung)] = [round(float(statistic), 1), round(threshold, 1)]
+        if statistic <= threshold and chosen is finest:
+            chosen = f
+    evidence[_rung_name(finest.rung)] = [0.0, 0.0]
+    return chosen, inflation, evidence
+
+
+def _rung_name(rung: Rung) -> str:
+    return rung if isinstance(rung, str) else f"spline 1/{round(1.0 / rung)}"
+
+
+def _noise_inflation(residual: np.ndarray, blocks: _Blocks) -> float:
+    """Variance inflation of a smooth fit by the correlation of neighbouring block residuals.
+
+    The standardised residuals' correlation between horizontal and between vertical neighbours
+    (both blocks used), taken as a first-order autoregression along each axis: a smooth function's
+    fit then sees ``(1 + r) / (1 - r)`` times the independent noise's variance per axis.
+    """
+    used = blocks.count > 0
+    s = residual * np.sqrt(blocks.samples)
+    scale = 1.4826 * float(np.median(np.abs(s[used]))) if used.any() else 0.0
+    if not scale > 0:
+        return 1.0
+    s = np.where(used, np.clip(s / scale, -HUBER_K * 2, HUBER_K * 2), 0.0)
+    factor = 1.0
+    for a, b, both in (
+        (s[:, 1:], s[:, :-1], used[:, 1:] & used[:, :-1]),
+        (s[1:, :], s[:-1, :], used[1:, :] & used[:-1, :]),
+    ):
+        if np.count_nonzero(both) < 10:
+            continue
+        x, y = a[both], b[both]
+        r = float(np.sum(x * y) / np.sqrt(np.sum(x * x) * np.sum(y * y)))
+        r = min(max(r, 0.0), MAX_NEIGHBOUR_CORRELATION)
+        factor *= (1.0 + r) / (1.0 - r)
+    return factor
+
+
+def _noise_variance(sigma_pix: float, blocks: _Blocks) -> float:
+    """The variance (log depth squared) that scales ``normal^-1`` into the coefficients' covariance.
+
+    A block's residual has variance ``(1.2533 sigma)^2 / samples`` (a median's efficiency) and the fit
+    weighs it by ``samples * stride^2`` (its pixels): the weighted least squares' covariance is
+    ``stride^2 (1.2533 sigma)^2 normal^-1``.
+    """
+    stride2 = float(np.mean(blocks.count[blocks.count > 0] / blocks.samples[blocks.count > 0]))
+    return stride2 * (1.2533 * sigma_pix) ** 2
+
+
+def _coef_cov(f: _Fitted, scale2: float) -> np.ndarray:
+    """Covariance of a fit's spline coefficients (``scale2``: :func:`_noise_variance` times the inflation)."""
+    if f.basis is not None:
+        Q = f.basis
+        inner = np.linalg.pinv(Q.T @ f.normal @ Q)
+        cov: np.ndarray = scale2 * (Q @ inner @ Q.T)
+        return cov
+    cov_spline: np.ndarray = scale2 * np.linalg.pinv(f.normal)
+    return cov_spline
+
+
+def _value_sd(f: _Fitted, scale2: float) -> np.ndarray:
+    """Standard deviation of a fit's value at every pixel of its box (log depth), from its covariance,
+    computed on every 8th pixel and interpolated."""
+    cov = _coef_cov(f, scale2)
+    grid = f.grid
+    h, w = grid.shape
+    rv, ru = np.arange(0, h + 7, 8).clip(max=h - 1), np.arange(0, w + 7, 8).clip(max=w - 1)
+    Bv, Bu = grid.basis(rv, grid.nv), grid.basis(ru, grid.nu)
+    # var(v, u) = sum_{ab,cd} Bv[v,a] Bu[u,b] C[ab,cd] Bv[v,c] Bu[u,d]
+    C = cov.reshape(grid.nv, grid.nu, grid.nv, grid.nu)
+    tmp = np.einsum("va,abcd->vbcd", Bv, C, optimize=True)
+    tmp = np.einsum("vc,vbcd->vbd", Bv, tmp, optimize=True)
+    var = np.einsum("ub,vbd,ud->vu", Bu, tmp, Bu, optimize=True)
+    sd = np.sqrt(np.clip(var, 0.0, None)).astype(np.float32)
+    full: np.ndarray = cv2.resize(
+        sd, (int(ru[-1] + 1), int(rv[-1] + 1)), interpolation=cv2.INTER_LINEAR
     )
+    return full[:h, :w]
+
+
+def _bend_cov(quadric: _Fitted, scale2: float) -> np.ndarray:
+    """Covariance of the quadric's second derivatives of log depth ``(uu, uv, vv)`` per px^2 (see Fusion)."""
+    cov = _coef_cov(quadric, scale2)
+    grid = quadric.grid
+    h, w = grid.shape
+    c_v, c_u, d = (h - 1) / 2.0, (w - 1) / 2.0, max(h, w) / 4.0
+    # second differences of the spline's value at the centre, as linear maps of the coefficients
+    pts = {
+        (dv, du): np.kron(
+            grid.basis(np.array([c_v + dv * d]), grid.nv),
+            grid.basis(np.array([c_u + du * d]), grid.nu),
+        )[0]
+        for dv in (-1, 0, 1)
+        for du in (-1, 0, 1)
+    }
+    G = np.stack(
+        [
+            (pts[(0, 1)] - 2 * pts[(0, 0)] + pts[(0, -1)]) / d**2,
+            (pts[(1, 1)] - pts[(1, -1)] - pts[(-1, 1)] + pts[(-1, -1)]) / (4 * d**2),
+            (pts[(1, 0)] - 2 * pts[(0, 0)] + pts[(-1, 0)]) / d**2,
+        ]
+    )
+    bend: np.ndarray = G @ cov @ G.T
+    return bend
 
 
 def _disagreement(zb: np.ndarray, corr_b: np.ndarray, mb: np.ndarray) -> float:
@@ -290,7 +450,7 @@ def smooth_stereo_depth(
     """
     ones = np.where(mask, 1.0, np.nan)
     return fuse_low_frequencies(
-        ones, stereo_depth_mm, mask, knot_fraction=knot_fraction, resolve_mm=None
+        ones, stereo_depth_mm, mask, knot_fraction=knot_fraction, select=False
     ).depth_mm
 
 
@@ -414,36 +574,24 @@ class _Grid:
         return np.kron(dtd(self.nv), np.eye(self.nu)) + np.kron(np.eye(self.nv), dtd(self.nu))
 
 
-def _fit(grid: _Grid, blocks: _Blocks, *, degree: int | None) -> tuple[np.ndarray, float, float]:
+def _fit(grid: _Grid, blocks: _Blocks, *, rung: Rung, n_params: int) -> _Fitted:
     """Robust penalised least squares of the spline to the block medians (weights: pixel counts).
 
-    With ``degree`` (1 or 2) the correction is a polynomial of that degree in (u, v) (scale and tilt;
-    and bend).
-    Returns the coefficients (nv * nu,), the robust weighted RMS of the block residuals and the
-    per-pixel robust standard deviation (both in log depth).
+    For the polynomial rungs the correction is a polynomial of degree 1 (scale and tilt) or 2 (and
+    bend) in (u, v).
     """
     Bv = grid.basis(blocks.centre_r, grid.nv)
     Bu = grid.basis(blocks.centre_c, grid.nu)
     R, W0 = blocks.value, blocks.count
-    Q = None
-    if degree is not None:
-        # a polynomial in the coefficients' indices is one in (u, v): cubic B-splines reproduce it
-        gv, gu = np.meshgrid(
-            np.arange(grid.nv, dtype=np.float64),
-            np.arange(grid.nu, dtype=np.float64),
-            indexing="ij",
-        )
-        gv, gu = gv.ravel() - gv.mean(), gu.ravel() - gu.mean()
-        Q = np.column_stack(
-            [np.ones(grid.size), gv, gu, gv * gv, gv * gu, gu * gu][
-                : _POLYNOMIAL[PLANE] if degree == 1 else _POLYNOMIAL[QUADRIC]
-            ]
-        )
+    Q = _polynomial_basis(grid, _DEGREE[rung]) if rung in _DEGREE else None
     PtP = grid.penalty()
     lam = SMOOTHING * W0.sum() / grid.size
     w = W0.copy()
+    used = W0 > 0
     coef = np.zeros(grid.size)
-    rms = sigma_pix = 0.0
+    res = R.copy()
+    sigma_pix = 0.0
+    N = np.eye(grid.size)
     for _ in range(IRLS_PASSES):
         # normal equations of sum_ij w_ij (R_ij - (Bv C Bu^T)_ij)^2, separably
         inner = Bu.T @ (w[:, :, None] * Bu[None])  # (nbv, nu, nu): Bu^T diag(w_i) Bu per block row
@@ -456,20 +604,41 @@ def _fit(grid: _Grid, blocks: _Blocks, *, degree: int | None) -> tuple[np.ndarra
         if Q is not None:
             coef = Q @ np.linalg.solve(Q.T @ N @ Q, Q.T @ rhs)
         else:
-            coef = np.linalg.solve(N + lam * PtP, rhs)
+            N = N + lam * PtP
+            coef = np.linalg.solve(N, rhs)
         res = R - (Bv @ coef.reshape(grid.nv, grid.nu)) @ Bu.T
-        used = W0 > 0
         # per-sample units: a median of n samples ~ 1.25 sigma / sqrt(n)
         scaled = (res * np.sqrt(blocks.samples))[used] / 1.2533
         sigma_pix = 1.4826 * float(np.median(np.abs(scaled)))
-        rms = float(
-            np.sqrt(np.sum(W0[used] * res[used] ** 2 * (w[used] / W0[used])) / np.sum(w[used]))
-        )
         if not sigma_pix > 0:
             break
         a = np.abs(res) * np.sqrt(W0) / (HUBER_K * sigma_pix)
         w = W0 * np.where(a <= 1.0, 1.0, 1.0 / np.maximum(a, 1e-12))
-    return coef, rms, sigma_pix
+    return _Fitted(
+        rung=rung,
+        grid=grid,
+        coef=coef,
+        sigma_pix=sigma_pix,
+        residual=np.where(used, res, 0.0),
+        normal=N,
+        basis=Q,
+        n_params=n_params,
+    )
+
+
+def _polynomial_basis(grid: _Grid, degree: int) -> np.ndarray:
+    """(size, 3 or 6): spline coefficients of a polynomial of ``degree`` (1 or 2) in (u, v).
+
+    A polynomial in the coefficients' indices is one in (u, v): cubic B-splines reproduce it.
+    """
+    gv, gu = np.meshgrid(
+        np.arange(grid.nv, dtype=np.float64),
+        np.arange(grid.nu, dtype=np.float64),
+        indexing="ij",
+    )
+    gv, gu = gv.ravel() - gv.mean(), gu.ravel() - gu.mean()
+    columns = [np.ones(grid.size), gv, gu, gv * gv, gv * gu, gu * gu]
+    return np.column_stack(columns[: _POLYNOMIAL[PLANE] if degree == 1 else _POLYNOMIAL[QUADRIC]])
 
 
 @nb.njit(cache=True, parallel=True)

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy import stats
 from threadpoolctl import threadpool_limits
 
 from . import light_fit
@@ -44,6 +45,25 @@ POINT_MODEL_GAIN = 0.7
 DISTANT_ROUNDS = 30
 #: Pull of a distant light towards the given one, relative to the data's mean eigenvalue.
 DISTANT_PRIOR = 1e-2
+#: Free parameters per light of the distant model (direction times intensity) and of the point model
+#: (position, axis, profile, intensity).
+DISTANT_PARAMS, POINT_PARAMS = 3, 7
+#: Significance level of the F-test that lets refined lights replace the given ones.
+SIGNIFICANCE = 1e-3
+
+
+def _significant(rms_given: float, rms_model: float, n_params: int, n_blocks: int) -> bool:
+    """Whether a refitted light model explains the samples better than the given lights beyond chance.
+
+    An F-test of the drop of the residual variance for the model's ``n_params`` parameters, with one
+    degree of freedom per sample block (a block's residuals under the N lights share its albedo and
+    the smooth surface's normal error, so they are counted as one observation, not N).
+    """
+    dof = n_blocks - n_params
+    if not (rms_model > 0 and dof > 0 and np.isfinite(rms_model)):
+        return False
+    f = ((rms_given**2 - rms_model**2) / n_params) / (rms_model**2 / dof)
+    return bool(f > stats.f.ppf(1.0 - SIGNIFICANCE, n_params, dof))
 
 
 @dataclass(frozen=True)
@@ -112,7 +132,9 @@ def refine_lights(
     Returns
     -------
     LightRefinement or None
-        None when fewer than 50 blocks of the plate are lit by every light (nothing to fit).
+        None when fewer than 50 blocks of the plate are lit by every light (nothing to fit), or when
+        neither refitted model explains the samples significantly better than the given lights
+        (:func:`_significant`): the given lights then stand.
     """
     data = _samples(images, valid, mask, lights, depth_mm, K, max_samples=max_samples, seed=seed)
     if data is None:
@@ -126,10 +148,17 @@ def refine_lights(
         rms_distant = _rms(data, distant)
         point, rms_point = _fit_points(data, lights, light_fit.PlatePose(normal, centre, 0.0, 0))
     chosen: Lights
-    if point is not None and rms_point < POINT_MODEL_GAIN * rms_distant:
+    n_blocks = len(data.intensity)
+    if (
+        point is not None
+        and rms_point < POINT_MODEL_GAIN * rms_distant
+        and _significant(rms_given, rms_point, POINT_PARAMS * lights.n, n_blocks)
+    ):
         model, chosen = "point", point
-    else:
+    elif _significant(rms_given, rms_distant, DISTANT_PARAMS * lights.n, n_blocks):
         model, chosen = "distant", distant
+    else:
+        return None  # the images do not prove other lights: the given ones stand
     # the given scale: the same mean irradiance at the plate's centre, facing the light
     given_at_c = lights.intensity * lights.attenuation_at(centre)
     chosen_at_c = chosen.intensity * chosen.attenuation_at(centre)

@@ -19,17 +19,18 @@ from typing import Any
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from . import reconstruct
+from . import reconstruct, uncertainty
 from .artifacts import ARTIFACT_FILES, RESULT_FILE
 from .details import (
     Details,
+    UncertaintyDetails,
     excluded_region_details,
     fusion_details,
     refinement_details,
     region_details,
     segmentation_details,
 )
-from .formats import RESULT_FORMAT, PipelineError, ResultFile
+from .formats import RESULT_FORMAT, PipelineError, ResultFile, ResultUncertainty
 from .io import Capture, Target, load_capture, load_target
 from .lights import Lights
 from .parallel import default_workers
@@ -159,6 +160,7 @@ def _inspect(
         m = measure(cap, tgt, scene, opts, out, pool, clock)
     details = _details(m, scene.pre, tgt, near_field=cap.lights.any_point)
     warnings += _warnings(m.surface, tgt, details)
+    warnings += _capability_warnings(m, cap, tgt)
     (out / ARTIFACT_FILES["details"]).write_text(details.to_json())
     clock.end("artifacts")
     doc = _result_document(cap, tgt, m, warnings, clock)
@@ -201,6 +203,13 @@ def _details(m: Measurement, pre: Preprocessed, tgt: Target, *, near_field: bool
         if plate.matched_pct is None
         else round(float(plate.matched_pct), 2),
         metric_scale="stereo" if plate.prior is not None else "working_distance",
+        uncertainty=UncertaintyDetails(
+            k=uncertainty.COVERAGE_K,
+            deviation_mm=round(m.uncertainty.deviation_mm, 4),
+            radius_mm=_round(m.uncertainty.radius_mm, 3),
+            components=m.uncertainty.components,
+            edge_band_mm=m.edge_band_mm,
+        ),
     )
 
 
@@ -238,6 +247,37 @@ def _warnings(surface: reconstruct.Surface, tgt: Target, details: Details) -> li
     return warnings
 
 
+def _capability_warnings(m: Measurement, cap: Capture, tgt: Target) -> list[str]:
+    """The decision rule's word (docs/uncertainty.md): the verdict stands by simple acceptance, but a
+    tolerance under :data:`pipeline.uncertainty.CAPABLE_RATIO` expanded uncertainties is said, with why."""
+    u = m.uncertainty
+    if u.capable(tgt.tolerance_mm):
+        return []
+    c = u.components
+    why = []
+    if c["photometric_mm"] >= c["correction_mm"]:
+        lights = cap.n_lights
+        reasons = []
+        if lights <= 4:
+            reasons.append(f"only {lights} lights")
+        footprint = float(np.nanmedian(m.points[..., 2])) / float(cap.rig.left.K[0, 0])
+        if footprint > 3.5:
+            reasons.append(f"{footprint:.1f} mm per pixel (far or coarse camera)")
+        if not reasons:
+            reasons.append("noisy or glossy photometric images")
+        why.append("the photometric normals: " + ", ".join(reasons))
+    else:
+        why.append("the stereo pair's correction of the shape (its noise over the plate)")
+    ratio = tgt.tolerance_mm / u.deviation_mm
+    return [
+        f"the measurement is not capable for this tolerance: its expanded uncertainty (k = 2) is "
+        f"{u.deviation_mm:.2f} mm, tolerance / U = {ratio:.1f} < "
+        f"{uncertainty.CAPABLE_RATIO:g}; the verdict stands by simple acceptance (ISO 14253-1, "
+        f"shared risk) but a plate near the tolerance may be judged either way. Mostly from "
+        + "; ".join(why)
+    ]
+
+
 def _result_document(
     cap: Capture, tgt: Target, m: Measurement, warnings: list[str], clock: StageClock
 ) -> dict[str, Any]:
@@ -269,6 +309,11 @@ def _result_document(
         within_tolerance_pct=round(judgement.within_tolerance_pct, 3),
         verdict=judgement.verdict,
         warnings=warnings or None,
+        uncertainty=ResultUncertainty(
+            k=uncertainty.COVERAGE_K,
+            radius_mm=_round(m.uncertainty.radius_mm, 2),
+            deviation_mm=round(m.uncertainty.deviation_mm, 3),
+        ),
         timings_s=timings,
         artifacts=dict(ARTIFACT_FILES),
     ).model_dump(mode="json", exclude=set() if warnings else {"warnings"})
@@ -328,7 +373,7 @@ def _write_error_result(
         error=" ".join(str(err).split()),
         timings_s=dict(clock.timings) | {"total": clock.total()},
         artifacts={},
-    ).model_dump(mode="json", exclude={"warnings"})
+    ).model_dump(mode="json", exclude={"warnings", "uncertainty"})
     (out / RESULT_FILE).write_text(json.dumps(doc, indent=2) + "\n")
 
 

@@ -31,6 +31,7 @@ from . import (
     segmentation,
     stereo,
     target_geometry,
+    uncertainty,
     verdict,
 )
 from .artifacts import ARTIFACT_FILES
@@ -51,6 +52,10 @@ NOMINAL_DISTANCE_MM = 3500.0
 #: disagreement (see :class:`pipeline.fusion.Fusion`) exceeds both the noise floor and this fraction of the
 #: tolerance.
 DISAGREEMENT_FRACTION = 0.25
+#: Pixels of the plate within this many pixels of its segmented outline or an opening (not the image's
+#: frame) mix plate and surroundings: they are left out of the judgement by geometry, whatever their
+#: deviation (the band's width in mm goes into details.json).
+EDGE_BAND_PX = 3
 
 
 @dataclass(frozen=True)
@@ -174,6 +179,9 @@ class Measurement:
     pixel_area: np.ndarray
     #: (H, W, 3) measured points, mm, left camera frame (NaN off the plate).
     points: np.ndarray
+    uncertainty: uncertainty.Uncertainty
+    #: Width of the edge band left out of the judgement, mm (median pixel footprint times EDGE_BAND_PX).
+    edge_band_mm: float
 
 
 def load_inputs(
@@ -260,7 +268,11 @@ def measure(
     rays = rays_job.result()
     points = surface.depth_mm[..., None] * rays
     clock.end("depth")
-    return _judge(points, rays, surface, plate, tgt, K, out, pool, writes, clock)
+
+    def qualify(judged: np.ndarray, pose: registration.Registration) -> uncertainty.Uncertainty:
+        return _qualify(cap, pre, surface, points, judged, pose)
+
+    return _judge(points, rays, surface, plate, tgt, K, out, pool, writes, clock, qualify)
 
 
 def _plate(
@@ -405,10 +417,12 @@ def _judge(
     pool: ThreadPoolExecutor,
     writes: list[Future[Any]],
     clock: StageClock,
+    qualify: Callable[[np.ndarray, registration.Registration], uncertainty.Uncertainty],
 ) -> Measurement:
     """Stages *curvature*, *deviation* and *artifacts* (its files but details.json): curvature and the pixel
     areas beside the registration, each artifact written beside the main line as soon as it is known.
-    ``writes``: the artifact writes under way (normals.png when the distant normals were written already)."""
+    ``writes``: the artifact writes under way (normals.png when the distant normals were written already);
+    ``qualify``: the measurement's uncertainty on the judged pixels after the registration."""
     field, surface_mask = surface.field, surface.mask
     normals_written = bool(writes)
     clock.begin("curvature")
@@ -428,18 +442,27 @@ def _judge(
         )
     clock.begin("deviation")
     pose = registration.register_to_target(points, surface_mask, tgt)
-    dev = deviation.deviation_map(points, surface_mask, tgt, pose)
+    dev, judged = _deviation(points, surface_mask, tgt, pose)
+    qualified = qualify(judged, pose)
     writes += _write_deviation(pool, out, points, surface_mask, dev, tgt.tolerance_mm)
+    writes.append(
+        pool.submit(
+            artifacts.write_uncertainty,
+            out,
+            qualified.map_mm,
+            judged,
+            tolerance_mm=tgt.tolerance_mm,
+        )
+    )
     pixel_area = area_job.result()
     judgement = verdict.judge(
         dev,
-        surface_mask,
+        judged,
         tgt.tolerance_mm,
         pixel_area_mm2=pixel_area,
-        edge_artefacts=None
-        if plate.seg is None
-        else verdict.EdgeArtefacts(plate.seg.surroundings_step_mm),
+        uncertainty_mm=qualified.map_mm,
     )
+    footprint = points[..., 2][judged] / float(np.sqrt(K[0, 0] * K[1, 1]))
     clock.end("deviation")
     clock.begin("artifacts")
     verts, faces = target_geometry.target_surface(tgt)
@@ -463,6 +486,67 @@ def _judge(
         curv=curv,
         pixel_area=pixel_area,
         points=points,
+        uncertainty=qualified,
+        edge_band_mm=round(EDGE_BAND_PX * float(np.median(footprint)), 1),
+    )
+
+
+def _deviation(
+    points: np.ndarray, surface_mask: np.ndarray, tgt: Target, pose: registration.Registration
+) -> tuple[np.ndarray, np.ndarray]:
+    """The deviation map (NaN in the edge band, left out by geometry so that every artifact agrees) and
+    the judged pixels (the surface without its edge band)."""
+    dev = deviation.deviation_map(points, surface_mask, tgt, pose)
+    band = edge_band(surface_mask)
+    return np.where(band, np.nan, dev), surface_mask & ~band
+
+
+def edge_band(mask: np.ndarray, width_px: int = EDGE_BAND_PX) -> np.ndarray:
+    """(H, W) bool: the mask's pixels within ``width_px`` of its outline or an opening; the image's frame
+    is no edge (the plate goes on beyond it)."""
+    pad = width_px + 2
+    framed = cv2.copyMakeBorder(mask.view(np.uint8), pad, pad, pad, pad, cv2.BORDER_REPLICATE)
+    inner = cv2.erode(framed, np.ones((2 * width_px + 1, 2 * width_px + 1), np.uint8))
+    band: np.ndarray = mask & ~inner[pad:-pad, pad:-pad].astype(bool)
+    return band
+
+
+def _qualify(
+    cap: Capture,
+    pre: Preprocessed,
+    surface: reconstruct.Surface,
+    points: np.ndarray,
+    judged: np.ndarray,
+    pose: registration.Registration,
+) -> uncertainty.Uncertainty:
+    """The measurement's expanded uncertainty (:mod:`pipeline.uncertainty`) on the judged pixels."""
+    images, lights = pre.images, cap.lights
+    if surface.refinement is not None:  # the normals came from the refitted lights
+        refined = surface.refinement.lights
+        images = images * (lights.intensity / refined.intensity).astype(np.float32)[:, None, None]
+        lights = refined
+    rig = cap.rig
+    board = rig.board or {}
+    corners = board.get("inner_corners")
+    inputs = uncertainty.Inputs(
+        images=images,
+        valid=pre.valid,
+        lights=lights,
+        field=surface.field,
+        points_mm=points,
+        mask=judged,
+        K=rig.left.K,
+        fusion=surface.fusion,
+        baseline_mm=float(np.linalg.norm(rig.T)) if cap.has_stereo else None,
+        calibration_rms_px=rig.rms_px,
+        board_corners=int(np.prod(corners)) if corners else None,
+        registration_rms_mm=float(pose.rms_mm),
+    )
+    radius = pose.fitted_radius_mm
+    return uncertainty.propagate(
+        inputs,
+        radius_mm=None if radius is None else float(radius),
+        curved_direction=np.asarray(pose.T_cam_target)[:3, 0],
     )
 
 

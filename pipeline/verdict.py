@@ -40,6 +40,8 @@ class DefectRegion:
     peak_deviation_mm: float
     n_pixels: int
     mean_deviation_mm: float = float("nan")
+    #: Expanded uncertainty (k = 2) of the measurement at the peak, mm (NaN when not known).
+    uncertainty_mm: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -159,6 +161,7 @@ def judge(
     min_defect_area_mm2: float = MIN_DEFECT_AREA_MM2,
     max_outside_pct: float = MAX_OUTSIDE_PCT,
     edge_artefacts: EdgeArtefacts | None = None,
+    uncertainty_mm: npt.ArrayLike | None = None,
 ) -> Judgement:
     """Deviation statistics and the pass/fail verdict of a plate.
 
@@ -180,6 +183,11 @@ def judge(
         Leave out-of-tolerance regions that are segmentation artefacts at the plate's edge (see
         :class:`EdgeArtefacts`) out of the verdict and the statistics, each listed in
         ``Judgement.excluded`` with its reason. None (default): every region is judged.
+    uncertainty_mm : (H, W) array_like of float, optional
+        Per-point expanded uncertainty (k = 2) of the measurement, mm. With it, an out-of-tolerance
+        region is a defect only where its peak exceeds the tolerance by more than the standard
+        uncertainty there (``U / 2``): a region of noise grazing the tolerance is not a defect;
+        each defect carries its ``U``.
 
     Returns
     -------
@@ -230,8 +238,13 @@ def judge(
     total_area = float(w.sum())
     outside_area = float(w[outside].sum())
     within_pct = 100.0 * (1.0 - outside_area / total_area)
+    u_map = None if uncertainty_mm is None else np.asarray(uncertainty_mm, dtype=np.float64)
+    if u_map is not None and u_map.shape != dev.shape:
+        raise ValueError(f"uncertainty_mm: expected shape {dev.shape}, got {u_map.shape}")
     defects = (
-        _defect_regions(dev, judged, outside, area, min_defect_area_mm2) if outside.any() else []
+        _defect_regions(dev, judged, outside, area, min_defect_area_mm2, tolerance_mm, u_map)
+        if outside.any()
+        else []
     )
     reasons = []
     if defects:
@@ -301,9 +314,12 @@ def _defect_regions(
     outside: np.ndarray,
     area: np.ndarray,
     min_defect_area_mm2: float,
+    tolerance_mm: float,
+    u_map: np.ndarray | None,
 ) -> list[DefectRegion]:
     """The 8-connected regions of the out-of-tolerance judged pixels that cover at least
-    ``min_defect_area_mm2``, largest first (``outside``: per judged pixel)."""
+    ``min_defect_area_mm2`` (and, with ``u_map``, whose peak exceeds the tolerance by more than its
+    standard uncertainty), largest first (``outside``: per judged pixel)."""
     defects: list[DefectRegion] = []
     out_map = np.zeros(dev.shape, dtype=bool)
     out_map[judged] = outside
@@ -321,7 +337,14 @@ def _defect_regions(
         if k == 0:
             continue
         v = vals[lab == k]
-        peak = float(v[np.argmax(np.abs(v))])
+        i_peak = int(np.argmax(np.abs(v)))
+        peak = float(v[i_peak])
+        u_peak = float("nan")
+        if u_map is not None:
+            r_k, c_k = rows[lab == k][i_peak], cols[lab == k][i_peak]
+            u_peak = float(u_map[r_k, c_k])
+            if np.isfinite(u_peak) and abs(peak) - tolerance_mm <= u_peak / 2.0:
+                continue  # within its own noise of the tolerance: not proven out of it
         defects.append(
             DefectRegion(
                 centroid_px=(float(reg_col[k] / reg_count[k]), float(reg_row[k] / reg_count[k])),
@@ -329,6 +352,7 @@ def _defect_regions(
                 peak_deviation_mm=peak,
                 n_pixels=int(reg_count[k]),
                 mean_deviation_mm=float(reg_dev[k] / reg_area[k]),
+                uncertainty_mm=u_peak,
             )
         )
     defects.sort(key=lambda d: -d.area_mm2)

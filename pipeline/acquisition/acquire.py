@@ -426,7 +426,7 @@ def _exposures(run: _Run) -> tuple[float, dict[Side, float], dict[Side, str]]:
         run.pre_shots += shots
         stereo.update(metered)
         if photometric is None:  # the left camera metered
-            photometric = metered["left"]
+            photometric = _single_light_exposure(run, metered["left"])
         return photometric, stereo, source
     if photometric is None:
         step = "auto-exposure pre-shot, all photometric lights on"
@@ -434,7 +434,7 @@ def _exposures(run: _Run) -> tuple[float, dict[Side, float], dict[Side, str]]:
         metered, shots = auto_exposure([left], step=step, bit_depth=bit_depth, timeout_s=timeout_s)
         _all_lights(run, False, step=step)
         run.pre_shots += shots
-        photometric = metered["left"]
+        photometric = _single_light_exposure(run, metered["left"])
     step = "auto-exposure pre-shot, stereo light on"
     _stereo_lighting(run, True, step=step)
     metered, shots = auto_exposure(auto, step=step, bit_depth=bit_depth, timeout_s=timeout_s)
@@ -442,6 +442,32 @@ def _exposures(run: _Run) -> tuple[float, dict[Side, float], dict[Side, str]]:
     run.pre_shots += shots
     stereo.update(metered)
     return photometric, stereo, source
+
+
+def _single_light_exposure(run: _Run, all_on_us: float) -> float:
+    """The photometric exposure (us) for frames lit by one light each, from the one metered with all on.
+
+    Each photometric frame is lit by a single light, several times dimmer than all of them together:
+    at the all-on exposure its signal would use a fraction of the sensor's range and its noise would
+    weigh that many times more in the normals. One pre-shot per light at the all-on exposure finds
+    the brightest single-light frame; the exposure is scaled so that it reaches
+    :data:`EXPOSURE_TARGET` (never below the all-on exposure, within the camera's range; the camera
+    is taken to be linear, as by :func:`auto_exposure`).
+    """
+    left, controller = run.left, run.controller
+    step = "auto-exposure pre-shot, one photometric light at a time"
+    run.expose(left, all_on_us, step=step)
+    brightest = 0.0
+    for k in range(run.config.lights.n):
+        controller.on(k, step=step)
+        frame = left.grab(step=step, timeout_s=run.timeout(left))
+        controller.off(k, step=step)
+        brightest = max(brightest, brightest_fraction(frame.image, run.bit_depth))
+        run.pre_shots += 1
+    if not brightest > 0:
+        return all_on_us
+    lo, hi = left.exposure_bounds_us()
+    return float(np.clip(all_on_us * EXPOSURE_TARGET / brightest, max(all_on_us, lo), hi))
 
 
 def _sequence(run: _Run) -> dict[str, Any]:

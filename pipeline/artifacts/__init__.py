@@ -26,6 +26,7 @@ from .png import (
     write_deviation_png,
     write_normals_png,
 )
+from .uncertainty import UNCERTAINTY_FILES, write_uncertainty
 
 #: File names of an inspection's artifacts in its output folder, keyed as ``plate-result/1``'s ``artifacts``.
 ARTIFACT_FILES = {
@@ -35,6 +36,7 @@ ARTIFACT_FILES = {
     "normals": "normals.png",
     "depth": "depth.npy",
     "details": "details.json",
+    **UNCERTAINTY_FILES,
 }
 #: File name of the ``plate-result/1`` document beside them.
 RESULT_FILE = "result.json"
@@ -54,4 +56,5 @@ __all__ = [
     "write_normals_png",
     "write_surface_ply",
     "write_target_ply",
+    "write_uncertainty",
 ]

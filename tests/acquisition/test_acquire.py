@@ -92,8 +92,11 @@ def test_acceptance_gige_and_fake_cameras_tcp_lights(tmp_path, fake_gv, light_se
     times = [frame["t_s"] for frame in record["frames"]]
     assert times == sorted(times)
 
-    # the auto-exposure pre-shots under all lights, then light by light, then the stereo pair under all lights
-    assert server.commands == _all("ON") + _all("OFF") + SEQUENCE + _all("ON") + _all("OFF")
+    # the auto-exposure pre-shots under all lights, then one per light (the photometric exposure is
+    # set for a single light's frame), then light by light, then the stereo pair under all lights
+    assert server.commands == (
+        _all("ON") + _all("OFF") + SEQUENCE + SEQUENCE + _all("ON") + _all("OFF")
+    )
 
     target = tmp_path / "cell" / "target.json"
     target.write_text(

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import cv2
 import numpy as np
 import pytest
@@ -88,3 +90,20 @@ def test_auto_exposure_brings_both_cameras_between_floor_and_limit(cell):
         )
         p = brightest_fraction(camera.grab(step="check", timeout_s=1).image, 16)
         assert EXPOSURE_FLOOR <= p <= EXPOSURE_LIMIT
+
+
+def test_photometric_frames_are_exposed_for_one_light_not_all(tmp_path):
+    """Auto-exposure meters all lights together, then the brightest single-light frame: each
+    photometric frame uses most of the sensor's range (issue 24: the demo cell's plate)."""
+    from pipeline.acquisition import acquire, write_demo_cell
+
+    cell = write_demo_cell(tmp_path / "cell", width=320, height=256)
+    bundle = acquire(cell, plate_id="EXPOSED", out_dir=tmp_path / "bundle")
+    record = json.loads((bundle / "capture.json").read_text())["acquisition"]
+    exposure = record["cameras"]["left"]["exposure_us"]
+    assert exposure["photometric"] > 3 * exposure["stereo"]
+    brightest = max(
+        float(np.percentile(cv2.imread(str(bundle / f"ps_{k:02d}.png"), -1), 99.9))
+        for k in range(8)
+    )
+    assert 0.5 < brightest / 65535 < 0.95

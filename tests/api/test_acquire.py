@@ -239,8 +239,8 @@ def test_acceptance_cell_gige_and_fake_cameras_tcp_lights(
         and record["light_controller"]["replies"] is True
     )
     assert len(record["frames"]) == N + 3
-    # auto-exposure pre-shots under all lights, light by light, the stereo pair under all lights
-    assert server.commands == ALL_ON + ALL_OFF + SEQUENCE + ALL_ON + ALL_OFF
+    # auto-exposure pre-shots under all lights, then one per light, light by light, the stereo pair
+    assert server.commands == ALL_ON + ALL_OFF + SEQUENCE + SEQUENCE + ALL_ON + ALL_OFF
     assert (
         client.get(f"/api/v1/inspections/{body['id']}/artifacts/capture.json").json()["acquisition"]
         == record

@@ -1,0 +1,95 @@
+"""A capable measurement (issue 24): a plate formed exactly reads flat, and every figure has its uncertainty."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.cli import main
+from pipeline.run import inspect
+from pipeline.simulate import CaptureSpec, PlateSpec, simulate_capture
+from pipeline.stages import edge_band
+from pipeline.verdict import judge
+
+
+def _inspect(root: Path, name: str, capture: CaptureSpec, seed: int, **target_changes: float):
+    bundle = simulate_capture(root / name, plate=PlateSpec(), capture=capture, seed=seed)
+    target = json.loads((bundle / "target.json").read_text()) | target_changes
+    out = root / f"{name}-out"
+    doc = inspect(bundle, target, out_dir=out).document
+    return doc, json.loads((out / "details.json").read_text()), out
+
+
+@pytest.fixture(scope="module")
+def twelve_and_three(tmp_path_factory):
+    root = tmp_path_factory.mktemp("capable")
+    return (
+        _inspect(root, "twelve", CaptureSpec(n_lights=12), seed=21),
+        _inspect(root, "three", CaptureSpec(n_lights=3), seed=21),
+    )
+
+
+def test_a_plate_formed_exactly_reads_flat_and_its_uncertainty_covers_the_error(twelve_and_three):
+    (doc, details, out), _ = twelve_and_three
+    assert doc["verdict"] == "pass" and "warnings" not in doc
+    assert doc["deviation_mm"]["p95"] <= 0.25 and doc["deviation_mm"]["max_abs"] <= 1.0
+    u = doc["uncertainty"]
+    assert u["k"] == 2.0
+    # the deviation is the error here: U95 covers its own 95th percentile
+    assert u["deviation_mm"] >= 0.8 * doc["deviation_mm"]["p95"]
+    # the radius's error lies within its U, and U is small enough to use
+    assert abs(doc["radius_mm"] - 5000.0) <= u["radius_mm"] <= 0.0015 * 5000.0
+    # exact lights: the stereo pair sets scale and tilt only, no light is refitted
+    assert details["stereo_fusion"]["correction"] == "plane"
+    assert details["light_refinement"] is None
+    per_point = np.load(out / "uncertainty.npy")
+    assert per_point.dtype == np.float32 and np.nanpercentile(per_point, 95) == pytest.approx(
+        u["deviation_mm"], rel=0.01
+    )
+    assert (out / "uncertainty.png").is_file()
+    assert details["uncertainty"]["edge_band_mm"] > 0
+
+
+def test_three_lights_report_a_clearly_larger_uncertainty_and_still_pass(twelve_and_three):
+    (twelve, _, _), (three, _, _) = twelve_and_three
+    assert three["verdict"] == "pass"
+    assert three["uncertainty"]["deviation_mm"] >= 1.5 * twelve["uncertainty"]["deviation_mm"]
+
+
+def test_a_tolerance_within_four_uncertainties_keeps_its_verdict_and_says_not_capable(tmp_path):
+    doc, _, _ = _inspect(
+        tmp_path, "tight", CaptureSpec(n_lights=12, width=612, height=512), 3, tolerance_mm=0.3
+    )
+    assert doc["verdict"] in ("pass", "fail")
+    said = [w for w in doc.get("warnings", []) if "not capable for this tolerance" in w]
+    assert said and "tolerance / U" in said[0]
+
+
+def test_a_region_grazing_the_tolerance_within_its_noise_is_no_defect():
+    dev = np.zeros((60, 60))
+    dev[10:25, 10:25] = 2.05  # 0.05 mm over a 2 mm tolerance ...
+    dev[35:55, 35:55] = 4.0  # ... and a real dent
+    mask = np.ones_like(dev, bool)
+    u = np.full(dev.shape, 0.3)  # U = 0.3 mm: 0.15 mm standard
+    j = judge(dev, mask, 2.0, pixel_area_mm2=10.0, uncertainty_mm=u)
+    assert [round(d.peak_deviation_mm, 2) for d in j.defects] == [4.0]
+    assert j.defects[0].uncertainty_mm == pytest.approx(0.3)
+    plain = judge(dev, mask, 2.0, pixel_area_mm2=10.0)
+    assert len(plain.defects) == 2
+
+
+def test_the_edge_band_follows_the_outline_not_the_image_frame():
+    mask = np.zeros((40, 50), bool)
+    mask[:, 10:] = True  # the plate runs out of the image at the top, bottom and right
+    band = edge_band(mask, 3)
+    assert band[:, 10:13].all() and not band[:, 13:].any()
+
+
+def test_gauge_study_prints_cg_and_cgk(capsys):
+    code = main(["gauge-study", "--n", "3", "--size", "320x256", "--seed", "5"])
+    out = capsys.readouterr().out
+    assert code == 0
+    assert "| radius mm |" in out and "Cgk" in out and "deviation at (+0, +0) mm" in out
