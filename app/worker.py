@@ -35,7 +35,7 @@ import threading
 import time
 
 from app.db import database_unavailable, make_engine, make_session_factory, upgrade_database
-from app.jobs import JobQueue
+from app.jobs import JobQueue, warm_up_entry
 from app.jobs.guards import ConsumerLock, exit_with_parent
 from app.jobs.memory import MemoryLimitError, apply_memory_limit
 from app.services import leases as svc
@@ -97,6 +97,10 @@ def main(argv: list[str] | None = None) -> int:
     engine = make_engine(settings.sqlalchemy_url)
     session_factory = make_session_factory(engine)
     queue = JobQueue(settings, session_factory, storage)
+    # the compiled kernels loaded (and, on a fresh install, compiled) before the first job is claimed
+    loaded = warm_up_entry(settings.inspect_entry)
+    if loaded is not None:
+        log.info("kernels loaded (%.1f s)", loaded)
     if queue.shared:
         queue.start_shared()
     else:

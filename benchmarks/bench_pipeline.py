@@ -3,25 +3,38 @@
 Prints two tables:
 1. radius error and run time against the number of light directions
    (3, 6, 12, 18, 24, 30, 36) on cylinders of several radii, convex and concave;
-2. per-stage timings of ``pipeline.run.inspect`` at 1224x1024 and 2448x2048
-   (12 lights, best of ``--repeat`` runs, interpreter start-up excluded).
+2. per-stage timings of ``pipeline.run.inspect`` at 1224x1024 and 2448x2048 for an ideal cell,
+   a near-field LED cell (positions given, and nominal directions only) and a glossy cell
+   (12 lights, median of ``--repeat`` runs, each in a fresh process after the CLI's warm-up);
+   with ``--against REV`` the same captures are inspected by that commit's tree too (a temporary
+   git worktree, run in this environment, runs interleaved), and the table gives the ratio of the
+   median totals, so that a regression shows as a ratio on whatever machine it runs.
 
+    .venv/bin/python benchmarks/bench_pipeline.py --only timing --against 59f1066 [--repeat 3]
     .venv/bin/python benchmarks/bench_pipeline.py [--seeds 0 1] [--repeat 3] [--quick]
 
-Bundles are rendered once into a temporary folder; only ``inspect`` is timed.
+Bundles are rendered once into a temporary folder by this tree's simulator; only ``inspect`` is
+timed (an older tree that refuses a capture, e.g. point lights before it knew them, shows "crash").
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import json
 import statistics
+import subprocess
+import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 from pipeline.parallel import configure_process
 from pipeline.run import STAGES, inspect
 from pipeline.simulate import CaptureSpec, PlateSpec, simulate_capture
+
+ROOT = Path(__file__).resolve().parents[1]
 
 LIGHTS = (3, 6, 12, 18, 24, 30, 36)
 PLATES = (
@@ -71,37 +84,133 @@ def lights_table(root: Path, seeds: list[int], lights: tuple[int, ...]) -> None:
         )
 
 
-def timing_table(root: Path, sizes: list[tuple[int, int]], repeat: int) -> None:
-    print(
-        "\n## Per-stage timings, 12 lights, cylinder R5000 "
-        f"(run with the best total of {repeat}, seconds)\n"
+#: The cells the timing table measures: (name, CaptureSpec keyword arguments).
+CELLS = (
+    ("ideal", {}),
+    ("LED positions", {"near_field_mm": 2800.0, "led_mu": 1.0}),
+    ("LED nominal", {"near_field_mm": 2800.0, "led_mu": 1.0, "manifest_lights": "nominal"}),
+    ("glossy", {"specular": 0.4}),
+)
+
+#: Run in a child process whose working directory is the tree to time (its ``pipeline`` is then the
+#: one imported): warm up as that tree's CLI does, inspect every bundle once, print the timings.
+RUNNER = """
+import json, sys, time
+from pathlib import Path
+from pipeline.parallel import configure_process
+configure_process()
+import pipeline.run as run
+if hasattr(run, "warm_up"):
+    run.warm_up()
+out = {}
+for bundle in sys.argv[1:]:
+    b = Path(bundle)
+    t = time.perf_counter()
+    try:
+        doc = run.inspect(b, b / "target.json", out_dir=b.parent / (b.name + "-out")).document
+        out[bundle] = dict(doc["timings_s"], wall=time.perf_counter() - t)
+    except Exception as err:
+        out[bundle] = {"crash": type(err).__name__}
+print("TIMINGS " + json.dumps(out))
+"""
+
+
+def _run_tree(tree: Path, bundles: list[Path]) -> dict[str, dict[str, float]]:
+    """Inspect ``bundles`` with the code of ``tree`` in a child process; timings per bundle."""
+    done = subprocess.run(
+        [sys.executable, "-c", RUNNER, *map(str, bundles)],
+        cwd=tree,
+        capture_output=True,
+        text=True,
+        check=False,
     )
+    line = next((ln for ln in done.stdout.splitlines() if ln.startswith("TIMINGS ")), None)
+    if line is None:
+        raise RuntimeError(f"{tree}: the runner printed no timings:\n{done.stderr[-2000:]}")
+    timings: dict[str, dict[str, float]] = json.loads(line[len("TIMINGS ") :])
+    return timings
+
+
+def timing_table(
+    root: Path, sizes: list[tuple[int, int]], repeat: int, against: str | None
+) -> None:
+    """Per-stage medians of ``repeat`` runs of each cell and size; with ``against``, the same captures
+    timed with that commit's tree (a temporary worktree), runs interleaved, and the ratio of the
+    medians of ``total``."""
+    bundles = [
+        (
+            name,
+            (w, h),
+            simulate_capture(
+                root / f"{name.replace(' ', '-')}-{w}",
+                plate=PLATES[0][1],
+                capture=CaptureSpec(n_lights=12, width=w, height=h, **kwargs),  # type: ignore[arg-type]  # the cells' keywords are CaptureSpec's
+                seed=7,
+            ),
+        )
+        for w, h in sizes
+        for name, kwargs in CELLS
+    ]
+    paths = [b for _, _, b in bundles]
+    trees = {"now": ROOT}
+    with contextlib.ExitStack() as stack:
+        if against is not None:
+            trees[against] = stack.enter_context(_worktree(against))
+        runs: dict[str, list[dict[str, dict[str, float]]]] = {k: [] for k in trees}
+        for _ in range(repeat):
+            for key, tree in trees.items():
+                runs[key].append(_run_tree(tree, paths))
+    print(f"\n## Per-stage timings, 12 lights, cylinder R5000 (median of {repeat} runs, seconds)\n")
     print(
-        "Stages overlap (stereo beside normals, curvature beside deviation): they do not add up to the total.\n"
+        "Stages overlap (stereo beside normals, curvature beside deviation): they do not add up.\n"
     )
-    print("| size | " + " | ".join(STAGES) + " | total | median total | worst total |")
-    print("|---" * (len(STAGES) + 4) + "|")
-    for width, height in sizes:
-        bundle = simulate_capture(
-            root / f"t{width}",
-            plate=PLATES[0][1],
-            capture=CaptureSpec(n_lights=12, width=width, height=height),
-            seed=7,
+    extra = [f"{against} total", "ratio"] if against else []
+    print("| cell | size | " + " | ".join(STAGES) + " | total | " + " | ".join(extra) + " |")
+    print("|---" * (len(STAGES) + 3 + len(extra)) + "|")
+    for name, (w, h), bundle in bundles:
+        now = [r[str(bundle)] for r in runs["now"]]
+        cells = [_median(now, s) for s in (*STAGES, "total")]
+        row = f"| {name} | {w}x{h} | " + " | ".join(cells)
+        if against:
+            before = [r[str(bundle)] for r in runs[against]]
+            ratio = _ratio(now, before)
+            row += f" | {_median(before, 'total')} | {ratio}"
+        print(row + " |")
+
+
+def _median(runs: list[dict[str, float]], key: str) -> str:
+    if any("crash" in r for r in runs):
+        return f"crash ({runs[0].get('crash', '')})"
+    values = [r[key] for r in runs if key in r]
+    return f"{statistics.median(values):.3f}" if values else "-"
+
+
+def _ratio(now: list[dict[str, float]], before: list[dict[str, float]]) -> str:
+    if any("crash" in r for r in now + before):
+        return "-"
+    ratio = statistics.median(a["total"] for a in now) / statistics.median(
+        b["total"] for b in before
+    )
+    return f"{ratio:.2f}"
+
+
+@contextlib.contextmanager
+def _worktree(rev: str) -> Iterator[Path]:
+    """A temporary detached worktree of ``rev`` (removed afterwards)."""
+    with tempfile.TemporaryDirectory(prefix="bench-against-") as tmp:
+        tree = Path(tmp) / "tree"
+        subprocess.run(
+            ["git", "worktree", "add", "--detach", str(tree), rev],
+            cwd=ROOT,
+            check=True,
+            capture_output=True,
         )
-        inspect(
-            bundle, bundle / "target.json", out_dir=bundle / "out"
-        )  # warm-up: numba loads (or compiles) its kernels
-        runs = [
-            inspect(bundle, bundle / "target.json", out_dir=bundle / "out").document["timings_s"]
-            for _ in range(repeat)
-        ]
-        best = min(runs, key=lambda t: t["total"])
-        totals = [t["total"] for t in runs]
-        print(
-            f"| {width}x{height} | "
-            + " | ".join(f"{best.get(s, 0.0):.3f}" for s in STAGES)
-            + f" | {best['total']:.2f} | {statistics.median(totals):.2f} | {max(totals):.2f} |"
-        )
+        try:
+            yield tree
+        finally:
+            subprocess.run(
+                ["git", "worktree", "remove", "--force", str(tree)], cwd=ROOT, check=False
+            )
 
 
 def main() -> None:
@@ -115,13 +224,23 @@ def main() -> None:
         "--quick", action="store_true", help="3, 12 and 36 lights, one seed, 1224x1024 only"
     )
     parser.add_argument("--only", choices=["timing", "lights"], help="print one of the two tables")
+    parser.add_argument(
+        "--against",
+        metavar="REV",
+        help="time the same captures with this commit's tree too (e.g. 59f1066), runs interleaved",
+    )
+    parser.add_argument(
+        "--sizes", nargs="+", default=None, help="timing sizes WIDTHxHEIGHT (default both)"
+    )
     args = parser.parse_args()
     lights = (3, 12, 36) if args.quick else LIGHTS
     seeds = args.seeds[:1] if args.quick else args.seeds
     sizes = [(1224, 1024)] if args.quick else [(1224, 1024), (2448, 2048)]
+    if args.sizes:
+        sizes = [(int(a), int(b)) for a, b in (v.lower().split("x") for v in args.sizes)]
     with tempfile.TemporaryDirectory() as tmp:
         if args.only != "lights":
-            timing_table(Path(tmp), sizes, args.repeat)
+            timing_table(Path(tmp), sizes, args.repeat, args.against)
         if args.only != "timing":
             lights_table(Path(tmp), seeds, lights)
 

@@ -42,7 +42,7 @@ import cv2
 import numba as nb
 import numpy as np
 import numpy.typing as npt
-from scipy import stats
+from scipy import special
 
 #: Finest knot spacing of the correction spline as a fraction of the plate's larger extent in the
 #: image: at most, the stereo pair governs shape wider than about this.
@@ -321,7 +321,7 @@ def _chosen(fits: list[_Fitted], blocks: _Blocks) -> tuple[_Fitted, float, dict[
     for f in fits[:-1]:
         dof = finest.n_params - f.n_params
         statistic = (rss(f) - rss_finest) / noise2 if noise2 > 0 else np.inf
-        threshold = float(stats.chi2.ppf(1.0 - SIGNIFICANCE, dof))
+        threshold = 2.0 * float(special.gammaincinv(dof / 2.0, 1.0 - SIGNIFICANCE))  # chi2 quantile
         evidence[_rung_name(f.rung)] = [round(float(statistic), 1), round(threshold, 1)]
         if statistic <= threshold and chosen is finest:
             chosen = f

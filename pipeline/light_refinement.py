@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy import stats
+from scipy import special
 from threadpoolctl import threadpool_limits
 
 from . import light_fit
@@ -63,7 +63,9 @@ def _significant(rms_given: float, rms_model: float, n_params: int, n_blocks: in
     if not (rms_model > 0 and dof > 0 and np.isfinite(rms_model)):
         return False
     f = ((rms_given**2 - rms_model**2) / n_params) / (rms_model**2 / dof)
-    return bool(f > stats.f.ppf(1.0 - SIGNIFICANCE, n_params, dof))
+    # the F distribution's quantile through the regularised incomplete beta function
+    x = float(special.betaincinv(n_params / 2.0, dof / 2.0, 1.0 - SIGNIFICANCE))
+    return bool(f > dof / n_params * x / (1.0 - x))
 
 
 @dataclass(frozen=True)

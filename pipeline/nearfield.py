@@ -29,7 +29,8 @@ import numpy as np
 from .lights import Lights
 from .normals import METHODS, NormalField
 from .normals.field import field_from_fit
-from .normals.robust import image_noise, robust_kernel, robust_params, sorting_network
+from .normals.noise import image_noise
+from .normals.robust import robust_kernel, robust_params, sorting_network
 
 #: The robust fit's parameters that make it plain least squares over the usable samples: no shadow
 #: level, no highlight trim, no re-selection (see pipeline.normals.robust.robust_params for the order).
@@ -141,7 +142,11 @@ def estimate_normals_near(
     v = valid if use_valid else np.ones((1, 1, 1), dtype=bool)
     b = np.empty((3, h, w), dtype=np.float32)
     status = np.empty((h, w), dtype=np.int8)
-    params = robust_params(image_noise(images, mask)) if method == "robust" else _PLAIN_PARAMS
+    params = (
+        robust_params(float(np.median(image_noise(images, mask))))
+        if method == "robust"
+        else _PLAIN_PARAMS
+    )
     robust_kernel(
         np.ascontiguousarray(images),
         np.ascontiguousarray(v),

@@ -319,26 +319,37 @@ def _result_document(
     ).model_dump(mode="json", exclude=set() if warnings else {"warnings"})
 
 
-def warm_up() -> float:
+def warm_up(*, full: bool = False) -> float:
     """Load the compiled kernels and start the thread pools before the first real inspection.
 
-    The numba kernels are compiled once per installation and cached on disk, but each process
-    loads them (and OpenMP starts its threads) on their first call: time that would otherwise
-    land in the first inspection's timings (README: *Command line*). This runs one small simulated glossy inspection
-    (320x256, 12 lights, stereo: every kernel of the usual path and of the specular stage) in a
-    temporary folder. Returns its run time, seconds.
+    The numba kernels are compiled once per installation and cached on disk (``scripts/setup.sh``
+    compiles them with ``full=True``), but each process loads them (and OpenMP starts its threads)
+    on their first call: time that would otherwise land in the first inspection's timings (README:
+    *Command line*). This runs one small simulated inspection (320x256, 12 lights, stereo: every
+    kernel of the usual path, the robust estimator's specular stage included, which runs on every
+    plate) in a temporary folder: a matte plate with exact lights, so that the light refinement
+    (pure numpy, nothing to load) does not run. ``full`` adds a plate under near-field LEDs over a
+    lit floor with a cut-out (the near-field and segmentation kernels), for the install-time
+    compilation. Returns the run time, seconds.
     """
-    from .simulate import CaptureSpec, PlateSpec, simulate_capture
+    from .simulate import CaptureSpec, Cutout, Floor, PlateSpec, rail_supports, simulate_capture
 
+    scenes = [(PlateSpec(), CaptureSpec(width=320, height=256))]
+    if full:
+        floor = Floor(gap_mm=400.0, supports=rail_supports((3000.0, 3000.0), 400.0, 3))
+        scenes.append(
+            (
+                PlateSpec(floor=floor, cutouts=(Cutout.circle(400.0, -300.0, 300.0),)),
+                CaptureSpec(width=320, height=256, near_field_mm=2800.0, led_mu=1.0),
+            )
+        )
     t = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="plate-inspect-warm-up-") as tmp:
-        bundle = simulate_capture(
-            Path(tmp) / "capture",
-            plate=PlateSpec(),
-            capture=CaptureSpec(width=320, height=256, specular=0.4),
-            seed=0,
-        )
-        inspect(bundle, bundle / "target.json", out_dir=Path(tmp) / "out")
+        for i, (plate, capture) in enumerate(scenes):
+            bundle = simulate_capture(
+                Path(tmp) / f"capture{i}", plate=plate, capture=capture, seed=0
+            )
+            inspect(bundle, bundle / "target.json", out_dir=Path(tmp) / f"out{i}")
     return time.perf_counter() - t
 
 

@@ -38,6 +38,7 @@ from .artifacts import ARTIFACT_FILES
 from .formats import CaptureError
 from .io import Capture, Target, load_capture, load_target
 from .lights import Lights
+from .normals.noise import image_noise
 from .preprocess import Preprocessed, preprocess
 
 #: Stage names in the order they run; ``progress`` reports these.
@@ -541,6 +542,7 @@ def _qualify(
         calibration_rms_px=rig.rms_px,
         board_corners=int(np.prod(corners)) if corners else None,
         registration_rms_mm=float(pose.rms_mm),
+        dark_noise=_dark_noise(cap, lights),
     )
     radius = pose.fitted_radius_mm
     return uncertainty.propagate(
@@ -548,6 +550,19 @@ def _qualify(
         radius_mm=None if radius is None else float(radius),
         curved_direction=np.asarray(pose.T_cam_target)[:3, 0],
     )
+
+
+def _dark_noise(cap: Capture, lights: Lights) -> np.ndarray | None:
+    """The dark frame's noise in each preprocessed image's units (raw noise / (intensity x full scale)),
+    None without a dark frame."""
+    if cap.dark is None:
+        return None
+    dark = cap.dark
+    h, w = dark.shape
+    noise_raw = float(image_noise(dark[None], np.ones((h, w), bool))[0])
+    full_scale = float(2**cap.bit_depth - 1)
+    out: np.ndarray = noise_raw / (np.asarray(lights.intensity, dtype=np.float64) * full_scale)
+    return out
 
 
 def _write_deviation(

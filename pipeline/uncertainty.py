@@ -21,8 +21,8 @@ it found:
 - **Bend** (radius). How well the stereo pair fixes the plate's bend: the covariance of the
   quadric correction's second derivatives, whichever correction was chosen (if the normals kept
   the bend, the stereo pair could not prove it wrong by more than that).
-- **Registration** (per point and radius). The best fit's residual over the number of independent
-  patches of the surface.
+- **Registration** (per point and radius). The points' own noise over the independent patches the
+  best fit is made on (never the fit's residual, which holds the plate's real deviation too).
 
 The deviation's figure is the 95th percentile over the plate of the per-point expanded uncertainty
 ``U = 2 u``; the radius's is ``U = 2 R sqrt(u_bend^2 + u_scale^2 + u_fit^2)`` (relative parts).
@@ -46,6 +46,7 @@ import numpy as np
 from . import fusion as fusion_mod
 from .lights import Lights
 from .normals import NormalField
+from .normals.noise import image_noise
 
 #: Coverage factor of every expanded uncertainty the inspection reports.
 COVERAGE_K = 2.0
@@ -54,9 +55,11 @@ COVERAGE_K = 2.0
 CAPABLE_RATIO = 4.0
 #: Pixels sampled for the photometric part (every ``step``-th pixel in both directions so that about
 #: this many remain); the map is interpolated between them.
-PHOTOMETRIC_SAMPLES = 40_000
+PHOTOMETRIC_SAMPLES = 12_000
 #: The stereo matcher's disparity quantum (px): OpenCV's SGBM gives disparities in 1/16 px.
 DISPARITY_QUANTUM_PX = 1.0 / 16.0
+#: Patches (px) over which the registration's points count as independent (about the stereo blocks).
+REGISTRATION_PATCH_PX = 16.0
 #: The least-squares integration's depth variance per unit slope variance over a region L px wide:
 #: ``ln(L) / (2 pi) + INTEGRATION_OFFSET`` (exact sum over the Neumann Laplacian's modes of an
 #: L x L square; 0.320-0.326 for L = 32-2048).
@@ -115,6 +118,10 @@ class Inputs:
     board_corners : int or None
         Corners of the calibration board (None: unknown).
     registration_rms_mm : float
+        The best fit's residual (reported beside the components, not an uncertainty).
+    dark_noise : (N,) float or None
+        The dark frame's noise in each image's units (it was subtracted from every image: a noise
+        common to all of a pixel's samples), None without a dark frame.
     """
 
     images: np.ndarray
@@ -129,6 +136,7 @@ class Inputs:
     calibration_rms_px: float | None
     board_corners: int | None
     registration_rms_mm: float
+    dark_noise: np.ndarray | None = None
 
 
 def propagate(
@@ -163,9 +171,8 @@ def propagate(
         else np.nan_to_num(x.fusion.correction_sd_mm.astype(np.float64), nan=0.0)
     )
     u_scale = _scale_rel(x, z_typ, f_px)
-    height = _height_over_plane_mm(x.points_mm, mask)
-    n_patches = max(float(np.count_nonzero(mask)) / max(scale_px, 8.0) ** 2, 1.0)
-    u_reg = x.registration_rms_mm / math.sqrt(n_patches)
+    height = _height_over_plane_mm(x.points_mm, mask) if u_scale > 0 else 0.0
+    u_reg = _registration_sd_mm(u_ps, u_corr, mask)
     var = u_ps**2 + u_corr**2 + (u_scale * height) ** 2 + u_reg**2
     u_map = np.where(mask, np.sqrt(var), np.nan).astype(np.float32)
     u95 = COVERAGE_K * float(np.percentile(u_map[mask], 95))
@@ -189,6 +196,18 @@ def propagate(
             "integration_scale_px": round(scale_px, 1),
         },
     )
+
+
+def _registration_sd_mm(u_ps: np.ndarray, u_corr: np.ndarray, mask: np.ndarray) -> float:
+    """Standard uncertainty (mm) the best-fit registration adds at a point: the points' own noise over
+    the independent patches it is fitted to (:data:`REGISTRATION_PATCH_PX` wide).
+
+    Only the measurement's noise enters: the fit's residual also holds the plate's real deviation
+    from its target (a dent, an under-bent plate), which is what is measured, not noise.
+    """
+    typical = float(np.sqrt(np.median((u_ps**2 + u_corr**2)[mask])))
+    patches = max(float(np.count_nonzero(mask)) / REGISTRATION_PATCH_PX**2, 1.0)
+    return typical / math.sqrt(patches)
 
 
 def _extent_px(mask: np.ndarray) -> float:
@@ -217,7 +236,7 @@ def _photometric_sd_mm(x: Inputs, mask: np.ndarray, scale_px: float) -> np.ndarr
     step = max(1, int(math.sqrt(np.count_nonzero(mask) / PHOTOMETRIC_SAMPLES)))
     rows, cols = np.nonzero(mask[::step, ::step] & x.field.mask[::step, ::step])
     rows, cols = rows * step, cols * step
-    sigma_img = _image_noise(x.images, mask)
+    sigma_img = image_noise(x.images, mask)
     images = x.images[:, rows, cols].astype(np.float64)  # (N, P)
     valid = np.ones_like(images, bool) if x.valid is None else x.valid[:, rows, cols]
     n = x.field.normals[rows, cols].astype(np.float64)  # (P, 3)
@@ -231,13 +250,21 @@ def _photometric_sd_mm(x: Inputs, mask: np.ndarray, scale_px: float) -> np.ndarr
     pred = rho[None] * shade
     res = np.where(lit, images - pred, 0.0)
     m = lit.sum(axis=0)
-    # the image noise (3 degrees of freedom as a prior) pooled with the fit's residual
+    # each image's own noise: its measured noise less the dark frame's, which is common to all
+    dark = np.zeros(len(sigma_img)) if x.dark_noise is None else np.asarray(x.dark_noise)
+    own = np.sqrt(np.maximum(sigma_img**2 - dark**2, 0.0))
+    # pooled with the fit's residual where the pixel has more lights than unknowns (3 degrees of
+    # freedom for the image noise as a prior)
     prior_dof = 3.0
-    s0 = (sigma_img[:, None] * lit).sum(axis=0) / np.maximum(m, 1)
+    s0 = (own[:, None] * lit).sum(axis=0) / np.maximum(m, 1)
     s2 = (np.sum(res**2, axis=0) + prior_dof * s0**2) / (np.maximum(m - 3, 0) + prior_dof)
     gram = np.einsum("npc,npd,np->pcd", g, g, lit.astype(np.float64))
     tangential = _tangential_variance(gram, n)  # per unit albedo and image variance
-    var_n = s2 * tangential / np.maximum(rho, 1e-6) ** 2
+    var_n = s2 * tangential
+    # the dark frame's noise, one value shared by the pixel's samples: along gram^-1 G^T d
+    common = np.einsum("npc,np,n->pc", g, lit.astype(np.float64), dark)
+    var_n = var_n + _tangential_of_vector(gram, common, n)
+    var_n = var_n / np.maximum(rho, 1e-6) ** 2
     var_n = np.where((m >= 3) & np.isfinite(var_n), var_n, np.nan)
     footprint = pts[:, 2] / math.sqrt(x.K[0, 0] * x.K[1, 1])  # mm per pixel step
     var_g = var_n * footprint**2 / np.maximum(-n[:, 2], 0.2) ** 4
@@ -245,18 +272,6 @@ def _photometric_sd_mm(x: Inputs, mask: np.ndarray, scale_px: float) -> np.ndarr
     coarse = np.full(((h + step - 1) // step, (w + step - 1) // step), np.nan, np.float32)
     coarse[rows // step, cols // step] = var_g * gain
     return _spread(coarse, mask, step, radius=max(2, int(round(8 / step)) + 1))
-
-
-def _image_noise(images: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """(N,) standard deviation of each image's noise on the plate (Immerkaer's Laplacian estimator)."""
-    kernel = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
-    inner = cv2.erode(mask.view(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
-    out = np.empty(len(images))
-    for k, im in enumerate(images):
-        lap = cv2.filter2D(np.nan_to_num(im.astype(np.float32)), -1, kernel)
-        vals = np.abs(lap[inner])
-        out[k] = math.sqrt(math.pi / 2.0) / 6.0 * float(np.mean(vals)) if vals.size else 0.0
-    return out
 
 
 def _tangential_variance(gram: np.ndarray, n: np.ndarray) -> np.ndarray:
@@ -268,6 +283,18 @@ def _tangential_variance(gram: np.ndarray, n: np.ndarray) -> np.ndarray:
     nn = n[ok]
     proj = np.eye(3)[None] - nn[:, :, None] * nn[:, None, :]
     out[ok] = 0.5 * np.einsum("pij,pjk,pki->p", proj, inv, proj)
+    return out
+
+
+def _tangential_of_vector(gram: np.ndarray, v: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Per pixel: the mean squared tangential component of ``gram^-1 v`` (the normal's error from a
+    noise shared by all samples, per unit albedo); inf where the lights leave it undetermined."""
+    out = np.full(len(n), np.inf)
+    ok = np.abs(np.linalg.det(gram)) > 1e-12
+    e = np.linalg.solve(gram[ok], v[ok][..., None])[..., 0]
+    nn = n[ok]
+    t = e - np.sum(e * nn, axis=1, keepdims=True) * nn
+    out[ok] = 0.5 * np.sum(t * t, axis=1)
     return out
 
 
@@ -302,8 +329,13 @@ def _height_over_plane_mm(points: np.ndarray, mask: np.ndarray) -> np.ndarray:
     p = points[mask][:: max(1, int(np.count_nonzero(mask) // 20_000))]
     centre = p.mean(axis=0)
     normal = np.linalg.svd(p - centre, full_matrices=False)[2][-1]
-    height = np.abs(np.einsum("hwc,c->hw", np.nan_to_num(points - centre), normal))
-    return np.where(mask, height, 0.0)
+    height = np.abs(
+        (points[..., 0] - centre[0]) * normal[0]
+        + (points[..., 1] - centre[1]) * normal[1]
+        + (points[..., 2] - centre[2]) * normal[2]
+    )
+    out: np.ndarray = np.where(mask, height, 0.0)
+    return out
 
 
 def _sagitta_mm(radius_mm: float, chord_mm: float) -> float:

@@ -28,3 +28,5 @@ fi
 # Exact versions from the lock file (regenerate it with scripts/lock.sh), then the project itself.
 .venv/bin/python -m pip install -q -r requirements.lock
 .venv/bin/python -m pip install -q --no-deps -e .
+# Compile the numba kernels into their on-disk cache now, not inside the first inspection or job.
+.venv/bin/python -c "from pipeline.run import warm_up; print(f'kernels compiled and cached ({warm_up(full=True):.0f} s)')"

@@ -18,6 +18,7 @@ from app.jobs.execution import (
     execute_inspection,
     render_simulated_bundle,
     resolve_entry,
+    warm_up_entry,
 )
 from app.jobs.queue import TASK_NAME, JobQueue
 
@@ -29,4 +30,5 @@ __all__ = [
     "execute_inspection",
     "render_simulated_bundle",
     "resolve_entry",
+    "warm_up_entry",
 ]

@@ -88,6 +88,15 @@ def resolve_entry(entry: str) -> Callable:
     return getattr(importlib.import_module(module_name), attr)
 
 
+def warm_up_entry(entry: str) -> float | None:
+    """Load the compiled kernels of the inspection entry's module (its ``warm_up()``, as
+    :func:`pipeline.run.warm_up`) so that no job pays for them; its run time (s), or None when
+    the module has none (a stand-in pipeline)."""
+    module = importlib.import_module(entry.partition(":")[0])
+    warm = getattr(module, "warm_up", None)
+    return None if warm is None else float(warm())
+
+
 def render_simulated_bundle(*, bundle_dir: Path, plate_id: str, simulation: dict) -> Path:
     """Render a simulated capture bundle into ``bundle_dir`` with the pipeline's simulator.
 

@@ -31,6 +31,7 @@ import numpy.typing as npt
 
 from ..lights import light_vectors_block
 from .field import DEGENERATE, FEW, NONFINITE, OK, OUTSIDE
+from .noise import image_noise
 from .solve3 import DEGENERATE_RATIO, MIN_FIT
 
 #: An array argument of the kernels (their dtypes are set by the callers).
@@ -57,7 +58,8 @@ OUTLIER_K = 1.5
 OUTLIER_K_HIGH = 1.5
 SCALE_FLOOR = 0.01
 #: ... and at least this many times the images' own noise (measured on the plate, see
-#: :func:`image_noise`): a residual within what the sensor's noise explains is no outlier. Without
+#: :func:`pipeline.normals.noise.image_noise`): a residual within what the sensor's noise explains
+#: is no outlier. Without
 #: it, trimming at 1.5 robust scales of a few samples' residuals cuts pure noise asymmetrically,
 #: and the normals' error is then no longer zero-mean but bends the integrated plate smoothly
 #: (measured on simulated plates, 12 lights, 0.4 % noise: deviation p95 0.11 mm against 0.04 mm
@@ -130,7 +132,7 @@ def robust(
         np.zeros(n),
         0.0,
         int(min_samples),
-        robust_params(image_noise(images, mask)),
+        robust_params(float(np.median(image_noise(images, mask)))),
         sorting_network(n),
         b,
         status,
@@ -142,7 +144,7 @@ def robust_params(noise: float = 0.0) -> np.ndarray:
     """The robust estimator's constants as the kernel's parameter vector (9,) float64, in this order:
     SHADOW_FRACTION, SHADOW_REF_QUANTILE, TRIM_TOP_FRACTION, COS_MIN, OUTLIER_K, SCALE_FLOOR,
     ROBUST_ITERATIONS, OUTLIER_K_HIGH, and the absolute floor of the robust scale
-    ``NOISE_SCALES * noise`` (``noise``: the images' noise, :func:`image_noise`)."""
+    ``NOISE_SCALES * noise`` (``noise``: the images' noise, :func:`pipeline.normals.noise.image_noise`)."""
     return np.array(
         [
             SHADOW_FRACTION,
@@ -157,53 +159,6 @@ def robust_params(noise: float = 0.0) -> np.ndarray:
         ],
         dtype=np.float64,
     )
-
-
-def image_noise(images: np.ndarray, mask: np.ndarray, *, side: int = 384) -> float:
-    """The images' noise, in their units: the median over the images of Immerkaer's estimator.
-
-    The estimator (the mean absolute response to a Laplacian difference of two Laplacians, which
-    cancels planar intensity) is taken on a window of at most ``side`` px around the plate's centre
-    (the noise is the sensor's, the same everywhere; a window keeps it cheap at 2448x2048), on the
-    plate's pixels. Texture finer than a few pixels reads as noise too, which only raises the floor.
-
-    Parameters
-    ----------
-    images : (N, H, W) float
-    mask : (H, W) bool
-
-    Returns
-    -------
-    float
-        Standard deviation of the noise (0 when the plate has no 3 x 3 interior in the window).
-    """
-    rows = np.flatnonzero(mask.any(axis=1))
-    cols = np.flatnonzero(mask.any(axis=0))
-    if rows.size < 3 or cols.size < 3:
-        return 0.0
-    r0 = max(0, (rows[0] + rows[-1]) // 2 - side // 2)
-    c0 = max(0, (cols[0] + cols[-1]) // 2 - side // 2)
-    win = (slice(r0, r0 + side), slice(c0, c0 + side))
-    m = mask[win]
-    inner = m[1:-1, 1:-1] & m[:-2, 1:-1] & m[2:, 1:-1] & m[1:-1, :-2] & m[1:-1, 2:]
-    if not inner.any():
-        return 0.0
-    values = []
-    for im in images:
-        x = np.asarray(im[win], dtype=np.float32)
-        lap = (
-            4 * x[1:-1, 1:-1]
-            - 2 * (x[:-2, 1:-1] + x[2:, 1:-1] + x[1:-1, :-2] + x[1:-1, 2:])
-            + x[:-2, :-2]
-            + x[:-2, 2:]
-            + x[2:, :-2]
-            + x[2:, 2:]
-        )
-        vals = np.abs(lap[inner])
-        vals = vals[np.isfinite(vals)]
-        if vals.size:
-            values.append(float(np.sqrt(np.pi / 2.0) / 6.0 * np.mean(vals)))
-    return float(np.median(values)) if values else 0.0
 
 
 @functools.lru_cache(maxsize=16)
