@@ -10,6 +10,7 @@ import re
 import pytest
 from fastapi.testclient import TestClient
 
+from app.models import Inspection
 from tests.web.helpers import seed_done_inspection, seed_queued_inspection
 
 
@@ -149,6 +150,9 @@ def test_result_page_says_why_and_where_a_plate_failed(demo_app):
 def test_a_plates_inspections_as_csv(demo_app):
     first = seed_done_inspection(demo_app, plate_id="CSV-1", measured_radius_mm=5050.0)
     second = seed_done_inspection(demo_app, plate_id="CSV-1", measured_radius_mm=5010.0)
+    with demo_app.state.session_factory() as session:
+        session.get(Inspection, second).operator = "=Kim Ji-woo"  # a spreadsheet formula: quoted
+        session.commit()
     with TestClient(demo_app) as client:
         r = client.get("/api/v1/plates/CSV-1/inspections.csv")
         missing = client.get("/api/v1/plates/NO-SUCH/inspections.csv")
@@ -161,6 +165,7 @@ def test_a_plates_inspections_as_csv(demo_app):
     assert all(row["status"] == "done" and row["verdict"] in ("pass", "fail") for row in rows)
     assert rows[0]["created_at"].endswith("+00:00")  # the time zone is said
     assert rows[0]["target_radius_mm"] == "5000.0"
+    assert [row["operator"] for row in rows] == ["", "'=Kim Ji-woo"]
     assert missing.status_code == 404 and missing.json()["field"] == "plate_id"
 
 
