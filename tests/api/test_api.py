@@ -276,6 +276,26 @@ def test_an_unknown_machine_says_how_to_add_it(client):
     assert "PUT /api/v1/machines/R9" in r.json()["detail"] and "{" not in r.json()["detail"]
 
 
+def test_a_target_carries_its_drawing_hull_and_block(client):
+    url = "/api/v1/plates/P-TR/target"
+    json_body = {**AUTH, "Content-Type": "application/json"}
+    trace = {"drawing": {"number": "DWG-H77-B21-0042", "revision": "C"}, "hull": "H77"}
+    r = client.put(url, content=target_json(**trace, block="B21"), headers=json_body)
+    assert r.status_code == 200, r.text
+    stored = client.get(url).json()["document"]
+    assert stored["drawing"] == trace["drawing"] and (stored["hull"], stored["block"]) == (
+        "H77",
+        "B21",
+    )
+    r = client.put(url, content=target_json(hull="H" * 65), headers=json_body)
+    assert r.status_code == 422 and r.json()["field"] == "target: hull", r.text
+    assert r.json()["file"] == "target.json" and "64 characters" in r.json()["detail"]
+    r = client.put(url, content=target_json(drawing={"number": "D-1"}), headers=json_body)
+    assert r.status_code == 422 and r.json()["field"] == "target: drawing.revision", r.text
+    r = client.put(url, content=target_json(yard="Okpo"), headers=json_body)
+    assert r.status_code == 422 and r.json()["field"] == "target: yard", r.text
+
+
 def test_upload_over_the_limit_is_413(client, settings):
     big = b"0" * (settings.max_upload_bytes + 1)
     r = client.post(
