@@ -454,10 +454,17 @@ def get_inspection(inspection_id: InspectionIdPath, session: SessionDep, storage
         409: {"model": ErrorOut},
     },
 )
-def get_report(inspection_id: InspectionIdPath, session: SessionDep, storage: StorageDep):
-    """The inspection report to sign (A4 PDF): plate, verdict and why, statistics, the deviation map
-    with its defects numbered, the defect table, the templates, the calibrations used, signature lines.
-    Only a done inspection has one (409 otherwise)."""
+def get_report(
+    inspection_id: InspectionIdPath,
+    session: SessionDep,
+    storage: StorageDep,
+    settings: SettingsDep,
+):
+    """The inspection report to sign (A4 PDF): a header on every page (yard, hull, block, plate,
+    drawing and revision, report number, cell, camera serials, calibration, operator, times, page X
+    of Y); verdict, warnings and the decision rule; target and alignment; radius, surface, defects
+    and templates judged with tolerance and uncertainty; statistics and histogram; the deviation map
+    with its colour bar and callouts; approval blocks. Only a done inspection has one (409 otherwise)."""
     row = svc.get_inspection(session=session, inspection_id=inspection_id)
     if row is None:
         raise ApiError(404, f"inspection_id: no inspection {inspection_id}", field="inspection_id")
@@ -469,7 +476,9 @@ def get_report(inspection_id: InspectionIdPath, session: SessionDep, storage: St
             field="inspection_id",
         )
     document = inspection_out(row, storage=storage).model_dump(mode="json")
-    pdf = inspection_report(session=session, storage=storage, row=row, document=document)
+    pdf = inspection_report(
+        session=session, storage=storage, row=row, document=document, yard=settings.yard
+    )
     name = f"inspection-{row.plate_id}-{row.id}.pdf"
     return Response(
         pdf,
