@@ -250,23 +250,29 @@ def _statistics(data: ReportData, styles: Any) -> list[Flowable]:
     values = np.empty(0)
     if data.plate_map is not None:
         values = data.plate_map.deviation_mm[np.isfinite(data.plate_map.deviation_mm)]
-    out: list[Flowable] = [
-        _section("Statistics of the signed deviation", styles),
-        _table(tables.statistics_rows(values, result), header=True),
-    ]
+    stats = _table(
+        tables.statistics_rows(values, result), header=True, widths=(34 * mm, 29 * mm, 39 * mm)
+    )
+    out: list[Flowable] = [_section("Statistics of the signed deviation", styles)]
     tol = finite(result.get("tolerance_mm"))
-    if values.size and tol:
-        cell = num(data.plate_map.cell_mm if data.plate_map else None, 1)
-        out += [
-            Histogram(values, tol, TEXT_WIDTH),
-            _note(
-                f"The map's {values.size} cells ({cell} mm squares, each the mean deviation of its "
-                f"points) per 0.25 x tolerance bin; beyond ±{default_limit_mm(tol):g} mm counted in "
-                "the end bins.",
-                styles,
-            ),
-        ]
-    return out
+    if not (values.size and tol):
+        return [*out, stats]
+    cell = num(data.plate_map.cell_mm if data.plate_map else None, 1)
+    side = TEXT_WIDTH - 104 * mm
+    beside = Table([[stats, Histogram(values, tol, side)]], colWidths=(104 * mm, side))
+    beside.setStyle(
+        TableStyle([("VALIGN", (0, 0), (-1, -1), "MIDDLE"), ("LEFTPADDING", (0, 0), (-1, -1), 0)])
+    )
+    return [
+        *out,
+        beside,
+        _note(
+            f"The map's {values.size} cells ({cell} mm squares, each the mean deviation of its "
+            f"points) per 0.25 x tolerance bin; beyond ±{default_limit_mm(tol):g} mm counted in "
+            "the end bins.",
+            styles,
+        ),
+    ]
 
 
 def _deviation_map(data: ReportData, styles: Any) -> list[Flowable]:

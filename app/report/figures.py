@@ -201,7 +201,7 @@ class Histogram(Flowable):  # type: ignore[misc]  # ReportLab is untyped
     """The share of the map's cells per deviation bin, bars in the map's colours, the tolerance
     marked; values beyond the axis are counted in its end bins (said under it)."""
 
-    HEIGHT = 38 * mm
+    HEIGHT = 42 * mm
 
     def __init__(self, values_mm: np.ndarray, tolerance_mm: float, width: float) -> None:
         super().__init__()
@@ -215,8 +215,8 @@ class Histogram(Flowable):  # type: ignore[misc]  # ReportLab is untyped
 
     def draw(self) -> None:
         c = self.canv
-        left, bottom = 14 * mm, 9 * mm
-        plot_w, plot_h = self.width * 0.62 - left, self.height - bottom - 4 * mm
+        left, bottom = 12 * mm, 9 * mm
+        plot_w, plot_h = self.width - left - 8 * mm, self.height - bottom - 4 * mm
         top_share = max(float(self.share.max()), 1e-9)
         bar_w = plot_w / len(self.counts)
         rgb = band_rgb(self.centres, self.tolerance)

@@ -47,7 +47,7 @@ class PageHeader:
     @property
     def height(self) -> float:
         """Points from the page's top edge to the body."""
-        return HEADER_TOP + 14 + self.rows * HEADER_ROW + 7 * mm
+        return float(HEADER_TOP + 14 + self.rows * HEADER_ROW + 7 * mm)
 
 
 def draw_header(canvas: Canvas, header: PageHeader, page: int, pages: int) -> None:

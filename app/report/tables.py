@@ -165,7 +165,7 @@ def statistics_rows(values_mm: np.ndarray, result: dict[str, Any]) -> list[list[
             num(np.percentile(a, 95), 2, "mm"),
         ]
     return [
-        ["", "Deviation map (cells)", "Verdict (every judged pixel)"],
+        ["", "Map cells", "Verdict (all judged pixels)"],
         ["Minimum (signed)", cells[0], ""],
         ["Maximum (signed)", cells[1], ""],
         ["Largest |deviation|", "", mm(dev.get("max_abs"), 2)],
