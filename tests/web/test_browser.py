@@ -572,6 +572,13 @@ def test_plate_map_reads_zooms_and_places_a_template(live_server, browser):
     assert min(ticks) < 0 < max(ticks) and 0.0 in ticks  # mm of the target frame, its centre at 0
     assert page.locator(".map-axes .axis-name").all_text_contents() == ["x, mm", "y, mm"]
     assert page.locator(".map-origin text").all_text_contents() == ["x", "y"]
+    # unmeasured cells show the colour the legend gives them
+    drawn = page.eval_on_selector(".map-unmeasured", "e => getComputedStyle(e).fill")
+    swatch = page.eval_on_selector(
+        ".map-legend .band-none", "e => getComputedStyle(e).backgroundColor"
+    )
+    assert drawn == swatch == "rgb(214, 214, 214)", (drawn, swatch)
+    assert "not measured" in page.locator(".map-legend").inner_text()
 
     # the defect's number sits at its place: the pointer there reads a value beyond tolerance
     spot = page.locator(".map-defect[data-defect='1'] .spot").bounding_box()
