@@ -298,3 +298,26 @@ def test_map_legend_colours_are_the_maps():
         "below": BELOW_RGB[0],
         "below-far": BELOW_RGB[1],
     }
+
+
+def test_the_machines_page_lists_adds_and_edits_roll_benders(demo_app):
+    geometry = {
+        "kind": "three-roll-pyramid",
+        "bottom_roll_spacing_mm": 1400.0,
+        "bottom_roll_diameter_mm": 420.0,
+        "top_roll_diameter_mm": 500.0,
+    }
+    with TestClient(demo_app) as client:
+        empty = client.get("/machines")
+        client.get("/cell")  # the demo's session cookie
+        assert client.put("/api/v1/machines/R3-01", json=geometry).status_code == 201
+        listed = client.get("/machines").text
+        editing = client.get("/machines", params={"edit": "R3-01"}).text
+        unknown = client.get("/machines", params={"edit": "NOPE"}, headers={"Accept": "text/html"})
+    assert empty.status_code == 200 and "No machine yet" in empty.text
+    assert '<a href="/machines" aria-current="page">Machines</a>' in empty.text
+    assert 'data-machine="R3-01"' in listed and "1400 mm" in listed and "420 mm" in listed
+    assert 'href="/machines?edit=R3-01"' in listed and "Add a machine" in listed
+    assert "Edit machine R3-01" in editing and 'value="R3-01" readonly' in editing
+    assert 'value="1400.0"' in editing and 'data-editing="true"' in editing
+    assert unknown.status_code == 404
