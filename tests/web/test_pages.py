@@ -282,6 +282,7 @@ def test_map_legend_colours_are_the_maps():
     """The page's legend (app.css) shows the very colours the map and the 3D view are drawn with."""
     from pathlib import Path
 
+    from app.report.figures import UNMEASURED_RGB
     from pipeline.artifacts.colours import ABOVE_RGB, BELOW_RGB, IN_TOLERANCE_RGB
 
     css = (Path(__file__).resolve().parents[2] / "web" / "static" / "css" / "app.css").read_text()
@@ -297,7 +298,9 @@ def test_map_legend_colours_are_the_maps():
         "above-far": ABOVE_RGB[1],
         "below": BELOW_RGB[0],
         "below-far": BELOW_RGB[1],
+        "none": UNMEASURED_RGB,  # unmeasured cells: the page's map and the PDF's alike
     }
+    assert f".map-unmeasured {{ fill: rgb{UNMEASURED_RGB}; }}" in css
 
 
 def test_the_machines_page_lists_adds_and_edits_roll_benders(demo_app):
