@@ -232,6 +232,21 @@ def test_a_key_sent_again_with_another_body_is_422_naming_the_header(client, bun
     assert _count(client, Inspection) == 2
 
 
+def test_a_target_put_again_under_its_key_replays_only_the_same_document(client):
+    """PUT /target reads its body itself (JSON or multipart): the key's fingerprint still sees it."""
+    url = "/api/v1/plates/P-IK/target"
+    headers = {**AUTH, "Idempotency-Key": "mes-60", "Content-Type": "application/json"}
+    doc = json.loads(target_json())
+    first = client.put(url, content=json.dumps(doc), headers=headers)
+    reordered = json.dumps(dict(reversed(list(doc.items()))), indent=2)
+    again = client.put(url, content=reordered, headers=headers)
+    assert first.status_code == again.status_code == 200 and again.json() == first.json()
+    assert again.headers["idempotent-replayed"] == "true"
+    other = client.put(url, content=target_json(tolerance_mm=3.0), headers=headers)
+    assert other.status_code == 422 and other.json()["field"] == "Idempotency-Key", other.text
+    assert client.get(url).json()["tolerance_mm"] == 2.0
+
+
 def test_202_and_201_say_where_the_new_thing_is(client):
     r = _simulated(client, "P-LOC")
     assert r.status_code == 202

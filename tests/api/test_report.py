@@ -191,6 +191,25 @@ def test_a_report_to_sign_carries_its_traceability_calibration_and_judged_items(
     assert "Target shape —" not in text and "-0.00" not in text and "—" not in text
 
 
+def test_the_decision_rule_flags_a_measurement_not_capable_for_its_tolerance():
+    from app.report.document import decision_rule
+
+    capable = decision_rule({"tolerance_mm": 2.0, "uncertainty": {"k": 2, "deviation_mm": 0.4}})
+    assert "= 5.0; the measurement is capable" in capable and "ISO 14253-1" in capable
+    poor = decision_rule({"tolerance_mm": 2.0, "uncertainty": {"k": 2, "deviation_mm": 0.8}})
+    assert "= 2.5; the measurement is <b>NOT CAPABLE</b> (below 4)" in poor
+    assert "not stated" in decision_rule({"tolerance_mm": 2.0})
+
+
+def test_numbers_never_print_minus_zero_and_always_a_decimal_point():
+    from app.report.text import num, signed, when
+
+    assert signed(-0.004, 2, "%") == "0.00 %" and signed(-0.006, 2) == "-0.01"
+    assert num(-0.04, 1) == "0.0" and num(None, 1) == "not recorded"
+    assert signed(1234.5, 1, "mm") == "+1234.5 mm"
+    assert when("2026-11-26T09:01:02") == "2026-11-26 09:01:02 UTC"
+
+
 def test_what_a_bundle_does_not_record_is_said_not_recorded(client, bundle_zip, tmp_path):
     inspection_id, _ = _seed(
         client.app, bundle_zip, plate_id="P-PLAIN", acquired=False, result_extra={}, trace={}
