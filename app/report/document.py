@@ -64,6 +64,8 @@ class ReportData:
         The deviation map in the target's frame; the camera's deviation.png is printed otherwise.
     sections : list of Section
         The virtual templates (:mod:`pipeline.sections`): each frame's gap along it.
+    template_spacing_mm : float
+        Their spacing (besides one through each defect), mm.
     yard : str or None
         The yard's name (setting ``PLATE_INSPECT_YARD``).
     capture : dict or None
@@ -83,6 +85,7 @@ class ReportData:
     printed_at: datetime
     plate_map: PlateMap | None = None
     sections: list[Section] = field(default_factory=list)
+    template_spacing_mm: float = 700.0
     yard: str | None = None
     capture: dict[str, Any] | None = None
     stereo_calibration: dict[str, Any] | None = None
@@ -131,7 +134,7 @@ def _story(data: ReportData, styles: Any) -> list[Flowable]:
         KeepTogether(_statistics(data, styles)),
         KeepTogether([_section("Deviation map", styles), *_deviation_map(data, styles)]),
         *_defects(doc, styles),
-        *_templates(data.sections, result, styles),
+        *_templates(data.sections, result, data.template_spacing_mm, styles),
         _section("Acquisition and calibrations", styles),
         _pairs(_acquisition_rows(data), styles),
         KeepTogether(_approval(styles, doc.get("operator"))),
@@ -251,8 +254,12 @@ def _statistics(data: ReportData, styles: Any) -> list[Flowable]:
     if data.plate_map is not None:
         values = data.plate_map.deviation_mm[np.isfinite(data.plate_map.deviation_mm)]
     stats = _table(
-        tables.statistics_rows(values, result), header=True, widths=(34 * mm, 29 * mm, 39 * mm)
+        tables.statistics_rows(values, result),
+        header=True,
+        size=7.6,
+        widths=(32 * mm, 22 * mm, 50 * mm),
     )
+    stats.setStyle(TableStyle([("ALIGN", (2, 0), (2, -1), "LEFT")]))
     out: list[Flowable] = [_section("Statistics of the signed deviation", styles)]
     tol = finite(result.get("tolerance_mm"))
     if not (values.size and tol):
@@ -324,14 +331,16 @@ def _worst_gap(section: Section) -> float | None:
     return float(gaps[np.argmax(np.abs(gaps))]) if gaps.size else None
 
 
-def _templates(sections: list[Section], result: dict[str, Any], styles: Any) -> list[Flowable]:
+def _templates(
+    sections: list[Section], result: dict[str, Any], spacing_mm: float, styles: Any
+) -> list[Flowable]:
     """The table of frames judged by their largest gap, then each frame's gap along it."""
     if not sections:
         return []
     out: list[Flowable] = [
         _section("Virtual templates", styles),
         _table(
-            tables.template_rows(sections, result, _worst_gap),
+            tables.template_rows(sections, result, _worst_gap, spacing_mm),
             header=True,
             size=7.6,
             widths=TEMPLATE_WIDTHS,
@@ -379,15 +388,18 @@ def _approval(styles: Any, operator: str | None) -> list[Flowable]:
     """Signature blocks: the operator who measured, and the QA approver with the disposition."""
     line = "_" * 30
     rows = [
-        ["", "Operator", "QA approver"],
+        ["Sign-off", "Operator", "QA approver"],
         ["Name", operator or line, line],
         ["Date", line, line],
         ["Signature", line, line],
-        ["Disposition", "", "[  ] accept    [  ] rework    [  ] concession no. ________"],
     ]
     table = _table(rows, header=True, widths=(26 * mm, 52 * mm, None))
     table.setStyle(TableStyle([("ALIGN", (0, 0), (-1, -1), "LEFT")]))
-    return [Spacer(1, 6 * mm), _section("Approval", styles), table]
+    disposition = _pairs(
+        [["Disposition (QA)", "[  ] accept    [  ] rework    [  ] concession no. ____________"]],
+        styles,
+    )
+    return [Spacer(1, 6 * mm), _section("Approval", styles), table, Spacer(1, 3 * mm), disposition]
 
 
 def _table(

@@ -125,9 +125,12 @@ def defect_rows(defects: list[dict[str, Any]], result: dict[str, Any]) -> list[l
     return rows
 
 
-def template_rows(sections: list[Section], result: dict[str, Any], worst: Any) -> list[list[str]]:
-    """One row per virtual template frame: its largest gap, judged (``worst``: a section's gap of
-    largest magnitude, mm, or None)."""
+def template_rows(
+    sections: list[Section], result: dict[str, Any], worst: Any, spacing_mm: float
+) -> list[list[str]]:
+    """One row per virtual template frame (at ``spacing_mm`` or through a defect): its largest gap,
+    judged (``worst``: a section's gap of largest magnitude, mm, or None)."""
+    spacing = f"{num(spacing_mm, 0)} mm grid"
     tol = finite(result.get("tolerance_mm"))
     u_dev = _u(uncertainty(result, "deviation_mm"))
     rows = [["Frame at, mm", "Through", *JUDGED]]
@@ -136,7 +139,7 @@ def template_rows(sections: list[Section], result: dict[str, Any], worst: Any) -
         rows.append(
             [
                 num(s.position_mm, 0),
-                f"defect {s.defect}" if s.defect else "",
+                f"defect {s.defect}" if s.defect else spacing,
                 "0.00",
                 signed(gap, 2),
                 signed(gap, 2),
@@ -149,31 +152,30 @@ def template_rows(sections: list[Section], result: dict[str, Any], worst: Any) -
 
 
 def statistics_rows(values_mm: np.ndarray, result: dict[str, Any]) -> list[list[str]]:
-    """Signed min and max, mean, standard deviation, RMS and p95 of the map's cells, and the
-    verdict's own figures (every judged pixel) beside them."""
+    """Signed min and max, mean, standard deviation, RMS and p95 of the map's cells, then the
+    verdict's own figures (over every judged pixel), each row saying what it is over."""
     dev = result.get("deviation_mm") or {}
-    if values_mm.size == 0:
-        cells = [NOT_RECORDED] * 6
-    else:
+    cells = f"the map's {values_mm.size} cells"
+    rows = [["Statistic", "Value", "Over"]]
+    if values_mm.size:
         a = np.abs(values_mm)
-        cells = [
-            signed(values_mm.min(), 2, "mm"),
-            signed(values_mm.max(), 2, "mm"),
-            signed(values_mm.mean(), 2, "mm"),
-            num(values_mm.std(), 2, "mm"),
-            num(np.sqrt(np.mean(a * a)), 2, "mm"),
-            num(np.percentile(a, 95), 2, "mm"),
+        rows += [
+            ["Minimum (signed)", signed(values_mm.min(), 2, "mm"), cells],
+            ["Maximum (signed)", signed(values_mm.max(), 2, "mm"), cells],
+            ["Mean", signed(values_mm.mean(), 2, "mm"), cells],
+            ["Standard deviation", num(values_mm.std(), 2, "mm"), cells],
+            ["RMS", num(np.sqrt(np.mean(a * a)), 2, "mm"), cells],
+            ["p95 of |deviation|", num(np.percentile(a, 95), 2, "mm"), cells],
         ]
+    else:
+        rows.append(["Map statistics", NOT_RECORDED, "no deviation map in the target's frame"])
+    judged = "every judged pixel (the verdict's)"
     return [
-        ["", "Map cells", "Verdict (all judged pixels)"],
-        ["Minimum (signed)", cells[0], ""],
-        ["Maximum (signed)", cells[1], ""],
-        ["Largest |deviation|", "", mm(dev.get("max_abs"), 2)],
-        ["Mean", cells[2], ""],
-        ["Standard deviation", cells[3], ""],
-        ["RMS", cells[4], mm(dev.get("rms"), 2)],
-        ["p95 of |deviation|", cells[5], mm(dev.get("p95"), 2)],
-        ["Within tolerance", "", num(result.get("within_tolerance_pct"), 2, "% of the area")],
+        *rows,
+        ["RMS", mm(dev.get("rms"), 2), judged],
+        ["p95 of |deviation|", mm(dev.get("p95"), 2), judged],
+        ["Largest |deviation|", mm(dev.get("max_abs"), 2), judged],
+        ["Within tolerance", num(result.get("within_tolerance_pct"), 2, "%"), "the judged area"],
     ]
 
 

@@ -64,6 +64,7 @@ def inspection_report(
         software_version=_software_version(),
         printed_at=datetime.now(UTC),
         sections=_sections(storage, row.id),
+        template_spacing_mm=REPORT_SPACING_MM,
         plate_map=_plate_map(storage, row),
         yard=yard,
         capture=capture,
