@@ -221,3 +221,52 @@ def test_what_a_bundle_does_not_record_is_said_not_recorded(client, bundle_zip, 
     assert "Calibration bundle's own, sha256" in flat and "Calibration date not recorded" in flat
     assert "U95 not recorded" in flat or "not stated" in flat
     assert "Warnings None." in flat and "-0.00" not in flat
+
+
+def test_a_measured_dented_plate_report_prints_its_drawing_and_every_judged_item(tmp_path):
+    """The real pipeline (a consumer process): the plate's target carries its drawing, hull and
+    block; the dented plate's report prints them on every page, with the alignment's residual, the
+    defect judged against its tolerance and the approval blocks."""
+    from app.settings import Settings
+    from tests.api.helpers import TOKEN, Consumer, wait_for
+
+    settings = Settings(data_dir=tmp_path / "dent", api_token=TOKEN, yard="Okpo yard")
+    app = create_app(settings)
+    consumer = Consumer(settings).start()
+    trace = {"drawing": {"number": "DWG-H77-B21-0042", "revision": "C"}, "hull": "H77"}
+    try:
+        with TestClient(app) as client:
+            r = client.put(
+                "/api/v1/plates/H77-B21-P09/target",
+                content=target_json(**trace, block="B21"),
+                headers={**AUTH, "Content-Type": "application/json"},
+            )
+            assert r.status_code == 200, r.text
+            r = client.post(
+                "/api/v1/plates/H77-B21-P09/inspections/simulated",
+                json={
+                    "width": 612,
+                    "height": 512,
+                    "seed": 8,
+                    "dents": [
+                        {"x_mm": -600.0, "y_mm": 300.0, "radius_mm": 150.0, "depth_mm": -6.0}
+                    ],
+                },
+                headers=AUTH,
+            )
+            assert r.status_code == 202 and r.headers["location"].endswith(str(r.json()["id"]))
+            body = wait_for(client, r.json()["id"], timeout_s=180, consumer=consumer)
+            assert body["status"] == "done" and body["verdict"] == "fail", body
+            text = _report_text(client, body["id"], tmp_path)
+    finally:
+        consumer.stop()
+        app.state.engine.dispose()
+    flat = " ".join(text.split())
+    pages = int(re.search(r"Page 1 of (\d+)", text).group(1))
+    for needle in ("Okpo yard", "Drawing DWG-H77-B21-0042", "Revision C", "Hull H77", "Block B21"):
+        assert flat.count(needle) >= pages, needle
+    assert "Camera serials not recorded" in flat  # a simulated bundle records no cameras
+    assert re.search(r"Residual \d+\.\d\d mm RMS", flat) and "ISO 14253-1" in flat
+    peak = f"{body['defects'][0]['peak_mm']:+.2f}"
+    assert re.search(rf"^\s*1\s+-?\d+\s+-?\d+\s.*{re.escape(peak)}.*±2\.00.*FAIL", text, re.M)
+    assert "U (k=2)" in text and "QA approver" in text and "Disposition (QA)" in flat
