@@ -13,6 +13,7 @@ import hashlib
 import json
 import logging
 import zipfile
+from collections.abc import Callable
 from datetime import UTC, datetime
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -104,8 +105,7 @@ def _capture_and_calibration(
     try:
         if bundle.is_dir():
             capture = _json_file(bundle / "capture.json")
-            read = lambda name: (bundle / name).read_bytes()  # noqa: E731
-            return capture, _calibration_doc(capture, read)
+            return capture, _calibration_doc(capture, lambda name: (bundle / name).read_bytes())
         with zipfile.ZipFile(bundle) as zf:
             names = [n for n in zf.namelist() if n.rsplit("/", 1)[-1] == "capture.json"]
             if not names:
@@ -119,11 +119,15 @@ def _capture_and_calibration(
         return None, None
 
 
-def _calibration_doc(capture: dict[str, Any] | None, read: Any) -> dict[str, Any] | None:
+def _calibration_doc(
+    capture: dict[str, Any] | None, read: Callable[[str], bytes]
+) -> dict[str, Any] | None:
+    """The capture's calibration: given inline, or the bundle's file it names (``read`` reads a
+    file of the bundle by its relative name)."""
     value = (capture or {}).get("calibration")
     if isinstance(value, dict):
         return value
-    if isinstance(value, str) and "/" not in value and ".." not in value:
+    if isinstance(value, str) and not value.startswith("/") and ".." not in value.split("/"):
         doc = json.loads(read(value))
         return doc if isinstance(doc, dict) else None
     return None
