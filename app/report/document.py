@@ -133,7 +133,7 @@ def _story(data: ReportData, styles: Any) -> list[Flowable]:
         _note(_radius_note(data), styles),
         KeepTogether(_statistics(data, styles)),
         KeepTogether([_section("Deviation map", styles), *_deviation_map(data, styles)]),
-        *_defects(doc, styles),
+        *_defects(doc, data.details, styles),
         *_templates(data.sections, result, data.template_spacing_mm, styles),
         _section("Acquisition and calibrations", styles),
         _pairs(_acquisition_rows(data), styles),
@@ -312,15 +312,18 @@ def _deviation_map(data: ReportData, styles: Any) -> list[Flowable]:
     ]
 
 
-def _defects(doc: dict[str, Any], styles: Any) -> list[Flowable]:
+def _defects(doc: dict[str, Any], details: dict[str, Any] | None, styles: Any) -> list[Flowable]:
     defects = doc.get("defects") or []
     head = _section("Defects", styles)
     if not defects:
         return [head, Paragraph("No region out of tolerance.", styles["Normal"])]
-    rows = tables.defect_rows(defects, doc.get("result") or {})
+    found = [d for d in (details or {}).get("defects") or [] if isinstance(d, dict)]
+    peak_u = [finite(d.get("uncertainty_mm")) for d in found]
+    rows = tables.defect_rows(defects, doc.get("result") or {}, peak_u)
     note = _note(
         "Position in the target's frame (mm from its centre); nominal, actual (the peak) and "
-        "deviation in mm, signed: + proud of the target (towards the cameras), - below it.",
+        "deviation in mm, signed: + proud of the target (towards the cameras), - below it. "
+        "U (k=2): at the defect's peak where the result states it, else the plate's U95.",
         styles,
     )
     return [head, _table(rows, header=True, size=7.6, widths=DEFECT_WIDTHS), note]

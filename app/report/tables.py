@@ -99,14 +99,21 @@ def radius_rows(result: dict[str, Any], target: dict[str, Any] | None) -> list[l
     return rows
 
 
-def defect_rows(defects: list[dict[str, Any]], result: dict[str, Any]) -> list[list[str]]:
-    """One row per defect: its place (target frame), area and peak, judged against the tolerance."""
+def defect_rows(
+    defects: list[dict[str, Any]], result: dict[str, Any], peak_u_mm: list[float | None]
+) -> list[list[str]]:
+    """One row per defect: its place (target frame), area and peak, judged against the tolerance.
+
+    ``peak_u_mm``: each defect's expanded uncertainty at its peak (details.json), where stated;
+    the plate's U95 otherwise.
+    """
     tol = finite(result.get("tolerance_mm"))
-    u_dev = _u(uncertainty(result, "deviation_mm"))
+    u95 = uncertainty(result, "deviation_mm")
     rows = [["#", "x, mm", "y, mm", "Area, cm²", "Mean, mm", *JUDGED]]
-    for d in defects:
+    for k, d in enumerate(defects):
         x, y = d.get("centroid_mm") or (None, None)
         peak = finite(d.get("peak_mm"))
+        own = finite(peak_u_mm[k]) if k < len(peak_u_mm) else None
         rows.append(
             [
                 str(d["id"]),
@@ -118,7 +125,7 @@ def defect_rows(defects: list[dict[str, Any]], result: dict[str, Any]) -> list[l
                 signed(peak, 2),
                 signed(peak, 2),
                 NOT_RECORDED if tol is None else f"±{num(tol, 2)}",
-                u_dev,
+                _u(own if own is not None else u95),
                 _verdict(None if peak is None or tol is None else abs(peak) <= tol),
             ]
         )

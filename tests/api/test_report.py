@@ -71,6 +71,7 @@ DEFECT = {
     "area_mm2": 70686.0,
     "peak_deviation_mm": -6.05,
     "mean_deviation_mm": -3.1,
+    "uncertainty_mm": 0.41,  # U at its peak (details.json), not the plate's U95
 }
 
 
@@ -178,7 +179,7 @@ def test_a_report_to_sign_carries_its_traceability_calibration_and_judged_items(
     assert radius and "3.10 mm" in radius.group(0) and "FAIL" in radius.group(0), text
     defect = re.search(r"^\s*1\s+-600\s+300\s+706\.9\s.*$", text, re.MULTILINE)
     assert defect and "-6.05" in defect.group(0) and "±2.00" in defect.group(0), text
-    assert "0.35 mm" in defect.group(0) and "FAIL" in defect.group(0)
+    assert "0.41 mm" in defect.group(0) and "FAIL" in defect.group(0)
     assert "1: -6.0 mm (tol. ±2)" in text  # the callout on the map
     assert "ISO 14253-1" in text and "tolerance 2.00 mm / U95 0.35 mm = 5.7" in flat
     assert warning in flat
