@@ -31,8 +31,9 @@ from pipeline.formats import InputError
 log = logging.getLogger(__name__)
 
 #: An absolute path of two or more parts, at the start of the text or after a space, quote,
-#: bracket, '=' or ','; group 1 is its last part (URLs such as ``http://host/a/b`` are left alone).
-_ABSOLUTE_PATH = re.compile(r"""(?:^|(?<=[\s'"(\[=,]))/(?:[^/\s'"]+/)+([^/\s'"]*)""")
+#: bracket, '=' or ','; group 1 is its last part (URLs such as ``http://host/a/b`` and this API's
+#: own paths, ``/api/v1/machines/R3``, are left alone).
+_ABSOLUTE_PATH = re.compile(r"""(?:^|(?<=[\s'"(\[=,]))/(?!api/v1/)(?:[^/\s'"]+/)+([^/\s'"]*)""")
 #: Seconds a client is told to wait (``Retry-After``) when the database cannot be reached.
 DATABASE_RETRY_AFTER_S = 5
 #: Methods a 405's ``Allow`` header may list.
@@ -125,7 +126,7 @@ def known_error(exc: BaseException, *, upload_field: str | None = None) -> tuple
     if isinstance(exc, StarletteHTTPException):
         reason = body_parse_failure(exc)
         if reason is not None:
-            return 422, error_body(f"body: {reason}", "body")
+            return 400, error_body(f"body: {reason}", "body")
         return exc.status_code, error_body(str(exc.detail))
     return None
 
@@ -136,7 +137,8 @@ def body_parse_failure(exc: StarletteHTTPException) -> str | None:
     FastAPI answers "There was an error parsing the body" (400) when ``json.loads`` fails with
     something else than a syntax error: a body nested deeper than the interpreter's recursion
     limit (RecursionError), an integer of more digits than Python converts, bytes that are not
-    UTF-8 (ValueError). Such a body is answered 422 naming ``body`` on every route.
+    UTF-8 (ValueError). Such a body is answered 400 naming ``body`` on every route, as is a body
+    that is not JSON at all (:func:`not_json`).
     """
     cause = exc.__cause__
     if exc.status_code != 400 or not isinstance(cause, (RecursionError, ValueError)):
@@ -148,6 +150,16 @@ def body_parse_failure(exc: StarletteHTTPException) -> str | None:
     if "digits" in str(cause):
         return f"not usable JSON: a number of more than {sys.get_int_max_str_digits()} digits"
     return f"not usable JSON: {cause}"
+
+
+def not_json(errors: list[dict]) -> str | None:
+    """What is wrong with a JSON body that is not JSON (FastAPI's ``json_invalid`` validation
+    error, whose location is a character offset), or None when the body parsed."""
+    for e in errors:
+        if e.get("type") == "json_invalid":
+            reason = str((e.get("ctx") or {}).get("error") or "").strip()
+            return "not JSON" + (f" ({reason[:1].lower()}{reason[1:]})" if reason else "")
+    return None
 
 
 def relabel_input_error(err: InputError, base) -> InputError:
@@ -216,6 +228,9 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError):
         errors = exc.errors()
+        reason = not_json(list(errors))
+        if reason is not None:
+            return JSONResponse(error_body(f"body: {reason}", "body"), status_code=400)
         first = errors[0] if errors else {"loc": (), "msg": "invalid request"}
         field = _validation_field(first.get("loc", ()))
         detail = f"{field}: {first.get('msg')}" if field else str(first.get("msg"))

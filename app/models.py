@@ -260,6 +260,9 @@ class IdempotencyKey(Base):
     state: Mapped[str] = mapped_column(String(8), default="pending")
     status_code: Mapped[int | None] = mapped_column(Integer)
     body: Mapped[dict[str, Any] | None]
+    #: sha256 hex of the request's body as fields and contents
+    #: (:func:`app.services.idempotency.fingerprint`); null for keys stored before 0010.
+    request_sha256: Mapped[str | None] = mapped_column(String(64))
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
 
 

@@ -11,7 +11,9 @@ declares:
   and 413 (over ``PLATE_INSPECT_MAX_UPLOAD_MB``);
 - 401, 403 (a cookie write from another origin) and 429 (a throttled wrong token) on every
   operation that needs the API token (one with ``security``);
-- 409 on every operation that takes an ``Idempotency-Key`` (the first request with the key still runs);
+- 409 on every operation that takes an ``Idempotency-Key`` (the first request with the key still
+  runs), whose 422 also says that the key was used with another body;
+- ``Location`` on every 201 and 202 answer (where the new resource, or the queued job, is read);
 - 503 on every operation (the database cannot be reached now; ``Retry-After`` says when to retry).
 """
 
@@ -31,7 +33,7 @@ _ERROR_REF = {"$ref": f"#/components/schemas/{ERROR_SCHEMA}"}
 _FASTAPI_VALIDATION = ("HTTPValidationError", "ValidationError")
 
 _BODY_ERRORS = {
-    "400": "the body cannot be parsed (e.g. a broken multipart body)",
+    "400": "the body cannot be parsed (not JSON, or a broken multipart body)",
     "413": "the body is larger than PLATE_INSPECT_MAX_UPLOAD_MB",
 }
 _AUTH_ERRORS = {
@@ -47,6 +49,16 @@ _UNAVAILABLE_ERROR = {
 }
 _IDEMPOTENCY_ERROR = {
     "409": "the first request with this Idempotency-Key is still in progress; retry later"
+}
+_KEY_REUSED = (
+    "; or this Idempotency-Key was used on this route with another body (field `Idempotency-Key`)"
+)
+#: The header of every 201 and 202 answer.
+_LOCATION = {
+    "Location": {
+        "description": "where the new resource (201) or the queued job (202) is read",
+        "schema": {"type": "string"},
+    }
 }
 
 
@@ -84,6 +96,10 @@ def document_errors(schema: dict[str, Any]) -> dict[str, Any]:
                 for p in operation.get("parameters", ())
             ):
                 _add(responses, _IDEMPOTENCY_ERROR)
+                responses["422"]["description"] += _KEY_REUSED
+            for created in ("201", "202"):
+                if created in responses:
+                    responses[created].setdefault("headers", {}).update(_LOCATION)
     for name in _FASTAPI_VALIDATION:
         components.pop(name, None)
     return schema

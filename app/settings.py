@@ -9,7 +9,7 @@
 ``PLATE_INSPECT_MAX_SIMULATED_PIXELS``, ``PLATE_INSPECT_MAX_QUEUED_PER_PLATE``, ``PLATE_INSPECT_MAX_QUEUED``;
 job consumer: ``PLATE_INSPECT_WORKER_MEMORY_MB``, ``PLATE_INSPECT_JOB_LEASE_S``; a yard:
 ``PLATE_INSPECT_QUEUE_URL``; the cell:
-``PLATE_INSPECT_CELL_CONFIG``.
+``PLATE_INSPECT_CELL_CONFIG``; the report: ``PLATE_INSPECT_YARD``.
 """
 
 from __future__ import annotations
@@ -107,6 +107,8 @@ class Settings(BaseSettings):
         (``POST /plates/{plate_id}/inspections/acquire``) photograph the plate with the cameras and
         lights it names. None: in demo mode, the demo cell of simulated cameras and lights, written
         under the data dir (:mod:`app.services.cell`); otherwise the server acquires nothing.
+    yard : str or None
+        The shipyard's name, printed in the header of every report page ("not recorded" when unset).
     """
 
     model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, extra="ignore")
@@ -138,6 +140,8 @@ class Settings(BaseSettings):
     job_lease_s: float | None = Field(default=None, ge=3.0)  # None: set by _default_lease
     # -- the cell (app.services.cell)
     cell_config: Path | None = None
+    # -- the report (app.report)
+    yard: str | None = Field(default=None, min_length=1, max_length=64)
 
     @field_validator("inspect_entry")
     @classmethod

@@ -12,6 +12,7 @@ import math
 from typing import Annotated, Any, Final, Literal, Self
 
 from pydantic import (
+    AfterValidator,
     BaseModel,
     ConfigDict,
     Discriminator,
@@ -438,12 +439,33 @@ class TargetMaterial(_Strict):
         return self
 
 
+def _printable(text: str) -> str:
+    if not text.strip() or not text.isprintable():
+        raise ValueError(f"expected printable text, not blank, got {text[:70]!r}")
+    return text
+
+
+#: A traceability string of a target (drawing number, revision, hull, block): 1-64 printable characters.
+TraceText = Annotated[str, Field(min_length=1, max_length=64), AfterValidator(_printable)]
+
+
+class TargetDrawing(_Strict):
+    """The plate's drawing (optional traceability, printed on the report)."""
+
+    number: TraceText
+    revision: TraceText
+
+
 class TargetFile(_Strict):
     format: Literal["plate-target/1"]
     shape: TargetShape
     size_mm: Annotated[list[float], Field(min_length=2, max_length=2)]
     tolerance_mm: float = Field(gt=0)
     material: TargetMaterial | None = None
+    #: Optional traceability (printed on the report): the drawing, hull (ship) and block.
+    drawing: TargetDrawing | None = None
+    hull: TraceText | None = None
+    block: TraceText | None = None
 
     @field_validator("size_mm")
     @classmethod

@@ -1,4 +1,5 @@
-"""The dashboard's pages (server-rendered, Jinja2): cell, inspection result, plate history, calibration.
+"""The dashboard's pages (server-rendered, Jinja2): cell, inspection result, plate history, calibration,
+machines.
 
 Pages read through the service functions (:mod:`app.services`); the browser writes through
 the REST API (``/api/v1``) from plain JS modules, with the dashboard's session cookie. In
@@ -404,6 +405,22 @@ def calibration_page(request: Request, session: SessionDep) -> Response:
         "light_plan": light_plan(light_current.document) if light_current is not None else None,
     }
     return _page(request, session, "calibration.html", context)
+
+
+@router.get("/machines", response_class=HTMLResponse)
+def machines_page(
+    request: Request,
+    session: SessionDep,
+    edit: Annotated[str | None, Query(max_length=64, description="a machine to edit")] = None,
+) -> Response:
+    """The roll benders the forming advice knows: their list, a form to add one, and the same form
+    filled in to edit one (``?edit=R3-01``; an unknown id is 404)."""
+    machines = forming_svc.list_machines(session=session)
+    editing = next((m for m in machines if m.id == edit), None) if edit else None
+    if edit and editing is None:
+        raise HTTPException(404, f"edit: no machine {edit!r}")
+    context = {"page": "machines", "machines": machines, "editing": editing}
+    return _page(request, session, "machines.html", context)
 
 
 @router.get("/login", response_class=HTMLResponse)

@@ -1,6 +1,6 @@
 """Thin routers, one per resource, gathered under ``/api/v1``."""
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Depends
 
 from app.routes import (
     calibrations,
@@ -11,9 +11,9 @@ from app.routes import (
     plates,
     session,
 )
-from app.routes.common import API_PREFIX
+from app.routes.common import API_PREFIX, request_fingerprint
 
-api_router = APIRouter(prefix=API_PREFIX)
+api_router = APIRouter(prefix=API_PREFIX, dependencies=[Depends(request_fingerprint)])
 api_router.include_router(inspections.router)
 api_router.include_router(plates.router)
 api_router.include_router(calibrations.router)

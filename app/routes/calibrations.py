@@ -4,12 +4,18 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, File, Request, UploadFile, status
+from fastapi import APIRouter, File, Path, Request, UploadFile, status
 
 from app.deps import SessionDep, SettingsDep, StorageDep, WriterDep
 from app.errors import ApiError
 from app.limits import Limits
-from app.routes.common import IdempotencyKeyHeader, idempotent_write, save_upload
+from app.routes.common import (
+    API_PREFIX,
+    MAX_ROW_ID,
+    IdempotencyKeyHeader,
+    idempotent_write,
+    save_upload,
+)
 from app.schemas import CalibrationOut, ErrorOut
 from app.services import calibrations as svc
 from app.services.calibrations import CALIBRATION_FILE
@@ -69,6 +75,7 @@ def upload_calibration(
             cleanup=staged.undo,
             staging=staged.dir,
             upload_field="calibration",
+            location=lambda body: f"{API_PREFIX}/calibrations/{body['id']}",
         )
 
 
@@ -79,6 +86,24 @@ def current_calibration(session: SessionDep):
     row = svc.current_calibration(session=session)
     if row is None:
         raise ApiError(404, "calibration: no calibration uploaded yet", field=None)
+    return calibration_out(row)
+
+
+@router.get(
+    "/calibrations/{calibration_id}",
+    response_model=CalibrationOut,
+    responses={404: {"model": ErrorOut}},
+    summary="One stereo calibration (where an upload's Location points)",
+)
+def get_calibration(
+    calibration_id: Annotated[int, Path(ge=1, le=MAX_ROW_ID, description="the calibration's id")],
+    session: SessionDep,
+):
+    row = svc.get_calibration(session=session, calibration_id=calibration_id)
+    if row is None:
+        raise ApiError(
+            404, f"calibration_id: no calibration {calibration_id}", field="calibration_id"
+        )
     return calibration_out(row)
 
 

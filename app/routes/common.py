@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import shutil
@@ -75,6 +76,39 @@ IdempotencyKeyHeader = Annotated[
     ),
 ]
 
+
+async def request_fingerprint(request: Request) -> None:
+    """Keep a write's :func:`~app.services.idempotency.fingerprint` in ``request.state`` when it
+    carries an ``Idempotency-Key`` (a dependency of every API route; the body is read once and cached).
+
+    A multipart body counts as its fields, each by name and content (not its boundary, part order
+    or file names); a JSON body by its content (not its key order or spacing).
+    """
+    if request.method not in ("POST", "PUT", "PATCH") or "idempotency-key" not in request.headers:
+        return
+    content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if content_type == "multipart/form-data":
+        fields = [
+            (name, await _digest(value)) for name, value in (await request.form()).multi_items()
+        ]
+    else:
+        canonical = idempotency.canonical_json(await request.body())
+        fields = [("body", hashlib.sha256(canonical).hexdigest())]
+    request.state.request_sha256 = idempotency.fingerprint(fields)
+
+
+async def _digest(value: Any) -> str:
+    """sha256 hex of a form field: its text, or an uploaded file's bytes (read back to its start)."""
+    if isinstance(value, str):
+        return hashlib.sha256(value.encode()).hexdigest()
+    digest = hashlib.sha256()
+    await value.seek(0)
+    while chunk := await value.read(1 << 20):
+        digest.update(chunk)
+    await value.seek(0)
+    return digest.hexdigest()
+
+
 #: work() -> (status code, JSON body, called after the commit (e.g. enqueue) or None)
 Work = Callable[[], tuple[int, dict[str, Any], Callable[[], None] | None]]
 
@@ -89,6 +123,7 @@ def idempotent_write(
     cleanup: Callable[[], None] = lambda: None,
     upload_field: str | Callable[[InputError], str] | None = None,
     staging: FilePath | None = None,
+    location: Callable[[dict[str, Any]], str] | None = None,
 ) -> JSONResponse:
     """Run a write once per ``Idempotency-Key`` (per route and token) and answer with JSON.
 
@@ -96,37 +131,20 @@ def idempotent_write(
     then calls the after-commit hook. A refused request (4xx) is remembered too, so a retry gets
     the same refusal; a bug (5xx) forgets the key, and so does a full queue
     (:class:`~app.limits.queue.QueueFullError`, answered 429 with ``Retry-After``): a retry may be
-    admitted. ``cleanup`` undoes files ``work`` wrote when its rows are not committed. File
-    errors name files relative to ``staging`` (the upload's folder); ``upload_field`` is the
-    multipart field they are about, or a function of the (relabelled) error giving it when the
-    upload has several files.
+    admitted. The same key with another body (:func:`request_fingerprint`) is refused with 422
+    naming ``Idempotency-Key``. ``cleanup`` undoes files ``work`` wrote when its rows are not
+    committed. File errors name files relative to ``staging`` (the upload's folder);
+    ``upload_field`` is the multipart field they are about, or a function of the (relabelled)
+    error giving it when the upload has several files. ``location`` gives a 201 or 202 answer's
+    ``Location`` header from its body (the resource created or the job queued).
     """
     row_id = None
     if key is not None:
-        try:
-            row, claimed = idempotency.claim(
-                session=session,
-                key=key,
-                scope=f"{request.method} {request.url.path}",
-                token_hash=writer.token_hash,
-            )
-        except ValueError as err:
+        claimed = _claim(request=request, session=session, writer=writer, key=key)
+        if isinstance(claimed, JSONResponse):
             cleanup()
-            return JSONResponse(error_body(str(err), "Idempotency-Key"), status_code=422)
-        if not claimed:
-            cleanup()
-            if row.state == "done":
-                return JSONResponse(
-                    row.body, status_code=row.status_code, headers={"Idempotent-Replayed": "true"}
-                )
-            return JSONResponse(
-                error_body(
-                    "Idempotency-Key: the first request with this key is still in progress, retry later",
-                    "Idempotency-Key",
-                ),
-                status_code=409,
-            )
-        row_id = row.id
+            return _with_location(claimed, location)
+        row_id = claimed
     try:
         status, body, after_commit = work()
         if row_id is not None:
@@ -136,9 +154,7 @@ def idempotent_write(
         session.rollback()
         cleanup()
         if isinstance(exc, QueueFullError):  # not final: a retry with the same key may be admitted
-            if row_id is not None:
-                idempotency.release(session=session, row_id=row_id)
-                session.commit()
+            _release(session, row_id)
             return JSONResponse(
                 error_body(exc.detail, exc.field),
                 status_code=429,
@@ -150,9 +166,7 @@ def idempotent_write(
             upload_field = upload_field(exc) if isinstance(exc, InputError) else None
         known = known_error(exc, upload_field=upload_field)
         if known is None:
-            if row_id is not None:
-                idempotency.release(session=session, row_id=row_id)
-                session.commit()
+            _release(session, row_id)
             raise
         status, body = known
         if row_id is not None:
@@ -161,7 +175,62 @@ def idempotent_write(
         return JSONResponse(body, status_code=status)
     if after_commit is not None:
         after_commit()
-    return JSONResponse(body, status_code=status)
+    return _with_location(JSONResponse(body, status_code=status), location)
+
+
+def _claim(*, request: Request, session: Session, writer: Writer, key: str) -> int | JSONResponse:
+    """The id of the key's claim for this request, or the answer when another request made it:
+    the first answer replayed, 409 while it runs, 422 when it was sent with another body."""
+    sha = getattr(request.state, "request_sha256", None)
+    try:
+        row, claimed = idempotency.claim(
+            session=session,
+            key=key,
+            scope=f"{request.method} {request.url.path}",
+            token_hash=writer.token_hash,
+            request_sha256=sha,
+        )
+    except ValueError as err:
+        return JSONResponse(error_body(str(err), "Idempotency-Key"), status_code=422)
+    if claimed:
+        return row.id
+    if not idempotency.same_request(row, sha):
+        detail = (
+            f"Idempotency-Key: {key[:40]!r} was already used on this route with another body; "
+            "send a new key for a new request (or the same body to get the first answer)"
+        )
+        return JSONResponse(error_body(detail, "Idempotency-Key"), status_code=422)
+    if row.state == "done":
+        return JSONResponse(
+            row.body, status_code=row.status_code, headers={"Idempotent-Replayed": "true"}
+        )
+    return JSONResponse(
+        error_body(
+            "Idempotency-Key: the first request with this key is still in progress, retry later",
+            "Idempotency-Key",
+        ),
+        status_code=409,
+    )
+
+
+def _release(session: Session, row_id: int | None) -> None:
+    if row_id is not None:
+        idempotency.release(session=session, row_id=row_id)
+        session.commit()
+
+
+def _with_location(
+    response: JSONResponse, location: Callable[[dict[str, Any]], str] | None
+) -> JSONResponse:
+    """The answer with ``Location`` when it created something (201) or queued a job (202)."""
+    if location is not None and response.status_code in (201, 202):
+        response.headers["Location"] = location(json.loads(response.body))
+    return response
+
+
+def inspection_location(body: dict[str, Any]) -> str:
+    """Where a queued inspection is followed."""
+    return f"{API_PREFIX}/inspections/{body['id']}"
 
 
 # ------------------------------------------------------------------ response builders

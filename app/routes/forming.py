@@ -12,7 +12,13 @@ from pydantic import AfterValidator
 
 from app.deps import SessionDep, WriterDep
 from app.errors import ApiError
-from app.routes.common import IdempotencyKeyHeader, PlateIdPath, csv_cell, idempotent_write
+from app.routes.common import (
+    API_PREFIX,
+    IdempotencyKeyHeader,
+    PlateIdPath,
+    csv_cell,
+    idempotent_write,
+)
 from app.schemas import (
     MACHINE_ID_MAX_LENGTH,
     MACHINE_ID_REGEX,
@@ -89,7 +95,12 @@ def put_machine(
         return 201 if created else 200, machine_out(row).model_dump(mode="json"), None
 
     return idempotent_write(
-        request=request, session=session, writer=writer, key=idempotency_key, work=work
+        request=request,
+        session=session,
+        writer=writer,
+        key=idempotency_key,
+        work=work,
+        location=lambda body: f"{API_PREFIX}/machines/{body['id']}",
     )
 
 

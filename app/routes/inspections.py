@@ -24,6 +24,7 @@ from app.routes.common import (
     PlateIdPath,
     csv_cell,
     idempotent_write,
+    inspection_location,
     inspection_out,
     inspection_summary,
     save_upload,
@@ -143,6 +144,7 @@ def create_inspection(
             cleanup=staged.undo,
             staging=staged.dir,
             upload_field=_upload_part,
+            location=inspection_location,
         )
 
 
@@ -240,6 +242,7 @@ def create_simulated_inspection(
             key=idempotency_key,
             work=work,
             cleanup=staged.undo,
+            location=inspection_location,
         )
 
 
@@ -310,12 +313,14 @@ def acquire_inspection(
             cleanup=staged.undo,
             staging=staged.dir,
             upload_field="target",
+            location=inspection_location,
         )
 
 
 @router.get(
     "/plates/{plate_id}/inspections",
     response_model=Page[InspectionSummary],
+    responses={404: {"model": ErrorOut}},
     summary="A plate's inspections, newest first",
 )
 def list_plate_inspections(
@@ -324,6 +329,8 @@ def list_plate_inspections(
     limit: Annotated[int, Query(ge=1, le=200)] = 20,
     offset: OffsetQuery = 0,
 ):
+    """The plate's inspections (404 for a plate the server does not know, as ``GET /plates/{id}``)."""
+    _known_plate(session, plate_id)
     items, total = svc.list_inspections(
         session=session, plate_id=plate_id, limit=limit, offset=offset
     )
@@ -340,6 +347,7 @@ PLATE_CSV_COLUMNS = (
     "status",
     "verdict",
     "source",
+    "operator",
     "radius_mm",
     "target_radius_mm",
     "radius_error_pct",
@@ -366,14 +374,13 @@ PLATE_CSV_COLUMNS = (
 )
 def plate_inspections_csv(plate_id: PlateIdPath, session: SessionDep):
     """Columns: see ``PLATE_CSV_COLUMNS`` (times in UTC with their offset, lengths in mm)."""
-    if plates_svc.get_plate(session=session, plate_id=plate_id) is None:
-        raise ApiError(404, f"plate_id: no plate {plate_id!r}", field="plate_id")
+    _known_plate(session, plate_id)
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
     writer.writerow(PLATE_CSV_COLUMNS)
     for row in svc.plate_history(session=session, plate_id=plate_id):
         process = row.process or {}
-        values = [getattr(row, name, None) for name in PLATE_CSV_COLUMNS[3:14]]
+        values = [getattr(row, name, None) for name in PLATE_CSV_COLUMNS[3:15]]
         writer.writerow(
             [
                 csv_cell(v)
@@ -394,6 +401,11 @@ def plate_inspections_csv(plate_id: PlateIdPath, session: SessionDep):
         media_type="text/csv; charset=utf-8",
         headers={"Content-Disposition": f'attachment; filename="{plate_id}-inspections.csv"'},
     )
+
+
+def _known_plate(session, plate_id: str) -> None:
+    if plates_svc.get_plate(session=session, plate_id=plate_id) is None:
+        raise ApiError(404, f"plate_id: no plate {plate_id!r}", field="plate_id")
 
 
 def _iso(when) -> str | None:
@@ -442,10 +454,17 @@ def get_inspection(inspection_id: InspectionIdPath, session: SessionDep, storage
         409: {"model": ErrorOut},
     },
 )
-def get_report(inspection_id: InspectionIdPath, session: SessionDep, storage: StorageDep):
-    """The inspection report to sign (A4 PDF): plate, verdict and why, statistics, the deviation map
-    with its defects numbered, the defect table, the templates, the calibrations used, signature lines.
-    Only a done inspection has one (409 otherwise)."""
+def get_report(
+    inspection_id: InspectionIdPath,
+    session: SessionDep,
+    storage: StorageDep,
+    settings: SettingsDep,
+):
+    """The inspection report to sign (A4 PDF): a header on every page (yard, hull, block, plate,
+    drawing and revision, report number, cell, camera serials, calibration, operator, times, page X
+    of Y); verdict, warnings and the decision rule; target and alignment; radius, surface, defects
+    and templates judged with tolerance and uncertainty; statistics and histogram; the deviation map
+    with its colour bar and callouts; approval blocks. Only a done inspection has one (409 otherwise)."""
     row = svc.get_inspection(session=session, inspection_id=inspection_id)
     if row is None:
         raise ApiError(404, f"inspection_id: no inspection {inspection_id}", field="inspection_id")
@@ -457,7 +476,9 @@ def get_report(inspection_id: InspectionIdPath, session: SessionDep, storage: St
             field="inspection_id",
         )
     document = inspection_out(row, storage=storage).model_dump(mode="json")
-    pdf = inspection_report(session=session, storage=storage, row=row, document=document)
+    pdf = inspection_report(
+        session=session, storage=storage, row=row, document=document, yard=settings.yard
+    )
     name = f"inspection-{row.plate_id}-{row.id}.pdf"
     return Response(
         pdf,

@@ -11,7 +11,12 @@ from starlette.datastructures import UploadFile
 from app.deps import SessionDep, SettingsDep, StorageDep, WriterDep
 from app.errors import ApiError
 from app.limits import Limits
-from app.routes.common import IdempotencyKeyHeader, LightCalibrationIdPath, idempotent_write
+from app.routes.common import (
+    API_PREFIX,
+    IdempotencyKeyHeader,
+    LightCalibrationIdPath,
+    idempotent_write,
+)
 from app.schemas import ErrorOut, LightCalibrationOut
 from app.services import light_calibrations as svc
 from app.services.light_calibrations import LIGHT_CALIBRATION_FILE
@@ -102,6 +107,7 @@ async def upload_light_calibration(
             cleanup=staged.undo,
             upload_field=UPLOAD_FIELD if file_name is not None else None,
             staging=staged.dir,
+            location=lambda body: f"{API_PREFIX}/light-calibrations/{body['id']}",
         )
 
 

@@ -56,5 +56,9 @@ def current_calibration(*, session: Session) -> Calibration | None:
     return session.scalars(select(Calibration).order_by(Calibration.id.desc()).limit(1)).first()
 
 
+def get_calibration(*, session: Session, calibration_id: int) -> Calibration | None:
+    return session.get(Calibration, calibration_id)
+
+
 def list_calibrations(*, session: Session, limit: int = 20) -> list[Calibration]:
     return list(session.scalars(select(Calibration).order_by(Calibration.id.desc()).limit(limit)))

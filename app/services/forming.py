@@ -85,7 +85,7 @@ def check_process(*, session: Session, process: dict[str, Any] | None) -> None:
     """
     if process is not None and session.get(Machine, process["machine_id"]) is None:
         raise UnprocessableError(
-            f"process.machine_id: no machine {process['machine_id']!r}: add it first with PUT /api/v1/machines/{{id}}",
+            f"process.machine_id: no machine {process['machine_id']!r}: add it first with PUT /api/v1/machines/{process['machine_id']}",
             field="process.machine_id",
         )
 

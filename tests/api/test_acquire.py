@@ -28,6 +28,7 @@ from tests.api.helpers import (
     TOKEN,
     Consumer,
     invocations,
+    pdf_text,
     target_json,
     wait_for,
     wait_until,
@@ -159,6 +160,12 @@ def test_demo_cell_acquires_then_inspects(service, consumers, tmp_path):
         "cell_id": "demo",
         "config": "cell.json",
     }
+    # the signed report names the cell and the cameras' serials from the bundle's record
+    report = client.get(f"/api/v1/inspections/{body['id']}/report.pdf")
+    assert report.status_code == 200, report.text
+    flat = " ".join(pdf_text(report.content, tmp_path).split())
+    assert "Camera serials L SIM-LEFT, R SIM-RIGHT" in flat and "Cell demo" in flat
+    assert f"Inspection #{body['id']} (acquired)" in flat
     # the cameras' last frames, for the Cell page
     for side in ("left", "right"):
         thumb = client.get(f"/cell/cameras/{side}.png")

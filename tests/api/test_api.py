@@ -190,6 +190,127 @@ def test_idempotent_retry_returns_the_first_answer(client, bundle_zip):
     assert _count(client, Inspection) == 3
 
 
+def test_a_key_sent_again_with_another_body_is_422_naming_the_header(client, bundle_zip):
+    headers = {**AUTH, "Idempotency-Key": "mes-50"}
+    url = "/api/v1/plates/P-100/inspections"
+    first = client.post(
+        url,
+        files={"capture": ("b.zip", bundle_zip), "target": ("t.json", target_json())},
+        data={"operator": "Kim"},
+        headers=headers,
+    )
+    assert first.status_code == 202, first.text
+    # the same fields and contents: another part order, boundary and file name replay the first
+    again = client.post(
+        url,
+        files=[("target", ("other.json", target_json())), ("capture", ("c.zip", bundle_zip))],
+        data={"operator": "Kim"},
+        headers=headers,
+    )
+    assert again.status_code == 202 and again.json() == first.json()
+    assert again.headers["idempotent-replayed"] == "true"
+    assert again.headers["location"] == f"/api/v1/inspections/{first.json()['id']}"
+    # another operator, another file: refused, nothing created
+    for data, target in (({"operator": "Lee"}, target_json()), ({"operator": "Kim"}, b"{}")):
+        other = client.post(
+            url,
+            files={"capture": ("b.zip", bundle_zip), "target": ("t.json", target)},
+            data=data,
+            headers=headers,
+        )
+        assert other.status_code == 422 and other.json()["field"] == "Idempotency-Key", other.text
+        assert "another body" in other.json()["detail"]
+    assert _count(client, Inspection) == 1
+    # JSON bodies: key order and spacing do not count, contents do
+    key = {**AUTH, "Idempotency-Key": "mes-51", "Content-Type": "application/json"}
+    sim = "/api/v1/plates/P-100/inspections/simulated"
+    one = client.post(sim, content=b'{"seed": 1, "n_lights": 4}', headers=key)
+    two = client.post(sim, content=b'{"n_lights":4,"seed":1}', headers=key)
+    assert one.status_code == two.status_code == 202 and one.json() == two.json()
+    three = client.post(sim, content=b'{"n_lights": 4, "seed": 2}', headers=key)
+    assert three.status_code == 422 and three.json()["field"] == "Idempotency-Key"
+    assert _count(client, Inspection) == 2
+
+
+def test_a_target_put_again_under_its_key_replays_only_the_same_document(client):
+    """PUT /target reads its body itself (JSON or multipart): the key's fingerprint still sees it."""
+    url = "/api/v1/plates/P-IK/target"
+    headers = {**AUTH, "Idempotency-Key": "mes-60", "Content-Type": "application/json"}
+    doc = json.loads(target_json())
+    first = client.put(url, content=json.dumps(doc), headers=headers)
+    reordered = json.dumps(dict(reversed(list(doc.items()))), indent=2)
+    again = client.put(url, content=reordered, headers=headers)
+    assert first.status_code == again.status_code == 200 and again.json() == first.json()
+    assert again.headers["idempotent-replayed"] == "true"
+    other = client.put(url, content=target_json(tolerance_mm=3.0), headers=headers)
+    assert other.status_code == 422 and other.json()["field"] == "Idempotency-Key", other.text
+    assert client.get(url).json()["tolerance_mm"] == 2.0
+
+
+def test_202_and_201_say_where_the_new_thing_is(client):
+    r = _simulated(client, "P-LOC")
+    assert r.status_code == 202
+    assert r.headers["location"] == f"/api/v1/inspections/{r.json()['id']}"
+    assert client.get(r.headers["location"]).json()["plate_id"] == "P-LOC"
+    machine = {
+        "kind": "three-roll-pyramid",
+        "bottom_roll_spacing_mm": 1400,
+        "bottom_roll_diameter_mm": 420,
+        "top_roll_diameter_mm": 500,
+    }
+    r = client.put("/api/v1/machines/R3-01", json=machine, headers=AUTH)
+    assert r.status_code == 201 and r.headers["location"] == "/api/v1/machines/R3-01"
+    r = client.put("/api/v1/machines/R3-01", json=machine, headers=AUTH)
+    assert r.status_code == 200 and "location" not in r.headers
+
+
+def test_a_body_that_is_not_json_is_400_naming_the_problem(client):
+    r = client.post(
+        "/api/v1/plates/P-1/inspections/simulated",
+        content=b'{"width": 160,, }',
+        headers={**AUTH, "Content-Type": "application/json"},
+    )
+    assert r.status_code == 400 and r.json()["field"] == "body", r.text
+    assert r.json()["detail"].startswith("body: not JSON (expecting")
+    assert _count(client, Inspection) == 0
+
+
+def test_the_inspections_of_an_unknown_plate_are_404(client):
+    r = client.get("/api/v1/plates/NOPE/inspections")
+    assert r.status_code == 404 and r.json()["field"] == "plate_id"
+    assert client.get("/api/v1/plates/NOPE").status_code == 404
+
+
+def test_an_unknown_machine_says_how_to_add_it(client):
+    r = _simulated(
+        client,
+        "P-M",
+        process={"method": "roll-bending", "machine_id": "R9", "top_roll_displacement_mm": 90.0},
+    )
+    assert r.status_code == 422 and r.json()["field"] == "process.machine_id", r.text
+    assert "PUT /api/v1/machines/R9" in r.json()["detail"] and "{" not in r.json()["detail"]
+
+
+def test_a_target_carries_its_drawing_hull_and_block(client):
+    url = "/api/v1/plates/P-TR/target"
+    json_body = {**AUTH, "Content-Type": "application/json"}
+    trace = {"drawing": {"number": "DWG-H77-B21-0042", "revision": "C"}, "hull": "H77"}
+    r = client.put(url, content=target_json(**trace, block="B21"), headers=json_body)
+    assert r.status_code == 200, r.text
+    stored = client.get(url).json()["document"]
+    assert stored["drawing"] == trace["drawing"] and (stored["hull"], stored["block"]) == (
+        "H77",
+        "B21",
+    )
+    r = client.put(url, content=target_json(hull="H" * 65), headers=json_body)
+    assert r.status_code == 422 and r.json()["field"] == "target: hull", r.text
+    assert r.json()["file"] == "target.json" and "64 characters" in r.json()["detail"]
+    r = client.put(url, content=target_json(drawing={"number": "D-1"}), headers=json_body)
+    assert r.status_code == 422 and r.json()["field"] == "target: drawing.revision", r.text
+    r = client.put(url, content=target_json(yard="Okpo"), headers=json_body)
+    assert r.status_code == 422 and r.json()["field"] == "target: yard", r.text
+
+
 def test_upload_over_the_limit_is_413(client, settings):
     big = b"0" * (settings.max_upload_bytes + 1)
     r = client.post(

@@ -81,11 +81,6 @@ def test_writes_declare_their_security(document):
             f"{API}/plates/P-1/inspections/simulated",
             {"json": {"n_lights": 1}, "headers": AUTH},
         ),
-        (
-            "POST",
-            f"{API}/plates/P-1/inspections/simulated",
-            {"content": b"{not json", "headers": {**AUTH, "Content-Type": "application/json"}},
-        ),
         ("POST", f"{API}/session", {"json": {}}),
     ],
 )
@@ -115,6 +110,13 @@ def test_a_broken_multipart_body_is_a_documented_400(client, document):
     )
     assert r.status_code == 400, r.text
     _validator(document, document["paths"][f"{API}/calibrations"]["post"], "400").validate(r.json())
+    path = f"{API}/plates/P-1/inspections/simulated"
+    r = client.post(
+        path, content=b"{not json", headers={**AUTH, "Content-Type": "application/json"}
+    )
+    assert r.status_code == 400 and r.json()["field"] == "body", r.text
+    template = f"{API}/plates/{{plate_id}}/inspections/simulated"
+    _validator(document, document["paths"][template]["post"], "400").validate(r.json())
 
 
 # ------------------------------------------------------------------ 405

@@ -92,3 +92,38 @@ def test_job_status_vocabulary_migrates_both_ways(tmp_path):
     command.upgrade(cfg, "head")
     assert rows() == [("error", None), ("done", "fail")]
     engine.dispose()
+
+
+def test_idempotency_fingerprints_migrate_both_ways(tmp_path):
+    """0010: a claimed key records its request's fingerprint; keys stored before it have none
+    (and replay for any body); a downgrade drops the column and keeps the keys."""
+    from alembic import command
+
+    from app.db import alembic_config
+
+    url = f"sqlite:///{tmp_path / 'plate_inspect.db'}"
+    cfg = alembic_config(url)
+    command.upgrade(cfg, "0009")
+    engine = sa.create_engine(url)
+    with engine.begin() as conn:
+        conn.execute(
+            sa.text(
+                "INSERT INTO idempotency_keys (key, scope, token_hash, state, created_at) "
+                "VALUES ('k', 'POST /x', 't', 'done', '2026-11-26 09:00:00')"
+            )
+        )
+
+    def columns() -> set[str]:
+        with engine.connect() as conn:
+            return {c["name"] for c in sa.inspect(conn).get_columns("idempotency_keys")}
+
+    command.upgrade(cfg, "head")
+    assert "request_sha256" in columns()
+    with engine.connect() as conn:
+        q = sa.text("SELECT key, request_sha256 FROM idempotency_keys")
+        assert [tuple(r) for r in conn.execute(q)] == [("k", None)]
+    command.downgrade(cfg, "0009")
+    assert "request_sha256" not in columns()
+    with engine.connect() as conn:
+        assert conn.execute(sa.text("SELECT count(*) FROM idempotency_keys")).scalar() == 1
+    engine.dispose()

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from pipeline.camera import StereoRig
-from pipeline.formats import InputError
+from pipeline.formats import InputError, TargetFile
 from pipeline.io import (
     Capture,
     Target,
@@ -772,6 +772,14 @@ def test_bad_mesh_target(tmp_path, shape, files, problem):
         load_target(path)
 
 
+def test_target_traceability_is_optional_and_kept():
+    """plate-target/1's optional drawing, hull and block (printed on the report)."""
+    trace = {"drawing": {"number": "DWG-H77-B21-0042", "revision": "C"}, "hull": "H77"}
+    target = load_target(target_doc(**trace, block="B" * 64))
+    assert target.shape == "cylinder"
+    assert TargetFile.model_validate(target_doc(**trace)).drawing.revision == "C"
+
+
 def test_mesh_target_as_dict_needs_base_dir():
     with pytest.raises(InputError, match=_err("target.json: shape.file:", "needs base_dir")):
         load_target(target_doc(shape={"type": "mesh", "file": "plate.stl"}))
@@ -788,6 +796,12 @@ def test_mesh_target_as_dict_needs_base_dir():
         ({"tolerance_mm": float("inf")}, "tolerance_mm", "finite"),
         ({"tolerance_mm": DELETE}, "tolerance_mm", "missing required key"),
         ({"format": "plate-target/0"}, "format", "expected 'plate-target/1'"),
+        ({"hull": "H" * 65}, "hull", "at most 64 characters"),
+        ({"block": " "}, "block", "printable text, not blank"),
+        ({"drawing": {"number": "D-1"}}, "drawing.revision", "missing required key"),
+        ({"drawing": {"number": "D\n1", "revision": "C"}}, "drawing.number", "printable"),
+        ({"drawing": {"number": "D", "revision": "C", "sheet": 2}}, "drawing.sheet", "unknown key"),
+        ({"drawing": "DWG-1"}, "drawing", "valid dictionary"),
     ],
 )
 def test_bad_target(overrides, field, problem):

@@ -279,6 +279,36 @@ def test_two_browsers_see_their_own_plates(live_server, browser):
         p.close()
 
 
+def test_machines_page_adds_then_edits_a_roll_bender(live_server, browser):
+    """Add a machine through the Machines page's form, refuse a bad one naming the field, then edit it."""
+    page = browser.new_page(viewport={"width": 1366, "height": 768})
+    errors = []
+    page.on("pageerror", lambda err: errors.append(str(err)))
+    violations = _watch_csp(page)
+    page.goto(f"{live_server['base']}/machines")
+    page.fill("input[name=machine_id]", "R9-BR")
+    page.fill("input[name=bottom_roll_spacing_mm]", "300")
+    page.fill("input[name=bottom_roll_diameter_mm]", "420")
+    page.fill("input[name=top_roll_diameter_mm]", "500")
+    page.click("#machine-form button[type=submit]")
+    page.wait_for_selector("#machine-message[data-kind=error]", timeout=10_000)
+    assert "bottom_roll_spacing_mm" in page.locator("#machine-message").inner_text()
+    page.fill("input[name=bottom_roll_spacing_mm]", "1400")
+    page.click("#machine-form button[type=submit]")
+    page.wait_for_selector("tr[data-machine='R9-BR']", timeout=10_000)
+    assert "1400 mm" in page.locator("tr[data-machine='R9-BR']").inner_text()
+    page.click("tr[data-machine='R9-BR'] a")
+    page.wait_for_selector("#machine-form[data-editing=true]")
+    page.fill("input[name=top_roll_diameter_mm]", "520")
+    page.click("#machine-form button[type=submit]")
+    page.wait_for_selector("#machine-form[data-editing=false]", timeout=10_000)
+    assert "520 mm" in page.locator("tr[data-machine='R9-BR']").inner_text()
+    SHOTS.mkdir(exist_ok=True)
+    page.screenshot(path=SHOTS / "machines-1366.png")
+    assert not errors, errors
+    assert not violations, violations
+
+
 def test_light_calibration_upload_on_the_calibration_page(live_server, browser):
     """Upload a light calibration through the page's form; a bad one is refused naming file and field."""
     from tests.web.test_light_calibration import ring_of_lights
@@ -572,6 +602,13 @@ def test_plate_map_reads_zooms_and_places_a_template(live_server, browser):
     assert min(ticks) < 0 < max(ticks) and 0.0 in ticks  # mm of the target frame, its centre at 0
     assert page.locator(".map-axes .axis-name").all_text_contents() == ["x, mm", "y, mm"]
     assert page.locator(".map-origin text").all_text_contents() == ["x", "y"]
+    # unmeasured cells show the colour the legend gives them
+    drawn = page.eval_on_selector(".map-unmeasured", "e => getComputedStyle(e).fill")
+    swatch = page.eval_on_selector(
+        ".map-legend .band-none", "e => getComputedStyle(e).backgroundColor"
+    )
+    assert drawn == swatch == "rgb(214, 214, 214)", (drawn, swatch)
+    assert "not measured" in page.locator(".map-legend").inner_text()
 
     # the defect's number sits at its place: the pointer there reads a value beyond tolerance
     spot = page.locator(".map-defect[data-defect='1'] .spot").bounding_box()

@@ -10,6 +10,7 @@ import re
 import pytest
 from fastapi.testclient import TestClient
 
+from app.models import Inspection
 from tests.web.helpers import seed_done_inspection, seed_queued_inspection
 
 
@@ -149,6 +150,9 @@ def test_result_page_says_why_and_where_a_plate_failed(demo_app):
 def test_a_plates_inspections_as_csv(demo_app):
     first = seed_done_inspection(demo_app, plate_id="CSV-1", measured_radius_mm=5050.0)
     second = seed_done_inspection(demo_app, plate_id="CSV-1", measured_radius_mm=5010.0)
+    with demo_app.state.session_factory() as session:
+        session.get(Inspection, second).operator = "=Kim Ji-woo"  # a spreadsheet formula: quoted
+        session.commit()
     with TestClient(demo_app) as client:
         r = client.get("/api/v1/plates/CSV-1/inspections.csv")
         missing = client.get("/api/v1/plates/NO-SUCH/inspections.csv")
@@ -161,6 +165,7 @@ def test_a_plates_inspections_as_csv(demo_app):
     assert all(row["status"] == "done" and row["verdict"] in ("pass", "fail") for row in rows)
     assert rows[0]["created_at"].endswith("+00:00")  # the time zone is said
     assert rows[0]["target_radius_mm"] == "5000.0"
+    assert [row["operator"] for row in rows] == ["", "'=Kim Ji-woo"]
     assert missing.status_code == 404 and missing.json()["field"] == "plate_id"
 
 
@@ -277,6 +282,7 @@ def test_map_legend_colours_are_the_maps():
     """The page's legend (app.css) shows the very colours the map and the 3D view are drawn with."""
     from pathlib import Path
 
+    from app.report.figures import UNMEASURED_RGB
     from pipeline.artifacts.colours import ABOVE_RGB, BELOW_RGB, IN_TOLERANCE_RGB
 
     css = (Path(__file__).resolve().parents[2] / "web" / "static" / "css" / "app.css").read_text()
@@ -292,4 +298,29 @@ def test_map_legend_colours_are_the_maps():
         "above-far": ABOVE_RGB[1],
         "below": BELOW_RGB[0],
         "below-far": BELOW_RGB[1],
+        "none": UNMEASURED_RGB,  # unmeasured cells: the page's map and the PDF's alike
     }
+    assert f".map-unmeasured {{ fill: rgb{UNMEASURED_RGB}; }}" in css
+
+
+def test_the_machines_page_lists_adds_and_edits_roll_benders(demo_app):
+    geometry = {
+        "kind": "three-roll-pyramid",
+        "bottom_roll_spacing_mm": 1400.0,
+        "bottom_roll_diameter_mm": 420.0,
+        "top_roll_diameter_mm": 500.0,
+    }
+    with TestClient(demo_app) as client:
+        empty = client.get("/machines")
+        client.get("/cell")  # the demo's session cookie
+        assert client.put("/api/v1/machines/R3-01", json=geometry).status_code == 201
+        listed = client.get("/machines").text
+        editing = client.get("/machines", params={"edit": "R3-01"}).text
+        unknown = client.get("/machines", params={"edit": "NOPE"}, headers={"Accept": "text/html"})
+    assert empty.status_code == 200 and "No machine yet" in empty.text
+    assert '<a href="/machines" aria-current="page">Machines</a>' in empty.text
+    assert 'data-machine="R3-01"' in listed and "1400 mm" in listed and "420 mm" in listed
+    assert 'href="/machines?edit=R3-01"' in listed and "Add a machine" in listed
+    assert "Edit machine R3-01" in editing and 'value="R3-01" readonly' in editing
+    assert 'value="1400.0"' in editing and 'data-editing="true"' in editing
+    assert unknown.status_code == 404

@@ -35,6 +35,15 @@ export async function postJSON(url, data) {
   }));
 }
 
+export async function putJSON(url, data) {
+  return parse(await fetch(url, {
+    method: "PUT",
+    credentials: "same-origin",
+    headers: { "Content-Type": "application/json", Accept: "application/json" },
+    body: JSON.stringify(data),
+  }));
+}
+
 export async function postForm(url, formData) {
   return parse(await fetch(url, { method: "POST", credentials: "same-origin", body: formData }));
 }

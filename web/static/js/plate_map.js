@@ -55,6 +55,10 @@ export class PlateMap {
   layers() {
     const { x0_mm: x0, extent_mm: e } = this.data;
     this.content = el("g", { class: "map-content" });
+    // Under the map's cells: what shows through an unmeasured (transparent) cell, as the legend says.
+    this.content.append(el("rect", {
+      class: "map-unmeasured", x: x0, y: -e[3], width: e[1] - e[0], height: e[3] - e[2],
+    }));
     this.content.append(el("image", {
       href: this.figure.dataset.png, x: x0, y: -e[3], width: e[1] - e[0], height: e[3] - e[2],
       preserveAspectRatio: "none",
