@@ -542,7 +542,8 @@ def _qualify(
         calibration_rms_px=rig.rms_px,
         board_corners=int(np.prod(corners)) if corners else None,
         registration_rms_mm=float(pose.rms_mm),
-        dark_noise=_dark_noise(cap, lights),
+        dark_noise=_raw_noise(cap, lights, dark=True),
+        own_noise=_raw_noise(cap, lights, dark=False),
     )
     radius = pose.fitted_radius_mm
     return uncertainty.propagate(
@@ -552,17 +553,23 @@ def _qualify(
     )
 
 
-def _dark_noise(cap: Capture, lights: Lights) -> np.ndarray | None:
-    """The dark frame's noise in each preprocessed image's units (raw noise / (intensity x full scale)),
-    None without a dark frame."""
-    if cap.dark is None:
-        return None
-    dark = cap.dark
-    h, w = dark.shape
-    noise_raw = float(image_noise(dark[None], np.ones((h, w), bool))[0])
+def _raw_noise(cap: Capture, lights: Lights, *, dark: bool) -> np.ndarray | None:
+    """The raw noise of the photometric images (``dark`` False) or of the dark frame (True), each in
+    the preprocessed images' units (raw counts / (intensity x full scale)); None without a dark frame.
+
+    Measured on the raw frames, before undistortion interpolates (and smooths) them.
+    """
     full_scale = float(2**cap.bit_depth - 1)
-    out: np.ndarray = noise_raw / (np.asarray(lights.intensity, dtype=np.float64) * full_scale)
-    return out
+    scale = np.asarray(lights.intensity, dtype=np.float64) * full_scale
+    h, w = cap.images.shape[1:]
+    everywhere = np.ones((h, w), bool)
+    if dark:
+        if cap.dark is None:
+            return None
+        out: np.ndarray = float(image_noise(cap.dark[None], everywhere)[0]) / scale
+        return out
+    own: np.ndarray = image_noise(cap.images, everywhere) / scale
+    return own
 
 
 def _write_deviation(

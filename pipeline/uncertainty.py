@@ -122,6 +122,10 @@ class Inputs:
     dark_noise : (N,) float or None
         The dark frame's noise in each image's units (it was subtracted from every image: a noise
         common to all of a pixel's samples), None without a dark frame.
+    own_noise : (N,) float or None
+        Each image's own noise in its units, measured on the raw (distorted) image: white, as the
+        sensor gives it. The undistorted images are interpolated, which lowers their per-pixel noise
+        but not the low frequencies the integration accumulates. None: measured on ``images``.
     """
 
     images: np.ndarray
@@ -137,6 +141,7 @@ class Inputs:
     board_corners: int | None
     registration_rms_mm: float
     dark_noise: np.ndarray | None = None
+    own_noise: np.ndarray | None = None
 
 
 def propagate(
@@ -236,7 +241,6 @@ def _photometric_sd_mm(x: Inputs, mask: np.ndarray, scale_px: float) -> np.ndarr
     step = max(1, int(math.sqrt(np.count_nonzero(mask) / PHOTOMETRIC_SAMPLES)))
     rows, cols = np.nonzero(mask[::step, ::step] & x.field.mask[::step, ::step])
     rows, cols = rows * step, cols * step
-    sigma_img = image_noise(x.images, mask)
     images = x.images[:, rows, cols].astype(np.float64)  # (N, P)
     valid = np.ones_like(images, bool) if x.valid is None else x.valid[:, rows, cols]
     n = x.field.normals[rows, cols].astype(np.float64)  # (P, 3)
@@ -250,14 +254,18 @@ def _photometric_sd_mm(x: Inputs, mask: np.ndarray, scale_px: float) -> np.ndarr
     pred = rho[None] * shade
     res = np.where(lit, images - pred, 0.0)
     m = lit.sum(axis=0)
-    # each image's own noise: its measured noise less the dark frame's, which is common to all
-    dark = np.zeros(len(sigma_img)) if x.dark_noise is None else np.asarray(x.dark_noise)
-    own = np.sqrt(np.maximum(sigma_img**2 - dark**2, 0.0))
-    # pooled with the fit's residual where the pixel has more lights than unknowns (3 degrees of
-    # freedom for the image noise as a prior)
+    dark = np.zeros(len(images)) if x.dark_noise is None else np.asarray(x.dark_noise)
+    if x.own_noise is not None:
+        own = np.asarray(x.own_noise, dtype=np.float64)
+    else:  # the undistorted images' noise holds the dark frame's too
+        own = np.sqrt(np.maximum(image_noise(x.images, mask) ** 2 - dark**2, 0.0))
+    # the fit's residual where the pixel has more lights than unknowns, pooled with the images' own
+    # noise as a prior of 3 degrees of freedom; never below that noise (the residual of interpolated
+    # images understates the white noise the integration accumulates)
     prior_dof = 3.0
     s0 = (own[:, None] * lit).sum(axis=0) / np.maximum(m, 1)
-    s2 = (np.sum(res**2, axis=0) + prior_dof * s0**2) / (np.maximum(m - 3, 0) + prior_dof)
+    pooled = (np.sum(res**2, axis=0) + prior_dof * s0**2) / (np.maximum(m - 3, 0) + prior_dof)
+    s2 = np.maximum(pooled, s0**2)
     gram = np.einsum("npc,npd,np->pcd", g, g, lit.astype(np.float64))
     tangential = _tangential_variance(gram, n)  # per unit albedo and image variance
     var_n = s2 * tangential
@@ -324,17 +332,17 @@ def _scale_rel(x: Inputs, z_typ: float, f_px: float) -> float:
     return math.sqrt(u_d2) / disparity
 
 
-def _height_over_plane_mm(points: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """(H, W) distance of each point from the surface's best plane, mm (0 off the mask)."""
+def _height_over_plane_mm(points: np.ndarray, mask: np.ndarray, step: int = 4) -> np.ndarray:
+    """(H, W) distance of each point from the surface's best plane, mm (0 off the mask), computed on
+    every ``step``-th pixel and interpolated (a smooth field: it only weighs the scale's part)."""
     p = points[mask][:: max(1, int(np.count_nonzero(mask) // 20_000))]
     centre = p.mean(axis=0)
     normal = np.linalg.svd(p - centre, full_matrices=False)[2][-1]
-    height = np.abs(
-        (points[..., 0] - centre[0]) * normal[0]
-        + (points[..., 1] - centre[1]) * normal[1]
-        + (points[..., 2] - centre[2]) * normal[2]
-    )
-    out: np.ndarray = np.where(mask, height, 0.0)
+    coarse = points[::step, ::step]
+    height = np.abs(np.nan_to_num((coarse - centre) @ normal)).astype(np.float32)
+    h, w = mask.shape
+    full = cv2.resize(height, (height.shape[1] * step, height.shape[0] * step))[:h, :w]
+    out: np.ndarray = np.where(mask, full, 0.0)
     return out
 
 

@@ -53,6 +53,18 @@ def test_a_plate_formed_exactly_reads_flat_and_its_uncertainty_covers_the_error(
     assert details["uncertainty"]["edge_band_mm"] > 0
 
 
+def test_led_point_lights_given_exactly_read_flat_with_no_word_about_the_lights(tmp_path):
+    doc, details, _ = _inspect(
+        tmp_path, "leds", CaptureSpec(near_field_mm=2800.0, led_mu=1.0), seed=22
+    )
+    assert doc["verdict"] == "pass" and "warnings" not in doc
+    assert doc["deviation_mm"]["p95"] <= 0.3 and doc["deviation_mm"]["max_abs"] <= 1.2
+    u = doc["uncertainty"]
+    assert u["deviation_mm"] >= 0.8 * doc["deviation_mm"]["p95"]
+    assert abs(doc["radius_mm"] - 5000.0) <= u["radius_mm"] <= 0.0015 * 5000.0
+    assert details["light_refinement"] is None
+
+
 def test_three_lights_report_a_clearly_larger_uncertainty_and_still_pass(twelve_and_three):
     (twelve, _, _), (three, _, _) = twelve_and_three
     assert three["verdict"] == "pass"

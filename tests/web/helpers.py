@@ -10,7 +10,11 @@ from tests.web.plates import write_artifacts
 
 
 def seed_done_inspection(
-    app, *, plate_id: str = "H1-P01", measured_radius_mm: float = 5050.0
+    app,
+    *,
+    plate_id: str = "H1-P01",
+    measured_radius_mm: float = 5050.0,
+    uncertainty: dict[str, float] | None = None,
 ) -> int:
     """A done inspection of ``plate_id`` whose artifacts are an analytic cylinder pair."""
     from app.services import inspections as svc
@@ -30,6 +34,7 @@ def seed_done_inspection(
             app.state.storage.artifacts_dir(inspection_id),
             plate_id=plate_id,
             measured_radius_mm=measured_radius_mm,
+            uncertainty=uncertainty,
         )
         leases.mark_done(
             session=session,

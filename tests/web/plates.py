@@ -47,6 +47,7 @@ def write_artifacts(
     size_mm: tuple[float, float] = (3000.0, 2000.0),
     n: tuple[int, int] = (61, 41),
     tolerance_mm: float = 2.0,
+    uncertainty: dict[str, float] | None = None,
 ) -> Path:
     """Write result.json, surface.ply (with ``deviation_mm``) and target.ply for a cylinder plate.
 
@@ -88,5 +89,7 @@ def write_artifacts(
         "timings_s": {"total": 1.0},
         "artifacts": {"surface": "surface.ply", "target_surface": "target.ply"},
     }
+    if uncertainty is not None:
+        document["uncertainty"] = uncertainty
     (out_dir / "result.json").write_text(json.dumps(document, indent=2))
     return out_dir

@@ -62,6 +62,17 @@ def test_result_page_shows_verdict_numbers_view_and_templates(demo_app):
         assert client.get("/inspections/999").status_code == 404
 
 
+def test_result_page_states_each_figure_with_its_uncertainty(demo_app):
+    stated = seed_done_inspection(
+        demo_app, uncertainty={"k": 2, "radius_mm": 3.1, "deviation_mm": 0.12}
+    )
+    older = seed_done_inspection(demo_app, plate_id="H1-P09")
+    with TestClient(demo_app) as client:
+        html = client.get(f"/inspections/{stated}").text
+        assert "± 3.1 mm" in html and "± 0.12 mm" in html and "U95" in html
+        assert client.get(f"/inspections/{older}").text.count("not stated") == 2
+
+
 def test_running_result_page_watches_the_job(demo_app):
     inspection_id = seed_queued_inspection(demo_app)
     with TestClient(demo_app) as client:
