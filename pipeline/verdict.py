@@ -1,11 +1,10 @@
-"""The pass/fail verdict of a plate from its deviation map, and the edge artefacts left out of it."""
+"""The pass/fail verdict of a plate from its deviation map."""
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 import numpy.typing as npt
 from scipy import ndimage
@@ -42,56 +41,6 @@ class DefectRegion:
     mean_deviation_mm: float = float("nan")
     #: Expanded uncertainty (k = 2) of the measurement at the peak, mm (NaN when not known).
     uncertainty_mm: float = float("nan")
-
-
-@dataclass(frozen=True)
-class EdgeArtefacts:
-    """How :func:`judge` tells segmentation artefacts at the plate's edge from edge defects (issue 17).
-
-    An out-of-tolerance region is an *edge artefact*, excluded from the verdict and the statistics,
-    when all three hold:
-
-    - it touches the measured mask's boundary (an outline or an opening; not the image frame);
-    - it is thin along that boundary: ``share`` of its pixels lie within ``max_depth_px`` of it (mixed
-      pixels and what the integration makes of them; a bent edge or a flange reaches further in);
-    - what lies beside it is floor-like: the median of ``step_mm`` over its pixels is at least
-      ``min_step_mm`` (``+inf``, a dark background, counts as a step; NaN, unknown, does not count).
-
-    Attributes
-    ----------
-    step_mm : (H, W) array_like of float
-        Depth step from the plate to its surroundings near the boundary, mm, positive behind the plate
-        (``pipeline.segmentation.Segmentation.surroundings_step_mm``); NaN where unknown.
-    min_step_mm : float
-        Least step (mm) typical of the floor or the supports beside the plate.
-    max_depth_px : float
-        How far into the plate (px) an artefact reaches.
-    share : float
-        Share of the region's pixels that must lie within ``max_depth_px`` of the boundary (0..1].
-    """
-
-    step_mm: np.ndarray
-    min_step_mm: float = 100.0
-    max_depth_px: float = 6.0
-    share: float = 0.9
-
-    def __post_init__(self) -> None:
-        step = np.asarray(self.step_mm, dtype=np.float32)
-        if step.ndim != 2:
-            raise ValueError(
-                f"EdgeArtefacts.step_mm: expected an (H, W) array, got shape {step.shape}"
-            )
-        object.__setattr__(self, "step_mm", step)
-        if not (math.isfinite(self.min_step_mm) and self.min_step_mm > 0):
-            raise ValueError(
-                f"EdgeArtefacts.min_step_mm: expected a step > 0 mm, got {self.min_step_mm}"
-            )
-        if not (math.isfinite(self.max_depth_px) and self.max_depth_px > 0):
-            raise ValueError(
-                f"EdgeArtefacts.max_depth_px: expected > 0 px, got {self.max_depth_px}"
-            )
-        if not 0 < self.share <= 1:
-            raise ValueError(f"EdgeArtefacts.share: expected in (0, 1], got {self.share}")
 
 
 @dataclass(frozen=True)
@@ -136,8 +85,9 @@ class Judgement:
     reasons : tuple of str
         Why the plate failed (empty when it passed).
     excluded : tuple of ExcludedRegion
-        Out-of-tolerance regions left out of the verdict and of every statistic above (only with
-        ``edge_artefacts``), each with its reason.
+        Regions left out of the verdict, each with its reason: none since the edge band is left out
+        by geometry before judging (``pipeline.stages.edge_band``); kept for details.json's
+        ``excluded_regions``.
     """
 
     rms_mm: float
@@ -160,7 +110,6 @@ def judge(
     pixel_area_mm2: float | npt.ArrayLike,
     min_defect_area_mm2: float = MIN_DEFECT_AREA_MM2,
     max_outside_pct: float = MAX_OUTSIDE_PCT,
-    edge_artefacts: EdgeArtefacts | None = None,
     uncertainty_mm: npt.ArrayLike | None = None,
 ) -> Judgement:
     """Deviation statistics and the pass/fail verdict of a plate.
@@ -179,10 +128,6 @@ def judge(
         Smallest connected out-of-tolerance region that fails the plate, mm^2 (default 100 mm^2).
     max_outside_pct : float
         Largest share of the judged area allowed out of tolerance in total, percent (default 1 %).
-    edge_artefacts : EdgeArtefacts, optional
-        Leave out-of-tolerance regions that are segmentation artefacts at the plate's edge (see
-        :class:`EdgeArtefacts`) out of the verdict and the statistics, each listed in
-        ``Judgement.excluded`` with its reason. None (default): every region is judged.
     uncertainty_mm : (H, W) array_like of float, optional
         Per-point expanded uncertainty (k = 2) of the measurement, mm. With it, an out-of-tolerance
         region is a defect only where its peak exceeds the tolerance by more than the standard
@@ -210,18 +155,6 @@ def judge(
         deviation_mm, mask, tolerance_mm, pixel_area_mm2, min_defect_area_mm2, max_outside_pct
     )
     judged = m & np.isfinite(dev)
-    excluded: tuple[ExcludedRegion, ...] = ()
-    if edge_artefacts is not None:
-        if not isinstance(edge_artefacts, EdgeArtefacts):
-            raise TypeError(
-                f"edge_artefacts: expected an EdgeArtefacts or None, got {type(edge_artefacts).__name__}"
-            )
-        if edge_artefacts.step_mm.shape != dev.shape:
-            raise ValueError(
-                f"edge_artefacts.step_mm: expected shape {dev.shape} to match deviation_mm, got {edge_artefacts.step_mm.shape}"
-            )
-        left_out, excluded = _edge_artefacts(dev, m, judged, tolerance_mm, area, edge_artefacts)
-        judged &= ~left_out
     n = int(np.count_nonzero(judged))
     if n == 0:
         raise ValueError("deviation_mm: expected finite deviations inside the mask, got none")
@@ -266,7 +199,6 @@ def judge(
         outside_area_mm2=outside_area,
         n_pixels=n,
         reasons=tuple(reasons),
-        excluded=excluded,
     )
 
 
@@ -357,74 +289,3 @@ def _defect_regions(
         )
     defects.sort(key=lambda d: -d.area_mm2)
     return defects
-
-
-def _edge_artefacts(
-    dev: np.ndarray,
-    mask: np.ndarray,
-    judged: np.ndarray,
-    tolerance_mm: float,
-    area: np.ndarray,
-    rule: EdgeArtefacts,
-) -> tuple[np.ndarray, tuple[ExcludedRegion, ...]]:
-    """The pixels of out-of-tolerance regions that are edge artefacts under ``rule``, and those regions."""
-    out_map = judged & (np.abs(np.where(judged, dev, 0.0)) > tolerance_mm)
-    if not out_map.any():
-        return np.zeros_like(mask), ()
-    # distance (px) to the mask's boundary; beyond the image frame counts as inside (the plate goes on)
-    pad = int(math.ceil(rule.max_depth_px)) + 2
-    framed = cv2.copyMakeBorder(mask.view(np.uint8), pad, pad, pad, pad, cv2.BORDER_REPLICATE)
-    depth_px = cv2.distanceTransform(framed, cv2.DIST_L2, 3)[pad:-pad, pad:-pad]
-    labels, n_lab = ndimage.label(out_map, structure=np.ones((3, 3), dtype=bool))
-    rows, cols = np.nonzero(out_map)
-    lab = labels[rows, cols]
-    d = depth_px[rows, cols]
-    step = rule.step_mm[rows, cols]
-    touches = np.bincount(lab, weights=(d <= 1.5).astype(np.float64), minlength=n_lab + 1) > 0
-    count = np.bincount(lab, minlength=n_lab + 1)
-    shallow = np.bincount(
-        lab, weights=(d <= rule.max_depth_px).astype(np.float64), minlength=n_lab + 1
-    )
-    thin = shallow >= rule.share * np.maximum(count, 1)
-    # median of the step over the region's pixels where it is known (inf included) >= min_step_mm
-    known = ~np.isnan(step)
-    n_known = np.bincount(lab[known], minlength=n_lab + 1)
-    n_deep = np.bincount(
-        lab[known],
-        weights=(step[known] >= rule.min_step_mm).astype(np.float64),
-        minlength=n_lab + 1,
-    )
-    floorish = (n_known > 0) & (n_deep > 0.5 * n_known)
-    artefact = touches & thin & floorish
-    artefact[0] = False
-    if not artefact.any():
-        return np.zeros_like(mask), ()
-    px_area = np.full(lab.size, float(area)) if area.ndim == 0 else area[rows, cols]
-    reg_area = np.bincount(lab, weights=px_area, minlength=n_lab + 1)
-    reg_row = np.bincount(lab, weights=rows, minlength=n_lab + 1)
-    reg_col = np.bincount(lab, weights=cols, minlength=n_lab + 1)
-    vals = dev[rows, cols]
-    regions = []
-    for k in np.nonzero(artefact)[0]:
-        v = vals[lab == k]
-        steps = step[(lab == k) & known]
-        typical = float(np.median(steps))
-        beside = (
-            "dark surroundings without stereo depth"
-            if math.isinf(typical)
-            else f"surroundings {typical:.0f} mm behind"
-        )
-        regions.append(
-            ExcludedRegion(
-                centroid_px=(float(reg_col[k] / count[k]), float(reg_row[k] / count[k])),
-                area_mm2=float(reg_area[k]),
-                peak_deviation_mm=float(v[np.argmax(np.abs(v))]),
-                n_pixels=int(count[k]),
-                reason=(
-                    f"edge artefact: along the plate's edge, within {rule.max_depth_px:g} px of it, beside "
-                    f"{beside}: pixels that mix plate and surroundings, not a forming defect"
-                ),
-            )
-        )
-    regions.sort(key=lambda r: -r.area_mm2)
-    return artefact[labels] & out_map, tuple(regions)

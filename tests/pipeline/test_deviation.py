@@ -7,14 +7,14 @@ import math
 import numpy as np
 import pytest
 import trimesh
-from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
 from pipeline.deviation import deviation_map
 from pipeline.io import Target
 from pipeline.registration import Registration, fitted_target_radius, register_to_target
+from pipeline.stages import edge_band
 from pipeline.target_geometry import target_surface
-from pipeline.verdict import EdgeArtefacts, judge
+from pipeline.verdict import judge
 from tests.pipeline.surfaces import cylinder, dented, plate_grid, saddle, sphere
 
 PLATE_CENTRE = np.array([30.0, -20.0, 3000.0])  # where plate_grid puts the plate frame's origin
@@ -306,7 +306,7 @@ def test_bad_inputs():
         target_surface(target("cylinder", 1000.0))
 
 
-# --------------------------------------------------------------------------- edge artefacts (issue 17)
+# --------------------------------------------------------------------------- the edge band (issue 24)
 
 
 def _plate_with_a_hole():
@@ -318,88 +318,33 @@ def _plate_with_a_hole():
     yy, xx = np.mgrid[0:h, 0:w]
     m &= np.hypot(xx - 160, yy - 100) > 25
     dev = np.where(m, rng.normal(0.0, 0.2, (h, w)), np.nan)
-    # the step beside the plate, as the segmentation gives it: the floor 350 mm behind, 8 px in
-    inner = ndimage.binary_erosion(m, iterations=8, border_value=1)
-    step = np.where(m & ~inner, 350.0, np.nan).astype(np.float32)
-    return m, dev, step
+    return m, dev
 
 
-def test_edge_artefacts_are_excluded_with_a_reason():
-    m, dev, step = _plate_with_a_hole()
+def test_the_edge_band_is_left_out_by_geometry_whatever_its_deviation():
+    """Mixed pixels along the outline and the opening are not judged; whether they are within
+    tolerance or far out of it makes no difference to what is left out."""
+    m, dev = _plate_with_a_hole()
+    band = edge_band(m)
     bad = dev.copy()
-    bad[
-        20:23, 60:120
-    ] = -9.0  # a 3 px strip along the outline: 180 px = 1800 mm^2, the floor pulled in
-    yy, xx = np.mgrid[0 : m.shape[0], 0 : m.shape[1]]
-    ring = m & (np.hypot(xx - 160, yy - 100) < 28)  # along the opening's edge
-    bad[ring] = 6.0
-    assert (
-        judge(bad, m, 2.0, pixel_area_mm2=10.0).verdict == "fail"
-    )  # without the rule: two "defects"
-    j = judge(bad, m, 2.0, pixel_area_mm2=10.0, edge_artefacts=EdgeArtefacts(step))
-    assert j.verdict == "pass" and j.defects == () and j.reasons == ()
-    assert len(j.excluded) == 2
-    assert {round(r.peak_deviation_mm) for r in j.excluded} == {-9, 6}
-    assert all("edge artefact" in r.reason and "350 mm behind" in r.reason for r in j.excluded)
-    # excluded from the statistics too, and counted there as not judged
-    assert j.max_abs_mm < 2.0 and j.n_pixels == np.count_nonzero(m) - sum(
-        r.n_pixels for r in j.excluded
-    )
+    bad[20:23, 60:120] = -9.0  # a 3 px strip along the outline: the floor pulled in
+    judged = m & ~band
+    calm = judge(dev, judged, 2.0, pixel_area_mm2=10.0)
+    wild = judge(bad, judged, 2.0, pixel_area_mm2=10.0)
+    assert wild.verdict == calm.verdict == "pass" and wild.n_pixels == calm.n_pixels
+    assert judge(bad, m, 2.0, pixel_area_mm2=10.0).verdict == "fail"  # judged with the band: fails
 
 
 def test_a_bent_edge_still_fails():
-    """A real edge defect reaches into the plate (here 30 px of a flange bent by up to 12 mm): judged."""
-    m, dev, step = _plate_with_a_hole()
+    """A real edge defect reaches into the plate (here 30 px of a flange bent by up to 12 mm): judged
+    beyond the band with its own depth."""
+    m, dev = _plate_with_a_hole()
     bent = dev.copy()
     ramp = np.linspace(12.0, 2.5, 30)[None, :]
-    bent[60:140, 190:220] = ramp[
-        :, ::-1
-    ]  # deepest at the outline (column 219), in tolerance 30 px in
-    j = judge(bent, m, 2.0, pixel_area_mm2=10.0, edge_artefacts=EdgeArtefacts(step))
-    assert (
-        j.verdict == "fail"
-        and j.excluded == ()
-        and j.defects[0].peak_deviation_mm == pytest.approx(12.0)
-    )
-
-
-def test_thin_edge_regions_without_a_floor_step_are_judged():
-    m, dev, step = _plate_with_a_hole()
-    lip = dev.copy()
-    lip[20:23, 60:120] = 5.0
-    # the surroundings at the plate's own depth (a support under the edge), or unknown: judged
-    for beside in (
-        np.where(np.isnan(step), np.nan, 20.0).astype(np.float32),
-        np.full(m.shape, np.nan, np.float32),
-    ):
-        j = judge(lip, m, 2.0, pixel_area_mm2=10.0, edge_artefacts=EdgeArtefacts(beside))
-        assert j.verdict == "fail" and j.excluded == ()
-    # a dark background (no depth, +inf) is a step
-    dark = np.where(np.isnan(step), np.nan, np.inf).astype(np.float32)
-    j = judge(lip, m, 2.0, pixel_area_mm2=10.0, edge_artefacts=EdgeArtefacts(dark))
-    assert j.verdict == "pass" and "dark surroundings" in j.excluded[0].reason
-    # regions that only touch the image frame are not at the plate's edge
-    full = np.ones_like(m)
-    frame = np.where(full, 0.1, np.nan)
-    frame[0:3, 60:120] = 5.0
-    j = judge(
-        frame,
-        full,
-        2.0,
-        pixel_area_mm2=10.0,
-        edge_artefacts=EdgeArtefacts(np.full(m.shape, 350.0, np.float32)),
-    )
-    assert j.verdict == "fail" and j.excluded == ()
-
-
-def test_edge_artefacts_option_is_checked():
-    m, dev, step = _plate_with_a_hole()
-    with pytest.raises(ValueError, match=r"edge_artefacts.step_mm: expected shape \(200, 240\)"):
-        judge(dev, m, 2.0, pixel_area_mm2=1.0, edge_artefacts=EdgeArtefacts(step[:, :10]))
-    with pytest.raises(ValueError, match=r"EdgeArtefacts.min_step_mm"):
-        EdgeArtefacts(step, min_step_mm=0.0)
-    with pytest.raises(TypeError, match="edge_artefacts: expected an EdgeArtefacts"):
-        judge(dev, m, 2.0, pixel_area_mm2=1.0, edge_artefacts=step)
+    bent[60:140, 190:220] = ramp[:, ::-1]  # deepest at the outline (column 219)
+    j = judge(bent, m & ~edge_band(m), 2.0, pixel_area_mm2=10.0)
+    assert j.verdict == "fail"
+    assert j.defects[0].peak_deviation_mm == pytest.approx(12.0 - 3 * 9.5 / 29, abs=0.05)
 
 
 def test_mesh_target_with_an_opening_registers(tmp_path):
