@@ -247,7 +247,8 @@ def remeasure_with_refined_lights(
     For a surface measured with distant lights whose shape disagreed with the stereo pair's (see
     :mod:`pipeline.light_refinement`): the refined lights are point lights (near-field
     reconstruction) or corrected distant ones. The new surface is kept when it agrees better with
-    the stereo pair; either way ``refinement`` records the fit.
+    the stereo pair, and then ``refinement`` records the fit; otherwise the first surface is returned
+    as it was (the given lights stand).
 
     Parameters
     ----------
@@ -291,7 +292,9 @@ def remeasure_with_refined_lights(
         and first.fusion is not None
         and second.fusion.disagreement_mm < first.fusion.disagreement_mm
     )
-    return replace(second if better else first, refinement=refined)
+    # the refitted lights count only if the plate measured with them is kept: otherwise the given
+    # lights stand, and the result says nothing about lights it did not use
+    return replace(second, refinement=refined) if better else first
 
 
 def _check_lights_in_front(lights: Lights, depth_mm: np.ndarray, mask: np.ndarray) -> None:

@@ -12,7 +12,6 @@ from fastapi.testclient import TestClient
 
 from app.main import create_app
 from app.settings import Settings
-from tests.acquisition.conftest import fake_gv, light_server  # noqa: F401 (fixtures of test_acquire.py)
 from tests.api.helpers import (
     FAKE_INSPECT,
     TOKEN,

@@ -222,3 +222,14 @@ def rendered_page_ink(pdf: bytes, folder: Path, page: int = 1) -> float:
     with Image.open(png) as image:
         grey = np.asarray(image.convert("L"))
     return float(np.mean(grey < 240))
+
+
+def capture_json_with_plate(bundle: bytes, plate_id: str) -> bytes:
+    import io
+    import json
+    import zipfile
+
+    with zipfile.ZipFile(io.BytesIO(bundle)) as zf:
+        doc = json.loads(zf.read("capture.json"))
+    doc["plate_id"] = plate_id
+    return json.dumps(doc).encode()

@@ -13,6 +13,7 @@ import pytest
 
 from tests.api.helpers import (
     AUTH,
+    capture_json_with_plate,
     invocations,
     pdf_text,
     rendered_page_ink,
@@ -141,7 +142,7 @@ def test_failed_job_keeps_inputs_and_error(
     client, settings, consumer_factory, bundle_zip, plate_id, message
 ):
     consumer = consumer_factory().start()
-    capture_json = _capture_json_with_plate(bundle_zip, plate_id)
+    capture_json = capture_json_with_plate(bundle_zip, plate_id)
     bundle = rezip(bundle_zip, replace={"capture.json": capture_json})
     r = _post_bundle(client, plate_id, bundle)
     assert r.status_code == 202, r.text
@@ -153,17 +154,6 @@ def test_failed_job_keeps_inputs_and_error(
     inputs = settings.data_dir / "inspections" / str(body["id"]) / "inputs"
     assert (inputs / "capture.zip").is_file()
     assert client.get("/api/v1/plates").json()["items"][0]["latest_verdict"] is None
-
-
-def _capture_json_with_plate(bundle: bytes, plate_id: str) -> bytes:
-    import io
-    import json
-    import zipfile
-
-    with zipfile.ZipFile(io.BytesIO(bundle)) as zf:
-        doc = json.loads(zf.read("capture.json"))
-    doc["plate_id"] = plate_id
-    return json.dumps(doc).encode()
 
 
 def test_a_job_delivered_twice_runs_once(client, settings):

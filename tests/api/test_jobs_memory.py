@@ -5,8 +5,15 @@ from __future__ import annotations
 import subprocess
 import sys
 
-from tests.api.helpers import AUTH, ROOT, Consumer, rezip, target_json, wait_for
-from tests.api.test_jobs import _capture_json_with_plate
+from tests.api.helpers import (
+    AUTH,
+    ROOT,
+    Consumer,
+    capture_json_with_plate,
+    rezip,
+    target_json,
+    wait_for,
+)
 
 #: The test double asks for 2048 MiB (PLATE_INSPECT_TEST_ALLOCATE_MB's default): the limit leaves less room.
 HEADROOM_MB = 1024
@@ -28,7 +35,7 @@ def _consumer_baseline_mb() -> float:
 
 def _post(client, plate_id: str, bundle_zip: bytes) -> int:
     bundle = rezip(
-        bundle_zip, replace={"capture.json": _capture_json_with_plate(bundle_zip, plate_id)}
+        bundle_zip, replace={"capture.json": capture_json_with_plate(bundle_zip, plate_id)}
     )
     files = {
         "capture": ("bundle.zip", bundle, "application/zip"),

@@ -11,13 +11,19 @@ from sqlalchemy import select
 
 from app.cli import ConsumerProcess
 from app.models import Inspection
-from tests.api.helpers import AUTH, invocations, rezip, target_json, wait_for
-from tests.api.test_jobs import _capture_json_with_plate
+from tests.api.helpers import (
+    AUTH,
+    capture_json_with_plate,
+    invocations,
+    rezip,
+    target_json,
+    wait_for,
+)
 
 
 def _post(client, plate_id: str, bundle_zip: bytes) -> int:
     bundle = rezip(
-        bundle_zip, replace={"capture.json": _capture_json_with_plate(bundle_zip, plate_id)}
+        bundle_zip, replace={"capture.json": capture_json_with_plate(bundle_zip, plate_id)}
     )
     files = {
         "capture": ("bundle.zip", bundle, "application/zip"),

@@ -311,7 +311,7 @@ def test_machines_page_adds_then_edits_a_roll_bender(live_server, browser):
 
 def test_light_calibration_upload_on_the_calibration_page(live_server, browser):
     """Upload a light calibration through the page's form; a bad one is refused naming file and field."""
-    from tests.web.test_light_calibration import ring_of_lights
+    from tests.web.helpers import ring_of_lights
 
     SHOTS.mkdir(exist_ok=True)
     page = browser.new_page(viewport={"width": 1920, "height": 1080})

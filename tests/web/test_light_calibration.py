@@ -5,27 +5,11 @@ from __future__ import annotations
 import json
 import re
 
-import numpy as np
 from fastapi.testclient import TestClient
 
-from tests.web.helpers import seed_done_inspection
+from tests.web.helpers import ring_of_lights, seed_done_inspection
 
 APPLIED = "a light calibration was applied to the capture's nominal light directions"
-
-
-def ring_of_lights(n: int = 8, *, radius_mm: float = 1616.58, height_mm: float = 200.0) -> dict:
-    """A light-calibration/1 document: ``n`` LEDs on a ring around the cameras, aimed at a plate 2.8 m away."""
-    from pipeline.io import light_calibration_document
-    from pipeline.lights import Lights
-
-    angles = np.arange(n) * 2 * np.pi / n
-    positions = np.stack(
-        [radius_mm * np.cos(angles), radius_mm * np.sin(angles), np.full(n, height_mm)], axis=1
-    )
-    axes = np.array([0.0, 0.0, 2800.0]) - positions
-    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
-    lights = Lights.points(positions, np.linspace(9.5, 10.5, n), axes=axes, mu=np.full(n, 1.5))
-    return light_calibration_document(lights, 0.0042)
 
 
 def seed_light_calibration(
