@@ -17,7 +17,6 @@ import threading
 from pathlib import Path
 
 from app.settings import Settings
-from app.worker import EXIT_CONFIG
 
 log = logging.getLogger("app.serve")
 
@@ -114,6 +113,10 @@ class ConsumerProcess:
         log.info("job consumer started (pid %s)", self.proc.pid)
 
     def _watch(self) -> None:
+        # imported here: the whole service behind app.worker would otherwise load with every
+        # `plate-inspect` command (the pipeline's CLI loads this module to register `serve`)
+        from app.worker import EXIT_CONFIG
+
         while not self._stopping.wait(1.0):
             code = self.proc.poll()
             if code is None or self._stopping.is_set():
