@@ -27,6 +27,7 @@ References
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 
 import cv2
@@ -287,14 +288,21 @@ def _refine_distant(data: light_fit.Samples, lights: Lights) -> Lights:
 def _fit_points(
     data: light_fit.Samples, lights: Lights, pose: light_fit.PlatePose
 ) -> tuple[Lights | None, float]:
-    """Point lights fitted from the given ones (directions: along them from the plate's centre)."""
+    """Point lights fitted from the given ones (directions: along them from the plate's centre).
+
+    First with the LEDs' beam profile fixed (mu = 1), then free; when the free fit does not converge
+    to lights in front of the plate, the fixed-profile fit stands if it did.
+    """
     try:
         start = light_fit.initial_point_lights(lights, pose, data, initial_mu=1.0)
-        fit = light_fit.joint_fit(start, data, fixed_mu=True)
-        fit = light_fit.joint_fit(fit.lights, data)
+        fixed = light_fit.joint_fit(start, data, fixed_mu=True)
     except (np.linalg.LinAlgError, ValueError, FloatingPointError):
         return None, float("nan")
-    behind = (fit.lights.positions_mm - pose.centre_mm) @ pose.normal <= 0
-    if not fit.success or behind.any() or not np.all(np.isfinite(fit.lights.positions_mm)):
-        return None, float("nan")
-    return fit.lights, _rms(data, fit.lights)
+    candidates = [fixed]
+    with contextlib.suppress(np.linalg.LinAlgError, ValueError, FloatingPointError):
+        candidates.insert(0, light_fit.joint_fit(fixed.lights, data))
+    for fit in candidates:
+        behind = (fit.lights.positions_mm - pose.centre_mm) @ pose.normal <= 0
+        if fit.success and not behind.any() and np.all(np.isfinite(fit.lights.positions_mm)):
+            return fit.lights, _rms(data, fit.lights)
+    return None, float("nan")
