@@ -19,8 +19,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pipeline.acquisition import acquire
-from tests.acquisition.conftest import tcp_lights, write_cell
 from tests.acquisition.devices import FakeGigECamera, LightServer
+from tests.acquisition.helpers import tcp_lights, write_cell
 
 
 def main() -> None:

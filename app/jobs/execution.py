@@ -294,7 +294,8 @@ def _run(
     if source == "simulated":
         progress(SIMULATE_STAGE, 0.0)
         render_simulated_bundle(bundle_dir=capture_path, plate_id=plate_id, simulation=simulation)
-    elif source == ACQUIRED_SOURCE:
+    returned_at = None
+    if source == ACQUIRED_SOURCE:
         capture_for_job(
             inspection_id,
             settings=settings,
@@ -303,6 +304,7 @@ def _run(
             bundle_dir=capture_path,
             progress=progress,
         )
+        returned_at = time.monotonic()
     lights = None
     if light_calibration is not None:
         lights = light_calibrations.load_lights(storage=storage, calibration=light_calibration)
@@ -310,7 +312,30 @@ def _run(
     result = inspect(
         capture_path, target_path, out_dir=out_dir, progress=progress, light_calibration=lights
     )
-    return json.loads(json.dumps(result.document))  # plain JSON types only
+    document = json.loads(json.dumps(result.document))  # plain JSON types only
+    if returned_at is not None:
+        _add_after_last_frame(document, capture_path, out_dir, returned_at)
+    return document
+
+
+def _add_after_last_frame(
+    document: dict, capture_path: Path, out_dir: Path, returned_at: float
+) -> None:
+    """``timings_s.after_last_frame`` of an acquired inspection: seconds from the last frame's arrival
+    to the result (the bundle's acquisition record gives how long before ``returned_at``, the
+    moment the acquisition returned, the last frame came); written into result.json too."""
+    try:
+        record = json.loads((capture_path / "capture.json").read_text())["acquisition"]
+        tail = float(record["total_s"]) - float(record["frames"][-1]["t_s"])
+    except (OSError, KeyError, IndexError, TypeError, ValueError):
+        return  # no acquisition record: nothing to time against
+    timings = document.get("timings_s")
+    if not isinstance(timings, dict):
+        return
+    timings["after_last_frame"] = round(time.monotonic() - returned_at + tail, 3)
+    result_file = out_dir / "result.json"
+    if result_file.is_file():
+        result_file.write_text(json.dumps(document, indent=2) + "\n")
 
 
 def _client_message(text: str, storage: Storage, inspection_id: int) -> str:

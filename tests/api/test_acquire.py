@@ -139,6 +139,9 @@ def test_demo_cell_acquires_then_inspects(service, consumers, tmp_path):
     assert body["status"] == "done", body
     assert (body["source"], body["cell_id"], body["stage"]) == ("acquired", "demo", "done")
     assert body["result"]["plate_id"] == "DEMO-7" and body["result"]["target_radius_mm"] == 5000.0
+    # from the last frame's arrival to the result: beyond the inspection's own time, not before it
+    after = body["result"]["timings_s"]["after_last_frame"]
+    assert body["result"]["timings_s"]["total"] <= after < 60.0
     assert client.get("/api/v1/plates/DEMO-7/target").json()["radius_mm"] == 5000.0
     # the bundle the cell took is what the pipeline ran on (the test double loads it), once
     capture = load_capture(_inputs(client, body["id"]) / "bundle")
