@@ -46,7 +46,7 @@ def configure_process() -> None:
 
     The parallel numba kernels (OpenMP layer) leave their worker threads spinning after each
     parallel region unless told otherwise; on the cell's 2-core computer that spinning takes the
-    second core from the work beside it (stereo, artifact writing; measured in the README's
+    second core from the work beside it (stereo, artifact writing; measured in docs/figures.md,
     *Speed, end to end*). ``OMP_WAIT_POLICY=PASSIVE`` is read by libgomp when it starts, so this
     must run before the first kernel; a value already set in the environment wins.
     """

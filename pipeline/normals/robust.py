@@ -7,7 +7,7 @@ its brightest TRIM_TOP_FRACTION (highlights) -- or, if that leaves an ill-posed 
 shadows only, or with all samples; then ROBUST_ITERATIONS times: keep the valid samples with
 n.l > COS_MIN and a residual within -OUTLIER_K .. +OUTLIER_K_HIGH robust scales (MAD), and refit.
 A pixel's estimate uses at least 3 samples. Its accuracy on real data (DiLiGenT, against least
-squares) is in the README (*Real data*; ``benchmarks/bench_normals_realdata.py``). On clean
+squares) is in docs/figures.md (*Real data*; ``benchmarks/bench_normals_realdata.py``). On clean
 Lambertian data the trimming costs ~10 % in noise, and where the errors are systematic rather than
 outliers (the UW grey sphere: nearly Lambertian, 12 clustered lights of limited accuracy) it is
 slightly worse than least squares.

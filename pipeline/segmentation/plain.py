@@ -75,7 +75,7 @@ def plain_depth(
     bool
         True when at most PLAIN_OFF_SURFACE_SHARE of the matched mask pixels lie off the smooth
         surface fitted to them. With :func:`plain_outline`, the brightness mask is then the plate
-        and :func:`segment_plate` is not needed (README: what it costs).
+        and :func:`segment_plate` is not needed (docs/figures.md: what it costs).
     """
     mask = check_bool_image("bright_mask", bright_mask, np.shape(bright_mask))
     depth = np.asarray(depth_mm, dtype=np.float64)
