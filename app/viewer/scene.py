@@ -148,12 +148,34 @@ def _theme(gui: viser.GuiApi) -> None:
 
 
 def _measured_glb(meshes: PlateMeshes) -> bytes:
+    """The measured plate as GLB: smooth vertex normals (a dent shows in its shading), the
+    band colours as glTF's linear ``COLOR_0`` (written as sRGB they were drawn washed out)
+    and a matte, non-metallic material (glTF's default is fully metallic, which reflected the
+    light background and left the plate very pale)."""
     mesh = trimesh.Trimesh(meshes.measured_vertices, meshes.measured_faces, process=False)
-    mesh.visual = trimesh.visual.ColorVisuals(
-        mesh,
-        vertex_colors=deviation_colours(meshes.deviation_mm, meshes.scale_mm, meshes.tolerance_mm),
-    )
-    return mesh.export(file_type="glb")
+    srgb = deviation_colours(meshes.deviation_mm, meshes.scale_mm, meshes.tolerance_mm)
+    mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=srgb_to_linear_u8(srgb))
+    return mesh.export(file_type="glb", include_normals=True, tree_postprocessor=_matte)
+
+
+def srgb_to_linear_u8(rgb: np.ndarray) -> np.ndarray:
+    """(V, 3) uint8 sRGB colours as (V, 3) uint8 linear ones (IEC 61966-2-1)."""
+    c = np.asarray(rgb, dtype=np.float64) / 255.0
+    linear = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+    return np.round(linear * 255.0).astype(np.uint8)
+
+
+def _matte(tree: dict[str, Any]) -> None:
+    """glTF tree post-processor: every primitive gets one matte, double-sided material."""
+    tree["materials"] = [
+        {
+            "pbrMetallicRoughness": {"metallicFactor": 0.0, "roughnessFactor": 0.75},
+            "doubleSided": True,
+        }
+    ]
+    for mesh in tree.get("meshes", []):
+        for primitive in mesh["primitives"]:
+            primitive["material"] = 0
 
 
 def scene_labels(scene: viser.SceneApi, meshes: PlateMeshes) -> list[viser.LabelHandle]:

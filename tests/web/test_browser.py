@@ -723,3 +723,29 @@ def test_side_list_keeps_its_links_while_nothing_changes(live_server, browser):
     _api(live_server, "PUT", "/api/v1/plates/SIDE-NEW/target", target)
     page.locator("#side-body a[href='/plates/SIDE-NEW']").wait_for(timeout=10_000)
     assert not handle.evaluate("node => node.isConnected")  # the changed list was swapped in
+
+
+def test_3d_view_connects_on_first_open_ten_times(live_server, browser):
+    """Issue 26: ten fresh result pages (new browser contexts, servers started cold for the first
+    of each plate) each find the 3D view connected and the scene there, with no reload."""
+    ids = [
+        _inspected(live_server, f"H26-3D{i}", {"n_lights": 6, "width": 160, "height": 128})
+        for i in range(3)
+    ]
+    closes: list[str] = []
+    for n in range(10):
+        inspection_id = ids[n % len(ids)]
+        page = browser.new_page(viewport={"width": 1224, "height": 1024})
+        page.on(
+            "websocket",
+            lambda ws: ws.on("close", lambda w: closes.append(w.url)),
+        )
+        page.goto(f"{live_server['base']}/inspections/{inspection_id}")
+        frame = page.frame_locator("#viewer")
+        frame.get_by_text("Layout", exact=True).wait_for(timeout=30_000)
+        frame.get_by_text(f"Inspection {inspection_id}", exact=True).wait_for(timeout=30_000)
+        page.wait_for_timeout(500)
+        # still connected: viser's panel says so, and no websocket of the page closed
+        assert not closes, (n, closes, (live_server["logs"] / "web.log").read_text()[-2000:])
+        page.close()
+        closes.clear()
