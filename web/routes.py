@@ -28,11 +28,10 @@ from app.services import forming as forming_svc
 from app.services import inspections as inspection_svc
 from app.services import light_calibrations as light_calibration_svc
 from app.services import plates as plate_svc
-from app.services.errors import ServiceError
-from pipeline.formats import InputError
 from web import TEMPLATES_DIR
 from web.charts import forming_chart, trend_chart
 from web.compare import CannotCompare, compare_context, done_inspections
+from web.forming_words import advice_panel, count
 from web.lights import light_plan, light_rows
 from web.template_views import (
     DEFAULT_SPACING_MM,
@@ -58,6 +57,7 @@ def _fmt(value, digits: int = 1, unit: str = "", signed: bool = False) -> str:
 
 
 templates.env.filters["fmt"] = _fmt
+templates.env.filters["count"] = count
 
 
 def _when(dt: datetime | None) -> str:
@@ -237,7 +237,9 @@ def result_page(
         "artifacts": names,
         "spacing_mm": spacing_mm,
         "spacings": SPACINGS_MM,
-        "next_pass": next_pass(session, row.plate_id),
+        "next_pass": advice_panel(
+            session, row.plate_id, row if row.status == JobStatus.DONE else None
+        ),
         **found,
         **templates_context(storage, row, spacing_mm, chosen_point(at_x, at_y)),
     }
@@ -283,7 +285,7 @@ def plate_page(request: Request, plate_id: str, session: SessionDep) -> Response
         tolerance_mm=tolerance,
         radius_band_pct=_radius_band_pct(overview.target),
     )
-    advice = next_pass(session, plate_id)
+    advice = advice_panel(session, plate_id, done[-1] if done else None)
     return _page(
         request,
         session,
@@ -359,32 +361,6 @@ def passes_chart(session, plate_id: str, target, advice: dict | None):
         band_mm=band,
         next_pass=nxt,
     )
-
-
-def next_pass(session, plate_id: str) -> dict:
-    """The "Next pass" panel: ``{"advice": Advice.to_dict()}``, or ``{"reason": ...}`` when there is none.
-
-    The machine is the latest pass's; before the first pass, the only machine when there is one.
-    """
-    machine_id = None
-    if not forming_svc.plate_passes(session=session, plate_id=plate_id):
-        machines = forming_svc.list_machines(session=session)
-        if len(machines) != 1:
-            return {
-                "reason": "No roll-bending pass of this plate yet"
-                + ("" if machines else ", and no machine known")
-                + ": ask "
-                f"/api/v1/plates/{plate_id}/advice?machine_id=... for the first pass."
-            }
-        machine_id = machines[0].id
-    try:
-        return {
-            "advice": forming_svc.advise(
-                session=session, plate_id=plate_id, machine_id=machine_id
-            ).to_dict()
-        }
-    except (ServiceError, InputError) as err:
-        return {"reason": f"No advice: {err.detail if isinstance(err, ServiceError) else err}"}
 
 
 @router.get("/calibration", response_class=HTMLResponse)
