@@ -179,8 +179,9 @@ def _matte(tree: dict[str, Any]) -> None:
 
 
 def scene_labels(scene: viser.SceneApi, meshes: PlateMeshes) -> list[viser.LabelHandle]:
-    """Labels in the scene: "Measured" and "CAD target" above their plates, and each defect's
-    number at its place (children of the plates' nodes: they follow the layout)."""
+    """Labels in the scene: "Measured" and "CAD target" above their plates, each defect's number and
+    its place in the target's frame at its place, and the plate's edges named as on the map
+    (children of the plates' nodes: they follow the layout)."""
     extent = max(meshes.extent_m, 0.1)
     above = 0.08 * extent
     top_m = float(meshes.measured_vertices[:, 2].max()) + above
@@ -190,13 +191,24 @@ def scene_labels(scene: viser.SceneApi, meshes: PlateMeshes) -> list[viser.Label
         scene.add_label("/plate/measured/label", "Measured", position=(0.0, back, top_m)),
         scene.add_label("/plate/target/label", "CAD target", position=(0.0, back, top_t)),
     ]
-    for number, place in meshes.defects:
+    xy_mm = meshes.defect_xy_mm or tuple((None, None) for _ in meshes.defects)
+    for (number, place), (x, y) in zip(meshes.defects, xy_mm, strict=True):
+        text = f"defect {number}" if x is None else f"defect {number}: x {x:.0f}, y {y:.0f} mm"
         labels.append(
             scene.add_label(
                 f"/plate/measured/defect-{number}",
-                f"defect {number}",
+                text.replace("-", "\u2212"),
                 position=tuple(float(v) for v in place),
                 anchor="bottom-center",
+            )
+        )
+    for name, place in meshes.edges:  # the target frame's edges, named as on the map
+        labels.append(
+            scene.add_label(
+                f"/plate/measured/edge-{name}",
+                f"edge {name}",
+                position=tuple(float(v) for v in place),
+                anchor="center-center",
             )
         )
     return labels

@@ -605,6 +605,13 @@ def test_plate_map_reads_zooms_and_places_a_template(live_server, browser):
     violations = _watch_csp(page)
     page.goto(f"{live_server['base']}/inspections/{job_id}")
     page.wait_for_selector("#plate-map[data-ready=true]", timeout=15_000)
+    # one frame (issue 26): the map names the target's edges, the templates are placed from them
+    edges = page.locator("#plate-map .map-edges text")
+    assert edges.all_text_contents() == ["edge A", "edge B", "edge C", "edge D"]
+    a, c = (page.locator(f"#plate-map [data-edge={n}]").bounding_box() for n in "AC")
+    assert a["y"] > c["y"]  # edge A (smallest y) at the bottom of the map
+    caption = page.locator("figure.template[data-kind=defect] figcaption").first.inner_text()
+    assert re.match(r"Frame at [xy] = [−+]?\d+ mm, \d+ mm from edge [ABCD]", caption), caption
     ticks = [float(t) for t in page.locator(".map-axes .tick-x").all_text_contents()]
     assert min(ticks) < 0 < max(ticks) and 0.0 in ticks  # mm of the target frame, its centre at 0
     assert page.locator(".map-axes .axis-name").all_text_contents() == ["x, mm", "y, mm"]
@@ -641,6 +648,7 @@ def test_plate_map_reads_zooms_and_places_a_template(live_server, browser):
     page.click("[data-zoom=fit]")
 
     # a click on the plate away from the defect: a template through that point, drawn on the map
+    page.locator("#plate-map-svg").scroll_into_view_if_needed()
     box = page.locator("#plate-map-svg image").bounding_box()
     page.mouse.click(box["x"] + 0.75 * box["width"], box["y"] + 0.8 * box["height"])
     page.wait_for_selector("figure.template.chosen", timeout=15_000)

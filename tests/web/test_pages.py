@@ -48,7 +48,8 @@ def test_result_page_shows_verdict_numbers_view_and_templates(demo_app):
         assert f'src="/viewer/{inspection_id}/?hideViserLogo"' in html
         # Frames every 700 mm over the 2000 mm axis: 3 templates (300, 1000, 1700 mm).
         assert html.count('<figure class="template"') == 3
-        assert "Frame at 1000 mm" in html
+        # no registration seeded: the frame is placed from the plate's first edge, and says so
+        assert "Frame 1000 mm from the plate's first edge" in html
         # The largest true gap is at the edges: sagitta difference 2.2 mm, labelled in red.
         assert 'class="gap-label bad"' in html
         partial = client.get(f"/inspections/{inspection_id}/templates", params={"spacing_mm": 300})

@@ -246,8 +246,16 @@ def test_the_scene_labels_the_plates_and_numbers_the_defects(tmp_path):
     assert [(label.name, label.text) for label in labels] == [
         ("/plate/measured/label", "Measured"),
         ("/plate/target/label", "CAD target"),
-        ("/plate/measured/defect-1", "defect 1"),
+        # in the target's frame, as the map and the defect table give it (issue 26)
+        ("/plate/measured/defect-1", "defect 1: x 600, y \u2212300 mm"),
+        ("/plate/measured/edge-A", "edge A"),
+        ("/plate/measured/edge-B", "edge B"),
+        ("/plate/measured/edge-C", "edge C"),
+        ("/plate/measured/edge-D", "edge D"),
     ]
+    # edge A where the target's y is smallest: camera y largest, display y (-camera y) smallest
+    edges = dict(meshes.edges)
+    assert edges["A"][1] < edges["C"][1] and edges["D"][0] < edges["B"][0]
     assert np.allclose(labels[2].position, place)  # on the measured surface, in its node's frame
     top = float(meshes.measured_vertices[:, 2].max())
     assert labels[0].position[2] > top  # above the plate

@@ -136,7 +136,8 @@ export class PlateMap {
       el("text", { x: len + 2.2 * unit, y: 0, "font-size": 3 * unit, "dominant-baseline": "central" }, "x"),
       el("text", { x: 0, y: -len - 2.6 * unit, "font-size": 3 * unit, "text-anchor": "middle" }, "y"),
     );
-    marks.push(o);
+    o.append(el("title", {}, "origin: the target's centre (x 0, y 0)"));
+    marks.push(o, this.edgeNames(unit));
     for (const d of this.data.defects) {
       if (!d.centroid_mm) continue;
       const [x, y] = d.centroid_mm;
@@ -157,6 +158,21 @@ export class PlateMap {
       marks.push(el("circle", { class: "map-picked", cx: x, cy: -y, r: 1.2 * unit, "stroke-width": 0.4 * unit }));
     }
     this.markLayer.replaceChildren(...marks);
+  }
+
+  /** The plate's edges named as in the templates and the report: A where y is smallest, then
+   * counter-clockwise (B at the largest x, C at the largest y, D at the smallest x). */
+  edgeNames(unit) {
+    const [x0, x1, y0, y1] = this.data.extent_mm;
+    const cx = (x0 + x1) / 2, cy = (y0 + y1) / 2, size = 2.6 * unit;
+    const g = el("g", { class: "map-edges" });
+    g.append(
+      el("text", { "data-edge": "A", x: cx, y: -y0 - 0.8 * unit, "font-size": size, "text-anchor": "middle" }, "edge A"),
+      el("text", { "data-edge": "B", x: x1 - 0.8 * unit, y: -cy, "font-size": size, "text-anchor": "end", "dominant-baseline": "central" }, "edge B"),
+      el("text", { "data-edge": "C", x: cx, y: -y1 + 0.8 * unit, "font-size": size, "text-anchor": "middle", "dominant-baseline": "hanging" }, "edge C"),
+      el("text", { "data-edge": "D", x: x0 + 0.8 * unit, y: -cy, "font-size": size, "dominant-baseline": "central" }, "edge D"),
+    );
+    return g;
   }
 
   drawAxes(unit) {
