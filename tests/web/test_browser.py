@@ -178,6 +178,7 @@ def test_cell_to_result_to_history(live_server, browser):
     assert "script-src 'self'" in response.headers["content-security-policy"]
     page.fill("input[name=plate_id]", "H7-P11")
     page.fill("input[name=operator]", "A. Welder")
+    page.click("#simulation summary")  # the simulated plate's settings fold away under Capture
     page.fill("input[name=width]", "320")
     page.fill("input[name=height]", "256")
     page.check("input[name=dent]")
@@ -378,16 +379,19 @@ def test_capture_button_photographs_and_inspects_with_the_demo_cell(live_server,
 
     page.fill("input[name=plate_id]", "H9-CAP")
     page.click("#capture")
-    page.wait_for_selector("#start-message[data-kind=ok]:has-text('queued')", timeout=10_000)
-    inspection_id = int(re.search(r"#(\d+)", page.locator("#start-message").inner_text()).group(1))
-    row = f"#queue tr[data-id='{inspection_id}']"
+    # the page follows the job it started: its result page, live while it runs, then the verdict
+    page.wait_for_url(re.compile(r".*/inspections/\d+$"), timeout=15_000)
+    inspection_id = int(page.url.rsplit("/", 1)[1])
     page.wait_for_selector(
-        f"{row}[data-status='done'], {row}[data-status='error']", timeout=120_000
+        "#verdict.verdict-pass, #verdict.verdict-fail, #verdict[data-status=error]", timeout=120_000
     )
-    page.screenshot(path=SHOTS / "cell-captured.png")
-    assert page.locator(row).get_attribute("data-status") == "done", (
+    assert page.locator(".verdict-word").inner_text() in ("PASS", "FAIL"), (
         live_server["logs"] / "worker.log"
     ).read_text()[-3000:]
+    page.goto(f"{live_server['base']}/cell")
+    row = f"#queue tr[data-id='{inspection_id}']"
+    page.wait_for_selector(f"{row}[data-status='done']", timeout=10_000)
+    page.screenshot(path=SHOTS / "cell-captured.png")
     assert page.locator(f"{row} td").nth(2).inner_text() == "acquired"
 
     # the cameras panel (polled) shows this capture's last frames, decoded by the browser
@@ -405,7 +409,6 @@ def test_capture_button_photographs_and_inspects_with_the_demo_cell(live_server,
 
     page.click(f"{row} a[href='/inspections/{inspection_id}']")
     page.wait_for_selector("#verdict")
-    assert page.locator(".verdict-word").inner_text() in ("PASS", "FAIL")
     assert page.locator("a[href$='/artifacts/capture.json']").count() == 1
     assert not errors, errors
     assert not violations, violations
@@ -799,3 +802,26 @@ def test_missing_target_links_to_the_form_that_supplies_it(live_server, browser)
         time.sleep(0.3)
     assert page.locator("#target-form [name=drawing_number]").input_value() == "DWG-H26-1"
     assert not errors, errors
+
+
+def test_cell_page_fits_a_1366x768_screen_with_every_button_and_the_queue(live_server, browser):
+    """Issue 26: on the cell PC's 1366x768 screen, Capture (the primary action), the other start
+    button and the queue's first rows are on screen without scrolling."""
+    _inspected(live_server, "H26-Q1", {"n_lights": 6, "width": 160, "height": 128})
+    page = browser.new_page(viewport={"width": 1366, "height": 768})
+    page.goto(f"{live_server['base']}/cell")
+    page.wait_for_selector("#queue tr[data-id]")
+    capture = page.locator("#capture")
+    assert "primary" in capture.get_attribute("class")
+    for target in [
+        *page.locator("main button:visible").all(),
+        *page.locator("#queue tr").all()[:3],
+    ]:
+        box = target.bounding_box()
+        assert box is not None and box["y"] >= 0 and box["y"] + box["height"] <= 768, (
+            target,
+            box,
+        )
+        assert box["x"] + box["width"] <= 1366, (target, box)
+    assert page.evaluate("window.scrollY") == 0
+    page.screenshot(path=SHOTS / "cell-1366.png")
