@@ -825,3 +825,94 @@ def test_cell_page_fits_a_1366x768_screen_with_every_button_and_the_queue(live_s
         assert box["x"] + box["width"] <= 1366, (target, box)
     assert page.evaluate("window.scrollY") == 0
     page.screenshot(path=SHOTS / "cell-1366.png")
+
+
+#: For every visible element with its own text (outside SVG and frames): its text colour, the
+#: colour behind it (the nearest opaque background of it or an ancestor, translucent ones
+#: composited, the element's and its ancestors' opacity applied) and whether its text is large.
+CONTRAST_OF_TEXTS = """() => {
+  const rgba = (s) => { const m = s.match(/[\\d.]+/g).map(Number); return [m[0], m[1], m[2], m.length > 3 ? m[3] : 1]; };
+  const over = (top, under) => top.slice(0, 3).map((c, i) => c * top[3] + under[i] * (1 - top[3]));
+  const lum = (c) => { const [r, g, b] = c.map((v) => { v /= 255; return v <= 0.03928 ? v / 12.92 : ((v + 0.055) / 1.055) ** 2.4; }); return 0.2126 * r + 0.7152 * g + 0.0722 * b; };
+  const out = [];
+  for (const el of document.querySelectorAll("body *")) {
+    if (el.closest("svg, iframe, script, style, option, [hidden]")) continue;
+    const own = [...el.childNodes].some((n) => n.nodeType === 3 && n.textContent.trim());
+    if (!own || !el.getClientRects().length) continue;
+    const style = getComputedStyle(el);
+    if (style.visibility === "hidden" || el.matches(":disabled")) continue;
+    const layers = []; let opacity = 1;
+    for (let a = el; a; a = a.parentElement) {
+      const s = getComputedStyle(a);
+      opacity *= Number(s.opacity);
+      const bg = rgba(s.backgroundColor);
+      if (bg[3] > 0) layers.push(bg);
+      if (bg[3] === 1) break;
+    }
+    let back = [255, 255, 255];
+    for (const layer of layers.reverse()) back = over(layer, back);
+    const fg = rgba(style.color);
+    const text = over([...fg.slice(0, 3), fg[3] * opacity], back);
+    const [l1, l2] = [lum(text), lum(back)].sort((a, b) => b - a);
+    const size = parseFloat(style.fontSize), bold = Number(style.fontWeight) >= 700;
+    out.push({ text: el.textContent.trim().slice(0, 40), tag: el.tagName, cls: el.className,
+               ratio: (l1 + 0.05) / (l2 + 0.05), large: size >= 24 || (bold && size >= 18.66) });
+  }
+  return out;
+}"""
+
+
+def test_text_contrast_is_wcag_aa_on_every_page(live_server, browser):
+    """Issue 26: WCAG 2.1 AA, 4.5:1 for text and 3:1 for large text, computed from each element's
+    computed colours on every dashboard page (cell, calibration, machines, a failed result, its
+    plate); and a skip link is the first thing Tab reaches."""
+    job_id = _inspected(
+        live_server,
+        "H26-AA",
+        {
+            "n_lights": 6,
+            "width": 160,
+            "height": 128,
+            "dents": [{"x_mm": 400.0, "y_mm": -200.0, "radius_mm": 250.0, "depth_mm": -8.0}],
+        },
+    )
+    page = browser.new_page(viewport={"width": 1366, "height": 768})
+    failures = []
+    for path in ("/cell", "/calibration", "/machines", f"/inspections/{job_id}", "/plates/H26-AA"):
+        page.goto(f"{live_server['base']}{path}")
+        page.wait_for_timeout(500)
+        for item in page.evaluate(CONTRAST_OF_TEXTS):
+            if item["ratio"] < (3.0 if item["large"] else 4.5):
+                failures.append(
+                    (path, round(item["ratio"], 2), item["tag"], item["cls"], item["text"])
+                )
+    assert not failures, "\n".join(map(str, failures))
+    # the skip link: first on Tab, and it takes the focus past the toolbar and the side lists
+    page.keyboard.press("Tab")
+    assert page.evaluate("document.activeElement.className") == "skip-link"
+    page.keyboard.press("Enter")
+    assert page.evaluate("document.activeElement.id") == "main"
+
+
+def test_map_readout_and_template_placement_by_keyboard(live_server, browser):
+    """Issue 26: the map takes the focus; arrows move a read point whose value the readout says,
+    Enter puts a template through it, as a click does."""
+    job_id = _inspected(live_server, "H26-KEY", {"n_lights": 6, "width": 320, "height": 256})
+    page = browser.new_page(viewport={"width": 1366, "height": 768})
+    page.goto(f"{live_server['base']}/inspections/{job_id}")
+    page.wait_for_selector("#plate-map[data-ready=true]", timeout=15_000)
+    page.focus("#plate-map-svg")
+    readout = page.locator("#map-readout")
+    # focused, the read point starts at the map's centre
+    assert re.match(r"x -?\d+ mm, y -?\d+ mm: ", readout.inner_text()), readout.inner_text()
+    for key in ("Shift+ArrowRight", "Shift+ArrowRight", "ArrowUp"):
+        page.keyboard.press(key)
+    page.locator("#plate-map").screenshot(path=SHOTS / "map-keyboard.png")
+    x, y = (int(v) for v in re.search(r"x (-?\d+) mm, y (-?\d+) mm", readout.inner_text()).groups())
+    assert x > 0 and y > 0 and re.search(r": [+−]\d+\.\d\d mm \(", readout.inner_text()), (
+        readout.inner_text()
+    )
+    assert page.locator(".map-cursor").count() == 1
+    page.keyboard.press("Enter")
+    page.wait_for_selector("figure.template.chosen", timeout=15_000)
+    assert f"at_x={x}" in page.url and f"at_y={y}" in page.url

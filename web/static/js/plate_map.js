@@ -153,6 +153,15 @@ export class PlateMap {
       );
       marks.push(g);
     }
+    if (this.cursor) { // the keyboard's read point
+      const [x, y] = this.cursor;
+      const g = el("g", { class: "map-cursor" });
+      g.append(
+        el("line", { x1: x - 2 * unit, y1: -y, x2: x + 2 * unit, y2: -y, "stroke-width": 0.35 * unit }),
+        el("line", { x1: x, y1: -y - 2 * unit, x2: x, y2: -y + 2 * unit, "stroke-width": 0.35 * unit }),
+      );
+      marks.push(g);
+    }
     if (this.picked) {
       const [x, y] = this.picked;
       marks.push(el("circle", { class: "map-picked", cx: x, cy: -y, r: 1.2 * unit, "stroke-width": 0.4 * unit }));
@@ -234,7 +243,36 @@ export class PlateMap {
     this.readout.dataset.value = String(v);
   }
 
+  /** Keyboard: arrows move the read point (Shift: ten times further), Enter or Space puts a
+   * template through it, Home goes back to the plate's centre. */
+  bindKeys() {
+    this.svg.setAttribute("tabindex", "0");
+    const centre = () => [this.full.x + this.full.w / 2, this.full.y + this.full.h / 2];
+    this.svg.addEventListener("focus", () => {
+      this.cursor ??= centre();
+      this.show(this.cursor);
+      this.render(false);
+    });
+    this.svg.addEventListener("keydown", (event) => {
+      const step = (event.shiftKey ? 10 : 1) * Math.max(this.data.cell_mm, this.full.w / 100);
+      const moves = { ArrowLeft: [-step, 0], ArrowRight: [step, 0], ArrowUp: [0, step], ArrowDown: [0, -step] };
+      if (event.key in moves || event.key === "Home") {
+        event.preventDefault();
+        const [dx, dy] = moves[event.key] ?? [0, 0];
+        const [x, y] = event.key === "Home" ? centre() : this.cursor ?? centre();
+        const { x: x0, y: y0, w, h } = this.full;
+        this.cursor = [Math.min(x0 + w, Math.max(x0, x + dx)), Math.min(y0 + h, Math.max(y0, y + dy))];
+        this.show(this.cursor);
+        this.render(false);
+      } else if ((event.key === "Enter" || event.key === " ") && this.cursor && this.onPick) {
+        event.preventDefault();
+        if (this.valueAt(...this.cursor) !== null) this.onPick(this.cursor);
+      }
+    });
+  }
+
   bind() {
+    this.bindKeys();
     let drag = null;
     this.figure.querySelectorAll("[data-zoom]").forEach((button) => {
       button.addEventListener("click", () => {
