@@ -20,7 +20,7 @@ from fastapi.templating import Jinja2Templates
 from app import viewer
 from app.deps import SessionDep, StorageDep, has_dashboard_session, start_dashboard_session
 from app.errors import scrub_paths
-from app.models import ACTIVE, FINISHED, Inspection, JobStatus
+from app.models import ACTIVE, FINISHED, Inspection, JobStatus, Target
 from app.routes.common import InspectionIdPath, defects_and_reasons
 from app.services import calibrations as calibration_svc
 from app.services import cell as cell_svc
@@ -237,6 +237,7 @@ def result_page(
         "artifacts": names,
         "spacing_mm": spacing_mm,
         "spacings": SPACINGS_MM,
+        "trace": _traceability(session, row),
         "next_pass": advice_panel(
             session, row.plate_id, row if row.status == JobStatus.DONE else None
         ),
@@ -244,6 +245,14 @@ def result_page(
         **templates_context(storage, row, spacing_mm, chosen_point(at_x, at_y)),
     }
     return _page(request, session, "result.html", context)
+
+
+def _traceability(session, row: Inspection) -> dict:
+    """The drawing (number, revision), hull and block of the target the inspection was judged
+    against (plate-target/1's optional traceability); empty when it has none."""
+    target = session.get(Target, row.target_id) if row.target_id is not None else None
+    doc = (target.document or {}) if target is not None else {}
+    return {k: doc[k] for k in ("drawing", "hull", "block") if doc.get(k)}
 
 
 @router.get("/inspections/{inspection_id}/templates", response_class=HTMLResponse)
