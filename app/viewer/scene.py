@@ -32,6 +32,8 @@ _BACKGROUND = (
     .repeat(4, axis=1)
 )
 _LAYOUTS = ("Side by side", "Overlaid")
+#: Share of viser's default environment light (1.0) on the plates.
+_ENVIRONMENT = 0.5
 
 
 class _OfflineViserServer(viser.ViserServer):
@@ -100,6 +102,9 @@ class InspectionView:
         # A tinted background and a floor grid (0.5 m cells): a plate within tolerance is
         # coloured near white, which must not vanish into a white page.
         client.scene.set_background_image(_BACKGROUND, format="png")
+        # Less of the environment's even light, so the default lights' direction shades the
+        # surface and a dent shows in it (at full intensity the plate looked flat and pale).
+        client.scene.configure_environment_map("warehouse", environment_intensity=_ENVIRONMENT)
         client.scene.add_grid(
             "/floor",
             width=2.6 * extent,
