@@ -263,25 +263,11 @@ def test_templates_are_placed_in_the_targets_frame_with_its_edges_named():
     "x = −803 mm, 697 mm from edge D", its drawing runs from edge A (y smallest) to edge C."""
     import numpy as np
 
-    from web.charts import SectionDrawing
-    from web.template_views import _in_target_frame
+    from app.plate_frame import frame_place
 
-    drawing = SectionDrawing(
-        position_mm=697.0,
-        width=1100.0,
-        height=230.0,
-        template_polygon="",
-        plate_polygon="",
-        plate_edge="",
-        labels=[],
-        exaggeration=50,
-        length_mm=3000.0,
-        max_gap_mm=None,
-    )
-    placed = _in_target_frame(drawing, np.array([[-803.2, -1500.0], [-802.8, 1500.0]]), 1500.0)
+    placed = frame_place(np.array([[-803.2, -1500.0], [-802.8, 1500.0]]), 1500.0)
     assert placed.where == "x = \u2212803 mm, 697 mm from edge D"
     assert placed.ends == ("edge A (y \u22121500)", "edge C (y +1500)")
-    assert placed.line_mm == "-803.2 -1500.0 -802.8 1500.0"
-    across = _in_target_frame(drawing, np.array([[1500.0, 0.2], [-1500.0, 0.1]]), 1500.0)
+    across = frame_place(np.array([[1500.0, 0.2], [-1500.0, 0.1]]), 1500.0)
     assert across.where == "y = 0 mm, 1500 mm from edge A"
     assert across.ends == ("edge B (x +1500)", "edge D (x \u22121500)")
