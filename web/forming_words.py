@@ -29,19 +29,32 @@ def count(n: int, one: str, many: str) -> str:
     return f"{n} {one if n == 1 else many}"
 
 
+def radius_band_mm(target: dict[str, Any]) -> tuple[float, float] | None:
+    """Radii within which a cylinder target's plate stays in tolerance at its edges, from the
+    target document: ``R (1 -+ 8 tol R / w^2)`` over the width ``w`` across the bend; None for
+    another shape or without a size."""
+    shape, size = target.get("shape") or {}, target.get("size_mm") or []
+    radius, tolerance = shape.get("radius_mm"), target.get("tolerance_mm")
+    if shape.get("type") != "cylinder" or not radius or not size or not tolerance:
+        return None
+    half = 8.0 * float(tolerance) * float(radius) / float(size[0]) ** 2
+    return float(radius) * (1.0 - half), float(radius) * (1.0 + half)
+
+
 def radius_state(row: Any, band_mm: tuple[float, float] | None) -> str | None:
     """The measured radius against the target's in the operator's words; None without both radii.
 
-    ``band_mm``: radii (lo, hi) within which the plate passes (from the advice); without it the
-    verdict decides whether the radius is on target.
+    ``band_mm``: radii (lo, hi) within which the plate is on target (the advice's, or
+    :func:`radius_band_mm`); without one the radius is given without a judgement.
     """
     radius, target = getattr(row, "radius_mm", None), getattr(row, "target_radius_mm", None)
     if radius is None or target is None or not math.isfinite(radius) or target <= 0:
         return None
     error_pct = 100.0 * (radius - target) / target
-    signed = f"{error_pct:+.1f} %".replace("-", "\u2212")
-    inside = band_mm[0] <= radius <= band_mm[1] if band_mm else row.verdict == "pass"
-    if inside:
+    signed = "0.0 %" if round(error_pct, 1) == 0 else f"{error_pct:+.1f} %".replace("-", "\u2212")
+    if band_mm is None:
+        return f"radius {mm(radius)} against {mm(target)} ({signed})"
+    if band_mm[0] <= radius <= band_mm[1]:
         return f"radius on target: {mm(radius)} ({signed})"
     if error_pct > 0:  # larger than the target's: the plate is still too open
         return f"under-bent: radius {signed} ({mm(radius)}, {abs(error_pct):.1f} % open)"
@@ -67,12 +80,19 @@ def next_pass_words(advice: dict[str, Any]) -> str:
     return f"next pass on {machine}{setting}{outcome}{more}"
 
 
-def advice_panel(session, plate_id: str, row: Any = None) -> dict[str, Any]:
-    """The "Forming" panel: ``state`` and ``next`` sentences with the ``advice`` they come from,
-    or ``reason`` and ``link`` (``(href, text)``: the page that supplies what is missing)."""
+def advice_panel(
+    session, plate_id: str, row: Any = None, target: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """The "Forming" panel: ``state`` (of ``row``, judged against ``target``, the document it was
+    inspected against) and ``next`` sentences with the ``advice`` they come from, or ``reason``
+    and ``link`` (``(href, text)``: the page that supplies what is missing)."""
     panel = _advice_or_missing(session, plate_id)
     advice = panel.get("advice")
-    band = tuple(advice["basis"]["tolerance_band_radius_mm"]) if advice else None
+    band = (
+        tuple(advice["basis"]["tolerance_band_radius_mm"])
+        if advice
+        else radius_band_mm(target or {})
+    )
     panel["state"] = None if row is None else radius_state(row, band)
     panel["next"] = next_pass_words(advice) if advice else None
     return panel

@@ -9,6 +9,7 @@ API token (``/login``).
 
 from __future__ import annotations
 
+import json
 import logging
 from datetime import UTC, datetime
 from typing import Annotated, Literal
@@ -229,6 +230,7 @@ def result_page(
     finished = row.status in FINISHED  # a running job's folder holds partial files
     names = inspection_svc.artifact_names(storage=storage, inspection=row) if finished else []
     found = defects_and_reasons(storage, row, names)
+    target_doc = _judged_target(session, storage, row)
     context = {
         "page": "result",
         "row": row,
@@ -237,9 +239,9 @@ def result_page(
         "artifacts": names,
         "spacing_mm": spacing_mm,
         "spacings": SPACINGS_MM,
-        "trace": _traceability(session, row),
+        "trace": {k: target_doc[k] for k in ("drawing", "hull", "block") if target_doc.get(k)},
         "next_pass": advice_panel(
-            session, row.plate_id, row if row.status == JobStatus.DONE else None
+            session, row.plate_id, row if row.status == JobStatus.DONE else None, target_doc
         ),
         **found,
         **templates_context(storage, row, spacing_mm, chosen_point(at_x, at_y)),
@@ -247,12 +249,23 @@ def result_page(
     return _page(request, session, "result.html", context)
 
 
-def _traceability(session, row: Inspection) -> dict:
-    """The drawing (number, revision), hull and block of the target the inspection was judged
-    against (plate-target/1's optional traceability); empty when it has none."""
+def _judged_target(session, storage, row: Inspection) -> dict:
+    """The target document the inspection was judged against (the plate's stored target, else the
+    inputs' target.json, else a simulated bundle's); empty when none is readable."""
     target = session.get(Target, row.target_id) if row.target_id is not None else None
-    doc = (target.document or {}) if target is not None else {}
-    return {k: doc[k] for k in ("drawing", "hull", "block") if doc.get(k)}
+    if target is not None:
+        return target.document or {}
+    paths = [storage.absolute(row.target_path)] if row.target_path else []
+    if row.capture_path:  # a simulated bundle carries the target it was rendered for
+        paths.append(storage.absolute(row.capture_path) / "target.json")
+    for path in paths:
+        try:
+            doc = json.loads(path.read_text())
+        except (OSError, ValueError):
+            continue
+        if isinstance(doc, dict):
+            return doc
+    return {}
 
 
 @router.get("/inspections/{inspection_id}/templates", response_class=HTMLResponse)
@@ -294,7 +307,8 @@ def plate_page(request: Request, plate_id: str, session: SessionDep) -> Response
         tolerance_mm=tolerance,
         radius_band_pct=_radius_band_pct(overview.target),
     )
-    advice = advice_panel(session, plate_id, done[-1] if done else None)
+    target_doc = overview.target.document if overview.target is not None else None
+    advice = advice_panel(session, plate_id, done[-1] if done else None, target_doc)
     return _page(
         request,
         session,

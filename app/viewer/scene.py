@@ -208,11 +208,13 @@ def scene_labels(scene: viser.SceneApi, meshes: PlateMeshes) -> list[viser.Label
             )
         )
     for name, place in meshes.edges:  # the target frame's edges, named as on the map
+        outward = np.array([place[0], place[1], 0.0])  # from the display origin, the plate's centre
+        outward *= 0.06 * extent / max(float(np.linalg.norm(outward)), 1e-9)
         labels.append(
             scene.add_label(
                 f"/plate/measured/edge-{name}",
                 f"edge {name}",
-                position=tuple(float(v) for v in place),
+                position=tuple(float(v) for v in np.asarray(place) + outward),
                 anchor="center-center",
             )
         )

@@ -118,7 +118,7 @@ def test_advice_is_said_in_an_operators_words():
     pass announced when the expected radius stays outside the band; plural and singular right."""
     from types import SimpleNamespace
 
-    from web.forming_words import count, mm, next_pass_words, radius_state
+    from web.forming_words import count, mm, next_pass_words, radius_band_mm, radius_state
 
     row = SimpleNamespace(radius_mm=5250.6, target_radius_mm=5000.0, verdict="fail")
     band = (4950.0, 5050.0)
@@ -140,6 +140,12 @@ def test_advice_is_said_in_an_operators_words():
     assert next_pass_words({**advice, "expected_radius_mm": 5020.0}).endswith("within tolerance")
     assert count(1, "plate", "plates") == "1 plate" and count(3, "pass", "passes") == "3 passes"
     assert mm(-1234.0) == "\u22121\u202f234 mm"
+    # the band from a cylinder target: 8 tol R / w^2 = 0.889 % at R 5000, 3000 mm wide, 2 mm
+    target = {"shape": {"type": "cylinder", "radius_mm": 5000.0}, "size_mm": [3000.0, 3000.0]}
+    lo, hi = radius_band_mm({**target, "tolerance_mm": 2.0})
+    assert (round(lo, 1), round(hi, 1)) == (4955.6, 5044.4)
+    almost = SimpleNamespace(radius_mm=4998.5, target_radius_mm=5000.0, verdict="fail")
+    assert radius_state(almost, (lo, hi)) == "radius on target: 4\u202f998 mm (0.0 %)"
 
 
 def test_no_advice_links_the_page_that_supplies_what_is_missing(demo_app):
@@ -160,7 +166,8 @@ def test_no_advice_links_the_page_that_supplies_what_is_missing(demo_app):
         panel = html.split('id="next-pass"')[1].split("</section>")[0]
         assert "/api/v1" not in panel
         assert 'href="/plates/P-W6#target"' in panel and "has no target" in panel
-        assert "under-bent: radius +1.0 %" in panel  # 5050 mm against 5000 mm
+        # no target document to judge the radius by (a seeded row): the radius, not judged
+        assert "radius 5\u202f050 mm against 5\u202f000 mm (+1.0 %)" in panel
         panel = client.get("/plates/P-W8").text.split('id="next-pass"')[1].split("</section>")[0]
         assert "no roll bender is known" in panel and 'href="/machines"' in panel
         assert "/api/v1" not in panel
