@@ -145,6 +145,14 @@ class InspectionView:
         self.server.stop()
 
 
+def _outward_anchor(outward: np.ndarray) -> Any:
+    """A label's anchor that makes it read away from the plate: to the left of a left edge, to the
+    right of a right one (display x), centred on the near and far edges."""
+    if abs(outward[0]) <= abs(outward[1]):
+        return "center-center"
+    return "center-right" if outward[0] < 0 else "center-left"
+
+
 def _theme(gui: viser.GuiApi) -> None:
     """The panel's theme, docked to the right of the view rather than floating over it (on a
     1366x768 screen a floating panel covered the target plate)."""
@@ -188,7 +196,7 @@ def scene_labels(scene: viser.SceneApi, meshes: PlateMeshes) -> list[viser.Label
     its place in the target's frame at its place, and the plate's edges named as on the map
     (children of the plates' nodes: they follow the layout)."""
     extent = max(meshes.extent_m, 0.1)
-    above = 0.08 * extent
+    above = 0.18 * extent  # clear of the edge labels
     top_m = float(meshes.measured_vertices[:, 2].max()) + above
     top_t = float(meshes.target_vertices[:, 2].max()) + above
     back = 0.5 * extent
@@ -204,7 +212,7 @@ def scene_labels(scene: viser.SceneApi, meshes: PlateMeshes) -> list[viser.Label
                 f"/plate/measured/defect-{number}",
                 text.replace("-", "\u2212"),
                 position=tuple(float(v) for v in place),
-                anchor="bottom-center",
+                anchor="bottom-left",  # reads away from the edge labels on the left
             )
         )
     for name, place in meshes.edges:  # the target frame's edges, named as on the map
@@ -215,7 +223,7 @@ def scene_labels(scene: viser.SceneApi, meshes: PlateMeshes) -> list[viser.Label
                 f"/plate/measured/edge-{name}",
                 f"edge {name}",
                 position=tuple(float(v) for v in np.asarray(place) + outward),
-                anchor="center-center",
+                anchor=_outward_anchor(outward),
             )
         )
     return labels
