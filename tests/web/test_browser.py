@@ -827,7 +827,8 @@ def test_cell_page_fits_a_1366x768_screen_with_every_button_and_the_queue(live_s
     page.screenshot(path=SHOTS / "cell-1366.png")
 
 
-#: For every visible element with its own text (outside SVG and frames): its text colour, the
+#: For every visible element with its own text (SVG text by its fill, outside the plate map's
+#: marks drawn over its cells; frames left out): its text colour, the
 #: colour behind it (the nearest opaque background of it or an ancestor, translucent ones
 #: composited, the element's and its ancestors' opacity applied) and whether its text is large.
 CONTRAST_OF_TEXTS = """() => {
@@ -836,7 +837,9 @@ CONTRAST_OF_TEXTS = """() => {
   const lum = (c) => { const [r, g, b] = c.map((v) => { v /= 255; return v <= 0.03928 ? v / 12.92 : ((v + 0.055) / 1.055) ** 2.4; }); return 0.2126 * r + 0.7152 * g + 0.0722 * b; };
   const out = [];
   for (const el of document.querySelectorAll("body *")) {
-    if (el.closest("svg, iframe, script, style, option, [hidden]")) continue;
+    if (el.closest("iframe, script, style, option, [hidden], .map-marks, .map-frames")) continue;
+    const inSvg = el.closest("svg") !== null;
+    if (inSvg && el.tagName !== "text") continue;  // SVG text: its fill over the figure's background
     const own = [...el.childNodes].some((n) => n.nodeType === 3 && n.textContent.trim());
     if (!own || !el.getClientRects().length) continue;
     const style = getComputedStyle(el);
@@ -851,7 +854,7 @@ CONTRAST_OF_TEXTS = """() => {
     }
     let back = [255, 255, 255];
     for (const layer of layers.reverse()) back = over(layer, back);
-    const fg = rgba(style.color);
+    const fg = rgba(inSvg ? style.fill : style.color);
     const text = over([...fg.slice(0, 3), fg[3] * opacity], back);
     const [l1, l2] = [lum(text), lum(back)].sort((a, b) => b - a);
     const size = parseFloat(style.fontSize), bold = Number(style.fontWeight) >= 700;
@@ -865,11 +868,30 @@ CONTRAST_OF_TEXTS = """() => {
 def test_text_contrast_is_wcag_aa_on_every_page(live_server, browser):
     """Issue 26: WCAG 2.1 AA, 4.5:1 for text and 3:1 for large text, computed from each element's
     computed colours on every dashboard page (cell, calibration, machines, a failed result, its
-    plate); and a skip link is the first thing Tab reaches."""
+    plate, with its forming advice and passes chart); and a skip link is the first thing Tab
+    reaches."""
+    machine = {
+        "kind": "three-roll-pyramid",
+        "bottom_roll_spacing_mm": 1400,
+        "bottom_roll_diameter_mm": 420,
+        "top_roll_diameter_mm": 500,
+    }
+    _api(live_server, "PUT", "/api/v1/machines/R3-26", machine)
+    target = {
+        "format": "plate-target/1",
+        "shape": {"type": "cylinder", "radius_mm": 5000.0},
+        "size_mm": [3000.0, 3000.0],
+        "tolerance_mm": 2.0,
+        "material": {"grade": "AH36", "thickness_mm": 20, "yield_mpa": 355},
+    }
+    _api(live_server, "PUT", "/api/v1/plates/H26-AA/target", target)
+    process = {"method": "roll-bending", "machine_id": "R3-26", "top_roll_displacement_mm": 90.0}
     job_id = _inspected(
         live_server,
         "H26-AA",
         {
+            "process": process,
+            "radius_mm": 5600.0,
             "n_lights": 6,
             "width": 160,
             "height": 128,
@@ -881,6 +903,8 @@ def test_text_contrast_is_wcag_aa_on_every_page(live_server, browser):
     for path in ("/cell", "/calibration", "/machines", f"/inspections/{job_id}", "/plates/H26-AA"):
         page.goto(f"{live_server['base']}{path}")
         page.wait_for_timeout(500)
+        if path.startswith("/plates/"):
+            assert page.locator("svg.forming").count() == 1  # the chart's texts are checked too
         for item in page.evaluate(CONTRAST_OF_TEXTS):
             if item["ratio"] < (3.0 if item["large"] else 4.5):
                 failures.append(
