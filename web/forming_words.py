@@ -7,6 +7,7 @@ advice, what is missing and a link to the page that supplies it. Never an API pa
 from __future__ import annotations
 
 import math
+import re
 from typing import Any
 from urllib.parse import quote
 
@@ -14,6 +15,10 @@ from app.services import forming as forming_svc
 from app.services import plates as plate_svc
 from app.services.errors import ServiceError
 from pipeline.formats import InputError
+
+#: An API path in a service's message ("add it first with PUT /api/v1/machines/R3"), left out:
+#: the page links the form instead.
+_API_PATH = re.compile(r"[:;,]?\s*(?:add it first with )?\(?(?:PUT|GET|POST|DELETE) /api/v1/\S*\)?")
 
 #: A thin space between thousands, as a drawing writes "5 251 mm".
 THOUSANDS = "\u202f"
@@ -127,5 +132,7 @@ def _advice_or_missing(session, plate_id: str) -> dict[str, Any]:
         advice = forming_svc.advise(session=session, plate_id=plate_id, machine_id=machine_id)
     except (ServiceError, InputError) as err:
         detail = err.detail if isinstance(err, ServiceError) else str(err)
-        return {"reason": f"no forming advice: {detail.split(': ', 1)[-1]}"}
+        why = _API_PATH.sub("", detail.split(": ", 1)[-1]).rstrip(" :;,")
+        link = ("/machines", "Roll benders") if "machine" in why else None
+        return {"reason": f"no forming advice: {why}", "link": link}
     return {"advice": advice.to_dict()}

@@ -171,3 +171,13 @@ def test_no_advice_links_the_page_that_supplies_what_is_missing(demo_app):
         panel = client.get("/plates/P-W8").text.split('id="next-pass"')[1].split("</section>")[0]
         assert "no roll bender is known" in panel and 'href="/machines"' in panel
         assert "/api/v1" not in panel
+
+
+def test_service_messages_lose_their_api_paths_on_the_page():
+    """A service's message names an API path for API clients; the page says the reason without it."""
+    from web.forming_words import _API_PATH
+
+    message = "no machine 'R3': add it first with PUT /api/v1/machines/R3"
+    assert _API_PATH.sub("", message).rstrip(" :;,") == "no machine 'R3'"
+    message = "plate 'P' has no target: set one with its material (PUT /api/v1/plates/P/target)"
+    assert "/api/" not in _API_PATH.sub("", message)
