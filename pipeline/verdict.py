@@ -182,8 +182,9 @@ def judge(
     reasons = []
     if defects:
         reasons.append(
-            f"{len(defects)} region(s) out of the {tolerance_mm:g} mm tolerance over "
-            f"{min_defect_area_mm2:g} mm^2 (largest {defects[0].area_mm2:.0f} mm^2)"
+            f"{len(defects)} {'region' if len(defects) == 1 else 'regions'} out of the "
+            f"{tolerance_mm:g} mm tolerance over {min_defect_area_mm2 / 100.0:g} cm² "
+            f"(largest {defects[0].area_mm2 / 100.0:.1f} cm²)"
         )
     if 100.0 - within_pct > max_outside_pct:
         reasons.append(

@@ -46,6 +46,8 @@ class SectionDrawing:
     line_mm: str = (
         ""  # "x1 y1 x2 y2": the frame line's ends in the target's frame, mm (for the map)
     )
+    where: str = ""  # the frame in the target's frame: "x = −803 mm, 697 mm from edge D"
+    ends: tuple[str, str] = ("0", "")  # names of the drawing's left and right ends
 
 
 def _points(xs: np.ndarray, ys: np.ndarray) -> str:

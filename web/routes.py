@@ -9,6 +9,7 @@ API token (``/login``).
 
 from __future__ import annotations
 
+import json
 import logging
 from datetime import UTC, datetime
 from typing import Annotated, Literal
@@ -20,7 +21,7 @@ from fastapi.templating import Jinja2Templates
 from app import viewer
 from app.deps import SessionDep, StorageDep, has_dashboard_session, start_dashboard_session
 from app.errors import scrub_paths
-from app.models import ACTIVE, FINISHED, Inspection, JobStatus
+from app.models import ACTIVE, FINISHED, Inspection, JobStatus, Target
 from app.routes.common import InspectionIdPath, defects_and_reasons
 from app.services import calibrations as calibration_svc
 from app.services import cell as cell_svc
@@ -28,11 +29,10 @@ from app.services import forming as forming_svc
 from app.services import inspections as inspection_svc
 from app.services import light_calibrations as light_calibration_svc
 from app.services import plates as plate_svc
-from app.services.errors import ServiceError
-from pipeline.formats import InputError
 from web import TEMPLATES_DIR
 from web.charts import forming_chart, trend_chart
 from web.compare import CannotCompare, compare_context, done_inspections
+from web.forming_words import advice_panel, count
 from web.lights import light_plan, light_rows
 from web.template_views import (
     DEFAULT_SPACING_MM,
@@ -58,6 +58,7 @@ def _fmt(value, digits: int = 1, unit: str = "", signed: bool = False) -> str:
 
 
 templates.env.filters["fmt"] = _fmt
+templates.env.filters["count"] = count
 
 
 def _when(dt: datetime | None) -> str:
@@ -229,6 +230,7 @@ def result_page(
     finished = row.status in FINISHED  # a running job's folder holds partial files
     names = inspection_svc.artifact_names(storage=storage, inspection=row) if finished else []
     found = defects_and_reasons(storage, row, names)
+    target_doc = _judged_target(session, storage, row)
     context = {
         "page": "result",
         "row": row,
@@ -237,11 +239,33 @@ def result_page(
         "artifacts": names,
         "spacing_mm": spacing_mm,
         "spacings": SPACINGS_MM,
-        "next_pass": next_pass(session, row.plate_id),
+        "trace": {k: target_doc[k] for k in ("drawing", "hull", "block") if target_doc.get(k)},
+        "next_pass": advice_panel(
+            session, row.plate_id, row if row.status == JobStatus.DONE else None, target_doc
+        ),
         **found,
         **templates_context(storage, row, spacing_mm, chosen_point(at_x, at_y)),
     }
     return _page(request, session, "result.html", context)
+
+
+def _judged_target(session, storage, row: Inspection) -> dict:
+    """The target document the inspection was judged against (the plate's stored target, else the
+    inputs' target.json, else a simulated bundle's); empty when none is readable."""
+    target = session.get(Target, row.target_id) if row.target_id is not None else None
+    if target is not None:
+        return target.document or {}
+    paths = [storage.absolute(row.target_path)] if row.target_path else []
+    if row.capture_path:  # a simulated bundle carries the target it was rendered for
+        paths.append(storage.absolute(row.capture_path) / "target.json")
+    for path in paths:
+        try:
+            doc = json.loads(path.read_text())
+        except (OSError, ValueError):
+            continue
+        if isinstance(doc, dict):
+            return doc
+    return {}
 
 
 @router.get("/inspections/{inspection_id}/templates", response_class=HTMLResponse)
@@ -283,7 +307,8 @@ def plate_page(request: Request, plate_id: str, session: SessionDep) -> Response
         tolerance_mm=tolerance,
         radius_band_pct=_radius_band_pct(overview.target),
     )
-    advice = next_pass(session, plate_id)
+    target_doc = overview.target.document if overview.target is not None else None
+    advice = advice_panel(session, plate_id, done[-1] if done else None, target_doc)
     return _page(
         request,
         session,
@@ -359,32 +384,6 @@ def passes_chart(session, plate_id: str, target, advice: dict | None):
         band_mm=band,
         next_pass=nxt,
     )
-
-
-def next_pass(session, plate_id: str) -> dict:
-    """The "Next pass" panel: ``{"advice": Advice.to_dict()}``, or ``{"reason": ...}`` when there is none.
-
-    The machine is the latest pass's; before the first pass, the only machine when there is one.
-    """
-    machine_id = None
-    if not forming_svc.plate_passes(session=session, plate_id=plate_id):
-        machines = forming_svc.list_machines(session=session)
-        if len(machines) != 1:
-            return {
-                "reason": "No roll-bending pass of this plate yet"
-                + ("" if machines else ", and no machine known")
-                + ": ask "
-                f"/api/v1/plates/{plate_id}/advice?machine_id=... for the first pass."
-            }
-        machine_id = machines[0].id
-    try:
-        return {
-            "advice": forming_svc.advise(
-                session=session, plate_id=plate_id, machine_id=machine_id
-            ).to_dict()
-        }
-    except (ServiceError, InputError) as err:
-        return {"reason": f"No advice: {err.detail if isinstance(err, ServiceError) else err}"}
 
 
 @router.get("/calibration", response_class=HTMLResponse)

@@ -4,11 +4,9 @@ point the operator chose on the plate map, with each frame's line in the target'
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 from dataclasses import replace
-from pathlib import Path
 from typing import Annotated
 
 import numpy as np
@@ -16,8 +14,8 @@ from fastapi import Query
 
 from app.errors import scrub_paths
 from app.models import Inspection, JobStatus
+from app.plate_frame import frame_places
 from app.storage import Storage
-from pipeline.plate_map import to_target_frame
 from pipeline.sections import load_sections
 from web.charts import section_drawings
 
@@ -60,24 +58,15 @@ def templates_context(
         logger.warning("inspection %s: no virtual templates: %s", row.id, err)
         return {"drawings": [], "templates_error": scrub_paths(str(err)), "chosen": chosen}
     drawings = section_drawings(sections, tolerance_mm=tolerance)
-    T = _registration(folder)
-    if T is not None:  # each frame's line on the map, in the target's frame
+    places = frame_places(folder, frame, sections)
+    if places is not None:  # each frame's line on the map and its place, in the target's frame
         drawings = [
             replace(
                 drawing,
-                line_mm=" ".join(
-                    f"{v:.1f}"
-                    for v in np.ravel(to_target_frame(frame.line_mm(s.position_mm), T)[:, :2])
-                ),
+                line_mm=" ".join(f"{v:.1f}" for v in np.ravel(place.line_mm)),
+                where=place.where,
+                ends=place.ends,
             )
-            for drawing, s in zip(drawings, sections, strict=True)
+            for drawing, place in zip(drawings, places, strict=True)
         ]
     return {"drawings": drawings, "templates_error": None, "chosen": chosen}
-
-
-def _registration(folder: Path) -> list[list[float]] | None:
-    """details.json's ``T_cam_target``; None when the inspection has no readable one."""
-    try:
-        return json.loads((folder / "details.json").read_text())["T_cam_target"]
-    except (OSError, ValueError, KeyError):
-        return None

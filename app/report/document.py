@@ -38,7 +38,7 @@ TEXT_WIDTH = A4[0] - 2 * MARGIN_X
 #: Column widths of the judged items' tables (their sum is at most the text width).
 RADIUS_WIDTHS = tuple(w * mm for w in (42, 21, 21, 33, 27, 16, 14))
 DEFECT_WIDTHS = tuple(w * mm for w in (7, 13, 13, 17, 16, 15, 15, 17, 17, 16, 14))
-TEMPLATE_WIDTHS = tuple(w * mm for w in (22, 22, 18, 18, 20, 20, 18, 16))
+TEMPLATE_WIDTHS = tuple(w * mm for w in (46, 18, 14, 14, 16, 16, 16, 14))
 #: Test uncertainty ratio (tolerance / U95) below which the measurement is flagged not capable.
 CAPABLE_RATIO = 4.0
 
@@ -64,6 +64,9 @@ class ReportData:
         The deviation map in the target's frame; the camera's deviation.png is printed otherwise.
     sections : list of Section
         The virtual templates (:mod:`pipeline.sections`): each frame's gap along it.
+    template_places : list of str
+        Each section's place in the target's frame (:mod:`app.plate_frame`), in the same order;
+        empty without a registration (the frames are then given from the target's first edge).
     template_spacing_mm : float
         Their spacing (besides one through each defect), mm.
     yard : str or None
@@ -85,6 +88,7 @@ class ReportData:
     printed_at: datetime
     plate_map: PlateMap | None = None
     sections: list[Section] = field(default_factory=list)
+    template_places: list[str] = field(default_factory=list)
     template_spacing_mm: float = 700.0
     yard: str | None = None
     capture: dict[str, Any] | None = None
@@ -134,7 +138,7 @@ def _story(data: ReportData, styles: Any) -> list[Flowable]:
         KeepTogether(_statistics(data, styles)),
         KeepTogether([_section("Deviation map", styles), *_deviation_map(data, styles)]),
         *_defects(doc, data.details, styles),
-        *_templates(data.sections, result, data.template_spacing_mm, styles),
+        *_templates(data.sections, data.template_places, result, data.template_spacing_mm, styles),
         _section("Acquisition and calibrations", styles),
         _pairs(_acquisition_rows(data), styles),
         KeepTogether(_approval(styles, doc.get("operator"))),
@@ -335,15 +339,21 @@ def _worst_gap(section: Section) -> float | None:
 
 
 def _templates(
-    sections: list[Section], result: dict[str, Any], spacing_mm: float, styles: Any
+    sections: list[Section],
+    places: list[str],
+    result: dict[str, Any],
+    spacing_mm: float,
+    styles: Any,
 ) -> list[Flowable]:
-    """The table of frames judged by their largest gap, then each frame's gap along it."""
+    """The table of frames judged by their largest gap, then each frame's gap along it; ``places``:
+    each frame's place in the target's frame (empty: given from the target's first edge)."""
     if not sections:
         return []
+    placed = places if len(places) == len(sections) else [None] * len(sections)
     out: list[Flowable] = [
         _section("Virtual templates", styles),
         _table(
-            tables.template_rows(sections, result, _worst_gap, spacing_mm),
+            tables.template_rows(sections, result, _worst_gap, spacing_mm, placed),
             header=True,
             size=7.6,
             widths=TEMPLATE_WIDTHS,
@@ -352,17 +362,25 @@ def _templates(
     tolerance = finite(result.get("tolerance_mm"))
     if tolerance is None:
         return out
+    frame_words = (
+        "Frame at: its place in the target's frame, as on the dashboard's map (origin at the "
+        "target's centre; edge A where y is smallest, then B, C, D counter-clockwise)."
+        if places
+        else "Frame at: its distance, mm, from the target's first edge in the direction the "
+        "frames are stacked (for a cylinder, along its axis)."
+    )
     out.append(
         _note(
-            "Frame at: its distance, mm, from the target's first edge in the direction the frames "
-            "are stacked (for a cylinder, along its axis). The gap under each template along its "
+            f"{frame_words} The gap under each template along its "
             "frame line (mm, + where the plate stands proud of the target); the band is the "
             f"±{tolerance:g} mm tolerance, red beyond it.",
             styles,
         )
     )
-    ordered = sorted(sections, key=lambda s: (s.defect is None, s.position_mm))
-    return out + [GapProfile(s, tolerance, TEXT_WIDTH) for s in ordered]
+    ordered = sorted(
+        zip(sections, placed), key=lambda sp: (sp[0].defect is None, sp[0].position_mm)
+    )
+    return out + [GapProfile(s, tolerance, TEXT_WIDTH, place=p) for s, p in ordered]
 
 
 def _acquisition_rows(data: ReportData) -> list[list[str]]:

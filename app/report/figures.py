@@ -245,9 +245,11 @@ class GapProfile(Flowable):  # type: ignore[misc]  # ReportLab is untyped
     HEIGHT = 24 * mm
     LABEL = 34 * mm
 
-    def __init__(self, section: Section, tolerance_mm: float, width: float) -> None:
+    def __init__(
+        self, section: Section, tolerance_mm: float, width: float, *, place: str | None = None
+    ) -> None:
         super().__init__()
-        self.section, self.tolerance = section, tolerance_mm
+        self.section, self.tolerance, self.place = section, tolerance_mm, place
         self.width, self.height = width, self.HEIGHT + 3 * mm
         gaps = section.gap_mm[np.isfinite(section.gap_mm)]
         self.limit = max(2.0 * tolerance_mm, float(np.abs(gaps).max()) if gaps.size else 0.0)
@@ -263,7 +265,12 @@ class GapProfile(Flowable):  # type: ignore[misc]  # ReportLab is untyped
 
         c.setFont("Helvetica", 7.5)
         c.setFillColor(colors.black)
-        c.drawString(0, mid + 2, f"Frame at {s.position_mm:.0f} mm")
+        if self.place:  # "x = −803 mm, 697 mm from edge D" on two lines
+            at, _, from_edge = self.place.partition(", ")
+            c.drawString(0, mid + 10, f"Frame at {at}")
+            c.drawString(0, mid + 2, from_edge)
+        else:
+            c.drawString(0, mid + 2, f"Frame at {s.position_mm:.0f} mm")
         if s.defect:
             c.setFont("Helvetica-Bold", 7.5)
             c.drawString(0, mid - 8, f"through defect {s.defect}")

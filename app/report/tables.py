@@ -133,19 +133,25 @@ def defect_rows(
 
 
 def template_rows(
-    sections: list[Section], result: dict[str, Any], worst: Any, spacing_mm: float
+    sections: list[Section],
+    result: dict[str, Any],
+    worst: Any,
+    spacing_mm: float,
+    places: list[str | None] | None = None,
 ) -> list[list[str]]:
     """One row per virtual template frame (at ``spacing_mm`` or through a defect): its largest gap,
-    judged (``worst``: a section's gap of largest magnitude, mm, or None)."""
+    judged (``worst``: a section's gap of largest magnitude, mm, or None); ``places``: each frame's
+    place in the target's frame (None: its distance from the target's first edge, mm)."""
+    places = places or [None] * len(sections)
     spacing = f"{num(spacing_mm, 0)} mm grid"
     tol = finite(result.get("tolerance_mm"))
     u_dev = _u(uncertainty(result, "deviation_mm"))
-    rows = [["Frame at, mm", "Through", *JUDGED]]
-    for s in sections:
+    rows = [["Frame at" if any(places) else "Frame at, mm", "Through", *JUDGED]]
+    for s, place in zip(sections, places, strict=True):
         gap = worst(s)
         rows.append(
             [
-                num(s.position_mm, 0),
+                place or num(s.position_mm, 0),
                 f"defect {s.defect}" if s.defect else spacing,
                 "0.00",
                 signed(gap, 2),

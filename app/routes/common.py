@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import re
 import shutil
 from collections.abc import Callable
 from pathlib import Path as FilePath
@@ -290,7 +291,21 @@ def defects_and_reasons(storage: Storage, row: Inspection, names: list[str]) -> 
         )
         for k, d in enumerate(details.get("defects", []), start=1)
     ]
-    return {"defects": defects, "reasons": list(details.get("reasons", []))}
+    return {"defects": defects, "reasons": [in_cm2(r) for r in details.get("reasons", [])]}
+
+
+_AREA_MM2 = re.compile(r"(\d+(?:\.\d+)?) mm\^2")
+_REGIONS = re.compile(r"\b1 region\(s\)|(\d+) region\(s\)")
+
+
+def in_cm2(reason: str) -> str:
+    """A reason as today's results word it: areas in cm² (results before issue 26 said mm^2, e.g.
+    "1 region(s) ... over 100 mm^2 (largest 13786 mm^2)" -> "1 region ... over 1 cm² (largest
+    137.9 cm²)")."""
+    reason = _AREA_MM2.sub(
+        lambda m: f"{float(m.group(1)) / 100.0:.1f}".removesuffix(".0") + " cm²", reason
+    )
+    return _REGIONS.sub(lambda m: f"{m.group(1)} regions" if m.group(1) else "1 region", reason)
 
 
 def inspection_summary(row: Inspection) -> InspectionSummary:

@@ -23,6 +23,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.models import Calibration, Inspection, LightCalibration, Target
+from app.plate_frame import frame_places
 from app.report import ReportData, build_report
 from app.services.plate_maps import NoPlateMap, plate_map_of
 from app.storage import Storage
@@ -50,6 +51,7 @@ def inspection_report(
     """The PDF report of a done inspection (``document``: its API document as JSON; ``yard``: the
     yard's name, printed in every page's header)."""
     capture, calibration = _capture_and_calibration(storage, row)
+    sections, places = _sections(storage, row.id)
     light = (
         session.get(LightCalibration, row.light_calibration_id)
         if row.light_calibration_id is not None
@@ -64,7 +66,8 @@ def inspection_report(
         else {"id": light.id, "rms": light.rms, "file_name": light.file_name},
         software_version=_software_version(),
         printed_at=datetime.now(UTC),
-        sections=_sections(storage, row.id),
+        sections=sections,
+        template_places=places,
         template_spacing_mm=REPORT_SPACING_MM,
         plate_map=_plate_map(storage, row),
         yard=yard,
@@ -155,17 +158,19 @@ def _stereo_calibration(session: Session, document: dict[str, Any] | None) -> di
     }
 
 
-def _sections(storage: Storage, inspection_id: int) -> list[Section]:
-    """The virtual templates at the report's spacing (and through every defect); none when the
-    meshes cannot be cut (the report says less, it is still printed)."""
+def _sections(storage: Storage, inspection_id: int) -> tuple[list[Section], list[str]]:
+    """The virtual templates at the report's spacing (and through every defect) with each one's
+    place in the target's frame ("x = −803 mm, 697 mm from edge D"; none without a registration);
+    no templates when the meshes cannot be cut (the report says less, it is still printed)."""
+    folder = storage.artifacts_dir(inspection_id)
     try:
-        _frame, sections, _tol = load_sections(
-            storage.artifacts_dir(inspection_id), spacing_mm=REPORT_SPACING_MM
-        )
+        frame, sections, _tol = load_sections(folder, spacing_mm=REPORT_SPACING_MM)
     except (OSError, ValueError, KeyError) as err:
         log.warning("inspection %s: report without templates: %s", inspection_id, err)
-        return []
-    return sections
+        return [], []
+    places = frame_places(folder, frame, sections)
+    # the report's Helvetica has no U+2212: an ASCII minus, as in its other tables
+    return sections, [] if places is None else [p.where.replace("\u2212", "-") for p in places]
 
 
 def _plate_map(storage: Storage, row: Inspection) -> PlateMap | None:

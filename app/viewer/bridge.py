@@ -17,6 +17,7 @@ from fastapi import APIRouter, FastAPI, Request, WebSocket, WebSocketDisconnect
 from fastapi.responses import HTMLResponse
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import HTTPConnection
+from uvicorn.protocols.utils import ClientDisconnected
 
 from app.deps import client_address, has_dashboard_session, is_loopback
 from app.security_headers import FRAMED_HEADERS, viewer_csp
@@ -89,16 +90,20 @@ def viewer_page(inspection_id: int, request: Request) -> HTMLResponse:
 
 @router.websocket("/viewer/{inspection_id}")
 async def viewer_bridge(websocket: WebSocket, inspection_id: int) -> None:
-    """Forward a browser's viser websocket to the inspection's viser server on loopback."""
+    """Forward a browser's viser websocket to the inspection's viser server on loopback.
+
+    The browser's socket is accepted before the inspection's server is started: viser's client
+    closes a socket that is not open within 5 s (and the browser then sees 1006), and loading a
+    large plate's meshes on a busy 2-core machine takes longer than that.
+    """
     viewer = _viewer(websocket.app)
     if viewer is None or not viewer.has_view(inspection_id):
         await websocket.close(code=CLOSE_NOT_FOUND)
         return
-    if VISER_SUBPROTOCOL not in websocket.scope.get("subprotocols", []):
-        offered = websocket.scope.get("subprotocols", [])
-        await websocket.close(
-            code=1002, reason=f"expected subprotocol {VISER_SUBPROTOCOL}, got {offered}"
-        )
+    offered = websocket.scope.get("subprotocols", [])
+    if VISER_SUBPROTOCOL not in offered:
+        reason = f"expected subprotocol {VISER_SUBPROTOCOL}, got {offered}"
+        await websocket.close(code=1002, reason=reason)
         return
     operator = is_loopback(websocket) or await run_in_threadpool(has_dashboard_session, websocket)
     client = None if operator else client_address(websocket)
@@ -110,31 +115,51 @@ async def viewer_bridge(websocket: WebSocket, inspection_id: int) -> None:
         await websocket.close(code=CLOSE_TRY_AGAIN_LATER, reason=str(err)[:120])
         return
     try:
-        try:
-            port = await run_in_threadpool(viewer.port_for, inspection_id, privileged=operator)
-        except ViewerBusyError as err:
-            logger.warning("viewer: inspection %s refused: %s", inspection_id, err)
-            await websocket.close(code=CLOSE_TRY_AGAIN_LATER, reason=str(err)[:120])
-            return
-        except (OSError, ValueError) as err:
-            logger.error("viewer: inspection %s cannot be shown: %s", inspection_id, err)
-            await websocket.close(code=CLOSE_NOT_FOUND)
-            return
         await websocket.accept(subprotocol=VISER_SUBPROTOCOL)
-        async with websockets.connect(
-            f"ws://127.0.0.1:{port}",
-            subprotocols=[VISER_SUBPROTOCOL],
-            max_size=None,
-            compression=None,
-            open_timeout=10,
-        ) as upstream:
-            await _pump(websocket, upstream)
+        port = await _start_view(viewer, websocket, inspection_id, privileged=operator)
+        if port is not None:
+            await _relay(websocket, port)
     except (OSError, websockets.exceptions.WebSocketException) as err:
-        logger.warning("viewer: bridge for inspection %s ended: %s", inspection_id, err)
+        logger.warning("viewer: bridge for inspection %s ended: %s", inspection_id, _reason(err))
     finally:
         viewer.bridge_closed(inspection_id, client)
         with suppress(RuntimeError, WebSocketDisconnect):  # the browser side is closed already
             await websocket.close()
+
+
+def _reason(err: BaseException) -> str:
+    """What ended a bridge, never empty (uvicorn's ClientDisconnected has no message)."""
+    if isinstance(err, ClientDisconnected):
+        return "the browser closed its socket"
+    return f"{type(err).__name__}: {err}" if str(err) else type(err).__name__
+
+
+async def _start_view(
+    viewer: PlateViewer, websocket: WebSocket, inspection_id: int, *, privileged: bool
+) -> int | None:
+    """The port of the inspection's viser server, started if needed; None (the browser told
+    why, the socket closed) if it cannot be."""
+    try:
+        return await run_in_threadpool(viewer.port_for, inspection_id, privileged=privileged)
+    except ViewerBusyError as err:
+        logger.warning("viewer: inspection %s refused: %s", inspection_id, err)
+        await websocket.close(code=CLOSE_TRY_AGAIN_LATER, reason=str(err)[:120])
+    except (OSError, ValueError) as err:
+        logger.error("viewer: inspection %s cannot be shown: %s", inspection_id, err)
+        await websocket.close(code=CLOSE_NOT_FOUND)
+    return None
+
+
+async def _relay(websocket: WebSocket, port: int) -> None:
+    """Connect to the viser server on loopback ``port`` and copy messages until either side closes."""
+    async with websockets.connect(
+        f"ws://127.0.0.1:{port}",
+        subprotocols=[VISER_SUBPROTOCOL],
+        max_size=None,
+        compression=None,
+        open_timeout=10,
+    ) as upstream:
+        await _pump(websocket, upstream)
 
 
 async def _pump(browser: WebSocket, upstream) -> None:

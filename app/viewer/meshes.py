@@ -46,6 +46,11 @@ class PlateMeshes:
     extent_m : float, largest side of the measured or the target surface's bounding box, m.
     defects : tuple of (int, (3,) float32), each defect's number (as on the result page) and its
         place on the measured surface (display frame, m).
+    defect_xy_mm : tuple of (float, float), each defect's centroid in the target's frame (as on the
+        result page's map and table), mm.
+    edges : tuple of (str, (3,) float32), the plate's edges named as on the map ("A" where the
+        target's y is smallest, then B, C, D counter-clockwise) and a point of the measured surface
+        at the middle of each (display frame, m).
     """
 
     measured_vertices: np.ndarray
@@ -56,6 +61,8 @@ class PlateMeshes:
     tolerance_mm: float
     extent_m: float
     defects: tuple[tuple[int, np.ndarray], ...] = ()
+    defect_xy_mm: tuple[tuple[float, float], ...] = ()
+    edges: tuple[tuple[str, np.ndarray], ...] = ()
 
     @property
     def floor_z_m(self) -> float:
@@ -225,6 +232,8 @@ def load_plate_meshes(artifact_dir: Path, *, max_vertices: int = 150_000) -> Pla
 
     mv, mf, md = decimate_mesh(vertices, faces, deviation, max_vertices=max_vertices)
     tv, tf, _ = decimate_mesh(target_vertices, target_faces, max_vertices=max_vertices)
+    in_target = _in_target_xy(artifact_dir, vertices)
+    places = _defect_places(artifact_dir, vertices, in_target)
     mv, tv = to_display(mv), to_display(tv)
     return PlateMeshes(
         measured_vertices=mv,
@@ -234,26 +243,55 @@ def load_plate_meshes(artifact_dir: Path, *, max_vertices: int = 150_000) -> Pla
         target_faces=_facing_up(tv, tf),
         tolerance_mm=float(document["tolerance_mm"]),
         extent_m=float(max(np.ptp(mv, axis=0).max(), np.ptp(tv, axis=0).max())),
-        defects=tuple(
-            (k, to_display(p[None])[0]) for k, p in _defect_places(artifact_dir, vertices)
+        defects=tuple((k, to_display(p[None])[0]) for k, p, _ in places),
+        defect_xy_mm=tuple(xy for _, _, xy in places),
+        edges=tuple(
+            (name, to_display(p[None])[0]) for name, p in _edge_places(in_target, vertices)
         ),
     )
 
 
-def _defect_places(artifact_dir: Path, vertices_mm: np.ndarray) -> list[tuple[int, np.ndarray]]:
-    """Each defect of details.json (numbered from 1) at the measured vertex nearest its centroid in
-    the target's x, y (camera frame, mm); none without details.json or a registration."""
+def _in_target_xy(artifact_dir: Path, vertices_mm: np.ndarray) -> np.ndarray | None:
+    """(V, 2) the vertices' x, y in the target's frame, mm; None without a registration."""
     try:
         details = json.loads((artifact_dir / "details.json").read_text())
-        in_target = to_target_frame(vertices_mm, details["T_cam_target"])[:, :2]
+        return to_target_frame(vertices_mm, details["T_cam_target"])[:, :2]
     except (OSError, ValueError, KeyError):
+        return None
+
+
+def _defect_places(
+    artifact_dir: Path, vertices_mm: np.ndarray, in_target: np.ndarray | None
+) -> list[tuple[int, np.ndarray, tuple[float, float]]]:
+    """Each defect of details.json (numbered from 1): its number, the measured vertex nearest its
+    centroid in the target's x, y (camera frame, mm) and that centroid (target frame, mm); none
+    without details.json or a registration."""
+    if in_target is None:
         return []
+    details = json.loads((artifact_dir / "details.json").read_text())
     places = []
     for k, d in enumerate(details.get("defects", []), start=1):
         if d.get("centroid_mm") is not None:
-            nearest = int(np.argmin(((in_target - np.asarray(d["centroid_mm"])) ** 2).sum(axis=1)))
-            places.append((k, vertices_mm[nearest]))
+            xy = np.asarray(d["centroid_mm"], dtype=np.float64)
+            nearest = int(np.argmin(((in_target - xy) ** 2).sum(axis=1)))
+            places.append((k, vertices_mm[nearest], (float(xy[0]), float(xy[1]))))
     return places
+
+
+def _edge_places(
+    in_target: np.ndarray | None, vertices_mm: np.ndarray
+) -> list[tuple[str, np.ndarray]]:
+    """The measured vertex at the middle of each edge of the plate, named as on the map (A: least
+    target y, B: most x, C: most y, D: least x); none without a registration."""
+    if in_target is None or len(in_target) == 0:
+        return []
+    lo, hi = in_target.min(axis=0), in_target.max(axis=0)
+    mid = 0.5 * (lo + hi)
+    aims = {"A": (mid[0], lo[1]), "B": (hi[0], mid[1]), "C": (mid[0], hi[1]), "D": (lo[0], mid[1])}
+    return [
+        (name, vertices_mm[int(np.argmin(((in_target - aim) ** 2).sum(axis=1)))])
+        for name, aim in aims.items()
+    ]
 
 
 def _facing_up(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

@@ -32,6 +32,8 @@ _BACKGROUND = (
     .repeat(4, axis=1)
 )
 _LAYOUTS = ("Side by side", "Overlaid")
+#: Share of viser's default environment light (1.0) on the plates.
+_ENVIRONMENT = 0.5
 
 
 class _OfflineViserServer(viser.ViserServer):
@@ -100,6 +102,9 @@ class InspectionView:
         # A tinted background and a floor grid (0.5 m cells): a plate within tolerance is
         # coloured near white, which must not vanish into a white page.
         client.scene.set_background_image(_BACKGROUND, format="png")
+        # Less of the environment's even light, so the default lights' direction shades the
+        # surface and a dent shows in it (at full intensity the plate looked flat and pale).
+        client.scene.configure_environment_map("warehouse", environment_intensity=_ENVIRONMENT)
         client.scene.add_grid(
             "/floor",
             width=2.6 * extent,
@@ -140,6 +145,14 @@ class InspectionView:
         self.server.stop()
 
 
+def _outward_anchor(outward: np.ndarray) -> Any:
+    """A label's anchor that makes it read away from the plate: to the left of a left edge, to the
+    right of a right one (display x), centred on the near and far edges."""
+    if abs(outward[0]) <= abs(outward[1]):
+        return "center-center"
+    return "center-right" if outward[0] < 0 else "center-left"
+
+
 def _theme(gui: viser.GuiApi) -> None:
     """The panel's theme, docked to the right of the view rather than floating over it (on a
     1366x768 screen a floating panel covered the target plate)."""
@@ -148,19 +161,42 @@ def _theme(gui: viser.GuiApi) -> None:
 
 
 def _measured_glb(meshes: PlateMeshes) -> bytes:
+    """The measured plate as GLB: smooth vertex normals (a dent shows in its shading), the
+    band colours as glTF's linear ``COLOR_0`` (written as sRGB they were drawn washed out)
+    and a matte, non-metallic material (glTF's default is fully metallic, which reflected the
+    light background and left the plate very pale)."""
     mesh = trimesh.Trimesh(meshes.measured_vertices, meshes.measured_faces, process=False)
-    mesh.visual = trimesh.visual.ColorVisuals(
-        mesh,
-        vertex_colors=deviation_colours(meshes.deviation_mm, meshes.scale_mm, meshes.tolerance_mm),
-    )
-    return mesh.export(file_type="glb")
+    srgb = deviation_colours(meshes.deviation_mm, meshes.scale_mm, meshes.tolerance_mm)
+    mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=srgb_to_linear_u8(srgb))
+    return mesh.export(file_type="glb", include_normals=True, tree_postprocessor=_matte)
+
+
+def srgb_to_linear_u8(rgb: np.ndarray) -> np.ndarray:
+    """(V, 3) uint8 sRGB colours as (V, 3) uint8 linear ones (IEC 61966-2-1)."""
+    c = np.asarray(rgb, dtype=np.float64) / 255.0
+    linear = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+    return np.round(linear * 255.0).astype(np.uint8)
+
+
+def _matte(tree: dict[str, Any]) -> None:
+    """glTF tree post-processor: every primitive gets one matte, double-sided material."""
+    tree["materials"] = [
+        {
+            "pbrMetallicRoughness": {"metallicFactor": 0.0, "roughnessFactor": 0.75},
+            "doubleSided": True,
+        }
+    ]
+    for mesh in tree.get("meshes", []):
+        for primitive in mesh["primitives"]:
+            primitive["material"] = 0
 
 
 def scene_labels(scene: viser.SceneApi, meshes: PlateMeshes) -> list[viser.LabelHandle]:
-    """Labels in the scene: "Measured" and "CAD target" above their plates, and each defect's
-    number at its place (children of the plates' nodes: they follow the layout)."""
+    """Labels in the scene: "Measured" and "CAD target" above their plates, each defect's number and
+    its place in the target's frame at its place, and the plate's edges named as on the map
+    (children of the plates' nodes: they follow the layout)."""
     extent = max(meshes.extent_m, 0.1)
-    above = 0.08 * extent
+    above = 0.18 * extent  # clear of the edge labels
     top_m = float(meshes.measured_vertices[:, 2].max()) + above
     top_t = float(meshes.target_vertices[:, 2].max()) + above
     back = 0.5 * extent
@@ -168,13 +204,26 @@ def scene_labels(scene: viser.SceneApi, meshes: PlateMeshes) -> list[viser.Label
         scene.add_label("/plate/measured/label", "Measured", position=(0.0, back, top_m)),
         scene.add_label("/plate/target/label", "CAD target", position=(0.0, back, top_t)),
     ]
-    for number, place in meshes.defects:
+    xy_mm = meshes.defect_xy_mm or tuple((None, None) for _ in meshes.defects)
+    for (number, place), (x, y) in zip(meshes.defects, xy_mm, strict=True):
+        text = f"defect {number}" if x is None else f"defect {number}: x {x:.0f}, y {y:.0f} mm"
         labels.append(
             scene.add_label(
                 f"/plate/measured/defect-{number}",
-                f"defect {number}",
+                text.replace("-", "\u2212"),
                 position=tuple(float(v) for v in place),
-                anchor="bottom-center",
+                anchor="bottom-left",  # reads away from the edge labels on the left
+            )
+        )
+    for name, place in meshes.edges:  # the target frame's edges, named as on the map
+        outward = np.array([place[0], place[1], 0.0])  # from the display origin, the plate's centre
+        outward *= 0.06 * extent / max(float(np.linalg.norm(outward)), 1e-9)
+        labels.append(
+            scene.add_label(
+                f"/plate/measured/edge-{name}",
+                f"edge {name}",
+                position=tuple(float(v) for v in np.asarray(place) + outward),
+                anchor=_outward_anchor(outward),
             )
         )
     return labels

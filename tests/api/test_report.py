@@ -185,7 +185,10 @@ def test_a_report_to_sign_carries_its_traceability_calibration_and_judged_items(
     assert warning in flat
     for row in ("Minimum (signed)", "Maximum (signed)", "Standard deviation", "p95 of |deviation|"):
         assert row in text
-    assert "Virtual templates" in text and "Frame at, mm" in text and "700 mm grid" in text
+    assert "Virtual templates" in text and "700 mm grid" in text
+    # the frames placed in the target's frame, as on the dashboard's map (issue 26)
+    assert re.search(r"Frame at\s+Through", text) and "from edge" in text, text
+    assert re.search(r"[xy] = [-+]?\d+ mm, \d+ mm from edge [ABCD]", text), text
     assert re.search(r"Within tolerance\s+\d+\.\d\d %\s+the judged area", text)
     # signature blocks
     assert "QA approver" in text and "Disposition" in text

@@ -151,6 +151,8 @@ def test_judge_rules_single_pixel_block_and_scatter():
     assert j.verdict == "fail" and len(j.defects) == 1
     assert j.defects[0].area_mm2 == 144.0 and j.defects[0].peak_deviation_mm == -3.0
     assert j.defects[0].centroid_px == (22.5, 12.5)
+    # the reason in cm², singular for one region (issue 26)
+    assert j.reasons[0] == "1 region out of the 2 mm tolerance over 1 cm² (largest 1.4 cm²)"
     scatter = dev.copy()
     pick = np.zeros(m.shape, dtype=bool)
     pick[::2, ::2] = (

@@ -111,3 +111,73 @@ def test_forming_chart_places_passes_band_and_next_pass():
     n = chart.next_pass
     assert n.x > b.x and n.y_hi == chart.top  # a range open to flat reaches the top
     assert chart.x_ticks[0][0] == chart.left and chart.x_ticks[-1][0] == chart.right
+
+
+def test_advice_is_said_in_an_operators_words():
+    """Issue 26: "under-bent: radius +5.0 %", the next pass with its setting and outcome, one more
+    pass announced when the expected radius stays outside the band; plural and singular right."""
+    from types import SimpleNamespace
+
+    from web.forming_words import count, mm, next_pass_words, radius_band_mm, radius_state
+
+    row = SimpleNamespace(radius_mm=5250.6, target_radius_mm=5000.0, verdict="fail")
+    band = (4950.0, 5050.0)
+    assert radius_state(row, band) == "under-bent: radius +5.0 % (5\u202f251 mm, 5.0 % open)"
+    tight = SimpleNamespace(radius_mm=4850.0, target_radius_mm=5000.0, verdict="fail")
+    assert radius_state(tight, band).startswith("over-bent: radius \u22123.0 %")
+    on = SimpleNamespace(radius_mm=5010.0, target_radius_mm=5000.0, verdict="pass")
+    assert radius_state(on, band) == "radius on target: 5\u202f010 mm (+0.2 %)"
+    advice = {
+        "action": "bend",
+        "machine_id": "R3-07",
+        "top_roll_displacement_mm": 111.26,
+        "expected_radius_mm": 5106.0,
+        "basis": {"tolerance_band_radius_mm": list(band)},
+    }
+    assert next_pass_words(advice) == (
+        "next pass on R3-07: top roll 111.3 mm, expected 5\u202f106 mm, then one more pass"
+    )
+    assert next_pass_words({**advice, "expected_radius_mm": 5020.0}).endswith("within tolerance")
+    assert count(1, "plate", "plates") == "1 plate" and count(3, "pass", "passes") == "3 passes"
+    assert mm(-1234.0) == "\u22121\u202f234 mm"
+    # the band from a cylinder target: 8 tol R / w^2 = 0.889 % at R 5000, 3000 mm wide, 2 mm
+    target = {"shape": {"type": "cylinder", "radius_mm": 5000.0}, "size_mm": [3000.0, 3000.0]}
+    lo, hi = radius_band_mm({**target, "tolerance_mm": 2.0})
+    assert (round(lo, 1), round(hi, 1)) == (4955.6, 5044.4)
+    almost = SimpleNamespace(radius_mm=4998.5, target_radius_mm=5000.0, verdict="fail")
+    assert radius_state(almost, (lo, hi)) == "radius on target: 4\u202f998 mm (0.0 %)"
+
+
+def test_no_advice_links_the_page_that_supplies_what_is_missing(demo_app):
+    """No target: a link to the plate's target form; no machine: to the machines page; never an
+    API path."""
+    from app.services.targets import TARGET_FILE, create_target
+    from tests.web.helpers import seed_done_inspection
+
+    inspection_id = seed_done_inspection(demo_app, plate_id="P-W6")
+    storage = demo_app.state.storage
+    with demo_app.state.session_factory() as session:
+        staging = storage.new_staging_dir()
+        (staging / TARGET_FILE).write_bytes(target_json(material=MATERIAL))
+        create_target(session=session, storage=storage, plate_id="P-W8", staging_dir=staging)
+        session.commit()
+    with TestClient(demo_app) as client:
+        html = client.get(f"/inspections/{inspection_id}").text
+        panel = html.split('id="next-pass"')[1].split("</section>")[0]
+        assert "/api/v1" not in panel
+        assert 'href="/plates/P-W6#target"' in panel and "has no target" in panel
+        # no target document to judge the radius by (a seeded row): the radius, not judged
+        assert "radius 5\u202f050 mm against 5\u202f000 mm (+1.0 %)" in panel
+        panel = client.get("/plates/P-W8").text.split('id="next-pass"')[1].split("</section>")[0]
+        assert "no roll bender is known" in panel and 'href="/machines"' in panel
+        assert "/api/v1" not in panel
+
+
+def test_service_messages_lose_their_api_paths_on_the_page():
+    """A service's message names an API path for API clients; the page says the reason without it."""
+    from web.forming_words import _API_PATH
+
+    message = "no machine 'R3': add it first with PUT /api/v1/machines/R3"
+    assert _API_PATH.sub("", message).rstrip(" :;,") == "no machine 'R3'"
+    message = "plate 'P' has no target: set one with its material (PUT /api/v1/plates/P/target)"
+    assert "/api/" not in _API_PATH.sub("", message)

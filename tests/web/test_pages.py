@@ -48,7 +48,8 @@ def test_result_page_shows_verdict_numbers_view_and_templates(demo_app):
         assert f'src="/viewer/{inspection_id}/?hideViserLogo"' in html
         # Frames every 700 mm over the 2000 mm axis: 3 templates (300, 1000, 1700 mm).
         assert html.count('<figure class="template"') == 3
-        assert "Frame at 1000 mm" in html
+        # no registration seeded: the frame is placed from the plate's first edge, and says so
+        assert "Frame 1000 mm from the plate's first edge" in html
         # The largest true gap is at the edges: sagitta difference 2.2 mm, labelled in red.
         assert 'class="gap-label bad"' in html
         partial = client.get(f"/inspections/{inspection_id}/templates", params={"spacing_mm": 300})
@@ -141,7 +142,9 @@ def test_result_page_says_why_and_where_a_plate_failed(demo_app):
     with TestClient(demo_app) as client:
         html = client.get(f"/inspections/{inspection_id}").text
         api = client.get(f"/api/v1/inspections/{inspection_id}").json()
-    assert 'id="defects"' in html and "largest 13786 mm^2" in html
+    # areas in cm² throughout (issue 26), older results' "mm^2" reasons too, singular right
+    assert 'id="defects"' in html and "1 region out of the 2 mm tolerance over 1 cm²" in html
+    assert "largest 137.9 cm²" in html and "mm^2" not in html
     row = html.split('class="defect-table"')[1].split("</tbody>")[0]
     for cell in ("<td>1</td>", "<td>-596</td>", "<td>301</td>", "<td>137.9</td>", "+5.9", "+3.7"):
         assert cell in row, (cell, row)
@@ -155,7 +158,7 @@ def test_result_page_says_why_and_where_a_plate_failed(demo_app):
             "mean_mm": 3.74,
         }
     ]
-    assert api["reasons"] == details["reasons"]
+    assert api["reasons"] == ["1 region out of the 2 mm tolerance over 1 cm² (largest 137.9 cm²)"]
 
 
 def test_a_plates_inspections_as_csv(demo_app):
@@ -335,3 +338,35 @@ def test_the_machines_page_lists_adds_and_edits_roll_benders(demo_app):
     assert "Edit machine R3-01" in editing and 'value="R3-01" readonly' in editing
     assert 'value="1400.0"' in editing and 'data-editing="true"' in editing
     assert unknown.status_code == 404
+
+
+def test_result_page_shows_traceability_and_not_capable_warnings_first(demo_app):
+    """Issue 26: the target's drawing, revision, hull and block in the page's head; the result's
+    warnings (a "not capable" measurement) right under the verdict, before the advice."""
+    from app.models import Inspection
+    from app.services.targets import TARGET_FILE, create_target
+    from tests.api.helpers import target_json
+
+    storage = demo_app.state.storage
+    trace = {
+        "drawing": {"number": "DWG-H77-B21-0042", "revision": "C"},
+        "hull": "H77",
+        "block": "B21",
+    }
+    with demo_app.state.session_factory() as session:
+        staging = storage.new_staging_dir()
+        (staging / TARGET_FILE).write_bytes(target_json(**trace))
+        create_target(session=session, storage=storage, plate_id="H77-P3", staging_dir=staging)
+        session.commit()
+    inspection_id = seed_done_inspection(demo_app, plate_id="H77-P3")
+    warning = "not capable: the test uncertainty ratio is 2.1 (below 4)"
+    with demo_app.state.session_factory() as session:
+        row = session.get(Inspection, inspection_id)
+        row.result = {**row.result, "warnings": [warning]}
+        session.commit()
+    with TestClient(demo_app) as client:
+        html = client.get(f"/inspections/{inspection_id}").text
+    head = html.split('id="traceability">')[1].split("</span>")[0]
+    assert head == "drawing DWG-H77-B21-0042 rev. C · hull H77 · block B21"
+    assert warning in html
+    assert html.index('id="verdict"') < html.index('id="warnings"') < html.index('id="next-pass"')

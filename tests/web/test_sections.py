@@ -256,3 +256,18 @@ def test_gap_labels_never_overlap_and_the_worst_gap_is_labelled():
     assert len(xs) >= 2 and np.diff(xs).min() >= LABEL_SPACING_PX
     worst = [label for label in drawing.labels if label.gap_mm == pytest.approx(-3.2)]
     assert len(worst) == 1 and worst[0].out_of_tolerance
+
+
+def test_templates_are_placed_in_the_targets_frame_with_its_edges_named():
+    """Issue 26 (one frame for the operator): a frame line at x = -803 mm of a 3000 mm plate is
+    "x = −803 mm, 697 mm from edge D", its drawing runs from edge A (y smallest) to edge C."""
+    import numpy as np
+
+    from app.plate_frame import frame_place
+
+    placed = frame_place(np.array([[-803.2, -1500.0], [-802.8, 1500.0]]), 1500.0)
+    assert placed.where == "x = \u2212803 mm, 697 mm from edge D"
+    assert placed.ends == ("edge A (y \u22121500)", "edge C (y +1500)")
+    across = frame_place(np.array([[1500.0, 0.2], [-1500.0, 0.1]]), 1500.0)
+    assert across.where == "y = 0 mm, 1500 mm from edge A"
+    assert across.ends == ("edge B (x +1500)", "edge D (x \u22121500)")

@@ -139,6 +139,28 @@ def test_bridge_reaches_the_inspection_server(viewer_app):
         assert refused.value.code == 1002
 
 
+def test_bridge_accepts_the_browser_before_the_server_starts(viewer_app, monkeypatch):
+    """Issue 26: viser's client closes a socket not open within 5 s (the browser saw 1006, the
+    log "bridge ... ended" with no reason) and a large plate loads longer than that on a busy
+    machine: the bridge accepts first, then starts the inspection's server."""
+    viewer: PlateViewer = viewer_app.state.viewer
+    load = viewer.port_for
+    started: list[float] = []
+
+    def slow_port_for(inspection_id: int, **kwargs) -> int:
+        time.sleep(1.0)  # a slow mesh load
+        started.append(time.monotonic())
+        return load(inspection_id, **kwargs)
+
+    monkeypatch.setattr(viewer, "port_for", slow_port_for)
+    with TestClient(viewer_app) as client:
+        with client.websocket_connect("/viewer/7", subprotocols=[VISER_SUBPROTOCOL]) as ws:
+            accepted = time.monotonic()
+            assert not started, "the browser's socket waited for the server to start"
+            assert len(ws.receive_bytes()) > 0
+        assert started and accepted < started[0]
+
+
 def test_idle_servers_stop_and_at_most_max_servers_run(tmp_path):
     from app.viewer import ViewerBusyError
 
@@ -224,8 +246,36 @@ def test_the_scene_labels_the_plates_and_numbers_the_defects(tmp_path):
     assert [(label.name, label.text) for label in labels] == [
         ("/plate/measured/label", "Measured"),
         ("/plate/target/label", "CAD target"),
-        ("/plate/measured/defect-1", "defect 1"),
+        # in the target's frame, as the map and the defect table give it (issue 26)
+        ("/plate/measured/defect-1", "defect 1: x 600, y \u2212300 mm"),
+        ("/plate/measured/edge-A", "edge A"),
+        ("/plate/measured/edge-B", "edge B"),
+        ("/plate/measured/edge-C", "edge C"),
+        ("/plate/measured/edge-D", "edge D"),
     ]
+    # edge A where the target's y is smallest: camera y largest, display y (-camera y) smallest
+    edges = dict(meshes.edges)
+    assert edges["A"][1] < edges["C"][1] and edges["D"][0] < edges["B"][0]
     assert np.allclose(labels[2].position, place)  # on the measured surface, in its node's frame
     top = float(meshes.measured_vertices[:, 2].max())
     assert labels[0].position[2] > top  # above the plate
+
+
+def test_measured_plate_is_shaded_matte_and_in_its_band_colours(tmp_path):
+    """Issue 26 (a dent barely visible, the plate very pale): the GLB carries vertex normals (the
+    shading shows the dent), a non-metallic material (glTF's default is fully metallic) and the
+    band colours linearised, as glTF's COLOR_0 is linear (sRGB 255 stays 255, mid grey 128 -> 55)."""
+    import json
+    import struct
+
+    from app.viewer.scene import _measured_glb, srgb_to_linear_u8
+
+    write_artifacts(tmp_path / "7", n=(31, 21))
+    glb = _measured_glb(load_plate_meshes(tmp_path / "7"))
+    (length,) = struct.unpack("<I", glb[12:16])
+    tree = json.loads(glb[20 : 20 + length])
+    primitive = tree["meshes"][0]["primitives"][0]
+    assert {"POSITION", "NORMAL", "COLOR_0"} <= set(primitive["attributes"])
+    material = tree["materials"][primitive["material"]]
+    assert material["pbrMetallicRoughness"]["metallicFactor"] == 0.0
+    assert srgb_to_linear_u8(np.array([[255, 128, 0]])).tolist() == [[255, 55, 0]]

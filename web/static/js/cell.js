@@ -1,5 +1,6 @@
-// Cell page: start an inspection (simulated, uploaded bundle, or captured by the cell's cameras) and keep
-// the queue and the cameras' state live.
+// Cell page: capture a plate with the cell's cameras (the primary action; the page then follows the
+// job to its result) or start one without them (simulated, uploaded bundle); the queue and the
+// cameras' state stay live.
 import { postForm, postJSON, refreshPartial, say } from "./api.js";
 
 const form = document.getElementById("start-form");
@@ -15,7 +16,7 @@ let capturing = false;
 
 function showSource() {
   const source = form.elements.source.value;
-  for (const fieldset of form.querySelectorAll("fieldset[data-source]")) {
+  for (const fieldset of form.querySelectorAll("[data-source]")) {
     fieldset.hidden = fieldset.dataset.source !== source;
   }
 }
@@ -111,10 +112,10 @@ async function capture() {
     const created = await postJSON(
       `/api/v1/plates/${encodeURIComponent(plateId)}/inspections/acquire`, operator ? { operator } : {});
     say(message, `Inspection #${created.id} queued: the cell photographs plate ${plateId}.`, "ok");
-    await refresh();
+    // Follow the job: its page shows the stage while it runs and the result once done.
+    window.location.assign(`/inspections/${created.id}`);
   } catch (err) {
     say(message, err.message, "error");
-  } finally {
     capturing = false;
     showCellStatus();
   }

@@ -136,7 +136,8 @@ export class PlateMap {
       el("text", { x: len + 2.2 * unit, y: 0, "font-size": 3 * unit, "dominant-baseline": "central" }, "x"),
       el("text", { x: 0, y: -len - 2.6 * unit, "font-size": 3 * unit, "text-anchor": "middle" }, "y"),
     );
-    marks.push(o);
+    o.append(el("title", {}, "origin: the target's centre (x 0, y 0)"));
+    marks.push(o, this.edgeNames(unit));
     for (const d of this.data.defects) {
       if (!d.centroid_mm) continue;
       const [x, y] = d.centroid_mm;
@@ -152,11 +153,35 @@ export class PlateMap {
       );
       marks.push(g);
     }
+    if (this.cursor) { // the keyboard's read point
+      const [x, y] = this.cursor;
+      const g = el("g", { class: "map-cursor" });
+      g.append(
+        el("line", { x1: x - 2 * unit, y1: -y, x2: x + 2 * unit, y2: -y, "stroke-width": 0.35 * unit }),
+        el("line", { x1: x, y1: -y - 2 * unit, x2: x, y2: -y + 2 * unit, "stroke-width": 0.35 * unit }),
+      );
+      marks.push(g);
+    }
     if (this.picked) {
       const [x, y] = this.picked;
       marks.push(el("circle", { class: "map-picked", cx: x, cy: -y, r: 1.2 * unit, "stroke-width": 0.4 * unit }));
     }
     this.markLayer.replaceChildren(...marks);
+  }
+
+  /** The plate's edges named as in the templates and the report: A where y is smallest, then
+   * counter-clockwise (B at the largest x, C at the largest y, D at the smallest x). */
+  edgeNames(unit) {
+    const [x0, x1, y0, y1] = this.data.extent_mm;
+    const cx = (x0 + x1) / 2, cy = (y0 + y1) / 2, size = 2.6 * unit;
+    const g = el("g", { class: "map-edges" });
+    g.append(
+      el("text", { "data-edge": "A", x: cx, y: -y0 - 0.8 * unit, "font-size": size, "text-anchor": "middle" }, "edge A"),
+      el("text", { "data-edge": "B", x: x1 - 0.8 * unit, y: -cy, "font-size": size, "text-anchor": "end", "dominant-baseline": "central" }, "edge B"),
+      el("text", { "data-edge": "C", x: cx, y: -y1 + 0.8 * unit, "font-size": size, "text-anchor": "middle", "dominant-baseline": "hanging" }, "edge C"),
+      el("text", { "data-edge": "D", x: x0 + 0.8 * unit, y: -cy, "font-size": size, "dominant-baseline": "central" }, "edge D"),
+    );
+    return g;
   }
 
   drawAxes(unit) {
@@ -218,7 +243,36 @@ export class PlateMap {
     this.readout.dataset.value = String(v);
   }
 
+  /** Keyboard: arrows move the read point (Shift: ten times further), Enter or Space puts a
+   * template through it, Home goes back to the plate's centre. */
+  bindKeys() {
+    this.svg.setAttribute("tabindex", "0");
+    const centre = () => [this.full.x + this.full.w / 2, this.full.y + this.full.h / 2];
+    this.svg.addEventListener("focus", () => {
+      this.cursor ??= centre();
+      this.show(this.cursor);
+      this.render(false);
+    });
+    this.svg.addEventListener("keydown", (event) => {
+      const step = (event.shiftKey ? 10 : 1) * Math.max(this.data.cell_mm, this.full.w / 100);
+      const moves = { ArrowLeft: [-step, 0], ArrowRight: [step, 0], ArrowUp: [0, step], ArrowDown: [0, -step] };
+      if (event.key in moves || event.key === "Home") {
+        event.preventDefault();
+        const [dx, dy] = moves[event.key] ?? [0, 0];
+        const [x, y] = event.key === "Home" ? centre() : this.cursor ?? centre();
+        const { x: x0, y: y0, w, h } = this.full;
+        this.cursor = [Math.min(x0 + w, Math.max(x0, x + dx)), Math.min(y0 + h, Math.max(y0, y + dy))];
+        this.show(this.cursor);
+        this.render(false);
+      } else if ((event.key === "Enter" || event.key === " ") && this.cursor && this.onPick) {
+        event.preventDefault();
+        if (this.valueAt(...this.cursor) !== null) this.onPick(this.cursor);
+      }
+    });
+  }
+
   bind() {
+    this.bindKeys();
     let drag = null;
     this.figure.querySelectorAll("[data-zoom]").forEach((button) => {
       button.addEventListener("click", () => {
