@@ -53,7 +53,7 @@ from scipy import optimize, stats
 
 from ..formats import InputError, PipelineError
 from . import bender
-from .learning import Fit, Prediction, Priors, fit, measured_curvature
+from .learning import Fit, Prediction, Priors, fit, inspection_variance, measured_curvature
 from .records import FormingTarget, Machine, PlateRecord
 
 Action = Literal["bend", "done", "reverse"]
@@ -431,6 +431,7 @@ def _data_basis(
         data = "this plate's passes" + (" and history of this machine" if machine_rows else "")
         if machine_rows == 0 and own < settings.min_rows:
             warnings.append("no history of this machine: its compliance and gain are the prior's")
+    warnings.extend(_inspection_warnings(plate, fitted.priors))
     c, c_sd = fitted.parameter("machine", machine_id)
     gain, gain_sd = fitted.parameter("gain", machine_id)
     f, f_sd = fitted.parameter("plate", plate.plate_id)
@@ -443,6 +444,7 @@ def _data_basis(
         "group_passes_inspected": group_rows,
         "machine_plates": len(others),
         "machine_passes_inspected": machine_rows,
+        "inspections": _inspections_basis(plate, fitted.priors),
         "parameters": {
             "yield_factor": {"mean": f, "sd": f_sd},
             "group_yield_factor": {"mean": g, "sd": g_sd, "plate_spread": fitted.plate_spread},
@@ -452,3 +454,40 @@ def _data_basis(
         },
         "warnings": warnings,
     }
+
+
+def _inspections_basis(plate: PlateRecord, priors: Priors) -> list[dict[str, Any]]:
+    """Each inspected pass of the plate as the fit takes it: the radius, its standard uncertainty
+    (reported, or None: the model's constant), whether capable, and the curvature sd it enters with."""
+    out = []
+    for j, q in enumerate(plate.passes):
+        if q.measured_radius_mm is None:
+            continue
+        out.append(
+            {
+                "pass": j,
+                "measured_radius_mm": q.measured_radius_mm,
+                "radius_uncertainty_mm": q.radius_uncertainty_mm,
+                "capable": q.capable,
+                "curvature_sd_per_mm": math.sqrt(inspection_variance(plate, j, priors)),
+            }
+        )
+    return out
+
+
+def _inspection_warnings(plate: PlateRecord, priors: Priors) -> list[str]:
+    """One warning per inspection of the plate that is not capable for its tolerance."""
+    out = []
+    for j, q in enumerate(plate.passes):
+        if q.measured_radius_mm is None or q.capable:
+            continue
+        u = (
+            "no uncertainty reported"
+            if q.radius_uncertainty_mm is None
+            else (f"radius uncertainty {2 * q.radius_uncertainty_mm:.1f} mm (k=2)")
+        )
+        out.append(
+            f"the inspection after pass {j + 1} is not capable for the tolerance ({u}): the advice "
+            "weighs it as no better than a measurement at the capability limit"
+        )
+    return out

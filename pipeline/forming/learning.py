@@ -308,7 +308,7 @@ class Fit:
             # the increment starts from the measured state; when the new pass loads the plate beyond
             # it, where that state's peak really was (its pass's scatter) shifts the increment too
             mean += anchor.curvature
-            var += _inspection_variance(anchor.curvature, plate, self.priors) / anchor.inspections
+            var += anchor.variance
             if k_loaded > anchor.peak_loaded:
                 g_peak, shift_mm, sd_mm = self._peak_error(plate, theta, anchor)
                 mean -= g_peak * shift_mm
@@ -404,6 +404,9 @@ class State:
         Passes after ``peak_pass`` that the model says loaded the plate beyond it, but whose
         inspection found the shape unchanged (:func:`plate_states`): the peak pass really loaded
         the plate further than its setting says.
+    variance : float
+        Variance of ``curvature`` (the inspections' own, :func:`inspection_variance`, inverse-variance
+        weighted), 1/mm^2.
     """
 
     pass_index: int
@@ -412,6 +415,7 @@ class State:
     curvature: float
     inspections: int
     unchanged: tuple[int, ...] = ()
+    variance: float = 0.0
 
 
 #: A pass that may have loaded the plate beyond its peak (by the model, at least as far) left the shape
@@ -431,13 +435,15 @@ def plate_states(plate: PlateRecord, loaded: np.ndarray, priors: Priors) -> list
     """
     states: list[State] = []
     ks: list[float] = []
+    ws: list[float] = []
     unchanged: list[int] = []
     peak_pass, last, peak = -1, -1, 0.0
 
     def close() -> None:
         if ks:
+            k_state, var_state = _weighted(ks, ws)
             states.append(
-                State(last, peak_pass, peak, float(np.mean(ks)), len(ks), tuple(unchanged))
+                State(last, peak_pass, peak, k_state, len(ks), tuple(unchanged), var_state)
             )
 
     for j, q in enumerate(plate.passes):
@@ -446,28 +452,62 @@ def plate_states(plate: PlateRecord, loaded: np.ndarray, priors: Priors) -> list
             if q.measured_radius_mm is None
             else measured_curvature(plate, q.measured_radius_mm)
         )
+        var = None if k is None else inspection_variance(plate, j, priors)
         if loaded[j] >= peak * (1 - 1e-9):
-            if k is not None and ks and _unchanged(k, ks, plate, priors):
+            if k is not None and var is not None and ks and _unchanged(k, var, ks, ws):
                 unchanged.append(j)
             else:
                 close()
-                peak_pass, peak, ks, unchanged = j, float(loaded[j]), [], []
-        if k is not None:
+                peak_pass, peak, ks, ws, unchanged = j, float(loaded[j]), [], [], []
+        if k is not None and var is not None:
             ks.append(k)
+            ws.append(1.0 / var)
             last = j
     close()
     return states
 
 
-def _unchanged(k: float, ks: list[float], plate: PlateRecord, priors: Priors) -> bool:
-    """An inspection ``k`` after a pass that may have loaded the plate beyond its peak found the shape
-    inspected as ``ks`` (:data:`UNCHANGED_Z`)."""
-    k_state = float(np.mean(ks))
-    noise = np.sqrt(
-        _inspection_variance(k_state, plate, priors) / len(ks)
-        + _inspection_variance(k, plate, priors)
-    )
-    return bool(k - k_state < UNCHANGED_Z * noise)
+def _weighted(ks: list[float], weights: list[float]) -> tuple[float, float]:
+    """Inverse-variance weighted mean of inspections of one shape and its variance, 1/mm and 1/mm^2."""
+    w = np.asarray(weights)
+    return float(np.dot(w, ks) / w.sum()), float(1.0 / w.sum())
+
+
+def _unchanged(k: float, var: float, ks: list[float], weights: list[float]) -> bool:
+    """An inspection ``k`` (variance ``var``) after a pass that may have loaded the plate beyond its
+    peak found the shape inspected as ``ks`` (inverse variances ``weights``; :data:`UNCHANGED_Z`)."""
+    k_state, var_state = _weighted(ks, weights)
+    return bool(k - k_state < UNCHANGED_Z * np.sqrt(var_state + var))
+
+
+def inspection_variance(plate: PlateRecord, index: int, priors: Priors) -> float:
+    """Variance of the mid-surface curvature the inspection after pass ``index`` measured, 1/mm^2.
+
+    With the inspection's own standard uncertainty ``u`` of the radius
+    (:attr:`RollPass.radius_uncertainty_mm`) the curvature's relative sd is ``u / R`` (``R`` the
+    measured mid-surface radius); without it (older results, a flat plate) the model's constant:
+    ``Priors.radius_noise`` relative and ``Priors.sagitta_noise_mm`` absolute. An inspection that is not
+    capable for the tolerance (:attr:`RollPass.capable`) is taken as no better than one at the
+    capability limit, a test uncertainty ratio of 4: an expanded uncertainty of a quarter of the
+    tolerance band, ``band / 4`` with ``band = 8 tol / w^2``, so a standard one of ``band / 8``.
+
+    Raises
+    ------
+    ValueError
+        Pass ``index`` was not inspected.
+    """
+    q = plate.passes[index]
+    if q.measured_radius_mm is None:
+        raise ValueError(f"passes[{index}]: expected an inspected pass, got no measured radius")
+    k = measured_curvature(plate, q.measured_radius_mm)
+    if q.radius_uncertainty_mm is not None and k > 0:
+        var = (q.radius_uncertainty_mm * k * k) ** 2
+    else:
+        var = _inspection_variance(k, plate, priors)
+    if not q.capable:
+        w = plate.target.width_mm
+        var = max(var, (plate.target.tolerance_mm / (w * w)) ** 2)
+    return float(var)
 
 
 def latest_state(plate: PlateRecord, loaded: np.ndarray, priors: Priors) -> State | None:
@@ -627,12 +667,9 @@ def fit(
 
     # states: the passes after which an inspection saw a new shape (nominal parameters decide which pass
     # raised the peak, the inspections whether it did), with the mean of their inspections
-    state_pass, state_obs, state_n, state_plate = _inspected_states(
+    state_pass, state_obs, meas_var, state_plate = _inspected_states(
         plates, starts, curvatures(x0)[0], priors
     )
-    meas_var = np.array(
-        [_inspection_variance(k, plates[i], priors) for k, i in zip(state_obs, state_plate)]
-    ) / np.maximum(state_n, 1)
     plates_with_rows = np.unique(state_plate)
     dof_rows = max(len(state_pass) - len(plates_with_rows), 0)
 
@@ -702,8 +739,9 @@ def _inspected_states(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The plates' shapes (:func:`plate_states`) as the fit's rows.
 
-    ``loaded`` are the nominal loaded curvatures, one per pass, plates contiguous from ``starts``. Returns each shape's pass index (the pass that gave it, among all passes), mean
-    measured curvature, number of inspections and plate index (arrays of one length).
+    ``loaded`` are the nominal loaded curvatures, one per pass, plates contiguous from ``starts``.
+    Returns each shape's pass index (the pass that gave it, among all passes), mean measured
+    curvature, its variance (:attr:`State.variance`) and plate index (arrays of one length).
 
     Raises
     ------
@@ -712,7 +750,7 @@ def _inspected_states(
     """
     state_pass: list[int] = []
     state_obs: list[float] = []
-    state_n: list[int] = []
+    state_var: list[float] = []
     state_plate: list[int] = []
     for i, p in enumerate(plates):
         for q in p.passes:
@@ -727,12 +765,12 @@ def _inspected_states(
         for state in plate_states(p, loaded[a:b], priors):
             state_pass.append(a + state.peak_pass)
             state_obs.append(state.curvature)
-            state_n.append(state.inspections)
+            state_var.append(state.variance)
             state_plate.append(i)
     return (
         np.array(state_pass, dtype=int),
         np.array(state_obs),
-        np.array(state_n),
+        np.array(state_var),
         np.array(state_plate, dtype=int),
     )
 
