@@ -240,6 +240,7 @@ HISTORY_COLUMNS = (
     "measured_radius_mm",
     "target_radius_mm",
     "verdict",
+    "flipped",
 )
 
 
@@ -257,6 +258,7 @@ def export_row(row: Inspection) -> tuple:
         row.radius_mm,
         row.target_radius_mm,
         row.verdict,
+        bool(row.process.get("flipped", False)),
     )
 
 

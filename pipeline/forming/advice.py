@@ -52,7 +52,7 @@ import numpy as np
 from scipy import optimize, stats
 
 from ..formats import InputError, PipelineError
-from . import bender
+from . import bender, reverse
 from .learning import Fit, Prediction, Priors, fit, inspection_variance, measured_curvature
 from .records import FormingTarget, Machine, PlateRecord
 
@@ -81,12 +81,16 @@ class AimSettings:
     min_rows : int
         Inspected states of the plate, its group (same machine, grade, thickness) and its machine below
         which the advice says it has little data.
+    reverse_open_probability : float
+        Allowed probability that a reverse pass opens the plate beyond ``target - over_band * band`` (it
+        then needs one more bending pass, not a reverse or the scrap heap: a milder risk).
     """
 
     over_probability: float = 0.005
     over_band: float = 0.8
     first_pass_quantile: float = 0.01
     min_rows: int = 3
+    reverse_open_probability: float = 0.05
 
     def __post_init__(self) -> None:
         if not 0 < self.over_probability < 0.5:
@@ -96,6 +100,11 @@ class AimSettings:
         if not 0 < self.first_pass_quantile < 0.5:
             raise ValueError(
                 f"first_pass_quantile: expected a number in (0, 0.5), got {self.first_pass_quantile!r}"
+            )
+        if not 0 < self.reverse_open_probability < 0.5:
+            raise ValueError(
+                "reverse_open_probability: expected a number in (0, 0.5), "
+                f"got {self.reverse_open_probability!r}"
             )
         if not 0 < self.over_band <= 1:
             raise ValueError(f"over_band: expected a number in (0, 1], got {self.over_band!r}")
@@ -359,13 +368,28 @@ def advise(
         "measured_radius_mm": plate.passes[-1].measured_radius_mm if plate.passes else None,
     }
     decided = state_action(plate)
-    if decided is not None:
+    if decided is not None and decided[0] == "done":
         basis["reason"] = decided[1]
+        basis["warnings"] = _inspection_warnings(plate, priors)
         return Advice(decided[0], machine_id, None, None, None, basis)
 
     others = _history_for(plate, machine_id, history, priors.max_plates)
     known = [h for h in others if all(q.machine_id in machines for q in h.passes)]
-    fitted = fit([plate, *known], machines, priors, also_machines=[machine_id])
+    fitted = fit(
+        [plate.forward, *(h.forward for h in known)], machines, priors, also_machines=[machine_id]
+    )
+    if decided is not None or any(q.flipped for q in plate.passes):
+        basis.update(_data_basis(plate, known, machine_id, fitted, settings))
+        basis["reason"] = decided[1] if decided else "the latest inspection is under-bent"
+        return _reverse_advice(
+            "reverse" if decided else "bend",
+            plate,
+            known,
+            fitted,
+            machines[machine_id],
+            settings,
+            basis,
+        )
     aimed = aim(fitted, plate, machines[machine_id], settings)
     pred = aimed["prediction"]
     k_lo, k_hi = pred.quantile(0.025), pred.quantile(0.975)
@@ -491,3 +515,64 @@ def _inspection_warnings(plate: PlateRecord, priors: Priors) -> list[str]:
             "weighs it as no better than a measurement at the capability limit"
         )
     return out
+
+
+def _reverse_advice(
+    action: Literal["bend", "reverse"],
+    plate: PlateRecord,
+    known: Sequence[PlateRecord],
+    fitted: Fit,
+    machine: Machine,
+    settings: AimSettings,
+    basis: dict[str, Any],
+) -> Advice:
+    """A reverse pass for an over-bent plate, or a bending pass after one (:mod:`.reverse`)."""
+    target = plate.target
+    kt, band = target_curvature(target), curvature_band(target)
+    d_max = bender.max_displacement_mm(machine, target.material.thickness_mm)
+    beta = reverse.reverse_factor(fitted, [*known, plate], machine, own=plate.plate_id)
+    flipped = action == "reverse"
+    try:
+        predictor = reverse.Predictor(fitted, plate, machine, beta)
+    except reverse.ReversalError as err:
+        basis["warnings"].append(f"no setting: {err}; roll it by hand and inspect")
+        return Advice(action, machine.machine_id, None, None, None, basis)
+    if flipped:
+        d = reverse.aim_reverse(
+            predictor, kt, kt - settings.over_band * band, settings.reverse_open_probability, d_max
+        )
+    else:
+        d = reverse.aim_after_reverse(
+            predictor, kt, kt + settings.over_band * band, settings.over_probability, d_max
+        )
+    ks = predictor.samples(d, flipped=flipped)
+    k_mid, k_lo, k_hi = (float(np.quantile(ks, p)) for p in (0.5, 0.025, 0.975))
+    learned = (
+        f"the reverse factor learned from {beta.passes} reverse passes of the yard"
+        if beta.passes
+        else "the model with a wide margin: no reverse pass in the history (reverse factor "
+        f"{beta.mean:g} +- {beta.sd:g}, the Bauschinger effect unknown)"
+    )
+    basis["reverse"] = {
+        "flipped": flipped,
+        "rests_on": learned,
+        "reverse_factor": {"mean": beta.mean, "sd": beta.sd, "reverse_passes": beta.passes},
+        "probability_over_band": float(np.mean(ks > kt + band)),
+        "probability_open_beyond_band": float(np.mean(ks < kt - band)),
+        "open_probability": settings.reverse_open_probability,
+    }
+    if flipped:
+        basis["reason"] += (
+            f": turn the plate over and roll it with the top roll at {d:.1f} mm "
+            "(from touching a flat plate; negative: above that point)"
+        )
+    else:
+        basis["warnings"].append("bending after a reverse pass: the advice rests on " + learned)
+    return Advice(
+        action,
+        machine.machine_id,
+        d,
+        _surface_radius(target, k_mid),
+        (_surface_radius(target, k_hi), _surface_radius(target, k_lo)),
+        basis,
+    )

@@ -233,7 +233,17 @@ def test_advice_nominal_bend_done_reverse(client, machine):
     put_target(client, "P-B")
     inspected_pass(client, "P-B", 140.0, 4500.0, "fail")  # over-bent
     over = client.get("/api/v1/plates/P-B/advice").json()
-    assert over["action"] == "reverse" and over["top_roll_displacement_mm"] is None
+    assert over["action"] == "reverse" and over["top_roll_displacement_mm"] is not None
+    assert 4500.0 < over["expected_radius_mm"] < 5100.0 and over["basis"]["reverse"]["flipped"]
+    # the reverse pass, flipped (its displacement may be negative), and the advice after it
+    inspected_pass(client, "P-B", over["top_roll_displacement_mm"], 4800.0, "fail", flipped=True)
+    passes = client.get("/api/v1/plates/P-B/inspections").json()
+    assert any((i.get("process") or {}).get("flipped") is True for i in passes["items"])
+    again = client.get("/api/v1/plates/P-B/advice").json()
+    assert (
+        again["action"] == "reverse"
+        and again["basis"]["reverse"]["reverse_factor"]["reverse_passes"] == 1
+    )
 
     put_target(client, "P-C")  # a new plate: P-A's passes are its history on this machine
     third = client.get("/api/v1/plates/P-C/advice", params={"machine_id": "R3-01"}).json()

@@ -124,8 +124,15 @@ def test_over_bent_on_purpose_is_told_reverse():
     deep = rolled(plate, 130.0, factor=1.2, compliance=1.0)
     assert deep.passes[-1].measured_radius_mm < 4000.0  # over-bent far beyond the band
     advice = advise(deep, MACHINES)
-    assert advice.action == "reverse" and advice.top_roll_displacement_mm is None
-    assert "tighter" in advice.basis["reason"]
+    assert advice.action == "reverse" and advice.top_roll_displacement_mm is not None
+    assert "tighter" in advice.basis["reason"] and "turn the plate over" in advice.basis["reason"]
+    # a reverse pass opens the plate: its expected radius lies between the measured one and the
+    # target's open side, and the margin is wide without reverse passes in the history
+    lo, hi = advice.expected_radius_range_mm
+    assert deep.passes[-1].measured_radius_mm < advice.expected_radius_mm <= 5000.0 * 1.01
+    assert lo < advice.expected_radius_mm < hi
+    assert advice.basis["reverse"]["reverse_factor"]["reverse_passes"] == 0
+    assert advice.basis["reverse"]["probability_open_beyond_band"] <= 0.05 + 0.01
     # without a verdict the measured radius decides
     assert (
         advise(rolled(plate, 130.0, factor=1.2, compliance=1.0, verdict=False), MACHINES).action
