@@ -44,7 +44,7 @@ the gain's 2 % alone spreads it over several bands.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any, Literal
 
@@ -53,7 +53,15 @@ from scipy import optimize, stats
 
 from ..formats import InputError, PipelineError
 from . import bender, reverse
-from .learning import Fit, Prediction, Priors, fit, inspection_variance, measured_curvature
+from .learning import (
+    Fit,
+    Prediction,
+    Priors,
+    fit,
+    inspection_variance,
+    latest_state,
+    measured_curvature,
+)
 from .records import FormingTarget, Machine, PlateRecord
 
 Action = Literal["bend", "done", "reverse"]
@@ -81,6 +89,10 @@ class AimSettings:
     min_rows : int
         Inspected states of the plate, its group (same machine, grade, thickness) and its machine below
         which the advice says it has little data.
+    two_pass_fraction : float
+        When one pass would land within the band with less than even odds, its spread mostly the
+        model's parameters (which a shorter step shrinks), the approach takes two passes, the first
+        to this fraction of the remaining bend (:func:`_two_pass`).
     reverse_open_probability : float
         Allowed probability that a reverse pass opens the plate beyond ``target - over_band * band`` (it
         then needs one more bending pass, not a reverse or the scrap heap: a milder risk).
@@ -91,6 +103,7 @@ class AimSettings:
     first_pass_quantile: float = 0.01
     min_rows: int = 3
     reverse_open_probability: float = 0.05
+    two_pass_fraction: float = 0.6
 
     def __post_init__(self) -> None:
         if not 0 < self.over_probability < 0.5:
@@ -105,6 +118,10 @@ class AimSettings:
             raise ValueError(
                 "reverse_open_probability: expected a number in (0, 0.5), "
                 f"got {self.reverse_open_probability!r}"
+            )
+        if not 0 < self.two_pass_fraction < 1:
+            raise ValueError(
+                f"two_pass_fraction: expected a number in (0, 1), got {self.two_pass_fraction!r}"
             )
         if not 0 < self.over_band <= 1:
             raise ValueError(f"over_band: expected a number in (0, 1], got {self.over_band!r}")
@@ -261,6 +278,9 @@ def aim(
                 f"setting ({d_max:.1f} mm)"
             )
         d_lo = optimize.brentq(lambda d: predict(d).loaded_curvature - peak, 1e-3, d_max, xtol=1e-4)
+    stalled = _stalled(fitted, plate, machine.machine_id)
+    if stalled is not None:  # never again a setting shown not to move the plate
+        d_lo = min(max(d_lo, stalled + fitted.scatter_mm), d_max)
     if predict_safe(d_max).quantile(p_hi) < limit and predict(d_max).mean < kt:
         raise FormingError(
             f"radius {target.radius_mm:g} mm needs more than {machine.machine_id}'s deepest setting "
@@ -280,12 +300,15 @@ def aim(
         elif g(d_max) > 0:
             candidates.append(optimize.brentq(g, d_lo, d_max, xtol=1e-3))
     d = min(candidates)
-    if safe(d_lo) >= 0:
-        warnings.append(
-            "too uncertain to bend further safely: the advice repeats the deepest setting so far; "
-            "inspect again"
-        )
+    blocked = safe(d_lo) >= 0
+    split = None if blocked else _two_pass(plate, predict, d_lo, d, settings)
+    if split is not None:
+        d = split[0]
+        warnings.append(split[1])
+    if blocked:
+        warnings.append(_scatter_fills_band(stalled, d, predict_safe(d), limit, settings))
     return {
+        "blocked": blocked,
         "displacement_mm": float(d),
         "prediction": predict(d),
         "safe_prediction": predict_safe(d),
@@ -391,6 +414,11 @@ def advise(
             basis,
         )
     aimed = aim(fitted, plate, machines[machine_id], settings)
+    if aimed["blocked"]:
+        basis.update(_data_basis(plate, known, machine_id, fitted, settings))
+        basis["warnings"] += aimed["warnings"]
+        basis["reason"] = "the latest inspection is under-bent, and no setting moves it safely"
+        return Advice("bend", machine_id, None, None, None, basis)
     pred = aimed["prediction"]
     k_lo, k_hi = pred.quantile(0.025), pred.quantile(0.975)
     basis.update(_data_basis(plate, known, machine_id, fitted, settings))
@@ -575,4 +603,73 @@ def _reverse_advice(
         _surface_radius(target, k_mid),
         (_surface_radius(target, k_hi), _surface_radius(target, k_lo)),
         basis,
+    )
+
+
+def _two_pass(
+    plate: PlateRecord,
+    predict: Callable[[float], Prediction],
+    d_lo: float,
+    d: float,
+    settings: AimSettings,
+) -> tuple[float, str] | None:
+    """The first of two passes, ``(displacement_mm, words)``, when the spread fills the band; else None.
+
+    The rule applies to a plate with an inspected shape whose next pass at ``d`` lands within the band
+    with less than even odds while the passes' scatter is under half its sd: the rest is the
+    parameters' share, propagated through the increment, which a shorter step shrinks. The first pass
+    is then aimed (median) at ``two_pass_fraction`` of the remaining bend; the second starts from its
+    inspection. When the scatter itself fills the band a shorter step does not help, and the rule does
+    not apply.
+    """
+    if not plate.passes or plate.passes[-1].measured_radius_mm is None:
+        return None
+    target = plate.target
+    kt, band = target_curvature(target), curvature_band(target)
+    pred = predict(d)
+    p_in = pred.probability_above(kt - band) - pred.probability_above(kt + band)
+    if p_in >= 0.5 or pred.scatter_sd >= 0.5 * pred.sd:
+        return None
+    k_now = measured_curvature(plate, plate.passes[-1].measured_radius_mm)
+    goal = k_now + settings.two_pass_fraction * (kt - k_now)
+    if goal <= k_now or predict(d_lo).mean >= goal or predict(d).mean <= goal:
+        return None
+    d_first = float(optimize.brentq(lambda x: predict(x).mean - goal, d_lo, d, xtol=1e-3))
+    words = (
+        f"the predicted spread fills the tolerance band (one pass would land within it with "
+        f"{p_in:.0%}): approach in two passes, this one to {settings.two_pass_fraction:.0%} of the "
+        "remaining bend, the next from its inspection"
+    )
+    return d_first, words
+
+
+def _stalled(fitted: Fit, plate: PlateRecord, machine_id: str) -> float | None:
+    """The deepest setting on ``machine_id`` shown not to move the plate: of the passes after the one
+    that made its latest inspected shape (:func:`.learning.plate_states`); None when there are none."""
+    state = latest_state(plate, fitted.curvatures(plate)[0], fitted.priors)
+    if state is None:
+        return None
+    stalled = [
+        q.top_roll_displacement_mm
+        for q in plate.passes[state.peak_pass + 1 :]
+        if q.machine_id == machine_id and not q.flipped
+    ]
+    return max(stalled, default=None)
+
+
+def _scatter_fills_band(
+    stalled: float | None, d: float, safe: Prediction, limit: float, settings: AimSettings
+) -> str:
+    """The words for a plate whose least move already risks over-bending beyond the aim's level."""
+    shown = (
+        ""
+        if stalled is None
+        else f"the pass at {stalled:.2f} mm did not move the plate, and the next setting beyond it "
+    )
+    return (
+        f"no setting: the pass's scatter fills the tolerance band; {shown or 'even the deepest '}"
+        f"{'' if shown else 'setting so far, repeated, '}would end past {settings.over_band:g} of "
+        f"the band with {safe.probability_above(limit):.1%} (allowed: "
+        f"{settings.over_probability:.1%}). Accept the plate as it is or roll it on a machine that "
+        "repeats its setting more closely"
     )

@@ -109,7 +109,7 @@ class Priors:
     compliance_floor_mm_per_mn: float = 0.0
     gain_sd: float = 0.02
     scatter_mm: float = 0.1
-    scatter_weight: float = 4.0
+    scatter_weight: float = 2.0
     radius_noise: float = 5e-4
     sagitta_noise_mm: float = 0.1
     max_plates: int = 40
@@ -152,12 +152,16 @@ class Prediction:
         Location and scale of the curvature after springback, 1/mm.
     dof : float
         Degrees of freedom.
+    scatter_sd : float
+        The share of ``sd`` from the passes' displacement scatter (the new pass's and the old peak's),
+        1/mm: the part a shorter step does not shrink.
     """
 
     loaded_curvature: float
     mean: float
     sd: float
     dof: float
+    scatter_sd: float = 0.0
 
     def quantile(self, p: float) -> float:
         return float(self.mean + self.sd * stats.t.ppf(p, self.dof))
@@ -320,7 +324,7 @@ class Fit:
             (var_scatter, self.scatter_dof),
             (var_par, np.inf if own else self.spread_dof),
         )
-        return Prediction(k_loaded, mean, float(np.sqrt(var)), dof)
+        return Prediction(k_loaded, mean, float(np.sqrt(var)), dof, float(np.sqrt(var_scatter)))
 
     def _peak_error(
         self, plate: PlateRecord, theta: np.ndarray, anchor: State
