@@ -201,10 +201,10 @@ def stress_plates(kind: str, n: int, seed: int) -> list:
 def stress(args) -> None:
     """Every stress case over the seeds, with and without learning: one table."""
     print(
-        "| case | advice | plates | over-bent | not done | most passes | mean passes | "
-        "mean after each batch's first | worst batch | s |"
+        "| case | advice | plates | over-bent | expected over-bent | not done | most passes "
+        "| mean passes | mean after each batch's first | worst batch | s |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for name, (over, kind) in STRESS.items():
         if args.cases and not any(c in name for c in args.cases):
             continue
@@ -226,12 +226,23 @@ def stress(args) -> None:
             every = np.concatenate([[p.passes for p in o] for o in outs])
             print(
                 f"| {name} | {mode} | {len(every)} | {sum(s['over_bent'] for s in sums)} "
+                f"| {sum(expected_over(p) for o in outs for p in o):.2f} "
                 f"| {sum(s['plates'] - s['done'] for s in sums)} | {int(every.max())} "
                 f"| {every.mean():.2f} | {after.mean():.2f} "
                 f"| {max(s['mean_passes_after_first'] for s in sums):.2f} "
                 f"| {time.perf_counter() - t0:.0f} |",
                 flush=True,
             )
+
+
+def expected_over(outcome) -> float:
+    """The plate's expected over-bendings by the advice's own risk: the sum over its bending passes
+    of the probability the advice gave of ending past the band's tight edge."""
+    return sum(
+        a["basis"].get("aim", {}).get("probability_over_band") or 0.0
+        for a in outcome.advice
+        if a["action"] == "bend" and a["top_roll_displacement_mm"] is not None
+    )
 
 
 def batch(n: int, seed: int, *, one_heat: bool) -> list:

@@ -682,7 +682,12 @@ def fit(
     for round_ in range(_ROUNDS):
         ku = curvatures(theta)[2]
         g = (curvatures(theta, _H_D)[2] - ku)[state_pass] / _H_D
-        sd_row = np.sqrt(meas_var + (g * scatter) ** 2)
+        # the last round weighs the rows with the scatter's posterior mean variance, nu s^2 / (nu - 2)
+        # (nu its degrees of freedom, at least 3): with few rows the parameters' covariance carries
+        # the doubt about the scatter it was weighed with
+        nu = max(priors.scatter_weight + dof_rows, 3.0)
+        inflate = nu / (nu - 2.0) if round_ == _ROUNDS - 1 else 1.0
+        sd_row = np.sqrt(meas_var + inflate * (g * scatter) ** 2)
         theta, cov = _solve_round(
             curvatures,
             theta,
