@@ -89,6 +89,12 @@ class AimSettings:
     min_rows : int
         Inspected states of the plate, its group (same machine, grade, thickness) and its machine below
         which the advice says it has little data.
+    verdict_band : float
+        The share of the band the inspection's verdict passes (0.95 on ray-cast cylinders): a plate
+        past ``target + verdict_band * band`` is over-bent. A plate whose least move (a repeat of the
+        deepest setting, or the next beyond one shown not to move it) is past the aim's margin
+        (``over_band``) is given it while its risk of ending past this edge is within
+        ``over_probability``; else the advice gives no setting.
     two_pass_fraction : float
         When one pass would land within the band with less than even odds, its spread mostly the
         model's parameters (which a shorter step shrinks), the approach takes two passes, the first
@@ -104,6 +110,7 @@ class AimSettings:
     min_rows: int = 3
     reverse_open_probability: float = 0.05
     two_pass_fraction: float = 0.6
+    verdict_band: float = 0.95
 
     def __post_init__(self) -> None:
         if not 0 < self.over_probability < 0.5:
@@ -122,6 +129,10 @@ class AimSettings:
         if not 0 < self.two_pass_fraction < 1:
             raise ValueError(
                 f"two_pass_fraction: expected a number in (0, 1), got {self.two_pass_fraction!r}"
+            )
+        if not self.over_band <= self.verdict_band <= 1:
+            raise ValueError(
+                f"verdict_band: expected a number in [over_band, 1], got {self.verdict_band!r}"
             )
         if not 0 < self.over_band <= 1:
             raise ValueError(f"over_band: expected a number in (0, 1], got {self.over_band!r}")
@@ -300,13 +311,19 @@ def aim(
         elif g(d_max) > 0:
             candidates.append(optimize.brentq(g, d_lo, d_max, xtol=1e-3))
     d = min(candidates)
-    blocked = safe(d_lo) >= 0
-    split = None if blocked else _two_pass(plate, predict, d_lo, d, settings)
+    # the least move already past the aim's margin: given when it keeps the risk of ending past the
+    # band as the inspection judges it within the allowed probability, else no setting
+    over_edge = kt + settings.verdict_band * band
+    least = safe(d_lo) >= 0
+    blocked = least and predict_safe(d_lo).probability_above(over_edge) > settings.over_probability
+    split = None if least else _two_pass(plate, predict, d_lo, d, settings)
     if split is not None:
         d = split[0]
         warnings.append(split[1])
-    if blocked:
-        warnings.append(_scatter_fills_band(stalled, d, predict_safe(d), limit, settings))
+    if least:
+        warnings.append(
+            _scatter_fills_band(stalled, d, predict_safe(d), over_edge, settings, given=not blocked)
+        )
     return {
         "blocked": blocked,
         "displacement_mm": float(d),
@@ -658,18 +675,32 @@ def _stalled(fitted: Fit, plate: PlateRecord, machine_id: str) -> float | None:
 
 
 def _scatter_fills_band(
-    stalled: float | None, d: float, safe: Prediction, limit: float, settings: AimSettings
+    stalled: float | None,
+    d: float,
+    safe: Prediction,
+    over_edge: float,
+    settings: AimSettings,
+    *,
+    given: bool,
 ) -> str:
-    """The words for a plate whose least move already risks over-bending beyond the aim's level."""
-    shown = (
-        ""
+    """The words for a plate whose least move is already past the aim's margin: given (its risk of
+    ending past the band's tight edge within the allowed level) or not."""
+    move = (
+        "the deepest setting so far, repeated,"
         if stalled is None
-        else f"the pass at {stalled:.2f} mm did not move the plate, and the next setting beyond it "
+        else f"the pass at {stalled:.2f} mm did not move the plate: the next setting, "
+        f"{d - stalled:.2f} mm beyond it,"
     )
+    risk = (
+        f"would end past the band with {safe.probability_above(over_edge):.2%} (allowed: "
+        f"{settings.over_probability:.1%})"
+    )
+    if given:
+        return (
+            f"the pass's scatter fills the tolerance band: {move} is the least move, and {risk}; "
+            "inspect again"
+        )
     return (
-        f"no setting: the pass's scatter fills the tolerance band; {shown or 'even the deepest '}"
-        f"{'' if shown else 'setting so far, repeated, '}would end past {settings.over_band:g} of "
-        f"the band with {safe.probability_above(limit):.1%} (allowed: "
-        f"{settings.over_probability:.1%}). Accept the plate as it is or roll it on a machine that "
-        "repeats its setting more closely"
+        f"no setting: the pass's scatter fills the tolerance band; {move} {risk}. Accept the plate as "
+        "it is or roll it on a machine that repeats its setting more closely"
     )

@@ -16,9 +16,12 @@ Data
 ----
 Each inspected pass gives the plate's mid-surface curvature. Passes that do not load the plate beyond an
 earlier one do not change it (the history rule), so inspections of one state are averaged into one row.
-A row's variance is the inspection's noise (relative radius noise and an absolute sagitta noise over the
-plate's width), divided by the inspections averaged, plus the pass's own scatter: a displacement scatter
+A row's variance is the inspection's noise, plus the pass's own scatter: a displacement scatter
 ``sigma_d`` (mm; repeatability of the roll, the plate's feed) times the row's sensitivity ``g = d k / d d``.
+The inspection's noise is its own reported radius uncertainty where it has one, else the model's
+constant (relative radius noise and an absolute sagitta noise over the plate's width), at least the
+capability limit's for an inspection not capable for the tolerance (:func:`inspection_variance`);
+inspections of one state are averaged with inverse-variance weights.
 
 Fit
 ---
@@ -30,7 +33,9 @@ variance estimates, each weighted with its prior as pseudo-observations::
     sigma_d^2 = (nu0 sigma0^2 + sum_rows max(r^2 - v_inspection, 0) / g^2) / (nu0 + n_rows - n_plates)
     tau^2     = (nu_t tau0^2 + sum_plates [(f_p - mu_g)^2 + var(f_p - mu_g)]) / (nu_t + n_plates)
 
-and the fit repeated (three rounds). Predictions use Student's t with the corresponding degrees of freedom
+and the fit repeated (three rounds). The last round weighs the rows with the scatter's posterior mean
+variance ``nu s^2 / (nu - 2)`` (``nu`` its degrees of freedom, at least 3), so that with few rows the
+parameters' covariance carries the doubt about the scatter it was weighed with. Predictions use Student's t with the corresponding degrees of freedom
 (:meth:`Fit.predict`): with little data the tails are wide, and the advice aims further to the safe side.
 
 A plate's next pass is predicted from its latest measured shape plus the model's increment to the new
@@ -92,9 +97,10 @@ class Priors:
     scatter_weight : float
         How many rows that guess is worth (``nu0``).
     radius_noise : float
-        The inspection's relative radius noise (sd).
+        The inspection's relative radius noise (sd), for an inspection that reports no uncertainty.
     sagitta_noise_mm : float
-        The inspection's absolute noise, as a sagitta over the plate's width (mm; ``k w^2 / 8``).
+        The inspection's absolute noise, as a sagitta over the plate's width (mm; ``k w^2 / 8``), for an
+        inspection that reports no uncertainty.
     max_plates : int
         Most recent plates of the machine a fit uses besides the plate itself.
     """
