@@ -444,15 +444,7 @@ def advise(
             f"{len(others) - len(known)} plates of the history left out: they passed through "
             "machines not given"
         )
-    basis["aim"] = {
-        "loaded_radius_mm": _surface_radius(target, pred.loaded_curvature),
-        "probability_over_band": aimed["safe_prediction"].probability_above(kt + band),
-        "probability_within_band": pred.probability_above(kt - band)
-        - pred.probability_above(kt + band),
-        "over_probability": settings.over_probability,
-        "over_band": settings.over_band,
-        "yield_factor_aimed": aimed["yield_factor"],
-    }
+    basis["aim"] = _aim_basis(target, aimed, settings)
     basis["warnings"] = basis["warnings"] + aimed["warnings"]
     basis["reason"] = "first pass" if not plate.passes else "the latest inspection is under-bent"
     return Advice(
@@ -463,6 +455,23 @@ def advise(
         (_surface_radius(target, k_hi), _surface_radius(target, k_lo)),
         basis,
     )
+
+
+def _aim_basis(
+    target: FormingTarget, aimed: dict[str, Any], settings: AimSettings
+) -> dict[str, Any]:
+    """The aim's part of the basis: loaded radius, the probabilities over and within the band."""
+    kt, band = target_curvature(target), curvature_band(target)
+    pred = aimed["prediction"]
+    return {
+        "loaded_radius_mm": _surface_radius(target, pred.loaded_curvature),
+        "probability_over_band": aimed["safe_prediction"].probability_above(kt + band),
+        "probability_within_band": pred.probability_above(kt - band)
+        - pred.probability_above(kt + band),
+        "over_probability": settings.over_probability,
+        "over_band": settings.over_band,
+        "yield_factor_aimed": aimed["yield_factor"],
+    }
 
 
 def _data_basis(
