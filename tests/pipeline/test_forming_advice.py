@@ -278,3 +278,30 @@ def test_two_passes_when_the_parameters_spread_fills_the_band():
     assert not any("approach in two passes" in w for w in second.basis["warnings"])
     plate = rolled(plate, second.top_roll_displacement_mm, factor=1.2, compliance=2.0)
     assert plate.passes[-1].verdict == "pass"
+
+
+def test_a_new_grade_after_two_plates_approaches_from_the_open_side():
+    # two plates of a new grade, both of high yield (1.45): the third's first pass is still aimed for
+    # a factor the grade's prior, its two plates and the plates' spread allow, and does not over-bend
+    # a plate of that grade whose yield is far lower (1.10) on a machine that gives more (4 mm/MN)
+    def new_grade(plate_id: str) -> PlateRecord:
+        return PlateRecord(
+            plate_id, FormingTarget(5000.0, 2.0, 3000.0, 4000.0, Material("EH40", 15.0, 390.0))
+        )
+
+    history = []
+    for plate_id in ("n1", "n2"):
+        plate = new_grade(plate_id)
+        for _ in range(4):
+            advice = advise(plate, MACHINES, machine_id="R3-01", history=history)
+            if advice.action != "bend":
+                break
+            plate = rolled(plate, advice.top_roll_displacement_mm, factor=1.45, compliance=2.0)
+        history.append(plate)
+    third = new_grade("n3")
+    advice = advise(third, MACHINES, machine_id="R3-01", history=history)
+    assert advice.basis["group_plates"] == 2 and advice.expected_radius_mm > 5000.0
+    for factor, compliance in ((1.10, 2.0), (1.10, 4.0), (1.45, 2.0)):
+        after = rolled(third, advice.top_roll_displacement_mm, factor=factor, compliance=compliance)
+        k = 1 / third.target.mid_radius_mm(after.passes[-1].measured_radius_mm)
+        assert k <= target_curvature(third.target) + 0.95 * curvature_band(third.target)
