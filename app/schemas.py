@@ -9,8 +9,11 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    SerializerFunctionWrapHandler,
     StringConstraints,
+    ValidationInfo,
     field_validator,
+    model_serializer,
     model_validator,
 )
 
@@ -95,9 +98,33 @@ class ProcessIn(BaseModel):
     machine_id: str = Field(
         min_length=1, max_length=MACHINE_ID_MAX_LENGTH, pattern=MACHINE_ID_REGEX
     )
-    top_roll_displacement_mm: float = Field(
-        gt=0, le=SIZE_MM[1], description="down from touching the flat plate"
+    flipped: bool = Field(
+        default=False,
+        description="a reverse pass: the plate turned over and rolled to open it (stored only when true)",
     )
+    top_roll_displacement_mm: float = Field(
+        ge=-SIZE_MM[1],
+        le=SIZE_MM[1],
+        description="down from touching the flat plate; a flipped pass may be negative (the top roll "
+        "stops above that point, pressing the flipped plate's arch flatter)",
+    )
+
+    @field_validator("top_roll_displacement_mm")
+    @classmethod
+    def _positive_unless_flipped(cls, value: float, info: ValidationInfo) -> float:
+        if value <= 0 and not info.data.get("flipped", False):
+            raise ValueError(
+                "expected more than 0 mm for a bending pass (only a flipped pass may be <= 0)"
+            )
+        return value
+
+    @model_serializer(mode="wrap")
+    def _without_default_flip(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        """A bending pass is stored as before: ``flipped`` only when true."""
+        data: dict[str, Any] = handler(self)
+        if not self.flipped:
+            data.pop("flipped", None)
+        return data
 
 
 class AdviceOut(BaseModel):

@@ -3,6 +3,7 @@
 Run from the project root:  .venv/bin/python benchmarks/bench_forming.py [--plates 20] [--seeds 0 1 2]
                             [--compliance 2.0] [--gain 1.0] [--scatter 0.1] [--yield-scatter 0]
                             [--hardening 1.0] [--batch] [--over-probability 0.005]
+       .venv/bin/python benchmarks/bench_forming.py --stress --seeds 0 1 ... 11   (issue 27's cases)
 
 Each seed draws a batch (``pipeline.forming.campaign.random_batch``: radii 3-15 m, thickness 10-30 mm,
 AH36/DH36, hidden yield 1.05-1.35 x nominal) and rolls it plate after plate on issue 14's machine against
@@ -82,7 +83,21 @@ def main():
         action="store_true",
         help="each seed one grade and thickness (20-30 mm), yields 1.15-1.25 x nominal (one heat)",
     )
+    ap.add_argument(
+        "--stress",
+        action="store_true",
+        help="issue 27's stress cases (STRESS) over the seeds, learning and alone: one summary table",
+    )
+    ap.add_argument(
+        "--cases",
+        nargs="+",
+        default=[],
+        help="with --stress: only the cases whose name has one of these",
+    )
     args = ap.parse_args()
+    if args.stress:
+        stress(args)
+        return
     physics = TruePhysics(
         compliance_mm_per_mn=args.compliance,
         displacement_gain=args.gain,
@@ -143,6 +158,91 @@ def main():
             f"{sum(s['plates'] - s['done'] for _, m, s, _ in rows if m == mode)}; mean after the "
             f"first plate {np.mean(after_first):.3f}, worst seed {max(after_first):.3f}"
         )
+
+
+#: The stress cases of issue 27 (``--stress``): name -> (physics overrides, plates).
+STRESS = {
+    "model": ({}, "mixed"),
+    "scatter 0.2 mm": ({"displacement_scatter_mm": 0.2}, "mixed"),
+    "work hardening 2 %": ({"hardening": 0.98}, "mixed"),
+    "geometry 3 % short": ({"displacement_gain": 0.97}, "mixed"),
+    "geometry 3 % long": ({"displacement_gain": 1.03}, "mixed"),
+    "batch yield 1.40-1.50": ({}, "high-yield"),
+    "new grade after 2 plates": ({}, "new-grade"),
+}
+
+
+def stress_plates(kind: str, n: int, seed: int) -> list:
+    """A stress case's plates: ``mixed`` (:func:`batch`), ``high-yield`` (one heat whose yield lies
+    1.40-1.50 x its nominal grade's, far above the prior's 1.17 +- 0.06), ``new-grade`` (the mixed
+    plates, then from the middle of the campaign a grade and thickness never seen, EH40, yield 1.25-1.45
+    x nominal: its third plate is advised after two)."""
+    rng = np.random.default_rng(seed)
+    if kind == "mixed":
+        return random_batch(n, rng)
+    if kind == "high-yield":
+        thickness = float(rng.choice([15.0, 20.0, 25.0]))
+        return random_batch(
+            n, rng, thicknesses_mm=[thickness], grades=[GRADES[0]], yield_factors=(1.40, 1.50)
+        )
+    old = random_batch(n // 2, rng)
+    thickness = float(rng.choice([12.0, 18.0, 22.0]))
+    new = random_batch(
+        n - n // 2,
+        rng,
+        thicknesses_mm=[thickness],
+        grades=[("EH40", 390.0)],
+        yield_factors=(1.25, 1.45),
+        prefix="N",
+    )
+    return old + new
+
+
+def stress(args) -> None:
+    """Every stress case over the seeds, with and without learning: one table."""
+    print(
+        "| case | advice | plates | over-bent | expected over-bent | not done | most passes "
+        "| mean passes | mean after each batch's first | worst batch | s |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for name, (over, kind) in STRESS.items():
+        if args.cases and not any(c in name for c in args.cases):
+            continue
+        physics = TruePhysics(**{"compliance_mm_per_mn": args.compliance, **over})
+        for mode in ("learning", "alone"):
+            t0, outs = time.perf_counter(), []
+            for seed in args.seeds:
+                outs.append(
+                    run_campaign(
+                        stress_plates(kind, args.plates, seed),
+                        MACHINE,
+                        physics,
+                        np.random.default_rng(seed + 100),
+                        learning=mode == "learning",
+                    )
+                )
+            sums = [summary(o) for o in outs]
+            after = np.concatenate([[p.passes for p in o[1:]] for o in outs])
+            every = np.concatenate([[p.passes for p in o] for o in outs])
+            print(
+                f"| {name} | {mode} | {len(every)} | {sum(s['over_bent'] for s in sums)} "
+                f"| {sum(expected_over(p) for o in outs for p in o):.2f} "
+                f"| {sum(s['plates'] - s['done'] for s in sums)} | {int(every.max())} "
+                f"| {every.mean():.2f} | {after.mean():.2f} "
+                f"| {max(s['mean_passes_after_first'] for s in sums):.2f} "
+                f"| {time.perf_counter() - t0:.0f} |",
+                flush=True,
+            )
+
+
+def expected_over(outcome) -> float:
+    """The plate's expected over-bendings by the advice's own risk: the sum over its bending passes
+    of the probability the advice gave of ending past the band's tight edge."""
+    return sum(
+        a["basis"].get("aim", {}).get("probability_over_band") or 0.0
+        for a in outcome.advice
+        if a["action"] == "bend" and a["top_roll_displacement_mm"] is not None
+    )
 
 
 def batch(n: int, seed: int, *, one_heat: bool) -> list:

@@ -132,10 +132,14 @@ def roll_pass(row: Inspection) -> forming.RollPass:
     """A done inspection with a process as the pass and the measurement after it.
 
     A done inspection without a radius (nothing curved was measured) counts as a flat plate (``inf``).
+    The stored result document gives the radius's uncertainty and whether the inspection is capable
+    for the tolerance (:func:`pipeline.forming.records.inspection_quality`); older results have neither.
     """
     verdict = row.verdict if row.verdict in VERDICTS else None
     radius = math.inf if row.radius_mm is None else row.radius_mm
-    return forming.RollPass.from_dict(row.process, measured_radius_mm=radius, verdict=verdict)
+    return forming.RollPass.from_dict(
+        row.process, measured_radius_mm=radius, verdict=verdict, result=row.result
+    )
 
 
 def plate_passes(*, session: Session, plate_id: str) -> list[Inspection]:
@@ -236,6 +240,7 @@ HISTORY_COLUMNS = (
     "measured_radius_mm",
     "target_radius_mm",
     "verdict",
+    "flipped",
 )
 
 
@@ -253,6 +258,7 @@ def export_row(row: Inspection) -> tuple:
         row.radius_mm,
         row.target_radius_mm,
         row.verdict,
+        bool(row.process.get("flipped", False)),
     )
 
 

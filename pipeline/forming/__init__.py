@@ -2,7 +2,8 @@
 
 Modules, one job each: :mod:`.records` (inputs), :mod:`.bender` (geometry), :mod:`.springback`
 (Gardiner, history rule), :mod:`.rolling` (one pass: compliance and springback), :mod:`.learning`
-(parameters fitted to the history), :mod:`.advice` (done / reverse / bend and the aim),
+(parameters fitted to the history), :mod:`.reverse` (reverse passes: Masing's rule), :mod:`.advice`
+(done / reverse / bend and the aim),
 :mod:`.campaign` (a simulated campaign). See docs/forming.md.
 """
 

@@ -44,7 +44,7 @@ the gain's 2 % alone spreads it over several bands.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any, Literal
 
@@ -52,8 +52,16 @@ import numpy as np
 from scipy import optimize, stats
 
 from ..formats import InputError, PipelineError
-from . import bender
-from .learning import Fit, Prediction, Priors, fit, measured_curvature
+from . import bender, reverse
+from .learning import (
+    Fit,
+    Prediction,
+    Priors,
+    fit,
+    inspection_variance,
+    latest_state,
+    measured_curvature,
+)
 from .records import FormingTarget, Machine, PlateRecord
 
 Action = Literal["bend", "done", "reverse"]
@@ -81,12 +89,28 @@ class AimSettings:
     min_rows : int
         Inspected states of the plate, its group (same machine, grade, thickness) and its machine below
         which the advice says it has little data.
+    verdict_band : float
+        The share of the band the inspection's verdict passes (0.95 on ray-cast cylinders): a plate
+        past ``target + verdict_band * band`` is over-bent. A plate whose least move (a repeat of the
+        deepest setting, or the next beyond one shown not to move it) is past the aim's margin
+        (``over_band``) is given it while its risk of ending past this edge is within
+        ``over_probability``; else the advice gives no setting.
+    two_pass_fraction : float
+        When one pass would land within the band with less than even odds, its spread mostly the
+        model's parameters (which a shorter step shrinks), the approach takes two passes, the first
+        to this fraction of the remaining bend (:func:`_two_pass`).
+    reverse_open_probability : float
+        Allowed probability that a reverse pass opens the plate beyond ``target - over_band * band`` (it
+        then needs one more bending pass, not a reverse or the scrap heap: a milder risk).
     """
 
     over_probability: float = 0.005
     over_band: float = 0.8
     first_pass_quantile: float = 0.01
     min_rows: int = 3
+    reverse_open_probability: float = 0.05
+    two_pass_fraction: float = 0.6
+    verdict_band: float = 0.95
 
     def __post_init__(self) -> None:
         if not 0 < self.over_probability < 0.5:
@@ -96,6 +120,19 @@ class AimSettings:
         if not 0 < self.first_pass_quantile < 0.5:
             raise ValueError(
                 f"first_pass_quantile: expected a number in (0, 0.5), got {self.first_pass_quantile!r}"
+            )
+        if not 0 < self.reverse_open_probability < 0.5:
+            raise ValueError(
+                "reverse_open_probability: expected a number in (0, 0.5), "
+                f"got {self.reverse_open_probability!r}"
+            )
+        if not 0 < self.two_pass_fraction < 1:
+            raise ValueError(
+                f"two_pass_fraction: expected a number in (0, 1), got {self.two_pass_fraction!r}"
+            )
+        if not self.over_band <= self.verdict_band <= 1:
+            raise ValueError(
+                f"verdict_band: expected a number in [over_band, 1], got {self.verdict_band!r}"
             )
         if not 0 < self.over_band <= 1:
             raise ValueError(f"over_band: expected a number in (0, 1], got {self.over_band!r}")
@@ -252,6 +289,9 @@ def aim(
                 f"setting ({d_max:.1f} mm)"
             )
         d_lo = optimize.brentq(lambda d: predict(d).loaded_curvature - peak, 1e-3, d_max, xtol=1e-4)
+    stalled = _stalled(fitted, plate, machine.machine_id)
+    if stalled is not None:  # never again a setting shown not to move the plate
+        d_lo = min(max(d_lo, stalled + fitted.scatter_mm), d_max)
     if predict_safe(d_max).quantile(p_hi) < limit and predict(d_max).mean < kt:
         raise FormingError(
             f"radius {target.radius_mm:g} mm needs more than {machine.machine_id}'s deepest setting "
@@ -271,12 +311,21 @@ def aim(
         elif g(d_max) > 0:
             candidates.append(optimize.brentq(g, d_lo, d_max, xtol=1e-3))
     d = min(candidates)
-    if safe(d_lo) >= 0:
+    # the least move already past the aim's margin: given when it keeps the risk of ending past the
+    # band as the inspection judges it within the allowed probability, else no setting
+    over_edge = kt + settings.verdict_band * band
+    least = safe(d_lo) >= 0
+    blocked = least and predict_safe(d_lo).probability_above(over_edge) > settings.over_probability
+    split = None if least else _two_pass(plate, predict, d_lo, d, settings)
+    if split is not None:
+        d = split[0]
+        warnings.append(split[1])
+    if least:
         warnings.append(
-            "too uncertain to bend further safely: the advice repeats the deepest setting so far; "
-            "inspect again"
+            _scatter_fills_band(stalled, d, predict_safe(d), over_edge, settings, given=not blocked)
         )
     return {
+        "blocked": blocked,
         "displacement_mm": float(d),
         "prediction": predict(d),
         "safe_prediction": predict_safe(d),
@@ -359,14 +408,34 @@ def advise(
         "measured_radius_mm": plate.passes[-1].measured_radius_mm if plate.passes else None,
     }
     decided = state_action(plate)
-    if decided is not None:
+    if decided is not None and decided[0] == "done":
         basis["reason"] = decided[1]
+        basis["warnings"] = _inspection_warnings(plate, priors)
         return Advice(decided[0], machine_id, None, None, None, basis)
 
     others = _history_for(plate, machine_id, history, priors.max_plates)
     known = [h for h in others if all(q.machine_id in machines for q in h.passes)]
-    fitted = fit([plate, *known], machines, priors, also_machines=[machine_id])
+    fitted = fit(
+        [plate.forward, *(h.forward for h in known)], machines, priors, also_machines=[machine_id]
+    )
+    if decided is not None or any(q.flipped for q in plate.passes):
+        basis.update(_data_basis(plate, known, machine_id, fitted, settings))
+        basis["reason"] = decided[1] if decided else "the latest inspection is under-bent"
+        return _reverse_advice(
+            "reverse" if decided else "bend",
+            plate,
+            known,
+            fitted,
+            machines[machine_id],
+            settings,
+            basis,
+        )
     aimed = aim(fitted, plate, machines[machine_id], settings)
+    if aimed["blocked"]:
+        basis.update(_data_basis(plate, known, machine_id, fitted, settings))
+        basis["warnings"] += aimed["warnings"]
+        basis["reason"] = "the latest inspection is under-bent, and no setting moves it safely"
+        return Advice("bend", machine_id, None, None, None, basis)
     pred = aimed["prediction"]
     k_lo, k_hi = pred.quantile(0.025), pred.quantile(0.975)
     basis.update(_data_basis(plate, known, machine_id, fitted, settings))
@@ -375,15 +444,7 @@ def advise(
             f"{len(others) - len(known)} plates of the history left out: they passed through "
             "machines not given"
         )
-    basis["aim"] = {
-        "loaded_radius_mm": _surface_radius(target, pred.loaded_curvature),
-        "probability_over_band": aimed["safe_prediction"].probability_above(kt + band),
-        "probability_within_band": pred.probability_above(kt - band)
-        - pred.probability_above(kt + band),
-        "over_probability": settings.over_probability,
-        "over_band": settings.over_band,
-        "yield_factor_aimed": aimed["yield_factor"],
-    }
+    basis["aim"] = _aim_basis(target, aimed, settings)
     basis["warnings"] = basis["warnings"] + aimed["warnings"]
     basis["reason"] = "first pass" if not plate.passes else "the latest inspection is under-bent"
     return Advice(
@@ -394,6 +455,23 @@ def advise(
         (_surface_radius(target, k_hi), _surface_radius(target, k_lo)),
         basis,
     )
+
+
+def _aim_basis(
+    target: FormingTarget, aimed: dict[str, Any], settings: AimSettings
+) -> dict[str, Any]:
+    """The aim's part of the basis: loaded radius, the probabilities over and within the band."""
+    kt, band = target_curvature(target), curvature_band(target)
+    pred = aimed["prediction"]
+    return {
+        "loaded_radius_mm": _surface_radius(target, pred.loaded_curvature),
+        "probability_over_band": aimed["safe_prediction"].probability_above(kt + band),
+        "probability_within_band": pred.probability_above(kt - band)
+        - pred.probability_above(kt + band),
+        "over_probability": settings.over_probability,
+        "over_band": settings.over_band,
+        "yield_factor_aimed": aimed["yield_factor"],
+    }
 
 
 def _data_basis(
@@ -431,6 +509,7 @@ def _data_basis(
         data = "this plate's passes" + (" and history of this machine" if machine_rows else "")
         if machine_rows == 0 and own < settings.min_rows:
             warnings.append("no history of this machine: its compliance and gain are the prior's")
+    warnings.extend(_inspection_warnings(plate, fitted.priors))
     c, c_sd = fitted.parameter("machine", machine_id)
     gain, gain_sd = fitted.parameter("gain", machine_id)
     f, f_sd = fitted.parameter("plate", plate.plate_id)
@@ -443,6 +522,7 @@ def _data_basis(
         "group_passes_inspected": group_rows,
         "machine_plates": len(others),
         "machine_passes_inspected": machine_rows,
+        "inspections": _inspections_basis(plate, fitted.priors),
         "parameters": {
             "yield_factor": {"mean": f, "sd": f_sd},
             "group_yield_factor": {"mean": g, "sd": g_sd, "plate_spread": fitted.plate_spread},
@@ -452,3 +532,184 @@ def _data_basis(
         },
         "warnings": warnings,
     }
+
+
+def _inspections_basis(plate: PlateRecord, priors: Priors) -> list[dict[str, Any]]:
+    """Each inspected pass of the plate as the fit takes it: the radius, its standard uncertainty
+    (reported, or None: the model's constant), whether capable, and the curvature sd it enters with."""
+    out = []
+    for j, q in enumerate(plate.passes):
+        if q.measured_radius_mm is None:
+            continue
+        out.append(
+            {
+                "pass": j,
+                "measured_radius_mm": q.measured_radius_mm,
+                "radius_uncertainty_mm": q.radius_uncertainty_mm,
+                "capable": q.capable,
+                "curvature_sd_per_mm": math.sqrt(inspection_variance(plate, j, priors)),
+            }
+        )
+    return out
+
+
+def _inspection_warnings(plate: PlateRecord, priors: Priors) -> list[str]:
+    """One warning per inspection of the plate that is not capable for its tolerance."""
+    out = []
+    for j, q in enumerate(plate.passes):
+        if q.measured_radius_mm is None or q.capable:
+            continue
+        u = (
+            "no uncertainty reported"
+            if q.radius_uncertainty_mm is None
+            else (f"radius uncertainty {2 * q.radius_uncertainty_mm:.1f} mm (k=2)")
+        )
+        out.append(
+            f"the inspection after pass {j + 1} is not capable for the tolerance ({u}): the advice "
+            "weighs it as no better than a measurement at the capability limit"
+        )
+    return out
+
+
+def _reverse_advice(
+    action: Literal["bend", "reverse"],
+    plate: PlateRecord,
+    known: Sequence[PlateRecord],
+    fitted: Fit,
+    machine: Machine,
+    settings: AimSettings,
+    basis: dict[str, Any],
+) -> Advice:
+    """A reverse pass for an over-bent plate, or a bending pass after one (:mod:`.reverse`)."""
+    target = plate.target
+    kt, band = target_curvature(target), curvature_band(target)
+    d_max = bender.max_displacement_mm(machine, target.material.thickness_mm)
+    beta = reverse.reverse_factor(fitted, [*known, plate], machine, own=plate.plate_id)
+    flipped = action == "reverse"
+    try:
+        predictor = reverse.Predictor(fitted, plate, machine, beta)
+    except reverse.ReversalError as err:
+        basis["warnings"].append(f"no setting: {err}; roll it by hand and inspect")
+        return Advice(action, machine.machine_id, None, None, None, basis)
+    if flipped:
+        d = reverse.aim_reverse(
+            predictor, kt, kt - settings.over_band * band, settings.reverse_open_probability, d_max
+        )
+    else:
+        d = reverse.aim_after_reverse(
+            predictor, kt, kt + settings.over_band * band, settings.over_probability, d_max
+        )
+    ks = predictor.samples(d, flipped=flipped)
+    k_mid, k_lo, k_hi = (float(np.quantile(ks, p)) for p in (0.5, 0.025, 0.975))
+    learned = (
+        f"the reverse factor learned from {beta.passes} reverse passes of the yard"
+        if beta.passes
+        else "the model with a wide margin: no reverse pass in the history (reverse factor "
+        f"{beta.mean:g} +- {beta.sd:g}, the Bauschinger effect unknown)"
+    )
+    basis["reverse"] = {
+        "flipped": flipped,
+        "rests_on": learned,
+        "reverse_factor": {"mean": beta.mean, "sd": beta.sd, "reverse_passes": beta.passes},
+        "probability_over_band": float(np.mean(ks > kt + band)),
+        "probability_open_beyond_band": float(np.mean(ks < kt - band)),
+        "open_probability": settings.reverse_open_probability,
+    }
+    if flipped:
+        basis["reason"] += (
+            f": turn the plate over and roll it with the top roll at {d:.1f} mm "
+            "(from touching a flat plate; negative: above that point)"
+        )
+    else:
+        basis["warnings"].append("bending after a reverse pass: the advice rests on " + learned)
+    return Advice(
+        action,
+        machine.machine_id,
+        d,
+        _surface_radius(target, k_mid),
+        (_surface_radius(target, k_hi), _surface_radius(target, k_lo)),
+        basis,
+    )
+
+
+def _two_pass(
+    plate: PlateRecord,
+    predict: Callable[[float], Prediction],
+    d_lo: float,
+    d: float,
+    settings: AimSettings,
+) -> tuple[float, str] | None:
+    """The first of two passes, ``(displacement_mm, words)``, when the spread fills the band; else None.
+
+    The rule applies to a plate with an inspected shape whose next pass at ``d`` lands within the band
+    with less than even odds while the passes' scatter is under half its sd: the rest is the
+    parameters' share, propagated through the increment, which a shorter step shrinks. The first pass
+    is then aimed (median) at ``two_pass_fraction`` of the remaining bend; the second starts from its
+    inspection. When the scatter itself fills the band a shorter step does not help, and the rule does
+    not apply.
+    """
+    if not plate.passes or plate.passes[-1].measured_radius_mm is None:
+        return None
+    target = plate.target
+    kt, band = target_curvature(target), curvature_band(target)
+    pred = predict(d)
+    p_in = pred.probability_above(kt - band) - pred.probability_above(kt + band)
+    if p_in >= 0.5 or pred.scatter_sd >= 0.5 * pred.sd:
+        return None
+    k_now = measured_curvature(plate, plate.passes[-1].measured_radius_mm)
+    goal = k_now + settings.two_pass_fraction * (kt - k_now)
+    if goal <= k_now or predict(d_lo).mean >= goal or predict(d).mean <= goal:
+        return None
+    d_first = float(optimize.brentq(lambda x: predict(x).mean - goal, d_lo, d, xtol=1e-3))
+    words = (
+        f"the predicted spread fills the tolerance band (one pass would land within it with "
+        f"{p_in:.0%}): approach in two passes, this one to {settings.two_pass_fraction:.0%} of the "
+        "remaining bend, the next from its inspection"
+    )
+    return d_first, words
+
+
+def _stalled(fitted: Fit, plate: PlateRecord, machine_id: str) -> float | None:
+    """The deepest setting on ``machine_id`` shown not to move the plate: of the passes after the one
+    that made its latest inspected shape (:func:`.learning.plate_states`); None when there are none."""
+    state = latest_state(plate, fitted.curvatures(plate)[0], fitted.priors)
+    if state is None:
+        return None
+    stalled = [
+        q.top_roll_displacement_mm
+        for q in plate.passes[state.peak_pass + 1 :]
+        if q.machine_id == machine_id and not q.flipped
+    ]
+    return max(stalled, default=None)
+
+
+def _scatter_fills_band(
+    stalled: float | None,
+    d: float,
+    safe: Prediction,
+    over_edge: float,
+    settings: AimSettings,
+    *,
+    given: bool,
+) -> str:
+    """The words for a plate whose least move is already past the aim's margin: given (its risk of
+    ending past the band's tight edge within the allowed level) or not."""
+    move = (
+        "the deepest setting so far, repeated,"
+        if stalled is None
+        else f"the pass at {stalled:.2f} mm did not move the plate: the next setting, "
+        f"{d - stalled:.2f} mm beyond it,"
+    )
+    risk = (
+        f"would end past the band with {safe.probability_above(over_edge):.2%} (allowed: "
+        f"{settings.over_probability:.1%})"
+    )
+    if given:
+        return (
+            f"the pass's scatter fills the tolerance band: {move} is the least move, and {risk}; "
+            "inspect again"
+        )
+    return (
+        f"no setting: the pass's scatter fills the tolerance band; {move} {risk}. Accept the plate as "
+        "it is or roll it on a machine that repeats its setting more closely"
+    )

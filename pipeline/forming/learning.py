@@ -16,9 +16,12 @@ Data
 ----
 Each inspected pass gives the plate's mid-surface curvature. Passes that do not load the plate beyond an
 earlier one do not change it (the history rule), so inspections of one state are averaged into one row.
-A row's variance is the inspection's noise (relative radius noise and an absolute sagitta noise over the
-plate's width), divided by the inspections averaged, plus the pass's own scatter: a displacement scatter
+A row's variance is the inspection's noise, plus the pass's own scatter: a displacement scatter
 ``sigma_d`` (mm; repeatability of the roll, the plate's feed) times the row's sensitivity ``g = d k / d d``.
+The inspection's noise is its own reported radius uncertainty where it has one, else the model's
+constant (relative radius noise and an absolute sagitta noise over the plate's width), at least the
+capability limit's for an inspection not capable for the tolerance (:func:`inspection_variance`);
+inspections of one state are averaged with inverse-variance weights.
 
 Fit
 ---
@@ -30,7 +33,9 @@ variance estimates, each weighted with its prior as pseudo-observations::
     sigma_d^2 = (nu0 sigma0^2 + sum_rows max(r^2 - v_inspection, 0) / g^2) / (nu0 + n_rows - n_plates)
     tau^2     = (nu_t tau0^2 + sum_plates [(f_p - mu_g)^2 + var(f_p - mu_g)]) / (nu_t + n_plates)
 
-and the fit repeated (three rounds). Predictions use Student's t with the corresponding degrees of freedom
+and the fit repeated (three rounds). The last round weighs the rows with the scatter's posterior mean
+variance ``nu s^2 / (nu - 2)`` (``nu`` its degrees of freedom, at least 3), so that with few rows the
+parameters' covariance carries the doubt about the scatter it was weighed with. Predictions use Student's t with the corresponding degrees of freedom
 (:meth:`Fit.predict`): with little data the tails are wide, and the advice aims further to the safe side.
 
 A plate's next pass is predicted from its latest measured shape plus the model's increment to the new
@@ -92,9 +97,10 @@ class Priors:
     scatter_weight : float
         How many rows that guess is worth (``nu0``).
     radius_noise : float
-        The inspection's relative radius noise (sd).
+        The inspection's relative radius noise (sd), for an inspection that reports no uncertainty.
     sagitta_noise_mm : float
-        The inspection's absolute noise, as a sagitta over the plate's width (mm; ``k w^2 / 8``).
+        The inspection's absolute noise, as a sagitta over the plate's width (mm; ``k w^2 / 8``), for an
+        inspection that reports no uncertainty.
     max_plates : int
         Most recent plates of the machine a fit uses besides the plate itself.
     """
@@ -109,7 +115,7 @@ class Priors:
     compliance_floor_mm_per_mn: float = 0.0
     gain_sd: float = 0.02
     scatter_mm: float = 0.1
-    scatter_weight: float = 4.0
+    scatter_weight: float = 2.0
     radius_noise: float = 5e-4
     sagitta_noise_mm: float = 0.1
     max_plates: int = 40
@@ -152,12 +158,16 @@ class Prediction:
         Location and scale of the curvature after springback, 1/mm.
     dof : float
         Degrees of freedom.
+    scatter_sd : float
+        The share of ``sd`` from the passes' displacement scatter (the new pass's and the old peak's),
+        1/mm: the part a shorter step does not shrink.
     """
 
     loaded_curvature: float
     mean: float
     sd: float
     dof: float
+    scatter_sd: float = 0.0
 
     def quantile(self, p: float) -> float:
         return float(self.mean + self.sd * stats.t.ppf(p, self.dof))
@@ -308,7 +318,7 @@ class Fit:
             # the increment starts from the measured state; when the new pass loads the plate beyond
             # it, where that state's peak really was (its pass's scatter) shifts the increment too
             mean += anchor.curvature
-            var += _inspection_variance(anchor.curvature, plate, self.priors) / anchor.inspections
+            var += anchor.variance
             if k_loaded > anchor.peak_loaded:
                 g_peak, shift_mm, sd_mm = self._peak_error(plate, theta, anchor)
                 mean -= g_peak * shift_mm
@@ -320,7 +330,7 @@ class Fit:
             (var_scatter, self.scatter_dof),
             (var_par, np.inf if own else self.spread_dof),
         )
-        return Prediction(k_loaded, mean, float(np.sqrt(var)), dof)
+        return Prediction(k_loaded, mean, float(np.sqrt(var)), dof, float(np.sqrt(var_scatter)))
 
     def _peak_error(
         self, plate: PlateRecord, theta: np.ndarray, anchor: State
@@ -404,6 +414,9 @@ class State:
         Passes after ``peak_pass`` that the model says loaded the plate beyond it, but whose
         inspection found the shape unchanged (:func:`plate_states`): the peak pass really loaded
         the plate further than its setting says.
+    variance : float
+        Variance of ``curvature`` (the inspections' own, :func:`inspection_variance`, inverse-variance
+        weighted), 1/mm^2.
     """
 
     pass_index: int
@@ -412,6 +425,7 @@ class State:
     curvature: float
     inspections: int
     unchanged: tuple[int, ...] = ()
+    variance: float = 0.0
 
 
 #: A pass that may have loaded the plate beyond its peak (by the model, at least as far) left the shape
@@ -431,13 +445,15 @@ def plate_states(plate: PlateRecord, loaded: np.ndarray, priors: Priors) -> list
     """
     states: list[State] = []
     ks: list[float] = []
+    ws: list[float] = []
     unchanged: list[int] = []
     peak_pass, last, peak = -1, -1, 0.0
 
     def close() -> None:
         if ks:
+            k_state, var_state = _weighted(ks, ws)
             states.append(
-                State(last, peak_pass, peak, float(np.mean(ks)), len(ks), tuple(unchanged))
+                State(last, peak_pass, peak, k_state, len(ks), tuple(unchanged), var_state)
             )
 
     for j, q in enumerate(plate.passes):
@@ -446,28 +462,62 @@ def plate_states(plate: PlateRecord, loaded: np.ndarray, priors: Priors) -> list
             if q.measured_radius_mm is None
             else measured_curvature(plate, q.measured_radius_mm)
         )
+        var = None if k is None else inspection_variance(plate, j, priors)
         if loaded[j] >= peak * (1 - 1e-9):
-            if k is not None and ks and _unchanged(k, ks, plate, priors):
+            if k is not None and var is not None and ks and _unchanged(k, var, ks, ws):
                 unchanged.append(j)
             else:
                 close()
-                peak_pass, peak, ks, unchanged = j, float(loaded[j]), [], []
-        if k is not None:
+                peak_pass, peak, ks, ws, unchanged = j, float(loaded[j]), [], [], []
+        if k is not None and var is not None:
             ks.append(k)
+            ws.append(1.0 / var)
             last = j
     close()
     return states
 
 
-def _unchanged(k: float, ks: list[float], plate: PlateRecord, priors: Priors) -> bool:
-    """An inspection ``k`` after a pass that may have loaded the plate beyond its peak found the shape
-    inspected as ``ks`` (:data:`UNCHANGED_Z`)."""
-    k_state = float(np.mean(ks))
-    noise = np.sqrt(
-        _inspection_variance(k_state, plate, priors) / len(ks)
-        + _inspection_variance(k, plate, priors)
-    )
-    return bool(k - k_state < UNCHANGED_Z * noise)
+def _weighted(ks: list[float], weights: list[float]) -> tuple[float, float]:
+    """Inverse-variance weighted mean of inspections of one shape and its variance, 1/mm and 1/mm^2."""
+    w = np.asarray(weights)
+    return float(np.dot(w, ks) / w.sum()), float(1.0 / w.sum())
+
+
+def _unchanged(k: float, var: float, ks: list[float], weights: list[float]) -> bool:
+    """An inspection ``k`` (variance ``var``) after a pass that may have loaded the plate beyond its
+    peak found the shape inspected as ``ks`` (inverse variances ``weights``; :data:`UNCHANGED_Z`)."""
+    k_state, var_state = _weighted(ks, weights)
+    return bool(k - k_state < UNCHANGED_Z * np.sqrt(var_state + var))
+
+
+def inspection_variance(plate: PlateRecord, index: int, priors: Priors) -> float:
+    """Variance of the mid-surface curvature the inspection after pass ``index`` measured, 1/mm^2.
+
+    With the inspection's own standard uncertainty ``u`` of the radius
+    (:attr:`RollPass.radius_uncertainty_mm`) the curvature's relative sd is ``u / R`` (``R`` the
+    measured mid-surface radius); without it (older results, a flat plate) the model's constant:
+    ``Priors.radius_noise`` relative and ``Priors.sagitta_noise_mm`` absolute. An inspection that is not
+    capable for the tolerance (:attr:`RollPass.capable`) is taken as no better than one at the
+    capability limit, a test uncertainty ratio of 4: an expanded uncertainty of a quarter of the
+    tolerance band, ``band / 4`` with ``band = 8 tol / w^2``, so a standard one of ``band / 8``.
+
+    Raises
+    ------
+    ValueError
+        Pass ``index`` was not inspected.
+    """
+    q = plate.passes[index]
+    if q.measured_radius_mm is None:
+        raise ValueError(f"passes[{index}]: expected an inspected pass, got no measured radius")
+    k = measured_curvature(plate, q.measured_radius_mm)
+    if q.radius_uncertainty_mm is not None and k > 0:
+        var = (q.radius_uncertainty_mm * k * k) ** 2
+    else:
+        var = _inspection_variance(k, plate, priors)
+    if not q.capable:
+        w = plate.target.width_mm
+        var = max(var, (plate.target.tolerance_mm / (w * w)) ** 2)
+    return float(var)
 
 
 def latest_state(plate: PlateRecord, loaded: np.ndarray, priors: Priors) -> State | None:
@@ -627,12 +677,9 @@ def fit(
 
     # states: the passes after which an inspection saw a new shape (nominal parameters decide which pass
     # raised the peak, the inspections whether it did), with the mean of their inspections
-    state_pass, state_obs, state_n, state_plate = _inspected_states(
+    state_pass, state_obs, meas_var, state_plate = _inspected_states(
         plates, starts, curvatures(x0)[0], priors
     )
-    meas_var = np.array(
-        [_inspection_variance(k, plates[i], priors) for k, i in zip(state_obs, state_plate)]
-    ) / np.maximum(state_n, 1)
     plates_with_rows = np.unique(state_plate)
     dof_rows = max(len(state_pass) - len(plates_with_rows), 0)
 
@@ -641,7 +688,12 @@ def fit(
     for round_ in range(_ROUNDS):
         ku = curvatures(theta)[2]
         g = (curvatures(theta, _H_D)[2] - ku)[state_pass] / _H_D
-        sd_row = np.sqrt(meas_var + (g * scatter) ** 2)
+        # the last round weighs the rows with the scatter's posterior mean variance, nu s^2 / (nu - 2)
+        # (nu its degrees of freedom, at least 3): with few rows the parameters' covariance carries
+        # the doubt about the scatter it was weighed with
+        nu = max(priors.scatter_weight + dof_rows, 3.0)
+        inflate = nu / (nu - 2.0) if round_ == _ROUNDS - 1 else 1.0
+        sd_row = np.sqrt(meas_var + inflate * (g * scatter) ** 2)
         theta, cov = _solve_round(
             curvatures,
             theta,
@@ -702,8 +754,9 @@ def _inspected_states(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The plates' shapes (:func:`plate_states`) as the fit's rows.
 
-    ``loaded`` are the nominal loaded curvatures, one per pass, plates contiguous from ``starts``. Returns each shape's pass index (the pass that gave it, among all passes), mean
-    measured curvature, number of inspections and plate index (arrays of one length).
+    ``loaded`` are the nominal loaded curvatures, one per pass, plates contiguous from ``starts``.
+    Returns each shape's pass index (the pass that gave it, among all passes), mean measured
+    curvature, its variance (:attr:`State.variance`) and plate index (arrays of one length).
 
     Raises
     ------
@@ -712,7 +765,7 @@ def _inspected_states(
     """
     state_pass: list[int] = []
     state_obs: list[float] = []
-    state_n: list[int] = []
+    state_var: list[float] = []
     state_plate: list[int] = []
     for i, p in enumerate(plates):
         for q in p.passes:
@@ -727,12 +780,12 @@ def _inspected_states(
         for state in plate_states(p, loaded[a:b], priors):
             state_pass.append(a + state.peak_pass)
             state_obs.append(state.curvature)
-            state_n.append(state.inspections)
+            state_var.append(state.variance)
             state_plate.append(i)
     return (
         np.array(state_pass, dtype=int),
         np.array(state_obs),
-        np.array(state_n),
+        np.array(state_var),
         np.array(state_plate, dtype=int),
     )
 

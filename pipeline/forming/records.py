@@ -300,21 +300,49 @@ class RollPass:
         None when the plate was not inspected after this pass.
     verdict : {"pass", "fail"} or None
         The inspection's verdict, when known.
+    radius_uncertainty_mm : float or None
+        The inspection's *standard* uncertainty of ``measured_radius_mm`` (its expanded uncertainty
+        ``uncertainty.radius_mm`` of result.json divided by the coverage factor ``k``), mm; None when the
+        inspection did not report one (the model then takes its constant, ``Priors.radius_noise``).
+    capable : bool
+        False when the inspection said it is not capable for the plate's tolerance (a warning of
+        result.json with the words "not capable"); the fit then weighs it by at least the uncertainty
+        of a measurement at the capability limit (:func:`.learning.inspection_variance`).
+    flipped : bool
+        A reverse pass: the plate was turned over and rolled to open it. Its displacement is measured
+        as for a bending pass (down from touching a flat plate) and may be negative: the top roll stops
+        above that point, pressing the flipped plate's arch flatter (:mod:`.reverse`).
     """
 
     machine_id: str
     top_roll_displacement_mm: float
     measured_radius_mm: float | None = None
     verdict: Literal["pass", "fail"] | None = None
+    radius_uncertainty_mm: float | None = None
+    capable: bool = True
+    flipped: bool = False
 
     def __post_init__(self) -> None:
         rec = "pass"
         _text(rec, "machine_id", self.machine_id)
-        object.__setattr__(
-            self,
-            "top_roll_displacement_mm",
-            _positive(rec, "top_roll_displacement_mm", self.top_roll_displacement_mm, "mm"),
-        )
+        if not isinstance(self.flipped, bool):
+            raise InputError(rec, "flipped", f"expected true or false, got {self.flipped!r}")
+        d = _number(rec, "top_roll_displacement_mm", self.top_roll_displacement_mm)
+        if not self.flipped:
+            d = _positive(rec, "top_roll_displacement_mm", d, "mm")
+        elif not math.isfinite(d):
+            raise InputError(
+                rec, "top_roll_displacement_mm", f"expected a finite number of mm, got {d!r}"
+            )
+        object.__setattr__(self, "top_roll_displacement_mm", d)
+        if self.radius_uncertainty_mm is not None:
+            object.__setattr__(
+                self,
+                "radius_uncertainty_mm",
+                _positive(rec, "radius_uncertainty_mm", self.radius_uncertainty_mm, "mm"),
+            )
+        if not isinstance(self.capable, bool):
+            raise InputError(rec, "capable", f"expected true or false, got {self.capable!r}")
         if self.measured_radius_mm is not None:
             r = _number(rec, "measured_radius_mm", self.measured_radius_mm)
             if not r > 0 or math.isnan(r):
@@ -346,18 +374,64 @@ class RollPass:
         *,
         measured_radius_mm: float | None = None,
         verdict: Literal["pass", "fail"] | None = None,
+        result: Mapping[str, Any] | None = None,
     ) -> RollPass:
-        """Read a pass from its JSON object (issue 14's shape) plus the inspection after it."""
+        """Read a pass from its JSON object (issue 14's shape, optional ``"flipped": true``) plus the
+        inspection after it: its radius, verdict, and the uncertainty and capability its result
+        document (``plate-result/1``) reports (:func:`inspection_quality`)."""
         data = _mapping("pass", data)
-        _known_keys("pass", data, ("method", "machine_id", "top_roll_displacement_mm"))
+        _known_keys("pass", data, ("method", "machine_id", "top_roll_displacement_mm", "flipped"))
         if _required("pass", data, "method") != PASS_METHOD:
             raise InputError("pass", "method", f"expected {PASS_METHOD!r}, got {data['method']!r}")
+        u, capable = inspection_quality(result or {})
         return cls(
             _required("pass", data, "machine_id"),
             _required("pass", data, "top_roll_displacement_mm"),
             measured_radius_mm,
             verdict,
+            radius_uncertainty_mm=u,
+            capable=capable,
+            flipped=data.get("flipped", False),
         )
+
+
+#: The words of a result's warning that says the measurement is not capable for the tolerance.
+NOT_CAPABLE = "not capable"
+
+
+def inspection_quality(result: Mapping[str, Any]) -> tuple[float | None, bool]:
+    """The standard uncertainty of an inspection's radius and whether it is capable, from its result.
+
+    Parameters
+    ----------
+    result : mapping
+        A ``plate-result/1`` document (or the part of it kept): optional ``"uncertainty": {"k": 2,
+        "radius_mm": U, ...}`` (expanded uncertainty, coverage factor ``k``) and ``"warnings"``.
+
+    Returns
+    -------
+    radius_uncertainty_mm : float or None
+        ``U / k``, mm; None when the result has no radius uncertainty (older results).
+    capable : bool
+        False when a warning says "not capable" (case-insensitive).
+
+    Raises
+    ------
+    InputError
+        An uncertainty that is not an object with a positive ``k`` and a positive (or null) radius.
+    """
+    result = _mapping("result", result)
+    warnings = result.get("warnings") or []
+    capable = not any(isinstance(w, str) and NOT_CAPABLE in w.lower() for w in warnings)
+    block = result.get("uncertainty")
+    if block is None:
+        return None, capable
+    block = _mapping("result.uncertainty", block)
+    radius = block.get("radius_mm")
+    if radius is None:
+        return None, capable
+    k = _positive("result.uncertainty", "k", block.get("k", 2), "(coverage factor)")
+    return _positive("result.uncertainty", "radius_mm", radius, "mm") / k, capable
 
 
 @dataclass(frozen=True)
@@ -400,3 +474,12 @@ class PlateRecord:
     def with_pass(self, roll_pass: RollPass) -> PlateRecord:
         """The same plate with one more pass."""
         return PlateRecord(self.plate_id, self.target, (*self.passes, roll_pass))
+
+    @property
+    def forward(self) -> PlateRecord:
+        """The same plate with its passes before its first reverse (flipped) pass: what the bending
+        model (:mod:`.rolling`, :mod:`.learning`) describes."""
+        flipped = [i for i, q in enumerate(self.passes) if q.flipped]
+        if not flipped:
+            return self
+        return PlateRecord(self.plate_id, self.target, self.passes[: flipped[0]])

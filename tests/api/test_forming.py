@@ -27,12 +27,15 @@ MATERIAL = {
 SMALL = {"n_lights": 3, "width": 160, "height": 128}
 
 
-def process(displacement_mm: float = 97.0, machine_id: str = "R3-01") -> dict:
-    return {
+def process(
+    displacement_mm: float = 97.0, machine_id: str = "R3-01", flipped: bool = False
+) -> dict:
+    body = {
         "method": "roll-bending",
         "machine_id": machine_id,
         "top_roll_displacement_mm": displacement_mm,
     }
+    return {**body, "flipped": True} if flipped else body
 
 
 def put_target(client, plate_id: str, **over) -> None:
@@ -47,14 +50,22 @@ def put_target(client, plate_id: str, **over) -> None:
 
 
 def inspected_pass(
-    client, plate_id: str, displacement_mm: float, radius_mm: float, verdict: str
+    client,
+    plate_id: str,
+    displacement_mm: float,
+    radius_mm: float,
+    verdict: str,
+    *,
+    flipped: bool = False,
+    **result,
 ) -> int:
-    """A simulated inspection with a process, finished by the service as a job would finish it."""
+    """A simulated inspection with a process, finished by the service as a job would finish it;
+    ``result`` adds keys to its result document (``uncertainty``, ``warnings``)."""
     from app.services import leases as svc
 
     r = client.post(
         f"/api/v1/plates/{plate_id}/inspections/simulated",
-        json={**SMALL, "process": process(displacement_mm)},
+        json={**SMALL, "process": process(displacement_mm, flipped=flipped)},
         headers=AUTH,
     )
     assert r.status_code == 202, r.text
@@ -69,6 +80,7 @@ def inspected_pass(
         "tolerance_mm": 2.0,
         "within_tolerance_pct": 90.0,
         "verdict": verdict,
+        **result,
     }
     with client.app.state.session_factory() as session:
         assert svc.claim(session=session, inspection_id=inspection_id)
@@ -221,7 +233,17 @@ def test_advice_nominal_bend_done_reverse(client, machine):
     put_target(client, "P-B")
     inspected_pass(client, "P-B", 140.0, 4500.0, "fail")  # over-bent
     over = client.get("/api/v1/plates/P-B/advice").json()
-    assert over["action"] == "reverse" and over["top_roll_displacement_mm"] is None
+    assert over["action"] == "reverse" and over["top_roll_displacement_mm"] is not None
+    assert 4500.0 < over["expected_radius_mm"] < 5100.0 and over["basis"]["reverse"]["flipped"]
+    # the reverse pass, flipped (its displacement may be negative), and the advice after it
+    inspected_pass(client, "P-B", over["top_roll_displacement_mm"], 4800.0, "fail", flipped=True)
+    passes = client.get("/api/v1/plates/P-B/inspections").json()
+    assert any((i.get("process") or {}).get("flipped") is True for i in passes["items"])
+    again = client.get("/api/v1/plates/P-B/advice").json()
+    assert (
+        again["action"] == "reverse"
+        and again["basis"]["reverse"]["reverse_factor"]["reverse_passes"] == 1
+    )
 
     put_target(client, "P-C")  # a new plate: P-A's passes are its history on this machine
     third = client.get("/api/v1/plates/P-C/advice", params={"machine_id": "R3-01"}).json()
@@ -341,3 +363,28 @@ def test_under_bent_simulated_plate_fails(tmp_path):
             assert body["result"]["radius_mm"] > 6000
     finally:
         app.state.engine.dispose()
+
+
+def test_advice_takes_each_inspections_uncertainty(client, machine):
+    put_target(client, "P-U")
+    first = client.get("/api/v1/plates/P-U/advice", params={"machine_id": "R3-01"}).json()
+    inspected_pass(
+        client,
+        "P-U",
+        first["top_roll_displacement_mm"],
+        6200.0,
+        "fail",
+        uncertainty={"k": 2, "radius_mm": 31.0, "deviation_mm": 0.4},
+        warnings=["the measurement is not capable for the tolerance (TUR 2.6 < 4)"],
+    )
+    advice = client.get("/api/v1/plates/P-U/advice").json()
+    assert advice["action"] == "bend"
+    entry = advice["basis"]["inspections"][0]
+    assert entry["radius_uncertainty_mm"] == 15.5 and entry["capable"] is False
+    assert any("not capable" in w and "pass 1" in w for w in advice["basis"]["warnings"])
+    # an older result without uncertainty keeps the model's constant
+    put_target(client, "P-O")
+    inspected_pass(client, "P-O", first["top_roll_displacement_mm"], 6200.0, "fail")
+    older = client.get("/api/v1/plates/P-O/advice").json()
+    assert older["basis"]["inspections"][0]["radius_uncertainty_mm"] is None
+    assert older["basis"]["inspections"][0]["capable"] is True

@@ -6,6 +6,7 @@ import json
 import math
 
 import pytest
+from scipy import optimize
 
 from pipeline.deviation import deviation_map
 from pipeline.forming import (
@@ -14,6 +15,7 @@ from pipeline.forming import (
     Machine,
     Material,
     PlateRecord,
+    Priors,
     RollPass,
     advise,
     curvature_band,
@@ -124,8 +126,15 @@ def test_over_bent_on_purpose_is_told_reverse():
     deep = rolled(plate, 130.0, factor=1.2, compliance=1.0)
     assert deep.passes[-1].measured_radius_mm < 4000.0  # over-bent far beyond the band
     advice = advise(deep, MACHINES)
-    assert advice.action == "reverse" and advice.top_roll_displacement_mm is None
-    assert "tighter" in advice.basis["reason"]
+    assert advice.action == "reverse" and advice.top_roll_displacement_mm is not None
+    assert "tighter" in advice.basis["reason"] and "turn the plate over" in advice.basis["reason"]
+    # a reverse pass opens the plate: its expected radius lies between the measured one and the
+    # target's open side, and the margin is wide without reverse passes in the history
+    lo, hi = advice.expected_radius_range_mm
+    assert deep.passes[-1].measured_radius_mm < advice.expected_radius_mm <= 5000.0 * 1.01
+    assert lo < advice.expected_radius_mm < hi
+    assert advice.basis["reverse"]["reverse_factor"]["reverse_passes"] == 0
+    assert advice.basis["reverse"]["probability_open_beyond_band"] <= 0.05 + 0.01
     # without a verdict the measured radius decides
     assert (
         advise(rolled(plate, 130.0, factor=1.2, compliance=1.0, verdict=False), MACHINES).action
@@ -208,3 +217,91 @@ def test_a_fresh_machines_first_pass_takes_its_compliance_at_the_floor():
     assert at_floor.quantile(p_hi) == pytest.approx(limit, rel=1e-5)
     assert gaussian.quantile(p_hi) > limit  # the Gaussian alone would have aimed shallower
     assert aimed["safe_prediction"] == at_floor
+
+
+def _near_band(radius_mm: float, repeat: bool) -> PlateRecord:
+    """A 5 m plate after a probe and a pass ending at ``radius_mm`` (inspected exactly), and with
+    ``repeat`` the same setting once more, which left it as it was."""
+
+    def after(d: float) -> PlateRecord:
+        probe = rolled(PlateRecord("p", target(5000.0, 20.0)), 105.0, factor=1.2, compliance=2.0)
+        return rolled(probe, d, factor=1.2, compliance=2.0)
+
+    d = optimize.brentq(lambda x: after(x).passes[-1].measured_radius_mm - radius_mm, 110.0, 120.0)
+    plate = after(d)
+    if repeat:
+        plate = plate.with_pass(RollPass("R3-01", d, plate.passes[-1].measured_radius_mm, "fail"))
+    return plate
+
+
+#: A bender that repeats its setting to 0.3 mm (known: worth 50 rows), three times the usual.
+COARSE = Priors(scatter_mm=0.3, scatter_weight=50.0)
+
+
+def test_a_setting_shown_not_to_move_the_plate_is_not_repeated():
+    plate = _near_band(5100.0, repeat=True)
+    stalled = plate.passes[-1].top_roll_displacement_mm
+    advice = advise(plate, MACHINES, priors=COARSE)
+    scatter = advice.basis["parameters"]["scatter_mm"]
+    assert advice.top_roll_displacement_mm >= stalled + scatter - 1e-9
+    assert advice.basis["aim"]["probability_over_band"] <= 0.005
+
+
+def test_no_setting_when_the_scatter_fills_the_band():
+    # just short of the band's open edge, with a 0.3 mm scatter: even a repeat of the deepest setting
+    # risks over-bending beyond the aim's 0.5 %; the advice says so instead of creeping
+    for repeat, words in ((False, "repeated"), (True, "did not move the plate")):
+        advice = advise(_near_band(5060.0, repeat), MACHINES, priors=COARSE)
+        assert advice.action == "bend" and advice.top_roll_displacement_mm is None
+        assert any(
+            w.startswith("no setting: the pass's scatter fills the tolerance band") and words in w
+            for w in advice.basis["warnings"]
+        )
+    # the usual 0.1 mm: the same plate gets its step
+    assert advise(_near_band(5060.0, True), MACHINES).top_roll_displacement_mm is not None
+
+
+def test_two_passes_when_the_parameters_spread_fills_the_band():
+    # a fresh machine, a probe far short (10.4 m for 5 m): one pass would land with poor odds, its
+    # spread the gain's and compliance's (which a shorter step shrinks): two passes, the first to
+    # 60 % of the remaining bend, said in words; the second then lands from its inspection
+    plate = rolled(PlateRecord("p", target(5000.0, 20.0)), 90.0, factor=1.2, compliance=2.0)
+    first = advise(plate, MACHINES)
+    words = [w for w in first.basis["warnings"] if "approach in two passes" in w]
+    assert words and "60% of the remaining bend" in words[0]
+    k_now = 1 / plate.target.mid_radius_mm(plate.passes[-1].measured_radius_mm)
+    k_exp = 1 / plate.target.mid_radius_mm(first.expected_radius_mm)
+    kt = target_curvature(plate.target)
+    assert (k_exp - k_now) / (kt - k_now) == pytest.approx(0.6, abs=0.01)
+    plate = rolled(plate, first.top_roll_displacement_mm, factor=1.2, compliance=2.0)
+    second = advise(plate, MACHINES)
+    assert not any("approach in two passes" in w for w in second.basis["warnings"])
+    plate = rolled(plate, second.top_roll_displacement_mm, factor=1.2, compliance=2.0)
+    assert plate.passes[-1].verdict == "pass"
+
+
+def test_a_new_grade_after_two_plates_approaches_from_the_open_side():
+    # two plates of a new grade, both of high yield (1.45): the third's first pass is still aimed for
+    # a factor the grade's prior, its two plates and the plates' spread allow, and does not over-bend
+    # a plate of that grade whose yield is far lower (1.10) on a machine that gives more (4 mm/MN)
+    def new_grade(plate_id: str) -> PlateRecord:
+        return PlateRecord(
+            plate_id, FormingTarget(5000.0, 2.0, 3000.0, 4000.0, Material("EH40", 15.0, 390.0))
+        )
+
+    history = []
+    for plate_id in ("n1", "n2"):
+        plate = new_grade(plate_id)
+        for _ in range(4):
+            advice = advise(plate, MACHINES, machine_id="R3-01", history=history)
+            if advice.action != "bend":
+                break
+            plate = rolled(plate, advice.top_roll_displacement_mm, factor=1.45, compliance=2.0)
+        history.append(plate)
+    third = new_grade("n3")
+    advice = advise(third, MACHINES, machine_id="R3-01", history=history)
+    assert advice.basis["group_plates"] == 2 and advice.expected_radius_mm > 5000.0
+    for factor, compliance in ((1.10, 2.0), (1.10, 4.0), (1.45, 2.0)):
+        after = rolled(third, advice.top_roll_displacement_mm, factor=factor, compliance=compliance)
+        k = 1 / third.target.mid_radius_mm(after.passes[-1].measured_radius_mm)
+        assert k <= target_curvature(third.target) + 0.95 * curvature_band(third.target)
