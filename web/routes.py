@@ -368,7 +368,8 @@ def passes_chart(session, plate_id: str, target, advice: dict | None):
     if advice is not None:
         lo, hi = advice["basis"]["tolerance_band_radius_mm"]
         band = (lo, hi)
-        if advice["action"] == "bend":
+        if advice["action"] == "bend" and advice.get("top_roll_displacement_mm") is not None:
+            # a bend without a setting (no safe move: the advice says why) draws no next pass
             nxt = (
                 advice["top_roll_displacement_mm"],
                 advice["expected_radius_mm"],

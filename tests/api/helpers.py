@@ -233,3 +233,31 @@ def capture_json_with_plate(bundle: bytes, plate_id: str) -> bytes:
         doc = json.loads(zf.read("capture.json"))
     doc["plate_id"] = plate_id
     return json.dumps(doc).encode()
+
+
+MACHINE = {
+    "kind": "three-roll-pyramid",
+    "bottom_roll_spacing_mm": 1400,
+    "bottom_roll_diameter_mm": 420,
+    "top_roll_diameter_mm": 500,
+}
+
+
+MATERIAL = {
+    "grade": "AH36",
+    "thickness_mm": 20,
+    "yield_mpa": 355,
+    "youngs_mpa": 206000,
+    "poisson": 0.3,
+}
+
+
+def process(
+    displacement_mm: float = 97.0, machine_id: str = "R3-01", flipped: bool = False
+) -> dict:
+    body = {
+        "method": "roll-bending",
+        "machine_id": machine_id,
+        "top_roll_displacement_mm": displacement_mm,
+    }
+    return {**body, "flipped": True} if flipped else body

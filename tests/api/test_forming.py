@@ -9,33 +9,9 @@ import json
 
 import pytest
 
-from tests.api.helpers import AUTH, target_json
+from tests.api.helpers import AUTH, MACHINE, MATERIAL, process, target_json
 
-MACHINE = {
-    "kind": "three-roll-pyramid",
-    "bottom_roll_spacing_mm": 1400,
-    "bottom_roll_diameter_mm": 420,
-    "top_roll_diameter_mm": 500,
-}
-MATERIAL = {
-    "grade": "AH36",
-    "thickness_mm": 20,
-    "yield_mpa": 355,
-    "youngs_mpa": 206000,
-    "poisson": 0.3,
-}
 SMALL = {"n_lights": 3, "width": 160, "height": 128}
-
-
-def process(
-    displacement_mm: float = 97.0, machine_id: str = "R3-01", flipped: bool = False
-) -> dict:
-    body = {
-        "method": "roll-bending",
-        "machine_id": machine_id,
-        "top_roll_displacement_mm": displacement_mm,
-    }
-    return {**body, "flipped": True} if flipped else body
 
 
 def put_target(client, plate_id: str, **over) -> None:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
 
 import pytest
 from scipy import optimize
@@ -21,33 +20,11 @@ from pipeline.forming import (
     curvature_band,
 )
 from pipeline.forming.advice import target_curvature
-from pipeline.forming.rolling import plate_curvatures
 from pipeline.io import Target
 from pipeline.registration import register_to_target
 from pipeline.verdict import judge
-from tests.pipeline.test_curvature import cylinder, plate_grid
-
-MACHINE = Machine("R3-01", 1400.0, 420.0, 500.0)
-MACHINES = {"R3-01": MACHINE}
-
-
-def target(radius=5000.0, t=20.0, width=3000.0):
-    return FormingTarget(radius, 2.0, width, 4000.0, Material("AH36", t, 355.0))
-
-
-def rolled(
-    plate: PlateRecord, d: float, *, factor: float, compliance: float, verdict: bool = True
-) -> PlateRecord:
-    """The plate after one more pass on the true physics (no scatter), inspected exactly."""
-    trial = plate.with_pass(RollPass("R3-01", d))
-    k = plate_curvatures(
-        trial, MACHINES, yield_factor=factor, compliance_mm_per_mn={"R3-01": compliance}
-    )[1][-1]
-    radius = math.inf if k <= 0 else plate.target.surface_radius_mm(1 / k)
-    ok = abs(k - target_curvature(plate.target)) <= 0.95 * curvature_band(plate.target)
-    return plate.with_pass(
-        RollPass("R3-01", d, radius, ("pass" if ok else "fail") if verdict else None)
-    )
+from tests.pipeline.forming_cases import MACHINE, MACHINES, rolled, target
+from tests.pipeline.surfaces import cylinder, plate_grid
 
 
 def test_nominal_first_pass_says_so_and_never_over_bends():

@@ -9,7 +9,7 @@ import pytest
 from pipeline.forming import PlateRecord, RollPass, advise, curvature_band
 from pipeline.forming.advice import target_curvature
 from pipeline.forming.reverse import Draws, Section, model_curvature
-from tests.pipeline.test_forming_advice import MACHINE, MACHINES, rolled, target
+from tests.pipeline.forming_cases import MACHINE, MACHINES, rolled, target
 
 FACTOR, COMPLIANCE = 1.2, 1.0
 

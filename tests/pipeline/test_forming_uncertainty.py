@@ -12,7 +12,7 @@ from pipeline.formats import InputError
 from pipeline.forming import PlateRecord, RollPass, advise, curvature_band, fit
 from pipeline.forming.learning import Priors, inspection_variance
 from pipeline.forming.records import inspection_quality
-from tests.pipeline.test_forming_advice import MACHINES, rolled, target
+from tests.pipeline.forming_cases import MACHINES, rolled, target
 
 
 def test_result_uncertainty_and_capability_are_read():
