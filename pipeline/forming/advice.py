@@ -251,18 +251,7 @@ def aim(
     limit = kt + settings.over_band * band
     p_hi = 1.0 - settings.over_probability
     d_max = bender.max_displacement_mm(machine, t)
-    factor = c_floor = None
-    if fitted.rows_per_plate.get(plate.plate_id, 0) == 0:
-        factor = max(
-            fitted.priors.yield_factor_floor,
-            fitted.yield_factor_quantile(plate.plate_id, settings.first_pass_quantile),
-        )
-        c_mean, c_sd = fitted.parameter("machine", machine.machine_id)
-        if c_mean > fitted.priors.compliance_floor_mm_per_mn:
-            c_floor = max(
-                fitted.priors.compliance_floor_mm_per_mn,
-                c_mean + c_sd * float(stats.norm.ppf(settings.over_probability)),
-            )
+    factor, c_floor = _first_pass_bounds(fitted, plate, machine, settings)
 
     def predict(d: float) -> Prediction:
         return fitted.predict(plate, machine.machine_id, d)
@@ -334,6 +323,49 @@ def aim(
     }
 
 
+def _first_pass_bounds(
+    fitted: Fit, plate: PlateRecord, machine: Machine, settings: AimSettings
+) -> tuple[float | None, float | None]:
+    """For a plate without passes of its own: the low yield factor its first pass is aimed for, and the
+    machine's compliance at its floor (None where the fit's own distribution is used)."""
+    if fitted.rows_per_plate.get(plate.plate_id, 0) != 0:
+        return None, None
+    factor = max(
+        fitted.priors.yield_factor_floor,
+        fitted.yield_factor_quantile(plate.plate_id, settings.first_pass_quantile),
+    )
+    c_floor = None
+    c_mean, c_sd = fitted.parameter("machine", machine.machine_id)
+    if c_mean > fitted.priors.compliance_floor_mm_per_mn:
+        c_floor = max(
+            fitted.priors.compliance_floor_mm_per_mn,
+            c_mean + c_sd * float(stats.norm.ppf(settings.over_probability)),
+        )
+    return factor, c_floor
+
+
+def _next_machine(
+    plate: PlateRecord, machines: Mapping[str, Machine], machine_id: str | None
+) -> str:
+    """The next pass's machine (default the latest pass's), every machine named known; else InputError."""
+    if machine_id is None:
+        if not plate.passes:
+            raise InputError(
+                "advice",
+                "machine_id",
+                "missing: a plate without passes needs the machine of its first pass",
+            )
+        machine_id = plate.passes[-1].machine_id
+    for name in {machine_id} | {q.machine_id for q in plate.passes}:
+        if name not in machines:
+            raise InputError(
+                "advice",
+                "machine_id",
+                f"unknown machine {name!r} (known: {', '.join(sorted(machines))})",
+            )
+    return machine_id
+
+
 def _history_for(
     plate: PlateRecord, machine_id: str, history: Sequence[PlateRecord], limit: int
 ) -> list[PlateRecord]:
@@ -382,21 +414,7 @@ def advise(
     FormingError
         The target cannot be rolled on the machine.
     """
-    if machine_id is None:
-        if not plate.passes:
-            raise InputError(
-                "advice",
-                "machine_id",
-                "missing: a plate without passes needs the machine of its first pass",
-            )
-        machine_id = plate.passes[-1].machine_id
-    for name in {machine_id} | {q.machine_id for q in plate.passes}:
-        if name not in machines:
-            raise InputError(
-                "advice",
-                "machine_id",
-                f"unknown machine {name!r} (known: {', '.join(sorted(machines))})",
-            )
+    machine_id = _next_machine(plate, machines, machine_id)
     target = plate.target
     kt, band = target_curvature(target), curvature_band(target)
     basis: dict[str, Any] = {
