@@ -648,7 +648,30 @@ def test_plate_map_reads_zooms_and_places_a_template(live_server, browser):
     assert page.locator("#plate-map").get_attribute("data-zoom") == "2.25"
     zoomed = [float(t) for t in page.locator(".map-axes .tick-x").all_text_contents()]
     assert max(zoomed) - min(zoomed) < span
+    # zoomed, the plate's drawing stays within the plot area: clipped to the view, not the margin
+    clip = page.eval_on_selector(
+        "#plate-map .map-content",
+        """g => { const id = g.getAttribute('clip-path').slice(5, -1);
+                  const r = document.getElementById(id).querySelector('rect');
+                  return [+r.getAttribute('width'), +r.getAttribute('height')]; }""",
+    )
+    image = page.eval_on_selector("#plate-map-svg image", "i => +i.getAttribute('width')")
+    assert clip[0] == pytest.approx(image / 2.25, rel=0.01), (clip, image)
     page.click("[data-zoom=fit]")
+    # defects that cluster keep their numbered badges apart (each with a leader to its place)
+    spread = page.evaluate(
+        """async () => { const { badgePlace } = await import('/static/js/plate_map.js');
+                         const placed = [], unit = 10, r = 2.4 * unit;
+                         for (const [x, y] of [[0, 0], [5, 3], [-4, 6], [2, -5], [8, 8]])
+                           placed.push(badgePlace(x, y, r, unit, placed));
+                         let least = Infinity;
+                         for (let i = 0; i < placed.length; i++)
+                           for (let j = 0; j < i; j++)
+                             least = Math.min(least, Math.hypot(placed[i][0] - placed[j][0],
+                                                                placed[i][1] - placed[j][1]));
+                         return least / r; }"""
+    )
+    assert spread >= 2.2, spread
 
     # a click on the plate away from the defect: a template through that point, drawn on the map
     page.locator("#plate-map-svg").scroll_into_view_if_needed()

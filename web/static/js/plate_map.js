@@ -24,6 +24,22 @@ export function niceTicks(lo, hi, maxTicks = 7) {
   return out;
 }
 
+/** Where a defect's numbered badge goes: up and to the right of its place, or, when that would touch
+ * a badge already placed, the nearest of 8 directions on growing rings that does not (a leader line
+ * joins it to its place). All in SVG units; ``placed`` the badges' centres so far. */
+export function badgePlace(x, y, r, unit, placed) {
+  const free = (px, py) => placed.every(([qx, qy]) => Math.hypot(px - qx, py - qy) >= 2.2 * r);
+  for (let ring = 1; ring <= 6; ring++) {
+    const dist = 4 * unit * Math.SQRT2 * ring;
+    for (let k = 0; k < 8; k++) {
+      const a = -Math.PI / 4 + (k * Math.PI) / 4; // first up-right (SVG y down), then round
+      const px = x + dist * Math.cos(a), py = y + dist * Math.sin(a);
+      if (free(px, py)) return [px, py];
+    }
+  }
+  return [x + 4 * unit, y - 4 * unit];
+}
+
 function signed(v, digits) {
   return `${v >= 0 ? "+" : "−"}${Math.abs(v).toFixed(digits)}`;
 }
@@ -66,8 +82,16 @@ export class PlateMap {
     this.frameLayer = el("g", { class: "map-frames" });
     this.markLayer = el("g", { class: "map-marks" });
     this.content.append(this.frameLayer, this.markLayer);
+    // the plate's drawing stays inside the plot area when zoomed (the axes' margin is not the map)
+    const clipId = `${this.figure.id || "plate-map"}-clip`;
+    this.clipRect = el("rect");
+    const clip = el("clipPath", { id: clipId });
+    clip.append(this.clipRect);
+    const defs = el("defs");
+    defs.append(clip);
+    this.content.setAttribute("clip-path", `url(#${clipId})`);
     this.axes = el("g", { class: "map-axes" });
-    this.svg.replaceChildren(this.content, this.axes);
+    this.svg.replaceChildren(defs, this.content, this.axes);
   }
 
   /** Template frame lines: [{x1, y1, x2, y2, label, kind}] in target mm. */
@@ -107,6 +131,8 @@ export class PlateMap {
     if (tell && this.onView) this.onView(this.view);
     const box = this.viewBox();
     this.svg.setAttribute("viewBox", box.join(" "));
+    const { x, y, w, h } = this.view;
+    for (const [k, v] of Object.entries({ x, y: -(y + h), width: w, height: h })) this.clipRect.setAttribute(k, String(v));
     const unit = Math.max(this.view.w, this.view.h) / 100; // 1 % of the view, in mm
     this.drawFrames(unit);
     this.drawMarks(unit);
@@ -138,12 +164,14 @@ export class PlateMap {
     );
     o.append(el("title", {}, "origin: the target's centre (x 0, y 0)"));
     marks.push(o, this.edgeNames(unit));
+    const placed = []; // badge centres so far (SVG units): a clustered defect's badge moves aside
     for (const d of this.data.defects) {
       if (!d.centroid_mm) continue;
       const [x, y] = d.centroid_mm;
       const g = el("g", { class: "map-defect", "data-defect": d.id, "data-x": x, "data-y": y });
       const r = 2.4 * unit;
-      const lx = x + 4 * unit, ly = -y - 4 * unit;
+      const [lx, ly] = badgePlace(x, -y, r, unit, placed);
+      placed.push([lx, ly]);
       g.append(
         el("title", {}, `defect ${d.id}: peak ${signed(d.peak_mm, 1)} mm at x ${x.toFixed(0)}, y ${y.toFixed(0)} mm`),
         el("circle", { class: "spot", cx: x, cy: -y, r: 0.9 * unit }),
