@@ -53,6 +53,8 @@ templates = Jinja2Templates(directory=TEMPLATES_DIR)
 def _fmt(value, digits: int = 1, unit: str = "", signed: bool = False) -> str:
     if value is None:
         return "—"
+    if round(value, digits) == 0:
+        value = 0.0  # never "-0.00"
     text = f"{value:+.{digits}f}" if signed else f"{value:.{digits}f}"
     return f"{text} {unit}".strip()
 

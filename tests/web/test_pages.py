@@ -370,3 +370,11 @@ def test_result_page_shows_traceability_and_not_capable_warnings_first(demo_app)
     assert head == "drawing DWG-H77-B21-0042 rev. C · hull H77 · block B21"
     assert warning in html
     assert html.index('id="verdict"') < html.index('id="warnings"') < html.index('id="next-pass"')
+
+
+def test_numbers_on_the_pages_never_read_minus_zero():
+    from web.routes import _fmt
+
+    assert _fmt(-0.001, 2, "%", signed=True) == "+0.00 %"
+    assert _fmt(-0.004, 2, "mm") == "0.00 mm"
+    assert _fmt(-0.006, 2, "mm") == "-0.01 mm"
