@@ -331,7 +331,7 @@ def test_no_cell_outside_demo_is_409_naming_the_setting(service):
     assert client.get("/healthz").json()["cell"] is None
     page = client.get("/cell").text
     assert re.search(
-        r'<button type="button" id="capture" disabled title="PLATE_INSPECT_CELL_CONFIG: no cell',
+        r'<button type="button" id="capture"[^>]* disabled title="PLATE_INSPECT_CELL_CONFIG: no cell',
         page,
     )
     assert "Capture unavailable: PLATE_INSPECT_CELL_CONFIG" in page
