@@ -5,7 +5,7 @@ that order, then writes details.json and result.json from the :class:`Measuremen
 module of the method (docs/method.md); this module only chains them, decides what runs beside the
 main line, and times them.
 
-Kept as one module (~610 lines): which stage waits for which, and what runs beside the main line,
+Kept as one module (~720 lines): which stage waits for which, and what runs beside the main line,
 are read together; the stages' own work lives in their modules.
 """
 
