@@ -7,7 +7,7 @@ view. The inspection row is the source of truth; the modules, along their seams:
 - :mod:`app.jobs.queue`: the huey queue (:class:`JobQueue`), rebuilt from the rows at consumer start;
 - :mod:`app.jobs.queue_file`: a corrupt queue file moved aside and recreated;
 - :mod:`app.jobs.execution`: one job (:func:`execute_inspection`), claimed under a lease;
-- :mod:`app.jobs.lease`: the running job's lease, renewed by a heartbeat;
+- :class:`app.services.leases.LeaseKeeper` (the one lease module): the running job's lease, renewed by a heartbeat;
 - :mod:`app.jobs.guards`: one consumer per data dir, none outliving its server;
 - :mod:`app.jobs.memory`: the consumer's memory bound.
 """

@@ -1,6 +1,6 @@
 """One inspection job: claim the row under a lease, (render,) inspect, store done or failed.
 
-Runs in the consumer (:mod:`app.worker`); see :mod:`app.jobs.lease` for the lease and
+Runs in the consumer (:mod:`app.worker`); see :class:`app.services.leases.LeaseKeeper` for the lease and
 :mod:`app.jobs.memory` for the memory bound.
 """
 
@@ -17,13 +17,13 @@ from pathlib import Path
 
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.jobs.lease import LeaseKeeper
 from app.jobs.memory import is_out_of_memory, out_of_memory_message
 from app.models import JobStatus
 from app.services import inspections as svc
 from app.services import leases, light_calibrations
 from app.services.acquisitions import ACQUIRED_SOURCE, capture_for_job
 from app.services.inspections import SIMULATION_FILE
+from app.services.leases import LeaseKeeper
 from app.settings import Settings
 from app.storage import Storage
 from pipeline.formats import InputError, PipelineError
