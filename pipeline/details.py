@@ -17,7 +17,7 @@ if TYPE_CHECKING:
     from .fusion import Fusion
     from .light_refinement import LightRefinement
     from .segmentation import Segmentation
-    from .verdict import DefectRegion, ExcludedRegion
+    from .verdict import DefectRegion
 
 
 @dataclass(frozen=True)
@@ -41,7 +41,7 @@ class RegionDetails:
 
 @dataclass(frozen=True)
 class ExcludedRegionDetails(RegionDetails):
-    """A region left out of the verdict, and why."""
+    """A region left out of the verdict, and why (in details.json files written before issue 24)."""
 
     reason: str
 
@@ -131,6 +131,8 @@ class Details:
     reasons : list of str
         Why the plate failed (empty when it passed).
     excluded_regions : list of ExcludedRegionDetails
+        Empty since the plate's edge band is left out by geometry before judging (issue 24); kept
+        for the format, and for files written before, which listed edge artefacts here.
     segmentation : SegmentationDetails or BrightnessSegmentationDetails
     normals_filled, normals_facing_away : int
     light_model : {"distant", "near-field"}
@@ -182,16 +184,6 @@ def region_details(
         uncertainty_mm=round(region.uncertainty_mm, 3)
         if np.isfinite(region.uncertainty_mm)
         else None,
-    )
-
-
-def excluded_region_details(region: ExcludedRegion) -> ExcludedRegionDetails:
-    """A :class:`pipeline.verdict.ExcludedRegion` for details.json."""
-    return ExcludedRegionDetails(
-        centroid_px=list(map(float, region.centroid_px)),
-        area_mm2=float(region.area_mm2),
-        peak_deviation_mm=float(region.peak_deviation_mm),
-        reason=region.reason,
     )
 
 

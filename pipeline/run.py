@@ -24,7 +24,6 @@ from .artifacts import ARTIFACT_FILES, RESULT_FILE
 from .details import (
     Details,
     UncertaintyDetails,
-    excluded_region_details,
     fusion_details,
     refinement_details,
     region_details,
@@ -186,7 +185,7 @@ def _details(m: Measurement, pre: Preprocessed, tgt: Target, *, near_field: bool
             for d in judgement.defects
         ],
         reasons=list(judgement.reasons),
-        excluded_regions=[excluded_region_details(r) for r in judgement.excluded],
+        excluded_regions=[],  # none since the edge band is left out by geometry (kept for readers)
         segmentation=segmentation_details(
             plate.seg, target_area_mm2(tgt), plain=plate.plain, measured_area_mm2=measured_area
         ),

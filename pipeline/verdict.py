@@ -44,28 +44,6 @@ class DefectRegion:
 
 
 @dataclass(frozen=True)
-class ExcludedRegion:
-    """An out-of-tolerance region left out of the verdict, and why.
-
-    Attributes
-    ----------
-    centroid_px : (float, float)
-        ``(u, v)`` of its centroid, pixels.
-    area_mm2 : float
-    peak_deviation_mm : float
-        Signed deviation of largest magnitude in it, mm.
-    n_pixels : int
-    reason : str
-    """
-
-    centroid_px: tuple[float, float]
-    area_mm2: float
-    peak_deviation_mm: float
-    n_pixels: int
-    reason: str
-
-
-@dataclass(frozen=True)
 class Judgement:
     """Deviation statistics and the verdict (see :func:`judge` for the rule).
 
@@ -84,10 +62,6 @@ class Judgement:
         Pixels judged (in the mask, with a finite deviation).
     reasons : tuple of str
         Why the plate failed (empty when it passed).
-    excluded : tuple of ExcludedRegion
-        Regions left out of the verdict, each with its reason: none since the edge band is left out
-        by geometry before judging (``pipeline.stages.edge_band``); kept for details.json's
-        ``excluded_regions``.
     """
 
     rms_mm: float
@@ -99,7 +73,6 @@ class Judgement:
     outside_area_mm2: float
     n_pixels: int
     reasons: tuple[str, ...]
-    excluded: tuple[ExcludedRegion, ...] = ()
 
 
 def judge(
