@@ -11,13 +11,12 @@ here starts when the bundle is written (no streaming of frames into the pipeline
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import tempfile
 import time
 from pathlib import Path
 
-from pipeline.acquisition import acquire, write_demo_cell
+from pipeline.acquisition import acquire, last_frame_lag_s, write_demo_cell
 from pipeline.parallel import configure_process
 from pipeline.run import inspect, warm_up
 
@@ -41,8 +40,7 @@ def main() -> None:
             t0 = time.monotonic()
             bundle = acquire(cell, plate_id=f"BENCH-{i}", out_dir=Path(tmp) / f"bundle{i}")
             returned = time.monotonic()
-            record = json.loads((bundle / "capture.json").read_text())["acquisition"]
-            tail = float(record["total_s"]) - float(record["frames"][-1]["t_s"])
+            tail = last_frame_lag_s(bundle) or 0.0
             doc = inspect(
                 bundle, cell.parent / "target.json", out_dir=Path(tmp) / f"out{i}"
             ).document

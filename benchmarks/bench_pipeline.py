@@ -108,7 +108,9 @@ for bundle in sys.argv[1:]:
     t = time.perf_counter()
     try:
         doc = run.inspect(b, b / "target.json", out_dir=b.parent / (b.name + "-out")).document
-        out[bundle] = dict(doc["timings_s"], wall=time.perf_counter() - t)
+        dev = doc["deviation_mm"] or {}
+        out[bundle] = dict(doc["timings_s"], wall=time.perf_counter() - t,
+                           dev_p95=dev.get("p95", float("nan")), dev_max=dev.get("max_abs", float("nan")))
     except Exception as err:
         out[bundle] = {"crash": type(err).__name__}
 print("TIMINGS " + json.dumps(out))
@@ -132,7 +134,11 @@ def _run_tree(tree: Path, bundles: list[Path]) -> dict[str, dict[str, float]]:
 
 
 def timing_table(
-    root: Path, sizes: list[tuple[int, int]], repeat: int, against: str | None
+    root: Path,
+    sizes: list[tuple[int, int]],
+    repeat: int,
+    against: str | None,
+    cells: list[str] | None = None,
 ) -> None:
     """Per-stage medians of ``repeat`` runs of each cell and size; with ``against``, the same captures
     timed with that commit's tree (a temporary worktree), runs interleaved, and the ratio of the
@@ -150,6 +156,7 @@ def timing_table(
         )
         for w, h in sizes
         for name, kwargs in CELLS
+        if cells is None or name in cells
     ]
     paths = [b for _, _, b in bundles]
     trees = {"now": ROOT}
@@ -176,6 +183,29 @@ def timing_table(
             ratio = _ratio(now, before)
             row += f" | {_median(before, 'total')} | {ratio}"
         print(row + " |")
+    _deviation_table(bundles, runs, against)
+
+
+def _deviation_table(
+    bundles: list[tuple[str, tuple[int, int], Path]],
+    runs: dict[str, list[dict[str, dict[str, float]]]],
+    against: str | None,
+) -> None:
+    """The plate (a cylinder formed exactly) as each tree measured it: deviation p95 / max, mm."""
+    print("\n## The same plates formed exactly: deviation p95 / max, mm (right: pass, near 0)\n")
+    trees = ["now", *([against] if against else [])]
+    print("| cell | size | " + " | ".join(trees) + " |")
+    print("|---" * (2 + len(trees)) + "|")
+    for name, (w, h), bundle in bundles:
+        cells = []
+        for key in trees:
+            first = runs[key][0][str(bundle)]
+            cells.append(
+                f"crash ({first['crash']})"
+                if "crash" in first
+                else f"{first['dev_p95']:.3f} / {first['dev_max']:.2f}"
+            )
+        print(f"| {name} | {w}x{h} | " + " | ".join(cells) + " |")
 
 
 def _median(runs: list[dict[str, float]], key: str) -> str:
@@ -232,6 +262,12 @@ def main() -> None:
     parser.add_argument(
         "--sizes", nargs="+", default=None, help="timing sizes WIDTHxHEIGHT (default both)"
     )
+    parser.add_argument(
+        "--cells",
+        nargs="+",
+        default=None,
+        help=f"timing cells (default all: {[c for c, _ in CELLS]})",
+    )
     args = parser.parse_args()
     lights = (3, 12, 36) if args.quick else LIGHTS
     seeds = args.seeds[:1] if args.quick else args.seeds
@@ -240,7 +276,7 @@ def main() -> None:
         sizes = [(int(a), int(b)) for a, b in (v.lower().split("x") for v in args.sizes)]
     with tempfile.TemporaryDirectory() as tmp:
         if args.only != "lights":
-            timing_table(Path(tmp), sizes, args.repeat, args.against)
+            timing_table(Path(tmp), sizes, args.repeat, args.against, args.cells)
         if args.only != "timing":
             lights_table(Path(tmp), seeds, lights)
 

@@ -51,6 +51,7 @@ def estimate_normals_near(
     valid: np.ndarray | None = None,
     method: str = "robust",
     min_samples: int = 3,
+    noise: float | None = None,
 ) -> NormalField:
     """Estimate unit normals and albedo per pixel under point (and distant) lights.
 
@@ -78,6 +79,10 @@ def estimate_normals_near(
     min_samples : int
         Fewer usable samples than this: a hole, filled from the neighbours.
 
+    noise : float, optional
+        The images' noise (their units), the robust estimator's scale floor; default: measured here
+        (:func:`pipeline.normals.noise.image_noise`). The alternation of :mod:`pipeline.reconstruct`
+        measures it once for all its estimates.
     Returns
     -------
     NormalField
@@ -142,11 +147,9 @@ def estimate_normals_near(
     v = valid if use_valid else np.ones((1, 1, 1), dtype=bool)
     b = np.empty((3, h, w), dtype=np.float32)
     status = np.empty((h, w), dtype=np.int8)
-    params = (
-        robust_params(float(np.median(image_noise(images, mask))))
-        if method == "robust"
-        else _PLAIN_PARAMS
-    )
+    if method == "robust" and noise is None:
+        noise = float(np.median(image_noise(images, mask)))
+    params = robust_params(noise or 0.0) if method == "robust" else _PLAIN_PARAMS
     robust_kernel(
         np.ascontiguousarray(images),
         np.ascontiguousarray(v),

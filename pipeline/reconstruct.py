@@ -26,6 +26,7 @@ import numpy as np
 from . import fusion, integration, light_refinement, nearfield, normals
 from .formats import CaptureError
 from .lights import Lights
+from .normals.noise import image_noise
 
 #: Point lights: the alternation stops when the 99th percentile of the depth's change is below this
 #: (mm): a 1 mm move turns a light's direction by ~0.02 deg at 3 m.
@@ -194,10 +195,11 @@ def near_field_surface(
     field = fused = None
     dropped = 0
     surface_mask = mask
+    noise = float(np.median(image_noise(images, mask)))  # the images', the same at every estimate
     for it in range(1, max_iterations + 1):  # noqa: B007 (the count is returned)
         est_mask = surface_mask & np.isfinite(depth)
         field = nearfield.estimate_normals_near(
-            images, lights, depth, K, est_mask, valid=valid, method=method
+            images, lights, depth, K, est_mask, valid=valid, method=method, noise=noise
         )
         new_depth, surface_mask, field, fused, dropped = integrate_and_fuse(
             field,

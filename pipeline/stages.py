@@ -529,6 +529,7 @@ def _qualify(
     rig = cap.rig
     board = rig.board or {}
     corners = board.get("inner_corners")
+    own_noise, dark_noise = _raw_noise(cap, lights)
     inputs = uncertainty.Inputs(
         images=images,
         valid=pre.valid,
@@ -541,9 +542,8 @@ def _qualify(
         baseline_mm=float(np.linalg.norm(rig.T)) if cap.has_stereo else None,
         calibration_rms_px=rig.rms_px,
         board_corners=int(np.prod(corners)) if corners else None,
-        registration_rms_mm=float(pose.rms_mm),
-        dark_noise=_raw_noise(cap, lights, dark=True),
-        own_noise=_raw_noise(cap, lights, dark=False),
+        own_noise=own_noise,
+        dark_noise=dark_noise,
     )
     radius = pose.fitted_radius_mm
     return uncertainty.propagate(
@@ -553,23 +553,19 @@ def _qualify(
     )
 
 
-def _raw_noise(cap: Capture, lights: Lights, *, dark: bool) -> np.ndarray | None:
-    """The raw noise of the photometric images (``dark`` False) or of the dark frame (True), each in
-    the preprocessed images' units (raw counts / (intensity x full scale)); None without a dark frame.
+def _raw_noise(cap: Capture, lights: Lights) -> tuple[np.ndarray, np.ndarray | None]:
+    """The raw noise of each photometric image and of the dark frame (None without one), each in the
+    preprocessed images' units (raw counts / (intensity x full scale)).
 
     Measured on the raw frames, before undistortion interpolates (and smooths) them.
     """
-    full_scale = float(2**cap.bit_depth - 1)
-    scale = np.asarray(lights.intensity, dtype=np.float64) * full_scale
-    h, w = cap.images.shape[1:]
-    everywhere = np.ones((h, w), bool)
-    if dark:
-        if cap.dark is None:
-            return None
-        out: np.ndarray = float(image_noise(cap.dark[None], everywhere)[0]) / scale
-        return out
+    scale = np.asarray(lights.intensity, dtype=np.float64) * float(2**cap.bit_depth - 1)
+    everywhere = np.ones(cap.images.shape[1:], bool)
     own: np.ndarray = image_noise(cap.images, everywhere) / scale
-    return own
+    if cap.dark is None:
+        return own, None
+    dark: np.ndarray = float(image_noise(cap.dark[None], everywhere)[0]) / scale
+    return own, dark
 
 
 def _write_deviation(

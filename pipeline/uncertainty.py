@@ -117,8 +117,6 @@ class Inputs:
     calibration_rms_px : float or None
     board_corners : int or None
         Corners of the calibration board (None: unknown).
-    registration_rms_mm : float
-        The best fit's residual (reported beside the components, not an uncertainty).
     dark_noise : (N,) float or None
         The dark frame's noise in each image's units (it was subtracted from every image: a noise
         common to all of a pixel's samples), None without a dark frame.
@@ -139,7 +137,6 @@ class Inputs:
     baseline_mm: float | None
     calibration_rms_px: float | None
     board_corners: int | None
-    registration_rms_mm: float
     dark_noise: np.ndarray | None = None
     own_noise: np.ndarray | None = None
 
@@ -267,11 +264,10 @@ def _photometric_sd_mm(x: Inputs, mask: np.ndarray, scale_px: float) -> np.ndarr
     pooled = (np.sum(res**2, axis=0) + prior_dof * s0**2) / (np.maximum(m - 3, 0) + prior_dof)
     s2 = np.maximum(pooled, s0**2)
     gram = np.einsum("npc,npd,np->pcd", g, g, lit.astype(np.float64))
-    tangential = _tangential_variance(gram, n)  # per unit albedo and image variance
-    var_n = s2 * tangential
-    # the dark frame's noise, one value shared by the pixel's samples: along gram^-1 G^T d
+    # the dark frame's noise is one value shared by the pixel's samples: along gram^-1 G^T d
     common = np.einsum("npc,np,n->pc", g, lit.astype(np.float64), dark)
-    var_n = var_n + _tangential_of_vector(gram, common, n)
+    tangential, shared = _tangential_parts(gram, common, n)  # per unit albedo
+    var_n = s2 * tangential + shared
     var_n = var_n / np.maximum(rho, 1e-6) ** 2
     var_n = np.where((m >= 3) & np.isfinite(var_n), var_n, np.nan)
     footprint = pts[:, 2] / math.sqrt(x.K[0, 0] * x.K[1, 1])  # mm per pixel step
@@ -282,28 +278,23 @@ def _photometric_sd_mm(x: Inputs, mask: np.ndarray, scale_px: float) -> np.ndarr
     return _spread(coarse, mask, step, radius=max(2, int(round(8 / step)) + 1))
 
 
-def _tangential_variance(gram: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """Per pixel: the mean variance of the two tangential components of ``gram^-1`` (its normal's
-    covariance per unit image variance and albedo); inf where the lights leave it undetermined."""
-    out = np.full(len(n), np.inf)
+def _tangential_parts(
+    gram: np.ndarray, common: np.ndarray, n: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel, from one inverse of ``gram``: the mean variance of the two tangential components of
+    ``gram^-1`` (the normal's covariance per unit image variance and albedo), and the mean squared
+    tangential component of ``gram^-1 common`` (a noise shared by all the pixel's samples); inf where
+    the lights leave the normal undetermined."""
+    independent = np.full(len(n), np.inf)
+    shared = np.full(len(n), np.inf)
     ok = np.abs(np.linalg.det(gram)) > 1e-12
     inv = np.linalg.inv(gram[ok])
     nn = n[ok]
     proj = np.eye(3)[None] - nn[:, :, None] * nn[:, None, :]
-    out[ok] = 0.5 * np.einsum("pij,pjk,pki->p", proj, inv, proj)
-    return out
-
-
-def _tangential_of_vector(gram: np.ndarray, v: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """Per pixel: the mean squared tangential component of ``gram^-1 v`` (the normal's error from a
-    noise shared by all samples, per unit albedo); inf where the lights leave it undetermined."""
-    out = np.full(len(n), np.inf)
-    ok = np.abs(np.linalg.det(gram)) > 1e-12
-    e = np.linalg.solve(gram[ok], v[ok][..., None])[..., 0]
-    nn = n[ok]
-    t = e - np.sum(e * nn, axis=1, keepdims=True) * nn
-    out[ok] = 0.5 * np.sum(t * t, axis=1)
-    return out
+    independent[ok] = 0.5 * np.einsum("pij,pjk,pki->p", proj, inv, proj)
+    t = np.einsum("pij,pjk,pk->pi", proj, inv, common[ok])
+    shared[ok] = 0.5 * np.sum(t * t, axis=1)
+    return independent, shared
 
 
 def _spread(coarse_var: np.ndarray, mask: np.ndarray, step: int, radius: int) -> np.ndarray:

@@ -26,6 +26,7 @@ from app.services.inspections import SIMULATION_FILE
 from app.services.leases import LeaseKeeper
 from app.settings import Settings
 from app.storage import Storage
+from pipeline.acquisition import last_frame_lag_s
 from pipeline.formats import InputError, PipelineError
 
 log = logging.getLogger(__name__)
@@ -322,12 +323,10 @@ def _add_after_last_frame(
     document: dict, capture_path: Path, out_dir: Path, returned_at: float
 ) -> None:
     """``timings_s.after_last_frame`` of an acquired inspection: seconds from the last frame's arrival
-    to the result (the bundle's acquisition record gives how long before ``returned_at``, the
-    moment the acquisition returned, the last frame came); written into result.json too."""
-    try:
-        record = json.loads((capture_path / "capture.json").read_text())["acquisition"]
-        tail = float(record["total_s"]) - float(record["frames"][-1]["t_s"])
-    except (OSError, KeyError, IndexError, TypeError, ValueError):
+    (:func:`pipeline.acquisition.last_frame_lag_s` before ``returned_at``, the moment the acquisition
+    returned) to the result; written into result.json too."""
+    tail = last_frame_lag_s(capture_path)
+    if tail is None:
         return  # no acquisition record: nothing to time against
     timings = document.get("timings_s")
     if not isinstance(timings, dict):

@@ -7,7 +7,7 @@ docs/acquisition.md.
 """
 
 from ..formats import AcquisitionError
-from .acquire import acquire, auto_exposure
+from .acquire import acquire, auto_exposure, last_frame_lag_s
 from .cameras import Camera, Frame, SimulatedCamera, SimulatedCell, open_camera
 from .config import CellConfig, load_cell_config
 from .demo import write_demo_cell
@@ -30,6 +30,7 @@ __all__ = [
     "TcpLightController",
     "acquire",
     "auto_exposure",
+    "last_frame_lag_s",
     "load_cell_config",
     "open_camera",
     "open_light_controller",

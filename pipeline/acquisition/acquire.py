@@ -297,6 +297,20 @@ def acquire(
     return out
 
 
+def last_frame_lag_s(bundle: str | os.PathLike[str]) -> float | None:
+    """Seconds from a bundle's last frame to the end of its acquisition (its ``acquisition`` record:
+    ``total_s`` less the last frame's ``t_s``); None for a bundle without that record.
+
+    With the moment ``acquire`` returned, this gives when the last frame arrived: what
+    ``timings_s.after_last_frame`` of an acquired inspection counts from.
+    """
+    try:
+        record = json.loads((Path(bundle) / "capture.json").read_text())["acquisition"]
+        return float(record["total_s"]) - float(record["frames"][-1]["t_s"])
+    except (OSError, KeyError, IndexError, TypeError, ValueError):
+        return None
+
+
 def _open(
     stack: ExitStack,
     config: CellConfig,
