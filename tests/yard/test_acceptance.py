@@ -15,11 +15,10 @@ from pipeline.artifacts import ARTIFACT_FILES
 from tests.api.helpers import wait_until
 from tests.yard.cluster import Yard
 
-SIM = {"n_lights": 6, "width": 320, "height": 256}
+#: Large enough that a job lasts about a second in a warmed-up worker: the kill below must land
+#: inside one (at 320x256 a job takes 0.6 s and the eight are done before a poll sees one run).
+SIM = {"n_lights": 12, "width": 800, "height": 640}
 N = 8
-#: Stages early enough in a job that the kill lands before it ends (its last stages take a good
-#: share of it): a kill at its very end could find the job done already and nothing to reclaim.
-EARLY_STAGES = ("load", "preprocess", "normals", "stereo")
 
 
 @pytest.mark.slow
@@ -31,15 +30,10 @@ def test_eight_inspections_two_workers_one_killed_all_complete_once(tmp_path, pg
         yard.start_server()
         victim, survivor = yard.start_worker(), yard.start_worker()
         ids = [yard.submit(f"ACC-{i}", SIM) for i in range(N)]
-        # Kill the first worker while it runs a job (after its first job completed: mid-queue).
+        # Kill the first worker the moment its log shows a job started and not finished: the
+        # look and the signal are a few milliseconds apart, a job lasts about a second.
         running = wait_until(
-            lambda: [
-                b["id"]
-                for b in map(yard.inspection, ids)
-                if b["status"] == "running"
-                and b["stage"] in EARLY_STAGES
-                and f"inspection {b['id']}: running" in yard.log("worker0.log")
-            ],
+            lambda: _in_flight(yard.log("worker0.log")),
             180,
             lambda: "the first worker never ran a job",
         )
@@ -48,9 +42,7 @@ def test_eight_inspections_two_workers_one_killed_all_complete_once(tmp_path, pg
         # The job it was running when it died: started in its log and never finished there (the
         # job seen running above may have ended between that look and the signal).
         victim_log = yard.log("worker0.log")
-        killed_mid_job = _ids(r"inspection (\d+): running", victim_log) - _ids(
-            r"inspection (\d+): done, verdict", victim_log
-        )
+        killed_mid_job = _in_flight(victim_log)
         bodies = yard.wait_all(ids, timeout_s=600)
     finally:
         yard.stop()
@@ -82,6 +74,11 @@ def test_eight_inspections_two_workers_one_killed_all_complete_once(tmp_path, pg
         if p.suffix in (".db", ".sqlite", ".lock") and "cell" not in p.parts
     ]
     assert survivor.returncode is not None
+
+
+def _in_flight(log: str) -> set[int]:
+    """The inspections a worker's log shows started and not (yet) finished."""
+    return _ids(r"inspection (\d+): running", log) - _ids(r"inspection (\d+): done, verdict", log)
 
 
 def _ids(pattern: str, text: str) -> set[int]:
