@@ -183,6 +183,9 @@ def timing_table(
             ratio = _ratio(now, before)
             row += f" | {_median(before, 'total')} | {ratio}"
         print(row + " |")
+        if against:
+            stages = [_median(before, s) for s in (*STAGES, "total")]
+            print(f"| {name}, {against} | {w}x{h} | " + " | ".join(stages) + " | | |")
     _deviation_table(bundles, runs, against)
 
 

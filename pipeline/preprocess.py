@@ -26,6 +26,12 @@ Arr = npt.NDArray[Any]
 SATURATION_FRACTION = 0.98
 
 
+#: The share of a pixel's samples, its brightest, set aside from the brightness the plate is told
+#: from its surroundings by (highlights; the robust normals' first fit sets aside as many,
+#: pipeline.normals.robust.TRIM_TOP_FRACTION).
+HIGHLIGHT_SHARE = 0.3
+
+
 @dataclass(frozen=True)
 class Preprocessed:
     """Photometric images ready for normal estimation.
@@ -45,10 +51,15 @@ class Preprocessed:
     n_shadowed : int
         Samples dropped as shadowed (inside the plate).
     brightest : (H, W) float32 or None
-        The brightest of the images at each pixel (same unit as ``images``): what
-        :func:`pipeline.segmentation.segment_plate` takes as its brightness.
+        The brightest of the images at each pixel (same unit as ``images``): the
+        attached shadows are judged against it.
     seen : (H, W) bool or None
         Pixels whose undistorted ray lands inside the raw images (samples exist).
+    brightness : (H, W) float32 or None
+        The pixel's brightest sample once its brightest HIGHLIGHT_SHARE are set aside
+        (the highlights of a glossy plate or conveyor under a few lights do not reach
+        it): a part of the plate mask, and what :func:`pipeline.segmentation.segment_plate`
+        takes as its brightness.
     """
 
     images: np.ndarray
@@ -58,6 +69,7 @@ class Preprocessed:
     n_shadowed: int
     brightest: np.ndarray | None = None
     seen: np.ndarray | None = None
+    brightness: np.ndarray | None = None
 
 
 def preprocess(
@@ -96,7 +108,14 @@ def preprocess(
     The plate mask is the source paper's adaptive threshold: Otsu's threshold
     (chosen from the histogram of this capture, not a fixed level) on the
     per-pixel maximum over the lights, then the largest connected component
-    with its holes filled.
+    with its holes filled; joined with the same on the pixel's brightest
+    sample once its brightest HIGHLIGHT_SHARE are set aside. On a glossy plate
+    the highlights of a few lights make a third, brighter population of the
+    maxima, and Otsu's threshold of the maxima alone fell between the plate's
+    highlights and its body, leaving a quarter of the plate out (18 lights, a
+    lobe half as bright as the diffuse part); the brightness without the
+    highlights alone loses a dim rim that few lights reach (near-field LEDs'
+    corners). Each mask lies on the plate; their union keeps both parts.
     """
     if not 0.0 <= shadow_fraction < 1.0:
         raise ValueError(f"shadow_fraction: expected a value in [0, 1), got {shadow_fraction}")
@@ -144,8 +163,12 @@ def preprocess(
         any_saturated = any(list(pool.map(one, range(n))))  # list: every image must be done
 
     brightest = np.empty((h, w), np.float32)
-    _brightest(images, brightest)
-    mask = plate_mask(brightest, erode_px=erode_px) & seen
+    brightness = np.empty((h, w), np.float32)
+    _brightest(images, brightest, int(HIGHLIGHT_SHARE * n), brightness)
+    # what either brightness tells from the dark: the maxima keep a rim that few lights reach, the
+    # maxima without their highlights keep a glossy plate's body (see Notes)
+    union = plate_mask(brightest, erode_px=erode_px) | plate_mask(brightness, erode_px=erode_px)
+    mask = _fill_holes(union) & seen
     valid = np.empty((n, h, w), bool)
     n_lit, n_saturated = _validity(
         images, brightest, saturated, any_saturated, seen, mask, np.float32(shadow_fraction), valid
@@ -158,19 +181,32 @@ def preprocess(
         n_shadowed=n * int(np.count_nonzero(mask)) - n_lit - n_saturated,
         brightest=brightest,
         seen=seen,
+        brightness=brightness,
     )
 
 
 @numba.njit(parallel=True, cache=True)
-def _brightest(images: Arr, out: Arr) -> None:
-    """out (H, W) = the brightest of the N images (N, H, W) at each pixel."""
+def _brightest(images: Arr, out: Arr, rank: int, ranked: Arr) -> None:
+    """out (H, W) = the brightest of the N images (N, H, W) at each pixel; ranked (H, W) the sample of
+    the given rank from the top (0: the brightest)."""
     n, h, w = images.shape
     for i in numba.prange(h):
-        out[i] = images[0, i]
-        for k in range(1, n):
-            row = images[k, i]
-            for j in range(w):
-                out[i, j] = max(out[i, j], row[j])
+        top = np.empty(rank + 1, np.float32)  # the pixel's rank + 1 brightest, descending
+        for j in range(w):
+            m = 0
+            for k in range(n):
+                x = images[k, i, j]
+                if m <= rank:
+                    m += 1
+                elif not x > top[rank]:
+                    continue
+                p = m - 1
+                while p > 0 and top[p - 1] < x:
+                    top[p] = top[p - 1]
+                    p -= 1
+                top[p] = x
+            out[i, j] = top[0]
+            ranked[i, j] = top[rank]
 
 
 @numba.njit(parallel=True, cache=True)

@@ -214,7 +214,7 @@ def preprocess_scene(cap: Capture, opts: InspectOptions, clock: StageClock) -> S
     clock.begin("preprocess")
     pre = preprocess(cap, workers=opts.workers)
     candidates = (
-        segmentation.candidate_mask(_brightest(pre), seen=pre.seen) if cap.has_stereo else pre.mask
+        segmentation.candidate_mask(_brightness(pre), seen=pre.seen) if cap.has_stereo else pre.mask
     )
     plain_outline = cap.has_stereo and segmentation.plain_outline(pre.mask, candidates)
     region = pre.mask if plain_outline else candidates
@@ -664,7 +664,7 @@ def _segment(
 ) -> segmentation.Segmentation:
     """The plate told from its surroundings (:func:`pipeline.segmentation.segment_plate`)."""
     return segmentation.segment_plate(
-        _brightest(pre),
+        _brightness(pre),
         depth_mm,
         K,
         seen=pre.seen,
@@ -675,11 +675,12 @@ def _segment(
     )
 
 
-def _brightest(pre: Preprocessed) -> np.ndarray:
-    """The brightest image of the photometric set (preprocess always computes it)."""
-    if pre.brightest is None:
-        raise ValueError("preprocess: the brightest image is missing")
-    return pre.brightest
+def _brightness(pre: Preprocessed) -> np.ndarray:
+    """The brightness the plate is told from its surroundings by (:attr:`Preprocessed.brightness`;
+    preprocess always computes it)."""
+    if pre.brightness is None:
+        raise ValueError("preprocess: the brightness image is missing")
+    return pre.brightness
 
 
 def _restricted(field: normals.NormalField, mask: np.ndarray) -> normals.NormalField:

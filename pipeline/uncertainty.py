@@ -166,31 +166,37 @@ def propagate(
     f_px = float(np.sqrt(x.K[0, 0] * x.K[1, 1]))
     extent_px = _extent_px(mask)
     scale_px = _integration_scale_px(x.fusion, extent_px)
-    u_ps = _photometric_sd_mm(x, mask, scale_px)
+    # every component on the grid of sampled pixels (the fields are smooth on its scale); the map
+    # is interpolated to every pixel at the end
+    step = _sample_step(mask)
+    grid = mask[::step, ::step]
+    var_ps = _photometric_var_mm2(x, mask, scale_px, step)
     u_corr = (
-        np.zeros_like(u_ps)
+        np.zeros(grid.shape)
         if x.fusion is None or x.fusion.correction_sd_mm is None
-        else np.nan_to_num(x.fusion.correction_sd_mm.astype(np.float64), nan=0.0)
+        else np.nan_to_num(x.fusion.correction_sd_mm[::step, ::step].astype(np.float64), nan=0.0)
     )
     u_scale = _scale_rel(x, z_typ, f_px)
-    height = _height_over_plane_mm(x.points_mm, mask) if u_scale > 0 else 0.0
-    u_reg = _registration_sd_mm(u_ps, u_corr, mask)
-    var = u_ps**2 + u_corr**2 + (u_scale * height) ** 2 + u_reg**2
-    u_map = np.where(mask, np.sqrt(var), np.nan).astype(np.float32)
-    u95 = COVERAGE_K * float(np.percentile(u_map[mask], 95))
+    height = _height_over_plane_mm(x.points_mm, mask, step) if u_scale > 0 else 0.0
+    u_reg = _registration_sd_mm(var_ps, u_corr, grid, step)
+    var = var_ps + u_corr**2 + (u_scale * height) ** 2 + u_reg**2
     radius_u, bend_rel, fit_rel = None, 0.0, 0.0
     if radius_mm is not None and math.isfinite(radius_mm):
         bend_rel = _bend_rel(x, radius_mm, z_typ, f_px, curved_direction)
         sagitta = _sagitta_mm(radius_mm, extent_px * z_typ / f_px)
         fit_rel = u_reg / sagitta if sagitta > 0 else 0.0
         radius_u = COVERAGE_K * radius_mm * math.sqrt(bend_rel**2 + u_scale**2 + fit_rel**2)
+    h, w = mask.shape
+    full = cv2.resize(var.astype(np.float32), (var.shape[1] * step, var.shape[0] * step))[:h, :w]
+    u_map = np.where(mask, np.sqrt(np.maximum(full, 0.0)), np.nan).astype(np.float32)
+    u95 = COVERAGE_K * float(np.percentile(u_map[mask], 95))  # the published map's own figure
     return Uncertainty(
-        map_mm=(COVERAGE_K * u_map).astype(np.float32),
+        map_mm=COVERAGE_K * u_map,
         deviation_mm=u95,
         radius_mm=radius_u,
         components={
-            "photometric_mm": round(float(np.percentile(u_ps[mask], 95)), 4),
-            "correction_mm": round(float(np.percentile(u_corr[mask], 95)), 4),
+            "photometric_mm": round(float(np.sqrt(np.percentile(var_ps[grid], 95))), 4),
+            "correction_mm": round(float(np.percentile(u_corr[grid], 95)), 4),
             "scale_rel": float(f"{u_scale:.3g}"),
             "bend_rel": float(f"{bend_rel:.3g}"),
             "fit_rel": float(f"{fit_rel:.3g}"),
@@ -200,15 +206,18 @@ def propagate(
     )
 
 
-def _registration_sd_mm(u_ps: np.ndarray, u_corr: np.ndarray, mask: np.ndarray) -> float:
+def _registration_sd_mm(
+    var_ps: np.ndarray, u_corr: np.ndarray, grid: np.ndarray, step: int
+) -> float:
     """Standard uncertainty (mm) the best-fit registration adds at a point: the points' own noise over
-    the independent patches it is fitted to (:data:`REGISTRATION_PATCH_PX` wide).
+    the independent patches it is fitted to (:data:`REGISTRATION_PATCH_PX` wide). ``var_ps``,
+    ``u_corr`` and ``grid`` on the grid of every ``step``-th pixel.
 
     Only the measurement's noise enters: the fit's residual also holds the plate's real deviation
     from its target (a dent, an under-bent plate), which is what is measured, not noise.
     """
-    typical = float(np.sqrt(np.median((u_ps**2 + u_corr**2)[mask])))
-    patches = max(float(np.count_nonzero(mask)) / REGISTRATION_PATCH_PX**2, 1.0)
+    typical = float(np.sqrt(np.median((var_ps + u_corr**2)[grid])))
+    patches = max(float(np.count_nonzero(grid)) * step**2 / REGISTRATION_PATCH_PX**2, 1.0)
     return typical / math.sqrt(patches)
 
 
@@ -226,16 +235,21 @@ def _integration_scale_px(fused: fusion_mod.Fusion | None, extent_px: float) -> 
     return extent_px
 
 
-def _photometric_sd_mm(x: Inputs, mask: np.ndarray, scale_px: float) -> np.ndarray:
-    """(H, W) standard uncertainty (mm) of the integrated depth from the normals' noise.
+def _sample_step(mask: np.ndarray) -> int:
+    """The grid step (px) that leaves about PHOTOMETRIC_SAMPLES of the mask's pixels."""
+    return max(1, int(math.sqrt(np.count_nonzero(mask) / PHOTOMETRIC_SAMPLES)))
 
-    On a grid of sampled pixels: the normal's tangential standard deviation from its fit (image
-    noise, and the fit's residual where it has degrees of freedom left), times the pixel's footprint
-    (mm per pixel step), smoothed over its neighbourhood (the integration averages the slopes
-    around a point) and scaled by the integration's gain over ``scale_px``.
+
+def _photometric_var_mm2(x: Inputs, mask: np.ndarray, scale_px: float, step: int) -> np.ndarray:
+    """Variance (mm^2) of the integrated depth from the normals' noise, on the grid of every ``step``-th
+    pixel (shape of ``mask[::step, ::step]``).
+
+    The normal's tangential standard deviation from its fit (image noise, and the fit's residual where
+    it has degrees of freedom left), times the pixel's footprint (mm per pixel step), smoothed over its
+    neighbourhood (the integration averages the slopes around a point) and scaled by the
+    integration's gain over ``scale_px``.
     """
     h, w = mask.shape
-    step = max(1, int(math.sqrt(np.count_nonzero(mask) / PHOTOMETRIC_SAMPLES)))
     rows, cols = np.nonzero(mask[::step, ::step] & x.field.mask[::step, ::step])
     rows, cols = rows * step, cols * step
     images = x.images[:, rows, cols].astype(np.float64)  # (N, P)
@@ -275,7 +289,7 @@ def _photometric_sd_mm(x: Inputs, mask: np.ndarray, scale_px: float) -> np.ndarr
     gain = math.log(max(scale_px, 2.0)) / (2.0 * math.pi) + INTEGRATION_OFFSET
     coarse = np.full(((h + step - 1) // step, (w + step - 1) // step), np.nan, np.float32)
     coarse[rows // step, cols // step] = var_g * gain
-    return _spread(coarse, mask, step, radius=max(2, int(round(8 / step)) + 1))
+    return _spread(coarse, radius=max(2, int(round(8 / step)) + 1))
 
 
 def _tangential_parts(
@@ -297,17 +311,15 @@ def _tangential_parts(
     return independent, shared
 
 
-def _spread(coarse_var: np.ndarray, mask: np.ndarray, step: int, radius: int) -> np.ndarray:
-    """Standard deviation (H, W) from sampled variances: averaged over a neighbourhood, upsampled."""
+def _spread(coarse_var: np.ndarray, radius: int) -> np.ndarray:
+    """Sampled variances averaged over a neighbourhood of ``radius`` samples (NaN: no sample; where
+    none is near, the median)."""
     have = np.isfinite(coarse_var)
     num = cv2.blur(np.where(have, coarse_var, 0.0).astype(np.float32), (radius, radius))
     den = cv2.blur(have.astype(np.float32), (radius, radius))
     fallback = float(np.nanmedian(coarse_var)) if have.any() else 0.0
-    var = np.where(den > 0, num / np.maximum(den, 1e-12), fallback)
-    h, w = mask.shape
-    full = cv2.resize(var.astype(np.float32), (var.shape[1] * step, var.shape[0] * step))
-    sd: np.ndarray = np.sqrt(np.clip(full[:h, :w], 0.0, None)).astype(np.float64)
-    return sd
+    var: np.ndarray = np.where(den > 0, num / np.maximum(den, 1e-12), fallback).astype(np.float64)
+    return var
 
 
 def _scale_rel(x: Inputs, z_typ: float, f_px: float) -> float:
@@ -323,17 +335,14 @@ def _scale_rel(x: Inputs, z_typ: float, f_px: float) -> float:
     return math.sqrt(u_d2) / disparity
 
 
-def _height_over_plane_mm(points: np.ndarray, mask: np.ndarray, step: int = 4) -> np.ndarray:
-    """(H, W) distance of each point from the surface's best plane, mm (0 off the mask), computed on
-    every ``step``-th pixel and interpolated (a smooth field: it only weighs the scale's part)."""
+def _height_over_plane_mm(points: np.ndarray, mask: np.ndarray, step: int) -> np.ndarray:
+    """Distance (mm) of the points of every ``step``-th pixel from the surface's best plane (shape of
+    ``mask[::step, ::step]``, 0 off the mask)."""
     p = points[mask][:: max(1, int(np.count_nonzero(mask) // 20_000))]
     centre = p.mean(axis=0)
     normal = np.linalg.svd(p - centre, full_matrices=False)[2][-1]
-    coarse = points[::step, ::step]
-    height = np.abs(np.nan_to_num((coarse - centre) @ normal)).astype(np.float32)
-    h, w = mask.shape
-    full = cv2.resize(height, (height.shape[1] * step, height.shape[0] * step))[:h, :w]
-    out: np.ndarray = np.where(mask, full, 0.0)
+    height = np.abs(np.nan_to_num((points[::step, ::step] - centre) @ normal))
+    out: np.ndarray = np.where(mask[::step, ::step], height, 0.0)
     return out
 
 

@@ -77,3 +77,20 @@ def test_preprocess_drops_saturated_samples(tmp_path):
     right[:, 50:] = True
     assert not pre.valid[2][pre.mask & right].any()
     assert pre.n_saturated >= np.count_nonzero(pre.mask & right)
+
+
+def test_a_glossy_plates_highlights_do_not_split_its_mask(tmp_path):
+    # 18 lights and a lobe half as bright as the diffuse part: the maxima over the lights hold three
+    # populations (conveyor, plate, highlights), and Otsu's threshold of the maxima alone fell between
+    # the plate and its highlights, leaving a third of the plate out
+    from pipeline.io import load_capture
+    from pipeline.preprocess import preprocess
+    from pipeline.simulate import CaptureSpec, PlateSpec, simulate_capture
+
+    spec = CaptureSpec(n_lights=18, specular=0.5, width=320, height=256)
+    bundle = simulate_capture(tmp_path / "glossy", plate=PlateSpec(), capture=spec, seed=1)
+    pre = preprocess(load_capture(bundle))
+    truth = np.load(bundle / "truth.npz")["mask"]
+    assert np.count_nonzero(truth & ~pre.mask) < 0.1 * truth.sum()  # the eroded rim: ~6 %
+    assert np.count_nonzero(pre.mask & ~truth) == 0
+    assert plate_mask(pre.brightest).sum() < 0.8 * truth.sum()  # the maxima alone: the split

@@ -47,7 +47,7 @@ def _scene(tmp_path_factory, name: str, plate: PlateSpec, seed: int = 5):
     )
     cap = load_capture(out)
     pre = preprocess(cap)
-    cand = candidate_mask(pre.brightest, seen=pre.seen)
+    cand = candidate_mask(pre.brightness, seen=pre.seen)
     depth = stereo.stereo_depth(
         cap.stereo_left, cap.stereo_right, cap.rig, z_min_mm=1500.0, z_max_mm=6000.0, mask=cand
     ).depth_mm
@@ -91,7 +91,7 @@ def _segment(scene, **kwargs) -> Segmentation:
     pre, cap = scene["pre"], scene["cap"]
     kwargs.setdefault("normals", scene["normals"])
     return segment_plate(
-        pre.brightest,
+        pre.brightness,
         scene["depth"],
         cap.rig.left.K,
         seen=pre.seen,
@@ -136,7 +136,7 @@ def test_plate_over_a_lit_floor(floor_scene):
     assert any("supports" in r for r in seg.reasons)
     assert seg.n_holes == 0
     # the brightness mask of today (Otsu, largest component, holes filled) does not find this plate
-    otsu = plate_mask(floor_scene["pre"].brightest, erode_px=0)
+    otsu = plate_mask(floor_scene["pre"].brightness, erode_px=0)
     assert _iou(otsu, truth) < 0.9
 
 
@@ -164,7 +164,7 @@ def test_cutout_on_a_dark_background(dark_cut_scene):
     assert _iou(seg.region, truth["mask"]) > 0.985
     assert np.count_nonzero(seg.mask & ~truth["mask"]) == 0
     # today's mask fills the opening: the floor... here the conveyor, seen through it becomes plate
-    otsu = plate_mask(dark_cut_scene["pre"].brightest, erode_px=0)
+    otsu = plate_mask(dark_cut_scene["pre"].brightness, erode_px=0)
     assert np.count_nonzero(otsu & hole) > 0.9 * hole.sum()
 
 
@@ -250,7 +250,7 @@ def test_small_dropouts_are_filled_large_unmatched_areas_are_not(floor_scene):
     depth[250:300, 200:250] = np.nan  # 2500 px ~ 110 000 mm^2: too large to guess
     pre, cap = floor_scene["pre"], floor_scene["cap"]
     seg = segment_plate(
-        pre.brightest, depth, cap.rig.left.K, seen=pre.seen, candidates=floor_scene["candidates"]
+        pre.brightness, depth, cap.rig.left.K, seen=pre.seen, candidates=floor_scene["candidates"]
     )
     assert seg.mask[200:203, 300:303].all()
     assert not seg.mask[250:300, 200:250].any() and seg.holes[250:300, 200:250].all()
@@ -262,24 +262,24 @@ def test_small_dropouts_are_filled_large_unmatched_areas_are_not(floor_scene):
 def test_without_stereo_depth_brightness_only(dark_cut_scene):
     pre, cap = dark_cut_scene["pre"], dark_cut_scene["cap"]
     truth = dark_cut_scene["truth"]
-    seg = segment_plate(pre.brightest, None, cap.rig.left.K, seen=pre.seen)
+    seg = segment_plate(pre.brightness, None, cap.rig.left.K, seen=pre.seen)
     assert seg.method == "brightness" and math.isnan(seg.plate_area_mm2)
     assert any("brightness only" in r for r in seg.reasons)
     # on a dark background that is enough, and the opening (dark) stays a hole
     assert _iou(seg.region, truth["mask"]) > 0.98
     assert seg.n_holes == 1
     # too little matched: the same fallback, with the share in the reason
-    sparse = np.full(pre.brightest.shape, np.nan, np.float32)
+    sparse = np.full(pre.brightness.shape, np.nan, np.float32)
     sparse[::50, ::50] = 3000.0
-    seg = segment_plate(pre.brightest, sparse, cap.rig.left.K)
+    seg = segment_plate(pre.brightness, sparse, cap.rig.left.K)
     assert seg.method == "brightness" and any("stereo depth on" in r for r in seg.reasons)
 
 
 def test_candidates_exclude_a_dark_conveyor_not_a_lit_floor(floor_scene, dark_cut_scene):
     dark = dark_cut_scene["truth"]
-    cand = candidate_mask(dark_cut_scene["pre"].brightest, seen=dark_cut_scene["pre"].seen)
+    cand = candidate_mask(dark_cut_scene["pre"].brightness, seen=dark_cut_scene["pre"].seen)
     assert _iou(cand, dark["mask"]) > 0.97
-    lit = candidate_mask(floor_scene["pre"].brightest, seen=floor_scene["pre"].seen)
+    lit = candidate_mask(floor_scene["pre"].brightness, seen=floor_scene["pre"].seen)
     assert np.count_nonzero(lit & ~floor_scene["truth"]["mask"]) > 0.8 * np.count_nonzero(
         ~floor_scene["truth"]["mask"]
     )
