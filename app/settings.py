@@ -172,8 +172,15 @@ class Settings(BaseSettings):
     @model_validator(mode="after")
     def _default_lease(self) -> Settings:
         if self.job_lease_s is None:
-            self.job_lease_s = YARD_JOB_LEASE_S if self.queue_url else EMBEDDED_JOB_LEASE_S
+            self.job_lease_s = self.lease_s
         return self
+
+    @property
+    def lease_s(self) -> float:
+        """The job lease in force, s: ``job_lease_s``, or its default for the queue when unset."""
+        if self.job_lease_s is not None:
+            return self.job_lease_s
+        return YARD_JOB_LEASE_S if self.queue_url else EMBEDDED_JOB_LEASE_S
 
     @property
     def sqlalchemy_url(self) -> str:
