@@ -5,14 +5,17 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, File, Path, Request, UploadFile, status
+from fastapi.responses import JSONResponse
 
 from app.deps import SessionDep, SettingsDep, StorageDep, WriterDep
 from app.errors import ApiError
 from app.limits import Limits
+from app.models import Calibration
 from app.routes.common import (
     API_PREFIX,
     MAX_ROW_ID,
     IdempotencyKeyHeader,
+    WorkAnswer,
     idempotent_write,
     save_upload,
 )
@@ -23,7 +26,7 @@ from app.services.calibrations import CALIBRATION_FILE
 router = APIRouter(tags=["calibrations"])
 
 
-def calibration_out(row) -> CalibrationOut:
+def calibration_out(row: Calibration) -> CalibrationOut:
     return CalibrationOut(
         id=row.id,
         image_size=(row.image_width, row.image_height),
@@ -48,19 +51,19 @@ def upload_calibration(
     writer: WriterDep,
     settings: SettingsDep,
     idempotency_key: IdempotencyKeyHeader = None,
-):
+) -> JSONResponse:
     """Store a ``stereo-calibration/1`` as the cell's current one.
 
     A bad file, or an ``image_size`` over the image pixel limit, is refused with 422 naming the field.
     """
     with storage.staging() as staged:
 
-        def work():
-            save_upload(calibration, staged.dir / CALIBRATION_FILE)
+        def work() -> WorkAnswer:
+            save_upload(calibration, staged.folder / CALIBRATION_FILE)
             row = svc.create_calibration(
                 session=session,
                 storage=storage,
-                staging_dir=staged.dir,
+                staging_dir=staged.folder,
                 limits=Limits.from_settings(settings),
             )
             staged.track(storage.calibration_dir(row.id))
@@ -82,7 +85,7 @@ def upload_calibration(
 @router.get(
     "/calibrations/current", response_model=CalibrationOut, responses={404: {"model": ErrorOut}}
 )
-def current_calibration(session: SessionDep):
+def current_calibration(session: SessionDep) -> CalibrationOut:
     row = svc.current_calibration(session=session)
     if row is None:
         raise ApiError(404, "calibration: no calibration uploaded yet", field=None)
@@ -98,7 +101,7 @@ def current_calibration(session: SessionDep):
 def get_calibration(
     calibration_id: Annotated[int, Path(ge=1, le=MAX_ROW_ID, description="the calibration's id")],
     session: SessionDep,
-):
+) -> CalibrationOut:
     row = svc.get_calibration(session=session, calibration_id=calibration_id)
     if row is None:
         raise ApiError(
@@ -110,5 +113,5 @@ def get_calibration(
 @router.get(
     "/calibrations", response_model=list[CalibrationOut], summary="Calibrations, newest first"
 )
-def list_calibrations(session: SessionDep):
+def list_calibrations(session: SessionDep) -> list[CalibrationOut]:
     return [calibration_out(r) for r in svc.list_calibrations(session=session)]

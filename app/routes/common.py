@@ -15,6 +15,7 @@ from fastapi import Header, Path, Query, Request
 from fastapi.responses import JSONResponse
 from pydantic import AfterValidator
 from sqlalchemy.orm import Session
+from starlette.datastructures import UploadFile
 
 from app.deps import Writer
 from app.errors import error_body, known_error, relabel_input_error
@@ -110,8 +111,10 @@ async def _digest(value: Any) -> str:
     return digest.hexdigest()
 
 
-#: work() -> (status code, JSON body, called after the commit (e.g. enqueue) or None)
-Work = Callable[[], tuple[int, dict[str, Any], Callable[[], None] | None]]
+#: What a write's work answers: (status code, JSON body, called after the commit (e.g. enqueue) or None).
+WorkAnswer = tuple[int, dict[str, Any], Callable[[], None] | None]
+#: work() -> :data:`WorkAnswer`
+Work = Callable[[], WorkAnswer]
 
 
 def idempotent_write(
@@ -201,10 +204,10 @@ def _claim(*, request: Request, session: Session, writer: Writer, key: str) -> i
             "send a new key for a new request (or the same body to get the first answer)"
         )
         return JSONResponse(error_body(detail, "Idempotency-Key"), status_code=422)
-    if row.state == "done":
-        return JSONResponse(
-            row.body, status_code=row.status_code, headers={"Idempotent-Replayed": "true"}
-        )
+    answer = idempotency.stored_answer(row)
+    if answer is not None:
+        status_code, body = answer
+        return JSONResponse(body, status_code=status_code, headers={"Idempotent-Replayed": "true"})
     return JSONResponse(
         error_body(
             "Idempotency-Key: the first request with this key is still in progress, retry later",
@@ -225,7 +228,7 @@ def _with_location(
 ) -> JSONResponse:
     """The answer with ``Location`` when it created something (201) or queued a job (202)."""
     if location is not None and response.status_code in (201, 202):
-        response.headers["Location"] = location(json.loads(response.body))
+        response.headers["Location"] = location(json.loads(bytes(response.body)))
     return response
 
 
@@ -237,7 +240,7 @@ def inspection_location(body: dict[str, Any]) -> str:
 # ------------------------------------------------------------------ response builders
 
 
-def save_upload(upload, path: FilePath) -> None:
+def save_upload(upload: UploadFile, path: FilePath) -> None:
     """Stream an uploaded file (FastAPI ``UploadFile``) to ``path`` in 1 MiB chunks."""
     with open(path, "wb") as fh:
         shutil.copyfileobj(upload.file, fh, length=1 << 20)
@@ -271,7 +274,9 @@ def inspection_out(row: Inspection, *, storage: Storage) -> InspectionOut:
     )
 
 
-def defects_and_reasons(storage: Storage, row: Inspection, names: list[str]) -> dict[str, list]:
+def defects_and_reasons(
+    storage: Storage, row: Inspection, names: list[str]
+) -> dict[str, list[Any]]:
     """``defects`` and ``reasons`` of a done inspection, from its details.json."""
     if row.status != JobStatus.DONE or "details.json" not in names:
         return {"defects": [], "reasons": []}
@@ -330,7 +335,7 @@ def plate_out(view: PlateOverview) -> PlateOut:
     )
 
 
-def csv_cell(value) -> str:
+def csv_cell(value: object) -> str:
     """A CSV cell; text a spreadsheet would run as a formula (``=``, ``+``, ``-``, ``@``) is quoted with ``'``."""
     if value is None:
         return ""

@@ -6,12 +6,14 @@ import csv
 import io
 import json
 import mimetypes
+from datetime import datetime
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, File, Form, Query, Request, UploadFile, status
-from fastapi.responses import FileResponse, Response
+from fastapi.responses import FileResponse, JSONResponse, Response
 from pydantic import TypeAdapter, ValidationError
+from sqlalchemy.orm import Session
 
 from app.deps import JobsDep, SessionDep, SettingsDep, StorageDep, WriterDep
 from app.errors import ApiError, relabel_input_error
@@ -22,6 +24,7 @@ from app.routes.common import (
     InspectionIdPath,
     OffsetQuery,
     PlateIdPath,
+    WorkAnswer,
     csv_cell,
     idempotent_write,
     inspection_location,
@@ -52,7 +55,7 @@ from pipeline.formats import InputError
 
 router = APIRouter(tags=["inspections"])
 
-ERRORS = {
+ERRORS: dict[int | str, dict[str, Any]] = {
     401: {"model": ErrorOut},
     413: {"model": ErrorOut},
     422: {"model": ErrorOut},
@@ -99,7 +102,7 @@ def create_inspection(
             description="who starts the inspection (printed on the signed report), 1-80 characters"
         ),
     ] = None,
-):
+) -> JSONResponse:
     """Check the bundle (and target), store them and queue the inspection: 202 ``{"id", "status"}``.
 
     The bundle is checked from capture.json and the image headers (no image is decoded here;
@@ -111,25 +114,25 @@ def create_inspection(
     """
     with storage.staging() as staged:
 
-        def work():
+        def work() -> WorkAnswer:
             pass_ = None if process is None else parse_process(process)
             who = None if operator is None else parse_operator(operator)
-            save_upload(capture, staged.dir / CAPTURE_FILE)
+            save_upload(capture, staged.folder / CAPTURE_FILE)
             if target is not None:
-                (staged.dir / "target").mkdir()
-                save_upload(target, staged.dir / "target" / TARGET_FILE)
+                (staged.folder / "target").mkdir()
+                save_upload(target, staged.folder / "target" / TARGET_FILE)
             try:
                 row = svc.create_uploaded_inspection(
                     session=session,
                     storage=storage,
                     plate_id=plate_id,
-                    staging_dir=staged.dir,
+                    staging_dir=staged.folder,
                     limits=Limits.from_settings(settings),
                     process=pass_,
                 )
             except InputError as err:
                 raise _named_as_sent(
-                    relabel_input_error(err, staged.dir), capture.filename
+                    relabel_input_error(err, staged.folder), capture.filename
                 ) from None
             row.operator = who
             staged.track(storage.inspection_dir(row.id))
@@ -148,7 +151,7 @@ def create_inspection(
         )
 
 
-def parse_process(text: str) -> dict:
+def parse_process(text: str) -> dict[str, Any]:
     """The multipart field ``process`` (JSON) checked as :class:`ProcessIn`, as a dict.
 
     Raises
@@ -216,14 +219,14 @@ def create_simulated_inspection(
     writer: WriterDep,
     settings: SettingsDep,
     idempotency_key: IdempotencyKeyHeader = None,
-):
+) -> JSONResponse:
     """Queue a job that renders a capture of the described plate, then inspects it.
 
     Over the request limits (lights, simulated pixels): 422; a full queue: 429 and ``Retry-After``.
     """
     with storage.staging(folder=False) as staged:
 
-        def work():
+        def work() -> WorkAnswer:
             row = svc.create_simulated_inspection(
                 session=session,
                 storage=storage,
@@ -270,7 +273,7 @@ def acquire_inspection(
     settings: SettingsDep,
     body: AcquireInspectionIn | None = None,
     idempotency_key: IdempotencyKeyHeader = None,
-):
+) -> JSONResponse:
     """Queue a job that photographs the plate in the cell (``PLATE_INSPECT_CELL_CONFIG``), then inspects it.
 
     The job's stages: ``capture`` (progress per image taken), then the pipeline's. A device that
@@ -289,7 +292,7 @@ def acquire_inspection(
         if staged.dir is not None:
             (staged.dir / TARGET_FILE).write_text(json.dumps(body.target), encoding="utf-8")
 
-        def work():
+        def work() -> WorkAnswer:
             row = create_acquired_inspection(
                 session=session,
                 storage=storage,
@@ -328,7 +331,7 @@ def list_plate_inspections(
     session: SessionDep,
     limit: Annotated[int, Query(ge=1, le=200)] = 20,
     offset: OffsetQuery = 0,
-):
+) -> Page[InspectionSummary]:
     """The plate's inspections (404 for a plate the server does not know, as ``GET /plates/{id}``)."""
     _known_plate(session, plate_id)
     items, total = svc.list_inspections(
@@ -372,7 +375,7 @@ PLATE_CSV_COLUMNS = (
     },
     summary="A plate's inspections as CSV, for a spreadsheet",
 )
-def plate_inspections_csv(plate_id: PlateIdPath, session: SessionDep):
+def plate_inspections_csv(plate_id: PlateIdPath, session: SessionDep) -> Response:
     """Columns: see ``PLATE_CSV_COLUMNS`` (times in UTC with their offset, lengths in mm)."""
     _known_plate(session, plate_id)
     out = io.StringIO()
@@ -403,12 +406,12 @@ def plate_inspections_csv(plate_id: PlateIdPath, session: SessionDep):
     )
 
 
-def _known_plate(session, plate_id: str) -> None:
+def _known_plate(session: Session, plate_id: str) -> None:
     if plates_svc.get_plate(session=session, plate_id=plate_id) is None:
         raise ApiError(404, f"plate_id: no plate {plate_id!r}", field="plate_id")
 
 
-def _iso(when) -> str | None:
+def _iso(when: datetime | None) -> str | None:
     return None if when is None else when.isoformat(timespec="seconds")
 
 
@@ -423,7 +426,7 @@ def list_inspections(
     ] = None,
     limit: Annotated[int, Query(ge=1, le=200)] = 20,
     offset: OffsetQuery = 0,
-):
+) -> Page[InspectionSummary]:
     items, total = svc.list_inspections(
         session=session, statuses=tuple(status_) if status_ else None, limit=limit, offset=offset
     )
@@ -437,7 +440,9 @@ def list_inspections(
     response_model=InspectionOut,
     responses={404: {"model": ErrorOut}},
 )
-def get_inspection(inspection_id: InspectionIdPath, session: SessionDep, storage: StorageDep):
+def get_inspection(
+    inspection_id: InspectionIdPath, session: SessionDep, storage: StorageDep
+) -> InspectionOut:
     """Job state (status, progress 0..1, stage), the plate-result/1 object once done, or the error."""
     row = svc.get_inspection(session=session, inspection_id=inspection_id)
     if row is None:
@@ -459,7 +464,7 @@ def get_report(
     session: SessionDep,
     storage: StorageDep,
     settings: SettingsDep,
-):
+) -> Response:
     """The inspection report to sign (A4 PDF): a header on every page (yard, hull, block, plate,
     drawing and revision, report number, cell, camera serials, calibration, operator, times, page X
     of Y); verdict, warnings and the decision rule; target and alignment; radius, surface, defects
@@ -494,7 +499,7 @@ def get_report(
 )
 def get_artifact(
     inspection_id: InspectionIdPath, name: str, session: SessionDep, storage: StorageDep
-):
+) -> FileResponse:
     """One artifact file of an inspection (result.json, surface.ply, deviation.png, ...)."""
     if svc.get_inspection(session=session, inspection_id=inspection_id) is None:
         raise ApiError(404, f"inspection_id: no inspection {inspection_id}", field="inspection_id")
