@@ -15,13 +15,11 @@ from app.routes.common import (
     API_PREFIX,
     MAX_ROW_ID,
     IdempotencyKeyHeader,
-    WorkAnswer,
-    idempotent_write,
-    save_upload,
+    write_request,
 )
 from app.schemas import CalibrationOut, ErrorOut
 from app.services import calibrations as svc
-from app.services.calibrations import CALIBRATION_FILE
+from app.services import submissions
 
 router = APIRouter(tags=["calibrations"])
 
@@ -56,30 +54,15 @@ def upload_calibration(
 
     A bad file, or an ``image_size`` over the image pixel limit, is refused with 422 naming the field.
     """
-    with storage.staging() as staged:
-
-        def work() -> WorkAnswer:
-            save_upload(calibration, staged.folder / CALIBRATION_FILE)
-            row = svc.create_calibration(
-                session=session,
-                storage=storage,
-                staging_dir=staged.folder,
-                limits=Limits.from_settings(settings),
-            )
-            staged.track(storage.calibration_dir(row.id))
-            return 201, calibration_out(row).model_dump(mode="json"), None
-
-        return idempotent_write(
-            request=request,
-            session=session,
-            writer=writer,
-            key=idempotency_key,
-            work=work,
-            cleanup=staged.undo,
-            staging=staged.dir,
-            upload_field="calibration",
-            location=lambda body: f"{API_PREFIX}/calibrations/{body['id']}",
-        )
+    return submissions.submit_calibration(
+        write_request(request, writer, idempotency_key),
+        session=session,
+        storage=storage,
+        limits=Limits.from_settings(settings),
+        upload=calibration,
+        body_of=lambda row: calibration_out(row).model_dump(mode="json"),
+        location=lambda body: f"{API_PREFIX}/calibrations/{body['id']}",
+    )
 
 
 @router.get(

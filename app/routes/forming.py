@@ -17,9 +17,8 @@ from app.routes.common import (
     API_PREFIX,
     IdempotencyKeyHeader,
     PlateIdPath,
-    WorkAnswer,
     csv_cell,
-    idempotent_write,
+    write_request,
 )
 from app.schemas import (
     MACHINE_ID_MAX_LENGTH,
@@ -30,6 +29,7 @@ from app.schemas import (
     MachineOut,
 )
 from app.services import forming as svc
+from app.services import submissions
 from app.storage import check_plate_id
 
 router = APIRouter(tags=["forming"])
@@ -90,18 +90,12 @@ def put_machine(
 ) -> JSONResponse:
     """Store the machine's geometry (mm): 201 when new, 200 when replaced. Later advice uses the new geometry."""
 
-    def work() -> WorkAnswer:
-        row, created = svc.put_machine(
-            session=session, machine_id=machine_id, spec=body.model_dump()
-        )
-        return 201 if created else 200, machine_out(row).model_dump(mode="json"), None
-
-    return idempotent_write(
-        request=request,
+    return submissions.submit_machine(
+        write_request(request, writer, idempotency_key),
         session=session,
-        writer=writer,
-        key=idempotency_key,
-        work=work,
+        machine_id=machine_id,
+        spec=body.model_dump(),
+        body_of=lambda row: machine_out(row).model_dump(mode="json"),
         location=lambda body: f"{API_PREFIX}/machines/{body['id']}",
     )
 

@@ -4,19 +4,16 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import mimetypes
 from datetime import datetime
-from pathlib import Path
 from typing import Annotated, Any
 
 from fastapi import APIRouter, File, Form, Query, Request, UploadFile, status
 from fastapi.responses import FileResponse, JSONResponse, Response
-from pydantic import TypeAdapter, ValidationError
 from sqlalchemy.orm import Session
 
 from app.deps import JobsDep, SessionDep, SettingsDep, StorageDep, WriterDep
-from app.errors import ApiError, relabel_input_error
+from app.errors import ApiError
 from app.limits import Limits
 from app.models import JobStatus
 from app.routes.common import (
@@ -24,13 +21,11 @@ from app.routes.common import (
     InspectionIdPath,
     OffsetQuery,
     PlateIdPath,
-    WorkAnswer,
     csv_cell,
-    idempotent_write,
     inspection_location,
     inspection_out,
     inspection_summary,
-    save_upload,
+    write_request,
 )
 from app.schemas import (
     AcquireInspectionIn,
@@ -38,20 +33,15 @@ from app.schemas import (
     InspectionCreated,
     InspectionOut,
     InspectionSummary,
-    OperatorName,
     Page,
-    ProcessIn,
     SimulatedInspectionIn,
     Status,
 )
 from app.services import inspections as svc
 from app.services import plates as plates_svc
-from app.services.acquisitions import create_acquired_inspection
-from app.services.cell import CELL_SETTING, CellUnavailable, demo_target, load_cell
-from app.services.inspections import CAPTURE_FILE
+from app.services import submissions
+from app.services.cell import CELL_SETTING
 from app.services.reports import inspection_report
-from app.services.targets import TARGET_FILE
-from pipeline.formats import InputError
 
 router = APIRouter(tags=["inspections"])
 
@@ -66,6 +56,26 @@ ERRORS: dict[int | str, dict[str, Any]] = {
 }
 
 
+CaptureUpload = Annotated[
+    UploadFile, File(description="the capture bundle (plate-capture/1) as a .zip")
+]
+TargetUpload = Annotated[
+    UploadFile | None,
+    File(description="plate-target/1 JSON; optional if the plate has a target"),
+]
+ProcessForm = Annotated[
+    str | None,
+    Form(
+        description='the forming pass that produced the shape, JSON: {"method": "roll-bending", '
+        '"machine_id": "R3-01", "top_roll_displacement_mm": 97.0}'
+    ),
+]
+OperatorForm = Annotated[
+    str | None,
+    Form(description="who starts the inspection (printed on the signed report), 1-80 characters"),
+]
+
+
 @router.post(
     "/plates/{plate_id}/inspections",
     status_code=status.HTTP_202_ACCEPTED,
@@ -76,32 +86,16 @@ ERRORS: dict[int | str, dict[str, Any]] = {
 def create_inspection(
     request: Request,
     plate_id: PlateIdPath,
-    capture: Annotated[
-        UploadFile, File(description="the capture bundle (plate-capture/1) as a .zip")
-    ],
+    capture: CaptureUpload,
     session: SessionDep,
     storage: StorageDep,
     jobs: JobsDep,
     writer: WriterDep,
     settings: SettingsDep,
     idempotency_key: IdempotencyKeyHeader = None,
-    target: Annotated[
-        UploadFile | None,
-        File(description="plate-target/1 JSON; optional if the plate has a target"),
-    ] = None,
-    process: Annotated[
-        str | None,
-        Form(
-            description='the forming pass that produced the shape, JSON: {"method": "roll-bending", '
-            '"machine_id": "R3-01", "top_roll_displacement_mm": 97.0}'
-        ),
-    ] = None,
-    operator: Annotated[
-        str | None,
-        Form(
-            description="who starts the inspection (printed on the signed report), 1-80 characters"
-        ),
-    ] = None,
+    target: TargetUpload = None,
+    process: ProcessForm = None,
+    operator: OperatorForm = None,
 ) -> JSONResponse:
     """Check the bundle (and target), store them and queue the inspection: 202 ``{"id", "status"}``.
 
@@ -112,94 +106,19 @@ def create_inspection(
     is stored with the inspection; a bad one, or one naming an unknown machine, is refused with 422
     naming ``process`` or its field (``process.machine_id``).
     """
-    with storage.staging() as staged:
-
-        def work() -> WorkAnswer:
-            pass_ = None if process is None else parse_process(process)
-            who = None if operator is None else parse_operator(operator)
-            save_upload(capture, staged.folder / CAPTURE_FILE)
-            if target is not None:
-                (staged.folder / "target").mkdir()
-                save_upload(target, staged.folder / "target" / TARGET_FILE)
-            try:
-                row = svc.create_uploaded_inspection(
-                    session=session,
-                    storage=storage,
-                    plate_id=plate_id,
-                    staging_dir=staged.folder,
-                    limits=Limits.from_settings(settings),
-                    process=pass_,
-                )
-            except InputError as err:
-                raise _named_as_sent(
-                    relabel_input_error(err, staged.folder), capture.filename
-                ) from None
-            row.operator = who
-            staged.track(storage.inspection_dir(row.id))
-            return 202, {"id": row.id, "status": row.status}, lambda: jobs.enqueue(row.id)
-
-        return idempotent_write(
-            request=request,
-            session=session,
-            writer=writer,
-            key=idempotency_key,
-            work=work,
-            cleanup=staged.undo,
-            staging=staged.dir,
-            upload_field=_upload_part,
-            location=inspection_location,
-        )
-
-
-def parse_process(text: str) -> dict[str, Any]:
-    """The multipart field ``process`` (JSON) checked as :class:`ProcessIn`, as a dict.
-
-    Raises
-    ------
-    ApiError
-        422 naming ``process`` (not JSON) or the field of it that is wrong (``process.machine_id``).
-    """
-    try:
-        return ProcessIn.model_validate_json(text).model_dump(mode="json")
-    except ValidationError as err:
-        first = err.errors()[0]
-        loc = ".".join(str(p) for p in first["loc"])
-        field = f"process.{loc}" if loc and first["type"] != "json_invalid" else "process"
-        raise ApiError(422, f"{field}: {first['msg']}", field=field) from None
-
-
-_OPERATOR = TypeAdapter(OperatorName)
-
-
-def parse_operator(text: str) -> str:
-    """The multipart field ``operator`` checked as :data:`app.schemas.OperatorName`.
-
-    Raises
-    ------
-    ApiError
-        422 naming ``operator``: empty, over 80 characters, or with control characters.
-    """
-    try:
-        return _OPERATOR.validate_python(text)
-    except ValidationError:
-        raise ApiError(
-            422,
-            f"operator: expected a name of 1-80 printable characters, got {text[:100]!r}",
-            field="operator",
-        ) from None
-
-
-def _named_as_sent(err: InputError, filename: str | None) -> InputError:
-    """The error with the bundle named as the client sent it (``bad.zip``), not as it is stored."""
-    sent = Path(filename or "").name
-    if not sent or sent == CAPTURE_FILE or not err.file.startswith(CAPTURE_FILE):
-        return err
-    return InputError(sent + err.file[len(CAPTURE_FILE) :], err.field, err.reason)
-
-
-def _upload_part(err: InputError) -> str:
-    """The multipart field a refused file of an upload is about: the target (staged in target/) or the capture."""
-    return "target" if err.file.startswith("target/") else "capture"
+    return submissions.submit_uploaded_inspection(
+        write_request(request, writer, idempotency_key),
+        session=session,
+        storage=storage,
+        jobs=jobs,
+        limits=Limits.from_settings(settings),
+        plate_id=plate_id,
+        capture=capture,
+        target=target,
+        process=process,
+        operator=operator,
+        location=inspection_location,
+    )
 
 
 @router.post(
@@ -224,29 +143,17 @@ def create_simulated_inspection(
 
     Over the request limits (lights, simulated pixels): 422; a full queue: 429 and ``Retry-After``.
     """
-    with storage.staging(folder=False) as staged:
-
-        def work() -> WorkAnswer:
-            row = svc.create_simulated_inspection(
-                session=session,
-                storage=storage,
-                plate_id=plate_id,
-                simulation=body.model_dump(mode="json", exclude={"operator"}),
-                limits=Limits.from_settings(settings),
-            )
-            row.operator = body.operator
-            staged.track(storage.inspection_dir(row.id))
-            return 202, {"id": row.id, "status": row.status}, lambda: jobs.enqueue(row.id)
-
-        return idempotent_write(
-            request=request,
-            session=session,
-            writer=writer,
-            key=idempotency_key,
-            work=work,
-            cleanup=staged.undo,
-            location=inspection_location,
-        )
+    return submissions.submit_simulated_inspection(
+        write_request(request, writer, idempotency_key),
+        session=session,
+        storage=storage,
+        jobs=jobs,
+        limits=Limits.from_settings(settings),
+        plate_id=plate_id,
+        simulation=body.model_dump(mode="json", exclude={"operator"}),
+        operator=body.operator,
+        location=inspection_location,
+    )
 
 
 @router.post(
@@ -283,41 +190,16 @@ def acquire_inspection(
     setting or the file and field; a bad target or process: 422; a full queue: 429 and
     ``Retry-After``.
     """
-    body = body or AcquireInspectionIn()
-    try:
-        cell = load_cell(settings)
-    except CellUnavailable as err:  # checked first, never remembered under an Idempotency-Key
-        raise ApiError(409, err.detail) from None
-    with storage.staging(folder=body.target is not None) as staged:
-        if staged.dir is not None:
-            (staged.dir / TARGET_FILE).write_text(json.dumps(body.target), encoding="utf-8")
-
-        def work() -> WorkAnswer:
-            row = create_acquired_inspection(
-                session=session,
-                storage=storage,
-                plate_id=plate_id,
-                cell=cell,
-                process=None if body.process is None else body.process.model_dump(mode="json"),
-                target_dir=staged.dir,
-                default_target=demo_target(settings),
-                limits=Limits.from_settings(settings),
-            )
-            row.operator = body.operator
-            staged.track(storage.inspection_dir(row.id))
-            return 202, {"id": row.id, "status": row.status}, lambda: jobs.enqueue(row.id)
-
-        return idempotent_write(
-            request=request,
-            session=session,
-            writer=writer,
-            key=idempotency_key,
-            work=work,
-            cleanup=staged.undo,
-            staging=staged.dir,
-            upload_field="target",
-            location=inspection_location,
-        )
+    return submissions.submit_acquired_inspection(
+        write_request(request, writer, idempotency_key),
+        session=session,
+        storage=storage,
+        jobs=jobs,
+        settings=settings,
+        plate_id=plate_id,
+        body=body or AcquireInspectionIn(),
+        location=inspection_location,
+    )
 
 
 @router.get(

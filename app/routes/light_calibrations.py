@@ -17,11 +17,11 @@ from app.routes.common import (
     API_PREFIX,
     IdempotencyKeyHeader,
     LightCalibrationIdPath,
-    WorkAnswer,
-    idempotent_write,
+    write_request,
 )
 from app.schemas import ErrorOut, LightCalibrationOut
 from app.services import light_calibrations as svc
+from app.services import submissions
 from app.services.light_calibrations import LIGHT_CALIBRATION_FILE
 
 router = APIRouter(tags=["light calibrations"])
@@ -91,27 +91,16 @@ async def upload_light_calibration(
             request, content_type, staged.folder / LIGHT_CALIBRATION_FILE
         )
 
-        def work() -> WorkAnswer:
-            row = svc.create_light_calibration(
-                session=session,
-                storage=storage,
-                staging_dir=staged.folder,
-                file_name=file_name,
-                limits=Limits.from_settings(settings),
-            )
-            staged.track(storage.light_calibration_dir(row.id))
-            return 201, light_calibration_out(row).model_dump(mode="json"), None
-
         return await run_in_threadpool(
-            idempotent_write,
-            request=request,
+            submissions.submit_light_calibration,
+            write_request(request, writer, idempotency_key),
+            staged,
             session=session,
-            writer=writer,
-            key=idempotency_key,
-            work=work,
-            cleanup=staged.undo,
+            storage=storage,
+            limits=Limits.from_settings(settings),
+            file_name=file_name,
             upload_field=UPLOAD_FIELD if file_name is not None else None,
-            staging=staged.dir,
+            body_of=lambda row: light_calibration_out(row).model_dump(mode="json"),
             location=lambda body: f"{API_PREFIX}/light-calibrations/{body['id']}",
         )
 

@@ -18,15 +18,15 @@ from app.routes.common import (
     IdempotencyKeyHeader,
     OffsetQuery,
     PlateIdPath,
-    WorkAnswer,
-    idempotent_write,
     plate_out,
-    save_upload,
     target_out,
+    write_request,
 )
 from app.schemas import ErrorOut, Page, PlateOut, TargetOut
 from app.services import plates as svc
-from app.services.targets import TARGET_FILE, create_target
+from app.services import submissions
+from app.services.targets import TARGET_FILE
+from app.services.writes import save_upload
 from app.storage import ARTIFACT_NAME_PATTERN
 from pipeline.io import MESH_SUFFIXES
 
@@ -133,23 +133,14 @@ async def put_target(
                 field="Content-Type",
             )
 
-        def work() -> WorkAnswer:
-            row = create_target(
-                session=session, storage=storage, plate_id=plate_id, staging_dir=staging
-            )
-            staged.track(storage.target_dir(plate_id, row.id))
-            return 200, target_out(row).model_dump(mode="json"), None
-
         return await run_in_threadpool(
-            idempotent_write,
-            request=request,
+            submissions.submit_target,
+            write_request(request, writer, idempotency_key),
+            staged,
             session=session,
-            writer=writer,
-            key=idempotency_key,
-            work=work,
-            cleanup=staged.undo,
-            upload_field="target",
-            staging=staging,
+            storage=storage,
+            plate_id=plate_id,
+            body_of=lambda row: target_out(row).model_dump(mode="json"),
         )
 
 
