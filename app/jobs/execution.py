@@ -12,7 +12,6 @@ import logging
 import os
 import tempfile
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypedDict
 
@@ -25,7 +24,7 @@ from app.services import leases, light_calibrations
 from app.services.acquisitions import ACQUIRED_SOURCE, capture_for_job
 from app.services.inspections import SIMULATION_FILE
 from app.services.leases import LeaseKeeper
-from app.settings import Settings
+from app.settings import InspectFunction, Settings
 from app.storage import Storage
 from pipeline.acquisition import last_frame_lag_s
 from pipeline.formats import InputError, PipelineError
@@ -84,18 +83,11 @@ class ProgressWriter:
         self._last_stage, self._last_time = stage, now
 
 
-def resolve_entry(entry: str) -> Callable[..., Any]:
-    """The function named by ``"module:function"``."""
-    module_name, _, attr = entry.partition(":")
-    function: Callable[..., Any] = getattr(importlib.import_module(module_name), attr)
-    return function
-
-
-def warm_up_entry(entry: str) -> float | None:
+def warm_up_entry(inspect: InspectFunction) -> float | None:
     """Load the compiled kernels of the inspection entry's module (its ``warm_up()``, as
     :func:`pipeline.run.warm_up`) so that no job pays for them; its run time (s), or None when
     the module has none (a stand-in pipeline)."""
-    module = importlib.import_module(entry.partition(":")[0])
+    module = importlib.import_module(inspect.__module__)
     warm = getattr(module, "warm_up", None)
     return None if warm is None else float(warm())
 
@@ -328,7 +320,7 @@ def _run(
     lights = None
     if light_calibration is not None:
         lights = light_calibrations.load_lights(storage=storage, calibration=light_calibration)
-    inspect = resolve_entry(settings.inspect_entry)
+    inspect = settings.inspect_entry
     result = inspect(
         capture_path, target_path, out_dir=out_dir, progress=progress, light_calibration=lights
     )
