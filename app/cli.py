@@ -24,7 +24,7 @@ log = logging.getLogger("app.serve")
 CONSUMER_STOP_TIMEOUT_S = 10.0
 
 
-def register(subparsers) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add the ``serve`` and ``worker`` subcommands to the CLI's subparsers."""
     p = subparsers.add_parser(
         "serve",
@@ -96,7 +96,7 @@ class ConsumerProcess:
     def __init__(self, settings: Settings):
         self.env = {**os.environ, **settings.to_env()}
         self.args = consumer_cell_args(settings)
-        self.proc: subprocess.Popen | None = None
+        self.proc: subprocess.Popen[bytes] | None = None
         self._stopping = threading.Event()
         self._watchdog: threading.Thread | None = None
 
@@ -118,7 +118,7 @@ class ConsumerProcess:
         from app.worker import EXIT_CONFIG
 
         while not self._stopping.wait(1.0):
-            code = self.proc.poll()
+            code = None if self.proc is None else self.proc.poll()
             if code is None or self._stopping.is_set():
                 continue
             if code == EXIT_CONFIG:

@@ -12,12 +12,14 @@ file, a PostgreSQL advisory lock).
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
 from alembic import command
 from alembic.config import Config
 from sqlalchemy import Engine, create_engine, event, text
+from sqlalchemy.engine.interfaces import DBAPIConnection
 from sqlalchemy.exc import DBAPIError, OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 from sqlalchemy.pool import NullPool
@@ -67,7 +69,7 @@ def make_engine(url: str) -> Engine:
     if is_sqlite:
 
         @event.listens_for(engine, "connect")
-        def _sqlite_pragmas(dbapi_conn, _record):
+        def _sqlite_pragmas(dbapi_conn: DBAPIConnection, _record: object) -> None:
             cur = dbapi_conn.cursor()
             cur.execute("PRAGMA journal_mode=WAL")
             cur.execute("PRAGMA foreign_keys=ON")
@@ -118,7 +120,7 @@ def database_unavailable(exc: BaseException) -> bool:
 
 
 @contextmanager
-def _migration_lock(url: str):
+def _migration_lock(url: str) -> Iterator[None]:
     """An exclusive lock for a schema upgrade: a flock beside a SQLite database file (the kernel
     frees it if its holder dies), a session-level advisory lock on PostgreSQL (freed when its
     connection closes, however the process ends)."""

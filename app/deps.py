@@ -17,7 +17,7 @@ from typing import Annotated
 
 from fastapi import Depends, Request, Response
 from fastapi.security import APIKeyCookie, HTTPAuthorizationCredentials, HTTPBearer
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, sessionmaker
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import HTTPConnection
 
@@ -33,7 +33,8 @@ SESSION_COOKIE = "plate_inspect_session"
 
 
 def get_settings(request: Request) -> Settings:
-    return request.app.state.settings
+    settings: Settings = request.app.state.settings
+    return settings
 
 
 def get_session(request: Request) -> Iterator[Session]:
@@ -47,11 +48,13 @@ def get_session(request: Request) -> Iterator[Session]:
 
 
 def get_storage(request: Request) -> Storage:
-    return request.app.state.storage
+    storage: Storage = request.app.state.storage
+    return storage
 
 
 def get_jobs(request: Request) -> JobQueue:
-    return request.app.state.jobs
+    jobs: JobQueue = request.app.state.jobs
+    return jobs
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]
@@ -83,7 +86,7 @@ def is_loopback(conn: HTTPConnection) -> bool:
 
 
 async def check_token(
-    conn: HTTPConnection, presented: str, *, field: str, headers: dict | None = None
+    conn: HTTPConnection, presented: str, *, field: str, headers: dict[str, str] | None = None
 ) -> None:
     """Check a presented API token, throttled per client address.
 
@@ -128,20 +131,23 @@ def has_dashboard_session(conn: HTTPConnection, *, db: Session | None = None) ->
     db : Session, optional; by default one from ``app.state.session_factory`` (False without one).
     """
     session_id = session_cookie(conn)
-    factory = getattr(conn.app.state, "session_factory", None)
-    if session_id is None or (db is None and factory is None):
+    factory: sessionmaker[Session] | None = getattr(conn.app.state, "session_factory", None)
+    if session_id is None:
         return False
-    current = token_hash(conn.app.state.api_token)
     if db is not None:
-        return (
-            session_svc.find_session(session=db, session_id=session_id, token_hash=current)
-            is not None
-        )
+        return _session_known(conn, db, session_id)
+    if factory is None:
+        return False
     with factory() as own:
-        return (
-            session_svc.find_session(session=own, session_id=session_id, token_hash=current)
-            is not None
-        )
+        return _session_known(conn, own, session_id)
+
+
+def _session_known(conn: HTTPConnection, db: Session, session_id: str) -> bool:
+    """True if ``session_id`` is a valid session of the app's current token."""
+    current = token_hash(conn.app.state.api_token)
+    return (
+        session_svc.find_session(session=db, session_id=session_id, token_hash=current) is not None
+    )
 
 
 def start_dashboard_session(response: Response, conn: HTTPConnection, *, db: Session) -> None:

@@ -10,9 +10,10 @@ their file name (:func:`scrub_paths`), and a bug answers only the exception's ty
 from __future__ import annotations
 
 import logging
+import os
 import re
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from fastapi import FastAPI, HTTPException, Request
@@ -74,13 +75,13 @@ class ApiError(HTTPException):
         detail: str,
         *,
         field: str | None = None,
-        headers: dict | None = None,
-    ):
+        headers: dict[str, str] | None = None,
+    ) -> None:
         super().__init__(status_code=status_code, detail=detail, headers=headers)
         self.field = field
 
 
-def error_body(detail: str, field: str | None = None, **extra: Any) -> dict:
+def error_body(detail: str, field: str | None = None, **extra: Any) -> dict[str, Any]:
     """An error answer's JSON (:class:`ErrorBody`); server paths in strings are cut to file names."""
     extra = {k: scrub_paths(v) if isinstance(v, str) else v for k, v in extra.items()}
     return {"detail": scrub_paths(detail), "field": field, **extra}
@@ -88,7 +89,7 @@ def error_body(detail: str, field: str | None = None, **extra: Any) -> dict:
 
 def allowed_methods(request: Request) -> list[str] | None:
     """Every method the request's path accepts (for a 405's ``Allow``), or None when a mount decides."""
-    allowed = []
+    allowed: list[str] = []
     # Inside a mount the scope's root_path has grown by the mount's path: match from the app's root.
     root_path = request.scope.get("app_root_path", request.scope.get("root_path", ""))
     for method in _METHODS:
@@ -103,11 +104,24 @@ def allowed_methods(request: Request) -> list[str] | None:
     return allowed
 
 
-def known_error(exc: BaseException, *, upload_field: str | None = None) -> tuple[int, dict] | None:
+#: The errors a request may legitimately cause (:func:`known_error` answers them).
+KnownError = InputError | ServiceError | StarletteHTTPException
+
+
+def known_error(
+    exc: BaseException, *, upload_field: str | None = None
+) -> tuple[int, dict[str, Any]] | None:
     """(status, body) for an error a request may legitimately cause, or None for a bug.
 
     ``upload_field`` is the multipart field whose file an :class:`InputError` is about.
     """
+    if isinstance(exc, (InputError, ServiceError, StarletteHTTPException)):
+        return error_answer(exc, upload_field=upload_field)
+    return None
+
+
+def error_answer(exc: KnownError, *, upload_field: str | None = None) -> tuple[int, dict[str, Any]]:
+    """(status, body) of an error a request may legitimately cause (see :func:`known_error`)."""
     if isinstance(exc, InputError):
         field = (
             f"{upload_field}: {exc.field}"
@@ -123,12 +137,10 @@ def known_error(exc: BaseException, *, upload_field: str | None = None) -> tuple
         return 422, error_body(exc.detail, exc.field)
     if isinstance(exc, ApiError):
         return exc.status_code, error_body(str(exc.detail), exc.field)
-    if isinstance(exc, StarletteHTTPException):
-        reason = body_parse_failure(exc)
-        if reason is not None:
-            return 400, error_body(f"body: {reason}", "body")
-        return exc.status_code, error_body(str(exc.detail))
-    return None
+    reason = body_parse_failure(exc)
+    if reason is not None:
+        return 400, error_body(f"body: {reason}", "body")
+    return exc.status_code, error_body(str(exc.detail))
 
 
 def body_parse_failure(exc: StarletteHTTPException) -> str | None:
@@ -152,7 +164,7 @@ def body_parse_failure(exc: StarletteHTTPException) -> str | None:
     return f"not usable JSON: {cause}"
 
 
-def not_json(errors: list[dict]) -> str | None:
+def not_json(errors: list[dict[str, Any]]) -> str | None:
     """What is wrong with a JSON body that is not JSON (FastAPI's ``json_invalid`` validation
     error, whose location is a character offset), or None when the body parsed."""
     for e in errors:
@@ -162,7 +174,7 @@ def not_json(errors: list[dict]) -> str | None:
     return None
 
 
-def relabel_input_error(err: InputError, base) -> InputError:
+def relabel_input_error(err: InputError, base: str | os.PathLike[str]) -> InputError:
     """The same error with paths under the server folder ``base`` written relative to it.
 
     Uploads are validated in a staging folder; the client should read ``capture.zip: ...``, not
@@ -174,7 +186,7 @@ def relabel_input_error(err: InputError, base) -> InputError:
     return InputError(err.file.replace(prefix, ""), err.field, err.reason.replace(prefix, ""))
 
 
-def _validation_field(loc) -> str | None:
+def _validation_field(loc: Sequence[str | int]) -> str | None:
     parts = [str(p) for p in loc]
     if parts and parts[0] in ("body", "query", "path", "header", "cookie", "form"):
         parts = parts[1:]
@@ -206,11 +218,12 @@ def install_error_handlers(app: FastAPI) -> None:
         render = getattr(request.app.state, "html_error_page", None)
         if render is None or not wants_page(request):
             return None
-        return render(request, status, detail)
+        answer: Response | None = render(request, status, detail)
+        return answer
 
     @app.exception_handler(StarletteHTTPException)
-    async def _http(request: Request, exc: StarletteHTTPException):
-        status, body = known_error(exc)
+    async def _http(request: Request, exc: StarletteHTTPException) -> Response:
+        status, body = error_answer(exc)
         headers = getattr(exc, "headers", None)
         if status == 405:
             allowed = allowed_methods(request)
@@ -226,7 +239,7 @@ def install_error_handlers(app: FastAPI) -> None:
         )
 
     @app.exception_handler(RequestValidationError)
-    async def _validation(request: Request, exc: RequestValidationError):
+    async def _validation(request: Request, exc: RequestValidationError) -> Response:
         errors = exc.errors()
         reason = not_json(list(errors))
         if reason is not None:
@@ -240,17 +253,17 @@ def install_error_handlers(app: FastAPI) -> None:
         return JSONResponse(error_body(detail, field, errors=issues), status_code=422)
 
     @app.exception_handler(ServiceError)
-    async def _service(request: Request, exc: ServiceError):
-        status, body = known_error(exc)
+    async def _service(request: Request, exc: ServiceError) -> Response:
+        status, body = error_answer(exc)
         return JSONResponse(body, status_code=status)
 
     @app.exception_handler(InputError)
-    async def _input(request: Request, exc: InputError):
-        status, body = known_error(exc)
+    async def _input(request: Request, exc: InputError) -> Response:
+        status, body = error_answer(exc)
         return JSONResponse(body, status_code=status)
 
     @app.exception_handler(DBAPIError)
-    async def _database(request: Request, exc: DBAPIError):
+    async def _database(request: Request, exc: DBAPIError) -> Response:
         if not database_unavailable(exc):
             return await _bug(request, exc)
         log.warning(
@@ -264,13 +277,13 @@ def install_error_handlers(app: FastAPI) -> None:
         return JSONResponse(error_body(detail), status_code=503, headers=headers)
 
     @app.exception_handler(Exception)
-    async def _bug(request: Request, exc: Exception):
+    async def _bug(request: Request, exc: Exception) -> Response:
         log.exception("internal error on %s %s", request.method, request.url.path)
         detail = f"internal error: {type(exc).__name__}"
         return page(request, 500, detail) or JSONResponse(error_body(detail), status_code=500)
 
 
-def jsonable(errors: list[dict]) -> list[dict]:
+def jsonable(errors: Sequence[Any]) -> list[dict[str, Any]]:
     """Validation errors without the non-JSON bits (exception objects in ``ctx``)."""
     out = []
     for e in errors:

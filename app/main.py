@@ -11,7 +11,9 @@ from __future__ import annotations
 import importlib
 import logging
 import secrets
+from collections.abc import AsyncIterator
 from contextlib import AsyncExitStack, asynccontextmanager
+from types import ModuleType
 
 from fastapi import FastAPI, Request
 from fastapi.openapi.docs import get_swagger_ui_html
@@ -39,8 +41,8 @@ DOCS_STATIC_URL = "/static-docs"
 log = logging.getLogger(__name__)
 
 
-def resolve_token(settings: Settings) -> Settings:
-    """Settings with an API token: the configured one, or a generated one in demo mode.
+def resolve_token(settings: Settings) -> tuple[Settings, str]:
+    """Settings with an API token (the configured one, or a generated one in demo mode), and the token.
 
     Raises
     ------
@@ -52,12 +54,13 @@ def resolve_token(settings: Settings) -> Settings:
             raise ValueError(
                 "PLATE_INSPECT_API_TOKEN: expected a non-empty token, got an empty string"
             )
-        return settings
+        return settings, settings.api_token.get_secret_value()
     if not settings.demo:
         raise ValueError(
             "PLATE_INSPECT_API_TOKEN: expected a token for writes (or demo mode, which generates one), got none"
         )
-    return settings.model_copy(update={"api_token": SecretStr(secrets.token_urlsafe(24))})
+    token = secrets.token_urlsafe(24)
+    return settings.model_copy(update={"api_token": SecretStr(token)}), token
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -80,11 +83,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     (:class:`app.services.camera_monitor.CameraMonitor`). In demo mode without a cell config the demo cell is
     written under the data dir (:func:`app.services.cell.ensure_demo_cell`).
     """
-    settings = resolve_token(settings or Settings())
+    settings, api_token = resolve_token(settings or Settings())
     storage = Storage(settings.data_dir)
 
     @asynccontextmanager
-    async def lifespan(app: FastAPI):
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         async with AsyncExitStack() as stack:
             viewer = _optional_module("app.viewer")
             if viewer is not None and hasattr(viewer, "attach"):
@@ -112,14 +115,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_upload_bytes)
     # Outermost, around Starlette's error middleware: a 500 answer gets the headers too.
     build_stack = app.build_middleware_stack
-    app.build_middleware_stack = lambda: SecurityHeaders(build_stack())
+    # (FastAPIOffline builds a FastAPI instance: no subclass to override the method in.)
+    app.build_middleware_stack = lambda: SecurityHeaders(build_stack())  # type: ignore[method-assign]
     # The database is ready before the first request (also under TestClient without lifespan).
     storage.ensure()
     ensure_demo_cell(settings)
     upgrade_database(settings.sqlalchemy_url)
     engine = make_engine(settings.sqlalchemy_url)
     app.state.settings = settings
-    app.state.api_token = settings.api_token.get_secret_value()
+    app.state.api_token = api_token
     app.state.engine = engine
     app.state.session_factory = make_session_factory(engine)
     app.state.storage = storage
@@ -155,10 +159,12 @@ def _include_docs(app: FastAPI) -> None:
             oauth2_redirect_url=None,
             swagger_ui_parameters=app.swagger_ui_parameters,
         )
-        return HTMLResponse(page.body, headers={"Content-Security-Policy": docs_csp(page.body)})
+        return HTMLResponse(
+            page.body, headers={"Content-Security-Policy": docs_csp(bytes(page.body))}
+        )
 
 
-def _optional_module(name: str):
+def _optional_module(name: str) -> ModuleType | None:
     """Import ``name`` if it exists (the dashboard is developed apart); errors inside it propagate."""
     try:
         return importlib.import_module(name)

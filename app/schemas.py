@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Annotated, Any, Generic, Literal, TypeVar
+from typing import Annotated, Any, Generic, Literal, Self, TypeVar
 
 from pydantic import (
     BaseModel,
@@ -25,7 +25,10 @@ from app.limits.physical import (
     SIZE_MM,
     radius_reason,
 )
-from app.storage import PLATE_ID_MAX_LENGTH, PLATE_ID_REGEX  # noqa: F401  (routes.common imports the length from here)
+
+# Re-exported: the plate id's rules belong with the schemas that use them.
+from app.storage import PLATE_ID_MAX_LENGTH as PLATE_ID_MAX_LENGTH
+from app.storage import PLATE_ID_REGEX as PLATE_ID_REGEX
 
 T = TypeVar("T")
 
@@ -230,7 +233,7 @@ class SimulatedInspectionIn(BaseModel):
         return v
 
     @model_validator(mode="after")
-    def _radius_needed(self):
+    def _radius_needed(self) -> Self:
         if self.shape != "plane" and self.radius_mm is None:
             raise ValueError(f"radius_mm: expected a radius for a {self.shape} plate, got null")
         return self

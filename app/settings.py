@@ -14,9 +14,11 @@ job consumer: ``PLATE_INSPECT_WORKER_MEMORY_MB``, ``PLATE_INSPECT_JOB_LEASE_S``;
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
-from pydantic import Field, SecretStr, field_validator, model_validator
+from pydantic import Field, ImportString, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 #: Environment variable prefix of every setting.
@@ -26,6 +28,27 @@ EMBEDDED_JOB_LEASE_S = 60.0
 #: Default job lease on a shared (Redis) queue, s: a dead worker's job is queued again within
 #: about this plus the reclaim interval (a quarter of it), well under a minute.
 YARD_JOB_LEASE_S = 15.0
+
+
+#: The pipeline's entry a job calls: ``inspect(capture, target, *, out_dir, progress,
+#: light_calibration)``, answering a result whose ``document`` is the plate-result/1 object.
+InspectFunction = Callable[..., Any]
+
+
+def pipeline_inspect() -> InspectFunction:
+    """The service's handover to the pipeline: :func:`pipeline.run.inspect`.
+
+    Imported when settings are made without another entry (its module loads the pipeline, which
+    the ``plate-inspect`` commands that only register ``serve`` never need).
+    """
+    from pipeline.run import inspect
+
+    return inspect
+
+
+def entry_name(function: InspectFunction) -> str:
+    """``module:function`` naming ``function`` for another process (:meth:`Settings.to_env`)."""
+    return f"{function.__module__}:{function.__qualname__}"
 
 
 class Settings(BaseSettings):
@@ -51,9 +74,11 @@ class Settings(BaseSettings):
         Demo cell: a generated token, and dashboard pages get a write session without a login.
     progress_interval_s : float
         Shortest interval between two progress writes of a running job to the database, s.
-    inspect_entry : str
-        ``module:function`` the job calls to inspect; ``pipeline.run:inspect`` in production
-        (tests point it at a test double to control timing).
+    inspect_entry : callable
+        The function a job calls to inspect (:data:`InspectFunction`): :func:`pipeline.run.inspect`
+        by default. From the environment (and to the consumer process, :meth:`to_env`) it is named
+        ``module:function`` and imported when the settings are made; tests point it at a test
+        double to control timing.
     viewer_idle_s : float
         A 3D view's viser server stops this long after its last browser left, s.
     viewer_max_servers : int
@@ -120,7 +145,7 @@ class Settings(BaseSettings):
     max_upload_mb: float = Field(default=512.0, gt=0)
     demo: bool = False
     progress_interval_s: float = Field(default=0.5, ge=0)
-    inspect_entry: str = "pipeline.run:inspect"
+    inspect_entry: ImportString[InspectFunction] = Field(default_factory=pipeline_inspect)
     viewer_idle_s: float = Field(default=300.0, ge=0)
     viewer_max_servers: int = Field(default=8, ge=1, le=64)
     viewer_max_sockets_per_client: int = Field(default=4, ge=1, le=64)
@@ -143,10 +168,10 @@ class Settings(BaseSettings):
     # -- the report (app.report)
     yard: str | None = Field(default=None, min_length=1, max_length=64)
 
-    @field_validator("inspect_entry")
+    @field_validator("inspect_entry", mode="before")
     @classmethod
-    def _entry_shape(cls, v: str) -> str:
-        if v.count(":") != 1 or not all(v.split(":")):
+    def _entry_shape(cls, v: object) -> object:
+        if isinstance(v, str) and (v.count(":") != 1 or not all(v.split(":"))):
             raise ValueError(f"expected 'module:function', got {v!r}")
         return v
 
@@ -172,8 +197,15 @@ class Settings(BaseSettings):
     @model_validator(mode="after")
     def _default_lease(self) -> Settings:
         if self.job_lease_s is None:
-            self.job_lease_s = YARD_JOB_LEASE_S if self.queue_url else EMBEDDED_JOB_LEASE_S
+            self.job_lease_s = self.lease_s
         return self
+
+    @property
+    def lease_s(self) -> float:
+        """The job lease in force, s: ``job_lease_s``, or its default for the queue when unset."""
+        if self.job_lease_s is not None:
+            return self.job_lease_s
+        return YARD_JOB_LEASE_S if self.queue_url else EMBEDDED_JOB_LEASE_S
 
     @property
     def sqlalchemy_url(self) -> str:
@@ -199,7 +231,7 @@ class Settings(BaseSettings):
             f"{ENV_PREFIX}MAX_UPLOAD_MB": repr(self.max_upload_mb),
             f"{ENV_PREFIX}DEMO": "1" if self.demo else "0",
             f"{ENV_PREFIX}PROGRESS_INTERVAL_S": repr(self.progress_interval_s),
-            f"{ENV_PREFIX}INSPECT_ENTRY": self.inspect_entry,
+            f"{ENV_PREFIX}INSPECT_ENTRY": entry_name(self.inspect_entry),
             f"{ENV_PREFIX}WORKER_MEMORY_MB": str(self.worker_memory_mb),
             f"{ENV_PREFIX}JOB_LEASE_S": repr(self.job_lease_s),
         }

@@ -57,7 +57,7 @@ class Storage:
 
     data_dir: Path
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         object.__setattr__(self, "data_dir", Path(self.data_dir).resolve())
 
     def ensure(self) -> None:
@@ -172,6 +172,19 @@ class Staged:
     storage: Storage
     dir: Path | None
     created: list[Path] = field(default_factory=list)
+
+    @property
+    def folder(self) -> Path:
+        """The staging folder of a write staged with one (``Storage.staging(folder=True)``).
+
+        Raises
+        ------
+        RuntimeError
+            The write was staged without a folder.
+        """
+        if self.dir is None:
+            raise RuntimeError("storage: this write was staged without a folder")
+        return self.dir
 
     def track(self, folder: Path) -> None:
         self.created.append(folder)

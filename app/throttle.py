@@ -26,6 +26,7 @@ import time
 from collections import deque
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
+from typing import Literal, overload
 
 #: Spacing after the first failure beyond the free ones, s (doubles with each further one).
 FIRST_DELAY_S = 0.5
@@ -144,6 +145,12 @@ class TokenThrottle:
         if beyond < 0:
             return 0.0
         return min(FIRST_DELAY_S * 2.0 ** min(beyond, 32), self.max_delay_s)
+
+    @overload
+    def _state(self, client: str, now: float, *, create: Literal[True]) -> _Client: ...
+
+    @overload
+    def _state(self, client: str, now: float, *, create: Literal[False]) -> _Client | None: ...
 
     def _state(self, client: str, now: float, *, create: bool) -> _Client | None:
         """The address's state with expired failures dropped (caller holds the lock)."""

@@ -11,6 +11,13 @@ ROOT = Path(__file__).resolve().parents[1]
 PIPELINE = ROOT / "pipeline"
 CHECKER = ROOT / "scripts" / "check_function_length.py"
 SERVICE_PACKAGES = ("app", "web")
+#: Longest route (or websocket) handler, lines from its ``def`` to its last line, docstring excluded.
+MAX_ROUTE_LINES = 40
+#: Decorators (``@router.<name>(...)``, ``@app.<name>(...)``) that make a function a route or websocket.
+ROUTE_DECORATORS = {
+    "get", "post", "put", "patch", "delete", "head", "options", "trace",
+    "api_route", "route", "websocket", "websocket_route",
+}  # fmt: skip
 
 
 def test_no_pipeline_or_service_function_is_over_80_lines():
@@ -69,3 +76,48 @@ def test_importing_every_pipeline_module_loads_no_service_module():
         [sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True
     )
     assert out.stdout.strip() == "[]"
+
+
+def _is_route(function: ast.FunctionDef | ast.AsyncFunctionDef) -> bool:
+    for decorator in function.decorator_list:
+        call = decorator.func if isinstance(decorator, ast.Call) else decorator
+        if isinstance(call, ast.Attribute) and call.attr in ROUTE_DECORATORS:
+            return True
+    return False
+
+
+def _length_without_docstring(function: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
+    """Lines from ``def`` to the function's last line, less its docstring's."""
+    assert function.end_lineno is not None
+    lines = function.end_lineno - function.lineno + 1
+    first = function.body[0]
+    if (
+        isinstance(first, ast.Expr)
+        and isinstance(first.value, ast.Constant)
+        and isinstance(first.value.value, str)
+    ):
+        assert first.end_lineno is not None
+        lines -= first.end_lineno - first.lineno + 1
+    return lines
+
+
+def _route_lengths() -> dict[str, int]:
+    """Every route and websocket handler of the service packages: ``path:line name`` -> lines."""
+    lengths = {}
+    for package in SERVICE_PACKAGES:
+        for path in sorted((ROOT / package).rglob("*.py")):
+            tree = ast.parse(path.read_text(), filename=str(path))
+            for node in ast.walk(tree):
+                if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and _is_route(node):
+                    where = f"{path.relative_to(ROOT)}:{node.lineno} {node.name}"
+                    lengths[where] = _length_without_docstring(node)
+    return lengths
+
+
+def test_routes_are_thin():
+    """A route parses, authorises and calls one service function: at most 40 lines, docstring apart."""
+    lengths = _route_lengths()
+    names = {where.rsplit(" ", 1)[1] for where in lengths}
+    assert {"create_inspection", "put_target", "viewer_bridge", "result_page"} <= names
+    long = {where: n for where, n in lengths.items() if n > MAX_ROUTE_LINES}
+    assert long == {}, f"routes over {MAX_ROUTE_LINES} lines (docstring excluded): {long}"

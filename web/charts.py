@@ -82,7 +82,7 @@ def section_drawings(
     rel = (h_top - h_bottom) * sx
     height = pad_y + board_px + rel + 24.0 + plate_px + pad_y
 
-    def y_of(h_mm):
+    def y_of(h_mm: np.ndarray) -> np.ndarray:
         return pad_y + board_px + (h_top - h_mm) * sx
 
     drawings = []
@@ -203,14 +203,12 @@ def trend_chart(
         [(radius_band_pct, "edges at tolerance"), (-radius_band_pct, "")] if radius_band_pct else []
     )
     tolerance_lines = [(tolerance_mm, "tolerance")] if tolerance_mm else []
-    for k, (name, unit, index, lines) in enumerate(
-        (
-            ("Radius error", "%", 2, radius_lines),
-            ("Max |deviation|", "mm", 3, tolerance_lines),
-        )
-    ):
+    panels: tuple[tuple[str, str, list[float | None], list[tuple[float, str]]], ...] = (
+        ("Radius error", "%", [r[2] for r in rows], radius_lines),
+        ("Max |deviation|", "mm", [r[3] for r in rows], tolerance_lines),
+    )
+    for k, (name, unit, values, lines) in enumerate(panels):
         y0 = top + k * (panel_h + gap)
-        values = [r[index] for r in rows]
         finite = [v for v in values if v is not None]
         lo = min(finite + [0.0] + [v for v, _ in lines])
         hi = max(finite + [0.0] + [v for v, _ in lines])
@@ -220,7 +218,7 @@ def trend_chart(
         )
         lo, hi = tick_values[0], tick_values[-1]
 
-        def y_of(v, y0=y0, lo=lo, hi=hi):
+        def y_of(v: float, y0: float = y0, lo: float = lo, hi: float = hi) -> float:
             return y0 + panel_h * (hi - v) / (hi - lo)
 
         points = [
@@ -323,7 +321,7 @@ def forming_chart(
     left, right, top, bottom, height = 80.0, 20.0, 28.0, 36.0, 300.0
     drawn = [p for p in passes if p[2] is not None and np.isfinite(p[2])]
     xs_mm = [p[1] for p in passes] + ([next_pass[0]] if next_pass else [])
-    ys_mm = [p[2] for p in drawn] + [target_radius_mm]
+    ys_mm = [r for _, _, r, _ in drawn if r is not None] + [target_radius_mm]
     if band_mm is not None:
         ys_mm += [v for v in band_mm if v is not None and np.isfinite(v)]
     if next_pass is not None:

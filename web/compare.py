@@ -5,6 +5,7 @@ sees what the last pass changed and where."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 from sqlalchemy.orm import Session
 
@@ -53,7 +54,9 @@ def done_inspections(session: Session, plate_id: str) -> list[Inspection]:
     return [r for r in reversed(rows) if r.status == JobStatus.DONE]
 
 
-def compare_context(session: Session, plate_id: str, a: int | None, b: int | None) -> dict:
+def compare_context(
+    session: Session, plate_id: str, a: int | None, b: int | None
+) -> dict[str, Any]:
     """The page's context: ``first``, ``second`` (inspections), ``quantities``, ``choices``.
 
     Without ``a`` and ``b``: the plate's last two done inspections.

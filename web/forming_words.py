@@ -11,6 +11,8 @@ import re
 from typing import Any
 from urllib.parse import quote
 
+from sqlalchemy.orm import Session
+
 from app.services import forming as forming_svc
 from app.services import plates as plate_svc
 from app.services.errors import ServiceError
@@ -86,7 +88,7 @@ def next_pass_words(advice: dict[str, Any]) -> str:
 
 
 def advice_panel(
-    session, plate_id: str, row: Any = None, target: dict[str, Any] | None = None
+    session: Session, plate_id: str, row: Any = None, target: dict[str, Any] | None = None
 ) -> dict[str, Any]:
     """The "Forming" panel: ``state`` (of ``row``, judged against ``target``, the document it was
     inspected against) and ``next`` sentences with the ``advice`` they come from, or ``reason``
@@ -103,7 +105,7 @@ def advice_panel(
     return panel
 
 
-def _advice_or_missing(session, plate_id: str) -> dict[str, Any]:
+def _advice_or_missing(session: Session, plate_id: str) -> dict[str, Any]:
     target_page = (f"/plates/{quote(plate_id)}#target", "Set the plate's target")
     overview = plate_svc.overview(session=session, plate_id=plate_id)
     target = None if overview is None else overview.target

@@ -7,7 +7,9 @@ x to the right, y down.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -44,11 +46,12 @@ class LightPlan:
     scale_mm: float  # what it stands for, mm
 
 
-def _rounded(values, digits: int) -> tuple[float, ...]:
-    return tuple(round(float(v), digits) + 0.0 for v in values)  # + 0.0 turns -0.0 into 0.0
+def _rounded(values: Sequence[float], digits: int) -> tuple[float, float, float]:
+    x, y, z = (round(float(v), digits) + 0.0 for v in values)  # + 0.0 turns -0.0 into 0.0
+    return x, y, z
 
 
-def light_rows(document: dict) -> list[LightRow]:
+def light_rows(document: dict[str, Any]) -> list[LightRow]:
     """The table rows of a stored (validated) ``light-calibration/1`` document, in image order."""
     rows = []
     for k, light in enumerate(document["lights"]):
@@ -66,7 +69,7 @@ def light_rows(document: dict) -> list[LightRow]:
 
 
 def light_plan(
-    document: dict, *, size: float = 360.0, pad: float = 30.0, aim_px: float = 40.0
+    document: dict[str, Any], *, size: float = 360.0, pad: float = 30.0, aim_px: float = 40.0
 ) -> LightPlan:
     """The lights in plan (x, y of their positions), scaled to fit a ``size`` px square.
 

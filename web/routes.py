@@ -12,11 +12,12 @@ from __future__ import annotations
 import json
 import logging
 from datetime import UTC, datetime
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, HTTPException, Query, Request
 from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse, Response
 from fastapi.templating import Jinja2Templates
+from sqlalchemy.orm import Session
 
 from app import viewer
 from app.deps import SessionDep, StorageDep, has_dashboard_session, start_dashboard_session
@@ -29,8 +30,9 @@ from app.services import forming as forming_svc
 from app.services import inspections as inspection_svc
 from app.services import light_calibrations as light_calibration_svc
 from app.services import plates as plate_svc
+from app.storage import Storage
 from web import TEMPLATES_DIR
-from web.charts import forming_chart, trend_chart
+from web.charts import FormingChart, forming_chart, trend_chart
 from web.compare import CannotCompare, compare_context, done_inspections
 from web.forming_words import advice_panel, count
 from web.lights import light_plan, light_rows
@@ -50,7 +52,7 @@ router.include_router(viewer.router)
 templates = Jinja2Templates(directory=TEMPLATES_DIR)
 
 
-def _fmt(value, digits: int = 1, unit: str = "", signed: bool = False) -> str:
+def _fmt(value: float | None, digits: int = 1, unit: str = "", signed: bool = False) -> str:
     if value is None:
         return "—"
     if round(value, digits) == 0:
@@ -75,7 +77,12 @@ templates.env.filters["when"] = _when
 
 
 def _page(
-    request: Request, session, name: str, context: dict, *, status_code: int = 200
+    request: Request,
+    session: Session,
+    name: str,
+    context: dict[str, Any],
+    *,
+    status_code: int = 200,
 ) -> Response:
     """Render a full page: the side list (plates, jobs) plus the page's own context."""
     settings = request.app.state.settings
@@ -100,7 +107,7 @@ def _page(
 SIDE_PLATES = 40
 
 
-def _side_context(session, search: str | None = None, page: int = 0) -> dict:
+def _side_context(session: Session, search: str | None = None, page: int = 0) -> dict[str, Any]:
     """The side lists: active jobs (all of them, up to 20) and a page of the plates (40 at a time,
     the most recently inspected first, or those whose id contains ``search``)."""
     plates, plate_total = plate_svc.list_plates(
@@ -156,7 +163,7 @@ def error_page(request: Request, status_code: int, detail: str) -> Response | No
         return None
 
 
-def _inspection_or_404(session, inspection_id: int) -> Inspection:
+def _inspection_or_404(session: Session, inspection_id: int) -> Inspection:
     row = inspection_svc.get_inspection(session=session, inspection_id=inspection_id)
     if row is None:
         raise HTTPException(404, f"inspection {inspection_id} not found")
@@ -195,7 +202,7 @@ def camera_thumbnail(request: Request, side: Literal["left", "right"]) -> Respon
     return FileResponse(path, media_type="image/png", headers={"Cache-Control": "no-cache"})
 
 
-def _cameras_context(request: Request) -> dict:
+def _cameras_context(request: Request) -> dict[str, Any]:
     """The cell's state, and whether its last capture's thumbnails are of this cell's cameras."""
     cell = request.app.state.cell.state()
     last = cell.last_capture or {}
@@ -251,7 +258,7 @@ def result_page(
     return _page(request, session, "result.html", context)
 
 
-def _judged_target(session, storage, row: Inspection) -> dict:
+def _judged_target(session: Session, storage: Storage, row: Inspection) -> dict[str, Any]:
     """The target document the inspection was judged against (the plate's stored target, else the
     inputs' target.json, else a simulated bundle's); empty when none is readable."""
     target = session.get(Target, row.target_id) if row.target_id is not None else None
@@ -349,7 +356,7 @@ def compare_page(
     )
 
 
-def _radius_band_pct(target) -> float | None:
+def _radius_band_pct(target: Target | None) -> float | None:
     """The radius error (%) at which a cylinder target's plate leaves its tolerance at its edges:
     ``100 R 8 tol / w^2`` over the width ``w`` across the bend (None for other targets)."""
     if target is None or target.shape != "cylinder" or not target.radius_mm:
@@ -357,10 +364,13 @@ def _radius_band_pct(target) -> float | None:
     size = (target.document or {}).get("size_mm") or []
     if not size:
         return None
-    return 100.0 * target.radius_mm * 8.0 * target.tolerance_mm / float(size[0]) ** 2
+    width_squared: float = float(size[0]) ** 2
+    return 100.0 * target.radius_mm * 8.0 * target.tolerance_mm / width_squared
 
 
-def passes_chart(session, plate_id: str, target, advice: dict | None):
+def passes_chart(
+    session: Session, plate_id: str, target: Target | None, advice: dict[str, Any] | None
+) -> FormingChart | None:
     """Radius after each roll-bending pass against its setting, with the target's band and the advised
     next pass; None for a plate without such passes or without a radius target."""
     passes = forming_svc.plate_passes(session=session, plate_id=plate_id)

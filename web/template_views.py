@@ -7,7 +7,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import replace
-from typing import Annotated
+from typing import Annotated, Any
 
 import numpy as np
 from fastapi import Query
@@ -44,7 +44,7 @@ def chosen_point(at_x: float | None, at_y: float | None) -> tuple[float, float] 
 
 def templates_context(
     storage: Storage, row: Inspection, spacing_mm: int, chosen: tuple[float, float] | None = None
-) -> dict:
+) -> dict[str, Any]:
     """``drawings`` (:class:`web.charts.SectionDrawing`, each with its line on the map),
     ``templates_error`` (why there are none), and the ``chosen`` point."""
     if row.status != JobStatus.DONE:

@@ -17,7 +17,6 @@ from app.jobs.execution import (
     ProgressWriter,
     execute_inspection,
     render_simulated_bundle,
-    resolve_entry,
     warm_up_entry,
 )
 from app.jobs.queue import TASK_NAME, JobQueue
@@ -29,6 +28,5 @@ __all__ = [
     "ProgressWriter",
     "execute_inspection",
     "render_simulated_bundle",
-    "resolve_entry",
     "warm_up_entry",
 ]

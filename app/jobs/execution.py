@@ -12,19 +12,19 @@ import logging
 import os
 import tempfile
 import time
-from collections.abc import Callable
 from pathlib import Path
+from typing import Any, TypedDict
 
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.jobs.memory import is_out_of_memory, out_of_memory_message
-from app.models import JobStatus
+from app.models import JobStatus, LightCalibration
 from app.services import inspections as svc
 from app.services import leases, light_calibrations
 from app.services.acquisitions import ACQUIRED_SOURCE, capture_for_job
 from app.services.inspections import SIMULATION_FILE
 from app.services.leases import LeaseKeeper
-from app.settings import Settings
+from app.settings import InspectFunction, Settings
 from app.storage import Storage
 from pipeline.acquisition import last_frame_lag_s
 from pipeline.formats import InputError, PipelineError
@@ -83,22 +83,16 @@ class ProgressWriter:
         self._last_stage, self._last_time = stage, now
 
 
-def resolve_entry(entry: str) -> Callable:
-    """The function named by ``"module:function"``."""
-    module_name, _, attr = entry.partition(":")
-    return getattr(importlib.import_module(module_name), attr)
-
-
-def warm_up_entry(entry: str) -> float | None:
+def warm_up_entry(inspect: InspectFunction) -> float | None:
     """Load the compiled kernels of the inspection entry's module (its ``warm_up()``, as
     :func:`pipeline.run.warm_up`) so that no job pays for them; its run time (s), or None when
     the module has none (a stand-in pipeline)."""
-    module = importlib.import_module(entry.partition(":")[0])
+    module = importlib.import_module(inspect.__module__)
     warm = getattr(module, "warm_up", None)
     return None if warm is None else float(warm())
 
 
-def render_simulated_bundle(*, bundle_dir: Path, plate_id: str, simulation: dict) -> Path:
+def render_simulated_bundle(*, bundle_dir: Path, plate_id: str, simulation: dict[str, Any]) -> Path:
     """Render a simulated capture bundle into ``bundle_dir`` with the pipeline's simulator.
 
     Idempotent: an existing complete bundle (its ``capture.json`` present) is reused. The bundle is
@@ -187,7 +181,7 @@ def execute_inspection(
     )
     message, document = None, {}
     with LeaseKeeper(
-        session_factory, inspection_id, owner=owner, lease_s=settings.job_lease_s
+        session_factory, inspection_id, owner=owner, lease_s=settings.lease_s
     ) as lease:
         try:
             document = _run(inspection_id, settings, storage, progress, **job)
@@ -216,6 +210,17 @@ def execute_inspection(
     return JobStatus.DONE
 
 
+class _JobInputs(TypedDict):
+    """A claimed job's inputs: the keyword arguments of :func:`_run`."""
+
+    source: str
+    plate_id: str
+    simulation: dict[str, Any] | None
+    capture_path: Path
+    target_path: Path
+    light_calibration: LightCalibration | None
+
+
 def _claim(
     inspection_id: int,
     settings: Settings,
@@ -223,18 +228,22 @@ def _claim(
     storage: Storage,
     *,
     owner: str,
-) -> dict | None:
+) -> _JobInputs | None:
     """Claim the row under a lease; the job's inputs (keyword arguments of :func:`_run`), or None
     when the row is not claimable (done, failed, or run by another consumer)."""
     with session_factory() as session:
         if not leases.claim(
-            session=session, inspection_id=inspection_id, owner=owner, lease_s=settings.job_lease_s
+            session=session, inspection_id=inspection_id, owner=owner, lease_s=settings.lease_s
         ):
             session.rollback()
             log.info("inspection %s: not claimable (done, failed or taken), skipped", inspection_id)
             return None
         session.commit()
         row = svc.get_inspection(session=session, inspection_id=inspection_id)
+        if row is None or row.capture_path is None or row.target_path is None:
+            raise RuntimeError(
+                f"inspection {inspection_id}: claimed, but its row or inputs are gone"
+            )
         log.info(
             "inspection %s: running (%s, plate %s, attempt %s%s)",
             inspection_id,
@@ -243,15 +252,15 @@ def _claim(
             row.attempts,
             f", after {row.deaths} worker death(s)" if row.deaths else "",
         )
-        return {
-            "source": row.source,
-            "plate_id": row.plate_id,
-            "simulation": row.simulation,
-            "capture_path": storage.absolute(row.capture_path),
-            "target_path": storage.absolute(row.target_path),
+        return _JobInputs(
+            source=row.source,
+            plate_id=row.plate_id,
+            simulation=row.simulation,
+            capture_path=storage.absolute(row.capture_path),
+            target_path=storage.absolute(row.target_path),
             # recorded at submission: a re-run uses the same lights
-            "light_calibration": row.light_calibration,
-        }
+            light_calibration=row.light_calibration,
+        )
 
 
 def _store(
@@ -259,7 +268,7 @@ def _store(
     inspection_id: int,
     owner: str,
     *,
-    document: dict,
+    document: dict[str, Any],
     message: str | None,
 ) -> bool:
     """Store done (``message`` None) or failed; False when ``owner`` no longer holds the lease."""
@@ -284,16 +293,18 @@ def _run(
     *,
     source: str,
     plate_id: str,
-    simulation: dict | None,
+    simulation: dict[str, Any] | None,
     capture_path: Path,
     target_path: Path,
-    light_calibration,
-) -> dict:
+    light_calibration: LightCalibration | None,
+) -> dict[str, Any]:
     """The job's work: render a simulated capture or acquire one, load the lights, call the pipeline; the result
     document."""
     out_dir = storage.clear_artifacts(inspection_id)
     if source == "simulated":
         progress(SIMULATE_STAGE, 0.0)
+        if simulation is None:
+            raise ValueError(f"inspection {inspection_id}: simulated, but without its parameters")
         render_simulated_bundle(bundle_dir=capture_path, plate_id=plate_id, simulation=simulation)
     returned_at = None
     if source == ACQUIRED_SOURCE:
@@ -309,18 +320,18 @@ def _run(
     lights = None
     if light_calibration is not None:
         lights = light_calibrations.load_lights(storage=storage, calibration=light_calibration)
-    inspect = resolve_entry(settings.inspect_entry)
+    inspect = settings.inspect_entry
     result = inspect(
         capture_path, target_path, out_dir=out_dir, progress=progress, light_calibration=lights
     )
-    document = json.loads(json.dumps(result.document))  # plain JSON types only
+    document: dict[str, Any] = json.loads(json.dumps(result.document))  # plain JSON types only
     if returned_at is not None:
         _add_after_last_frame(document, capture_path, out_dir, returned_at)
     return document
 
 
 def _add_after_last_frame(
-    document: dict, capture_path: Path, out_dir: Path, returned_at: float
+    document: dict[str, Any], capture_path: Path, out_dir: Path, returned_at: float
 ) -> None:
     """``timings_s.after_last_frame`` of an acquired inspection: seconds from the last frame's arrival
     (:func:`pipeline.acquisition.last_frame_lag_s` before ``returned_at``, the moment the acquisition

@@ -23,9 +23,11 @@ import threading
 import time
 from datetime import timedelta
 from pathlib import Path
+from typing import Any
 
 from huey import RedisHuey, SqliteHuey
-from huey.api import Huey
+from huey.api import Huey, TaskWrapper
+from huey.consumer import Consumer
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -81,8 +83,8 @@ class JobQueue:
         session_factory: sessionmaker[Session],
         storage: Storage,
         *,
-        immediate=False,
-    ):
+        immediate: bool = False,
+    ) -> None:
         settings.data_dir.mkdir(parents=True, exist_ok=True)
         self.settings = settings
         self.session_factory = session_factory
@@ -91,7 +93,7 @@ class JobQueue:
         #: A queue shared by many workers (Redis): no queue file, cell queues, leases reclaimed.
         self.shared = settings.queue_url is not None
         self.path = Path(settings.huey_path)
-        self._cells: dict[str, tuple[Huey, object]] = {}
+        self._cells: dict[str, tuple[Huey, TaskWrapper]] = {}
         self._one_job = threading.Lock()
         aside = None
         if self.shared:
@@ -106,7 +108,7 @@ class JobQueue:
                     name=QUEUE_NAME, filename=str(self.path), results=False, immediate=immediate
                 )
                 self._inode = _inode(self.path)
-        self._task = self.huey.task(name=TASK_NAME)(self._run_task)
+        self._task: TaskWrapper = self.huey.task(name=TASK_NAME)(self._run_task)
         #: This process moved a corrupt queue file aside (and rebuilt the queue from the rows).
         self.repaired = aside is not None
         if self.repaired:
@@ -132,7 +134,7 @@ class JobQueue:
 
     def pending_count(self) -> int:
         """Messages waiting in the queue file."""
-        return self.huey.pending_count()
+        return int(self.huey.pending_count())
 
     def repair(self) -> bool:
         """Check the queue file now: a corrupt one is moved aside, recreated and rebuilt from the rows.
@@ -241,7 +243,7 @@ class JobQueue:
     def sweep_until(self, stop: threading.Event, *, interval_s: float = SWEEP_S) -> None:
         """Until ``stop`` is set (the consumer's sweeper thread): :meth:`reclaim` every quarter of
         the job lease (at most every ``interval_s``), :meth:`sweep` every ``interval_s``."""
-        tick_s = min(interval_s, float(self.settings.job_lease_s) / 4.0)
+        tick_s = min(interval_s, self.settings.lease_s / 4.0)
         last_sweep = time.monotonic()
         while not stop.wait(tick_s):
             try:
@@ -252,7 +254,7 @@ class JobQueue:
             except Exception:
                 log.exception("job queue sweep failed (retried at the next tick)")
 
-    def create_consumer(self, *, cell_id: str | None = None, **options):
+    def create_consumer(self, *, cell_id: str | None = None, **options: Any) -> Consumer:
         """A huey consumer of this queue (one worker thread by default; the pipeline uses the cores).
 
         With ``cell_id`` (shared queue only), a consumer of that cell's acquisition queue; a
@@ -289,7 +291,7 @@ class JobQueue:
                 svc.MAX_WORKER_DEATHS,
             )
 
-    def _huey_for(self, cell_id: str) -> tuple[Huey, object]:
+    def _huey_for(self, cell_id: str) -> tuple[Huey, TaskWrapper]:
         """The huey and task of a cell's acquisition queue (Redis), created once."""
         if cell_id not in self._cells:
             huey = RedisHuey(
@@ -301,7 +303,7 @@ class JobQueue:
             self._cells[cell_id] = (huey, huey.task(name=TASK_NAME)(self._run_task))
         return self._cells[cell_id]
 
-    def _task_for(self, cell_id: str | None):
+    def _task_for(self, cell_id: str | None) -> TaskWrapper:
         return self._task if cell_id is None or not self.shared else self._huey_for(cell_id)[1]
 
     def _cell_of(self, inspection_id: int) -> str | None:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
 from app.errors import ApiError
 
 
@@ -22,13 +24,13 @@ class BodySizeLimit:
     :class:`~app.errors.ApiError` (answered by the app's error handler).
     """
 
-    def __init__(self, app, *, max_bytes: int):
+    def __init__(self, app: ASGIApp, *, max_bytes: int) -> None:
         if max_bytes <= 0:
             raise ValueError(f"max_bytes: expected a positive size, got {max_bytes}")
         self.app = app
         self.max_bytes = max_bytes
 
-    async def __call__(self, scope, receive, send):
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
@@ -51,7 +53,7 @@ class BodySizeLimit:
             return
         received = 0
 
-        async def limited_receive():
+        async def limited_receive() -> Message:
             nonlocal received
             message = await receive()
             if message["type"] == "http.request":

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import statistics
 
-from sqlalchemy import func, select
+from sqlalchemy import ColumnElement, func, select
 from sqlalchemy.orm import Session
 
 from app.limits import Limits, setting_name
@@ -73,7 +73,7 @@ def check_queue(*, session: Session, plate_id: str, limits: Limits) -> None:
         )
 
 
-def _count(session: Session, *where) -> int:
+def _count(session: Session, *where: ColumnElement[bool]) -> int:
     return int(session.scalar(select(func.count()).select_from(Inspection).where(*where)) or 0)
 
 
@@ -90,7 +90,9 @@ def _retry_after(session: Session, *, jobs_ahead: int) -> int:
         .limit(RECENT_JOBS)
     ).all()
     runs = [
-        (finished - started).total_seconds() for started, finished in rows if finished >= started
+        (finished - started).total_seconds()
+        for started, finished in rows
+        if started is not None and finished is not None and finished >= started  # as selected
     ]
     typical = statistics.median(runs) if runs else DEFAULT_JOB_S
     lo, hi = RETRY_AFTER_S

@@ -9,6 +9,7 @@ limits.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 from app.limits import Limits, setting_name
 from app.services.errors import UnprocessableError
@@ -77,7 +78,7 @@ def check_light_count(n_lights: int, limits: Limits, *, label: str, field: str) 
         )
 
 
-def check_simulation(simulation: dict, limits: Limits) -> None:
+def check_simulation(simulation: dict[str, Any], limits: Limits) -> None:
     """Refuse a simulated inspection over the lights or simulated pixel limits.
 
     ``simulation`` is a validated :class:`app.schemas.SimulatedInspectionIn` as a dict.

@@ -349,7 +349,7 @@ def _templates(
     each frame's place in the target's frame (empty: given from the target's first edge)."""
     if not sections:
         return []
-    placed = places if len(places) == len(sections) else [None] * len(sections)
+    placed: list[str | None] = [*places] if len(places) == len(sections) else [None] * len(sections)
     out: list[Flowable] = [
         _section("Virtual templates", styles),
         _table(

@@ -61,7 +61,9 @@ class PlateMapFigure(Flowable):  # type: ignore[misc]  # ReportLab is untyped
         rows = plate.deviation_mm[::-1]  # first row at the largest y: y up on the page
         image = Image.fromarray(band_rgb(rows, tolerance_mm), mode="RGB")
         k = max(1, 1200 // max(image.size))  # enlarged: cells stay square in any PDF viewer
-        self.image = ImageReader(image.resize((image.width * k, image.height * k), Image.NEAREST))
+        self.image = ImageReader(
+            image.resize((image.width * k, image.height * k), Image.Resampling.NEAREST)
+        )
 
     def _at(self, x_mm: float, y_mm: float) -> tuple[float, float]:
         x0, _, y0, _ = self.plate.extent_mm

@@ -5,25 +5,26 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, File, Path, Request, UploadFile, status
+from fastapi.responses import JSONResponse
 
 from app.deps import SessionDep, SettingsDep, StorageDep, WriterDep
 from app.errors import ApiError
 from app.limits import Limits
+from app.models import Calibration
 from app.routes.common import (
     API_PREFIX,
     MAX_ROW_ID,
     IdempotencyKeyHeader,
-    idempotent_write,
-    save_upload,
+    write_request,
 )
 from app.schemas import CalibrationOut, ErrorOut
 from app.services import calibrations as svc
-from app.services.calibrations import CALIBRATION_FILE
+from app.services import submissions
 
 router = APIRouter(tags=["calibrations"])
 
 
-def calibration_out(row) -> CalibrationOut:
+def calibration_out(row: Calibration) -> CalibrationOut:
     return CalibrationOut(
         id=row.id,
         image_size=(row.image_width, row.image_height),
@@ -48,41 +49,26 @@ def upload_calibration(
     writer: WriterDep,
     settings: SettingsDep,
     idempotency_key: IdempotencyKeyHeader = None,
-):
+) -> JSONResponse:
     """Store a ``stereo-calibration/1`` as the cell's current one.
 
     A bad file, or an ``image_size`` over the image pixel limit, is refused with 422 naming the field.
     """
-    with storage.staging() as staged:
-
-        def work():
-            save_upload(calibration, staged.dir / CALIBRATION_FILE)
-            row = svc.create_calibration(
-                session=session,
-                storage=storage,
-                staging_dir=staged.dir,
-                limits=Limits.from_settings(settings),
-            )
-            staged.track(storage.calibration_dir(row.id))
-            return 201, calibration_out(row).model_dump(mode="json"), None
-
-        return idempotent_write(
-            request=request,
-            session=session,
-            writer=writer,
-            key=idempotency_key,
-            work=work,
-            cleanup=staged.undo,
-            staging=staged.dir,
-            upload_field="calibration",
-            location=lambda body: f"{API_PREFIX}/calibrations/{body['id']}",
-        )
+    return submissions.submit_calibration(
+        write_request(request, writer, idempotency_key),
+        session=session,
+        storage=storage,
+        limits=Limits.from_settings(settings),
+        upload=calibration,
+        body_of=lambda row: calibration_out(row).model_dump(mode="json"),
+        location=lambda body: f"{API_PREFIX}/calibrations/{body['id']}",
+    )
 
 
 @router.get(
     "/calibrations/current", response_model=CalibrationOut, responses={404: {"model": ErrorOut}}
 )
-def current_calibration(session: SessionDep):
+def current_calibration(session: SessionDep) -> CalibrationOut:
     row = svc.current_calibration(session=session)
     if row is None:
         raise ApiError(404, "calibration: no calibration uploaded yet", field=None)
@@ -98,7 +84,7 @@ def current_calibration(session: SessionDep):
 def get_calibration(
     calibration_id: Annotated[int, Path(ge=1, le=MAX_ROW_ID, description="the calibration's id")],
     session: SessionDep,
-):
+) -> CalibrationOut:
     row = svc.get_calibration(session=session, calibration_id=calibration_id)
     if row is None:
         raise ApiError(
@@ -110,5 +96,5 @@ def get_calibration(
 @router.get(
     "/calibrations", response_model=list[CalibrationOut], summary="Calibrations, newest first"
 )
-def list_calibrations(session: SessionDep):
+def list_calibrations(session: SessionDep) -> list[CalibrationOut]:
     return [calibration_out(r) for r in svc.list_calibrations(session=session)]

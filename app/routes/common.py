@@ -1,4 +1,4 @@
-"""Helpers shared by the routers: path and query parameters, idempotent writes, response builders."""
+"""Helpers shared by the routers: path and query parameters, a write's request, response builders."""
 
 from __future__ import annotations
 
@@ -6,19 +6,12 @@ import hashlib
 import json
 import logging
 import re
-import shutil
-from collections.abc import Callable
-from pathlib import Path as FilePath
 from typing import Annotated, Any
 
 from fastapi import Header, Path, Query, Request
-from fastapi.responses import JSONResponse
 from pydantic import AfterValidator
-from sqlalchemy.orm import Session
 
 from app.deps import Writer
-from app.errors import error_body, known_error, relabel_input_error
-from app.limits.queue import QueueFullError
 from app.models import FINISHED, Inspection, JobStatus, Target
 from app.schemas import (
     PLATE_ID_MAX_LENGTH,
@@ -32,8 +25,8 @@ from app.schemas import (
 from app.services import idempotency
 from app.services.inspections import artifact_names
 from app.services.plates import PlateOverview
+from app.services.writes import WriteRequest
 from app.storage import Storage, check_plate_id
-from pipeline.formats import InputError
 
 log = logging.getLogger(__name__)
 
@@ -110,123 +103,15 @@ async def _digest(value: Any) -> str:
     return digest.hexdigest()
 
 
-#: work() -> (status code, JSON body, called after the commit (e.g. enqueue) or None)
-Work = Callable[[], tuple[int, dict[str, Any], Callable[[], None] | None]]
-
-
-def idempotent_write(
-    *,
-    request: Request,
-    session: Session,
-    writer: Writer,
-    key: str | None,
-    work: Work,
-    cleanup: Callable[[], None] = lambda: None,
-    upload_field: str | Callable[[InputError], str] | None = None,
-    staging: FilePath | None = None,
-    location: Callable[[dict[str, Any]], str] | None = None,
-) -> JSONResponse:
-    """Run a write once per ``Idempotency-Key`` (per route and token) and answer with JSON.
-
-    ``work`` adds rows without committing; this commits them together with the stored answer,
-    then calls the after-commit hook. A refused request (4xx) is remembered too, so a retry gets
-    the same refusal; a bug (5xx) forgets the key, and so does a full queue
-    (:class:`~app.limits.queue.QueueFullError`, answered 429 with ``Retry-After``): a retry may be
-    admitted. The same key with another body (:func:`request_fingerprint`) is refused with 422
-    naming ``Idempotency-Key``. ``cleanup`` undoes files ``work`` wrote when its rows are not
-    committed. File errors name files relative to ``staging`` (the upload's folder);
-    ``upload_field`` is the multipart field they are about, or a function of the (relabelled)
-    error giving it when the upload has several files. ``location`` gives a 201 or 202 answer's
-    ``Location`` header from its body (the resource created or the job queued).
-    """
-    row_id = None
-    if key is not None:
-        claimed = _claim(request=request, session=session, writer=writer, key=key)
-        if isinstance(claimed, JSONResponse):
-            cleanup()
-            return _with_location(claimed, location)
-        row_id = claimed
-    try:
-        status, body, after_commit = work()
-        if row_id is not None:
-            idempotency.record(session=session, row_id=row_id, status_code=status, body=body)
-        session.commit()
-    except Exception as exc:
-        session.rollback()
-        cleanup()
-        if isinstance(exc, QueueFullError):  # not final: a retry with the same key may be admitted
-            _release(session, row_id)
-            return JSONResponse(
-                error_body(exc.detail, exc.field),
-                status_code=429,
-                headers={"Retry-After": str(exc.retry_after_s)},
-            )
-        if isinstance(exc, InputError) and staging is not None:
-            exc = relabel_input_error(exc, staging)
-        if callable(upload_field):
-            upload_field = upload_field(exc) if isinstance(exc, InputError) else None
-        known = known_error(exc, upload_field=upload_field)
-        if known is None:
-            _release(session, row_id)
-            raise
-        status, body = known
-        if row_id is not None:
-            idempotency.record(session=session, row_id=row_id, status_code=status, body=body)
-            session.commit()
-        return JSONResponse(body, status_code=status)
-    if after_commit is not None:
-        after_commit()
-    return _with_location(JSONResponse(body, status_code=status), location)
-
-
-def _claim(*, request: Request, session: Session, writer: Writer, key: str) -> int | JSONResponse:
-    """The id of the key's claim for this request, or the answer when another request made it:
-    the first answer replayed, 409 while it runs, 422 when it was sent with another body."""
-    sha = getattr(request.state, "request_sha256", None)
-    try:
-        row, claimed = idempotency.claim(
-            session=session,
-            key=key,
-            scope=f"{request.method} {request.url.path}",
-            token_hash=writer.token_hash,
-            request_sha256=sha,
-        )
-    except ValueError as err:
-        return JSONResponse(error_body(str(err), "Idempotency-Key"), status_code=422)
-    if claimed:
-        return row.id
-    if not idempotency.same_request(row, sha):
-        detail = (
-            f"Idempotency-Key: {key[:40]!r} was already used on this route with another body; "
-            "send a new key for a new request (or the same body to get the first answer)"
-        )
-        return JSONResponse(error_body(detail, "Idempotency-Key"), status_code=422)
-    if row.state == "done":
-        return JSONResponse(
-            row.body, status_code=row.status_code, headers={"Idempotent-Replayed": "true"}
-        )
-    return JSONResponse(
-        error_body(
-            "Idempotency-Key: the first request with this key is still in progress, retry later",
-            "Idempotency-Key",
-        ),
-        status_code=409,
+def write_request(request: Request, writer: Writer, key: str | None) -> WriteRequest:
+    """What the write services need of a request: its route, the writer's token, its
+    ``Idempotency-Key`` and its fingerprint (:func:`request_fingerprint`)."""
+    return WriteRequest(
+        scope=f"{request.method} {request.url.path}",
+        token_hash=writer.token_hash,
+        key=key,
+        request_sha256=getattr(request.state, "request_sha256", None),
     )
-
-
-def _release(session: Session, row_id: int | None) -> None:
-    if row_id is not None:
-        idempotency.release(session=session, row_id=row_id)
-        session.commit()
-
-
-def _with_location(
-    response: JSONResponse, location: Callable[[dict[str, Any]], str] | None
-) -> JSONResponse:
-    """The answer with ``Location`` when it created something (201) or queued a job (202)."""
-    if location is not None and response.status_code in (201, 202):
-        response.headers["Location"] = location(json.loads(response.body))
-    return response
 
 
 def inspection_location(body: dict[str, Any]) -> str:
@@ -235,12 +120,6 @@ def inspection_location(body: dict[str, Any]) -> str:
 
 
 # ------------------------------------------------------------------ response builders
-
-
-def save_upload(upload, path: FilePath) -> None:
-    """Stream an uploaded file (FastAPI ``UploadFile``) to ``path`` in 1 MiB chunks."""
-    with open(path, "wb") as fh:
-        shutil.copyfileobj(upload.file, fh, length=1 << 20)
 
 
 def artifact_url(inspection_id: int, name: str) -> str:
@@ -271,7 +150,9 @@ def inspection_out(row: Inspection, *, storage: Storage) -> InspectionOut:
     )
 
 
-def defects_and_reasons(storage: Storage, row: Inspection, names: list[str]) -> dict[str, list]:
+def defects_and_reasons(
+    storage: Storage, row: Inspection, names: list[str]
+) -> dict[str, list[Any]]:
     """``defects`` and ``reasons`` of a done inspection, from its details.json."""
     if row.status != JobStatus.DONE or "details.json" not in names:
         return {"defects": [], "reasons": []}
@@ -330,7 +211,7 @@ def plate_out(view: PlateOverview) -> PlateOut:
     )
 
 
-def csv_cell(value) -> str:
+def csv_cell(value: object) -> str:
     """A CSV cell; text a spreadsheet would run as a formula (``=``, ``+``, ``-``, ``@``) is quoted with ``'``."""
     if value is None:
         return ""

@@ -7,17 +7,18 @@ import io
 from typing import Annotated
 
 from fastapi import APIRouter, Path, Query, Request
-from fastapi.responses import Response
+from fastapi.responses import JSONResponse, Response
 from pydantic import AfterValidator
 
 from app.deps import SessionDep, WriterDep
 from app.errors import ApiError
+from app.models import Machine
 from app.routes.common import (
     API_PREFIX,
     IdempotencyKeyHeader,
     PlateIdPath,
     csv_cell,
-    idempotent_write,
+    write_request,
 )
 from app.schemas import (
     MACHINE_ID_MAX_LENGTH,
@@ -28,6 +29,7 @@ from app.schemas import (
     MachineOut,
 )
 from app.services import forming as svc
+from app.services import submissions
 from app.storage import check_plate_id
 
 router = APIRouter(tags=["forming"])
@@ -64,7 +66,7 @@ MachineIdQuery = Annotated[
 ]
 
 
-def machine_out(row) -> MachineOut:
+def machine_out(row: Machine) -> MachineOut:
     return MachineOut.model_validate({name: getattr(row, name) for name in MachineOut.model_fields})
 
 
@@ -85,34 +87,28 @@ def put_machine(
     session: SessionDep,
     writer: WriterDep,
     idempotency_key: IdempotencyKeyHeader = None,
-):
+) -> JSONResponse:
     """Store the machine's geometry (mm): 201 when new, 200 when replaced. Later advice uses the new geometry."""
 
-    def work():
-        row, created = svc.put_machine(
-            session=session, machine_id=machine_id, spec=body.model_dump()
-        )
-        return 201 if created else 200, machine_out(row).model_dump(mode="json"), None
-
-    return idempotent_write(
-        request=request,
+    return submissions.submit_machine(
+        write_request(request, writer, idempotency_key),
         session=session,
-        writer=writer,
-        key=idempotency_key,
-        work=work,
+        machine_id=machine_id,
+        spec=body.model_dump(),
+        body_of=lambda row: machine_out(row).model_dump(mode="json"),
         location=lambda body: f"{API_PREFIX}/machines/{body['id']}",
     )
 
 
 @router.get("/machines", response_model=list[MachineOut], summary="Every roll bender, by id")
-def list_machines(session: SessionDep):
+def list_machines(session: SessionDep) -> list[MachineOut]:
     return [machine_out(row) for row in svc.list_machines(session=session)]
 
 
 @router.get(
     "/machines/{machine_id}", response_model=MachineOut, responses={404: {"model": ErrorOut}}
 )
-def get_machine(machine_id: MachineIdPath, session: SessionDep):
+def get_machine(machine_id: MachineIdPath, session: SessionDep) -> MachineOut:
     row = svc.get_machine(session=session, machine_id=machine_id)
     if row is None:
         raise ApiError(404, f"machine_id: no machine {machine_id!r}", field="machine_id")
@@ -125,7 +121,9 @@ def get_machine(machine_id: MachineIdPath, session: SessionDep):
     responses={404: {"model": ErrorOut}, 409: {"model": ErrorOut}, 422: {"model": ErrorOut}},
     summary="What to do with the plate next: bend (with the top-roll setting), done or reverse",
 )
-def get_advice(plate_id: PlateIdPath, session: SessionDep, machine_id: MachineIdQuery = None):
+def get_advice(
+    plate_id: PlateIdPath, session: SessionDep, machine_id: MachineIdQuery = None
+) -> AdviceOut:
     """Roll-bending advice from the plate's current target (a cylinder with its ``material``), its done
     inspections with a ``process`` and the other plates' (docs/forming.md).
 
@@ -147,7 +145,7 @@ def get_advice(plate_id: PlateIdPath, session: SessionDep, machine_id: MachineId
     },
     summary="The forming history: one row per inspected roll-bending pass",
 )
-def forming_history_csv(session: SessionDep):
+def forming_history_csv(session: SessionDep) -> Response:
     """Columns: inspection_id, created_at, plate_id, machine_id, grade, thickness_mm,
     top_roll_displacement_mm, measured_radius_mm, target_radius_mm, verdict (grade and thickness of the
     target the inspection was judged against; empty when it had no material)."""

@@ -16,7 +16,7 @@ router = APIRouter(tags=["health"])
 
 
 @router.get("/healthz", response_model=Health)
-def healthz(request: Request, session: SessionDep):
+def healthz(request: Request, session: SessionDep) -> Health:
     """The database answers; jobs queued and running; the cell and its cameras (null without a cell).
 
     The cameras are checked at most every few seconds, in a thread that is waited for a few seconds

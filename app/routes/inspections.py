@@ -4,17 +4,16 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import mimetypes
-from pathlib import Path
-from typing import Annotated
+from datetime import datetime
+from typing import Annotated, Any
 
 from fastapi import APIRouter, File, Form, Query, Request, UploadFile, status
-from fastapi.responses import FileResponse, Response
-from pydantic import TypeAdapter, ValidationError
+from fastapi.responses import FileResponse, JSONResponse, Response
+from sqlalchemy.orm import Session
 
 from app.deps import JobsDep, SessionDep, SettingsDep, StorageDep, WriterDep
-from app.errors import ApiError, relabel_input_error
+from app.errors import ApiError
 from app.limits import Limits
 from app.models import JobStatus
 from app.routes.common import (
@@ -23,11 +22,10 @@ from app.routes.common import (
     OffsetQuery,
     PlateIdPath,
     csv_cell,
-    idempotent_write,
     inspection_location,
     inspection_out,
     inspection_summary,
-    save_upload,
+    write_request,
 )
 from app.schemas import (
     AcquireInspectionIn,
@@ -35,24 +33,19 @@ from app.schemas import (
     InspectionCreated,
     InspectionOut,
     InspectionSummary,
-    OperatorName,
     Page,
-    ProcessIn,
     SimulatedInspectionIn,
     Status,
 )
 from app.services import inspections as svc
 from app.services import plates as plates_svc
-from app.services.acquisitions import create_acquired_inspection
-from app.services.cell import CELL_SETTING, CellUnavailable, demo_target, load_cell
-from app.services.inspections import CAPTURE_FILE
+from app.services import submissions
+from app.services.cell import CELL_SETTING
 from app.services.reports import inspection_report
-from app.services.targets import TARGET_FILE
-from pipeline.formats import InputError
 
 router = APIRouter(tags=["inspections"])
 
-ERRORS = {
+ERRORS: dict[int | str, dict[str, Any]] = {
     401: {"model": ErrorOut},
     413: {"model": ErrorOut},
     422: {"model": ErrorOut},
@@ -61,6 +54,26 @@ ERRORS = {
         "description": "the queue is full (per plate or in all); see the Retry-After header",
     },
 }
+
+
+CaptureUpload = Annotated[
+    UploadFile, File(description="the capture bundle (plate-capture/1) as a .zip")
+]
+TargetUpload = Annotated[
+    UploadFile | None,
+    File(description="plate-target/1 JSON; optional if the plate has a target"),
+]
+ProcessForm = Annotated[
+    str | None,
+    Form(
+        description='the forming pass that produced the shape, JSON: {"method": "roll-bending", '
+        '"machine_id": "R3-01", "top_roll_displacement_mm": 97.0}'
+    ),
+]
+OperatorForm = Annotated[
+    str | None,
+    Form(description="who starts the inspection (printed on the signed report), 1-80 characters"),
+]
 
 
 @router.post(
@@ -73,33 +86,17 @@ ERRORS = {
 def create_inspection(
     request: Request,
     plate_id: PlateIdPath,
-    capture: Annotated[
-        UploadFile, File(description="the capture bundle (plate-capture/1) as a .zip")
-    ],
+    capture: CaptureUpload,
     session: SessionDep,
     storage: StorageDep,
     jobs: JobsDep,
     writer: WriterDep,
     settings: SettingsDep,
     idempotency_key: IdempotencyKeyHeader = None,
-    target: Annotated[
-        UploadFile | None,
-        File(description="plate-target/1 JSON; optional if the plate has a target"),
-    ] = None,
-    process: Annotated[
-        str | None,
-        Form(
-            description='the forming pass that produced the shape, JSON: {"method": "roll-bending", '
-            '"machine_id": "R3-01", "top_roll_displacement_mm": 97.0}'
-        ),
-    ] = None,
-    operator: Annotated[
-        str | None,
-        Form(
-            description="who starts the inspection (printed on the signed report), 1-80 characters"
-        ),
-    ] = None,
-):
+    target: TargetUpload = None,
+    process: ProcessForm = None,
+    operator: OperatorForm = None,
+) -> JSONResponse:
     """Check the bundle (and target), store them and queue the inspection: 202 ``{"id", "status"}``.
 
     The bundle is checked from capture.json and the image headers (no image is decoded here;
@@ -109,94 +106,19 @@ def create_inspection(
     is stored with the inspection; a bad one, or one naming an unknown machine, is refused with 422
     naming ``process`` or its field (``process.machine_id``).
     """
-    with storage.staging() as staged:
-
-        def work():
-            pass_ = None if process is None else parse_process(process)
-            who = None if operator is None else parse_operator(operator)
-            save_upload(capture, staged.dir / CAPTURE_FILE)
-            if target is not None:
-                (staged.dir / "target").mkdir()
-                save_upload(target, staged.dir / "target" / TARGET_FILE)
-            try:
-                row = svc.create_uploaded_inspection(
-                    session=session,
-                    storage=storage,
-                    plate_id=plate_id,
-                    staging_dir=staged.dir,
-                    limits=Limits.from_settings(settings),
-                    process=pass_,
-                )
-            except InputError as err:
-                raise _named_as_sent(
-                    relabel_input_error(err, staged.dir), capture.filename
-                ) from None
-            row.operator = who
-            staged.track(storage.inspection_dir(row.id))
-            return 202, {"id": row.id, "status": row.status}, lambda: jobs.enqueue(row.id)
-
-        return idempotent_write(
-            request=request,
-            session=session,
-            writer=writer,
-            key=idempotency_key,
-            work=work,
-            cleanup=staged.undo,
-            staging=staged.dir,
-            upload_field=_upload_part,
-            location=inspection_location,
-        )
-
-
-def parse_process(text: str) -> dict:
-    """The multipart field ``process`` (JSON) checked as :class:`ProcessIn`, as a dict.
-
-    Raises
-    ------
-    ApiError
-        422 naming ``process`` (not JSON) or the field of it that is wrong (``process.machine_id``).
-    """
-    try:
-        return ProcessIn.model_validate_json(text).model_dump(mode="json")
-    except ValidationError as err:
-        first = err.errors()[0]
-        loc = ".".join(str(p) for p in first["loc"])
-        field = f"process.{loc}" if loc and first["type"] != "json_invalid" else "process"
-        raise ApiError(422, f"{field}: {first['msg']}", field=field) from None
-
-
-_OPERATOR = TypeAdapter(OperatorName)
-
-
-def parse_operator(text: str) -> str:
-    """The multipart field ``operator`` checked as :data:`app.schemas.OperatorName`.
-
-    Raises
-    ------
-    ApiError
-        422 naming ``operator``: empty, over 80 characters, or with control characters.
-    """
-    try:
-        return _OPERATOR.validate_python(text)
-    except ValidationError:
-        raise ApiError(
-            422,
-            f"operator: expected a name of 1-80 printable characters, got {text[:100]!r}",
-            field="operator",
-        ) from None
-
-
-def _named_as_sent(err: InputError, filename: str | None) -> InputError:
-    """The error with the bundle named as the client sent it (``bad.zip``), not as it is stored."""
-    sent = Path(filename or "").name
-    if not sent or sent == CAPTURE_FILE or not err.file.startswith(CAPTURE_FILE):
-        return err
-    return InputError(sent + err.file[len(CAPTURE_FILE) :], err.field, err.reason)
-
-
-def _upload_part(err: InputError) -> str:
-    """The multipart field a refused file of an upload is about: the target (staged in target/) or the capture."""
-    return "target" if err.file.startswith("target/") else "capture"
+    return submissions.submit_uploaded_inspection(
+        write_request(request, writer, idempotency_key),
+        session=session,
+        storage=storage,
+        jobs=jobs,
+        limits=Limits.from_settings(settings),
+        plate_id=plate_id,
+        capture=capture,
+        target=target,
+        process=process,
+        operator=operator,
+        location=inspection_location,
+    )
 
 
 @router.post(
@@ -216,34 +138,22 @@ def create_simulated_inspection(
     writer: WriterDep,
     settings: SettingsDep,
     idempotency_key: IdempotencyKeyHeader = None,
-):
+) -> JSONResponse:
     """Queue a job that renders a capture of the described plate, then inspects it.
 
     Over the request limits (lights, simulated pixels): 422; a full queue: 429 and ``Retry-After``.
     """
-    with storage.staging(folder=False) as staged:
-
-        def work():
-            row = svc.create_simulated_inspection(
-                session=session,
-                storage=storage,
-                plate_id=plate_id,
-                simulation=body.model_dump(mode="json", exclude={"operator"}),
-                limits=Limits.from_settings(settings),
-            )
-            row.operator = body.operator
-            staged.track(storage.inspection_dir(row.id))
-            return 202, {"id": row.id, "status": row.status}, lambda: jobs.enqueue(row.id)
-
-        return idempotent_write(
-            request=request,
-            session=session,
-            writer=writer,
-            key=idempotency_key,
-            work=work,
-            cleanup=staged.undo,
-            location=inspection_location,
-        )
+    return submissions.submit_simulated_inspection(
+        write_request(request, writer, idempotency_key),
+        session=session,
+        storage=storage,
+        jobs=jobs,
+        limits=Limits.from_settings(settings),
+        plate_id=plate_id,
+        simulation=body.model_dump(mode="json", exclude={"operator"}),
+        operator=body.operator,
+        location=inspection_location,
+    )
 
 
 @router.post(
@@ -270,7 +180,7 @@ def acquire_inspection(
     settings: SettingsDep,
     body: AcquireInspectionIn | None = None,
     idempotency_key: IdempotencyKeyHeader = None,
-):
+) -> JSONResponse:
     """Queue a job that photographs the plate in the cell (``PLATE_INSPECT_CELL_CONFIG``), then inspects it.
 
     The job's stages: ``capture`` (progress per image taken), then the pipeline's. A device that
@@ -280,41 +190,16 @@ def acquire_inspection(
     setting or the file and field; a bad target or process: 422; a full queue: 429 and
     ``Retry-After``.
     """
-    body = body or AcquireInspectionIn()
-    try:
-        cell = load_cell(settings)
-    except CellUnavailable as err:  # checked first, never remembered under an Idempotency-Key
-        raise ApiError(409, err.detail) from None
-    with storage.staging(folder=body.target is not None) as staged:
-        if staged.dir is not None:
-            (staged.dir / TARGET_FILE).write_text(json.dumps(body.target), encoding="utf-8")
-
-        def work():
-            row = create_acquired_inspection(
-                session=session,
-                storage=storage,
-                plate_id=plate_id,
-                cell=cell,
-                process=None if body.process is None else body.process.model_dump(mode="json"),
-                target_dir=staged.dir,
-                default_target=demo_target(settings),
-                limits=Limits.from_settings(settings),
-            )
-            row.operator = body.operator
-            staged.track(storage.inspection_dir(row.id))
-            return 202, {"id": row.id, "status": row.status}, lambda: jobs.enqueue(row.id)
-
-        return idempotent_write(
-            request=request,
-            session=session,
-            writer=writer,
-            key=idempotency_key,
-            work=work,
-            cleanup=staged.undo,
-            staging=staged.dir,
-            upload_field="target",
-            location=inspection_location,
-        )
+    return submissions.submit_acquired_inspection(
+        write_request(request, writer, idempotency_key),
+        session=session,
+        storage=storage,
+        jobs=jobs,
+        settings=settings,
+        plate_id=plate_id,
+        body=body or AcquireInspectionIn(),
+        location=inspection_location,
+    )
 
 
 @router.get(
@@ -328,7 +213,7 @@ def list_plate_inspections(
     session: SessionDep,
     limit: Annotated[int, Query(ge=1, le=200)] = 20,
     offset: OffsetQuery = 0,
-):
+) -> Page[InspectionSummary]:
     """The plate's inspections (404 for a plate the server does not know, as ``GET /plates/{id}``)."""
     _known_plate(session, plate_id)
     items, total = svc.list_inspections(
@@ -372,7 +257,7 @@ PLATE_CSV_COLUMNS = (
     },
     summary="A plate's inspections as CSV, for a spreadsheet",
 )
-def plate_inspections_csv(plate_id: PlateIdPath, session: SessionDep):
+def plate_inspections_csv(plate_id: PlateIdPath, session: SessionDep) -> Response:
     """Columns: see ``PLATE_CSV_COLUMNS`` (times in UTC with their offset, lengths in mm)."""
     _known_plate(session, plate_id)
     out = io.StringIO()
@@ -403,12 +288,12 @@ def plate_inspections_csv(plate_id: PlateIdPath, session: SessionDep):
     )
 
 
-def _known_plate(session, plate_id: str) -> None:
+def _known_plate(session: Session, plate_id: str) -> None:
     if plates_svc.get_plate(session=session, plate_id=plate_id) is None:
         raise ApiError(404, f"plate_id: no plate {plate_id!r}", field="plate_id")
 
 
-def _iso(when) -> str | None:
+def _iso(when: datetime | None) -> str | None:
     return None if when is None else when.isoformat(timespec="seconds")
 
 
@@ -423,7 +308,7 @@ def list_inspections(
     ] = None,
     limit: Annotated[int, Query(ge=1, le=200)] = 20,
     offset: OffsetQuery = 0,
-):
+) -> Page[InspectionSummary]:
     items, total = svc.list_inspections(
         session=session, statuses=tuple(status_) if status_ else None, limit=limit, offset=offset
     )
@@ -437,7 +322,9 @@ def list_inspections(
     response_model=InspectionOut,
     responses={404: {"model": ErrorOut}},
 )
-def get_inspection(inspection_id: InspectionIdPath, session: SessionDep, storage: StorageDep):
+def get_inspection(
+    inspection_id: InspectionIdPath, session: SessionDep, storage: StorageDep
+) -> InspectionOut:
     """Job state (status, progress 0..1, stage), the plate-result/1 object once done, or the error."""
     row = svc.get_inspection(session=session, inspection_id=inspection_id)
     if row is None:
@@ -459,7 +346,7 @@ def get_report(
     session: SessionDep,
     storage: StorageDep,
     settings: SettingsDep,
-):
+) -> Response:
     """The inspection report to sign (A4 PDF): a header on every page (yard, hull, block, plate,
     drawing and revision, report number, cell, camera serials, calibration, operator, times, page X
     of Y); verdict, warnings and the decision rule; target and alignment; radius, surface, defects
@@ -494,7 +381,7 @@ def get_report(
 )
 def get_artifact(
     inspection_id: InspectionIdPath, name: str, session: SessionDep, storage: StorageDep
-):
+) -> FileResponse:
     """One artifact file of an inspection (result.json, surface.ply, deviation.png, ...)."""
     if svc.get_inspection(session=session, inspection_id=inspection_id) is None:
         raise ApiError(404, f"inspection_id: no inspection {inspection_id}", field="inspection_id")

@@ -6,19 +6,22 @@ from pathlib import Path
 
 from fastapi import APIRouter, Request, status
 from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import JSONResponse
 from starlette.datastructures import UploadFile
 
 from app.deps import SessionDep, SettingsDep, StorageDep, WriterDep
 from app.errors import ApiError
 from app.limits import Limits
+from app.models import LightCalibration
 from app.routes.common import (
     API_PREFIX,
     IdempotencyKeyHeader,
     LightCalibrationIdPath,
-    idempotent_write,
+    write_request,
 )
 from app.schemas import ErrorOut, LightCalibrationOut
 from app.services import light_calibrations as svc
+from app.services import submissions
 from app.services.light_calibrations import LIGHT_CALIBRATION_FILE
 
 router = APIRouter(tags=["light calibrations"])
@@ -27,7 +30,7 @@ router = APIRouter(tags=["light calibrations"])
 UPLOAD_FIELD = "calibration"
 
 
-def light_calibration_out(row) -> LightCalibrationOut:
+def light_calibration_out(row: LightCalibration) -> LightCalibrationOut:
     return LightCalibrationOut.model_validate(
         {name: getattr(row, name) for name in LightCalibrationOut.model_fields}
     )
@@ -75,7 +78,7 @@ async def upload_light_calibration(
     writer: WriterDep,
     settings: SettingsDep,
     idempotency_key: IdempotencyKeyHeader = None,
-):
+) -> JSONResponse:
     """Store a ``light-calibration/1`` (from ``plate-inspect calibrate-lights``) as the cell's current one.
 
     From now on, uploaded captures whose lights are only nominal directions are inspected with
@@ -84,29 +87,20 @@ async def upload_light_calibration(
     """
     content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
     with storage.staging() as staged:
-        file_name = await _stage_upload(request, content_type, staged.dir / LIGHT_CALIBRATION_FILE)
-
-        def work():
-            row = svc.create_light_calibration(
-                session=session,
-                storage=storage,
-                staging_dir=staged.dir,
-                file_name=file_name,
-                limits=Limits.from_settings(settings),
-            )
-            staged.track(storage.light_calibration_dir(row.id))
-            return 201, light_calibration_out(row).model_dump(mode="json"), None
+        file_name = await _stage_upload(
+            request, content_type, staged.folder / LIGHT_CALIBRATION_FILE
+        )
 
         return await run_in_threadpool(
-            idempotent_write,
-            request=request,
+            submissions.submit_light_calibration,
+            write_request(request, writer, idempotency_key),
+            staged,
             session=session,
-            writer=writer,
-            key=idempotency_key,
-            work=work,
-            cleanup=staged.undo,
+            storage=storage,
+            limits=Limits.from_settings(settings),
+            file_name=file_name,
             upload_field=UPLOAD_FIELD if file_name is not None else None,
-            staging=staged.dir,
+            body_of=lambda row: light_calibration_out(row).model_dump(mode="json"),
             location=lambda body: f"{API_PREFIX}/light-calibrations/{body['id']}",
         )
 
@@ -142,7 +136,7 @@ async def _stage_upload(request: Request, content_type: str, path: Path) -> str 
     response_model=LightCalibrationOut,
     responses={404: {"model": ErrorOut}},
 )
-def current_light_calibration(session: SessionDep):
+def current_light_calibration(session: SessionDep) -> LightCalibrationOut:
     row = svc.current_light_calibration(session=session)
     if row is None:
         raise ApiError(404, "light calibration: no light calibration uploaded yet", field=None)
@@ -155,7 +149,9 @@ def current_light_calibration(session: SessionDep):
     responses={404: {"model": ErrorOut}},
     summary="One light calibration (e.g. the one an inspection was run with)",
 )
-def get_light_calibration(light_calibration_id: LightCalibrationIdPath, session: SessionDep):
+def get_light_calibration(
+    light_calibration_id: LightCalibrationIdPath, session: SessionDep
+) -> LightCalibrationOut:
     row = svc.get_light_calibration(session=session, light_calibration_id=light_calibration_id)
     if row is None:
         raise ApiError(
@@ -171,5 +167,5 @@ def get_light_calibration(light_calibration_id: LightCalibrationIdPath, session:
     response_model=list[LightCalibrationOut],
     summary="Light calibrations, newest first",
 )
-def list_light_calibrations(session: SessionDep):
+def list_light_calibrations(session: SessionDep) -> list[LightCalibrationOut]:
     return [light_calibration_out(r) for r in svc.list_light_calibrations(session=session)]

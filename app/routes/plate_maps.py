@@ -3,8 +3,11 @@ PNG for drawing (:mod:`app.services.plate_maps`)."""
 
 from __future__ import annotations
 
+from typing import Any
+
 from fastapi import APIRouter
 from fastapi.responses import Response
+from sqlalchemy.orm import Session
 
 from app.deps import SessionDep, StorageDep
 from app.errors import ApiError
@@ -18,10 +21,10 @@ from pipeline.plate_map import PlateMap
 
 router = APIRouter(tags=["inspections"])
 
-_ERRORS = {404: {"model": ErrorOut}, 409: {"model": ErrorOut}}
+_ERRORS: dict[int | str, dict[str, Any]] = {404: {"model": ErrorOut}, 409: {"model": ErrorOut}}
 
 
-def _map_of(session, storage: Storage, inspection_id: int) -> tuple[Inspection, PlateMap]:
+def _map_of(session: Session, storage: Storage, inspection_id: int) -> tuple[Inspection, PlateMap]:
     row = svc.get_inspection(session=session, inspection_id=inspection_id)
     if row is None:
         raise ApiError(404, f"inspection_id: no inspection {inspection_id}", field="inspection_id")
@@ -31,13 +34,24 @@ def _map_of(session, storage: Storage, inspection_id: int) -> tuple[Inspection, 
         raise ApiError(409, f"inspection_id: {err}", field="inspection_id") from None
 
 
+def _tolerance(row: Inspection) -> float:
+    """The tolerance a done inspection was judged with (every done inspection records one)."""
+    if row.tolerance_mm is None:
+        raise ApiError(
+            409, f"inspection_id: inspection {row.id} records no tolerance", field="inspection_id"
+        )
+    return float(row.tolerance_mm)
+
+
 @router.get("/inspections/{inspection_id}/plate-map", response_model=PlateMapOut, responses=_ERRORS)
-def get_plate_map(inspection_id: InspectionIdPath, session: SessionDep, storage: StorageDep):
+def get_plate_map(
+    inspection_id: InspectionIdPath, session: SessionDep, storage: StorageDep
+) -> dict[str, Any]:
     """The deviation map in the target's own frame: mean deviation in square cells of its x and y,
     mm, and the defects at their places. Only a done inspection has one (409 otherwise)."""
     row, plate = _map_of(session, storage, inspection_id)
     defects = defects_and_reasons(storage, row, ["details.json"])["defects"]
-    return plate_map_document(plate, tolerance_mm=float(row.tolerance_mm), defects=defects)
+    return plate_map_document(plate, tolerance_mm=_tolerance(row), defects=defects)
 
 
 @router.get(
@@ -45,9 +59,11 @@ def get_plate_map(inspection_id: InspectionIdPath, session: SessionDep, storage:
     response_class=Response,
     responses={200: {"content": {"image/png": {}}, "description": "one pixel per cell"}, **_ERRORS},
 )
-def get_plate_map_png(inspection_id: InspectionIdPath, session: SessionDep, storage: StorageDep):
+def get_plate_map_png(
+    inspection_id: InspectionIdPath, session: SessionDep, storage: StorageDep
+) -> Response:
     """The map coloured by tolerance band (within: one calm green; beyond: orange to red above the
     target, light to dark blue below), one pixel per cell, x to the right and y up."""
     row, plate = _map_of(session, storage, inspection_id)
-    png = plate_map_png(plate, tolerance_mm=float(row.tolerance_mm))
+    png = plate_map_png(plate, tolerance_mm=_tolerance(row))
     return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=300"})

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Request
 from fastapi.concurrency import run_in_threadpool
-from starlette.datastructures import UploadFile
+from fastapi.responses import JSONResponse
+from starlette.datastructures import FormData, UploadFile
 
 from app.deps import SessionDep, StorageDep, WriterDep
 from app.errors import ApiError
@@ -16,14 +18,15 @@ from app.routes.common import (
     IdempotencyKeyHeader,
     OffsetQuery,
     PlateIdPath,
-    idempotent_write,
     plate_out,
-    save_upload,
     target_out,
+    write_request,
 )
 from app.schemas import ErrorOut, Page, PlateOut, TargetOut
 from app.services import plates as svc
-from app.services.targets import TARGET_FILE, create_target
+from app.services import submissions
+from app.services.targets import TARGET_FILE
+from app.services.writes import save_upload
 from app.storage import ARTIFACT_NAME_PATTERN
 from pipeline.io import MESH_SUFFIXES
 
@@ -35,7 +38,7 @@ def list_plates(
     session: SessionDep,
     limit: Annotated[int, Query(ge=1, le=500)] = 50,
     offset: OffsetQuery = 0,
-):
+) -> Page[PlateOut]:
     views, total = svc.list_plates(session=session, limit=limit, offset=offset)
     return Page[PlateOut](
         items=[plate_out(v) for v in views], total=total, limit=limit, offset=offset
@@ -43,7 +46,7 @@ def list_plates(
 
 
 @router.get("/plates/{plate_id}", response_model=PlateOut, responses={404: {"model": ErrorOut}})
-def get_plate(plate_id: PlateIdPath, session: SessionDep):
+def get_plate(plate_id: PlateIdPath, session: SessionDep) -> PlateOut:
     view = svc.overview(session=session, plate_id=plate_id)
     if view is None:
         raise ApiError(404, f"plate_id: no plate {plate_id!r}", field="plate_id")
@@ -53,7 +56,7 @@ def get_plate(plate_id: PlateIdPath, session: SessionDep):
 @router.get(
     "/plates/{plate_id}/target", response_model=TargetOut, responses={404: {"model": ErrorOut}}
 )
-def get_target(plate_id: PlateIdPath, session: SessionDep):
+def get_target(plate_id: PlateIdPath, session: SessionDep) -> TargetOut:
     row = svc.current_target(session=session, plate_id=plate_id)
     if row is None:
         raise ApiError(404, f"plate_id: plate {plate_id!r} has no target", field="plate_id")
@@ -109,7 +112,7 @@ async def put_target(
     storage: StorageDep,
     writer: WriterDep,
     idempotency_key: IdempotencyKeyHeader = None,
-):
+) -> JSONResponse:
     """Replace the plate's target (the old one stays with the inspections that used it).
 
     JSON body: a ``plate-target/1`` document (plane, cylinder or sphere). Multipart: ``mesh``
@@ -118,7 +121,7 @@ async def put_target(
     """
     content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
     with storage.staging() as staged:
-        staging = staged.dir
+        staging = staged.folder
         if content_type == "application/json":
             (staging / TARGET_FILE).write_bytes(await request.body())
         elif content_type == "multipart/form-data":
@@ -130,27 +133,18 @@ async def put_target(
                 field="Content-Type",
             )
 
-        def work():
-            row = create_target(
-                session=session, storage=storage, plate_id=plate_id, staging_dir=staging
-            )
-            staged.track(storage.target_dir(plate_id, row.id))
-            return 200, target_out(row).model_dump(mode="json"), None
-
         return await run_in_threadpool(
-            idempotent_write,
-            request=request,
+            submissions.submit_target,
+            write_request(request, writer, idempotency_key),
+            staged,
             session=session,
-            writer=writer,
-            key=idempotency_key,
-            work=work,
-            cleanup=staged.undo,
-            upload_field="target",
-            staging=staging,
+            storage=storage,
+            plate_id=plate_id,
+            body_of=lambda row: target_out(row).model_dump(mode="json"),
         )
 
 
-async def _stage_mesh_form(form, staging) -> None:
+async def _stage_mesh_form(form: FormData, staging: Path) -> None:
     mesh = form.get("mesh")
     if not isinstance(mesh, UploadFile):
         raise ApiError(422, "mesh: expected a mesh file upload (STL, PLY or OBJ)", field="mesh")

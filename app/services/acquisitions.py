@@ -19,7 +19,7 @@ from sqlalchemy.orm import Session
 
 from app.limits import DEFAULT_LIMITS, Limits
 from app.limits.queue import check_queue
-from app.models import Inspection, JobStatus
+from app.models import Inspection, JobStatus, Target
 from app.services.cell import (
     CellLock,
     CellUnavailable,
@@ -139,7 +139,7 @@ def _target(
     target_dir: Path | None,
     default_target: Path | None,
     created: list[Path],
-):
+) -> Target:
     """The target of a new acquired inspection (see :func:`create_acquired_inspection`); the folders
     of targets it creates are appended to ``created``."""
     if target_dir is not None:
@@ -166,7 +166,7 @@ def _target(
 
 def _new_target(
     *, session: Session, storage: Storage, plate_id: str, folder: Path, created: list[Path]
-):
+) -> Target:
     """A new current target of the plate from ``folder/target.json``, validated where it is (errors
     name that file); the plate's copy is made from it."""
     validated = validate_target_dir(folder)

@@ -10,6 +10,7 @@ import threading
 import time
 from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
+from typing import Any
 
 from app.services.cell import (
     PROBE_TIMEOUT_S,
@@ -29,7 +30,8 @@ from pipeline.acquisition import (
     SimulatedLightController,
     open_camera,
 )
-from pipeline.formats import AcquisitionError
+from pipeline.acquisition.cameras import Side
+from pipeline.formats import AcquisitionError, CellCamera
 
 log = logging.getLogger(__name__)
 
@@ -98,7 +100,7 @@ class CellState:
     cameras: tuple[CameraState, ...] = ()
     in_use: str | None = None
     checked_at: datetime | None = None
-    last_capture: dict | None = None
+    last_capture: dict[str, Any] | None = None
 
 
 @dataclass
@@ -112,7 +114,7 @@ class _Probe:
     started: float = field(default_factory=time.monotonic)
 
     @property
-    def key(self) -> tuple:
+    def key(self) -> tuple[Any, ...]:
         return _config_key(self.config)
 
 
@@ -120,7 +122,7 @@ class _Probe:
 class _Known:
     """The answer of the last finished check: its cameras' configuration, the cameras, when it started."""
 
-    key: tuple
+    key: tuple[Any, ...]
     cameras: tuple[CameraState, ...]
     checked_at: datetime
     finished: float
@@ -184,7 +186,7 @@ class CameraMonitor:
         )
 
     def _cameras(
-        self, config: CellConfig, capture: dict | None
+        self, config: CellConfig, capture: dict[str, Any] | None
     ) -> tuple[tuple[CameraState, ...], datetime | None, str | None]:
         """(cameras, when they were checked, who holds them instead)."""
         key = _config_key(config)
@@ -234,14 +236,11 @@ class CameraMonitor:
             self._known = _Known(probe.key, cameras, probe.started_at, time.monotonic())
 
 
-def _last_seen(config: CellConfig, capture: dict | None) -> tuple[CameraState, ...]:
+def _last_seen(config: CellConfig, capture: dict[str, Any] | None) -> tuple[CameraState, ...]:
     """The cameras as the last capture of this cell described them (connected then), else unknown."""
     cameras = []
-    seen_by_side = (
-        (capture or {}).get("cameras", {})
-        if (capture or {}).get("cell_id") == config.cell_id
-        else {}
-    )
+    last = capture or {}
+    seen_by_side = last.get("cameras", {}) if last.get("cell_id") == config.cell_id else {}
     for side in SIDES:
         cam_config = getattr(config, side)
         seen = seen_by_side.get(side)
@@ -255,7 +254,7 @@ def _last_seen(config: CellConfig, capture: dict | None) -> tuple[CameraState, .
                     seen.get("vendor"),
                     seen.get("model"),
                     seen.get("serial"),
-                    detail=f"at the last capture ({capture['captured_at']})",
+                    detail=f"at the last capture ({last['captured_at']})",
                 )
             )
         else:
@@ -271,7 +270,7 @@ def _last_seen(config: CellConfig, capture: dict | None) -> tuple[CameraState, .
     return tuple(cameras)
 
 
-def _config_key(config: CellConfig) -> tuple:
+def _config_key(config: CellConfig) -> tuple[Any, ...]:
     """What a check's answer depends on: the cameras as configured."""
     return (config.path.resolve(), config.left, config.right)
 
@@ -306,7 +305,7 @@ def _run_probe(probe: _Probe, lock: CellLock) -> None:
         probe.finished.set()
 
 
-def _check_camera(side: str, cam_config, cell: SimulatedCell | None) -> CameraState:
+def _check_camera(side: Side, cam_config: CellCamera, cell: SimulatedCell | None) -> CameraState:
     base = CameraState(side, cam_config.driver, cam_config.device_id, "unknown")
     try:
         camera = open_camera(side, cam_config, cell=cell)

@@ -24,6 +24,7 @@ import shutil
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -37,6 +38,7 @@ from pipeline.acquisition import (
     load_cell_config,
 )
 from pipeline.acquisition import write_demo_cell as _write_demo_cell
+from pipeline.acquisition.cameras import Side
 from pipeline.formats import InputError
 
 log = logging.getLogger(__name__)
@@ -56,7 +58,7 @@ MAX_CELL_ID = 64
 #: The setting that names the cell's configuration, for messages.
 CELL_SETTING = f"{ENV_PREFIX}CELL_CONFIG"
 
-SIDES = ("left", "right")
+SIDES: tuple[Side, Side] = ("left", "right")
 
 
 class CellUnavailable(ServiceError):
@@ -230,6 +232,8 @@ def record_capture(data_dir: Path, bundle: Path, *, inspection_id: int) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     for side in SIDES:
         image = cv2.imread(str(bundle / doc["stereo"][side]), cv2.IMREAD_UNCHANGED)
+        if image is None:
+            raise OSError(f"{side} image: could not read it")
         ok, png = cv2.imencode(".png", _thumbnail(image))
         if not ok:
             raise OSError(f"{side} thumbnail: could not encode it")
@@ -250,13 +254,16 @@ def record_capture(data_dir: Path, bundle: Path, *, inspection_id: int) -> None:
     _write_atomic(folder / "state.json", json.dumps(state, indent=2).encode("utf-8"))
 
 
-def last_capture(data_dir: Path) -> dict | None:
+def last_capture(data_dir: Path) -> dict[str, Any] | None:
     """What :func:`record_capture` recorded last (``cell_id``, ``inspection_id``, ``plate_id``,
     ``captured_at``, ``cameras``), or None."""
     try:
-        return json.loads((Path(data_dir) / CELL_DIR / "state.json").read_text(encoding="utf-8"))
+        state: dict[str, Any] = json.loads(
+            (Path(data_dir) / CELL_DIR / "state.json").read_text(encoding="utf-8")
+        )
     except (OSError, ValueError):
         return None
+    return state
 
 
 def thumbnail_path(data_dir: Path, side: str) -> Path | None:
@@ -272,7 +279,8 @@ def _thumbnail(image: np.ndarray) -> np.ndarray:
     top = max(float(np.percentile(grey[::4, ::4], 99.5)), 1.0)
     height = max(1, round(grey.shape[0] * THUMBNAIL_WIDTH / grey.shape[1]))
     small = cv2.resize(grey, (THUMBNAIL_WIDTH, height), interpolation=cv2.INTER_AREA)
-    return np.clip(small * (255.0 / top), 0, 255).astype(np.uint8)
+    thumb: np.ndarray = np.clip(small * (255.0 / top), 0, 255).astype(np.uint8)
+    return thumb
 
 
 def _write_atomic(path: Path, data: bytes) -> None:

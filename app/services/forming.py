@@ -9,7 +9,7 @@ inspections with a process (oldest first) and the other plates' (see docs/formin
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, Literal
 
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
@@ -18,7 +18,6 @@ from app.models import Inspection, JobStatus, Machine, Target, utcnow
 from app.services.errors import ConflictError, NotFoundError, UnprocessableError
 from app.services.plates import current_target, get_plate
 from pipeline import forming
-from pipeline.forming.records import VERDICTS
 from pipeline.io import load_target
 
 #: Other plates whose passes are read for an advice: the most recently rolled ones. The fit itself uses
@@ -43,11 +42,13 @@ def put_machine(*, session: Session, machine_id: str, spec: dict[str, Any]) -> t
         A geometry the forming model refuses (e.g. bottom rolls wider than their spacing; names the field).
     """
     forming.Machine.from_dict(machine_id, spec)
-    row = session.get(Machine, machine_id)
-    created = row is None
-    if created:
+    found = session.get(Machine, machine_id)
+    created = found is None
+    if found is None:
         row = Machine(id=machine_id)
         session.add(row)
+    else:
+        row = found
     for name, value in spec.items():
         setattr(row, name, value)
     row.updated_at = utcnow()
@@ -135,11 +136,26 @@ def roll_pass(row: Inspection) -> forming.RollPass:
     The stored result document gives the radius's uncertainty and whether the inspection is capable
     for the tolerance (:func:`pipeline.forming.records.inspection_quality`); older results have neither.
     """
-    verdict = row.verdict if row.verdict in VERDICTS else None
+    verdict: Literal["pass", "fail"] | None = (
+        "pass" if row.verdict == "pass" else "fail" if row.verdict == "fail" else None
+    )
     radius = math.inf if row.radius_mm is None else row.radius_mm
     return forming.RollPass.from_dict(
-        row.process, measured_radius_mm=radius, verdict=verdict, result=row.result
+        _process(row), measured_radius_mm=radius, verdict=verdict, result=row.result
     )
+
+
+def _process(row: Inspection) -> dict[str, Any]:
+    """The forming pass an inspection was started with (the passes listed all have one).
+
+    Raises
+    ------
+    ValueError
+        The inspection was started without a process.
+    """
+    if row.process is None:
+        raise ValueError(f"inspection {row.id}: no forming process recorded")
+    return row.process
 
 
 def plate_passes(*, session: Session, plate_id: str) -> list[Inspection]:
@@ -244,21 +260,22 @@ HISTORY_COLUMNS = (
 )
 
 
-def export_row(row: Inspection) -> tuple:
+def export_row(row: Inspection) -> tuple[Any, ...]:
     """One pass of the forming history export, :data:`HISTORY_COLUMNS` in order."""
     material = target_material(row.target) or {}
+    process = _process(row)
     return (
         row.id,
         row.created_at.isoformat(),
         row.plate_id,
-        row.process["machine_id"],
+        process["machine_id"],
         material.get("grade"),
         material.get("thickness_mm"),
-        row.process["top_roll_displacement_mm"],
+        process["top_roll_displacement_mm"],
         row.radius_mm,
         row.target_radius_mm,
         row.verdict,
-        bool(row.process.get("flipped", False)),
+        bool(process.get("flipped", False)),
     )
 
 

@@ -105,6 +105,13 @@ def same_request(row: IdempotencyKey, request_sha256: str | None) -> bool:
     )
 
 
+def stored_answer(row: IdempotencyKey) -> tuple[int, dict[str, Any] | None] | None:
+    """The answer recorded for the key (status code, JSON body), or None while its first request runs."""
+    if row.state != "done" or row.status_code is None:
+        return None
+    return row.status_code, row.body
+
+
 def record(*, session: Session, row_id: int, status_code: int, body: dict[str, Any]) -> None:
     """Store the answer of the request that claimed the key (caller commits)."""
     row = session.get(IdempotencyKey, row_id)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Literal, cast
 
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
@@ -28,6 +28,9 @@ from app.services.plates import current_target, get_or_create_plate
 from app.services.targets import TARGET_FILE, copy_target_files, create_target, validate_target_dir
 from app.storage import Storage
 from pipeline.formats import InputError
+
+if TYPE_CHECKING:
+    from pipeline.simulate import CaptureSpec, PlateSpec
 
 CAPTURE_FILE = "capture.zip"
 SIMULATION_FILE = "simulation.json"
@@ -103,12 +106,13 @@ def create_uploaded_inspection(
         new_target_dir = storage.absolute(target.path).parent
     else:
         get_or_create_plate(session=session, plate_id=plate_id)
-        target = current_target(session=session, plate_id=plate_id)
-        if target is None:
+        current = current_target(session=session, plate_id=plate_id)
+        if current is None:
             raise UnprocessableError(
                 f"target: plate {plate_id!r} has no target yet: send a plate-target/1 file as 'target'",
                 field="target",
             )
+        target = current
     row = Inspection(
         plate_id=plate_id,
         target_id=target.id,
@@ -229,7 +233,7 @@ def _simulated_size(target_document: dict[str, Any] | None) -> list[float]:
     return [min(float(v), SIMULATED_MAX_SIDE_MM) for v in size]
 
 
-def simulation_specs(simulation: dict):
+def simulation_specs(simulation: dict[str, Any]) -> tuple[PlateSpec, CaptureSpec]:
     """The simulator's ``(PlateSpec, CaptureSpec)`` for a simulated inspection's parameters.
 
     Raises
@@ -241,7 +245,8 @@ def simulation_specs(simulation: dict):
 
     floor_mm = simulation.get("floor_mm")
     cutout_mm = simulation.get("cutout_radius_mm")
-    size = tuple(float(v) for v in simulation.get("size_mm", (3000.0, 3000.0)))
+    size_x, size_y = (float(v) for v in simulation.get("size_mm", (3000.0, 3000.0)))
+    size = (size_x, size_y)
     plate = PlateSpec(
         size_mm=size,
         shape=simulation["shape"],
@@ -261,7 +266,8 @@ def simulation_specs(simulation: dict):
     capture = CaptureSpec(
         n_lights=int(simulation["n_lights"]),
         noise=float(simulation["noise"]),
-        bit_depth=int(simulation["bit_depth"]),
+        # 8, 12 or 16 (SimulatedInspectionIn); CaptureSpec refuses any other.
+        bit_depth=cast("Literal[8, 12, 16]", int(simulation["bit_depth"])),
         specular=float(simulation["specular"]),
         width=int(simulation["width"]),
         height=int(simulation["height"]),

@@ -17,9 +17,9 @@ import socket
 import threading
 from dataclasses import dataclass
 from datetime import datetime, timedelta
-from typing import Any
+from typing import Any, cast
 
-from sqlalchemy import and_, case, or_, select, update
+from sqlalchemy import ColumnElement, CursorResult, Executable, and_, case, or_, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.models import Inspection, JobStatus, utcnow
@@ -50,11 +50,17 @@ def process_lease_owner() -> str:
     return _OWNER[pid]
 
 
+def _changed(session: Session, statement: Executable) -> int:
+    """Rows an UPDATE changed (an UPDATE's result is a cursor result, which counts them)."""
+    result = cast("CursorResult[Any]", session.execute(statement))
+    return result.rowcount
+
+
 def _now(now: datetime | None) -> datetime:
     return utcnow() if now is None else now
 
 
-def _held_by(inspection_id: int, owner: str):
+def _held_by(inspection_id: int, owner: str) -> tuple[ColumnElement[bool], ...]:
     return (
         Inspection.id == inspection_id,
         Inspection.status == JobStatus.RUNNING,
@@ -62,7 +68,7 @@ def _held_by(inspection_id: int, owner: str):
     )
 
 
-def _claimable(now: datetime):
+def _claimable(now: datetime) -> ColumnElement[bool]:
     """Queued, or running under a lease that ran out below the death limit (the reclaim counts a death)."""
     expired = and_(
         Inspection.status == JobStatus.RUNNING,
@@ -103,7 +109,8 @@ def claim(
         False when the row is not claimable (done, error, or running under a live lease).
     """
     now = _now(now)
-    res = session.execute(
+    changed = _changed(
+        session,
         update(Inspection)
         .where(Inspection.id == inspection_id, _claimable(now))
         .values(
@@ -120,21 +127,22 @@ def claim(
             stage=None,
             error=None,
             attempts=Inspection.attempts + 1,
-        )
+        ),
     )
-    return res.rowcount == 1
+    return changed == 1
 
 
 def renew_lease(
     *, session: Session, inspection_id: int, owner: str, lease_s: float, now: datetime | None = None
 ) -> bool:
     """Extend the lease of a running job; False if ``owner`` no longer holds it."""
-    res = session.execute(
+    changed = _changed(
+        session,
         update(Inspection)
         .where(*_held_by(inspection_id, owner))
-        .values(lease_expires_at=_now(now) + timedelta(seconds=lease_s))
+        .values(lease_expires_at=_now(now) + timedelta(seconds=lease_s)),
     )
-    return res.rowcount == 1
+    return changed == 1
 
 
 def record_progress(
@@ -158,7 +166,8 @@ def mark_done(
     Only while ``owner`` (default :func:`process_lease_owner`) holds the lease; returns whether it did.
     """
     dev = document.get("deviation_mm") or {}
-    res = session.execute(
+    changed = _changed(
+        session,
         update(Inspection)
         .where(*_held_by(inspection_id, owner or process_lease_owner()))
         .values(
@@ -180,9 +189,9 @@ def mark_done(
             tolerance_mm=document.get("tolerance_mm"),
             verdict=document.get("verdict"),
             error=document.get("error"),
-        )
+        ),
     )
-    return res.rowcount == 1
+    return changed == 1
 
 
 def mark_error(
@@ -192,7 +201,8 @@ def mark_error(
 
     Only while ``owner`` (default :func:`process_lease_owner`) holds the lease; returns whether it did.
     """
-    res = session.execute(
+    changed = _changed(
+        session,
         update(Inspection)
         .where(*_held_by(inspection_id, owner or process_lease_owner()))
         .values(
@@ -202,9 +212,9 @@ def mark_error(
             finished_at=utcnow(),
             lease_owner=None,
             lease_expires_at=None,
-        )
+        ),
     )
-    return res.rowcount == 1
+    return changed == 1
 
 
 def release(*, session: Session, owner: str) -> list[int]:
@@ -282,7 +292,7 @@ def reclaim_expired(*, session: Session, now: datetime | None = None) -> Reclaim
             Inspection.lease_expires_at <= now,
             Inspection.lease_owner.is_(None) if owner is None else Inspection.lease_owner == owner,
         )
-        cleared = dict(lease_owner=None, lease_expires_at=None, deaths=deaths + 1)
+        cleared: dict[str, Any] = dict(lease_owner=None, lease_expires_at=None, deaths=deaths + 1)
         if deaths + 1 >= MAX_WORKER_DEATHS:
             values = dict(
                 cleared,
@@ -295,7 +305,7 @@ def reclaim_expired(*, session: Session, now: datetime | None = None) -> Reclaim
         else:
             values = dict(cleared, status=JobStatus.QUEUED, queued_at=now, stage=None, progress=0.0)
             target = requeued
-        if session.execute(update(Inspection).where(*same_lease).values(**values)).rowcount == 1:
+        if _changed(session, update(Inspection).where(*same_lease).values(**values)) == 1:
             target.append(inspection_id)
     return Reclaimed(requeued=requeued, set_aside=set_aside)
 
@@ -373,7 +383,7 @@ class LeaseKeeper:
         self._thread.start()
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.stop()
 
     def stop(self) -> None:

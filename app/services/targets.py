@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import shutil
 from pathlib import Path
+from typing import Any
 
 from sqlalchemy.orm import Session
 
@@ -18,7 +19,7 @@ from pipeline import io as pio
 TARGET_FILE = "target.json"
 
 
-def validate_target_dir(folder: Path):
+def validate_target_dir(folder: Path) -> tuple[pio.Target, dict[str, Any]]:
     """Load ``folder/target.json`` (and its mesh file, if any) and check it against a hull plate's bounds.
 
     The pipeline's loader reads it; :func:`app.limits.physical.check_target` bounds it.
@@ -46,7 +47,7 @@ def create_target(
     storage: Storage,
     plate_id: str,
     staging_dir: Path,
-    validated: tuple[pio.Target, dict] | None = None,
+    validated: tuple[pio.Target, dict[str, Any]] | None = None,
 ) -> Target:
     """A new current target for a plate from a staging folder holding ``target.json`` (+ mesh).
 

@@ -7,9 +7,11 @@ from __future__ import annotations
 import asyncio
 import html
 import logging
-from contextlib import asynccontextmanager, suppress
+from collections.abc import AsyncIterator
+from contextlib import AbstractAsyncContextManager, asynccontextmanager, suppress
 from functools import cache
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import viser
 import websockets
@@ -18,10 +20,15 @@ from fastapi.responses import HTMLResponse
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import HTTPConnection
 from uvicorn.protocols.utils import ClientDisconnected
+from websockets.asyncio.client import ClientConnection
+from websockets.typing import Subprotocol
 
 from app.deps import client_address, has_dashboard_session, is_loopback
 from app.security_headers import FRAMED_HEADERS, viewer_csp
 from app.viewer.pool import PlateViewer, ViewerBusyError
+
+if TYPE_CHECKING:
+    from app.settings import Settings
 
 logger = logging.getLogger(__name__)
 
@@ -154,7 +161,7 @@ async def _relay(websocket: WebSocket, port: int) -> None:
     """Connect to the viser server on loopback ``port`` and copy messages until either side closes."""
     async with websockets.connect(
         f"ws://127.0.0.1:{port}",
-        subprotocols=[VISER_SUBPROTOCOL],
+        subprotocols=[Subprotocol(VISER_SUBPROTOCOL)],
         max_size=None,
         compression=None,
         open_timeout=10,
@@ -162,7 +169,7 @@ async def _relay(websocket: WebSocket, port: int) -> None:
         await _pump(websocket, upstream)
 
 
-async def _pump(browser: WebSocket, upstream) -> None:
+async def _pump(browser: WebSocket, upstream: ClientConnection) -> None:
     """Copy messages both ways until either side closes."""
 
     async def browser_to_viser() -> None:
@@ -195,7 +202,7 @@ async def _pump(browser: WebSocket, upstream) -> None:
             raise err
 
 
-def attach(app: FastAPI, settings):
+def attach(app: FastAPI, settings: Settings) -> AbstractAsyncContextManager[PlateViewer]:
     """Create the app's 3D viewer as ``app.state.viewer``; called in the app's lifespan.
 
     Servers start on demand (the first browser to open an inspection's view), bound to
@@ -225,7 +232,7 @@ def attach(app: FastAPI, settings):
     app.state.viewer = viewer
 
     @asynccontextmanager
-    async def running():
+    async def running() -> AsyncIterator[PlateViewer]:
         try:
             yield viewer
         finally:

@@ -6,6 +6,7 @@ import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
+from typing import overload
 
 import numpy as np
 
@@ -78,6 +79,18 @@ class PlateMeshes:
         return SCALE_TOLERANCES * self.tolerance_mm
 
 
+@overload
+def decimate_mesh(
+    vertices: np.ndarray, faces: np.ndarray, values: np.ndarray, *, max_vertices: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+
+
+@overload
+def decimate_mesh(
+    vertices: np.ndarray, faces: np.ndarray, values: None = None, *, max_vertices: int
+) -> tuple[np.ndarray, np.ndarray, None]: ...
+
+
 def decimate_mesh(
     vertices: np.ndarray, faces: np.ndarray, values: np.ndarray | None = None, *, max_vertices: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -140,10 +153,10 @@ def decimate_mesh(
             break
         cell *= 1.15
     counts = np.bincount(inverse, minlength=len(cells)).astype(np.float64)
-    out_vertices = np.stack(
-        [np.bincount(inverse, vertices[:, k], len(cells)) for k in range(3)], axis=1
+    out_vertices = (
+        np.stack([np.bincount(inverse, vertices[:, k], len(cells)) for k in range(3)], axis=1)
+        / counts[:, None]
     )
-    out_vertices /= counts[:, None]
     out_values = None if values is None else np.bincount(inverse, values, len(cells)) / counts
     out_faces = inverse[faces]
     keep = (
@@ -228,7 +241,7 @@ def load_plate_meshes(artifact_dir: Path, *, max_vertices: int = 150_000) -> Pla
     centre = (lo + hi) / 2.0
 
     def to_display(v_mm: np.ndarray) -> np.ndarray:
-        return ((v_mm - centre) @ _CAM_TO_DISPLAY.T / 1000.0).astype(np.float32)
+        return np.asarray((v_mm - centre) @ _CAM_TO_DISPLAY.T / 1000.0, dtype=np.float32)
 
     mv, mf, md = decimate_mesh(vertices, faces, deviation, max_vertices=max_vertices)
     tv, tf, _ = decimate_mesh(target_vertices, target_faces, max_vertices=max_vertices)

@@ -8,6 +8,7 @@ Display frame: metres, origin at the centre of the measured surface's bounding b
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -64,9 +65,10 @@ class InspectionView:
         self.server.initial_camera.look_at = (0.0, 0.0, 0.0)
         self._client_nodes: dict[int, tuple[str, ...]] = {}
         self.server.on_client_connect(self._build_client_scene)
-        self.server.on_client_disconnect(
-            lambda client: self._client_nodes.pop(client.client_id, None)
-        )
+        self.server.on_client_disconnect(self._forget_client)
+
+    def _forget_client(self, client: viser.ClientHandle) -> None:
+        self._client_nodes.pop(client.client_id, None)
 
     @property
     def port(self) -> int:
@@ -127,7 +129,7 @@ class InspectionView:
         )
 
         @layout.on_update
-        def _(_event) -> None:
+        def _(_event: object) -> None:
             overlaid = layout.value == _LAYOUTS[1]
             measured.position = np.zeros(3) if overlaid else -half
             target.visible = not overlaid
@@ -143,6 +145,12 @@ class InspectionView:
 
     def stop(self) -> None:
         self.server.stop()
+
+
+def _xyz(point: np.ndarray) -> tuple[float, float, float]:
+    """A scene position as three floats."""
+    x, y, z = (float(v) for v in point)
+    return x, y, z
 
 
 def _outward_anchor(outward: np.ndarray) -> Any:
@@ -168,7 +176,10 @@ def _measured_glb(meshes: PlateMeshes) -> bytes:
     mesh = trimesh.Trimesh(meshes.measured_vertices, meshes.measured_faces, process=False)
     srgb = deviation_colours(meshes.deviation_mm, meshes.scale_mm, meshes.tolerance_mm)
     mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=srgb_to_linear_u8(srgb))
-    return mesh.export(file_type="glb", include_normals=True, tree_postprocessor=_matte)
+    glb = mesh.export(file_type="glb", include_normals=True, tree_postprocessor=_matte)
+    if not isinstance(glb, bytes):  # trimesh answers GLB as bytes
+        raise TypeError(f"trimesh: expected GLB bytes, got {type(glb).__name__}")
+    return glb
 
 
 def srgb_to_linear_u8(rgb: np.ndarray) -> np.ndarray:
@@ -204,14 +215,16 @@ def scene_labels(scene: viser.SceneApi, meshes: PlateMeshes) -> list[viser.Label
         scene.add_label("/plate/measured/label", "Measured", position=(0.0, back, top_m)),
         scene.add_label("/plate/target/label", "CAD target", position=(0.0, back, top_t)),
     ]
-    xy_mm = meshes.defect_xy_mm or tuple((None, None) for _ in meshes.defects)
+    xy_mm: Sequence[tuple[float, float] | tuple[None, None]] = meshes.defect_xy_mm or tuple(
+        (None, None) for _ in meshes.defects
+    )
     for (number, place), (x, y) in zip(meshes.defects, xy_mm, strict=True):
         text = f"defect {number}" if x is None else f"defect {number}: x {x:.0f}, y {y:.0f} mm"
         labels.append(
             scene.add_label(
                 f"/plate/measured/defect-{number}",
                 text.replace("-", "\u2212"),
-                position=tuple(float(v) for v in place),
+                position=_xyz(place),
                 anchor="bottom-left",  # reads away from the edge labels on the left
             )
         )
@@ -222,7 +235,7 @@ def scene_labels(scene: viser.SceneApi, meshes: PlateMeshes) -> list[viser.Label
             scene.add_label(
                 f"/plate/measured/edge-{name}",
                 f"edge {name}",
-                position=tuple(float(v) for v in np.asarray(place) + outward),
+                position=_xyz(np.asarray(place) + outward),
                 anchor=_outward_anchor(outward),
             )
         )
