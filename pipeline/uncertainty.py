@@ -161,15 +161,14 @@ def propagate(
     mask = x.mask & np.isfinite(x.points_mm[..., 2])
     if not mask.any():
         raise ValueError("mask: expected measured points to qualify, got none")
-    z = x.points_mm[..., 2]
-    z_typ = float(np.median(z[mask]))
-    f_px = float(np.sqrt(x.K[0, 0] * x.K[1, 1]))
-    extent_px = _extent_px(mask)
-    scale_px = _integration_scale_px(x.fusion, extent_px)
     # every component on the grid of sampled pixels (the fields are smooth on its scale); the map
     # is interpolated to every pixel at the end
     step = _sample_step(mask)
     grid = mask[::step, ::step]
+    z_typ = float(np.median(x.points_mm[::step, ::step, 2][grid]))
+    f_px = float(np.sqrt(x.K[0, 0] * x.K[1, 1]))
+    extent_px = _extent_px(mask)
+    scale_px = _integration_scale_px(x.fusion, extent_px)
     var_ps = _photometric_var_mm2(x, mask, scale_px, step)
     u_corr = (
         np.zeros(grid.shape)
@@ -338,11 +337,13 @@ def _scale_rel(x: Inputs, z_typ: float, f_px: float) -> float:
 def _height_over_plane_mm(points: np.ndarray, mask: np.ndarray, step: int) -> np.ndarray:
     """Distance (mm) of the points of every ``step``-th pixel from the surface's best plane (shape of
     ``mask[::step, ::step]``, 0 off the mask)."""
-    p = points[mask][:: max(1, int(np.count_nonzero(mask) // 20_000))]
+    grid = mask[::step, ::step]
+    sampled = points[::step, ::step]
+    p = sampled[grid]
     centre = p.mean(axis=0)
     normal = np.linalg.svd(p - centre, full_matrices=False)[2][-1]
-    height = np.abs(np.nan_to_num((points[::step, ::step] - centre) @ normal))
-    out: np.ndarray = np.where(mask[::step, ::step], height, 0.0)
+    height = np.abs(np.nan_to_num((sampled - centre) @ normal))
+    out: np.ndarray = np.where(grid, height, 0.0)
     return out
 
 
