@@ -159,15 +159,15 @@ def preprocess(
             return True
         return False
 
-    with ThreadPoolExecutor(max_workers=workers or default_workers()) as pool:
-        any_saturated = any(list(pool.map(one, range(n))))  # list: every image must be done
-
     brightest = np.empty((h, w), np.float32)
     brightness = np.empty((h, w), np.float32)
-    _brightest(images, brightest, int(HIGHLIGHT_SHARE * n), brightness)
-    # what either brightness tells from the dark: the maxima keep a rim that few lights reach, the
-    # maxima without their highlights keep a glossy plate's body (see Notes)
-    union = plate_mask(brightest, erode_px=erode_px) | plate_mask(brightness, erode_px=erode_px)
+    with ThreadPoolExecutor(max_workers=workers or default_workers()) as pool:
+        any_saturated = any(list(pool.map(one, range(n))))  # list: every image must be done
+        _brightest(images, brightest, int(HIGHLIGHT_SHARE * n), brightness)
+        # what either brightness tells from the dark: the maxima keep a rim that few lights reach,
+        # the maxima without their highlights keep a glossy plate's body (see Notes)
+        by_maxima = pool.submit(plate_mask, brightest, erode_px=erode_px)
+        union = plate_mask(brightness, erode_px=erode_px) | by_maxima.result()
     mask = _fill_holes(union) & seen
     valid = np.empty((n, h, w), bool)
     n_lit, n_saturated = _validity(
@@ -191,22 +191,19 @@ def _brightest(images: Arr, out: Arr, rank: int, ranked: Arr) -> None:
     the given rank from the top (0: the brightest)."""
     n, h, w = images.shape
     for i in numba.prange(h):
-        top = np.empty(rank + 1, np.float32)  # the pixel's rank + 1 brightest, descending
-        for j in range(w):
-            m = 0
-            for k in range(n):
-                x = images[k, i, j]
-                if m <= rank:
-                    m += 1
-                elif not x > top[rank]:
-                    continue
-                p = m - 1
-                while p > 0 and top[p - 1] < x:
-                    top[p] = top[p - 1]
-                    p -= 1
-                top[p] = x
-            out[i, j] = top[0]
-            ranked[i, j] = top[rank]
+        # the row's rank + 1 brightest samples, descending: each image's row is passed down through
+        # them by compare-exchanges (branch-free, vectorised over the row's pixels)
+        top = np.full((rank + 1, w), -np.inf, np.float32)
+        for k in range(n):
+            x = images[k, i].copy()
+            for p in range(rank + 1):
+                row = top[p]
+                for j in range(w):
+                    hi = max(row[j], x[j])
+                    x[j] = min(row[j], x[j])
+                    row[j] = hi
+        out[i] = top[0]
+        ranked[i] = top[rank]
 
 
 @numba.njit(parallel=True, cache=True)

@@ -29,6 +29,7 @@ import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
+import numba
 import numpy as np
 import numpy.typing as npt
 
@@ -216,14 +217,27 @@ def check_grid(
     n = int(np.count_nonzero(m))
     if n < min_points:
         raise ValueError(f"mask: expected at least {min_points} valid pixels, got {n}")
-    # One sum per point: NaN or inf in any coordinate makes it non-finite (cheaper than isfinite on all three).
-    with np.errstate(invalid="ignore", over="ignore"):
-        bad = m & ~np.isfinite(pts[..., 0] + pts[..., 1] + pts[..., 2])
-    if bad.any():
+    bad = _nonfinite_inside(pts, m)
+    if bad:
         raise ValueError(
-            f"points_mm: expected finite points inside the mask, got {int(bad.sum())} with NaN/inf"
+            f"points_mm: expected finite points inside the mask, got {bad} with NaN/inf"
         )
     return pts, m
+
+
+@numba.njit(parallel=True, cache=True)
+def _nonfinite_inside(points: np.ndarray, mask: np.ndarray) -> int:
+    """How many points (H, W, 3) inside ``mask`` have a NaN or inf coordinate (one pass, rows in
+    parallel; the grid is checked by each stage that takes it)."""
+    h, w = mask.shape
+    counts = np.zeros(h, np.int64)
+    for i in numba.prange(h):
+        c = 0
+        for j in range(w):
+            if mask[i, j] and not np.isfinite(points[i, j, 0] + points[i, j, 1] + points[i, j, 2]):
+                c += 1
+        counts[i] = c
+    return int(counts.sum())
 
 
 def grid_sample(points_mm: np.ndarray, mask: np.ndarray, max_points: int) -> np.ndarray:

@@ -136,7 +136,7 @@ def judge(
         raise ValueError("pixel_area_mm2: expected positive finite areas at every judged pixel")
 
     a = np.abs(dev[judged])
-    rms = float(np.sqrt(np.mean(a * a)))
+    rms = float(np.sqrt(np.mean(np.square(a, dtype=np.float64))))
     max_abs = float(a.max())
     p95 = float(np.percentile(a, 95))
     w = np.full(n, float(area)) if area_judged is None else area_judged
@@ -144,7 +144,7 @@ def judge(
     total_area = float(w.sum())
     outside_area = float(w[outside].sum())
     within_pct = 100.0 * (1.0 - outside_area / total_area)
-    u_map = None if uncertainty_mm is None else np.asarray(uncertainty_mm, dtype=np.float64)
+    u_map = None if uncertainty_mm is None else np.asarray(uncertainty_mm)
     if u_map is not None and u_map.shape != dev.shape:
         raise ValueError(f"uncertainty_mm: expected shape {dev.shape}, got {u_map.shape}")
     defects = (
@@ -185,7 +185,9 @@ def _check_inputs(
     max_outside_pct: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The arguments of :func:`judge` checked: deviation (H, W) float64, mask, pixel area (scalar or (H, W))."""
-    dev = np.asarray(deviation_mm, dtype=np.float64)
+    dev = np.asarray(deviation_mm)
+    if not np.issubdtype(dev.dtype, np.floating):  # float32 maps stay float32: no copy
+        dev = dev.astype(np.float64)
     if dev.ndim != 2:
         raise ValueError(f"deviation_mm: expected shape (H, W), got {dev.shape}")
     m = np.asarray(mask)
