@@ -118,6 +118,11 @@ class Fusion:
     correction_sd_mm : (H, W) float32 or None
         Standard deviation of the chosen correction at every pixel from the stereo noise (its fit's
         covariance), mm; NaN outside the mask.
+    model_sd_mm : (H, W) float32 or None
+        How far the next finer rung's correction lies from the chosen one at every pixel, mm (NaN
+        outside the mask; None when the finest was chosen): the structure the lack-of-fit test did
+        not let in, both what the stereo pair could not prove (a shape error of the normals below its
+        noise's reach) and that rung's own noise. The uncertainty counts it as the model's part.
     bend_cov : (3, 3) float64 or None
         Covariance of the quadric correction's second derivatives ``(d2/du2, d2/dudv, d2/dv2)`` of
         log depth at the plate's centre, per px^2 squared: how well the stereo pair fixes the bend,
@@ -136,6 +141,7 @@ class Fusion:
     evidence: dict[str, list[float]] = field(default_factory=dict)
     correction_sd_mm: np.ndarray | None = None
     bend_cov: np.ndarray | None = None
+    model_sd_mm: np.ndarray | None = None
 
 
 def fuse_low_frequencies(
@@ -193,10 +199,14 @@ def fuse_low_frequencies(
     _compose(zb, chosen.grid.evaluate(chosen.coef), mb, fused[box], correction[box])
     sigma_pix = fits[-1].sigma_pix if select else chosen.sigma_pix  # the finest rung's: the noise
     scale2 = _noise_variance(sigma_pix, blocks) * inflation
-    sd = None
+    sd = model = None
     if select:
         sd = np.full(z.shape, np.nan, np.float32)
         sd[box] = np.where(mb, _value_sd(chosen, scale2) * zb, np.nan)
+        if chosen is not fits[-1]:
+            finer = fits[fits.index(chosen) + 1]
+            model = np.full(z.shape, np.nan, np.float32)
+            model[box] = np.where(mb, _difference(finer, chosen) * zb, np.nan)
     quadric = next((f for f in fits if f.rung == QUADRIC), None)
     return Fusion(
         depth_mm=fused,
@@ -211,6 +221,7 @@ def fuse_low_frequencies(
         evidence=evidence,
         correction_sd_mm=sd,
         bend_cov=None if quadric is None or not select else _bend_cov(quadric, scale2),
+        model_sd_mm=model,
     )
 
 
@@ -398,6 +409,24 @@ def _value_sd(f: _Fitted, scale2: float) -> np.ndarray:
     sd = np.sqrt(np.clip(var, 0.0, None)).astype(np.float32)
     full: np.ndarray = cv2.resize(
         sd, (int(ru[-1] + 1), int(rv[-1] + 1)), interpolation=cv2.INTER_LINEAR
+    )
+    return full[:h, :w]
+
+
+def _difference(finer: _Fitted, chosen: _Fitted) -> np.ndarray:
+    """|finer - chosen| (log depth) at every pixel of their box, computed on every 8th pixel and
+    interpolated (both are smooth on the scale of the finer rung's knots)."""
+    h, w = chosen.grid.shape
+    rv, ru = np.arange(0, h + 7, 8).clip(max=h - 1), np.arange(0, w + 7, 8).clip(max=w - 1)
+
+    def sampled(f: _Fitted) -> np.ndarray:
+        g = f.grid
+        values: np.ndarray = (g.basis(rv, g.nv) @ f.coef.reshape(g.nv, g.nu)) @ g.basis(ru, g.nu).T
+        return values
+
+    d = np.abs(sampled(finer) - sampled(chosen)).astype(np.float32)
+    full: np.ndarray = cv2.resize(
+        d, (int(ru[-1] + 1), int(rv[-1] + 1)), interpolation=cv2.INTER_LINEAR
     )
     return full[:h, :w]
 

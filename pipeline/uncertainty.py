@@ -170,11 +170,11 @@ def propagate(
     extent_px = _extent_px(mask)
     scale_px = _integration_scale_px(x.fusion, extent_px)
     var_ps = _photometric_var_mm2(x, mask, scale_px, step)
-    u_corr = (
-        np.zeros(grid.shape)
-        if x.fusion is None or x.fusion.correction_sd_mm is None
-        else np.nan_to_num(x.fusion.correction_sd_mm[::step, ::step].astype(np.float64), nan=0.0)
-    )
+    u_corr = np.zeros(grid.shape)
+    if x.fusion is not None:  # the chosen correction's noise, and what the next finer one would change
+        for part in (x.fusion.correction_sd_mm, x.fusion.model_sd_mm):
+            if part is not None:
+                u_corr = np.hypot(u_corr, np.nan_to_num(part[::step, ::step].astype(np.float64)))
     u_scale = _scale_rel(x, z_typ, f_px)
     height = _height_over_plane_mm(x.points_mm, mask, step) if u_scale > 0 else 0.0
     u_reg = _registration_sd_mm(var_ps, u_corr, grid, step)
