@@ -245,7 +245,7 @@ def _match(
     frame (M, 3), (M, 3), and their correlations (M,)."""
     h, w = a.shape
     half = max(10, round(min(h, w) / 40)) // 2 * 2 + 1  # odd patch side ~ 1/40 of the image
-    step = max(half, 2 * half)
+    step = half
     rows = np.arange(half + 1, h - half - 1, step)
     cols = np.arange(half + 1, w - half - 1, step)
     vv, uu = np.meshgrid(rows, cols, indexing="ij")
