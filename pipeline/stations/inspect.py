@@ -14,7 +14,7 @@ import math
 import os
 import time
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -223,37 +223,7 @@ def _judge(
         )
         clock.end("deviation")
         clock.begin("artifacts")
-        tol = tgt.tolerance_mm
-        writes += [
-            pool.submit(
-                artifacts.write_surface_ply,
-                out / ARTIFACT_FILES["surface"],
-                points,
-                mask,
-                dev,
-                tolerance_mm=tol,
-            ),
-            pool.submit(
-                artifacts.write_deviation_png,
-                out / ARTIFACT_FILES["deviation_map"],
-                dev,
-                mask,
-                tolerance_mm=tol,
-            ),
-            pool.submit(
-                artifacts.write_uncertainty, out, qualified.map_mm, judged, tolerance_mm=tol
-            ),
-        ]
-        verts, faces = target_geometry.target_surface(tgt)
-        writes.append(
-            pool.submit(
-                artifacts.write_target_ply,
-                out / ARTIFACT_FILES["target_surface"],
-                verts,
-                faces,
-                pose.T_cam_target,
-            )
-        )
+        writes += _write_artifacts(pool, out, mosaic, dev, qualified.map_mm, judged, tgt, pose)
         t = time.perf_counter()
         curv = curvature.principal_curvatures(points, mask)
         clock.timings["curvature"] = round(time.perf_counter() - t, 4)
@@ -273,6 +243,46 @@ def _judge(
         edge_band_mm=round(EDGE_BAND_PX * mosaic.cell_mm, 1),
         warnings=[w for s in stations for w in s.warnings],
     )
+
+
+def _write_artifacts(
+    pool: ThreadPoolExecutor,
+    out: Path,
+    mosaic: Mosaic,
+    dev: np.ndarray,
+    u_map: np.ndarray,
+    judged: np.ndarray,
+    tgt: Target,
+    pose: registration.Registration,
+) -> list[Future[Any]]:
+    """Submit the writes of surface.ply, deviation.png, the uncertainty's files and target.ply."""
+    points, mask, tol = mosaic.points, mosaic.mask, tgt.tolerance_mm
+    verts, faces = target_geometry.target_surface(tgt)
+    return [
+        pool.submit(
+            artifacts.write_surface_ply,
+            out / ARTIFACT_FILES["surface"],
+            points,
+            mask,
+            dev,
+            tolerance_mm=tol,
+        ),
+        pool.submit(
+            artifacts.write_deviation_png,
+            out / ARTIFACT_FILES["deviation_map"],
+            dev,
+            mask,
+            tolerance_mm=tol,
+        ),
+        pool.submit(artifacts.write_uncertainty, out, u_map, judged, tolerance_mm=tol),
+        pool.submit(
+            artifacts.write_target_ply,
+            out / ARTIFACT_FILES["target_surface"],
+            verts,
+            faces,
+            pose.T_cam_target,
+        ),
+    ]
 
 
 def _grid_normals(points: np.ndarray, cell_mm: float) -> tuple[np.ndarray, np.ndarray]:
