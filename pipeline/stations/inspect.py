@@ -24,6 +24,7 @@ import numpy as np
 from .. import artifacts, curvature, deviation, registration, target_geometry, uncertainty, verdict
 from ..artifacts import ARTIFACT_FILES
 from ..details import (
+    BrightnessSegmentationDetails,
     Details,
     OverlapDetails,
     StationDetails,
@@ -32,9 +33,8 @@ from ..details import (
     fusion_details,
     refinement_details,
     region_details,
-    segmentation_details,
 )
-from ..io import Capture, Target, load_target
+from ..io import Capture, Target, load_capture, load_target
 from ..lights import Lights
 from ..parallel import default_workers
 from ..stages import (
@@ -110,7 +110,12 @@ def measure_stations(
     refs = plan_stations(captures)
     tgt = target if isinstance(target, Target) else load_target(target)
     clock.end("load")
-    stations = [_reconstruct(ref, tgt, opts, light_calibration, clock) for ref in refs]
+    # one station at a time: the numba kernels take every core (decoding the next station beside them
+    # makes each parallel region wait for the busy core: measured slower)
+    stations = [
+        _reconstruct(ref, _load(ref.source, clock), tgt, opts, light_calibration, clock)
+        for ref in refs
+    ]
     views = [s.view for s in stations]
     t = time.perf_counter()
     poses = register_stations(views, seam_limit_mm=DISAGREEMENT_FRACTION * tgt.tolerance_mm)
@@ -120,17 +125,26 @@ def measure_stations(
     return plate, tgt
 
 
+def _load(source: Capture | Path, clock: StageClock) -> Capture:
+    """A station's capture, decoded (the one given when it is loaded already); the time adds to *load*."""
+    t = time.perf_counter()
+    cap = source if isinstance(source, Capture) else load_capture(source)
+    clock.timings["load"] = round(clock.timings.get("load", 0.0) + time.perf_counter() - t, 4)
+    return cap
+
+
 def _reconstruct(
     ref: StationRef,
+    capture: Capture,
     tgt: Target,
     opts: InspectOptions,
     light_calibration: Lights | None,
     clock: StageClock,
 ) -> _Station:
-    """One station through the stages of one view; its timings add to ``clock``'s."""
+    """One station (``capture``, decoded) through the stages of one view; its timings add to ``clock``'s."""
     own = StageClock(None)
     warnings: list[str] = []
-    cap, _ = load_inputs(ref.source, tgt, light_calibration, warnings, own)
+    cap, _ = load_inputs(capture, tgt, light_calibration, warnings, own)
     scene = preprocess_scene(cap, opts, own)
     with ThreadPoolExecutor(max_workers=opts.workers or default_workers()) as pool:
         view, _ = reconstruct_view(cap, tgt, scene, opts, pool, own)
@@ -287,15 +301,22 @@ def _write_artifacts(
 
 def _grid_normals(points: np.ndarray, cell_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals (towards the cameras, -z; NaN where a neighbour is missing) and the area of each
-    cell (mm^2) of a grid of points (``cell_mm`` squared where a neighbour is missing)."""
-    dy = np.gradient(points, axis=0)
-    dx = np.gradient(points, axis=1)
-    cross = np.cross(dx, dy)
-    area = np.linalg.norm(cross, axis=-1)
-    area = np.where(np.isfinite(area) & np.isfinite(points[..., 2]), area, np.nan)
-    area = np.where(np.isnan(area) & np.isfinite(points[..., 2]), cell_mm**2, area)
+    cell (mm^2) of a grid of points (central differences; ``cell_mm`` squared where a neighbour is
+    missing)."""
+    p = points.astype(np.float32)
+    dx = np.full_like(p, np.nan)
+    dy = np.full_like(p, np.nan)
+    dx[:, 1:-1] = 0.5 * (p[:, 2:] - p[:, :-2])
+    dy[1:-1] = 0.5 * (p[2:] - p[:-2])
+    cross = np.empty_like(p)
+    cross[..., 0] = dx[..., 1] * dy[..., 2] - dx[..., 2] * dy[..., 1]
+    cross[..., 1] = dx[..., 2] * dy[..., 0] - dx[..., 0] * dy[..., 2]
+    cross[..., 2] = dx[..., 0] * dy[..., 1] - dx[..., 1] * dy[..., 0]
+    area = np.sqrt(np.einsum("hwc,hwc->hw", cross, cross)).astype(np.float64)
+    measured = np.isfinite(p[..., 2])
+    area = np.where(np.isfinite(area), area, np.where(measured, cell_mm**2, np.nan))
     with np.errstate(invalid="ignore", divide="ignore"):
-        n = cross / area[..., None]
+        n = cross / np.sqrt(np.einsum("hwc,hwc->hw", cross, cross))[..., None]
     n = np.where(n[..., 2:3] > 0, -n, n)
     return n.astype(np.float32), area
 
@@ -334,13 +355,7 @@ def _qualify(
         ]
         u_reg.append(float(max(seams)) / math.sqrt(2.0))
     u_own = mosaic.resample([u.map_mm for u in own], squared=True)
-    u_seam = mosaic.resample(
-        [
-            np.full(s.view.shape, uncertainty.COVERAGE_K * r)
-            for s, r in zip(stations, u_reg, strict=True)
-        ],
-        squared=True,
-    )
+    u_seam = mosaic.blend_constants([uncertainty.COVERAGE_K * r for r in u_reg])
     u_map = np.where(judged, np.sqrt(u_own**2 + u_seam**2), np.nan).astype(np.float32)
     u_map = np.where(np.isfinite(u_map), u_map, np.nan).astype(np.float32)
     finite = judged & np.isfinite(u_map)
@@ -363,6 +378,23 @@ def _qualify(
             map_mm=u_map, deviation_mm=u95, radius_mm=radius_u, components=components
         ),
         u_reg,
+    )
+
+
+def _segmentation(
+    plate: StitchedPlate, target_area_mm2: float, measured_area_mm2: float
+) -> BrightnessSegmentationDetails:
+    """The stitched plate's measured area against its target's (each station told its plate from its
+    surroundings as one view does)."""
+    return BrightnessSegmentationDetails(
+        method="stations",
+        plate_area_mm2=round(measured_area_mm2, 0),
+        target_area_mm2=round(target_area_mm2, 0),
+        area_ratio=round(measured_area_mm2 / target_area_mm2, 4),
+        reasons=[
+            f"the plate stitched from {len(plate.stations)} stations, each told from its surroundings "
+            "as one view is; the area is the stitched surface's"
+        ],
     )
 
 
@@ -411,9 +443,7 @@ def stitched_details(plate: StitchedPlate, tgt: Target) -> Details:
         ],
         reasons=list(judgement.reasons),
         excluded_regions=[],
-        segmentation=segmentation_details(
-            None, target_geometry.target_area_mm2(tgt), plain=True, measured_area_mm2=measured_area
-        ),
+        segmentation=_segmentation(plate, target_geometry.target_area_mm2(tgt), measured_area),
         normals_filled=sum(s.normals_filled for s in plate.stations),
         normals_facing_away=sum(s.normals_facing_away for s in plate.stations),
         light_model=first.light_model,

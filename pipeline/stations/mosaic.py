@@ -5,8 +5,8 @@ travel to the middle of the plate's stations: a camera frame over the plate's mi
 station's median pixel footprint. Each cell holds a point of the measured surface: for each station
 that sees it, the point of that station's surface whose x and y are the cell's, found by following the
 station's pixel rays (project the cell at a height, read the station's surface there, take its height,
-again: a fixed point that contracts by the ray's slope times the surface's, a few steps from a quadric
-start). Where stations overlap, their points are averaged with weights that fall to zero at each
+again: a fixed point that contracts by the ray's slope times the surface's, :data:`STEPS` steps from a
+quadric start). Where stations overlap, their points are averaged with weights that fall to zero at each
 station's image frame (feathering), so a seam leaves no step.
 """
 
@@ -20,7 +20,7 @@ import numpy as np
 from .register import StationView
 
 #: Fixed-point steps of the resampling.
-STEPS = 5
+STEPS = 3
 #: A cell is kept where the resampled point lies within this share of a cell of its centre.
 CONVERGED_CELLS = 0.1
 
@@ -96,6 +96,19 @@ class Mosaic:
         blended: np.ndarray = np.where(self.mask & (weights > 0), out, np.nan)
         return blended
 
+    def blend_constants(self, values: list[float]) -> np.ndarray:
+        """One value per station blended onto the mosaic as :meth:`resample` blends squares (root mean
+        square by the stations' weights); NaN off the plate."""
+        total = np.zeros(self.mask.shape)
+        weights = np.zeros(self.mask.shape)
+        for fp, value in zip(self.footprints, values, strict=True):
+            total[fp.rows, fp.cols] += fp.weight * value**2
+            weights[fp.rows, fp.cols] += fp.weight
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out = np.sqrt(total / weights)
+        blended: np.ndarray = np.where(self.mask & (weights > 0), out, np.nan)
+        return blended
+
 
 def build_mosaic(
     views: list[StationView], poses: list[np.ndarray], travel_mm: list[float]
@@ -162,18 +175,22 @@ def _resample(
     r1 = min(int(np.ceil((sub[:, 1].max() - origin[1]) / cell)) + 3, shape[0])
     xs = origin[0] + cell * np.arange(c0, c1)
     ys = origin[1] + cell * np.arange(r0, r1)
-    gx, gy = np.meshgrid(xs, ys)
-    z = _quadric(sub, gx, gy)
-    inv = np.linalg.inv(pose)
+    gx, gy = (g.astype(np.float32) for g in np.meshgrid(xs, ys))
+    z = _quadric(sub, gx, gy).astype(np.float32)
+    to_station = np.linalg.inv(pose)[:3].astype(np.float32)
     src = view.points.astype(np.float32)
     h, w = view.shape
-    u = v = np.zeros_like(gx, dtype=np.float32)
-    pts = np.full((*gx.shape, 3), np.nan)
+    fx, fy, cx, cy = (
+        np.float32(v) for v in (view.K[0, 0], view.K[1, 1], view.K[0, 2], view.K[1, 2])
+    )
+    u = v = np.zeros_like(gx)
+    got = np.full((*gx.shape, 3), np.nan, np.float32)
     for _ in range(STEPS):
-        cam = np.stack([gx, gy, z], axis=-1) @ inv[:3, :3].T + inv[:3, 3]
+        cam = cv2.transform(np.stack([gx, gy, z], axis=-1), to_station)
         with np.errstate(invalid="ignore", divide="ignore"):
-            u = (view.K[0, 0] * cam[..., 0] / cam[..., 2] + view.K[0, 2]).astype(np.float32)
-            v = (view.K[1, 1] * cam[..., 1] / cam[..., 2] + view.K[1, 2]).astype(np.float32)
+            inv_z = 1.0 / cam[..., 2]
+            u = fx * cam[..., 0] * inv_z + cx
+            v = fy * cam[..., 1] * inv_z + cy
         got = cv2.remap(
             src,
             np.nan_to_num(u, nan=-1.0),
@@ -181,9 +198,12 @@ def _resample(
             cv2.INTER_LINEAR,
             borderMode=cv2.BORDER_CONSTANT,
             borderValue=np.nan,
-        ).astype(np.float64)
-        pts = got @ pose[:3, :3].T + pose[:3, 3]
-        z = np.where(np.isfinite(pts[..., 2]), pts[..., 2], z)
+        )
+        a, b, c, d = (np.float32(x) for x in pose[2])
+        height = a * got[..., 0] + b * got[..., 1] + c * got[..., 2] + d
+        z = np.where(np.isfinite(height), height, z)
+    # the last points in float64 (the sums of the overlaps are made in float64)
+    pts = got.astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
     miss = np.hypot(pts[..., 0] - gx, pts[..., 1] - gy)
     ok = np.isfinite(miss) & (miss < CONVERGED_CELLS * cell)
     pts[~ok] = np.nan
