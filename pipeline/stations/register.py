@@ -3,10 +3,12 @@
 A plate rolled about its long axis is a cylinder along the travel: its surface alone cannot fix a
 station's travel along it, nor a turn about it. The plate's own texture can. Each overlap is matched
 patch by patch on the photometric albedo (normalised cross-correlation, from where the current poses
-put it), and each match is a pair of measured 3D points, one per station, that must coincide. All the
-stations' poses are then fitted at once to every pair of every overlap (stations two apart too, where
-they share a view) and to the encoder's travels (a weak prior of :data:`ENCODER_SD_MM`): a pose graph
-solved by least squares (soft-L1 on the matches), so errors do not accumulate down the chain. Matching
+put it), and each match is a pair of measured 3D points, one per station, that must coincide: along
+the surface's normal to the surfaces' own noise (:data:`NORMAL_SD_MM`: this fixes the stations' tilt
+and height), along the surface to the match's (:data:`MATCH_SD_PX`: this fixes the travel and the
+yaw). All the stations' poses are then fitted at once to every pair of every overlap (stations two
+apart too, where they share a view) and to the encoder's travels (a weak prior of
+:data:`ENCODER_SD_MM`): a pose graph solved by least squares (soft-L1 at 3 standard deviations). Matching
 and fitting run twice, the second time from the fitted poses with a small search.
 
 The result is checked on the surfaces themselves: in each overlap the distance along the normal from one
@@ -40,8 +42,13 @@ MIN_MATCHES = 12
 MIN_NCC = 0.6
 #: The first search reaches this far around where the encoder's travel puts a patch, mm.
 SEARCH_MM = 40.0
+#: Standard deviation of a matched point pair along the surface's normal, mm: the two surfaces' own
+#: noise (a match's error along the surface moves it within the tangent plane, not off it).
+NORMAL_SD_MM = 0.1
+#: Standard deviation of a match along the surface, pixels of the matched station.
+MATCH_SD_PX = 0.5
 #: Patches per overlap, at most.
-MAX_PATCHES = 250
+MAX_PATCHES = 400
 
 
 @dataclass(frozen=True)
@@ -246,7 +253,7 @@ def _match(
     a: StationView, b: StationView, pose_a: np.ndarray, pose_b: np.ndarray, radius: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Texture matches of station ``a``'s patches in station ``b``: their 3D points in each station's
-    frame (M, 3), (M, 3), and their correlations (M,)."""
+    frame (M, 3), (M, 3), and ``b``'s unit normals there (M, 3), ``b``'s frame."""
     h, w = a.shape
     half = max(10, round(min(h, w) / 40)) // 2 * 2 + 1  # odd patch side ~ 1/40 of the image
     step = half
@@ -275,7 +282,7 @@ def _match(
     alb_a = np.nan_to_num(a.albedo, nan=0.0).astype(np.float32)
     alb_b = np.nan_to_num(b.albedo, nan=0.0).astype(np.float32)
     r = half // 2
-    found_a, found_b, scores = [], [], []
+    found_a, found_b = [], []
     for (u, v), (pu, pv) in zip(centres, uv_b, strict=True):
         patch_mask = a.mask[v - r : v + r + 1, u - r : u + r + 1]
         if not patch_mask.all():
@@ -298,16 +305,17 @@ def _match(
         dy = _parabola(score[by - 1 : by + 2, bx])
         found_a.append((u, v))
         found_b.append((iu - radius + bx + dx, iv - radius + by + dy))
-        scores.append(best)
     if not found_a:
         empty = np.empty((0, 3))
-        return empty, empty, np.empty(0)
+        return empty, empty, empty
     pa = np.asarray(found_a, dtype=np.float64)
     pb = np.asarray(found_b, dtype=np.float64)
     xa = a.points[pa[:, 1].astype(int), pa[:, 0].astype(int)]
     xb = _sample(b.points, pb)
-    good = np.isfinite(xa).all(axis=1) & np.isfinite(xb).all(axis=1)
-    return xa[good], xb[good], np.asarray(scores)[good]
+    nb = _sample(b.normals, pb)
+    nb /= np.linalg.norm(nb, axis=1, keepdims=True)
+    good = np.isfinite(xa).all(axis=1) & np.isfinite(xb).all(axis=1) & np.isfinite(nb).all(axis=1)
+    return xa[good], xb[good], nb[good]
 
 
 def _parabola(three: np.ndarray) -> float:
@@ -328,6 +336,7 @@ def _solve(
     x0 = np.concatenate([_params(g) for g in poses[1:]])
     encoder = np.array([v.encoder_mm for v in views])
     here = [np.array([0.0, 0.0, v.depth_mm]) for v in views]
+    tangential = [MATCH_SD_PX * v.footprint_mm for v in views]
 
     def unpack(x: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
         out = [(np.eye(3), np.zeros(3))]
@@ -339,16 +348,20 @@ def _solve(
     def residuals(x: np.ndarray) -> np.ndarray:
         rt = unpack(x)
         parts = []
-        for (k, l), (xa, xb, _) in matches.items():
+        for (k, l), (xa, xb, nb) in matches.items():
             (ra, ta), (rb, tb) = rt[k], rt[l]
-            parts.append(((xa @ ra.T + ta) - (xb @ rb.T + tb)).ravel())
+            r = (xa @ ra.T + ta) - (xb @ rb.T + tb)
+            normal = nb @ rb.T
+            along = np.einsum("ij,ij->i", r, normal)
+            parts.append(along / NORMAL_SD_MM)
+            parts.append((r - along[:, None] * normal).ravel() / tangential[l])
         for k in range(1, n):
             r, t = rt[k]
             moved = direction @ (here[k] - (r @ here[k] + t))
             parts.append(np.array([(moved - encoder[k]) / ENCODER_SD_MM]))
         return np.concatenate(parts)
 
-    fit = least_squares(residuals, x0, loss="soft_l1", f_scale=2.0, method="trf", x_scale="jac")
+    fit = least_squares(residuals, x0, loss="soft_l1", f_scale=3.0, method="trf", x_scale="jac")
     return [np.eye(4)] + [_pose(r, t) for r, t in unpack(fit.x)[1:]]
 
 
