@@ -140,13 +140,16 @@ def build_mosaic(
     footprints = []
     for view, pose in zip(views, to_plate, strict=True):
         fp, pts = _resample(view, pose, (x0, y0), cell, (height, width))
-        total[fp.rows, fp.cols] += fp.weight[..., None] * np.nan_to_num(pts)
+        good = fp.weight > 0
+        window = total[fp.rows, fp.cols]
+        window[good] += fp.weight[good, None] * pts[good]
         weights[fp.rows, fp.cols] += fp.weight
         footprints.append(fp)
     mask = weights > 0
     with np.errstate(invalid="ignore", divide="ignore"):
-        points = np.where(mask[..., None], total / weights[..., None], np.nan)
-    return Mosaic(points=points, mask=mask, cell_mm=cell, frame=frame, footprints=footprints)
+        total /= weights[..., None]  # in place: the grid is the size of the whole plate
+    total[~mask] = np.nan
+    return Mosaic(points=total, mask=mask, cell_mm=cell, frame=frame, footprints=footprints)
 
 
 def _extent(views: list[StationView], poses: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -203,7 +206,7 @@ def _resample(
         height = a * got[..., 0] + b * got[..., 1] + c * got[..., 2] + d
         z = np.where(np.isfinite(height), height, z)
     # the last points in float64 (the sums of the overlaps are made in float64)
-    pts = got.astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
+    pts = cv2.transform(got.astype(np.float64), pose[:3])
     miss = np.hypot(pts[..., 0] - gx, pts[..., 1] - gy)
     ok = np.isfinite(miss) & (miss < CONVERGED_CELLS * cell)
     pts[~ok] = np.nan
@@ -231,5 +234,8 @@ def _quadric(pts: np.ndarray, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
         return np.stack([np.ones_like(a), a, b, a * a, a * b, b * b], axis=-1)
 
     coef, *_ = np.linalg.lstsq(design(x, y), pts[:, 2], rcond=None)
-    z: np.ndarray = design(gx, gy) @ coef
+    c0, c1, c2, c3, c4, c5 = (np.float32(c) for c in coef)
+    a = (gx - np.float32(mx)) / np.float32(s)
+    b = (gy - np.float32(my)) / np.float32(s)
+    z: np.ndarray = c0 + a * (c1 + c3 * a + c4 * b) + b * (c2 + c5 * b)
     return z

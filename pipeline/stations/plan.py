@@ -123,7 +123,7 @@ def view_length_mm(ref: StationRef) -> float:
     cx, cy = abs(d[0]) / along, abs(d[1]) / along
     span_px = min(width / cx if cx > 1e-9 else math.inf, height / cy if cy > 1e-9 else math.inf)
     mm_per_px = z / math.sqrt(K[0, 0] * K[1, 1])
-    return float(span_px * mm_per_px * along)
+    return float(span_px * mm_per_px / along)  # travel moves the image by `along` of itself
 
 
 def _check_travel(ordered: list[StationRef]) -> None:

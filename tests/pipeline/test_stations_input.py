@@ -162,3 +162,45 @@ def test_cli_bad_set_exits_2(stations, tmp_path, capsys):
     assert code == EXIT_BAD_INPUT
     err = capsys.readouterr().err
     assert "station.index" in err and "station_02" in err
+
+
+def test_cli_simulates_stations(tmp_path, capsys):
+    out = tmp_path / "sim"
+    code = main(
+        [
+            "simulate",
+            "capture",
+            str(out),
+            "--stations",
+            "3",
+            "--station-spacing",
+            "2000",
+            "--plate-size",
+            "3000x7000",
+            "--size",
+            "64x64",
+            "--lights",
+            "3",
+            "--no-stereo",
+        ]
+    )
+    assert code == 0
+    refs = plan_stations(sorted(out.glob("station_*")))
+    assert [r.station.index for r in refs] == [0, 1, 2]
+    target = json.loads((out / "target.json").read_text())
+    assert target["size_mm"] == [3000.0, 7000.0]
+    truth = json.loads((out / "stations_truth.json").read_text())
+    assert truth["travel_mm"] == [0.0, 2000.0, 4000.0]
+    assert all(
+        abs(e - t) <= 4.0 for e, t in zip(truth["encoder_mm"], truth["travel_mm"], strict=True)
+    )
+    assert all(abs(y) <= 0.3 for y in truth["yaw_deg"])
+
+
+@pytest.mark.parametrize(
+    "extra",
+    [["--stations", "1", "--station-spacing", "2000"], ["--stations", "3"], ["--plate-size", "3x"]],
+)
+def test_cli_simulate_bad_station_arguments_exit_2(tmp_path, extra):
+    code = main(["simulate", "capture", str(tmp_path / "sim"), "--size", "64x64", *extra])
+    assert code == EXIT_BAD_INPUT
