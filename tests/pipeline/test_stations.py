@@ -10,8 +10,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from pydantic import TypeAdapter
 
 from pipeline.cli import EXIT_NOT_MEASURABLE, main
+from pipeline.details import Details
 from pipeline.formats import CaptureError
 from pipeline.run import inspect
 from pipeline.simulate import CaptureSpec, Dent, PlateSpec, simulate_stations
@@ -143,3 +145,20 @@ def test_one_bundle_in_a_list_is_the_single_view(perfect, tmp_path):
     b.pop("timings_s")
     assert a == b
     assert "stations" not in json.loads((tmp_path / "list" / "details.json").read_text())
+
+
+def test_uncertainty_includes_the_registration(perfect):
+    _, doc, details, _ = perfect
+    u = details["uncertainty"]
+    reg = u["components"]["stations_registration_mm"]
+    assert reg > 0
+    assert doc["uncertainty"]["deviation_mm"] >= 2 * reg  # U (k = 2) holds the registration's part
+    per_station = [s["registration_sd_mm"] for s in details["stations"]["stations"]]
+    assert max(per_station) == pytest.approx(reg, abs=1e-4)
+
+
+def test_details_match_their_model(perfect):
+    """details.json of a stitched plate reads back into its model (the schema's source)."""
+    _, _, details, _ = perfect
+    model = TypeAdapter(Details).validate_python(details)
+    assert model.stations is not None and len(model.stations.stations) == 3
