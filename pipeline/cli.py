@@ -30,9 +30,11 @@ from .formats import AcquisitionError, InputError, PipelineError
 from .parallel import configure_process
 
 if TYPE_CHECKING:
-    from .simulate import Cutout, Dent, Floor
+    from .simulate import CaptureSpec, Cutout, Dent, Floor, PlateSpec
 
 EXIT_OK, EXIT_INTERNAL, EXIT_BAD_INPUT, EXIT_NOT_MEASURABLE, EXIT_HARDWARE = 0, 1, 2, 3, 4
+#: ``simulate capture --plate-size``'s default (PlateSpec's own), mm.
+_PLATE_SIZE = "3000x3000"
 
 
 class BadArgument(ValueError):
@@ -50,6 +52,18 @@ def _pair(
         return kind(first), kind(second)
     except ValueError:
         raise BadArgument(f"{name}: expected two numbers as A{sep}B, got {text!r}") from None
+
+
+def _plate_size(text: str) -> tuple[float, float] | None:
+    """``--plate-size WxL`` in mm (None: the default, PlateSpec's own)."""
+    if text == _PLATE_SIZE:
+        return None
+    parts = text.lower().split("x")
+    try:
+        width, length = (float(v) for v in parts)
+    except ValueError:
+        raise BadArgument(f"--plate-size: expected WIDTHxLENGTH in mm, got {text!r}") from None
+    return width, length
 
 
 def _dent(text: str) -> Dent:
@@ -102,6 +116,7 @@ def _cmd_simulate_capture(args: argparse.Namespace) -> int:
     from .simulate import CaptureSpec, PlateSpec, simulate_capture
 
     width, height = _pair(args.size, name="--size")
+    plate_size = _plate_size(args.plate_size)
     plate = PlateSpec(
         shape=args.shape,
         radius_mm=None if args.shape == "plane" else args.radius,
@@ -113,6 +128,8 @@ def _cmd_simulate_capture(args: argparse.Namespace) -> int:
         cutouts=tuple(_cutout(c) for c in args.cutout),
     )
     try:
+        if plate_size is not None:
+            plate = replace(plate, size_mm=plate_size)
         plate = replace(plate, floor=_floor(args, plate.size_mm))
     except (
         ValueError
@@ -134,6 +151,8 @@ def _cmd_simulate_capture(args: argparse.Namespace) -> int:
         manifest_lights="nominal" if args.nominal_lights else "exact",
         texture=args.texture,
     )
+    if args.stations is not None:
+        return _simulate_stations(args, plate, capture)
     out = simulate_capture(
         args.out,
         plate=plate,
@@ -143,6 +162,36 @@ def _cmd_simulate_capture(args: argparse.Namespace) -> int:
         seed=args.seed,
     )
     print(out)
+    return EXIT_OK
+
+
+def _simulate_stations(args: argparse.Namespace, plate: PlateSpec, capture: CaptureSpec) -> int:
+    """``simulate capture --stations N``: one bundle per conveyor station of a long plate."""
+    from .simulate import simulate_stations
+
+    if args.stations < 2:
+        raise BadArgument(f"--stations: expected at least 2 stations, got {args.stations}")
+    if args.station_spacing is None or not args.station_spacing > 0:
+        raise BadArgument(
+            f"--station-spacing: expected the conveyor's step > 0 mm with --stations, got {args.station_spacing}"
+        )
+    try:
+        bundles = simulate_stations(
+            args.out,
+            n_stations=args.stations,
+            spacing_mm=args.station_spacing,
+            plate=plate,
+            capture=capture,
+            plate_id=args.plate_id,
+            tolerance_mm=args.tolerance,
+            seed=args.seed,
+            encoder_error_mm=args.encoder_error,
+            yaw_deg=args.yaw,
+        )
+    except ValueError as err:
+        raise BadArgument(str(err)) from None
+    for bundle in bundles:
+        print(bundle)
     return EXIT_OK
 
 
@@ -257,7 +306,7 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
             print(f"[{100 * fraction:5.1f} %] {stage}", file=sys.stderr)
 
     result = inspect(
-        args.capture,
+        args.capture if len(args.capture) > 1 else args.capture[0],
         args.target,
         out_dir=args.out,
         progress=progress,
@@ -395,6 +444,7 @@ def _add_simulate(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
     )
     cap.add_argument("--plate-id", default="SIM-0001")
     cap.add_argument("--seed", type=int, default=0)
+    _add_station_arguments(cap)
     cap.set_defaults(handler=_cmd_simulate_capture)
     boards = sim_sub.add_parser(
         "boards", help="render checkerboard pairs for `plate-inspect calibrate`"
@@ -406,6 +456,40 @@ def _add_simulate(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
     boards.add_argument("--size", default="1224x1024", help="image size WIDTHxHEIGHT px")
     boards.add_argument("--seed", type=int, default=0)
     boards.set_defaults(handler=_cmd_simulate_boards)
+
+
+def _add_station_arguments(cap: argparse.ArgumentParser) -> None:
+    """``simulate capture``: the plate's size and the conveyor stations of a long plate."""
+    cap.add_argument(
+        "--plate-size",
+        default=_PLATE_SIZE,
+        metavar="WxL",
+        help="plate size across x and along y (its axis, the conveyor's), mm (default 3000x3000)",
+    )
+    cap.add_argument(
+        "--stations",
+        type=int,
+        default=None,
+        metavar="N",
+        help="render N conveyor stations of the plate, OUT/station_00 ... (docs/stations.md)",
+    )
+    cap.add_argument(
+        "--station-spacing", type=float, default=None, metavar="MM", help="conveyor step, mm"
+    )
+    cap.add_argument(
+        "--encoder-error",
+        type=float,
+        default=4.0,
+        metavar="MM",
+        help="with --stations: the encoder's travel is off by up to this, mm (default 4)",
+    )
+    cap.add_argument(
+        "--yaw",
+        type=float,
+        default=0.3,
+        metavar="DEG",
+        help="with --stations: each station yaws by up to this, deg (default 0.3)",
+    )
 
 
 def _add_surroundings_arguments(cap: argparse.ArgumentParser) -> None:
@@ -524,7 +608,12 @@ def _add_acquire(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
 def _add_inspect(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """``plate-inspect inspect``."""
     ins = sub.add_parser("inspect", help="measure a capture bundle against its target")
-    ins.add_argument("capture", help="capture bundle: folder or .zip (plate-capture/1)")
+    ins.add_argument(
+        "capture",
+        nargs="+",
+        help="capture bundle: folder or .zip (plate-capture/1); several: the conveyor stations of one "
+        "plate, measured as one (docs/stations.md)",
+    )
     ins.add_argument("--target", required=True, help="target file (plate-target/1)")
     ins.add_argument("--out", required=True, help="output folder for result.json and artifacts")
     ins.add_argument(

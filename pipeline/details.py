@@ -117,6 +117,50 @@ class RefinementDetails:
 
 
 @dataclass(frozen=True)
+class OverlapDetails:
+    """Two stations where they overlap, after the registration (docs/stations.md): the texture matches
+    the poses were fitted to and their RMS distance after the fit, and the distance along the normal
+    between the two surfaces over the overlap (RMS and max over ``points`` compared), mm."""
+
+    stations: list[int]
+    matches: int
+    match_rms_mm: float
+    rms_mm: float
+    max_mm: float
+    points: int
+
+
+@dataclass(frozen=True)
+class StationDetails:
+    """One conveyor station of a plate measured at stations (docs/stations.md).
+
+    ``T_plate_station``: (4, 4) its left camera frame into the plate frame (the frame of the result's
+    points and ``T_cam_target``), mm; ``travel_encoder_mm`` the encoder's travel since station 0,
+    ``travel_mm`` the travel the registration found (the plate point under the head), mm;
+    ``registration_sd_mm`` the standard uncertainty its registration adds to a point, mm.
+    """
+
+    index: int
+    bundle: str
+    T_plate_station: list[list[float]]
+    travel_encoder_mm: float
+    travel_mm: float
+    stereo_matched_pct: float | None
+    registration_sd_mm: float
+    stereo_fusion: FusionDetails | None = None
+    light_refinement: RefinementDetails | None = None
+
+
+@dataclass(frozen=True)
+class StitchDetails:
+    """How the stations were stitched into one plate: the grid's cell (mm), each station, each overlap."""
+
+    cell_mm: float
+    stations: list[StationDetails]
+    overlaps: list[OverlapDetails]
+
+
+@dataclass(frozen=True)
 class Details:
     """The content of ``details.json``, one attribute per key in the file's order.
 
@@ -144,6 +188,8 @@ class Details:
     stereo_matched_pct : float or None
     metric_scale : {"stereo", "working_distance"}
     uncertainty : UncertaintyDetails or None
+    stations : StitchDetails or None
+        A plate measured at conveyor stations (docs/stations.md); absent for one view.
     """
 
     T_cam_target: list[list[float]]
@@ -165,10 +211,14 @@ class Details:
     stereo_matched_pct: float | None
     metric_scale: str
     uncertainty: UncertaintyDetails | None = None
+    stations: StitchDetails | None = None
 
     def to_json(self) -> str:
-        """The text of ``details.json`` (indented JSON, a final newline)."""
-        return json.dumps(asdict(self), indent=2) + "\n"
+        """The text of ``details.json`` (indented JSON, a final newline; no ``stations`` for one view)."""
+        doc = asdict(self)
+        if doc["stations"] is None:
+            del doc["stations"]
+        return json.dumps(doc, indent=2) + "\n"
 
 
 def region_details(

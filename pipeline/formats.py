@@ -209,6 +209,24 @@ class StereoPair(_Strict):
     right: str
 
 
+class Station(_Strict):
+    """Where a capture of a long plate was taken on the conveyor (optional; docs/stations.md).
+
+    ``index``: the station's place in the sequence (0 first); ``travel_mm``: the conveyor's travel
+    since station 0 as its encoder reads it, mm; ``direction``: the unit direction of the plate's
+    motion in the left camera frame.
+    """
+
+    index: int = Field(ge=0, le=999, strict=True)
+    travel_mm: float = Field(allow_inf_nan=False)
+    direction: Vec3
+
+    @field_validator("direction")
+    @classmethod
+    def _unit_direction(cls, v: list[float]) -> list[float]:
+        return _unit_vector(v)
+
+
 class CaptureFile(_Strict):
     format: Literal["plate-capture/1"]
     plate_id: str = Field(min_length=1)
@@ -219,6 +237,8 @@ class CaptureFile(_Strict):
     stereo: StereoPair | None = None
     working_distance_mm: float | None = Field(default=None, gt=0)
     acquisition: dict[str, Any] | None = None
+    #: A station of a plate longer than the view (conveyor stations, docs/stations.md).
+    station: Station | None = None
 
 
 class CalibratedLight(_Strict):

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import tempfile
 import time
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,6 +22,7 @@ from threadpoolctl import threadpool_limits
 
 from . import reconstruct, uncertainty
 from .artifacts import ARTIFACT_FILES, RESULT_FILE
+from .curvature import CurvatureResult
 from .details import (
     Details,
     UncertaintyDetails,
@@ -34,7 +36,7 @@ from .io import Capture, Target, load_capture, load_target
 from .lights import Lights
 from .parallel import default_workers
 from .preprocess import Preprocessed
-from .registration import pixel_in_target_frame
+from .registration import Registration, pixel_in_target_frame
 from .stages import (
     DISAGREEMENT_FRACTION,
     STAGES,
@@ -47,6 +49,7 @@ from .stages import (
     preprocess_scene,
 )
 from .target_geometry import target_area_mm2
+from .verdict import Judgement
 
 __all__ = [
     "AREA_WARNING_RATIO",
@@ -82,7 +85,7 @@ class InspectionResult:
 
 
 def inspect(
-    capture: Capture | str | Path,
+    capture: Capture | str | Path | Sequence[Capture | str | Path],
     target: Target | dict[str, Any] | str | Path,
     *,
     out_dir: str | Path,
@@ -94,8 +97,11 @@ def inspect(
 
     Parameters
     ----------
-    capture : Capture or path
-        A capture bundle (folder or .zip, ``plate-capture/1``) or one already loaded.
+    capture : Capture or path, or a sequence of them
+        A capture bundle (folder or .zip, ``plate-capture/1``) or one already loaded. Several bundles
+        (two or more, in any order): the conveyor stations of one plate longer than the view, each
+        with its ``station``, measured as one plate (:mod:`pipeline.stations`, docs/stations.md); a
+        sequence of one is that one bundle.
     target : Target, dict or path
         The ``plate-target/1`` target.
     out_dir : path
@@ -131,7 +137,14 @@ def inspect(
         # after each one and take a core from the work running beside it (measured: ~0.3 core-s
         # per inspection at 1224x1024)
         with threadpool_limits(limits=1, user_api="blas"):
-            return _inspect(capture, target, out, clock, opts, light_calibration)
+            if isinstance(capture, (Capture, str, Path)):
+                return _inspect(capture, target, out, clock, opts, light_calibration)
+            bundles = list(capture)
+            if not bundles:
+                raise ValueError("capture: expected at least one capture bundle, got none")
+            if len(bundles) == 1:
+                return _inspect(bundles[0], target, out, clock, opts, light_calibration)
+            return _inspect_stations(bundles, target, out, clock, opts, light_calibration)
     except PipelineError as err:
         # a capture that cannot be measured still leaves a result that says why
         _write_error_result(out, capture, target, err, clock)
@@ -163,6 +176,51 @@ def _inspect(
     (out / ARTIFACT_FILES["details"]).write_text(details.to_json())
     clock.end("artifacts")
     doc = _result_document(cap, tgt, m, warnings, clock)
+    (out / RESULT_FILE).write_text(json.dumps(doc, indent=2) + "\n")
+    if clock.progress is not None:
+        clock.progress("done", 1.0)
+    return InspectionResult(document=doc, out_dir=out)
+
+
+def _inspect_stations(
+    captures: list[Capture | str | Path],
+    target: Target | dict[str, Any] | str | Path,
+    out: Path,
+    clock: StageClock,
+    opts: InspectOptions,
+    light_calibration: Lights | None,
+) -> InspectionResult:
+    """:func:`inspect` of a plate at conveyor stations (:mod:`pipeline.stations`)."""
+    from .stations import measure_stations, stitched_details
+
+    plate, tgt = measure_stations(captures, target, out, clock, opts, light_calibration)
+    details = stitched_details(plate, tgt)
+    warnings = list(plate.warnings)
+    ratio = details.segmentation.area_ratio
+    if ratio is not None and ratio < AREA_WARNING_RATIO:
+        warnings.append(
+            f"the measured area is {100 * ratio:.0f} % of the target's: openings, a plate partly out of "
+            "view, or areas no station measured were not measured"
+        )
+    if not plate.uncertainty.capable(tgt.tolerance_mm):
+        warnings.append(
+            f"the measurement is not capable for this tolerance: its expanded uncertainty (k = 2) is "
+            f"{plate.uncertainty.deviation_mm:.2f} mm, tolerance / U = "
+            f"{tgt.tolerance_mm / plate.uncertainty.deviation_mm:.1f} < {uncertainty.CAPABLE_RATIO:g}; "
+            "the verdict stands by simple acceptance (details.json: uncertainty, stations)"
+        )
+    (out / ARTIFACT_FILES["details"]).write_text(details.to_json())
+    clock.end("artifacts")
+    doc = _document(
+        plate.plate_id,
+        tgt,
+        plate.pose,
+        plate.curv,
+        plate.judgement,
+        plate.uncertainty,
+        warnings,
+        clock,
+    )
     (out / RESULT_FILE).write_text(json.dumps(doc, indent=2) + "\n")
     if clock.progress is not None:
         clock.progress("done", 1.0)
@@ -281,22 +339,35 @@ def _result_document(
     cap: Capture, tgt: Target, m: Measurement, warnings: list[str], clock: StageClock
 ) -> dict[str, Any]:
     """The ``plate-result/1`` document of a measured plate (``warnings`` only when there are some)."""
+    return _document(cap.plate_id, tgt, m.pose, m.curv, m.judgement, m.uncertainty, warnings, clock)
+
+
+def _document(
+    plate_id: str,
+    tgt: Target,
+    pose: Registration,
+    curv: CurvatureResult,
+    judgement: Judgement,
+    qualified: uncertainty.Uncertainty,
+    warnings: list[str],
+    clock: StageClock,
+) -> dict[str, Any]:
+    """The ``plate-result/1`` document of a judged plate."""
     # the registration fits the target's shape radius-free on its way (= registration.fitted_target_radius)
-    fitted_radius = m.pose.fitted_radius_mm
+    fitted_radius = pose.fitted_radius_mm
     target_radius = tgt.radius_mm if tgt.shape in ("cylinder", "sphere") else None
     radius_error = (
         100.0 * (fitted_radius - target_radius) / target_radius
         if fitted_radius is not None and target_radius is not None
         else None
     )
-    judgement = m.judgement
     timings = dict(clock.timings)
     timings["total"] = clock.total()
     return ResultFile(
         format=RESULT_FORMAT,
-        plate_id=cap.plate_id,
+        plate_id=plate_id,
         radius_mm=_round(fitted_radius, 2),
-        principal_radii_mm=[_round(r, 1) for r in m.curv.principal_radii_mm],
+        principal_radii_mm=[_round(r, 1) for r in curv.principal_radii_mm],
         target_radius_mm=target_radius,
         radius_error_pct=_round(radius_error, 3),
         deviation_mm={
@@ -310,8 +381,8 @@ def _result_document(
         warnings=warnings or None,
         uncertainty=ResultUncertainty(
             k=uncertainty.COVERAGE_K,
-            radius_mm=_round(m.uncertainty.radius_mm, 2),
-            deviation_mm=round(m.uncertainty.deviation_mm, 3),
+            radius_mm=_round(qualified.radius_mm, 2),
+            deviation_mm=round(qualified.deviation_mm, 3),
         ),
         timings_s=timings,
         artifacts=dict(ARTIFACT_FILES),
@@ -354,12 +425,14 @@ def warm_up(*, full: bool = False) -> float:
 
 def _write_error_result(
     out: Path,
-    capture: Capture | str | Path,
+    capture: Capture | str | Path | Sequence[Capture | str | Path],
     target: Target | dict[str, Any] | str | Path,
     err: Exception,
     clock: StageClock,
 ) -> None:
     """Write a ``plate-result/1`` with verdict ``error`` saying why the capture could not be measured."""
+    if not isinstance(capture, (Capture, str, Path)):
+        capture = next(iter(capture), "unknown")
     plate_id = capture.plate_id if isinstance(capture, Capture) else None
     if plate_id is None and not isinstance(capture, Capture):
         try:

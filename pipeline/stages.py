@@ -222,16 +222,41 @@ def preprocess_scene(cap: Capture, opts: InspectOptions, clock: StageClock) -> S
     return Scene(pre=pre, candidates=candidates, plain_outline=plain_outline, region=region)
 
 
-def measure(
+@dataclass(frozen=True)
+class View:
+    """One view reconstructed (stages *normals* to *depth*): the metric surface and the plate it is of.
+
+    Attributes
+    ----------
+    surface : reconstruct.Surface
+    plate : Plate
+    points : (H, W, 3) float64
+        Measured points, mm, left camera frame (NaN off the plate).
+    rays : (H, W, 3) float64
+        The left camera's pixel rays ``K^-1 (u, v, 1)`` (undistorted grid).
+    """
+
+    surface: reconstruct.Surface
+    plate: Plate
+    points: np.ndarray
+    rays: np.ndarray
+
+
+def reconstruct_view(
     cap: Capture,
     tgt: Target,
     scene: Scene,
     opts: InspectOptions,
-    out: Path,
     pool: ThreadPoolExecutor,
     clock: StageClock,
-) -> Measurement:
-    """Stages *normals* to *artifacts* (details.json and result.json excepted), work beside the main line on ``pool``."""
+    *,
+    normals_png: Path | None = None,
+) -> tuple[View, list[Future[Any]]]:
+    """Stages *normals*, *stereo* and *depth* of one view, work beside the main line on ``pool``.
+
+    ``normals_png``: where normals.png is written (beside the depth solve), None: not written. Returns the
+    view and the artifact writes under way.
+    """
     pre, K = scene.pre, cap.rig.left.K
     stereo_job = pool.submit(_stereo_depth, cap, scene.region, opts) if cap.has_stereo else None
     rays_job = pool.submit(
@@ -253,27 +278,40 @@ def measure(
     clock.begin("stereo")
     plate, field = _plate(stereo_job, scene, field, K, tgt, clock)
     writes = []
-    if field is not None:
+    if field is not None and normals_png is not None:
         # normals.png now, while the depth is solved on this thread (the few normals dropped later as facing
         # away are then shown as estimated)
         writes.append(
-            pool.submit(
-                artifacts.write_normals_png,
-                out / ARTIFACT_FILES["normals"],
-                field.normals,
-                field.mask,
-            )
+            pool.submit(artifacts.write_normals_png, normals_png, field.normals, field.mask)
         )
     _check_stereo_share(plate, cap, opts)
     surface = _surface(cap, tgt, scene, plate, field, opts, clock)
     rays = rays_job.result()
     points = surface.depth_mm[..., None] * rays
     clock.end("depth")
+    return View(surface=surface, plate=plate, points=points, rays=rays), writes
+
+
+def measure(
+    cap: Capture,
+    tgt: Target,
+    scene: Scene,
+    opts: InspectOptions,
+    out: Path,
+    pool: ThreadPoolExecutor,
+    clock: StageClock,
+) -> Measurement:
+    """Stages *normals* to *artifacts* (details.json and result.json excepted), work beside the main line on ``pool``."""
+    view, writes = reconstruct_view(
+        cap, tgt, scene, opts, pool, clock, normals_png=out / ARTIFACT_FILES["normals"]
+    )
+    pre, surface, points = scene.pre, view.surface, view.points
 
     def qualify(judged: np.ndarray, pose: registration.Registration) -> uncertainty.Uncertainty:
         return _qualify(cap, pre, surface, points, judged, pose)
 
-    return _judge(points, rays, surface, plate, tgt, K, out, pool, writes, clock, qualify)
+    K = cap.rig.left.K
+    return _judge(points, view.rays, surface, view.plate, tgt, K, out, pool, writes, clock, qualify)
 
 
 def _plate(
@@ -521,6 +559,23 @@ def _qualify(
     pose: registration.Registration,
 ) -> uncertainty.Uncertainty:
     """The measurement's expanded uncertainty (:mod:`pipeline.uncertainty`) on the judged pixels."""
+    inputs = uncertainty_inputs(cap, pre, surface, points, judged)
+    radius = pose.fitted_radius_mm
+    return uncertainty.propagate(
+        inputs,
+        radius_mm=None if radius is None else float(radius),
+        curved_direction=np.asarray(pose.T_cam_target)[:3, 0],
+    )
+
+
+def uncertainty_inputs(
+    cap: Capture,
+    pre: Preprocessed,
+    surface: reconstruct.Surface,
+    points: np.ndarray,
+    judged: np.ndarray,
+) -> uncertainty.Inputs:
+    """What :func:`pipeline.uncertainty.propagate` needs of one view, ``judged``: the pixels to qualify."""
     images, lights = pre.images, cap.lights
     if surface.refinement is not None:  # the normals came from the refitted lights
         refined = surface.refinement.lights
@@ -530,7 +585,7 @@ def _qualify(
     board = rig.board or {}
     corners = board.get("inner_corners")
     own_noise, dark_noise = _raw_noise(cap, lights)
-    inputs = uncertainty.Inputs(
+    return uncertainty.Inputs(
         images=images,
         valid=pre.valid,
         lights=lights,
@@ -544,12 +599,6 @@ def _qualify(
         board_corners=int(np.prod(corners)) if corners else None,
         own_noise=own_noise,
         dark_noise=dark_noise,
-    )
-    radius = pose.fitted_radius_mm
-    return uncertainty.propagate(
-        inputs,
-        radius_mm=None if radius is None else float(radius),
-        curved_direction=np.asarray(pose.T_cam_target)[:3, 0],
     )
 
 

@@ -14,6 +14,7 @@ from ..formats import (
     CAPTURE_FORMAT,
     CaptureFile,
     InputError,
+    Station,
     StereoCalibrationFile,
 )
 from ..lights import CAMERA_HEAD_RADIUS_MM, Lights
@@ -49,6 +50,9 @@ class Capture:
     working_distance_mm : float or None
     source : Path
         The folder or .zip the bundle was read from.
+    station : pipeline.formats.Station or None
+        Where the plate stood on the conveyor (a station of a plate longer than the view,
+        docs/stations.md); None for a plate measured in one view.
     """
 
     plate_id: str
@@ -62,6 +66,7 @@ class Capture:
     stereo_right: np.ndarray | None
     working_distance_mm: float | None
     source: Path
+    station: Station | None = None
 
     @property
     def n_lights(self) -> int:
@@ -237,6 +242,7 @@ def _load_capture(bundle: _Bundle, source: Path, *, workers: int | None) -> Capt
         stereo_right=named.get("right"),
         working_distance_mm=cap.working_distance_mm,
         source=source,
+        station=cap.station,
     )
 
 

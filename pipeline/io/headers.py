@@ -11,6 +11,7 @@ from PIL import Image, UnidentifiedImageError
 from ..camera import StereoRig
 from ..formats import (
     InputError,
+    Station,
 )
 from ..lights import Lights
 from .bundle import MAX_ZIP_RATIO, MAX_ZIP_TOTAL_BYTES, _Bundle, _open_bundle
@@ -63,7 +64,7 @@ class CaptureHeader:
     ----------
     label : str
         How error messages name the bundle's capture.json (``<bundle.zip>:capture.json``).
-    plate_id, captured_at, rig, bit_depth, lights, working_distance_mm
+    plate_id, captured_at, rig, bit_depth, lights, working_distance_mm, station
         As in :class:`Capture`.
     images : tuple of ImageHeader
         Every image file the bundle names: photometric images in order, then the dark frame
@@ -78,6 +79,7 @@ class CaptureHeader:
     lights: Lights
     working_distance_mm: float | None
     images: tuple[ImageHeader, ...]
+    station: Station | None = None
 
     @property
     def n_lights(self) -> int:
@@ -159,6 +161,7 @@ def read_capture_header(
         lights=lights,
         working_distance_mm=cap.working_distance_mm,
         images=headers,
+        station=cap.station,
     )
 
 

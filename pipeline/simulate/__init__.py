@@ -24,6 +24,7 @@ Modules, one job each:
 - :mod:`~pipeline.simulate.texture`: the plate's, the conveyor's and the floor's albedo;
 - :mod:`~pipeline.simulate.rig`: the simulated binocular head and its sensor;
 - :mod:`~pipeline.simulate.capture`: :func:`simulate_capture`, a capture bundle with its truth;
+- :mod:`~pipeline.simulate.stations`: :func:`simulate_stations`, a plate longer than the view at conveyor stations;
 - :mod:`~pipeline.simulate.targets`: the nominal target written with it (analytic or a mesh);
 - :mod:`~pipeline.simulate.boards`: :func:`render_calibration_pairs`, checkerboard pairs for calibration.
 
@@ -58,6 +59,7 @@ from .scene import (
     Support,
     rail_supports,
 )
+from .stations import simulate_stations, station_pose
 from .targets import plate_mesh
 
 __all__ = [
@@ -85,4 +87,6 @@ __all__ = [
     "render_calibration_pairs",
     "render_radiance",
     "simulate_capture",
+    "simulate_stations",
+    "station_pose",
 ]

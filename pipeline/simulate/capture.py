@@ -340,6 +340,8 @@ def simulate_capture(
     tolerance_mm: float = 2.0,
     seed: int = 0,
     workers: int | None = None,
+    pose: np.ndarray | None = None,
+    station: dict[str, Any] | None = None,
 ) -> Path:
     """Render a capture bundle of a plate with known truth.
 
@@ -360,6 +362,12 @@ def simulate_capture(
     workers : int, optional
         Threads that encode and write the images while the next ones render (None:
         :func:`pipeline.parallel.default_workers`); the output does not depend on it.
+    pose : (4, 4) float or None
+        ``T_cam_plate`` in place of :func:`~pipeline.simulate.plate_pose` (a station of a long plate
+        that the conveyor moved under the head, :func:`~pipeline.simulate.simulate_stations`). Point
+        lights then stay where ``plate_pose`` would put them (they belong to the head, not the plate).
+    station : dict or None
+        Written as capture.json's ``station`` (``index``, ``travel_mm``, ``direction``).
 
     Returns
     -------
@@ -389,9 +397,11 @@ def simulate_capture(
     )
     conveyor_seed = int(seeds[5].generate_state(1)[0])
     scene = _scene(plate, capture, rig, tex_seed, conveyor_seed)
+    if pose is not None:
+        scene = _Scene(scene.plate, np.asarray(pose, np.float64), scene.albedo, scene.conveyor)
     spread = capture.intensity_spread
     intensities = rng_lights.uniform(1.0 - spread, 1.0 + spread, capture.n_lights)
-    centre = scene.T_cam_plate[:3, 3]
+    centre = plate_pose(plate)[:3, 3] if pose is not None else scene.T_cam_plate[:3, 3]
     lights = capture.lights(centre, intensities)
     written = _bumped(lights, centre, capture.light_error_deg, rng_lights)
     if lights.any_point and capture.manifest_lights == "nominal":
@@ -406,7 +416,9 @@ def simulate_capture(
         workers or default_workers(),
     )
     _write_truth(out, scene, rig, hits_raw, lights, capture)
-    _write_documents(out, rig, plate, capture, plate_id, tolerance_mm, image_names, written)
+    _write_documents(
+        out, rig, plate, capture, plate_id, tolerance_mm, image_names, written, station
+    )
     return out
 
 
@@ -682,6 +694,7 @@ def _write_documents(
     tolerance_mm: float,
     image_names: list[str],
     written: Lights,
+    station: dict[str, Any] | None = None,
 ) -> None:
     """``calibration.json``, ``target.json`` (and its mesh) and ``capture.json``, each checked against its format."""
     calibration_doc = calibration_document(rig)
@@ -704,5 +717,7 @@ def _write_documents(
         capture_obj["stereo"] = {"left": "stereo_left.png", "right": "stereo_right.png"}
     if capture.working_distance_mm is not None:
         capture_obj["working_distance_mm"] = float(capture.working_distance_mm)
+    if station is not None:
+        capture_obj["station"] = station
     CaptureFile.model_validate(capture_obj)
     (out / "capture.json").write_text(json.dumps(capture_obj, indent=2))
