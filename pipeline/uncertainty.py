@@ -171,7 +171,9 @@ def propagate(
     scale_px = _integration_scale_px(x.fusion, extent_px)
     var_ps = _photometric_var_mm2(x, mask, scale_px, step)
     u_corr = np.zeros(grid.shape)
-    if x.fusion is not None:  # the chosen correction's noise, and what the next finer one would change
+    if (
+        x.fusion is not None
+    ):  # the chosen correction's noise, and what the next finer one would change
         for part in (x.fusion.correction_sd_mm, x.fusion.model_sd_mm):
             if part is not None:
                 u_corr = np.hypot(u_corr, np.nan_to_num(part[::step, ::step].astype(np.float64)))
