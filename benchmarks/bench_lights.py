@@ -34,6 +34,7 @@ CASES = (
     ("near-field, positions given", dict(NEAR)),
     ("near-field, nominal directions", dict(NEAR, manifest_lights="nominal")),
     ("distant, written 1 deg off", dict(light_error_deg=1.0)),
+    ("glare, 18 distant lights", dict(n_lights=18, specular=0.5)),
     ("glare, 18 LEDs, nominal", dict(NEAR, n_lights=18, specular=0.5, manifest_lights="nominal")),
     ("glare, 18 LEDs, positions", dict(NEAR, n_lights=18, specular=0.5)),
 )

@@ -4,8 +4,9 @@ Brightness alone cannot tell a plate from a shop floor, supports or a conveyor t
 make as bright; geometry can. The stereo pair puts the plate and everything around it at depths
 hundreds of millimetres apart, so the plate is found as the near, smooth sheet of the stereo depth:
 
-1. *Candidates* (:func:`candidate_mask`): pixels that are not dark (brightest photometric sample at
-   least ``dark_fraction`` of the image's bright level). A dark conveyor is excluded here; a lit floor
+1. *Candidates* (:func:`candidate_mask`): pixels that are not dark (their brightness -- the pipeline
+   gives the brightest photometric sample once the brightest 30 % are set aside, so that a glossy
+   conveyor's highlights do not light it -- at least ``dark_fraction`` of the image's bright level). A dark conveyor is excluded here; a lit floor
    is not. This is also the region the stereo pair should be matched over.
 2. *Surface*: a smooth surface, inverse depth ``1/z`` as a polynomial in the normalised image
    coordinates ``(x, y) = K^-1 (u, v, 1)`` (exact for a plane; a curved plate at 3 m is within a few

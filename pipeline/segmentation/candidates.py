@@ -30,8 +30,9 @@ def candidate_mask(
     Parameters
     ----------
     brightness : (H, W) array_like of float
-        Brightest photometric sample per pixel (any linear unit, e.g. fractions of full scale after
-        dark subtraction and intensity normalisation); NaN counts as dark.
+        A bright photometric sample per pixel (any linear unit, e.g. fractions of full scale after
+        dark subtraction and intensity normalisation; the pipeline gives
+        :attr:`pipeline.preprocess.Preprocessed.brightness`); NaN counts as dark.
     seen : (H, W) bool, optional
         Pixels that have samples at all (False where the undistorted ray leaves the raw image).
     dark_fraction : float
