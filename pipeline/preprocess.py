@@ -107,15 +107,15 @@ def preprocess(
     -----
     The plate mask is the source paper's adaptive threshold: Otsu's threshold
     (chosen from the histogram of this capture, not a fixed level) on the
-    per-pixel maximum over the lights, then the largest connected component
-    with its holes filled; joined with the same on the pixel's brightest
-    sample once its brightest HIGHLIGHT_SHARE are set aside. On a glossy plate
+    per-pixel maximum over the lights, joined with the same on the pixel's
+    brightest sample once its brightest HIGHLIGHT_SHARE are set aside, then
+    the largest connected component with its holes filled. On a glossy plate
     the highlights of a few lights make a third, brighter population of the
     maxima, and Otsu's threshold of the maxima alone fell between the plate's
     highlights and its body, leaving a quarter of the plate out (18 lights, a
     lobe half as bright as the diffuse part); the brightness without the
     highlights alone loses a dim rim that few lights reach (near-field LEDs'
-    corners). Each mask lies on the plate; their union keeps both parts.
+    corners). Each lies on the plate; their union keeps both parts.
     """
     if not 0.0 <= shadow_fraction < 1.0:
         raise ValueError(f"shadow_fraction: expected a value in [0, 1), got {shadow_fraction}")
@@ -164,11 +164,9 @@ def preprocess(
     with ThreadPoolExecutor(max_workers=workers or default_workers()) as pool:
         any_saturated = any(list(pool.map(one, range(n))))  # list: every image must be done
         _brightest(images, brightest, int(HIGHLIGHT_SHARE * n), brightness)
-        # what either brightness tells from the dark: the maxima keep a rim that few lights reach,
-        # the maxima without their highlights keep a glossy plate's body (see Notes)
-        by_maxima = pool.submit(plate_mask, brightest, erode_px=erode_px)
-        union = plate_mask(brightness, erode_px=erode_px) | by_maxima.result()
-    mask = _fill_holes(union) & seen
+    # what either brightness tells from the dark: the maxima keep a rim that few lights reach, the
+    # maxima without their highlights keep a glossy plate's body (see Notes)
+    mask = plate_mask(brightest, erode_px=erode_px, highlight_free=brightness) & seen
     valid = np.empty((n, h, w), bool)
     n_lit, n_saturated = _validity(
         images, brightest, saturated, any_saturated, seen, mask, np.float32(shadow_fraction), valid
@@ -242,7 +240,11 @@ def _validity(
 
 
 def plate_mask(
-    brightness: np.ndarray, *, erode_px: int = 3, min_fraction: float = 0.02
+    brightness: np.ndarray,
+    *,
+    erode_px: int = 3,
+    min_fraction: float = 0.02,
+    highlight_free: np.ndarray | None = None,
 ) -> np.ndarray:
     """Tell the plate from the conveyor by an adaptive (Otsu) threshold.
 
@@ -254,6 +256,10 @@ def plate_mask(
         Erosion of the final mask, pixels.
     min_fraction : float
         The plate must cover at least this fraction of the image.
+    highlight_free : (H, W) float, optional
+        A second brightness of the same pixels, the brightest samples once the highlights are set
+        aside, thresholded by its own Otsu level: a pixel bright in either is plate (see
+        :func:`preprocess`, Notes).
 
     Returns
     -------
@@ -265,19 +271,9 @@ def plate_mask(
         When the plate covers less than ``min_fraction`` of the image or the
         image has no contrast.
     """
-    b = np.asarray(brightness, dtype=np.float32)
-    if np.isnan(b).any():
-        b = np.nan_to_num(b, nan=0.0)
-    # smooth the texture so the threshold sees the plate, not its rust spots or a single highlight
-    smooth = cv2.GaussianBlur(b, (0, 0), 2.0)
-    hi = float(smooth.max())
-    if not hi > 0:
-        raise CaptureError("photometric images: no light on the plate (all images dark)")
-    # 0..255: negative values (dark-subtracted noise) to 0 first
-    eight = cv2.convertScaleAbs(
-        cv2.threshold(smooth, 0.0, 0.0, cv2.THRESH_TOZERO)[1], alpha=255.0 / hi
-    )
-    _, binary = cv2.threshold(eight, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    binary = _otsu_binary(brightness)
+    if highlight_free is not None:
+        binary |= _otsu_binary(highlight_free)
     binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, np.ones((5, 5), np.uint8))
     n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=4)
     if n <= 1:
@@ -299,6 +295,24 @@ def plate_mask(
             f"expected at least {100 * min_fraction:.0f} %"
         )
     return mask
+
+
+def _otsu_binary(brightness: np.ndarray) -> np.ndarray:
+    """(H, W) uint8, 1 above Otsu's threshold of the smoothed brightness."""
+    b = np.asarray(brightness, dtype=np.float32)
+    if np.isnan(b).any():
+        b = np.nan_to_num(b, nan=0.0)
+    # smooth the texture so the threshold sees the plate, not its rust spots or a single highlight
+    smooth = cv2.GaussianBlur(b, (0, 0), 2.0)
+    hi = float(smooth.max())
+    if not hi > 0:
+        raise CaptureError("photometric images: no light on the plate (all images dark)")
+    # 0..255: negative values (dark-subtracted noise) to 0 first
+    eight = cv2.convertScaleAbs(
+        cv2.threshold(smooth, 0.0, 0.0, cv2.THRESH_TOZERO)[1], alpha=255.0 / hi
+    )
+    binary: np.ndarray = cv2.threshold(eight, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)[1]
+    return binary
 
 
 def _fill_holes(mask: np.ndarray) -> np.ndarray:
