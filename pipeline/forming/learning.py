@@ -512,10 +512,13 @@ class Fit:
         )
         var_par = max(float(grad @ cov @ grad) - peak.g_peak**2 * (peak.var_fit - peak.var_x), 0.0)
         # the old peak's share is that pass's scatter, seen through the fit: it takes the scatter's
-        # degrees of freedom, not the known share's
+        # degrees of freedom, not the known share's, and with them the t's scale: the fit weighed
+        # the rows with the scatter's posterior mean variance nu s^2 / (nu - 2), which the t's
+        # tails already carry
         var_peak = min(peak.g_peak**2 * peak.var_x, var_par)
+        nu = max(self.scatter_dof, 3.0)
         g_d = (self._single(plate, machine_id, displacement_mm + _H_D, theta)[1] - ku_new) / _H_D
-        var_scatter = (g_d * self.scatter_mm) ** 2 + var_peak
+        var_scatter = (g_d * self.scatter_mm) ** 2 + var_peak * (nu - 2.0) / nu
         var_par -= var_peak
         var = var_par + var_scatter + _inspection_variance(mean, plate, self.priors)
         return self._prediction(
