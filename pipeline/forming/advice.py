@@ -293,19 +293,7 @@ def aim(
         return min(safe, bounded, key=lambda pred: pred.quantile(p_hi))
 
     warnings: list[str] = []
-    # the least displacement that loads the plate beyond its earlier passes
-    peak = float(np.max(fitted.curvatures(plate)[0], initial=0.0))
-    d_lo = 1e-3
-    if peak > 0:
-        if predict(d_max).loaded_curvature <= peak:
-            raise FormingError(
-                f"the plate was loaded beyond what {machine.machine_id} reaches at its deepest "
-                f"setting ({d_max:.1f} mm)"
-            )
-        d_lo = optimize.brentq(lambda d: predict(d).loaded_curvature - peak, 1e-3, d_max, xtol=1e-4)
-    stalled = _stalled(fitted, plate, machine.machine_id)
-    if stalled is not None:  # never again a setting shown not to move the plate
-        d_lo = min(max(d_lo, stalled + settings.setting_step_mm), d_max)
+    d_lo, stalled = _least_setting(fitted, plate, machine, predict, d_max, settings)
     if predict_safe(d_max).quantile(p_hi) < limit and predict(d_max).median < kt:
         raise FormingError(
             f"radius {target.radius_mm:g} mm needs more than {machine.machine_id}'s deepest setting "
@@ -353,6 +341,38 @@ def aim(
         "yield_factor": factor,
         "warnings": warnings,
     }
+
+
+def _least_setting(
+    fitted: Fit,
+    plate: PlateRecord,
+    machine: Machine,
+    predict: Callable[[float], Prediction],
+    d_max: float,
+    settings: AimSettings,
+) -> tuple[float, float | None]:
+    """The least displacement the next pass may take, mm, and the deepest setting shown not to move
+    the plate (None: none): the one that loads the plate to its earlier passes' peak, and at least
+    ``settings.setting_step_mm`` beyond a setting shown not to move it (never that setting again).
+
+    Raises
+    ------
+    FormingError
+        The plate was loaded beyond what the machine reaches.
+    """
+    peak = float(np.max(fitted.curvatures(plate)[0], initial=0.0))
+    d_lo = 1e-3
+    if peak > 0:
+        if predict(d_max).loaded_curvature <= peak:
+            raise FormingError(
+                f"the plate was loaded beyond what {machine.machine_id} reaches at its deepest "
+                f"setting ({d_max:.1f} mm)"
+            )
+        d_lo = optimize.brentq(lambda d: predict(d).loaded_curvature - peak, 1e-3, d_max, xtol=1e-4)
+    stalled = _stalled(fitted, plate, machine.machine_id)
+    if stalled is not None:
+        d_lo = min(max(d_lo, stalled + settings.setting_step_mm), d_max)
+    return d_lo, stalled
 
 
 def _first_pass_bounds(
