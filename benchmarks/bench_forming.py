@@ -26,7 +26,15 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.forming.advice import AimSettings
-from pipeline.forming.campaign import GRADES, TruePhysics, random_batch, run_campaign, summary
+from pipeline.forming.campaign import (
+    GRADES,
+    STRESS,
+    TruePhysics,
+    random_batch,
+    run_campaign,
+    stress_plates,
+    summary,
+)
 from pipeline.forming.records import Machine
 
 MACHINE = Machine(
@@ -158,44 +166,6 @@ def main():
             f"{sum(s['plates'] - s['done'] for _, m, s, _ in rows if m == mode)}; mean after the "
             f"first plate {np.mean(after_first):.3f}, worst seed {max(after_first):.3f}"
         )
-
-
-#: The stress cases of issue 27 (``--stress``): name -> (physics overrides, plates).
-STRESS = {
-    "model": ({}, "mixed"),
-    "scatter 0.2 mm": ({"displacement_scatter_mm": 0.2}, "mixed"),
-    "work hardening 2 %": ({"hardening": 0.98}, "mixed"),
-    "geometry 3 % short": ({"displacement_gain": 0.97}, "mixed"),
-    "geometry 3 % long": ({"displacement_gain": 1.03}, "mixed"),
-    "batch yield 1.40-1.50": ({}, "high-yield"),
-    "new grade after 2 plates": ({}, "new-grade"),
-}
-
-
-def stress_plates(kind: str, n: int, seed: int) -> list:
-    """A stress case's plates: ``mixed`` (:func:`batch`), ``high-yield`` (one heat whose yield lies
-    1.40-1.50 x its nominal grade's, far above the prior's 1.17 +- 0.06), ``new-grade`` (the mixed
-    plates, then from the middle of the campaign a grade and thickness never seen, EH40, yield 1.25-1.45
-    x nominal: its third plate is advised after two)."""
-    rng = np.random.default_rng(seed)
-    if kind == "mixed":
-        return random_batch(n, rng)
-    if kind == "high-yield":
-        thickness = float(rng.choice([15.0, 20.0, 25.0]))
-        return random_batch(
-            n, rng, thicknesses_mm=[thickness], grades=[GRADES[0]], yield_factors=(1.40, 1.50)
-        )
-    old = random_batch(n // 2, rng)
-    thickness = float(rng.choice([12.0, 18.0, 22.0]))
-    new = random_batch(
-        n - n // 2,
-        rng,
-        thicknesses_mm=[thickness],
-        grades=[("EH40", 390.0)],
-        yield_factors=(1.25, 1.45),
-        prefix="N",
-    )
-    return old + new
 
 
 def stress(args) -> None:

@@ -78,7 +78,13 @@ class AimSettings:
     Attributes
     ----------
     over_probability : float
-        Allowed probability of ending tighter than ``target + over_band * band``.
+        Allowed probability that the plate ends tighter than ``target + over_band * band``: each
+        bending pass may take ``pass_probability``, this over ``planned_passes``.
+    planned_passes : int
+        The passes ``over_probability`` is split over (the union bound: a plate's risk is at most the
+        sum of its passes'). 1 (default): each advice keeps its own pass within it; 4 (a plate done
+        within 4 passes, each within a quarter) cost 0.2 passes a plate on the model's own physics
+        (docs/forming.md).
     over_band : float
         The share of the band the aim may use on the tight side (0.8: the inspection's pass limit sits at
         ~0.95 of the band, and the band's derivation is approximate).
@@ -92,9 +98,13 @@ class AimSettings:
     verdict_band : float
         The share of the band the inspection's verdict passes (0.95 on ray-cast cylinders): a plate
         past ``target + verdict_band * band`` is over-bent. A plate whose least move (a repeat of the
-        deepest setting, or the next beyond one shown not to move it) is past the aim's margin
-        (``over_band``) is given it while its risk of ending past this edge is within
-        ``over_probability``; else the advice gives no setting.
+        deepest setting, or ``setting_step_mm`` beyond one shown not to move it) is past the aim's
+        margin (``over_band``) gets the deepest setting from there whose risk of ending past this
+        edge is ``over_probability`` (not beyond the one whose median is the target); when even the
+        least move's risk exceeds it, no setting.
+    setting_step_mm : float
+        The least difference of two settings the machine tells apart, mm: the next setting after one
+        shown not to move the plate is at least this much deeper (never the same setting again).
     two_pass_fraction : float
         When one pass would land within the band with less than even odds, its spread mostly the
         model's parameters (which a shorter step shrinks), the approach takes two passes, the first
@@ -111,6 +121,13 @@ class AimSettings:
     reverse_open_probability: float = 0.05
     two_pass_fraction: float = 0.6
     verdict_band: float = 0.95
+    setting_step_mm: float = 0.1
+    planned_passes: int = 1
+
+    @property
+    def pass_probability(self) -> float:
+        """The over-bending risk one bending pass may take: ``over_probability / planned_passes``."""
+        return self.over_probability / self.planned_passes
 
     def __post_init__(self) -> None:
         if not 0 < self.over_probability < 0.5:
@@ -136,6 +153,14 @@ class AimSettings:
             )
         if not 0 < self.over_band <= 1:
             raise ValueError(f"over_band: expected a number in (0, 1], got {self.over_band!r}")
+        if not (math.isfinite(self.setting_step_mm) and self.setting_step_mm > 0):
+            raise ValueError(
+                f"setting_step_mm: expected a positive number, got {self.setting_step_mm!r}"
+            )
+        if not (isinstance(self.planned_passes, int) and self.planned_passes >= 1):
+            raise ValueError(
+                f"planned_passes: expected a positive integer, got {self.planned_passes!r}"
+            )
         if not (isinstance(self.min_rows, int) and self.min_rows >= 0):
             raise ValueError(f"min_rows: expected a non-negative integer, got {self.min_rows!r}")
 
@@ -249,7 +274,7 @@ def aim(
     t = target.material.thickness_mm
     kt, band = target_curvature(target), curvature_band(target)
     limit = kt + settings.over_band * band
-    p_hi = 1.0 - settings.over_probability
+    p_hi = 1.0 - settings.pass_probability
     d_max = bender.max_displacement_mm(machine, t)
     factor, c_floor = _first_pass_bounds(fitted, plate, machine, settings)
 
@@ -268,20 +293,8 @@ def aim(
         return min(safe, bounded, key=lambda pred: pred.quantile(p_hi))
 
     warnings: list[str] = []
-    # the least displacement that loads the plate beyond its earlier passes
-    peak = float(np.max(fitted.curvatures(plate)[0], initial=0.0))
-    d_lo = 1e-3
-    if peak > 0:
-        if predict(d_max).loaded_curvature <= peak:
-            raise FormingError(
-                f"the plate was loaded beyond what {machine.machine_id} reaches at its deepest "
-                f"setting ({d_max:.1f} mm)"
-            )
-        d_lo = optimize.brentq(lambda d: predict(d).loaded_curvature - peak, 1e-3, d_max, xtol=1e-4)
-    stalled = _stalled(fitted, plate, machine.machine_id)
-    if stalled is not None:  # never again a setting shown not to move the plate
-        d_lo = min(max(d_lo, stalled + fitted.scatter_mm), d_max)
-    if predict_safe(d_max).quantile(p_hi) < limit and predict(d_max).mean < kt:
+    d_lo, stalled = _least_setting(fitted, plate, machine, predict, d_max, settings)
+    if predict_safe(d_max).quantile(p_hi) < limit and predict(d_max).median < kt:
         raise FormingError(
             f"radius {target.radius_mm:g} mm needs more than {machine.machine_id}'s deepest setting "
             f"({d_max:.1f} mm, loaded radius {bender.min_loaded_radius_mm(machine, t):.0f} mm)"
@@ -291,20 +304,27 @@ def aim(
         return predict_safe(d).quantile(p_hi) - limit
 
     def centre(d: float) -> float:
-        return predict(d).mean - kt
+        return predict(d).median - kt
 
-    candidates = []
-    for g in (safe, centre):
+    def root(g: Callable[[float], float]) -> float:
+        """The least displacement from ``d_lo`` where ``g`` reaches 0 (``d_max`` if it never does)."""
         if g(d_lo) >= 0:
-            candidates.append(d_lo)
-        elif g(d_max) > 0:
-            candidates.append(optimize.brentq(g, d_lo, d_max, xtol=1e-3))
-    d = min(candidates)
+            return d_lo
+        return d_max if g(d_max) <= 0 else optimize.brentq(g, d_lo, d_max, xtol=1e-3)
+
+    d_centre = root(centre)
+    d = min(root(safe), d_centre)
     # the least move already past the aim's margin: given when it keeps the risk of ending past the
     # band as the inspection judges it within the allowed probability, else no setting
     over_edge = kt + settings.verdict_band * band
     least = safe(d_lo) >= 0
-    blocked = least and predict_safe(d_lo).probability_above(over_edge) > settings.over_probability
+    blocked = least and predict_safe(d_lo).probability_above(over_edge) > settings.pass_probability
+    if least and not blocked:
+        # the deepest setting whose risk of ending past the verdict's edge is the allowed one
+        def edge(x: float) -> float:
+            return predict_safe(x).probability_above(over_edge) - settings.pass_probability
+
+        d = min(root(edge), d_centre)
     split = None if least else _two_pass(plate, predict, d_lo, d, settings)
     if split is not None:
         d = split[0]
@@ -323,6 +343,38 @@ def aim(
     }
 
 
+def _least_setting(
+    fitted: Fit,
+    plate: PlateRecord,
+    machine: Machine,
+    predict: Callable[[float], Prediction],
+    d_max: float,
+    settings: AimSettings,
+) -> tuple[float, float | None]:
+    """The least displacement the next pass may take, mm, and the deepest setting shown not to move
+    the plate (None: none): the one that loads the plate to its earlier passes' peak, and at least
+    ``settings.setting_step_mm`` beyond a setting shown not to move it (never that setting again).
+
+    Raises
+    ------
+    FormingError
+        The plate was loaded beyond what the machine reaches.
+    """
+    peak = float(np.max(fitted.curvatures(plate)[0], initial=0.0))
+    d_lo = 1e-3
+    if peak > 0:
+        if predict(d_max).loaded_curvature <= peak:
+            raise FormingError(
+                f"the plate was loaded beyond what {machine.machine_id} reaches at its deepest "
+                f"setting ({d_max:.1f} mm)"
+            )
+        d_lo = optimize.brentq(lambda d: predict(d).loaded_curvature - peak, 1e-3, d_max, xtol=1e-4)
+    stalled = _stalled(fitted, plate, machine.machine_id)
+    if stalled is not None:
+        d_lo = min(max(d_lo, stalled + settings.setting_step_mm), d_max)
+    return d_lo, stalled
+
+
 def _first_pass_bounds(
     fitted: Fit, plate: PlateRecord, machine: Machine, settings: AimSettings
 ) -> tuple[float | None, float | None]:
@@ -339,7 +391,7 @@ def _first_pass_bounds(
     if c_mean > fitted.priors.compliance_floor_mm_per_mn:
         c_floor = max(
             fitted.priors.compliance_floor_mm_per_mn,
-            c_mean + c_sd * float(stats.norm.ppf(settings.over_probability)),
+            c_mean + c_sd * float(stats.norm.ppf(settings.pass_probability)),
         )
     return factor, c_floor
 
@@ -469,7 +521,7 @@ def advise(
         "bend",
         machine_id,
         aimed["displacement_mm"],
-        _surface_radius(target, pred.mean),
+        _surface_radius(target, pred.median),
         (_surface_radius(target, k_hi), _surface_radius(target, k_lo)),
         basis,
     )
@@ -487,6 +539,7 @@ def _aim_basis(
         "probability_within_band": pred.probability_above(kt - band)
         - pred.probability_above(kt + band),
         "over_probability": settings.over_probability,
+        "pass_probability": settings.pass_probability,
         "over_band": settings.over_band,
         "yield_factor_aimed": aimed["yield_factor"],
     }
@@ -615,7 +668,7 @@ def _reverse_advice(
         )
     else:
         d = reverse.aim_after_reverse(
-            predictor, kt, kt + settings.over_band * band, settings.over_probability, d_max
+            predictor, kt, kt + settings.over_band * band, settings.pass_probability, d_max
         )
     ks = predictor.samples(d, flipped=flipped)
     k_mid, k_lo, k_hi = (float(np.quantile(ks, p)) for p in (0.5, 0.025, 0.975))
@@ -676,9 +729,9 @@ def _two_pass(
         return None
     k_now = measured_curvature(plate, plate.passes[-1].measured_radius_mm)
     goal = k_now + settings.two_pass_fraction * (kt - k_now)
-    if goal <= k_now or predict(d_lo).mean >= goal or predict(d).mean <= goal:
+    if goal <= k_now or predict(d_lo).median >= goal or predict(d).median <= goal:
         return None
-    d_first = float(optimize.brentq(lambda x: predict(x).mean - goal, d_lo, d, xtol=1e-3))
+    d_first = float(optimize.brentq(lambda x: predict(x).median - goal, d_lo, d, xtol=1e-3))
     words = (
         f"the predicted spread fills the tolerance band (one pass would land within it with "
         f"{p_in:.0%}): approach in two passes, this one to {settings.two_pass_fraction:.0%} of the "
@@ -720,7 +773,7 @@ def _scatter_fills_band(
     )
     risk = (
         f"would end past the band with {safe.probability_above(over_edge):.2%} (allowed: "
-        f"{settings.over_probability:.1%})"
+        f"{settings.pass_probability:.2%})"
     )
     if given:
         return (

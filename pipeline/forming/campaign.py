@@ -257,3 +257,56 @@ def summary(outcomes: Sequence[PlateOutcome]) -> dict[str, Any]:
         "mean_passes_after_first": float(passes[1:].mean()) if passes.size > 1 else math.nan,
         "max_passes": int(passes.max()) if passes.size else 0,
     }
+
+
+#: Issue 27's stress cases: name -> (the hidden physics' departures from :class:`TruePhysics`'s
+#: defaults, the kind of plates for :func:`stress_plates`).
+STRESS: dict[str, tuple[dict[str, float], str]] = {
+    "model": ({}, "mixed"),
+    "scatter 0.2 mm": ({"displacement_scatter_mm": 0.2}, "mixed"),
+    "work hardening 2 %": ({"hardening": 0.98}, "mixed"),
+    "geometry 3 % short": ({"displacement_gain": 0.97}, "mixed"),
+    "geometry 3 % long": ({"displacement_gain": 1.03}, "mixed"),
+    "batch yield 1.40-1.50": ({}, "high-yield"),
+    "new grade after 2 plates": ({}, "new-grade"),
+}
+
+
+def stress_plates(kind: str, n: int, seed: int) -> list[SimPlate]:
+    """A stress case's ``n`` plates, drawn from ``seed``.
+
+    Parameters
+    ----------
+    kind : {"mixed", "high-yield", "new-grade"}
+        ``mixed``: :func:`random_batch`; ``high-yield``: one heat of one grade and thickness whose
+        yield lies 1.40-1.50 x its nominal grade's (far above the prior's 1.17 +- 0.06);
+        ``new-grade``: mixed plates, then from the middle of the campaign a grade and thickness
+        never seen (EH40, 390 MPa), 1.25-1.45 x nominal, so that its third plate is advised after two.
+    n : int
+    seed : int
+
+    Returns
+    -------
+    list of SimPlate
+    """
+    rng = np.random.default_rng(seed)
+    if kind == "mixed":
+        return random_batch(n, rng)
+    if kind == "high-yield":
+        thickness = float(rng.choice([15.0, 20.0, 25.0]))
+        return random_batch(
+            n, rng, thicknesses_mm=[thickness], grades=[GRADES[0]], yield_factors=(1.40, 1.50)
+        )
+    if kind != "new-grade":
+        raise ValueError(f"kind: expected mixed, high-yield or new-grade, got {kind!r}")
+    old = random_batch(n // 2, rng)
+    thickness = float(rng.choice([12.0, 18.0, 22.0]))
+    new = random_batch(
+        n - n // 2,
+        rng,
+        thicknesses_mm=[thickness],
+        grades=[("EH40", 390.0)],
+        yield_factors=(1.25, 1.45),
+        prefix="N",
+    )
+    return old + new

@@ -39,8 +39,16 @@ parameters' covariance carries the doubt about the scatter it was weighed with. 
 (:meth:`Fit.predict`): with little data the tails are wide, and the advice aims further to the safe side.
 
 A plate's next pass is predicted from its latest measured shape plus the model's increment to the new
-pass (:meth:`Fit.predict`, :func:`latest_state`): the model is never exact, and a fit that compromises
-between a plate's passes must not move the starting point of its correction.
+pass (:meth:`Fit.predict`, :func:`latest_state`), the increment starting where the pass that made that
+shape really loaded the plate. Its setting is not that place: the pass scattered by ``x`` mm, and the
+shape it left is what the parameters need ``x`` to be (``u(theta, d_p + x) = k_a``, ``u`` the curvature
+after one pass). So ``x`` is the fitted parameters' (the scatter the fit attributes to that pass), with
+their uncertainty; passes that by the model loaded the plate beyond it but left the shape unchanged
+bound it from below (a truncated normal). A plate that ended short of its prediction had its peak
+pass scatter short, and its next pass moves it further than from the setting (taking ``x ~ N(0, s^2)``
+whatever the shape said made the aim under-predict that move and over-bend at a 0.2 mm scatter). A
+pass that does not load the plate beyond that peak leaves the shape: the prediction is
+``max(k_a, T)`` (:class:`Prediction`).
 
 A plate's own passes pin its factor; passes of other plates on the same machine pin the machine's
 compliance, and those of the same grade and thickness the group's mean factor and spread. A plate with
@@ -148,19 +156,23 @@ class Priors:
 
 @dataclass(frozen=True)
 class Prediction:
-    """The plate's mid-surface curvature after a next pass, as a Student-t distribution.
+    """The plate's mid-surface curvature after a next pass: ``max(floor, T)``, ``T`` a Student-t.
 
     Attributes
     ----------
     loaded_curvature : float
         The pass's loaded mid-surface curvature at the fitted parameters, 1/mm.
     mean, sd : float
-        Location and scale of the curvature after springback, 1/mm.
+        Location and scale of ``T``, the curvature after springback should the pass load the plate
+        beyond its peak, 1/mm.
     dof : float
         Degrees of freedom.
     scatter_sd : float
         The share of ``sd`` from the passes' displacement scatter (the new pass's and the old peak's),
         1/mm: the part a shorter step does not shrink.
+    floor : float
+        The plate's present curvature, 1/mm: a pass that does not load it beyond its peak leaves it
+        (``-inf``: no floor, a plate without an inspected shape).
     """
 
     loaded_curvature: float
@@ -168,12 +180,49 @@ class Prediction:
     sd: float
     dof: float
     scatter_sd: float = 0.0
+    floor: float = -np.inf
+
+    @property
+    def median(self) -> float:
+        """The median curvature after the pass, 1/mm."""
+        return max(self.floor, self.mean)
 
     def quantile(self, p: float) -> float:
-        return float(self.mean + self.sd * stats.t.ppf(p, self.dof))
+        return max(self.floor, float(self.mean + self.sd * stats.t.ppf(p, self.dof)))
 
     def probability_above(self, curvature: float) -> float:
+        if curvature < self.floor:
+            return 1.0
         return float(stats.t.sf((curvature - self.mean) / self.sd, self.dof))
+
+
+@dataclass(frozen=True)
+class _Peak:
+    """Where the pass that made a plate's latest shape really loaded it (:meth:`Fit._anchor_peak`).
+
+    Attributes
+    ----------
+    machine_id : str
+        That pass's machine.
+    displacement_mm : float
+        Its setting, mm.
+    x_fit : float
+        Its displacement error at the fitted parameters, mm.
+    mean_x : float
+        That error's mean given the passes that left the shape unchanged, mm (``x_fit`` without).
+    var_fit, var_x : float
+        Its variance from the parameters', and given those passes, mm^2.
+    g_peak : float
+        The shape's curvature per mm of that pass's displacement, 1/mm^2.
+    """
+
+    machine_id: str
+    displacement_mm: float
+    x_fit: float
+    mean_x: float
+    var_fit: float
+    var_x: float
+    g_peak: float
 
 
 @dataclass(frozen=True)
@@ -267,13 +316,15 @@ class Fit:
         """Distribution of the plate's curvature after one more pass (``plate`` must be in the fit).
 
         A plate with an inspected shape starts from it (:func:`latest_state`): the latest measured
-        curvature plus the model's increment from that shape to the new pass. The parameters'
-        uncertainty is propagated to first order (numerical gradient) through that increment (through
-        the curvature itself for a plate never inspected), the new pass adds its scatter, the pass that
-        set the old peak its own when the new pass goes beyond it, and the inspections their noise.
-        Degrees of freedom (:func:`_effective_dof`): the scatter's for the scatter's share of the
-        variance; the parameters' share is known, or as well as the plates' spread when the plate has
-        no inspected passes of its own and its factor is not given.
+        curvature plus the model's increment from where the pass that made it really loaded the plate
+        (:meth:`_anchor_peak`, :meth:`_beyond_anchor`) to the new pass, floored at that shape. The
+        parameters' uncertainty is propagated to first order (numerical gradient) through that
+        increment (through the curvature itself for a plate never inspected), the new pass adds its
+        scatter, and the next inspection its noise. A shape the model cannot place (flat, or no
+        permanent set) is started from with the old peak's scatter ``N(0, s^2)``. Degrees of freedom
+        (:func:`_effective_dof`): the scatter's for the scatter's share of the variance (the new
+        pass's and the old peak's); the parameters' share is known, or as well as the plates' spread
+        when the plate has no inspected passes of its own and its factor is not given.
 
         Parameters
         ----------
@@ -294,6 +345,12 @@ class Fit:
             self.mean, self.cov, {i: v for i, v in fixed.items() if v is not None}
         )
         anchor = latest_state(plate, self.curvatures(plate, theta)[0], self.priors)
+        sub = cov[np.ix_(idx, idx)]
+        peak = None if anchor is None else self._anchor_peak(plate, theta, idx, sub, anchor)
+        if peak is not None and anchor is not None:
+            return self._beyond_anchor(
+                plate, machine_id, displacement_mm, theta, idx, sub, anchor, peak
+            )
 
         def model(th: np.ndarray, d_shift: float = 0.0) -> tuple[float, float]:
             """Loaded curvature of the new pass and the predicted curvature after it (anchored)."""
@@ -304,63 +361,169 @@ class Fit:
             return float(kl[-1]), float(ku[-1] - ku[anchor.peak_pass])
 
         k_loaded, mean = model(theta)
-        grad = np.zeros(len(idx))
-        for j, i in enumerate(idx):
-            step = _H_C if j < len(idx) - 1 else _H_F
-            th = theta.copy()
-            th[i] += step
-            grad[j] = (model(th)[1] - mean) / step
-        var_par = max(float(grad @ cov[np.ix_(idx, idx)] @ grad), 0.0)
+        grad = self._gradient(lambda th: model(th)[1], theta, idx, mean)
+        var_par = max(float(grad @ sub @ grad), 0.0)
         g_d = (model(theta, _H_D)[1] - mean) / _H_D
         var_scatter = (g_d * self.scatter_mm) ** 2
         var = 0.0
         if anchor is not None:
-            # the increment starts from the measured state; when the new pass loads the plate beyond
-            # it, where that state's peak really was (its pass's scatter) shifts the increment too
+            # a shape the model cannot place (flat, or within the elastic range): the increment
+            # starts from it with the peak pass's own scatter
             mean += anchor.curvature
             var += anchor.variance
             if k_loaded > anchor.peak_loaded:
-                g_peak, shift_mm, sd_mm = self._peak_error(plate, theta, anchor)
-                mean -= g_peak * shift_mm
-                var_scatter += (g_peak * sd_mm) ** 2
+                q = plate.passes[anchor.peak_pass]
+                g_peak = (
+                    self._single(plate, q.machine_id, q.top_roll_displacement_mm + _H_D, theta)[1]
+                    - self._single(plate, q.machine_id, q.top_roll_displacement_mm, theta)[1]
+                ) / _H_D
+                var_scatter += (g_peak * self.scatter_mm) ** 2
         var += var_par + var_scatter + _inspection_variance(mean, plate, self.priors)
+        return self._prediction(plate, yield_factor, k_loaded, mean, var, var_par, var_scatter)
+
+    def _prediction(
+        self,
+        plate: PlateRecord,
+        yield_factor: float | None,
+        k_loaded: float,
+        mean: float,
+        var: float,
+        var_par: float,
+        var_scatter: float,
+        floor: float = -np.inf,
+    ) -> Prediction:
+        """The Student-t of a prediction from its variance's shares (:func:`_effective_dof`)."""
         own = self.rows_per_plate.get(plate.plate_id, 0) > 0 or yield_factor is not None
         dof = _effective_dof(
             var,
             (var_scatter, self.scatter_dof),
             (var_par, np.inf if own else self.spread_dof),
         )
-        return Prediction(k_loaded, mean, float(np.sqrt(var)), dof, float(np.sqrt(var_scatter)))
-
-    def _peak_error(
-        self, plate: PlateRecord, theta: np.ndarray, anchor: State
-    ) -> tuple[float, float, float]:
-        """How the anchor's unknown true peak shifts a prediction: ``(g, mean, sd)``.
-
-        ``g`` is the anchor's curvature per mm of the displacement of the pass that set its peak; the
-        error ``e`` of that pass's displacement is ``N(0, s^2)`` (``s`` the fitted scatter), unless
-        passes that loaded the plate beyond it by the model left the shape unchanged
-        (``anchor.unchanged``): each says ``e - e_j >= L_j``, the mm the model put it beyond the peak,
-        and ``e`` is then the normal conditioned on the largest of those bounds (mean and sd in mm,
-        moments of the truncated normal of ``e - e_j ~ N(0, 2 s^2)``).
-        """
-        passes = list(plate.passes)
-        p = anchor.peak_pass
-        q = passes[p]
-        passes[p] = RollPass(
-            q.machine_id, q.top_roll_displacement_mm + _H_D, q.measured_radius_mm, q.verdict
+        return Prediction(
+            k_loaded, mean, float(np.sqrt(var)), dof, float(np.sqrt(var_scatter)), floor
         )
-        kl0, ku0 = self.curvatures(plate, theta)
-        kl1, ku1 = self.curvatures(PlateRecord(plate.plate_id, plate.target, tuple(passes)), theta)
-        g_peak = float((ku1[p] - ku0[p]) / _H_D)
-        s = self.scatter_mm
-        slope = float((kl1[p] - kl0[p]) / _H_D)
-        if not anchor.unchanged or slope <= 0:
-            return g_peak, 0.0, s
-        lower_mm = max(float(kl0[j] - kl0[p]) / slope for j in anchor.unchanged)
-        su = float(np.sqrt(2.0) * s)
-        m, v = stats.truncnorm.stats(lower_mm / su, np.inf, moments="mv")
-        return g_peak, 0.5 * su * float(m), float(np.sqrt(0.5 * s * s + 0.25 * su * su * float(v)))
+
+    def _single(
+        self, plate: PlateRecord, machine_id: str, displacement_mm: float, theta: np.ndarray
+    ) -> tuple[float, float]:
+        """Loaded and unloaded curvature of the plate after one pass from flat (1/mm): by the
+        history rule, its shape after any pass that loads it beyond every earlier one."""
+        one = PlateRecord(plate.plate_id, plate.target, (RollPass(machine_id, displacement_mm),))
+        kl, ku = self.curvatures(one, theta)
+        return float(kl[0]), float(ku[0])
+
+    def _gradient(
+        self, f: Callable[[np.ndarray], float], theta: np.ndarray, idx: list[int], f0: float
+    ) -> np.ndarray:
+        """Forward-difference gradient of ``f`` over the parameters ``idx`` (machines' compliances
+        and gains, then the plate's factor last)."""
+        grad = np.zeros(len(idx))
+        for j, i in enumerate(idx):
+            step = _H_C if j < len(idx) - 1 else _H_F
+            th = theta.copy()
+            th[i] += step
+            grad[j] = (f(th) - f0) / step
+        return grad
+
+    def _anchor_peak(
+        self,
+        plate: PlateRecord,
+        theta: np.ndarray,
+        idx: list[int],
+        cov: np.ndarray,
+        anchor: State,
+    ) -> _Peak | None:
+        """Where the pass that made the plate's latest shape really loaded it (module docstring).
+
+        The pass's displacement error ``x`` (mm) is what its setting, at the parameters ``theta``,
+        needs to give the measured shape: ``u(theta, d_p + x) = k_a`` (``u`` the curvature after one
+        pass, ``k_a`` the shape's). It is the scatter the fit attributes to that pass, and it moves
+        with the parameters: ``dx/dtheta = -(du/dtheta) / (du/dd)``, so its variance is the
+        parameters' (``cov`` over ``idx``). Passes after it that by the model loaded the plate
+        beyond it but left the shape unchanged (``anchor.unchanged``) each say ``x - e_j >= L_j`` (the
+        mm the model put them beyond it, ``e_j ~ N(0, s^2)`` their own error): ``x`` is then
+        conditioned on ``z = x - e > L`` (``L`` the largest), ``z ~ N(x, v_x + s^2)`` truncated.
+
+        Returns None when the shape is not past the elastic range (flat, or no plastic set: the
+        model cannot place its peak).
+        """
+        q = plate.passes[anchor.peak_pass]
+        m, d_p, k_a = q.machine_id, q.top_roll_displacement_mm, anchor.curvature
+        if k_a <= 0:
+            return None
+        x = 0.0
+        for _ in range(20):
+            ku = self._single(plate, m, d_p + x, theta)[1]
+            g = (self._single(plate, m, d_p + x + _H_D, theta)[1] - ku) / _H_D
+            if not g > 0:
+                return None
+            step = (k_a - ku) / g
+            x += float(np.clip(step, -5.0, 5.0))
+            if abs(step) < 1e-6:
+                break
+        else:
+            return None
+        ku0 = self._single(plate, m, d_p + x, theta)[1]
+        g_peak = (self._single(plate, m, d_p + x + _H_D, theta)[1] - ku0) / _H_D
+        dx = -self._gradient(lambda th: self._single(plate, m, d_p + x, th)[1], theta, idx, ku0)
+        dx /= g_peak
+        v_x = max(float(dx @ cov @ dx), 0.0)
+        mean_x, var_x = x, v_x
+        if anchor.unchanged:
+            kl = self.curvatures(plate, theta)[0]
+            slope = (
+                self._single(plate, m, d_p + _H_D, theta)[0] - self._single(plate, m, d_p, theta)[0]
+            ) / _H_D
+            if slope > 0:
+                lower = max(float(kl[j] - kl[anchor.peak_pass]) / slope for j in anchor.unchanged)
+                s2 = self.scatter_mm**2
+                sz = float(np.sqrt(v_x + s2))
+                mz, vz = stats.truncnorm.stats((lower - x) / sz, np.inf, moments="mv")
+                w = v_x / (v_x + s2)
+                mean_x = x + w * sz * float(mz)
+                var_x = max(v_x - w * w * (v_x + s2 - sz * sz * float(vz)), 0.0)
+        return _Peak(m, d_p, x, mean_x, v_x, var_x, g_peak)
+
+    def _beyond_anchor(
+        self,
+        plate: PlateRecord,
+        machine_id: str,
+        displacement_mm: float,
+        theta: np.ndarray,
+        idx: list[int],
+        cov: np.ndarray,
+        anchor: State,
+        peak: _Peak,
+    ) -> Prediction:
+        """A prediction from the plate's latest shape whose peak :meth:`_anchor_peak` placed.
+
+        A pass that does not load the plate beyond that peak leaves the shape (its inspections' noise);
+        one that does gives the shape of that pass alone (the history rule): the measured shape plus
+        the model's increment from the peak, ``k_a + u(d) - u(d_p + x)``. Its variance: the
+        parameters' propagated through ``u(d) - u(d_p + x(theta))``, i.e. through ``u(d)`` itself
+        (``x`` moves with them), less what the unchanged passes told about ``x``; the new pass's
+        scatter; the new inspection's noise.
+        """
+        k_loaded, ku_new = self._single(plate, machine_id, displacement_mm, theta)
+        ku_peak = self._single(plate, peak.machine_id, peak.displacement_mm + peak.mean_x, theta)[1]
+        mean = anchor.curvature + ku_new - ku_peak
+        grad = self._gradient(
+            lambda th: self._single(plate, machine_id, displacement_mm, th)[1], theta, idx, ku_new
+        )
+        var_par = max(float(grad @ cov @ grad) - peak.g_peak**2 * (peak.var_fit - peak.var_x), 0.0)
+        # the old peak's share is that pass's scatter, seen through the fit: it takes the scatter's
+        # degrees of freedom, not the known share's, and with them the t's scale: the fit weighed
+        # the rows with the scatter's posterior mean variance nu s^2 / (nu - 2), which the t's
+        # tails already carry
+        var_peak = min(peak.g_peak**2 * peak.var_x, var_par)
+        nu = max(self.scatter_dof, 3.0)
+        g_d = (self._single(plate, machine_id, displacement_mm + _H_D, theta)[1] - ku_new) / _H_D
+        var_scatter = (g_d * self.scatter_mm) ** 2 + var_peak * (nu - 2.0) / nu
+        var_par -= var_peak
+        var = var_par + var_scatter + _inspection_variance(mean, plate, self.priors)
+        return self._prediction(
+            plate, None, k_loaded, mean, var, var_par, var_scatter, floor=anchor.curvature
+        )
 
     def yield_factor_quantile(self, plate_id: str, p: float) -> float:
         """Quantile of a plate's factor (Student-t: the plates' spread's degrees of freedom when it has no

@@ -92,10 +92,12 @@ def test_learning_saves_passes(campaigns):
     assert last["machine_plates"] == 19 and last["data"] != "nominal only: no history"
 
 
-def test_a_correction_pass_starts_from_the_measured_shape():
+def test_a_correction_pass_starts_from_the_measured_shape_at_the_peak_the_fit_places():
     # two passes whose radii no single yield factor explains (the model is never exact): the fit
-    # compromises, but the next pass is predicted from the latest measured shape, so a pass that does
-    # not load the plate beyond its latest peak is predicted to leave exactly that shape
+    # compromises; a pass that does not load the plate beyond its latest peak leaves exactly that
+    # shape, and one that does starts from it, the peak where the fitted parameters put it (the
+    # latest pass's scatter as the fit attributes it): the measured shape plus the model's increment
+    # from there, which is the fit's own curvature after that pass alone (the history rule)
     from pipeline.forming.learning import fit, latest_state, measured_curvature
     from pipeline.forming.records import FormingTarget, Material, PlateRecord, RollPass
 
@@ -115,11 +117,14 @@ def test_a_correction_pass_starts_from_the_measured_shape():
     state = latest_state(plate, fitted.curvatures(plate)[0], fitted.priors)
     assert (state.pass_index, state.peak_pass, state.inspections) == (1, 1, 1)
     same = fitted.predict(plate, "R3-01", 79.0)  # below the latest peak: nothing changes
-    assert same.mean == pytest.approx(measured, rel=1e-9)
-    deeper = fitted.predict(plate, "R3-01", 81.0)
-    increment = fitted.curvatures(plate.with_pass(RollPass("R3-01", 81.0)))[1][-1] - model_now
-    assert deeper.mean == pytest.approx(measured + increment, rel=1e-9)
-    assert deeper.sd > same.sd  # the new pass and the old peak's scatter
+    assert same.median == pytest.approx(measured, rel=1e-12)
+    assert same.quantile(0.5 - 1e-9) == same.quantile(1e-3) == same.floor
+    deeper = fitted.predict(plate, "R3-01", 90.0)
+    alone = fitted.curvatures(PlateRecord("A1", plate.target, (RollPass("R3-01", 90.0),)))[1][0]
+    assert deeper.mean == pytest.approx(alone, rel=1e-6)
+    assert deeper.median > measured
+    assert deeper.sd > same.sd  # the new pass's scatter and the old peak's as the fit knows it
+    assert deeper.floor == measured
 
 
 def _plate_after(*passes):
