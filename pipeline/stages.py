@@ -483,7 +483,7 @@ def _judge(
     pose = registration.register_to_target(points, surface_mask, tgt)
     dev, judged = _deviation(points, surface_mask, tgt, pose)
     qualified = qualify(judged, pose)
-    writes += _write_deviation(pool, out, points, surface_mask, dev, tgt.tolerance_mm)
+    writes += write_deviation(pool, out, points, surface_mask, dev, tgt.tolerance_mm)
     writes.append(
         pool.submit(
             artifacts.write_uncertainty,
@@ -617,7 +617,7 @@ def _raw_noise(cap: Capture, lights: Lights) -> tuple[np.ndarray, np.ndarray | N
     return own, dark
 
 
-def _write_deviation(
+def write_deviation(
     pool: ThreadPoolExecutor,
     out: Path,
     points: np.ndarray,

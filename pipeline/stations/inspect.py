@@ -47,6 +47,7 @@ from ..stages import (
     preprocess_scene,
     reconstruct_view,
     uncertainty_inputs,
+    write_deviation,
 )
 from .mosaic import Mosaic, build_mosaic
 from .plan import StationRef, plan_stations
@@ -283,21 +284,7 @@ def _write_artifacts(
     points, mask, tol = mosaic.points, mosaic.mask, tgt.tolerance_mm
     verts, faces = target_geometry.target_surface(tgt)
     return [
-        pool.submit(
-            artifacts.write_surface_ply,
-            out / ARTIFACT_FILES["surface"],
-            points,
-            mask,
-            dev,
-            tolerance_mm=tol,
-        ),
-        pool.submit(
-            artifacts.write_deviation_png,
-            out / ARTIFACT_FILES["deviation_map"],
-            dev,
-            mask,
-            tolerance_mm=tol,
-        ),
+        *write_deviation(pool, out, points, mask, dev, tol),
         pool.submit(artifacts.write_uncertainty, out, u_map, judged, tolerance_mm=tol),
         pool.submit(
             artifacts.write_target_ply,
