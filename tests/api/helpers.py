@@ -23,6 +23,14 @@ AUTH = {"Authorization": f"Bearer {TOKEN}"}
 FAKE_INSPECT = "tests.api.fake_pipeline:inspect"
 
 
+def child_env(settings: Settings, **extra: str) -> dict[str, str]:
+    """The environment of a child process of the service run with ``settings``: the tree's root on
+    its import path, since the settings may name the test double of the pipeline
+    (``tests.api.fake_pipeline``), which a console script (``plate-inspect serve``) would not find."""
+    path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)
+    return {**os.environ, **settings.to_env(), "PYTHONPATH": path, **extra}
+
+
 class Consumer:
     """``python -m app.worker`` in a child process, with the test's settings.
 
@@ -39,11 +47,7 @@ class Consumer:
         args: tuple[str, ...] = (),
         log_name: str = "consumer.log",
     ):
-        self.env = {
-            **os.environ,
-            **settings.to_env(),
-            "PLATE_INSPECT_TEST_STAGE_DELAY_S": str(stage_delay_s),
-        }
+        self.env = child_env(settings, PLATE_INSPECT_TEST_STAGE_DELAY_S=str(stage_delay_s))
         if invocations is not None:
             self.env["PLATE_INSPECT_TEST_INVOCATIONS"] = str(invocations)
         self.args = tuple(args)

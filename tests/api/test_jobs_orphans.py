@@ -11,7 +11,16 @@ import sys
 from collections import Counter
 from pathlib import Path
 
-from tests.api.helpers import AUTH, ROOT, Consumer, invocations, pid_alive, wait_for, wait_until
+from tests.api.helpers import (
+    AUTH,
+    ROOT,
+    Consumer,
+    child_env,
+    invocations,
+    pid_alive,
+    wait_for,
+    wait_until,
+)
 
 PLATE_INSPECT = Path(sys.executable).parent / "plate-inspect"
 SIM = {"n_lights": 3, "width": 160, "height": 128}
@@ -27,12 +36,11 @@ class Server:
     """``plate-inspect serve`` in a child process (its own session, so a signal to it reaches it alone)."""
 
     def __init__(self, settings, *, calls: Path, stage_delay_s: float, log: Path):
-        self.env = {
-            **os.environ,
-            **settings.to_env(),
-            "PLATE_INSPECT_TEST_INVOCATIONS": str(calls),
-            "PLATE_INSPECT_TEST_STAGE_DELAY_S": str(stage_delay_s),
-        }
+        self.env = child_env(
+            settings,
+            PLATE_INSPECT_TEST_INVOCATIONS=str(calls),
+            PLATE_INSPECT_TEST_STAGE_DELAY_S=str(stage_delay_s),
+        )
         self.log = log
         self.proc: subprocess.Popen | None = None
 

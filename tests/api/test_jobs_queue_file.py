@@ -11,7 +11,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from app.main import create_app
-from tests.api.helpers import AUTH, ROOT, wait_for
+from tests.api.helpers import AUTH, ROOT, child_env, wait_for
 
 SIM = {"n_lights": 3, "width": 160, "height": 128}
 
@@ -108,7 +108,7 @@ print("repaired" if queue.repaired else "sound", queue.pending_count())
 
 def test_processes_opening_one_corrupt_queue_at_once_move_it_aside_once(settings):
     _queued_then_corrupt(settings, "junk")
-    env = {**os.environ, **settings.to_env()}
+    env = child_env(settings)
     procs = [
         subprocess.Popen(
             [sys.executable, "-c", OPEN_QUEUE],
