@@ -1,10 +1,15 @@
 """Configuration shared by every test package: the thread policy of a process that runs inspections,
-and the fixtures of the cell's fake devices (Aravis' fake GigE Vision camera, the tests' own TCP
-light controller), used by the acquisition and the service's acquire tests.
+the fixtures of the cell's fake devices (Aravis' fake GigE Vision camera, the tests' own TCP
+light controller), used by the acquisition and the service's acquire tests, and the SQLite database
+migrated once per session that the service and dashboard tests start from.
 
 The thread policy is set here, before any test runs a compiled kernel, as the CLI and the job
 consumer set it at start (:func:`pipeline.parallel.configure_process`).
 """
+
+import sqlite3
+from collections.abc import Callable
+from pathlib import Path
 
 import pytest
 
@@ -34,3 +39,26 @@ def fake_gv():
     camera = FakeGigECamera()
     yield camera
     camera.stop()
+
+
+@pytest.fixture(scope="session")
+def migrated_sqlite(tmp_path_factory) -> Callable[[Path], None]:
+    """Puts a copy of a SQLite database migrated to the head by Alembic (once per session) in a data
+    dir, where the app's SQLite file goes (as the PostgreSQL tests copy a migrated template):
+    ``create_app`` and the consumer still upgrade on start and find it current. The migrations from
+    an empty file are tested in tests/api/test_db.py."""
+    from app.db import upgrade_database
+
+    template = tmp_path_factory.mktemp("sqlite-template") / "plate_inspect.db"
+    upgrade_database(f"sqlite:///{template}")
+
+    def put(data_dir: Path) -> None:
+        data_dir.mkdir(parents=True, exist_ok=True)
+        src, dst = sqlite3.connect(template), sqlite3.connect(data_dir / "plate_inspect.db")
+        try:
+            src.backup(dst)
+        finally:
+            dst.close()
+            src.close()
+
+    return put

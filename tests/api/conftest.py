@@ -41,7 +41,9 @@ def database_url(request) -> str | None:
 
 
 @pytest.fixture
-def settings(tmp_path, database_url) -> Settings:
+def settings(tmp_path, database_url, migrated_sqlite) -> Settings:
+    if database_url is None:
+        migrated_sqlite(tmp_path / "data")
     return Settings(
         data_dir=tmp_path / "data",
         database_url=database_url,
