@@ -159,11 +159,12 @@ def preprocess(
             return True
         return False
 
-    brightest = np.empty((h, w), np.float32)
-    brightness = np.empty((h, w), np.float32)
     with ThreadPoolExecutor(max_workers=workers or default_workers()) as pool:
         any_saturated = any(list(pool.map(one, range(n))))  # list: every image must be done
-        _brightest(images, brightest, int(HIGHLIGHT_SHARE * n), brightness)
+
+    brightest = np.empty((h, w), np.float32)
+    brightness = np.empty((h, w), np.float32)
+    _brightest(images, brightest, int(HIGHLIGHT_SHARE * n), brightness)
     # what either brightness tells from the dark: the maxima keep a rim that few lights reach, the
     # maxima without their highlights keep a glossy plate's body (see Notes)
     mask = plate_mask(brightest, erode_px=erode_px, highlight_free=brightness) & seen
