@@ -204,7 +204,7 @@ def fuse_low_frequencies(
         sd = np.full(z.shape, np.nan, np.float32)
         sd[box] = np.where(mb, _value_sd(chosen, scale2) * zb, np.nan)
         if chosen is not fits[-1]:
-            finer = fits[fits.index(chosen) + 1]
+            finer = fits[next(i for i, f in enumerate(fits) if f is chosen) + 1]
             model = np.full(z.shape, np.nan, np.float32)
             model[box] = np.where(mb, _difference(finer, chosen) * zb, np.nan)
     quadric = next((f for f in fits if f.rung == QUADRIC), None)
