@@ -504,16 +504,7 @@ def _judge(
     footprint = points[..., 2][judged] / float(np.sqrt(K[0, 0] * K[1, 1]))
     clock.end("deviation")
     clock.begin("artifacts")
-    verts, faces = target_geometry.target_surface(tgt)
-    writes.append(
-        pool.submit(
-            artifacts.write_target_ply,
-            out / ARTIFACT_FILES["target_surface"],
-            verts,
-            faces,
-            pose.T_cam_target,
-        )
-    )
+    writes.append(write_target(pool, out, tgt, pose))
     curv, clock.timings["curvature"] = curvature_job.result()
     for write in writes:
         write.result()
@@ -615,6 +606,20 @@ def _raw_noise(cap: Capture, lights: Lights) -> tuple[np.ndarray, np.ndarray | N
         return own, None
     dark: np.ndarray = float(image_noise(cap.dark[None], everywhere)[0]) / scale
     return own, dark
+
+
+def write_target(
+    pool: ThreadPoolExecutor, out: Path, tgt: Target, pose: registration.Registration
+) -> Future[Any]:
+    """Submit the write of target.ply, the target's surface in the measured plate's pose; its future."""
+    verts, faces = target_geometry.target_surface(tgt)
+    return pool.submit(
+        artifacts.write_target_ply,
+        out / ARTIFACT_FILES["target_surface"],
+        verts,
+        faces,
+        pose.T_cam_target,
+    )
 
 
 def write_deviation(

@@ -15,7 +15,6 @@ from .mosaic import Mosaic, build_mosaic
 from .plan import MIN_OVERLAP, StationRef, plan_stations, view_length_mm
 from .register import (
     ENCODER_LIMIT_MM,
-    Overlap,
     StationPoses,
     StationView,
     register_stations,
@@ -25,7 +24,6 @@ __all__ = [
     "ENCODER_LIMIT_MM",
     "MIN_OVERLAP",
     "Mosaic",
-    "Overlap",
     "StationPoses",
     "StationRef",
     "StationView",

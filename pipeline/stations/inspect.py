@@ -26,7 +26,6 @@ from ..artifacts import ARTIFACT_FILES
 from ..details import (
     BrightnessSegmentationDetails,
     Details,
-    OverlapDetails,
     StationDetails,
     StitchDetails,
     UncertaintyDetails,
@@ -48,6 +47,7 @@ from ..stages import (
     reconstruct_view,
     uncertainty_inputs,
     write_deviation,
+    write_target,
 )
 from .mosaic import Mosaic, build_mosaic
 from .plan import StationRef, plan_stations
@@ -282,17 +282,10 @@ def _write_artifacts(
 ) -> list[Future[Any]]:
     """Submit the writes of surface.ply, deviation.png, the uncertainty's files and target.ply."""
     points, mask, tol = mosaic.points, mosaic.mask, tgt.tolerance_mm
-    verts, faces = target_geometry.target_surface(tgt)
     return [
         *write_deviation(pool, out, points, mask, dev, tol),
         pool.submit(artifacts.write_uncertainty, out, u_map, judged, tolerance_mm=tol),
-        pool.submit(
-            artifacts.write_target_ply,
-            out / ARTIFACT_FILES["target_surface"],
-            verts,
-            faces,
-            pose.T_cam_target,
-        ),
+        write_target(pool, out, tgt, pose),
     ]
 
 
@@ -348,7 +341,9 @@ def _qualify(
             )
         )
         seams = [
-            o.rms_mm for o in poses.overlaps if k in (o.first, o.second) and o.second == o.first + 1
+            o.rms_mm
+            for o in poses.overlaps
+            if k in o.stations and o.stations[1] == o.stations[0] + 1
         ]
         u_reg.append(float(max(seams)) / math.sqrt(2.0))
     u_own = mosaic.resample([u.map_mm for u in own], squared=True)
@@ -413,17 +408,7 @@ def stitched_details(plate: StitchedPlate, tgt: Target) -> Details:
         )
         for s in plate.stations
     ]
-    overlaps = [
-        OverlapDetails(
-            stations=[o.first, o.second],
-            matches=o.matches,
-            match_rms_mm=o.match_rms_mm,
-            rms_mm=o.rms_mm,
-            max_mm=o.max_mm,
-            points=o.points,
-        )
-        for o in plate.poses.overlaps
-    ]
+    overlaps = list(plate.poses.overlaps)
     matched = [s.matched_pct for s in plate.stations if s.matched_pct is not None]
     return Details(
         T_cam_target=plate.pose.T_cam_target.tolist(),

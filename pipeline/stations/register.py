@@ -28,6 +28,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from ..details import OverlapDetails
 from ..formats import CaptureError
 
 #: Standard deviation of the encoder's travel as a prior on each station's pose, mm.
@@ -104,33 +105,6 @@ class StationView:
 
 
 @dataclass(frozen=True)
-class Overlap:
-    """How two stations agree where they overlap, after the registration.
-
-    Attributes
-    ----------
-    first, second : int
-        Station indices.
-    matches : int
-        Texture matches the poses were fitted to.
-    match_rms_mm : float
-        RMS distance between the matched points after the fit, mm.
-    rms_mm, max_mm : float
-        RMS and largest distance along the normal between the two surfaces over the overlap, mm.
-    points : int
-        Surface points compared.
-    """
-
-    first: int
-    second: int
-    matches: int
-    match_rms_mm: float
-    rms_mm: float
-    max_mm: float
-    points: int
-
-
-@dataclass(frozen=True)
 class StationPoses:
     """The registration of every station into station 0's camera frame.
 
@@ -141,13 +115,13 @@ class StationPoses:
     travel_mm : list of float
         Refined travel of each station since station 0: how far the plate point under the head at
         station ``k`` moved along the direction, mm.
-    overlaps : list of Overlap
+    overlaps : list of OverlapDetails
         Consecutive stations' overlaps (and two apart where they share a view).
     """
 
     poses: list[np.ndarray]
     travel_mm: list[float]
-    overlaps: list[Overlap]
+    overlaps: list[OverlapDetails]
 
 
 def register_stations(views: list[StationView], *, seam_limit_mm: float) -> StationPoses:
@@ -200,7 +174,10 @@ def register_stations(views: list[StationView], *, seam_limit_mm: float) -> Stat
 
 
 def _check(
-    views: list[StationView], travel: list[float], overlaps: list[Overlap], seam_limit_mm: float
+    views: list[StationView],
+    travel: list[float],
+    overlaps: list[OverlapDetails],
+    seam_limit_mm: float,
 ) -> None:
     """A station whose travel or overlap says it was not registered: CaptureError naming it."""
     for view, t in zip(views, travel, strict=True):
@@ -211,10 +188,11 @@ def _check(
                 f"{ENCODER_LIMIT_MM:g} mm apart)"
             )
     for o in overlaps:
-        if o.second == o.first + 1 and not o.rms_mm <= seam_limit_mm:
+        first, second = o.stations
+        if second == first + 1 and not o.rms_mm <= seam_limit_mm:
             raise CaptureError(
-                f"{views[o.second].label}: station: station {o.second} cannot be registered to station "
-                f"{o.first}: their surfaces differ by {o.rms_mm:.2f} mm RMS over the overlap, more than "
+                f"{views[second].label}: station: station {second} cannot be registered to station "
+                f"{first}: their surfaces differ by {o.rms_mm:.2f} mm RMS over the overlap, more than "
                 f"{seam_limit_mm:.2f} mm"
             )
 
@@ -384,7 +362,7 @@ def _overlap(
     pose_a: np.ndarray,
     pose_b: np.ndarray,
     found: tuple[np.ndarray, np.ndarray, np.ndarray],
-) -> Overlap:
+) -> OverlapDetails:
     """The two surfaces compared over their overlap: ``b``'s points (every 4th pixel) moved into ``a``'s
     frame, against ``a``'s surface at the same pixel, along ``a``'s normal."""
     xa, xb, _ = found
@@ -404,9 +382,8 @@ def _overlap(
     dist = dist[np.isfinite(dist)]
     rms = float(np.sqrt(np.mean(dist**2))) if dist.size else math.nan
     worst = float(np.max(np.abs(dist))) if dist.size else math.nan
-    return Overlap(
-        first=a.index,
-        second=b.index,
+    return OverlapDetails(
+        stations=[a.index, b.index],
         matches=int(xa.shape[0]),
         match_rms_mm=round(match_rms, 3),
         rms_mm=round(rms, 3),
