@@ -132,6 +132,9 @@ class Settings(BaseSettings):
         (``POST /plates/{plate_id}/inspections/acquire``) photograph the plate with the cameras and
         lights it names. None: in demo mode, the demo cell of simulated cameras and lights, written
         under the data dir (:mod:`app.services.cell`); otherwise the server acquires nothing.
+    frame_timeout_s : float
+        Seconds a camera's frame may take beyond its exposure before an acquisition job takes the
+        camera to be gone and fails (``plate-inspect acquire --frame-timeout``; default 2, as there).
     yard : str or None
         The shipyard's name, printed in the header of every report page ("not recorded" when unset).
     """
@@ -165,6 +168,7 @@ class Settings(BaseSettings):
     job_lease_s: float | None = Field(default=None, ge=3.0)  # None: set by _default_lease
     # -- the cell (app.services.cell)
     cell_config: Path | None = None
+    frame_timeout_s: float = Field(default=2.0, gt=0.0, le=600.0)
     # -- the report (app.report)
     yard: str | None = Field(default=None, min_length=1, max_length=64)
 
@@ -234,6 +238,7 @@ class Settings(BaseSettings):
             f"{ENV_PREFIX}INSPECT_ENTRY": entry_name(self.inspect_entry),
             f"{ENV_PREFIX}WORKER_MEMORY_MB": str(self.worker_memory_mb),
             f"{ENV_PREFIX}JOB_LEASE_S": repr(self.job_lease_s),
+            f"{ENV_PREFIX}FRAME_TIMEOUT_S": repr(self.frame_timeout_s),
         }
         if self.queue_url is not None:
             env[f"{ENV_PREFIX}QUEUE_URL"] = self.queue_url

@@ -267,6 +267,7 @@ def _capture(
             plate_id,
             bundle_dir,
             progress=lambda stage, fraction: progress(CAPTURE_STAGE, fraction),
+            frame_timeout_s=settings.frame_timeout_s,
         )
     except AcquisitionError as err:
         raise AcquisitionFailed(f"acquisition failed: {err}") from None

@@ -198,7 +198,9 @@ def test_acceptance_cell_gige_and_fake_cameras_tcp_lights(
     config = write_cell(
         tmp_path / "cell", left=left, right=FAKE_1, lights=tcp_lights(server), n_lights=N
     )
-    client = service(cell_config=config, inspect_entry="pipeline.run:inspect")
+    # the fake GigE camera is a process of its own: on a machine busy with other tests (the suite
+    # runs a worker per core) its frames can take seconds; the timeout is the cell's setting
+    client = service(cell_config=config, inspect_entry="pipeline.run:inspect", frame_timeout_s=15.0)
     client_box.append(client)
 
     health = client.get("/healthz").json()["cell"]
