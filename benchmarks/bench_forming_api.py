@@ -1,7 +1,7 @@
 """A roll-bending campaign through the REST API, each pass measured by the real pipeline.
 
 Run from the project root:  .venv/bin/python benchmarks/bench_forming_api.py [--plates 8] [--seed 0]
-                            [--width 1224 --height 1024 --lights 12]
+                            [--width 1224 --height 1024 --lights 12] [--case "batch yield"]
 
 The path issue 14's acceptance takes: a machine (``PUT /machines``), each plate's target with its
 material (``PUT /plates/{id}/target``), then per pass ``GET /plates/{id}/advice``, the pass rolled
@@ -10,7 +10,10 @@ against the hidden physics of ``pipeline.forming.campaign`` (``TruePlate``: yiel
 as its ``process``, run by the job code (``app.jobs.execute_inspection``) on a fresh SQLite data
 directory: the pipeline renders and measures the plate, and the advice reads the measured radius from
 the database. Prints each plate's passes (setting, formed radius, measured radius, verdict) and a
-summary: passes, plates told ``reverse``, the pipeline's radius error.
+summary: passes, plates told ``reverse``, plates over-bent (their true radius past the verdict's band
+on the tight side), the pipeline's radius error. ``--case`` takes the plates and the hidden physics
+of one of issue 27's stress cases (``pipeline.forming.campaign.STRESS``: "batch yield", "new grade",
+"geometry 3 % short", ...) instead of the model's mixed batch.
 """
 
 from __future__ import annotations
@@ -32,7 +35,8 @@ from fastapi.testclient import TestClient
 from app.jobs import execute_inspection
 from app.main import create_app
 from app.settings import Settings
-from pipeline.forming.campaign import TruePhysics, TruePlate, random_batch
+from pipeline.forming.advice import curvature_band, target_curvature
+from pipeline.forming.campaign import STRESS, TruePhysics, TruePlate, random_batch, stress_plates
 from pipeline.forming.records import Machine
 
 TOKEN = "bench-token-0123456789"
@@ -86,19 +90,23 @@ def inspect_pass(client, settings, plate_id, displacement_mm, radius_mm, seed, s
 
 
 def roll_plate(client, settings, sim_plate, machine, physics, rng, sim, max_passes):
-    """Roll one plate as advised until done or reverse: (passes, final action, rows, radius errors)."""
+    """Roll one plate as advised until done or reverse: (passes, final action, rows, radius errors,
+    over-bent)."""
     plate_id, target = sim_plate.record.plate_id, sim_plate.record.target
     put_target(client, plate_id, target)
     truth = TruePlate(sim_plate, machine, physics)
-    rows, errors = [], []
+    band_hi = target_curvature(target) + physics.verdict_band * curvature_band(target)
+    rows, errors, over = [], [], False
     while True:
         advice = client.get(
             f"/api/v1/plates/{plate_id}/advice", params={"machine_id": "R3-01"}
         ).json()
-        if advice["action"] != "bend" or len(rows) >= max_passes:
-            return len(rows), advice["action"], rows, errors
         d = advice["top_roll_displacement_mm"]
-        formed = target.surface_radius_mm(1.0 / truth.roll(d, rng))
+        if advice["action"] != "bend" or len(rows) >= max_passes or d is None:
+            return len(rows), advice["action"], rows, errors, over
+        k = truth.roll(d, rng)
+        over |= k > band_hi
+        formed = target.surface_radius_mm(1.0 / k)
         body = inspect_pass(client, settings, plate_id, d, formed, int(rng.integers(1 << 30)), sim)
         if body["status"] != "done":
             raise SystemExit(
@@ -117,11 +125,23 @@ def main() -> None:
     ap.add_argument("--height", type=int, default=1024)
     ap.add_argument("--lights", type=int, default=12)
     ap.add_argument("--max-passes", type=int, default=6)
+    ap.add_argument(
+        "--case",
+        default=None,
+        help="a stress case (a part of its name in STRESS): its plates and physics",
+    )
     args = ap.parse_args()
     sim = {"width": args.width, "height": args.height, "n_lights": args.lights}
     machine = Machine.from_dict("R3-01", MACHINE)
-    physics = TruePhysics()
-    plates = random_batch(args.plates, np.random.default_rng(args.seed))
+    if args.case is None:
+        physics = TruePhysics()
+        plates = random_batch(args.plates, np.random.default_rng(args.seed))
+    else:
+        name = next(n for n in STRESS if args.case in n)
+        over, kind = STRESS[name]
+        physics = TruePhysics(**over)
+        plates = stress_plates(kind, args.plates, args.seed)
+        print(f"stress case {name!r}, seed {args.seed}\n")
     rng = np.random.default_rng(args.seed + 100)
     with tempfile.TemporaryDirectory() as tmp:
         settings = Settings(data_dir=Path(tmp), api_token=TOKEN)
@@ -136,10 +156,10 @@ def main() -> None:
                 print("|---|---|---|---|---|---|---|")
                 outcomes, errors = [], []
                 for p in plates:
-                    n, final, rows, errs = roll_plate(
+                    n, final, rows, errs, over = roll_plate(
                         client, settings, p, machine, physics, rng, sim, args.max_passes
                     )
-                    outcomes.append((n, final))
+                    outcomes.append((n, final, over))
                     errors += errs
                     tg = p.record.target
                     print(
@@ -149,11 +169,12 @@ def main() -> None:
                     )
         finally:
             app.state.engine.dispose()
-    passes = [n for n, _ in outcomes]
+    passes = [n for n, _, _ in outcomes]
     print(
         f"\npasses {dict(sorted(collections.Counter(passes).items()))}, mean after the first plate "
-        f"{np.mean(passes[1:]):.2f}, done {sum(f == 'done' for _, f in outcomes)}, "
-        f"reverse {sum(f == 'reverse' for _, f in outcomes)}; pipeline radius error "
+        f"{np.mean(passes[1:]):.2f}, done {sum(f == 'done' for _, f, _ in outcomes)}, "
+        f"reverse {sum(f == 'reverse' for _, f, _ in outcomes)}, over-bent "
+        f"{sum(o for _, _, o in outcomes)}; pipeline radius error "
         f"mean {np.mean(errors):+.3f} %, max abs {np.max(np.abs(errors)):.3f} % over {len(errors)} "
         f"inspections; {time.perf_counter() - t0:.0f} s"
     )

@@ -44,21 +44,7 @@ def campaigns():
     return out
 
 
-#: Known to fail (issue 27 is not closed by it): the high-yield batch's P009 (seed 4103; 15 mm to
-#: 10.5 m) ends its correction from the probe 1.0 band tight, 3.3 sd beyond the prediction's median
-#: (the advice's own risk past the band 0.11 %, its fitted scatter 0.079 mm for the true 0.1 mm).
-KNOWN = {
-    "batch yield 1.40-1.50": "a correction from the probe over-bends at a predicted 0.11 % (P009)"
-}
-
-
-@pytest.mark.parametrize(
-    "name",
-    [
-        pytest.param(n, marks=pytest.mark.xfail(reason=KNOWN[n], strict=True)) if n in KNOWN else n
-        for n in CASES
-    ],
-)
+@pytest.mark.parametrize("name", CASES)
 def test_no_plate_over_bent_under_the_stress_cases(campaigns, name):
     # judged on the plates' true curvature against the inspection's band; each plate is done, or
     # (its inspection's noise at the band's tight edge) told to reverse; none is left without a
