@@ -161,7 +161,7 @@ def _inspect(
 ) -> InspectionResult:
     """:func:`inspect` inside its BLAS limit and error handling: every stage, then the two documents."""
     warnings: list[str] = []
-    cap, tgt = load_inputs(capture, target, light_calibration, warnings, clock)
+    cap, tgt = load_inputs(capture, target, light_calibration, warnings, clock, opts)
     scene = preprocess_scene(cap, opts, clock)
     # Work that does not need the main line's next result runs beside it. The stereo pair
     # needs only the plate mask (matched while the normals are estimated); curvature and the pixel

@@ -39,7 +39,7 @@ from .formats import CaptureError
 from .io import Capture, Target, load_capture, load_target
 from .lights import Lights
 from .normals.noise import image_noise
-from .preprocess import Preprocessed, preprocess
+from .preprocess import WORKING_CELL_MM, Preprocessed, bin_capture, preprocess, working_binning
 
 #: Stage names in the order they run; ``progress`` reports these.
 STAGES = ("load", "preprocess", "normals", "stereo", "depth", "curvature", "deviation", "artifacts")
@@ -98,6 +98,12 @@ class InspectOptions:
         Threads for the work that runs beside the main line (stereo, curvature, artifact
         writing) and for preprocessing; None: :func:`pipeline.parallel.default_workers`. The
         result does not depend on it.
+    working_cell_mm : float or None
+        The coarsest cell of the working grid on the plate, mm: a capture whose pixels see a finer
+        footprint (at its working distance, or :data:`NOMINAL_DISTANCE_MM`) is binned on loading by
+        the largest whole factor that keeps the cell within it, and measured on that grid (its
+        artifacts too). None: the capture's own pixels. See
+        :func:`pipeline.preprocess.working_binning`.
     """
 
     normals_method: str = "robust"
@@ -107,6 +113,7 @@ class InspectOptions:
     stereo_max_width: int = 1600
     depth_tol: float = 1e-4
     workers: int | None = None
+    working_cell_mm: float | None = WORKING_CELL_MM
 
 
 class StageClock:
@@ -191,14 +198,19 @@ def load_inputs(
     light_calibration: Lights | None,
     warnings: list[str],
     clock: StageClock,
+    opts: InspectOptions | None = None,
 ) -> tuple[Capture, Target]:
     """Stage *load*: the capture (with ``light_calibration`` applied, see :func:`pipeline.run.inspect`) and the target.
 
-    A warning about the light calibration is appended to ``warnings``. CaptureError when the capture
-    has neither a stereo pair nor a working distance (no metric scale).
+    The capture comes on the working grid of ``opts.working_cell_mm`` (binned, see
+    :class:`InspectOptions`). A warning about the light calibration is appended to ``warnings``.
+    CaptureError when the capture has neither a stereo pair nor a working distance (no metric scale).
     """
     clock.begin("load")
+    opts = opts or InspectOptions()
     cap = capture if isinstance(capture, Capture) else load_capture(capture)
+    factor = working_binning(cap, opts.working_cell_mm, NOMINAL_DISTANCE_MM)
+    cap = bin_capture(cap, factor, workers=opts.workers)
     tgt = target if isinstance(target, Target) else load_target(target)
     cap = _apply_light_calibration(cap, light_calibration, warnings)
     if not cap.has_stereo and cap.working_distance_mm is None:

@@ -147,7 +147,7 @@ def _reconstruct(
     """One station (``capture``, decoded) through the stages of one view; its timings add to ``clock``'s."""
     own = StageClock(None)
     warnings: list[str] = []
-    cap, _ = load_inputs(capture, tgt, light_calibration, warnings, own)
+    cap, _ = load_inputs(capture, tgt, light_calibration, warnings, own, opts)
     scene = preprocess_scene(cap, opts, own)
     with ThreadPoolExecutor(max_workers=opts.workers or default_workers()) as pool:
         view, _ = reconstruct_view(cap, tgt, scene, opts, pool, own)
