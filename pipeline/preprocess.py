@@ -17,6 +17,7 @@ import numpy.typing as npt
 
 from .formats import CaptureError
 from .io import Capture
+from .normals.noise import image_noise
 from .parallel import default_workers
 
 #: An array argument of the kernels (their dtypes are set by the callers).
@@ -110,10 +111,12 @@ def bin_capture(capture: Capture, factor: int, *, workers: int | None = None) ->
     """The capture on a grid ``factor`` times coarser: every image (photometric, dark, stereo pair)
     averaged over ``factor x factor`` blocks, both cameras resized to match.
 
-    Averaging leaves the raw counts' unit; the noise falls by ``factor`` (the raw noise measured later
-    is the binned images'). A block holding a saturated raw sample (``SATURATION_FRACTION`` of full
-    scale) takes its brightest sample, so that it is still found saturated; the calibration's RMS (px)
-    is scaled with the pixels.
+    Averaging leaves the raw counts' unit. The sensor's noise, independent from pixel to pixel, falls
+    by ``factor``: it is measured on the images as given and divided by ``factor``
+    (``Capture.raw_noise``), as the binned images would take texture at the scale of a few bins for
+    noise. A block holding a saturated raw sample (``SATURATION_FRACTION`` of full scale) takes its
+    brightest sample, so that it is still found saturated; the calibration's RMS (px) is scaled with
+    the pixels.
 
     Parameters
     ----------
@@ -146,6 +149,9 @@ def bin_capture(capture: Capture, factor: int, *, workers: int | None = None) ->
 
     with ThreadPoolExecutor(max_workers=workers or default_workers()) as pool:
         list(pool.map(one, range(len(raws))))
+    everywhere = np.ones((h, w), bool)
+    own = image_noise(capture.images, everywhere) / factor
+    dark = None if capture.dark is None else float(image_noise(capture.dark[None], everywhere)[0])
     n = capture.n_lights
     rig = capture.rig
     rms = None if rig.rms_px is None else rig.rms_px / factor
@@ -157,6 +163,7 @@ def bin_capture(capture: Capture, factor: int, *, workers: int | None = None) ->
         dark=None if capture.dark is None else outs[n],
         stereo_left=None if capture.stereo_left is None else outs[n + 1],
         stereo_right=None if capture.stereo_right is None else outs[n + 2],
+        raw_noise=(own, None if dark is None else dark / factor),
     )
 
 

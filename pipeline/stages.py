@@ -609,14 +609,22 @@ def _raw_noise(cap: Capture, lights: Lights) -> tuple[np.ndarray, np.ndarray | N
     """The raw noise of each photometric image and of the dark frame (None without one), each in the
     preprocessed images' units (raw counts / (intensity x full scale)).
 
-    Measured on the raw frames, before undistortion interpolates (and smooths) them.
+    Measured on the raw frames, before undistortion interpolates (and smooths) them; a binned capture's
+    before binning (``Capture.raw_noise``).
     """
     scale = np.asarray(lights.intensity, dtype=np.float64) * float(2**cap.bit_depth - 1)
-    everywhere = np.ones(cap.images.shape[1:], bool)
-    own: np.ndarray = image_noise(cap.images, everywhere) / scale
-    if cap.dark is None:
+    if cap.raw_noise is not None:  # measured before binning
+        own_counts, dark_counts = cap.raw_noise
+    else:
+        everywhere = np.ones(cap.images.shape[1:], bool)
+        own_counts = image_noise(cap.images, everywhere)
+        dark_counts = (
+            None if cap.dark is None else float(image_noise(cap.dark[None], everywhere)[0])
+        )
+    own: np.ndarray = own_counts / scale
+    if dark_counts is None:
         return own, None
-    dark: np.ndarray = float(image_noise(cap.dark[None], everywhere)[0]) / scale
+    dark: np.ndarray = dark_counts / scale
     return own, dark
 
 

@@ -53,6 +53,10 @@ class Capture:
     station : pipeline.formats.Station or None
         Where the plate stood on the conveyor (a station of a plate longer than the view,
         docs/stations.md); None for a plate measured in one view.
+    raw_noise : ((N,) float64, float or None) or None
+        The noise (raw counts, standard deviation) of each photometric image and of the dark frame
+        (None without one), when it was measured before the images were binned
+        (:func:`pipeline.preprocess.bin_capture`); None: it is measured on ``images``.
     """
 
     plate_id: str
@@ -67,6 +71,7 @@ class Capture:
     working_distance_mm: float | None
     source: Path
     station: Station | None = None
+    raw_noise: tuple[np.ndarray, float | None] | None = None
 
     @property
     def n_lights(self) -> int:

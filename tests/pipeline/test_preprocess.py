@@ -99,6 +99,7 @@ def test_a_glossy_plates_highlights_do_not_split_its_mask(tmp_path):
 
 
 def test_binning_averages_blocks_and_keeps_the_rays(tmp_path):
+    from pipeline.normals.noise import image_noise
     from pipeline.preprocess import bin_capture
 
     cap = _sphere_capture(tmp_path)
@@ -117,6 +118,11 @@ def test_binning_averages_blocks_and_keeps_the_rays(tmp_path):
         centre = np.linalg.solve(K_full, [2 * u + 0.5, 2 * v + 0.5, 1.0])
         np.testing.assert_allclose(np.linalg.solve(K_small, [u, v, 1.0]), centre, atol=1e-12)
     assert small.rig.rms_px == pytest.approx(cap.rig.rms_px / 2)
+    # the sensor's noise, measured on the images as given, falls by the factor
+    everywhere = np.ones((80, 96), bool)
+    own, dark = small.raw_noise
+    np.testing.assert_allclose(own, image_noise(cap.images, everywhere) / 2)
+    assert dark == pytest.approx(image_noise(cap.dark[None], everywhere)[0] / 2)
     assert bin_capture(cap, 1) is cap
 
 
