@@ -137,7 +137,9 @@ class StationDetails:
     ``T_plate_station``: (4, 4) its left camera frame into the plate frame (the frame of the result's
     points and ``T_cam_target``), mm; ``travel_encoder_mm`` the encoder's travel since station 0,
     ``travel_mm`` the travel the registration found (the plate point under the head), mm;
-    ``registration_sd_mm`` the standard uncertainty its registration adds to a point, mm.
+    ``registration_sd_mm`` the standard uncertainty its registration adds to a point, mm;
+    ``footprint_mm`` (4, 2) the corners of its image frame at the depth of its plate (the median of
+    its measured points), in the target's frame (x, y), mm: the outline the plate map draws.
     """
 
     index: int
@@ -149,6 +151,7 @@ class StationDetails:
     registration_sd_mm: float
     stereo_fusion: FusionDetails | None = None
     light_refinement: RefinementDetails | None = None
+    footprint_mm: list[list[float]] | None = None
 
 
 @dataclass(frozen=True)
