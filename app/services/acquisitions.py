@@ -195,8 +195,11 @@ def capture_for_job(
     plate_id: str,
     bundle_dir: Path,
     progress: Callable[[str, float], None],
-) -> None:
-    """The capture of an acquired job, in the consumer: photograph the plate into ``bundle_dir``.
+) -> list[Path]:
+    """The capture of an acquired job, in the consumer: photograph the plate into ``bundle_dir``; the
+    bundles to measure (``[bundle_dir]``: the cell photographs one station; a cell with a conveyor
+    will return its stations' bundles here, which :func:`app.jobs.execution.measure_bundles` measures
+    as one plate).
 
     A complete bundle already there (the job runs again after its worker died or was stopped) is
     kept: the plate photographed then is the one inspected. Progress is reported as stage
@@ -233,6 +236,7 @@ def capture_for_job(
         bundle_dir / "capture.json", storage.artifacts_dir(inspection_id) / "capture.json"
     )
     progress(CAPTURE_STAGE, 1.0)
+    return [bundle_dir]
 
 
 def _capture(

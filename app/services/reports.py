@@ -26,6 +26,7 @@ from app.models import Calibration, Inspection, LightCalibration, Target
 from app.plate_frame import frame_places
 from app.report import ReportData, build_report
 from app.services.plate_maps import NoPlateMap, plate_map_of
+from app.services.stations import capture_bundles
 from app.storage import Storage
 from pipeline.plate_map import PlateMap
 from pipeline.sections import Section, load_sections
@@ -101,10 +102,14 @@ def _capture_and_calibration(
     storage: Storage, row: Inspection
 ) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
     """The bundle's capture.json (for its acquisition record) and its stereo calibration document,
-    from the bundle folder or .zip of the inspection's inputs; None where unreadable."""
+    from the bundle folder or .zip of the inspection's inputs (station 0's of a plate measured at
+    stations); None where unreadable."""
     if not row.capture_path:
         return None, None
-    bundle = storage.absolute(row.capture_path)
+    bundles = capture_bundles(storage.absolute(row.capture_path))
+    if not bundles:
+        return None, None
+    bundle = bundles[0]
     try:
         if bundle.is_dir():
             capture = _json_file(bundle / "capture.json")
