@@ -26,7 +26,7 @@ from app.models import Calibration, Inspection, LightCalibration, Target
 from app.plate_frame import frame_places
 from app.report import ReportData, build_report
 from app.services.plate_maps import NoPlateMap, plate_map_of
-from app.services.stations import capture_bundles
+from app.services.stations import capture_bundles, read_stations
 from app.storage import Storage
 from pipeline.plate_map import PlateMap
 from pipeline.sections import Section, load_sections
@@ -52,6 +52,7 @@ def inspection_report(
     """The PDF report of a done inspection (``document``: its API document as JSON; ``yard``: the
     yard's name, printed in every page's header)."""
     capture, calibration = _capture_and_calibration(storage, row)
+    details = _json_file(storage.artifacts_dir(row.id) / "details.json")
     sections, places = _sections(storage, row.id)
     light = (
         session.get(LightCalibration, row.light_calibration_id)
@@ -74,7 +75,8 @@ def inspection_report(
         yard=yard,
         capture=capture,
         stereo_calibration=_stereo_calibration(session, calibration),
-        details=_json_file(storage.artifacts_dir(row.id) / "details.json"),
+        details=details,
+        stations=read_stations(storage.artifacts_dir(row.id)),
     )
     return build_report(data)
 

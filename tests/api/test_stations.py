@@ -6,6 +6,7 @@ plate by the real pipeline in a real consumer (helpers.render_stations: 3 statio
 from __future__ import annotations
 
 import io
+import re
 import time
 import zipfile
 
@@ -19,6 +20,7 @@ from tests.api.helpers import (
     TOKEN,
     Consumer,
     edit_capture_json,
+    pdf_text,
     rezip,
     stored_files,
 )
@@ -104,6 +106,20 @@ def test_stations_as_parts_and_as_one_zip_are_measured_as_one_plate(real_service
         # the map spans the whole plate (7.5 m along y), not one view
         x0, x1, y0, y1 = plate_map["extent_mm"]
         assert y1 - y0 > 7000.0 and x1 - x0 < 3500.0
+    _report_lists_the_stations(client, ids[0], settings.data_dir)
+
+
+def _report_lists_the_stations(client, inspection_id: int, folder) -> None:
+    """The PDF report of a plate at stations: a stations table, a row per station, beside the map."""
+    r = client.get(f"/api/v1/inspections/{inspection_id}/report.pdf")
+    assert r.status_code == 200, r.text
+    text = pdf_text(r.content, folder)
+    assert "Stations" in text and "Travel registered" in text and "Overlap RMS" in text, text
+    details = client.get(f"/api/v1/inspections/{inspection_id}/artifacts/details.json").json()
+    for s in details["stations"]["stations"]:
+        travel = f"{s['travel_mm']:.1f} mm"
+        assert re.search(rf"^\s*{s['index']}\s+{re.escape(travel)}", text, re.M), (travel, text)
+    assert "The plate was measured at 3 conveyor stations" in " ".join(text.split())
 
 
 def test_a_job_that_fails_keeps_every_station_and_says_why(real_service, station_bundles):
