@@ -974,25 +974,30 @@ def test_map_readout_and_template_placement_by_keyboard(live_server, browser):
 def test_a_plate_measured_at_stations_shows_them_on_its_map_and_page(
     live_server, browser, tmp_path
 ):
-    """Issue 29 in the browser: three station bundles uploaded as three parts, measured as one plate by
-    the real pipeline; the result page's map draws each station's outline, numbered, along the plate,
-    the page lists the stations, and the 3D view and the templates show the whole plate."""
-    import httpx
-
+    """Issue 29 in the browser: three station bundles chosen together in the Cell page's upload form,
+    measured as one plate by the real pipeline; the result page's map draws each station's outline,
+    numbered, along the plate, the page lists the stations, and the 3D view and the templates show the
+    whole plate."""
     from tests.api.helpers import STATIONS_PLATE, render_stations, zip_folder
 
     SHOTS.mkdir(exist_ok=True)
     bundles = render_stations(tmp_path / "stations")
-    files = [("capture", (f"{b.name}.zip", zip_folder(b), "application/zip")) for b in bundles]
-    files.append(("target", ("target.json", (tmp_path / "stations" / "target.json").read_bytes())))
-    r = httpx.post(
-        f"{live_server['base']}/api/v1/plates/{STATIONS_PLATE}/inspections",
-        files=files,
-        headers={"Authorization": f"Bearer {_token(live_server)}"},
-        timeout=60,
-    )
-    assert r.status_code == 202, r.text
-    job_id = r.json()["id"]
+    zips = []
+    for bundle in bundles:
+        zips.append(tmp_path / f"{bundle.name}.zip")
+        zips[-1].write_bytes(zip_folder(bundle))
+    page = browser.new_page(viewport={"width": 1920, "height": 1080})
+    errors = []
+    page.on("pageerror", lambda err: errors.append(str(err)))
+    violations = _watch_csp(page)
+    page.goto(f"{live_server['base']}/cell")
+    page.fill("input[name=plate_id]", STATIONS_PLATE)
+    page.check("input[name=source][value=upload]")
+    page.set_input_files("input[name=capture]", [str(z) for z in zips])
+    page.set_input_files("input[name=target]", str(tmp_path / "stations" / "target.json"))
+    page.click("button[type=submit]")
+    page.wait_for_selector("#start-message[data-kind=ok]", timeout=30_000)
+    job_id = int(page.locator("#queue tr[data-id]").first.get_attribute("data-id"))
     deadline = time.monotonic() + 180
     while (doc := _api(live_server, "GET", f"/api/v1/inspections/{job_id}"))["status"] not in (
         "done",
@@ -1001,11 +1006,8 @@ def test_a_plate_measured_at_stations_shows_them_on_its_map_and_page(
         assert time.monotonic() < deadline, "the inspection did not finish"
         time.sleep(0.5)
     assert doc["status"] == "done", (live_server["logs"] / "worker.log").read_text()[-3000:]
+    assert doc["plate_id"] == STATIONS_PLATE
 
-    page = browser.new_page(viewport={"width": 1920, "height": 1080})
-    errors = []
-    page.on("pageerror", lambda err: errors.append(str(err)))
-    violations = _watch_csp(page)
     page.goto(f"{live_server['base']}/inspections/{job_id}")
     assert page.locator(".verdict-word").inner_text() == "PASS"
     page.wait_for_selector("#plate-map[data-ready=true]", timeout=15_000)
