@@ -94,8 +94,8 @@ def part_names(filenames: list[str | None]) -> list[str]:
 def station_folders(zip_path: Path) -> list[str] | None:
     """The station folders of a zip holding one bundle folder per station (``station_00/``, ...,
     at its root or in its one top folder), each as its member prefix (``station_00/``); None for a
-    zip that is one bundle (``capture.json`` at its root or in its one top folder) or that is not a
-    readable zip (the bundle's checks then say why)."""
+    zip that is one bundle (``capture.json`` at its root or in its one top folder), that has fewer
+    than two such folders, or that is not a readable zip (the bundle's checks then say why)."""
     try:
         with zipfile.ZipFile(zip_path) as zf:
             names = [n for n in zf.namelist() if not n.startswith("__MACOSX/")]
@@ -105,7 +105,7 @@ def station_folders(zip_path: Path) -> list[str] | None:
     if "capture.json" in names or (len(tops) == 1 and f"{next(iter(tops))}/capture.json" in names):
         return None
     folders = sorted(m.group(1) for n in names if (m := _STATION_MEMBER.match(n)))
-    return folders or None
+    return folders if len(folders) >= 2 else None  # one folder deeper is a misplaced bundle
 
 
 def stage_stations(

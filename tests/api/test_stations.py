@@ -228,3 +228,18 @@ def test_the_zip_of_station_folders_may_hold_them_in_one_top_folder(client, stat
     with client.app.state.session_factory() as s:
         row = s.get(Inspection, r.json()["id"])
         assert row.capture_path.endswith("/inputs/stations")
+
+
+def test_one_bundle_a_folder_too_deep_is_refused_as_before(client, station_bundles):
+    """A zip with a single bundle two folders down is no set of stations: the bundle's own error."""
+    buf = io.BytesIO()
+    with (
+        zipfile.ZipFile(io.BytesIO(station_bundles["parts"][0])) as src,
+        zipfile.ZipFile(buf, "w") as dst,
+    ):
+        for name in src.namelist():
+            dst.writestr(f"LONG-1/station_00/{name}", src.read(name))
+    r = _post(client, [("capture", ("plate.zip", buf.getvalue()))], station_bundles["target"])
+    assert r.status_code == 422, r.text
+    assert r.json()["field"] == "capture: capture.json", r.text
+    assert "at the root of the zip or in its one top folder" in r.json()["detail"]

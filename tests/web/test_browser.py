@@ -996,8 +996,10 @@ def test_a_plate_measured_at_stations_shows_them_on_its_map_and_page(
     page.set_input_files("input[name=capture]", [str(z) for z in zips])
     page.set_input_files("input[name=target]", str(tmp_path / "stations" / "target.json"))
     page.click("button[type=submit]")
-    page.wait_for_selector("#start-message[data-kind=ok]", timeout=30_000)
-    job_id = int(page.locator("#queue tr[data-id]").first.get_attribute("data-id"))
+    queued = re.compile(r"Inspection #(\d+) queued\.")  # the queue may not show the job yet
+    said = page.locator("#start-message", has_text=queued)
+    said.wait_for(timeout=30_000)
+    job_id = int(queued.search(said.inner_text()).group(1))
     deadline = time.monotonic() + 180
     while (doc := _api(live_server, "GET", f"/api/v1/inspections/{job_id}"))["status"] not in (
         "done",
