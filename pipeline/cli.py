@@ -268,7 +268,7 @@ def _cmd_calibrate_lights(args: argparse.Namespace) -> int:
 
 
 def _cmd_acquire(args: argparse.Namespace) -> int:
-    from .acquisition import acquire
+    from .acquisition import acquire, acquire_stations, load_cell_config
 
     if not args.plate_id.strip():
         raise BadArgument("--plate-id: expected a plate id, got an empty one")
@@ -282,13 +282,27 @@ def _cmd_acquire(args: argparse.Namespace) -> int:
         if args.verbose:
             print(f"[{100 * fraction:5.1f} %] {stage}", file=sys.stderr)
 
-    out = acquire(args.config, args.plate_id, args.out, progress=progress, **timeout)
-    record = json.loads((out / "capture.json").read_text())["acquisition"]
+    if load_cell_config(args.config).conveyor is None:
+        out = acquire(args.config, args.plate_id, args.out, progress=progress, **timeout)
+        record = json.loads((out / "capture.json").read_text())["acquisition"]
+        print(
+            f"{args.plate_id}: {len(record['frames'])} frames ({len(record['frames']) - 3} photometric, dark, stereo pair) "
+            f"in {record['total_s']:.2f} s ({record['time_per_image_s'] * 1000:.0f} ms per image)"
+        )
+        print(f"wrote {out}")
+        return EXIT_OK
+    bundles = acquire_stations(args.config, args.plate_id, args.out, progress=progress, **timeout)
+    for bundle in bundles:
+        doc = json.loads((bundle / "capture.json").read_text())
+        record = doc["acquisition"]
+        print(
+            f"{args.plate_id} station {doc['station']['index']}: travel {doc['station']['travel_mm']:.1f} mm "
+            f"(moved in {record['conveyor']['move_s']:.2f} s), {len(record['frames'])} frames in "
+            f"{record['total_s']:.2f} s"
+        )
     print(
-        f"{args.plate_id}: {len(record['frames'])} frames ({len(record['frames']) - 3} photometric, dark, stereo pair) "
-        f"in {record['total_s']:.2f} s ({record['time_per_image_s'] * 1000:.0f} ms per image)"
+        f"wrote {len(bundles)} station bundles in {args.out}: {' '.join(b.name for b in bundles)}"
     )
-    print(f"wrote {out}")
     return EXIT_OK
 
 
@@ -590,11 +604,17 @@ def _add_calibrate(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> 
 def _add_acquire(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """``plate-inspect acquire``."""
     acq = sub.add_parser(
-        "acquire", help="photograph a plate in the cell and write a capture bundle"
+        "acquire",
+        help="photograph a plate in the cell and write a capture bundle (a cell with a conveyor: one "
+        "per station, OUT/station_00 ...)",
     )
     acq.add_argument("config", help="cell configuration (cell-config/1)")
     acq.add_argument("--plate-id", required=True, help="the plate's id, written into the bundle")
-    acq.add_argument("--out", required=True, help="bundle folder to write (must not exist)")
+    acq.add_argument(
+        "--out",
+        required=True,
+        help="bundle folder to write (must not exist); with a conveyor, the folder of the stations' bundles",
+    )
     acq.add_argument(
         "--frame-timeout",
         type=float,

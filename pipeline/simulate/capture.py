@@ -430,6 +430,7 @@ def render_radiance(
     side: Literal["left", "right"],
     capture: CaptureSpec = CaptureSpec(),
     seed: int = 0,
+    pose: np.ndarray | None = None,
 ) -> np.ndarray:
     """What one camera of the rig sees of the plate under each light alone, before the sensor.
 
@@ -447,6 +448,9 @@ def render_radiance(
     capture : CaptureSpec
         Its ``exposure``, ``specular``, ``shininess``, ``texture`` and ``albedo_seed`` are used.
     seed : int
+    pose : (4, 4) float or None
+        ``T_cam_plate`` in place of :func:`~pipeline.simulate.plate_pose`, as for
+        :func:`simulate_capture` (a station of a long plate that a conveyor carried under the head).
 
     Returns
     -------
@@ -469,6 +473,8 @@ def render_radiance(
         else int(seeds[4].generate_state(1)[0])
     )
     scene = _scene(plate, capture, rig, tex_seed, int(seeds[5].generate_state(1)[0]))
+    if pose is not None:
+        scene = _Scene(scene.plate, np.asarray(pose, np.float64), scene.albedo, scene.conveyor)
     camera = getattr(rig, side)
     rays = raw_pixel_rays(camera)
     eye = np.zeros(3)
