@@ -19,10 +19,10 @@ from typing import Any, Literal
 
 import numpy as np
 
-from ..camera import StereoRig
-from ..formats import AcquisitionError, CellCamera
-from ..lights import Lights
-from .lights import LightController
+from pipeline.acquisition.lights import LightController
+from pipeline.camera import StereoRig
+from pipeline.formats import AcquisitionError, CellCamera
+from pipeline.lights.model import Lights
 
 Side = Literal["left", "right"]
 
@@ -160,7 +160,7 @@ class SimulatedCell:
     Parameters
     ----------
     rig : StereoRig
-    lights : pipeline.lights.Lights
+    lights : pipeline.lights.model.Lights
         The configuration's lights (the ones written into the bundle).
     working_distance_mm : float
         The plate's centre lies this far along the left camera's axis.
@@ -178,7 +178,7 @@ class SimulatedCell:
         controller: LightController,
         plate_id: str,
     ) -> None:
-        from ..simulate import CaptureSpec, PlateSpec
+        from pipeline.simulate import CaptureSpec, PlateSpec
 
         self.rig = rig
         self.lights = lights
@@ -200,7 +200,7 @@ class SimulatedCell:
     def radiance(self, side: Side) -> np.ndarray:
         """(N, H, W) float32: each light alone as camera ``side`` sees it at the nominal exposure."""
         if side not in self._radiance:
-            from ..simulate import render_radiance
+            from pipeline.simulate import render_radiance
 
             self._radiance[side] = render_radiance(
                 self.plate, self.rig, self.lights, side=side, capture=self.spec, seed=self.seed
@@ -331,6 +331,6 @@ def open_camera(side: Side, config: CellCamera, *, cell: SimulatedCell | None) -
         if cell is None:
             raise ValueError("cell: a simulated camera needs the simulated cell")
         return SimulatedCamera(side, config, cell)
-    from .aravis import AravisCamera
+    from pipeline.acquisition.aravis import AravisCamera
 
     return AravisCamera(side, config)

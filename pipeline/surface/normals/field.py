@@ -2,7 +2,7 @@
 
 A per-pixel fit leaves ``b = rho n`` (3, H, W) and a status per pixel (:data:`OK` or why not);
 :func:`field_from_fit` turns them into unit normals and albedo and fills the holes from the
-neighbours (:func:`pipeline.normals.fill.harmonic_fill`). :func:`drop_facing_away` treats normals
+neighbours (:func:`pipeline.surface.normals.fill.harmonic_fill`). :func:`drop_facing_away` treats normals
 that face away from their camera ray as holes too.
 """
 
@@ -16,14 +16,14 @@ import numba
 import numpy as np
 import numpy.typing as npt
 
-from ..formats import CaptureError
-from .fill import harmonic_fill
+from pipeline.formats import CaptureError
+from pipeline.surface.normals.fill import harmonic_fill
 
 #: An array argument of the kernels (their dtypes are set by the callers).
 Arr = npt.NDArray[Any]
 
 if TYPE_CHECKING:
-    from .specular import SpecularFit
+    from pipeline.surface.normals.specular import SpecularFit
 
 #: Per-pixel status codes of the estimators: estimated; too few usable samples; a degenerate
 #: system; an estimate facing away (rho = 0 or n_z >= 0); not finite; outside the mask.

@@ -34,7 +34,7 @@ import numpy as np
 import numpy.typing as npt
 
 if TYPE_CHECKING:
-    from .formats import CalibratedLight, Light
+    from pipeline.formats import CalibratedLight, Light
 
 #: The irradiance of a point light is given at this distance (mm) from it.
 REFERENCE_DISTANCE_MM = 1000.0

@@ -1,15 +1,15 @@
 """From photometric images to a metric surface: normals, integration and fusion with the stereo pair.
 
-Two light models (:mod:`pipeline.lights`):
+Two light models (:mod:`pipeline.lights.model`):
 
 - **Distant lights** (``direction``): the normals do not depend on the surface; they are
-  estimated once (:func:`pipeline.normals.estimate_normals`), integrated, and the stereo pair
-  sets the low frequencies (:func:`pipeline.fusion.fuse_low_frequencies`). Nominal directions of
+  estimated once (:func:`pipeline.surface.normals.estimate_normals`), integrated, and the stereo pair
+  sets the low frequencies (:func:`pipeline.surface.fusion.fuse_low_frequencies`). Nominal directions of
   what really are near-field LEDs, or a light bumped by a degree, bend the integrated surface
   smoothly; the stereo pair takes that bend out.
 - **Point lights** (``position_mm``): the light vectors and irradiance at a pixel depend on the
   surface point it sees. Starting from the stereo pair's smooth surface (or, without one, the plane
-  at the working distance), normals (:func:`pipeline.nearfield.estimate_normals_near`) and the
+  at the working distance), normals (:func:`pipeline.lights.nearfield.estimate_normals_near`) and the
   fused surface are computed alternately until the depth stops moving.
 
 Normals that still face away from their pixel's ray are filled from their neighbours and counted
@@ -23,10 +23,12 @@ from typing import Any
 
 import numpy as np
 
-from . import fusion, integration, light_refinement, nearfield, normals
-from .formats import CaptureError
-from .lights import Lights
-from .normals.noise import image_noise
+from pipeline.formats import CaptureError
+from pipeline.lights import nearfield
+from pipeline.lights import refinement as light_refinement
+from pipeline.lights.model import Lights
+from pipeline.surface import fusion, integration, normals
+from pipeline.surface.normals.noise import image_noise
 
 #: Point lights: the alternation stops when the 99th percentile of the depth's change is below this
 #: (mm): a 1 mm move turns a light's direction by ~0.02 deg at 3 m.
@@ -247,7 +249,7 @@ def remeasure_with_refined_lights(
     """Refit the given lights on the stereo geometry and measure again with them.
 
     For a surface measured with distant lights whose shape disagreed with the stereo pair's (see
-    :mod:`pipeline.light_refinement`): the refined lights are point lights (near-field
+    :mod:`pipeline.lights.refinement`): the refined lights are point lights (near-field
     reconstruction) or corrected distant ones. The new surface is kept when it agrees better with
     the stereo pair, and then ``refinement`` records the fit; otherwise the first surface is returned
     as it was (the given lights stand).

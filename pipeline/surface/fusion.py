@@ -23,7 +23,7 @@ neighbouring blocks (a stereo matcher's errors are correlated over its window an
 term), which inflates what pure noise takes out of the residual. So exact normals keep their shape
 (and their noise is all that reaches it), while wrong lights, whose bend the stereo pair proves,
 hand the plate's overall shape to it. The fit's covariance gives the correction's own standard
-deviation at every pixel and the bend's, for the uncertainty (:mod:`pipeline.uncertainty`).
+deviation at every pixel and the bend's, for the uncertainty (:mod:`pipeline.judge.uncertainty`).
 
 References
 ----------

@@ -3,7 +3,7 @@
 A capture's light list can be wrong in ways that bend the photometric surface: a light bumped by a
 crane (its direction off by a degree), or LEDs 3 m away given only as their nominal direction from
 the plate's centre. The stereo pair measures the plate's shape independently; on a smooth surface
-through it (:func:`pipeline.fusion.smooth_stereo_depth`) every sample block has a known point X and
+through it (:func:`pipeline.surface.fusion.smooth_stereo_depth`) every sample block has a known point X and
 normal n, and its images must be ``I_k = rho * E_k(X, n)`` with one unknown albedo rho per block.
 Two models of the lights are fitted to block samples with the albedo eliminated in closed form:
 
@@ -12,7 +12,7 @@ Two models of the lights are fitted to block samples with the albedo eliminated 
   to fix a component of ``g_k`` (a cylinder bends one way only), a weak pull towards the given light
   keeps it (Tikhonov);
 - **point**: position, LED axis and profile, intensity per light, the joint fit of
-  :mod:`pipeline.light_fit` started on the given directions from the plate's centre.
+  :mod:`pipeline.lights.fit` started on the given directions from the plate's centre.
 
 The point model is taken when it explains the samples clearly better than any distant model
 (nominal directions of what really are near-field LEDs); else the refined distant lights.
@@ -35,8 +35,8 @@ import numpy as np
 from scipy import special
 from threadpoolctl import threadpool_limits
 
-from . import light_fit
-from .lights import Lights
+from pipeline.lights import fit as light_fit
+from pipeline.lights.model import Lights
 
 #: At most this many sample blocks enter the fits.
 MAX_SAMPLES = 3000

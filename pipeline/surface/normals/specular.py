@@ -1,6 +1,6 @@
 """The specular stage: a lobe fitted on glossy plates, and the normals refined under it.
 
-Used by :func:`pipeline.normals.estimate_normals` with ``method="robust"`` and a view direction
+Used by :func:`pipeline.surface.normals.estimate_normals` with ``method="robust"`` and a view direction
 (``view_dirs`` or ``camera_matrix``). Shiny coatings add a lobe around the mirror direction to every
 sample, I_k = rho n.l_k + s g(n.h_k) with the half vector h_k = normalize(l_k + v). For a ring of
 lights the lobe is, to first order in the normal, inside the span of the Lambertian model, so

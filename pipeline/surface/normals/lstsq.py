@@ -28,21 +28,21 @@ def lstsq(
     Parameters
     ----------
     images : (N, H, W) float32
-        Intensity-normalised images (checked by :func:`pipeline.normals.estimate_normals`).
+        Intensity-normalised images (checked by :func:`pipeline.surface.normals.estimate_normals`).
     L : (N, 3) float64
         Unit light directions, spanning 3D.
     mask : (H, W) bool
     valid : (N, H, W) bool or None
         Usable samples; None: all.
     min_samples : int
-        Fewer valid samples than this: status :data:`~pipeline.normals.field.FEW`.
+        Fewer valid samples than this: status :data:`~pipeline.surface.normals.field.FEW`.
 
     Returns
     -------
     b : (3, H, W) float32
         rho n.
     status : (H, W) int8
-        Status codes of :mod:`pipeline.normals.field`.
+        Status codes of :mod:`pipeline.surface.normals.field`.
     """
     n, h, w = images.shape
     flat = images.reshape(n, h * w)

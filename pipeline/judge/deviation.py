@@ -7,8 +7,8 @@ proud of its target, towards the cameras), negative behind it. The camera-facing
 target on which the left camera centre lies, taken at the plate centre (a plate seen whole by the camera has
 the camera on one side of it everywhere).
 
-The pose comes from :mod:`pipeline.registration`, the target frame from :mod:`pipeline.target_geometry`,
-the verdict from the deviation map in :mod:`pipeline.verdict`.
+The pose comes from :mod:`pipeline.judge.registration`, the target frame from :mod:`pipeline.judge.target_geometry`,
+the verdict from the deviation map in :mod:`pipeline.judge.verdict`.
 """
 
 from __future__ import annotations
@@ -17,10 +17,10 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from .io import Target
-from .registration import Registration
-from .surface_fits import check_grid
-from .target_geometry import check_target, mesh_grid
+from pipeline.io import Target
+from pipeline.judge.fits import check_grid
+from pipeline.judge.registration import Registration
+from pipeline.judge.target_geometry import check_target, mesh_grid
 
 
 def _check_registration(registration: Registration) -> np.ndarray:
@@ -65,7 +65,7 @@ def deviation_map(
     -----
     Plane, cylinder and sphere: exact distances in the target frame. Mesh: the height difference to the
     mesh (rasterised over its PCA plane at ``MESH_GRID_MM``, 10 mm, coarser for a mesh over 15 m;
-    bilinear: :class:`pipeline.target_geometry.MeshGrid`) times ``1/sqrt(1 + |grad h|^2)`` -- the normal
+    bilinear: :class:`pipeline.judge.target_geometry.MeshGrid`) times ``1/sqrt(1 + |grad h|^2)`` -- the normal
     distance to first order in the deviation.
     """
     tgt = check_target(target)

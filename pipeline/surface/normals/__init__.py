@@ -3,17 +3,17 @@
 :func:`estimate_normals` turns N intensity-normalised images taken under N known distant lights
 into a field of unit surface normals and albedo in the left-camera frame, filling the holes (too
 few usable samples) by harmonic interpolation and counting them. Under point lights the same
-robust kernel runs per pixel from the current surface (:mod:`pipeline.nearfield`).
+robust kernel runs per pixel from the current surface (:mod:`pipeline.lights.nearfield`).
 
 Modules, one job each:
 
-- :mod:`~pipeline.normals.estimate`: :func:`estimate_normals`, its input checks and the choice of estimator;
-- :mod:`~pipeline.normals.lstsq`: Woodham's least squares;
-- :mod:`~pipeline.normals.robust`: the robust estimator (shadows, highlights and outliers rejected);
-- :mod:`~pipeline.normals.specular`: the specular lobe of glossy plates;
-- :mod:`~pipeline.normals.field`: :class:`NormalField`, a fit's status codes, normals facing away;
-- :mod:`~pipeline.normals.fill`: harmonic hole filling;
-- :mod:`~pipeline.normals.solve3`: the per-pixel 3x3 normal equations (one adjugate solve for all kernels).
+- :mod:`~pipeline.surface.normals.estimate`: :func:`estimate_normals`, its input checks and the choice of estimator;
+- :mod:`~pipeline.surface.normals.lstsq`: Woodham's least squares;
+- :mod:`~pipeline.surface.normals.robust`: the robust estimator (shadows, highlights and outliers rejected);
+- :mod:`~pipeline.surface.normals.specular`: the specular lobe of glossy plates;
+- :mod:`~pipeline.surface.normals.field`: :class:`NormalField`, a fit's status codes, normals facing away;
+- :mod:`~pipeline.surface.normals.fill`: harmonic hole filling;
+- :mod:`~pipeline.surface.normals.solve3`: the per-pixel 3x3 normal equations (one adjugate solve for all kernels).
 
 References
 ----------

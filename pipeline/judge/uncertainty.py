@@ -13,7 +13,7 @@ it found:
   shape (the correction's knot spacing, or the plate's extent when it sets only scale, tilt and
   bend).
 - **Stereo correction** (per point). The standard deviation of the chosen correction from its fit's
-  covariance, the noise and its correlation measured on the data (:class:`pipeline.fusion.Fusion`).
+  covariance, the noise and its correlation measured on the data (:class:`pipeline.surface.fusion.Fusion`).
 - **Scale** (per point and radius). The stereo pair's scale rests on its disparities: the matcher's
   disparity quantum (1/16 px, a rectangular distribution) and the calibration's reprojection
   error over its board's corners give a relative scale uncertainty ``u_d / d``; a point moves by
@@ -43,10 +43,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from . import fusion as fusion_mod
-from .lights import Lights
-from .normals import NormalField
-from .normals.noise import image_noise
+from pipeline.lights.model import Lights
+from pipeline.surface import fusion as fusion_mod
+from pipeline.surface.normals import NormalField
+from pipeline.surface.normals.noise import image_noise
 
 #: Coverage factor of every expanded uncertainty the inspection reports.
 COVERAGE_K = 2.0

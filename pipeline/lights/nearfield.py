@@ -4,12 +4,12 @@ Under a point light at P the image of a surface point X is
 
     I_k = rho * e_k * a_k(X) * max(0, n . l_k(X)),   l_k(X) = (P_k - X) / |P_k - X|
 
-(:mod:`pipeline.lights`). Given X -- from the current estimate of the surface -- every pixel is
+(:mod:`pipeline.lights.model`). Given X -- from the current estimate of the surface -- every pixel is
 again a linear problem in b = rho n, with its own light vectors: the samples are divided by
 ``a_k(X)`` and fitted against ``l_k(X)`` with the same per-pixel estimators as distant lights
-(:func:`pipeline.normals.estimate_normals`'s robust fit, or plain least squares). The surface
+(:func:`pipeline.surface.normals.estimate_normals`'s robust fit, or plain least squares). The surface
 itself comes from integrating these normals, so the two are solved alternately
-(:func:`pipeline.reconstruct.near_field_surface` starts from the stereo depth and iterates until the
+(:func:`pipeline.surface.reconstruct.near_field_surface` starts from the stereo depth and iterates until the
 depth stops moving; Queau et al. 2018, section 4, and Mecca et al. 2014 solve the same coupled problem).
 
 Distant lights may be mixed in: their direction is the same everywhere and ``a_k = 1``.
@@ -26,14 +26,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from .lights import Lights
-from .normals import METHODS, NormalField
-from .normals.field import field_from_fit
-from .normals.noise import image_noise
-from .normals.robust import robust_kernel, robust_params, sorting_network
+from pipeline.lights.model import Lights
+from pipeline.surface.normals import METHODS, NormalField
+from pipeline.surface.normals.field import field_from_fit
+from pipeline.surface.normals.noise import image_noise
+from pipeline.surface.normals.robust import robust_kernel, robust_params, sorting_network
 
 #: The robust fit's parameters that make it plain least squares over the usable samples: no shadow
-#: level, no highlight trim, no re-selection (see pipeline.normals.robust.robust_params for the order).
+#: level, no highlight trim, no re-selection (see pipeline.surface.normals.robust.robust_params for the order).
 _PLAIN_PARAMS = np.array([0.0, 0.9, 0.0, -np.inf, np.inf, 0.0, 0.0, np.inf, 0.0])
 
 #: A sample whose attenuation a_k(X) is below this fraction of the pixel's largest one is left out
@@ -73,7 +73,7 @@ def estimate_normals_near(
     valid : (N, H, W) bool, optional
         Usable samples (False: saturated, shadowed); None = all.
     method : {"robust", "lstsq"}
-        The per-pixel estimator (see :func:`pipeline.normals.estimate_normals`): the robust fit
+        The per-pixel estimator (see :func:`pipeline.surface.normals.estimate_normals`): the robust fit
         (shadows, highlights and outliers rejected), or least squares over the usable samples.
         The specular stage of distant lights is not applied.
     min_samples : int
@@ -81,7 +81,7 @@ def estimate_normals_near(
 
     noise : float, optional
         The images' noise (their units), the robust estimator's scale floor; default: measured here
-        (:func:`pipeline.normals.noise.image_noise`). The alternation of :mod:`pipeline.reconstruct`
+        (:func:`pipeline.surface.normals.noise.image_noise`). The alternation of :mod:`pipeline.surface.reconstruct`
         measures it once for all its estimates.
     Returns
     -------
@@ -100,7 +100,7 @@ def estimate_normals_near(
     -----
     Samples of a pixel whose attenuation is below MIN_RELATIVE_ATTENUATION of its largest one
     are left out. The light vectors are computed per pixel inside the compiled kernel
-    (:func:`pipeline.lights.light_vectors_block`), a block of a row at a time; nothing of size
+    (:func:`pipeline.lights.model.light_vectors_block`), a block of a row at a time; nothing of size
     (N, H, W) beyond the inputs is allocated.
     """
     if method not in METHODS:

@@ -38,8 +38,8 @@ import numpy as np
 import trimesh
 from trimesh.intersections import mesh_plane
 
-from .artifacts.ply import read_mesh_ply
-from .plate_map import to_camera_frame
+from pipeline.artifacts.ply import read_mesh_ply
+from pipeline.judge.plate_map import to_camera_frame
 
 #: Samples along each section.
 SAMPLES = 241

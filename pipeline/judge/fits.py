@@ -11,8 +11,8 @@ Why geometric fits: a global graph quadric ``z = a x^2 + b xy + c y^2 + ...`` ta
 curvature for the circle's; over a 3 m plate that understates the radius by 2 % (cylinder, R 5 m) to
 4.5 % (sphere). The fits below minimise true orthogonal distances instead, in a parametrisation by
 curvature ``k = 1/R`` that stays well conditioned as ``k -> 0`` (a flat plate is ``k = 0``, not ``R = inf``).
-The curvature measure of a plate (``radius_mm``, ``principal_radii_mm``) uses them: :mod:`pipeline.curvature`;
-the registration to the target too: :mod:`pipeline.registration`.
+The curvature measure of a plate (``radius_mm``, ``principal_radii_mm``) uses them: :mod:`pipeline.judge.curvature`;
+the registration to the target too: :mod:`pipeline.judge.registration`.
 
 References
 ----------
@@ -33,7 +33,7 @@ import numba
 import numpy as np
 import numpy.typing as npt
 
-from .solvers import robust_gauss_newton, robust_scale
+from pipeline.solvers import robust_gauss_newton, robust_scale
 
 #: At most this many points go into a fit; more are subsampled uniformly (every n-th point). With 0.2 mm
 #: noise 20 000 points over a 3 m plate leave a radius uncertainty of ~0.005 % at R 20 m (tests check 0.05 %).

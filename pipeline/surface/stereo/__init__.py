@@ -2,10 +2,10 @@
 
 Modules, one job each:
 
-- :mod:`~pipeline.stereo.depth`: :func:`stereo_depth`, the two passes (coarse range, fine match),
+- :mod:`~pipeline.surface.stereo.depth`: :func:`stereo_depth`, the two passes (coarse range, fine match),
   triangulation and the depth on the left undistorted grid;
-- :mod:`~pipeline.stereo.matching`: the rig's rectification and one rectify-and-match pass (SGBM);
-- :mod:`~pipeline.stereo.refine`: sub-pixel refinement and the correlation check of a disparity map.
+- :mod:`~pipeline.surface.stereo.matching`: the rig's rectification and one rectify-and-match pass (SGBM);
+- :mod:`~pipeline.surface.stereo.refine`: sub-pixel refinement and the correlation check of a disparity map.
 """
 
 from .depth import (

@@ -7,13 +7,13 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from ..camera import check_camera_matrix
-from ..formats import UNIT_TOLERANCE
-from .field import NormalField, field_from_fit
-from .lstsq import lstsq
-from .robust import robust
-from .solve3 import MIN_FIT
-from .specular import specular
+from pipeline.camera import check_camera_matrix
+from pipeline.formats import UNIT_TOLERANCE
+from pipeline.surface.normals.field import NormalField, field_from_fit
+from pipeline.surface.normals.lstsq import lstsq
+from pipeline.surface.normals.robust import robust
+from pipeline.surface.normals.solve3 import MIN_FIT
+from pipeline.surface.normals.specular import specular
 
 #: An array argument of the kernels (their dtypes are set by the callers).
 Arr = npt.NDArray[Any]
@@ -75,21 +75,21 @@ def estimate_normals(
 
     Notes
     -----
-    The estimators: least squares (:mod:`pipeline.normals.lstsq`), robust (:mod:`pipeline.normals.robust`)
-    and the specular stage (:mod:`pipeline.normals.specular`; its fit in ``NormalField.specular``).
+    The estimators: least squares (:mod:`pipeline.surface.normals.lstsq`), robust (:mod:`pipeline.surface.normals.robust`)
+    and the specular stage (:mod:`pipeline.surface.normals.specular`; its fit in ``NormalField.specular``).
 
     Orientation: with lights on the camera side (l_z < 0) and images consistent with them, every lit
     sample has n . l > 0, so b = rho n has n_z < 0 without any sign flip. An estimate that still has
     n_z >= 0 (noise, a black pixel with rho = 0) is a hole, never flipped.
 
     Holes (fewer than ``min_samples`` usable samples, a degenerate light set, rho = 0 or n_z >= 0)
-    are filled from the estimated 4-neighbours (:func:`pipeline.normals.fill.harmonic_fill`),
+    are filled from the estimated 4-neighbours (:func:`pipeline.surface.normals.fill.harmonic_fill`),
     flagged in ``filled`` and counted in ``n_filled``. A connected hole with no estimated pixel next
     to it is left out of ``mask`` and a ``RuntimeWarning`` says how many pixels that was.
 
     References
     ----------
-    Woodham 1980 (see :mod:`pipeline.normals`).
+    Woodham 1980 (see :mod:`pipeline.surface.normals`).
     """
     images, light_dirs, mask, valid = _check_inputs(
         images, light_dirs, mask, valid, method, min_samples

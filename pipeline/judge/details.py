@@ -14,10 +14,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:
-    from .fusion import Fusion
-    from .light_refinement import LightRefinement
-    from .segmentation import Segmentation
-    from .verdict import DefectRegion
+    from pipeline.judge.verdict import DefectRegion
+    from pipeline.lights.refinement import LightRefinement
+    from pipeline.segmentation import Segmentation
+    from pipeline.surface.fusion import Fusion
 
 
 @dataclass(frozen=True)
@@ -76,7 +76,7 @@ class SegmentationDetails:
 
 @dataclass(frozen=True)
 class FusionDetails:
-    """How the stereo pair corrected the photometric shape (:class:`pipeline.fusion.Fusion`)."""
+    """How the stereo pair corrected the photometric shape (:class:`pipeline.surface.fusion.Fusion`)."""
 
     disagreement_mm: float
     noise_floor_mm: float
@@ -85,7 +85,7 @@ class FusionDetails:
     stereo_pixels: int
     correction: str
     knot_spacing_px: float | None
-    #: The lack-of-fit test per rung: {rung: [statistic, threshold]} (pipeline.fusion.Fusion.evidence).
+    #: The lack-of-fit test per rung: {rung: [statistic, threshold]} (pipeline.surface.fusion.Fusion.evidence).
     evidence: dict[str, list[float]] = field(default_factory=dict)
     #: Variance inflation of the stereo noise by its correlation between neighbouring blocks.
     noise_inflation: float = 1.0
@@ -93,7 +93,7 @@ class FusionDetails:
 
 @dataclass(frozen=True)
 class UncertaintyDetails:
-    """How the expanded uncertainties were made (:mod:`pipeline.uncertainty`): ``k``, the figures (mm)
+    """How the expanded uncertainties were made (:mod:`pipeline.judge.uncertainty`): ``k``, the figures (mm)
     and the standard uncertainties behind them (``components``), and the edge band left out by
     geometry (mm from the plate's outline and openings)."""
 
@@ -106,7 +106,7 @@ class UncertaintyDetails:
 
 @dataclass(frozen=True)
 class RefinementDetails:
-    """The lights refitted on the stereo geometry (:mod:`pipeline.light_refinement`)."""
+    """The lights refitted on the stereo geometry (:mod:`pipeline.lights.refinement`)."""
 
     model: str
     rms_given: float
@@ -224,7 +224,7 @@ class Details:
 def region_details(
     region: DefectRegion, centroid_mm: tuple[float, float] | None = None
 ) -> RegionDetails:
-    """A :class:`pipeline.verdict.DefectRegion` for details.json (``centroid_mm``: target frame)."""
+    """A :class:`pipeline.judge.verdict.DefectRegion` for details.json (``centroid_mm``: target frame)."""
     return RegionDetails(
         centroid_px=list(map(float, region.centroid_px)),
         area_mm2=float(region.area_mm2),
@@ -283,7 +283,7 @@ def segmentation_details(
 
 
 def fusion_details(fused: Fusion | None) -> FusionDetails | None:
-    """How the stereo pair corrected the photometric shape (a :class:`pipeline.fusion.Fusion` or None)."""
+    """How the stereo pair corrected the photometric shape (a :class:`pipeline.surface.fusion.Fusion` or None)."""
     if fused is None:
         return None
     return FusionDetails(
@@ -300,7 +300,7 @@ def fusion_details(fused: Fusion | None) -> FusionDetails | None:
 
 
 def refinement_details(refined: LightRefinement | None) -> RefinementDetails | None:
-    """The lights refitted on the stereo geometry (a :class:`pipeline.light_refinement.LightRefinement` or None)."""
+    """The lights refitted on the stereo geometry (a :class:`pipeline.lights.refinement.LightRefinement` or None)."""
     if refined is None:
         return None
     return RefinementDetails(

@@ -47,8 +47,8 @@ import numpy as np
 import numpy.typing as npt
 import scipy.ndimage
 
-from .camera import check_camera_matrix
-from .solvers import solve_grid_system
+from pipeline.camera import check_camera_matrix
+from pipeline.solvers import solve_grid_system
 
 #: An array argument of the kernels (their dtypes are set by the callers).
 Arr = npt.NDArray[Any]

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..camera import StereoRig
+from pipeline.camera import StereoRig
 
 #: Matching window of SGBM, pixels (odd).
 BLOCK_SIZE = 5

@@ -1,8 +1,8 @@
 """Registration of the measured plate to its CAD target: the best-fit pose of the target on the plate.
 
-Plane, cylinder and sphere targets are fitted analytically (:mod:`pipeline.surface_fits`); a mesh target
-by ICP then point-to-surface refinement on its height grid (:class:`pipeline.target_geometry.MeshGrid`).
-The target frame is described in :mod:`pipeline.target_geometry`.
+Plane, cylinder and sphere targets are fitted analytically (:mod:`pipeline.judge.fits`); a mesh target
+by ICP then point-to-surface refinement on its height grid (:class:`pipeline.judge.target_geometry.MeshGrid`).
+The target frame is described in :mod:`pipeline.judge.target_geometry`.
 
 References
 ----------
@@ -20,9 +20,8 @@ import numpy.typing as npt
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from .io import Target
-from .solvers import robust_gauss_newton, robust_scale
-from .surface_fits import (
+from pipeline.io import Target
+from pipeline.judge.fits import (
     MAX_FIT_POINTS,
     check_grid,
     fit_curved,
@@ -31,7 +30,8 @@ from .surface_fits import (
     grid_sample,
     pca_frame,
 )
-from .target_geometry import MeshGrid, check_target, mesh_grid
+from pipeline.judge.target_geometry import MeshGrid, check_target, mesh_grid
+from pipeline.solvers import robust_gauss_newton, robust_scale
 
 #: ICP for mesh targets: measured points used for the coarse alignment.
 ICP_POINTS = 2000
@@ -146,7 +146,7 @@ def register_to_target(
     Returns
     -------
     Registration
-        ``T_cam_target`` maps target-frame points into the camera frame (the frame: :mod:`pipeline.target_geometry`).
+        ``T_cam_target`` maps target-frame points into the camera frame (the frame: :mod:`pipeline.judge.target_geometry`).
 
     Raises
     ------

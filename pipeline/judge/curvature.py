@@ -3,7 +3,7 @@
 All points are in the left-camera frame (OpenCV: x right, y down, z forward), in mm. Sign convention:
 a curvature or radius is **positive where the surface is convex towards the camera** and negative where
 it is concave towards it. The radius of the target's own shape (``radius_mm`` of the result) comes from
-the geometric fits of :mod:`pipeline.surface_fits`.
+the geometric fits of :mod:`pipeline.judge.fits`.
 
 References
 ----------
@@ -21,7 +21,7 @@ import numpy.typing as npt
 from numpy.polynomial import legendre as leg
 from scipy import ndimage
 
-from .surface_fits import MAX_FIT_POINTS, check_grid, grid_sample, local_quadric, pca_frame
+from pipeline.judge.fits import MAX_FIT_POINTS, check_grid, grid_sample, local_quadric, pca_frame
 
 #: A principal direction whose sagitta over the plate, ``|k| L^2 / 8`` (L = plate extent along that
 #: direction), is below this many mm counts as flat: its radius is reported as None.

@@ -12,9 +12,9 @@ Lambertian data the trimming costs ~10 % in noise, and where the errors are syst
 outliers (the UW grey sphere: nearly Lambertian, 12 clustered lights of limited accuracy) it is
 slightly worse than least squares.
 
-The same kernel serves point lights (:func:`pipeline.nearfield.estimate_normals_near`): the light
+The same kernel serves point lights (:func:`pipeline.lights.nearfield.estimate_normals_near`): the light
 vectors of a block are then computed per pixel from the current surface
-(:func:`pipeline.lights.light_vectors_block`).
+(:func:`pipeline.lights.model.light_vectors_block`).
 
 Kept as one module (~510 lines, a tenth of them the typed signatures of its kernels, one argument per
 line): the kernels call each other and numba compiles them together.
@@ -29,10 +29,10 @@ import numba
 import numpy as np
 import numpy.typing as npt
 
-from ..lights import light_vectors_block
-from .field import DEGENERATE, FEW, NONFINITE, OK, OUTSIDE
-from .noise import image_noise
-from .solve3 import DEGENERATE_RATIO, MIN_FIT
+from pipeline.lights.model import light_vectors_block
+from pipeline.surface.normals.field import DEGENERATE, FEW, NONFINITE, OK, OUTSIDE
+from pipeline.surface.normals.noise import image_noise
+from pipeline.surface.normals.solve3 import DEGENERATE_RATIO, MIN_FIT
 
 #: An array argument of the kernels (their dtypes are set by the callers).
 Arr = npt.NDArray[Any]
@@ -58,7 +58,7 @@ OUTLIER_K = 1.5
 OUTLIER_K_HIGH = 1.5
 SCALE_FLOOR = 0.01
 #: ... and at least this many times the images' own noise (measured on the plate, see
-#: :func:`pipeline.normals.noise.image_noise`): a residual within what the sensor's noise explains
+#: :func:`pipeline.surface.normals.noise.image_noise`): a residual within what the sensor's noise explains
 #: is no outlier. Without
 #: it, trimming at 1.5 robust scales of a few samples' residuals cuts pure noise asymmetrically,
 #: and the normals' error is then no longer zero-mean but bends the integrated plate smoothly
@@ -97,21 +97,21 @@ def robust(
     Parameters
     ----------
     images : (N, H, W) float32
-        Intensity-normalised images (checked by :func:`pipeline.normals.estimate_normals`).
+        Intensity-normalised images (checked by :func:`pipeline.surface.normals.estimate_normals`).
     L : (N, 3) float64
         Unit light directions.
     mask : (H, W) bool
     valid : (N, H, W) bool or None
         Usable samples; None: all.
     min_samples : int
-        Fewer usable samples than this: status :data:`~pipeline.normals.field.FEW`.
+        Fewer usable samples than this: status :data:`~pipeline.surface.normals.field.FEW`.
 
     Returns
     -------
     b : (3, H, W) float32
         rho n.
     status : (H, W) int8
-        Status codes of :mod:`pipeline.normals.field`.
+        Status codes of :mod:`pipeline.surface.normals.field`.
     """
     n, h, w = images.shape
     b = np.empty((3, h, w), dtype=np.float32)
@@ -144,7 +144,7 @@ def robust_params(noise: float = 0.0) -> np.ndarray:
     """The robust estimator's constants as the kernel's parameter vector (9,) float64, in this order:
     SHADOW_FRACTION, SHADOW_REF_QUANTILE, TRIM_TOP_FRACTION, COS_MIN, OUTLIER_K, SCALE_FLOOR,
     ROBUST_ITERATIONS, OUTLIER_K_HIGH, and the absolute floor of the robust scale
-    ``NOISE_SCALES * noise`` (``noise``: the images' noise, :func:`pipeline.normals.noise.image_noise`)."""
+    ``NOISE_SCALES * noise`` (``noise``: the images' noise, :func:`pipeline.surface.normals.noise.image_noise`)."""
     return np.array(
         [
             SHADOW_FRACTION,
@@ -202,8 +202,8 @@ def robust_kernel(
     """Robust fit of every mask pixel (see the module docstring). Fills b_out (3, H, W) with rho n and
     status (H, W) with a status code per pixel.
 
-    The lights as :meth:`pipeline.lights.Lights.kernel_arrays` give them; with point lights, ``depth``
-    (H, W) mm and ``kinv`` give each pixel's surface point (:func:`pipeline.lights.light_vectors_block`);
+    The lights as :meth:`pipeline.lights.model.Lights.kernel_arrays` give them; with point lights, ``depth``
+    (H, W) mm and ``kinv`` give each pixel's surface point (:func:`pipeline.lights.model.light_vectors_block`);
     with distant lights only, ``depth`` may be (1, 1) and is not read. ``params``: :func:`robust_params`
     (or other constants in that order); ``pairs``: :func:`sorting_network` of N.
     """
@@ -496,7 +496,7 @@ def _fit_row(samples: Arr, weight: Arr, L: Arr, b: Arr, ok: Arr) -> None:
             r1[j] += wi * ly
             r2[j] += wi * lz
             cnt[j] += wk
-    # The adjugate solve of pipeline.normals.solve3, written out: through the helper LLVM compiles
+    # The adjugate solve of pipeline.surface.normals.solve3, written out: through the helper LLVM compiles
     # this loop over a block's pixels differently (the last bit of some solutions changes, and with
     # it which samples later fits keep), so the vectorised float32 loop stays as it is.
     for j in range(w):

@@ -38,8 +38,8 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from ..camera import StereoRig
-from .matching import (
+from pipeline.camera import StereoRig
+from pipeline.surface.stereo.matching import (
     BLOCK_SIZE,
     MatchPass,
     bbox_corners,
@@ -48,7 +48,7 @@ from .matching import (
     reduced_camera,
     search_range,
 )
-from .refine import (
+from pipeline.surface.stereo.refine import (
     MIN_ZNCC,
     REFINE_ITERATIONS,
     REFINE_MAX_STEP_PX,

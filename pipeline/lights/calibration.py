@@ -2,7 +2,7 @@
 
 The plate's pose comes from the capture's stereo pair (stereo depth, robust plane fit), so every
 plate pixel has a known surface point X (left-camera frame, mm) and the plate's unit normal n. The
-lights are then fitted jointly on the images' ratios (:mod:`pipeline.light_fit`: the model, the
+lights are then fitted jointly on the images' ratios (:mod:`pipeline.lights.fit`: the model, the
 variable projection that eliminates the plate's albedo, the Levenberg-Marquardt steps). Samples are
 block means of the undistorted, dark-subtracted images (a block of a few pixels sees one surface
 point to well under a millimetre of the model), taken where all of a block's samples are valid (lit,
@@ -29,13 +29,13 @@ import cv2
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from . import stereo
-from .formats import CaptureError, InputError
-from .io import Capture
-from .light_fit import JointFit, PlatePose, Samples, initial_point_lights, joint_fit
-from .lights import Lights
-from .preprocess import preprocess
-from .surface_fits import fit_plane
+from pipeline.formats import CaptureError, InputError
+from pipeline.io import Capture
+from pipeline.judge.fits import fit_plane
+from pipeline.lights.fit import JointFit, PlatePose, Samples, initial_point_lights, joint_fit
+from pipeline.lights.model import Lights
+from pipeline.preprocess import preprocess
+from pipeline.surface import stereo
 
 #: Stereo depth search when the capture gives no working distance: around this depth (mm) ...
 NOMINAL_DISTANCE_MM = 3500.0

@@ -1,6 +1,6 @@
 """The joint fit of point lights (LEDs) on samples of a plate of known geometry (variable projection).
 
-Every light k is a point light (:mod:`pipeline.lights`) with position ``P_k`` (mm), LED axis ``a_k``
+Every light k is a point light (:mod:`pipeline.lights.model`) with position ``P_k`` (mm), LED axis ``a_k``
 (unit, 2 degrees of freedom), beam exponent ``mu_k >= 0`` and intensity ``e_k``; sample ``I_pk`` of
 surface point ``X_p`` (normal ``n_p``) under light k is modelled as
 
@@ -15,8 +15,8 @@ keeps the fit unbiased where a fit of log ratios would not be. A fit per light w
 held fixed stalls far from the solution (the albedo estimate couples them); the joint fit from
 nominal lights converges.
 
-Used by the light calibration on a flat reference plate (:mod:`pipeline.light_calibration`) and by
-the lights refitted at inspection on the stereo geometry (:mod:`pipeline.light_refinement`).
+Used by the light calibration on a flat reference plate (:mod:`pipeline.lights.calibration`) and by
+the lights refitted at inspection on the stereo geometry (:mod:`pipeline.lights.refinement`).
 
 References
 ----------
@@ -33,7 +33,7 @@ from typing import Literal, overload
 
 import numpy as np
 
-from .lights import REFERENCE_DISTANCE_MM, Lights
+from pipeline.lights.model import REFERENCE_DISTANCE_MM, Lights
 
 #: Parameters per light in the joint fit: position (3, mm), axis (2, tangent offsets), mu, log intensity.
 _N_PARAMS = 7

@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from .io import Target
+from pipeline.io import Target
 
 #: Mesh targets: spacing (mm) of the height grid the mesh is rasterised to. Bilinear interpolation of a
 #: surface of radius R at spacing g errs by ~g^2 / (8 R): 0.006 mm at R 2 m.

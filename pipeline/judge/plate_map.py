@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from .artifacts.ply import read_surface_ply
+from pipeline.artifacts.ply import read_surface_ply
 
 #: Cells along the longer side of the map by default (a 3 m plate: 12.5 mm cells).
 DEFAULT_CELLS = 240

@@ -1,0 +1,12 @@
+"""The surface: from a capture's images to a metric surface in the left camera's frame.
+
+Modules, one job each:
+
+- :mod:`~pipeline.surface.normals`: photometric normals and albedo (Woodham, robust);
+- :mod:`~pipeline.surface.stereo`: the stereo pair's metric depth;
+- :mod:`~pipeline.surface.integration`: normals integrated to depth (least squares on the grid);
+- :mod:`~pipeline.surface.fusion`: the stereo correction of the photometric shape, chosen by the
+  evidence;
+- :mod:`~pipeline.surface.reconstruct`: the chain of the above for one view,
+  :class:`~pipeline.surface.reconstruct.Surface`.
+"""
