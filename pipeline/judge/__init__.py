@@ -13,3 +13,9 @@ Modules, one job each:
 - :mod:`~pipeline.judge.plate_map`: the deviation map in the target's frame for pages and reports;
 - :mod:`~pipeline.judge.details`: ``details.json``, what the stages found.
 """
+
+import lazy_loader
+
+# The names of __init__.pyi, each imported from its module when first used: a wing's modules import
+# each other's, and eager imports here would run in circles.
+__getattr__, __dir__, __all__ = lazy_loader.attach_stub(__name__, __file__)

@@ -12,3 +12,9 @@ Modules, one job each:
 - :mod:`~pipeline.lights.nearfield`: photometric normals under point lights, iterated with the
   surface they light.
 """
+
+import lazy_loader
+
+# The names of __init__.pyi, each imported from its module when first used: a wing's modules import
+# each other's, and eager imports here would run in circles.
+__getattr__, __dir__, __all__ = lazy_loader.attach_stub(__name__, __file__)

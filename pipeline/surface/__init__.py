@@ -10,3 +10,9 @@ Modules, one job each:
 - :mod:`~pipeline.surface.reconstruct`: the chain of the above for one view,
   :class:`~pipeline.surface.reconstruct.Surface`.
 """
+
+import lazy_loader
+
+# The names of __init__.pyi, each imported from its module when first used: a wing's modules import
+# each other's, and eager imports here would run in circles.
+__getattr__, __dir__, __all__ = lazy_loader.attach_stub(__name__, __file__)
