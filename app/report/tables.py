@@ -24,7 +24,7 @@ from app.report.text import (
     text_or,
     when,
 )
-from pipeline.sections import Section
+from pipeline.judge.sections import Section
 
 #: Columns of the judged items' tables after the item's own.
 JUDGED = ["Nominal", "Actual", "Deviation", "Tolerance", "U (k=2)", "Result"]

@@ -27,8 +27,8 @@ from app.plate_frame import frame_places
 from app.report import ReportData, build_report
 from app.services.plate_maps import NoPlateMap, plate_map_of
 from app.storage import Storage
-from pipeline.plate_map import PlateMap
-from pipeline.sections import Section, load_sections
+from pipeline.judge.plate_map import PlateMap
+from pipeline.judge.sections import Section, load_sections
 
 log = logging.getLogger(__name__)
 

@@ -20,14 +20,14 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
-from ..camera import StereoRig
-from ..formats import AcquisitionError, CellCamera
-from ..lights import Lights
-from .conveyor import Conveyor, SimulatedConveyor
-from .lights import LightController
+from pipeline.acquisition.conveyor import Conveyor, SimulatedConveyor
+from pipeline.acquisition.lights import LightController
+from pipeline.camera import StereoRig
+from pipeline.formats import AcquisitionError, CellCamera
+from pipeline.lights.model import Lights
 
 if TYPE_CHECKING:
-    from ..simulate import PlateSpec
+    from pipeline.simulate import PlateSpec
 
 Side = Literal["left", "right"]
 
@@ -172,7 +172,7 @@ def simulated_plate(
     -------
     pipeline.simulate.PlateSpec
     """
-    from ..simulate import PlateSpec
+    from pipeline.simulate import PlateSpec
 
     plate = PlateSpec(distance_mm=working_distance_mm)
     if stations_mm is None:
@@ -197,7 +197,7 @@ class SimulatedCell:
     Parameters
     ----------
     rig : StereoRig
-    lights : pipeline.lights.Lights
+    lights : pipeline.lights.model.Lights
         The configuration's lights (the ones written into the bundle).
     working_distance_mm : float
         The plate's centre lies this far along the left camera's axis.
@@ -218,7 +218,7 @@ class SimulatedCell:
         plate_id: str,
         conveyor: Conveyor | None = None,
     ) -> None:
-        from ..simulate import CaptureSpec
+        from pipeline.simulate import CaptureSpec
 
         self.rig = rig
         self.lights = lights
@@ -255,7 +255,7 @@ class SimulatedCell:
         """``T_cam_plate`` (4, 4) of the plate where it is now; None: the simulator's own pose."""
         if self.conveyor is None:
             return None
-        from ..simulate import carried_pose
+        from pipeline.simulate import carried_pose
 
         travel_mm, yaw_deg = self.station()
         return carried_pose(
@@ -272,7 +272,7 @@ class SimulatedCell:
             self._radiance.clear()
             self._radiance_at = self.station()
         if side not in self._radiance:
-            from ..simulate import render_radiance
+            from pipeline.simulate import render_radiance
 
             self._radiance[side] = render_radiance(
                 self.plate,
@@ -409,6 +409,6 @@ def open_camera(side: Side, config: CellCamera, *, cell: SimulatedCell | None) -
         if cell is None:
             raise ValueError("cell: a simulated camera needs the simulated cell")
         return SimulatedCamera(side, config, cell)
-    from .aravis import AravisCamera
+    from pipeline.acquisition.aravis import AravisCamera
 
     return AravisCamera(side, config)

@@ -12,8 +12,8 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..camera import StereoRig
-from ..formats import (
+from pipeline.camera import StereoRig
+from pipeline.formats import (
     CELL_CONFIG_FORMAT,
     CellCamera,
     CellConfigFile,
@@ -21,10 +21,10 @@ from ..formats import (
     CellLights,
     InputError,
 )
-from ..io import load_calibration, load_light_calibration, read_json
-from ..io.capture import _check_light_positions
-from ..io.validation import _validate
-from ..lights import Lights
+from pipeline.io import load_calibration, load_light_calibration, read_json
+from pipeline.io.capture import _check_light_positions
+from pipeline.io.validation import _validate
+from pipeline.lights.model import Lights
 
 
 @dataclass(frozen=True)
@@ -40,7 +40,7 @@ class CellConfig:
         The cameras as configured (driver, device id, optional exposure and gain).
     light_controller : pipeline.formats.CellLights
         The light controller as configured (driver, address, command templates).
-    lights : pipeline.lights.Lights
+    lights : pipeline.lights.model.Lights
         The N photometric lights in image order (left-camera frame, mm).
     rig : StereoRig
         The calibration; images are taken at ``rig.image_size``.

@@ -11,7 +11,7 @@ import pytest
 from pipeline.acquisition import load_cell_config
 from pipeline.formats import InputError
 from pipeline.io import light_calibration_document
-from pipeline.lights import Lights
+from pipeline.lights.model import Lights
 from tests.acquisition.helpers import HEIGHT, WIDTH, ring_lights, write_cell
 
 ARAVIS = {"driver": "aravis", "device_id": "192.168.10.11"}

@@ -10,7 +10,7 @@ import pytest
 
 from pipeline import simulate
 from pipeline.camera import CameraModel, StereoRig
-from pipeline.stereo import (
+from pipeline.surface.stereo import (
     COARSE_PERCENTILES,
     FINE_MARGIN_PX,
     StereoDepth,
