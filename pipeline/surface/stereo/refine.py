@@ -37,10 +37,11 @@ def refine_disparity(
     """Sub-pixel refinement of a rectified disparity map by windowed Gauss-Newton (Lucas-Kanade along rows).
 
     Minimises, around every pixel, the Gaussian-weighted sum of squared differences
-    ``left(x, y) - right(x - d, y)`` over its neighbours, each neighbour warped by its own
-    current disparity, with a symmetric (left + warped right) gradient. SGBM's parabola fit on
-    integer costs is biased towards integer disparities ("pixel locking"); this refinement on the
-    float images is not.
+    ``left(x, y) - right(x - d, y) - c`` over its neighbours, each neighbour warped by its own
+    current disparity, with a symmetric (left + warped right) gradient and an intensity offset
+    ``c`` of the window's own (zero-mean SSD: a glossy plate's lobe, which each camera sees at its
+    own mirror points, does not become disparity). SGBM's parabola fit on integer costs is biased
+    towards integer disparities ("pixel locking"); this refinement on the float images is not.
 
     Parameters
     ----------
@@ -78,15 +79,33 @@ def refine_disparity(
         )
         r = left - warped
         wgt = (support & inside).astype(np.float32)
-        # right(x - d - delta) ~ warped - g * delta  ->  delta = -sum(g r) / sum(g g)
-        num = cv2.GaussianBlur(wgt * g * r, (0, 0), sigma_px)
-        den = cv2.GaussianBlur(wgt * g * g, (0, 0), sigma_px)
+        # right(x - d - delta) + c ~ left, with an offset c per window  ->  delta = -cov(g, r) / var(g)
+        num, den = _centred_sums(wgt, g, r, sigma_px)
         with np.errstate(divide="ignore", invalid="ignore"):
             step = np.where(den > 1e-3, -num / den, 0).astype(np.float32)
         d = d + step * valid
         support = valid & inside & (den > 1e-3)
     out = np.where(support & (np.abs(d - np.where(valid, disparity, 0)) <= max_step_px), d, np.nan)
     return out.astype(np.float32)
+
+
+def _centred_sums(
+    wgt: np.ndarray, g: np.ndarray, r: np.ndarray, sigma_px: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Gaussian-windowed ``sum(w g r) - sum(w g) sum(w r) / sum(w)`` and ``sum(w g g) - sum(w g)^2 /
+    sum(w)``: the Gauss-Newton step's numerator and denominator with an unknown intensity offset per
+    window eliminated (zero-mean SSD). A glossy plate's lobe sits at different places in the two
+    views (each camera sees its own mirror points), so a matched point differs between them by an
+    additive, slowly varying brightness; plain SSD turns that difference into a disparity (mm of
+    depth under near-field LEDs), the window's own offset takes it out."""
+    s1 = cv2.GaussianBlur(wgt, (0, 0), sigma_px)
+    sg = cv2.GaussianBlur(wgt * g, (0, 0), sigma_px)
+    sr = cv2.GaussianBlur(wgt * r, (0, 0), sigma_px)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = np.where(s1 > 1e-3, 1.0 / s1, 0).astype(np.float32)
+    num = cv2.GaussianBlur(wgt * g * r, (0, 0), sigma_px) - sg * sr * inv
+    den = cv2.GaussianBlur(wgt * g * g, (0, 0), sigma_px) - sg * sg * inv
+    return num, den
 
 
 def match_correlation(
