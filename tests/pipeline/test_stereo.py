@@ -286,7 +286,6 @@ def test_bad_input_is_refused(change, exc, match):
         stereo_depth(left, right, rig, **args)
 
 
-
 def test_a_brightness_lobe_that_differs_between_the_views_is_not_disparity():
     """A glossy plate's lobe sits at each camera's own mirror points: the two views of one point
     differ by an additive, slowly varying brightness. The sub-pixel refinement's window offset
