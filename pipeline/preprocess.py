@@ -28,7 +28,7 @@ SATURATION_FRACTION = 0.98
 
 #: The share of a pixel's samples, its brightest, set aside from the brightness the plate is told
 #: from its surroundings by (highlights; the robust normals' first fit sets aside as many,
-#: pipeline.normals.robust.TRIM_TOP_FRACTION).
+#: pipeline.surface.normals.robust.TRIM_TOP_FRACTION).
 HIGHLIGHT_SHARE = 0.3
 
 

@@ -31,8 +31,8 @@ from app.report.header import MARGIN_BOTTOM, MARGIN_X, PageHeader, numbered_canv
 from app.report.text import NOT_RECORDED, escape, finite, num, text_or, when
 from app.schemas import StationOut
 from pipeline.artifacts.colours import default_limit_mm
-from pipeline.plate_map import PlateMap
-from pipeline.sections import Section
+from pipeline.judge.plate_map import PlateMap
+from pipeline.judge.sections import Section
 
 #: Width of the page's text block, points.
 TEXT_WIDTH = A4[0] - 2 * MARGIN_X
@@ -65,7 +65,7 @@ class ReportData:
     plate_map : PlateMap or None
         The deviation map in the target's frame; the camera's deviation.png is printed otherwise.
     sections : list of Section
-        The virtual templates (:mod:`pipeline.sections`): each frame's gap along it.
+        The virtual templates (:mod:`pipeline.judge.sections`): each frame's gap along it.
     template_places : list of str
         Each section's place in the target's frame (:mod:`app.plate_frame`), in the same order;
         empty without a registration (the frames are then given from the target's first edge).

@@ -20,8 +20,8 @@ from app.report.text import signed
 from app.schemas import StationOut
 from pipeline.artifacts.colours import default_limit_mm, tolerance_band_colormap
 from pipeline.artifacts.png import deviation_png_layout
-from pipeline.plate_map import PlateMap
-from pipeline.sections import Section
+from pipeline.judge.plate_map import PlateMap
+from pipeline.judge.sections import Section
 
 #: Unmeasured cells of the map, as its legend says ("light grey: not measured").
 UNMEASURED_RGB = (214, 214, 214)

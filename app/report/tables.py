@@ -25,7 +25,7 @@ from app.report.text import (
     when,
 )
 from app.schemas import StationOut
-from pipeline.sections import Section
+from pipeline.judge.sections import Section
 
 #: Columns of the judged items' tables after the item's own.
 JUDGED = ["Nominal", "Actual", "Deviation", "Tolerance", "U (k=2)", "Result"]

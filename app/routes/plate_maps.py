@@ -18,7 +18,7 @@ from app.services import inspections as svc
 from app.services.plate_maps import NoPlateMap, plate_map_document, plate_map_of, plate_map_png
 from app.services.stations import read_stations
 from app.storage import Storage
-from pipeline.plate_map import PlateMap
+from pipeline.judge.plate_map import PlateMap
 
 router = APIRouter(tags=["inspections"])
 

@@ -1,4 +1,4 @@
-"""An inspection's deviation map in the plate's own frame (:mod:`pipeline.plate_map`), as the page
+"""An inspection's deviation map in the plate's own frame (:mod:`pipeline.judge.plate_map`), as the page
 draws it: a tolerance-band PNG (one pixel per cell, ``y`` up) and the cells' values for the hover
 read-out and the comparison of two passes.
 
@@ -22,7 +22,7 @@ from app.models import Inspection, JobStatus
 from app.schemas import StationOut
 from app.storage import Storage
 from pipeline.artifacts.colours import default_limit_mm, tolerance_band_colormap
-from pipeline.plate_map import PlateMap, load_plate_map
+from pipeline.judge.plate_map import PlateMap, load_plate_map
 
 log = logging.getLogger(__name__)
 

@@ -28,8 +28,8 @@ from app.report import ReportData, build_report
 from app.services.plate_maps import NoPlateMap, plate_map_of
 from app.services.stations import capture_bundles, read_stations
 from app.storage import Storage
-from pipeline.plate_map import PlateMap
-from pipeline.sections import Section, load_sections
+from pipeline.judge.plate_map import PlateMap
+from pipeline.judge.sections import Section, load_sections
 
 log = logging.getLogger(__name__)
 

@@ -21,9 +21,11 @@ from typing import Any
 
 import numpy as np
 
-from .. import artifacts, curvature, deviation, registration, target_geometry, uncertainty, verdict
-from ..artifacts import ARTIFACT_FILES
-from ..details import (
+from pipeline import artifacts
+from pipeline.artifacts import ARTIFACT_FILES
+from pipeline.io import Capture, Target, load_capture, load_target
+from pipeline.judge import curvature, deviation, registration, target_geometry, uncertainty, verdict
+from pipeline.judge.details import (
     BrightnessSegmentationDetails,
     Details,
     StationDetails,
@@ -33,10 +35,9 @@ from ..details import (
     refinement_details,
     region_details,
 )
-from ..io import Capture, Target, load_capture, load_target
-from ..lights import Lights
-from ..parallel import default_workers
-from ..stages import (
+from pipeline.lights.model import Lights
+from pipeline.parallel import default_workers
+from pipeline.stages import (
     DISAGREEMENT_FRACTION,
     EDGE_BAND_PX,
     STAGES,
@@ -51,9 +52,9 @@ from ..stages import (
     write_deviation,
     write_target,
 )
-from .mosaic import Mosaic, build_mosaic
-from .plan import StationRef, plan_stations
-from .register import StationPoses, StationView, register_stations
+from pipeline.stations.mosaic import Mosaic, build_mosaic
+from pipeline.stations.plan import StationRef, plan_stations
+from pipeline.stations.register import StationPoses, StationView, register_stations
 
 
 @dataclass(frozen=True)
@@ -347,7 +348,7 @@ def _qualify(
     judged: np.ndarray,
     tgt: Target,
 ) -> tuple[uncertainty.Uncertainty, list[float]]:
-    """The stitched plate's expanded uncertainty: each station's own (:func:`pipeline.uncertainty.propagate`
+    """The stitched plate's expanded uncertainty: each station's own (:func:`pipeline.judge.uncertainty.propagate`
     at the plate's fitted radius) resampled onto the grid, with each station's registration added.
 
     A station's registration adds ``u_reg``: the RMS surface distance of its overlaps with its neighbours

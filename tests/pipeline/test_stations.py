@@ -14,8 +14,8 @@ import pytest
 from pydantic import TypeAdapter
 
 from pipeline.cli import EXIT_NOT_MEASURABLE, main
-from pipeline.details import Details
 from pipeline.formats import CaptureError
+from pipeline.judge.details import Details
 from pipeline.run import inspect
 from pipeline.simulate import CaptureSpec, Dent, PlateSpec, simulate_stations
 
