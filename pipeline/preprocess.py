@@ -15,10 +15,10 @@ import numba
 import numpy as np
 import numpy.typing as npt
 
-from .formats import CaptureError
-from .io import Capture
-from .normals.noise import image_noise
-from .parallel import default_workers
+from pipeline.formats import CaptureError
+from pipeline.io import Capture
+from pipeline.parallel import default_workers
+from pipeline.surface.normals.noise import image_noise
 
 #: An array argument of the kernels (their dtypes are set by the callers).
 Arr = npt.NDArray[Any]
@@ -30,13 +30,13 @@ SATURATION_FRACTION = 0.98
 #: The working grid's coarsest cell on the plate (mm): a capture whose pixels see a finer footprint at
 #: its working distance is binned by the largest whole factor that keeps the cell within this (see
 #: :func:`working_binning`). At 4 mm the default smallest failing region (100 mm^2,
-#: pipeline.verdict.MIN_DEFECT_AREA_MM2) still covers ~6 cells.
+#: pipeline.judge.verdict.MIN_DEFECT_AREA_MM2) still covers ~6 cells.
 WORKING_CELL_MM = 4.0
 
 
 #: The share of a pixel's samples, its brightest, set aside from the brightness the plate is told
 #: from its surroundings by (highlights; the robust normals' first fit sets aside as many,
-#: pipeline.normals.robust.TRIM_TOP_FRACTION).
+#: pipeline.surface.normals.robust.TRIM_TOP_FRACTION).
 HIGHLIGHT_SHARE = 0.3
 
 

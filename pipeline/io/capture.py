@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import StereoRig
-from ..formats import (
+from pipeline.camera import StereoRig
+from pipeline.formats import (
     CALIBRATION_FORMAT,
     CAPTURE_FORMAT,
     CaptureFile,
@@ -17,12 +17,18 @@ from ..formats import (
     Station,
     StereoCalibrationFile,
 )
-from ..lights import CAMERA_HEAD_RADIUS_MM, Lights
-from .bundle import MAX_ZIP_RATIO, MAX_ZIP_TOTAL_BYTES, _Bundle, _check_relative, _open_bundle
-from .calibration import _calibration_from_doc
-from .images import _ImageJob, _load_images
-from .jsonfile import _json_type, _parse_json
-from .validation import _validate
+from pipeline.io.bundle import (
+    MAX_ZIP_RATIO,
+    MAX_ZIP_TOTAL_BYTES,
+    _Bundle,
+    _check_relative,
+    _open_bundle,
+)
+from pipeline.io.calibration import _calibration_from_doc
+from pipeline.io.images import _ImageJob, _load_images
+from pipeline.io.jsonfile import _json_type, _parse_json
+from pipeline.io.validation import _validate
+from pipeline.lights.model import CAMERA_HEAD_RADIUS_MM, Lights
 
 
 @dataclass(frozen=True)
@@ -38,7 +44,7 @@ class Capture:
         The calibration the bundle names; ``rig.image_size`` matches every image.
     bit_depth : int
         Significant bits per pixel; every pixel is ``<= 2**bit_depth - 1``.
-    lights : pipeline.lights.Lights
+    lights : pipeline.lights.model.Lights
         The N lights (distant or point lights), left-camera frame, mm.
     images : (N, H, W) float32
         Photometric images of the left camera, raw counts (distorted, dark not

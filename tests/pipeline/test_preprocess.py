@@ -99,8 +99,8 @@ def test_a_glossy_plates_highlights_do_not_split_its_mask(tmp_path):
 
 
 def test_binning_averages_blocks_and_keeps_the_rays(tmp_path):
-    from pipeline.normals.noise import image_noise
     from pipeline.preprocess import bin_capture
+    from pipeline.surface.normals.noise import image_noise
 
     cap = _sphere_capture(tmp_path)
     small = bin_capture(cap, 2)

@@ -16,10 +16,9 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline import stereo
 from pipeline.formats import CaptureError
 from pipeline.io import load_capture, load_target
-from pipeline.normals import estimate_normals
+from pipeline.judge.target_geometry import target_area_mm2
 from pipeline.preprocess import plate_mask, preprocess
 from pipeline.segmentation import Segmentation, candidate_mask, segment_plate
 from pipeline.simulate import (
@@ -31,7 +30,8 @@ from pipeline.simulate import (
     rail_supports,
     simulate_capture,
 )
-from pipeline.target_geometry import target_area_mm2
+from pipeline.surface import stereo
+from pipeline.surface.normals import estimate_normals
 
 W, H = 612, 512
 FLOOR = Floor(gap_mm=300.0, supports=rail_supports((3000.0, 3000.0), 300.0, 3))
