@@ -23,6 +23,18 @@ FAKE_GV_CAMERA = "arv-fake-gv-camera-0.8"
 FAKE_GV_ADDRESS = "127.0.0.1"
 
 
+class _Server(socketserver.ThreadingTCPServer):
+    daemon_threads = True
+    allow_reuse_address = True
+
+
+def _serve(handler: type[socketserver.StreamRequestHandler]) -> _Server:
+    """A TCP server on ``127.0.0.1:<free port>`` serving ``handler`` in a daemon thread, started."""
+    server = _Server(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    return server
+
+
 class LightServer:
     """A light controller on ``127.0.0.1:<free port>``.
 
@@ -70,14 +82,8 @@ class LightServer:
                     elif reply is not None:
                         self.wfile.write(reply.encode() + b"\n")
 
-        class Server(socketserver.ThreadingTCPServer):
-            daemon_threads = True
-            allow_reuse_address = True
-
-        self._server = Server(("127.0.0.1", 0), Handler)
+        self._server = _serve(Handler)
         self.address = f"127.0.0.1:{self._server.server_address[1]}"
-        self._thread = threading.Thread(target=self._server.serve_forever, daemon=True)
-        self._thread.start()
 
     def close(self) -> None:
         self._server.shutdown()
@@ -146,14 +152,8 @@ class ConveyorServer:
                         line = reply if reply is not None else f"OK {server.position_mm:.2f}"
                         self.wfile.write(line.encode() + b"\n")
 
-        class Server(socketserver.ThreadingTCPServer):
-            daemon_threads = True
-            allow_reuse_address = True
-
-        self._server = Server(("127.0.0.1", 0), Handler)
+        self._server = _serve(Handler)
         self.address = f"127.0.0.1:{self._server.server_address[1]}"
-        self._thread = threading.Thread(target=self._server.serve_forever, daemon=True)
-        self._thread.start()
 
     def close(self) -> None:
         self._server.shutdown()

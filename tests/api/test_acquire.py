@@ -510,7 +510,7 @@ def test_a_conveyor_cell_acquires_every_station_and_measures_one_plate(
     from pipeline.run import inspect
 
     write_demo_cell(
-        tmp_path / "data" / DEMO_CELL_DIR, n_lights=8, width=480, height=384, stations=3
+        tmp_path / "data" / DEMO_CELL_DIR, n_lights=6, width=640, height=512, stations=3
     )
     client = service(demo=True, inspect_entry=inspect)
     consumer = consumers(client.app.state.settings)
