@@ -155,7 +155,11 @@ def bin_capture(capture: Capture, factor: int, *, workers: int | None = None) ->
     n = capture.n_lights
     rig = capture.rig
     rms = None if rig.rms_px is None else rig.rms_px / factor
-    rig = replace(rig, left=rig.left.resized(size), right=rig.right.resized(size), rms_px=rms)
+    # the images' last rows and columns beyond a whole block are cropped first (K unchanged), so the
+    # resize is by exactly 1 / factor
+    whole = (size[0] * factor, size[1] * factor)
+    left, right = (replace(cam, image_size=whole).resized(size) for cam in (rig.left, rig.right))
+    rig = replace(rig, left=left, right=right, rms_px=rms)
     return replace(
         capture,
         rig=rig,

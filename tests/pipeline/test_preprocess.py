@@ -117,6 +117,14 @@ def test_binning_averages_blocks_and_keeps_the_rays(tmp_path):
         u, v = 17.0, 9.0
         centre = np.linalg.solve(K_full, [2 * u + 0.5, 2 * v + 0.5, 1.0])
         np.testing.assert_allclose(np.linalg.solve(K_small, [u, v, 1.0]), centre, atol=1e-12)
+    # a size that is not a whole number of blocks (80 rows by 3): the last rows are left out, the rays
+    # still go through the blocks' centres
+    thirds = bin_capture(cap, 3)
+    assert thirds.images.shape == (6, 26, 32) and thirds.rig.image_size == (32, 26)
+    for side in ("left", "right"):
+        K_full, K_small = getattr(cap.rig, side).K, getattr(thirds.rig, side).K
+        centre = np.linalg.solve(K_full, [3 * 17.0 + 1, 3 * 20.0 + 1, 1.0])
+        np.testing.assert_allclose(np.linalg.solve(K_small, [17.0, 20.0, 1.0]), centre, atol=1e-12)
     assert small.rig.rms_px == pytest.approx(cap.rig.rms_px / 2)
     # the sensor's noise, measured on the images as given, falls by the factor
     everywhere = np.ones((80, 96), bool)
