@@ -309,7 +309,6 @@ def _run(
             raise ValueError(f"inspection {inspection_id}: simulated, but without its parameters")
         render_simulated_bundle(bundle_dir=capture_path, plate_id=plate_id, simulation=simulation)
     returned_at = None
-    bundles = capture_bundles(capture_path)
     if source == ACQUIRED_SOURCE:
         bundles = capture_for_job(
             inspection_id,
@@ -320,6 +319,8 @@ def _run(
             progress=progress,
         )
         returned_at = time.monotonic()
+    else:
+        bundles = capture_bundles(capture_path)
     lights = None
     if light_calibration is not None:
         lights = light_calibrations.load_lights(storage=storage, calibration=light_calibration)
@@ -345,8 +346,7 @@ def measure_bundles(
     stages as ``station 2/4: normals``); the result document, plain JSON types only.
 
     Every source of bundles comes here: an upload (one bundle, or a plate's stations), a simulated
-    capture, an acquisition (one bundle today; the stations a conveyor photographs, once the cell
-    drives one, are its list of bundles).
+    capture, an acquisition (one bundle, or the stations of a cell with a conveyor).
     """
     capture: Path | list[Path] = bundles[0] if len(bundles) == 1 else list(bundles)
     result = inspect(
