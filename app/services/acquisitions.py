@@ -31,6 +31,7 @@ from app.services.cell import (
 from app.services.errors import UnprocessableError
 from app.services.forming import check_process
 from app.services.plates import current_target, get_or_create_plate
+from app.services.stations import capture_bundles
 from app.services.targets import TARGET_FILE, copy_target_files, create_target, validate_target_dir
 from app.settings import Settings
 from app.storage import Storage
@@ -221,8 +222,8 @@ def capture_for_job(
         (storage.inputs_dir(inspection_id) / ACQUISITION_FILE).read_text(encoding="utf-8")
     )
     progress(CAPTURE_STAGE, 0.0)
-    bundles = complete_capture(bundle_dir)
-    if not bundles:
+    bundles = capture_bundles(bundle_dir)
+    if not all((bundle / "capture.json").is_file() for bundle in bundles):
         storage.remove(bundle_dir)  # nothing complete: the acquisition writes it anew
         bundles = _capture(
             inspection_id,
@@ -238,17 +239,6 @@ def capture_for_job(
     )
     progress(CAPTURE_STAGE, 1.0)
     return bundles
-
-
-def complete_capture(bundle_dir: Path) -> list[Path]:
-    """The bundles a finished acquisition left in ``bundle_dir``: ``[bundle_dir]`` (one view), its
-    ``station_NN`` folders (a conveyor's stations, written whole or not at all), or ``[]``."""
-    if (bundle_dir / "capture.json").is_file():
-        return [bundle_dir]
-    stations = sorted(bundle_dir.glob("station_[0-9][0-9]")) if bundle_dir.is_dir() else []
-    if stations and all((station / "capture.json").is_file() for station in stations):
-        return stations
-    return []
 
 
 def _capture(

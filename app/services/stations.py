@@ -73,13 +73,17 @@ def station_bundle_name(index: int) -> str:
 
 
 def capture_bundles(capture_path: Path) -> list[Path]:
-    """The capture bundles an inspection's job measures: its stations' bundles in station order when
-    ``capture_path`` is a :data:`STATIONS_DIR` folder, else ``[capture_path]`` (one bundle)."""
+    """The capture bundles an inspection's job measures, in station order: an upload's stations (a
+    :data:`STATIONS_DIR` folder of ``station_NN.zip``), an acquisition's (a folder of ``station_NN/``
+    bundles, written whole by :func:`pipeline.acquisition.acquire_stations`), else ``[capture_path]``
+    (one bundle)."""
     capture_path = Path(capture_path)
-    if capture_path.name != STATIONS_DIR or not capture_path.is_dir():
+    if not capture_path.is_dir() or (capture_path / "capture.json").is_file():
         return [capture_path]
-    bundles = [p for p in capture_path.iterdir() if re.fullmatch(r"station_\d+\.zip", p.name)]
-    return sorted(bundles, key=lambda p: int(p.stem.split("_")[1]))
+    bundles = [p for p in capture_path.iterdir() if re.fullmatch(r"station_\d+(\.zip)?", p.name)]
+    if not bundles:
+        return [capture_path]
+    return sorted(bundles, key=lambda p: int(p.name.split("_")[1].split(".")[0]))
 
 
 def part_names(filenames: list[str | None]) -> list[str]:

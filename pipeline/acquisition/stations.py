@@ -53,13 +53,16 @@ def acquire_stations(
     plate_id : str
         Written into every bundle; a simulated cell renders a plate seeded by it.
     out_dir : str or Path
-        The folder to write the stations' bundles into; it must not exist (its parent is created).
+        The folder of the stations' bundles; it must not exist (its parent is created). They are
+        written into ``out_dir.partial`` (one left by a killed acquisition is removed first), renamed
+        to ``out_dir`` once the last station is taken: ``out_dir`` exists only with every station.
     progress : callable, optional
         ``progress(stage, fraction)`` after each step: ``stage`` begins ``"station 2/4: "`` (1-based),
         ``fraction`` is of the whole plate (each station an equal share).
     station_done : callable, optional
         ``station_done(index, bundle)`` when a station's bundle is complete (0-based ``index``), before
         the conveyor moves on: a caller may start measuring it while the next one is photographed.
+        ``bundle`` is then inside ``out_dir.partial`` (it moves with the rename at the end).
     frame_timeout_s : float
         Seconds a frame may take beyond its exposure before the camera counts as gone.
 
@@ -94,7 +97,10 @@ def acquire_stations(
     out = Path(out_dir)
     if out.exists():
         raise InputError(str(out), "", "already exists; acquire writes a new folder of stations")
-    out.mkdir(parents=True)
+    partial = out.with_name(out.name + ".partial")
+    if partial.exists():
+        shutil.rmtree(partial)  # left by an acquisition that was killed
+    partial.mkdir(parents=True)
     report = progress or (lambda stage, fraction: None)
     n = len(stations_mm)
     bundles: list[Path] = []
@@ -105,7 +111,7 @@ def acquire_stations(
             conveyor = open_conveyor(config.conveyor, plate_id=plate_id)
             stack.callback(conveyor.close)
             run = open_devices(
-                stack, config, plate_id, out, writer, frame_timeout_s, report, conveyor
+                stack, config, plate_id, partial, writer, frame_timeout_s, report, conveyor
             )
             for k in range(n):
 
@@ -116,11 +122,10 @@ def acquire_stations(
                 t_move = time.monotonic()
                 travel_mm = conveyor.go_to_station(k)
                 move_s = time.monotonic() - t_move
-                bundle = out / f"station_{k:02d}"
-                partial = bundle.with_name(bundle.name + ".partial")
-                partial.mkdir()
+                bundle = partial / f"station_{k:02d}"
+                bundle.mkdir()
                 take_bundle(
-                    run.next_bundle(partial, station_progress),
+                    run.next_bundle(bundle, station_progress),
                     plate_id,
                     datetime.now(UTC),
                     station={
@@ -135,11 +140,11 @@ def acquire_stations(
                         "move_s": round(move_s, 3),
                     },
                 )
-                os.rename(partial, bundle)
                 bundles.append(bundle)
                 if station_done is not None:
                     station_done(k, bundle)
+        os.rename(partial, out)
     except BaseException:
-        shutil.rmtree(out, ignore_errors=True)
+        shutil.rmtree(partial, ignore_errors=True)
         raise
-    return bundles
+    return [out / bundle.name for bundle in bundles]

@@ -109,7 +109,9 @@ def test_each_station_is_a_bundle_with_its_station_field(demo_stations):
 def test_progress_names_the_station_and_each_bundle_is_reported_when_complete(demo_stations):
     _, _, bundles, events, _ = demo_stations
     done = [e for e in events if e[0] == "done"]
-    assert done == [("done", k, bundle) for k, bundle in enumerate(bundles)]
+    # each reported in the partial folder the stations are written into (renamed with the last)
+    partial = bundles[0].parent.with_name(bundles[0].parent.name + ".partial")
+    assert done == [("done", k, partial / bundle.name) for k, bundle in enumerate(bundles)]
     stages = [e for e in events if e[0] == "progress"]
     fractions = [f for _, _, f in stages]
     assert fractions == sorted(fractions) and fractions[0] >= 0.0 and fractions[-1] <= 1.0
@@ -296,3 +298,27 @@ def test_one_view_and_stations_are_not_mixed_up(tmp_path):
         acquire_stations(one, "P", tmp_path / "stations")
     assert not (tmp_path / "bundle").exists() and _nothing_left(tmp_path)
     assert "conveyor" not in json.loads(one.read_text())  # the default demo cell is as it was
+
+
+def test_a_killed_acquisitions_stations_are_never_taken_for_a_plate(tmp_path):
+    """Stations are written into ``OUT.partial`` and renamed to ``OUT`` with the last one: a killed
+    acquisition leaves no ``OUT`` (so a job run again photographs the plate anew, never measuring the
+    stations it had), and its partial folder is removed by the next acquisition."""
+    config = write_demo_cell(tmp_path / "cell", n_lights=N, width=160, height=128, stations=3)
+    stale = tmp_path / "stations.partial" / "station_00"
+    stale.mkdir(parents=True)
+    (stale / "capture.json").write_text("{}")
+    seen = []
+    bundles = acquire_stations(
+        config,
+        "LONG-2",
+        tmp_path / "stations",
+        station_done=lambda k, bundle: seen.append(
+            (bundle.parent.name, (tmp_path / "stations").exists())
+        ),
+    )
+    # while stations are taken they sit in the partial folder, and OUT does not exist
+    assert seen == [("stations.partial", False)] * 3
+    assert [b.name for b in bundles] == ["station_00", "station_01", "station_02"]
+    assert all((b / "capture.json").is_file() for b in bundles)
+    assert not (tmp_path / "stations.partial").exists()

@@ -532,3 +532,8 @@ def test_a_conveyor_cell_acquires_every_station_and_measures_one_plate(
         assert abs(station["travel_mm"] - station["travel_encoder_mm"]) < 10.0
     record = client.get(body["artifacts"]["capture.json"]).json()["acquisition"]
     assert record["conveyor"]["driver"] == "simulated"
+    # the report reads the stations' acquisition record and calibration from the acquired bundles
+    report = client.get(f"/api/v1/inspections/{body['id']}/report.pdf")
+    assert report.status_code == 200, report.text
+    flat = " ".join(pdf_text(report.content, tmp_path).split())
+    assert "Camera serials L SIM-LEFT, R SIM-RIGHT" in flat
