@@ -149,9 +149,7 @@ def bin_capture(capture: Capture, factor: int, *, workers: int | None = None) ->
 
     with ThreadPoolExecutor(max_workers=workers or default_workers()) as pool:
         list(pool.map(one, range(len(raws))))
-    everywhere = np.ones((h, w), bool)
-    own = image_noise(capture.images, everywhere) / factor
-    dark = None if capture.dark is None else float(image_noise(capture.dark[None], everywhere)[0])
+    own, dark = raw_noise_counts(capture)
     n = capture.n_lights
     rig = capture.rig
     rms = None if rig.rms_px is None else rig.rms_px / factor
@@ -167,8 +165,20 @@ def bin_capture(capture: Capture, factor: int, *, workers: int | None = None) ->
         dark=None if capture.dark is None else outs[n],
         stereo_left=None if capture.stereo_left is None else outs[n + 1],
         stereo_right=None if capture.stereo_right is None else outs[n + 2],
-        raw_noise=(own, None if dark is None else dark / factor),
+        raw_noise=(own / factor, None if dark is None else dark / factor),
     )
+
+
+def raw_noise_counts(capture: Capture) -> tuple[np.ndarray, float | None]:
+    """The sensor noise (raw counts, standard deviation) of each photometric image, (N,) float64, and
+    of the dark frame (None without one): as measured before binning (``Capture.raw_noise``), else
+    measured on the images as given (:func:`pipeline.surface.normals.noise.image_noise`)."""
+    if capture.raw_noise is not None:
+        return capture.raw_noise
+    everywhere = np.ones(capture.images.shape[1:], bool)
+    own = image_noise(capture.images, everywhere)
+    dark = None if capture.dark is None else float(image_noise(capture.dark[None], everywhere)[0])
+    return own, dark
 
 
 def _bin_into(raw: np.ndarray, out: np.ndarray, factor: int, threshold: float) -> None:

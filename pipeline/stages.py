@@ -32,10 +32,10 @@ from pipeline.preprocess import (
     Preprocessed,
     bin_capture,
     preprocess,
+    raw_noise_counts,
     working_binning,
 )
 from pipeline.surface import normals, reconstruct, stereo
-from pipeline.surface.normals.noise import image_noise
 
 #: Stage names in the order they run; ``progress`` reports these.
 STAGES = ("load", "preprocess", "normals", "stereo", "depth", "curvature", "deviation", "artifacts")
@@ -194,7 +194,7 @@ def load_inputs(
     light_calibration: Lights | None,
     warnings: list[str],
     clock: StageClock,
-    opts: InspectOptions | None = None,
+    opts: InspectOptions,
 ) -> tuple[Capture, Target]:
     """Stage *load*: the capture (with ``light_calibration`` applied, see :func:`pipeline.run.inspect`) and the target.
 
@@ -203,7 +203,6 @@ def load_inputs(
     CaptureError when the capture has neither a stereo pair nor a working distance (no metric scale).
     """
     clock.begin("load")
-    opts = opts or InspectOptions()
     cap = capture if isinstance(capture, Capture) else load_capture(capture)
     factor = working_binning(cap, opts.working_cell_mm, NOMINAL_DISTANCE_MM)
     cap = bin_capture(cap, factor, workers=opts.workers)
@@ -609,14 +608,7 @@ def _raw_noise(cap: Capture, lights: Lights) -> tuple[np.ndarray, np.ndarray | N
     before binning (``Capture.raw_noise``).
     """
     scale = np.asarray(lights.intensity, dtype=np.float64) * float(2**cap.bit_depth - 1)
-    if cap.raw_noise is not None:  # measured before binning
-        own_counts, dark_counts = cap.raw_noise
-    else:
-        everywhere = np.ones(cap.images.shape[1:], bool)
-        own_counts = image_noise(cap.images, everywhere)
-        dark_counts = (
-            None if cap.dark is None else float(image_noise(cap.dark[None], everywhere)[0])
-        )
+    own_counts, dark_counts = raw_noise_counts(cap)
     own: np.ndarray = own_counts / scale
     if dark_counts is None:
         return own, None

@@ -25,8 +25,7 @@ from typing import Any
 import numpy as np
 
 from ..formats import AcquisitionError, CellConveyor
-from .lights import ACCEPTED, CONNECT_TIMEOUT_S
-from .tcp import LineConnection
+from .tcp import ACCEPTED, CONNECT_TIMEOUT_S, LineConnection
 
 #: The simulated conveyor's encoder reads the plate's position off by a uniform error within +- this, mm.
 SIMULATED_ENCODER_ERROR_MM = 4.0
@@ -159,7 +158,7 @@ class TcpConveyor(Conveyor):
     config : pipeline.formats.CellConveyor
         ``address`` (``HOST:PORT``), ``move_timeout_s``.
     connect_timeout_s : float
-        See :data:`~pipeline.acquisition.lights.CONNECT_TIMEOUT_S`.
+        See :data:`~pipeline.acquisition.tcp.CONNECT_TIMEOUT_S`.
 
     Raises
     ------
@@ -176,6 +175,7 @@ class TcpConveyor(Conveyor):
         self._connection = LineConnection(
             config.address, self.device, connect_timeout_s=connect_timeout_s
         )
+        self._last_sent = ""
 
     def describe(self) -> dict[str, Any]:
         return {
@@ -187,10 +187,13 @@ class TcpConveyor(Conveyor):
     def _move(self, delta_mm: float, *, step: str) -> float:
         sent = f"MOVE {delta_mm:.3f}"
         timeout_s = self.config.move_timeout_s
-        late = self._connection.read_line(0.0, step=step, skip=())
-        if late is not None:  # every move is answered before the next: this one was not asked for
+        # every move is answered before the next: a line now was not asked for (but a late echo of
+        # the move before, which the light controller's driver skips too)
+        late = self._connection.read_line(0.0, step=step, skip=(self._last_sent,))
+        if late is not None:
             raise AcquisitionError(self.device, step, f"unexpected line {late!r} before {sent!r}")
         self._connection.send(sent, step=step, timeout_s=timeout_s)
+        self._last_sent = sent
         reply = self._connection.read_line(timeout_s, step=step, skip=(sent,))
         if reply is None:
             raise AcquisitionError(

@@ -20,16 +20,12 @@ from abc import ABC, abstractmethod
 from typing import Any, Literal
 
 from ..formats import AcquisitionError, CellLights
-from .tcp import LineConnection
+from .tcp import ACCEPTED, CONNECT_TIMEOUT_S, LineConnection
 
-#: Seconds to wait for the connection to the controller.
-CONNECT_TIMEOUT_S = 3.0
 #: Seconds a controller that answers has to answer each command.
 COMMAND_TIMEOUT_S = 2.0
 #: Seconds to wait for an answer to the first command before taking the controller to be silent.
 FIRST_REPLY_S = 0.5
-#: First words of a line that accepts a command (case-insensitive).
-ACCEPTED = ("OK", "ACK")
 
 Command = Literal["on", "off", "stereo_on", "stereo_off"]
 

@@ -12,6 +12,11 @@ from collections.abc import Container
 
 from ..formats import AcquisitionError
 
+#: Seconds to wait for the connection to a device (the light controller, the conveyor).
+CONNECT_TIMEOUT_S = 3.0
+#: First words of a line that accepts a command (case-insensitive).
+ACCEPTED = ("OK", "ACK")
+
 
 class LineConnection:
     """A connected TCP socket that sends lines and reads the lines that come back.
