@@ -76,7 +76,7 @@ def inspection_report(
         capture=capture,
         stereo_calibration=_stereo_calibration(session, calibration),
         details=details,
-        stations=read_stations(storage.artifacts_dir(row.id)),
+        stations=read_stations(storage.artifacts_dir(row.id), details),
     )
     return build_report(data)
 

@@ -258,12 +258,15 @@ def station_rows(details: dict[str, Any] | None) -> list[StationOut]:
     return sorted(rows, key=lambda r: r.index)
 
 
-def read_stations(artifacts_dir: Path) -> list[StationOut]:
-    """:func:`station_rows` of an artifact folder's details.json; empty when it is missing or unreadable
-    (the pages then show the plate without its stations)."""
+def read_stations(artifacts_dir: Path, details: dict[str, Any] | None = None) -> list[StationOut]:
+    """:func:`station_rows` of an artifact folder's details.json (``details`` when the caller has read
+    it already); empty when it is missing or unreadable (the pages then show the plate without its
+    stations)."""
     try:
-        details = json.loads((Path(artifacts_dir) / "details.json").read_text(encoding="utf-8"))
-        return station_rows(details if isinstance(details, dict) else None)
+        if details is None:
+            doc = json.loads((Path(artifacts_dir) / "details.json").read_text(encoding="utf-8"))
+            details = doc if isinstance(doc, dict) else None
+        return station_rows(details)
     except (OSError, ValueError, KeyError, TypeError) as err:
         log.warning("%s: no stations read from details.json: %s", artifacts_dir, err)
         return []
