@@ -141,7 +141,7 @@ def stage_stations(
         labels = _split(staging_dir / capture_file, folders, parts, sent)
     try:
         headers = {path: _checked_header(path, limits) for path in labels}
-        ordered = plan_stations(list(labels))
+        ordered = plan_stations(list(labels), headers=headers)
     except InputError as err:
         raise _as_sent(err, labels) from None
     folder = staging_dir / STATIONS_DIR
