@@ -18,10 +18,8 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import re
 import shutil
-import stat
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
@@ -33,7 +31,7 @@ from app.limits.work import read_capture_header
 from app.schemas import StationOut
 from pipeline.formats import InputError
 from pipeline.io import CaptureHeader
-from pipeline.io.bundle import MAX_ZIP_RATIO, MAX_ZIP_TOTAL_BYTES, ZIP_RATIO_EXEMPT_BYTES
+from pipeline.io.bundle import MAX_ZIP_RATIO, MAX_ZIP_TOTAL_BYTES, check_zip_members
 from pipeline.stations import plan_stations
 
 log = logging.getLogger(__name__)
@@ -178,7 +176,9 @@ def _split(zip_path: Path, folders: list[str], parts: Path, sent: str) -> dict[P
     parts.mkdir()
     labels: dict[Path, str] = {}
     with zipfile.ZipFile(zip_path) as zf:
-        members = _checked_members(zf, sent)
+        members = check_zip_members(
+            zf, sent, max_total_bytes=MAX_ZIP_TOTAL_BYTES, max_ratio=MAX_ZIP_RATIO
+        ).values()
         for i, prefix in enumerate(folders):
             path = parts / f"{i}.zip"
             with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED) as out:
@@ -192,32 +192,6 @@ def _split(zip_path: Path, folders: list[str], parts: Path, sent: str) -> dict[P
             labels[path] = f"{sent}:{prefix}"
     zip_path.unlink()
     return labels
-
-
-def _checked_members(zf: zipfile.ZipFile, sent: str) -> list[zipfile.ZipInfo]:
-    """The zip's members once each passes the pipeline's bundle limits (:mod:`pipeline.io.bundle`)."""
-    total = 0
-    for info in zf.infolist():
-        field = f"member {info.filename!r}"
-        if stat.S_ISLNK(info.external_attr >> 16):
-            raise InputError(sent, field, "refused: symbolic link")
-        if info.flag_bits & 0x1:
-            raise InputError(sent, field, "refused: encrypted member")
-        total += info.file_size
-        if total > MAX_ZIP_TOTAL_BYTES:
-            raise InputError(
-                sent,
-                "",
-                f"refused: uncompressed size exceeds the limit of {MAX_ZIP_TOTAL_BYTES} bytes (zip bomb?)",
-            )
-        ratio = info.file_size / info.compress_size if info.compress_size else math.inf
-        if info.file_size > ZIP_RATIO_EXEMPT_BYTES and ratio > MAX_ZIP_RATIO:
-            raise InputError(
-                sent,
-                field,
-                f"refused: compression ratio {ratio:.0f}:1 exceeds the limit of {MAX_ZIP_RATIO:g}:1 (zip bomb?)",
-            )
-    return zf.infolist()
 
 
 def _as_sent(err: InputError, labels: dict[Path, str]) -> InputError:
