@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.plate_map import to_target_frame
-from pipeline.sections import PlateFrame, Section
+from pipeline.judge.plate_map import to_target_frame
+from pipeline.judge.sections import PlateFrame, Section
 
 #: The plate's edges: (axis, side) -> name.
 EDGES = {("y", -1): "A", ("x", 1): "B", ("y", 1): "C", ("x", -1): "D"}

@@ -278,6 +278,23 @@ class DefectOut(BaseModel):
     mean_mm: float | None
 
 
+class StationOut(BaseModel):
+    """One conveyor station of a plate measured at stations (details.json ``stations``, docs/stations.md)."""
+
+    index: int
+    #: The travel since station 0 the registration found, and the conveyor encoder's, mm.
+    travel_mm: float
+    travel_encoder_mm: float
+    #: Where the station looked: the corners of its image frame at its plate's depth, in the target's
+    #: frame (x, y), mm; null when details.json has none.
+    outline_mm: list[list[float]] | None
+    #: The overlap with the station before (none for station 0): texture matches the registration used,
+    #: and the distance between the two registered surfaces there, RMS and max, mm.
+    overlap_matches: int | None
+    overlap_rms_mm: float | None
+    overlap_max_mm: float | None
+
+
 class PlateMapOut(BaseModel):
     """The deviation map in the target's own frame (x along its first side, y along its second, mm):
     the mean deviation in square cells, as the dashboard's map draws and reads it."""
@@ -295,6 +312,8 @@ class PlateMapOut(BaseModel):
     #: ny rows of nx cells, row 0 at the smallest y; mean signed deviation, mm; null where no data.
     deviation_mm: list[list[float | None]]
     defects: list[DefectOut]
+    #: The conveyor stations of a plate measured at stations, each with its outline; empty for one view.
+    stations: list[StationOut] = []
 
 
 class InspectionOut(BaseModel):

@@ -17,12 +17,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.curvature import principal_curvatures
-from pipeline.deviation import deviation_map
 from pipeline.io import Target
+from pipeline.judge.curvature import principal_curvatures
+from pipeline.judge.deviation import deviation_map
+from pipeline.judge.registration import fitted_target_radius, register_to_target
+from pipeline.judge.verdict import judge
 from pipeline.parallel import configure_process
-from pipeline.registration import fitted_target_radius, register_to_target
-from pipeline.verdict import judge
 from tests.pipeline.surfaces import cylinder, dented, plate_grid, saddle, sphere
 
 

@@ -1,4 +1,4 @@
-"""Benchmark of pipeline.integration: speed at the camera's sizes, accuracy on the analytic plate,
+"""Benchmark of pipeline.surface.integration: speed at the camera's sizes, accuracy on the analytic plate,
 and the public datasets (BiNI's DiLiGenT depth maps, Queau's vase) next to their published figures.
 
 Run from the project root:  .venv/bin/python benchmarks/bench_integration.py [--quick]
@@ -22,8 +22,8 @@ import scipy.io
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipeline.integration import integrate_gradient, integrate_normals  # noqa: E402
 from pipeline.parallel import configure_process  # noqa: E402
+from pipeline.surface.integration import integrate_gradient, integrate_normals  # noqa: E402
 from tests.pipeline.surfaces import plate_camera, render_cylinder, sparse_least_squares  # noqa: E402
 from tests.realdata import BINI, VASE, load_bini, made_after_median_scale  # noqa: E402
 

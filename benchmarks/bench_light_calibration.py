@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.io import load_capture
-from pipeline.light_calibration import calibrate_lights
+from pipeline.lights.calibration import calibrate_lights
 from pipeline.parallel import configure_process
 from pipeline.simulate import CaptureSpec, PlateSpec, simulate_capture
 

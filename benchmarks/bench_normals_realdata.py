@@ -24,8 +24,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the project root, for tests.realdata
 
-from pipeline.normals import estimate_normals
 from pipeline.parallel import configure_process
+from pipeline.surface.normals import estimate_normals
 from tests import realdata as rd
 
 

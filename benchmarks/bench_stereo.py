@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the project root
 from pipeline import simulate
 from pipeline.camera import CameraModel, StereoRig
 from pipeline.parallel import configure_process
-from pipeline.stereo import stereo_depth
+from pipeline.surface.stereo import stereo_depth
 from tests.realdata import ALOE
 
 HINTS = (None, 2600.0, 3000.0, 3400.0)

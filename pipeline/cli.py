@@ -26,11 +26,11 @@ from importlib.metadata import entry_points
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from .formats import AcquisitionError, InputError, PipelineError
-from .parallel import configure_process
+from pipeline.formats import AcquisitionError, InputError, PipelineError
+from pipeline.parallel import configure_process
 
 if TYPE_CHECKING:
-    from .simulate import CaptureSpec, Cutout, Dent, Floor, PlateSpec
+    from pipeline.simulate import CaptureSpec, Cutout, Dent, Floor, PlateSpec
 
 EXIT_OK, EXIT_INTERNAL, EXIT_BAD_INPUT, EXIT_NOT_MEASURABLE, EXIT_HARDWARE = 0, 1, 2, 3, 4
 #: ``simulate capture --plate-size``'s default (PlateSpec's own), mm.
@@ -67,7 +67,7 @@ def _plate_size(text: str) -> tuple[float, float] | None:
 
 
 def _dent(text: str) -> Dent:
-    from .simulate import Dent
+    from pipeline.simulate import Dent
 
     try:
         x, y, r, d = (float(v) for v in text.split(","))
@@ -77,7 +77,7 @@ def _dent(text: str) -> Dent:
 
 
 def _cutout(text: str) -> Cutout:
-    from .simulate import Cutout
+    from pipeline.simulate import Cutout
 
     try:
         values = [float(v) for v in text.split(",")]
@@ -95,7 +95,7 @@ def _cutout(text: str) -> Cutout:
 
 
 def _floor(args: argparse.Namespace, size_mm: tuple[float, float]) -> Floor | None:
-    from .simulate import Floor, rail_supports
+    from pipeline.simulate import Floor, rail_supports
 
     if args.floor is None:
         if args.supports:
@@ -113,7 +113,7 @@ def _floor(args: argparse.Namespace, size_mm: tuple[float, float]) -> Floor | No
 
 
 def _cmd_simulate_capture(args: argparse.Namespace) -> int:
-    from .simulate import CaptureSpec, PlateSpec, simulate_capture
+    from pipeline.simulate import CaptureSpec, PlateSpec, simulate_capture
 
     width, height = _pair(args.size, name="--size")
     plate_size = _plate_size(args.plate_size)
@@ -167,7 +167,7 @@ def _cmd_simulate_capture(args: argparse.Namespace) -> int:
 
 def _simulate_stations(args: argparse.Namespace, plate: PlateSpec, capture: CaptureSpec) -> int:
     """``simulate capture --stations N``: one bundle per conveyor station of a long plate."""
-    from .simulate import simulate_stations
+    from pipeline.simulate import simulate_stations
 
     if args.stations < 2:
         raise BadArgument(f"--stations: expected at least 2 stations, got {args.stations}")
@@ -196,7 +196,7 @@ def _simulate_stations(args: argparse.Namespace, plate: PlateSpec, capture: Capt
 
 
 def _cmd_simulate_boards(args: argparse.Namespace) -> int:
-    from .simulate import default_rig, render_calibration_pairs
+    from pipeline.simulate import default_rig, render_calibration_pairs
 
     width, height = _pair(args.size, name="--size")
     cols, rows = _pair(args.board, name="--board")
@@ -216,7 +216,7 @@ def _cmd_simulate_boards(args: argparse.Namespace) -> int:
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
-    from .calibration import calibrate_stereo, calibration_document
+    from pipeline.calibration import calibrate_stereo, calibration_document
 
     cols, rows = _pair(args.board, name="--board")
     if not args.square > 0:
@@ -239,8 +239,8 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def _cmd_calibrate_lights(args: argparse.Namespace) -> int:
-    from .io import light_calibration_document, load_capture
-    from .light_calibration import calibrate_lights
+    from pipeline.io import light_calibration_document, load_capture
+    from pipeline.lights.calibration import calibrate_lights
 
     captures = [load_capture(path) for path in args.bundles]
     cal = calibrate_lights(
@@ -268,7 +268,7 @@ def _cmd_calibrate_lights(args: argparse.Namespace) -> int:
 
 
 def _cmd_acquire(args: argparse.Namespace) -> int:
-    from .acquisition import acquire
+    from pipeline.acquisition import acquire, acquire_stations, load_cell_config
 
     if not args.plate_id.strip():
         raise BadArgument("--plate-id: expected a plate id, got an empty one")
@@ -282,13 +282,27 @@ def _cmd_acquire(args: argparse.Namespace) -> int:
         if args.verbose:
             print(f"[{100 * fraction:5.1f} %] {stage}", file=sys.stderr)
 
-    out = acquire(args.config, args.plate_id, args.out, progress=progress, **timeout)
-    record = json.loads((out / "capture.json").read_text())["acquisition"]
+    if load_cell_config(args.config).conveyor is None:
+        out = acquire(args.config, args.plate_id, args.out, progress=progress, **timeout)
+        record = json.loads((out / "capture.json").read_text())["acquisition"]
+        print(
+            f"{args.plate_id}: {len(record['frames'])} frames ({len(record['frames']) - 3} photometric, dark, stereo pair) "
+            f"in {record['total_s']:.2f} s ({record['time_per_image_s'] * 1000:.0f} ms per image)"
+        )
+        print(f"wrote {out}")
+        return EXIT_OK
+    bundles = acquire_stations(args.config, args.plate_id, args.out, progress=progress, **timeout)
+    for bundle in bundles:
+        doc = json.loads((bundle / "capture.json").read_text())
+        record = doc["acquisition"]
+        print(
+            f"{args.plate_id} station {doc['station']['index']}: travel {doc['station']['travel_mm']:.1f} mm "
+            f"(moved in {record['conveyor']['move_s']:.2f} s), {len(record['frames'])} frames in "
+            f"{record['total_s']:.2f} s"
+        )
     print(
-        f"{args.plate_id}: {len(record['frames'])} frames ({len(record['frames']) - 3} photometric, dark, stereo pair) "
-        f"in {record['total_s']:.2f} s ({record['time_per_image_s'] * 1000:.0f} ms per image)"
+        f"wrote {len(bundles)} station bundles in {args.out}: {' '.join(b.name for b in bundles)}"
     )
-    print(f"wrote {out}")
     return EXIT_OK
 
 
@@ -296,7 +310,7 @@ def _cmd_acquire(args: argparse.Namespace) -> int:
 
 
 def _cmd_inspect(args: argparse.Namespace) -> int:
-    from .run import InspectOptions, inspect, warm_up
+    from pipeline.run import InspectOptions, inspect, warm_up
 
     if not args.no_warm_up:
         warm_up()  # kernel loading is start-up, not part of the measurement's timings
@@ -330,8 +344,8 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
 
 
 def _cmd_gauge_study(args: argparse.Namespace) -> int:
-    from . import gauge
-    from .run import warm_up
+    from pipeline import gauge
+    from pipeline.run import warm_up
 
     warm_up()
     if args.bundles:
@@ -590,11 +604,17 @@ def _add_calibrate(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> 
 def _add_acquire(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """``plate-inspect acquire``."""
     acq = sub.add_parser(
-        "acquire", help="photograph a plate in the cell and write a capture bundle"
+        "acquire",
+        help="photograph a plate in the cell and write a capture bundle (a cell with a conveyor: one "
+        "per station, OUT/station_00 ...)",
     )
     acq.add_argument("config", help="cell configuration (cell-config/1)")
     acq.add_argument("--plate-id", required=True, help="the plate's id, written into the bundle")
-    acq.add_argument("--out", required=True, help="bundle folder to write (must not exist)")
+    acq.add_argument(
+        "--out",
+        required=True,
+        help="bundle folder to write (must not exist); with a conveyor, the folder of the stations' bundles",
+    )
     acq.add_argument(
         "--frame-timeout",
         type=float,

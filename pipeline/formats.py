@@ -330,6 +330,16 @@ def _one_line_command(v: str | None, *, per_light: bool) -> str | None:
     return v
 
 
+def _host_port(v: str | None) -> str | None:
+    """A device's ``HOST:PORT`` (a tcp light controller's or conveyor's)."""
+    if v is None:
+        return v
+    host, sep, port = v.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"expected HOST:PORT (port 1-65535), got {v!r}")
+    return v
+
+
 #: Tolerance on |l| - 1 for a cell configuration's light axis or direction; it is then normalised.
 CELL_UNIT_TOLERANCE = 0.01
 
@@ -371,13 +381,8 @@ class CellLights(_Strict):
 
     @field_validator("address")
     @classmethod
-    def _host_port(cls, v: str | None) -> str | None:
-        if v is None:
-            return v
-        host, sep, port = v.rpartition(":")
-        if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
-            raise ValueError(f"expected HOST:PORT (port 1-65535), got {v!r}")
-        return v
+    def _address(cls, v: str | None) -> str | None:
+        return _host_port(v)
 
     @field_validator("on", "off")
     @classmethod
@@ -405,6 +410,56 @@ class CellLights(_Strict):
         return self
 
 
+class CellConveyor(_Strict):
+    """The conveyor that carries a plate longer than the view under the head (docs/stations.md).
+
+    ``driver`` ``tcp`` (``address`` ``HOST:PORT``; ``MOVE <mm>`` lines, docs/acquisition.md) or
+    ``simulated``; ``direction``: the unit direction of the plate's motion in the left camera frame
+    (within :data:`CELL_UNIT_TOLERANCE` of unit length, then normalised); ``stations_mm``: where the
+    plate is photographed, its travel since station 0 (mm; 0 first, strictly increasing, at least 2);
+    ``move_timeout_s``: how long one move may take before the conveyor counts as stalled.
+    """
+
+    driver: Literal["tcp", "simulated"]
+    address: str | None = None
+    direction: Vec3
+    stations_mm: Annotated[list[float], Field(min_length=2, max_length=1000)]
+    move_timeout_s: float = Field(default=60.0, gt=0, allow_inf_nan=False)
+
+    @field_validator("address")
+    @classmethod
+    def _address(cls, v: str | None) -> str | None:
+        return _host_port(v)
+
+    @field_validator("direction")
+    @classmethod
+    def _unit(cls, v: list[float]) -> list[float]:
+        _unit_vector(v, "a unit vector (the plate's motion)", tolerance=CELL_UNIT_TOLERANCE)
+        norm = math.sqrt(sum(x * x for x in v))
+        return [x / norm for x in v]
+
+    @field_validator("stations_mm")
+    @classmethod
+    def _stations(cls, v: list[float]) -> list[float]:
+        if not _finite(v):
+            raise ValueError(f"expected finite positions (mm), got {v}")
+        if v[0] != 0:
+            raise ValueError(f"expected station 0 at 0 mm (travel since station 0), got {v[0]:g}")
+        for k in range(1, len(v)):
+            if not v[k] > v[k - 1]:
+                raise ValueError(
+                    f"expected strictly increasing positions, got {v[k]:g} mm at station {k} "
+                    f"after {v[k - 1]:g} mm"
+                )
+        return v
+
+    @model_validator(mode="after")
+    def _complete(self) -> Self:
+        if self.driver == "tcp" and self.address is None:
+            raise ValueError("address: missing required key (a tcp conveyor needs HOST:PORT)")
+        return self
+
+
 class CellConfigFile(_Strict):
     format: Literal["cell-config/1"]
     cell_id: str = Field(min_length=1)
@@ -412,6 +467,8 @@ class CellConfigFile(_Strict):
     lights: CellLights
     calibration: str = Field(min_length=1)
     working_distance_mm: float = Field(gt=0)
+    #: A conveyor that carries a long plate station by station (docs/stations.md); None: one view.
+    conveyor: CellConveyor | None = None
 
 
 # --------------------------------------------------------------------------- target

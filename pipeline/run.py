@@ -2,7 +2,7 @@
 
 The CLI (``plate-inspect inspect``) and the service's job both call :func:`inspect`; neither
 re-implements a stage. The stages themselves are chained in :mod:`pipeline.stages`; this module
-writes what they found: ``details.json`` (:mod:`pipeline.details`) and ``result.json``
+writes what they found: ``details.json`` (:mod:`pipeline.judge.details`) and ``result.json``
 (``plate-result/1``), or a result with verdict ``error`` when the capture cannot be measured.
 """
 
@@ -20,10 +20,12 @@ from typing import Any
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from . import reconstruct, uncertainty
-from .artifacts import ARTIFACT_FILES, RESULT_FILE
-from .curvature import CurvatureResult
-from .details import (
+from pipeline.artifacts import ARTIFACT_FILES, RESULT_FILE
+from pipeline.formats import RESULT_FORMAT, PipelineError, ResultFile, ResultUncertainty
+from pipeline.io import Capture, Target, load_capture, load_target
+from pipeline.judge import uncertainty
+from pipeline.judge.curvature import CurvatureResult
+from pipeline.judge.details import (
     Details,
     UncertaintyDetails,
     fusion_details,
@@ -31,13 +33,13 @@ from .details import (
     region_details,
     segmentation_details,
 )
-from .formats import RESULT_FORMAT, PipelineError, ResultFile, ResultUncertainty
-from .io import Capture, Target, load_capture, load_target
-from .lights import Lights
-from .parallel import default_workers
-from .preprocess import Preprocessed
-from .registration import Registration, pixel_in_target_frame
-from .stages import (
+from pipeline.judge.registration import Registration, pixel_in_target_frame
+from pipeline.judge.target_geometry import target_area_mm2
+from pipeline.judge.verdict import Judgement
+from pipeline.lights.model import Lights
+from pipeline.parallel import default_workers
+from pipeline.preprocess import Preprocessed
+from pipeline.stages import (
     DISAGREEMENT_FRACTION,
     STAGES,
     InspectOptions,
@@ -48,8 +50,7 @@ from .stages import (
     measure,
     preprocess_scene,
 )
-from .target_geometry import target_area_mm2
-from .verdict import Judgement
+from pipeline.surface import reconstruct
 
 __all__ = [
     "AREA_WARNING_RATIO",
@@ -110,7 +111,7 @@ def inspect(
         Called when each stage of :data:`STAGES` starts (fraction 0..1 of the
         stages done) and once with ``("done", 1.0)``.
     options : InspectOptions, optional
-    light_calibration : pipeline.lights.Lights, optional
+    light_calibration : pipeline.lights.model.Lights, optional
         The cell's measured lights (``plate-inspect calibrate-lights``, read with
         :func:`pipeline.io.load_light_calibration`). Applied to a capture whose lights are all
         given only as directions (nominal lights) and as many as its images; the result then
@@ -161,7 +162,7 @@ def _inspect(
 ) -> InspectionResult:
     """:func:`inspect` inside its BLAS limit and error handling: every stage, then the two documents."""
     warnings: list[str] = []
-    cap, tgt = load_inputs(capture, target, light_calibration, warnings, clock)
+    cap, tgt = load_inputs(capture, target, light_calibration, warnings, clock, opts)
     scene = preprocess_scene(cap, opts, clock)
     # Work that does not need the main line's next result runs beside it. The stereo pair
     # needs only the plate mask (matched while the normals are estimated); curvature and the pixel
@@ -191,7 +192,7 @@ def _inspect_stations(
     light_calibration: Lights | None,
 ) -> InspectionResult:
     """:func:`inspect` of a plate at conveyor stations (:mod:`pipeline.stations`)."""
-    from .stations import measure_stations, stitched_details
+    from pipeline.stations import measure_stations, stitched_details
 
     plate, tgt = measure_stations(captures, target, out, clock, opts, light_calibration)
     details = stitched_details(plate, tgt)
@@ -306,7 +307,7 @@ def _warnings(surface: reconstruct.Surface, tgt: Target, details: Details) -> li
 
 def _capability_warnings(m: Measurement, cap: Capture, tgt: Target) -> list[str]:
     """The decision rule's word (docs/uncertainty.md): the verdict stands by simple acceptance, but a
-    tolerance under :data:`pipeline.uncertainty.CAPABLE_RATIO` expanded uncertainties is said, with why."""
+    tolerance under :data:`pipeline.judge.uncertainty.CAPABLE_RATIO` expanded uncertainties is said, with why."""
     u = m.uncertainty
     if u.capable(tgt.tolerance_mm):
         return []
@@ -402,7 +403,14 @@ def warm_up(*, full: bool = False) -> float:
     lit floor with a cut-out (the near-field and segmentation kernels), for the install-time
     compilation. Returns the run time, seconds.
     """
-    from .simulate import CaptureSpec, Cutout, Floor, PlateSpec, rail_supports, simulate_capture
+    from pipeline.simulate import (
+        CaptureSpec,
+        Cutout,
+        Floor,
+        PlateSpec,
+        rail_supports,
+        simulate_capture,
+    )
 
     scenes = [(PlateSpec(), CaptureSpec(width=320, height=256))]
     if full:

@@ -21,25 +21,21 @@ from typing import Any
 import cv2
 import numpy as np
 
-from . import (
-    artifacts,
-    curvature,
-    deviation,
-    normals,
-    reconstruct,
-    registration,
-    segmentation,
-    stereo,
-    target_geometry,
-    uncertainty,
-    verdict,
+from pipeline import artifacts, segmentation
+from pipeline.artifacts import ARTIFACT_FILES
+from pipeline.formats import CaptureError
+from pipeline.io import Capture, Target, load_capture, load_target
+from pipeline.judge import curvature, deviation, registration, target_geometry, uncertainty, verdict
+from pipeline.lights.model import Lights
+from pipeline.preprocess import (
+    WORKING_CELL_MM,
+    Preprocessed,
+    bin_capture,
+    preprocess,
+    raw_noise_counts,
+    working_binning,
 )
-from .artifacts import ARTIFACT_FILES
-from .formats import CaptureError
-from .io import Capture, Target, load_capture, load_target
-from .lights import Lights
-from .normals.noise import image_noise
-from .preprocess import Preprocessed, preprocess
+from pipeline.surface import normals, reconstruct, stereo
 
 #: Stage names in the order they run; ``progress`` reports these.
 STAGES = ("load", "preprocess", "normals", "stereo", "depth", "curvature", "deviation", "artifacts")
@@ -50,7 +46,7 @@ ProgressCallback = Callable[[str, float], None]
 #: with the default ``depth_margin`` of 1.0 that is 1750-7000 mm, the cell's whole range.
 NOMINAL_DISTANCE_MM = 3500.0
 #: The lights are refitted, and the result warns that the photometric and stereo shapes disagree, when the
-#: disagreement (see :class:`pipeline.fusion.Fusion`) exceeds both the noise floor and this fraction of the
+#: disagreement (see :class:`pipeline.surface.fusion.Fusion`) exceeds both the noise floor and this fraction of the
 #: tolerance.
 DISAGREEMENT_FRACTION = 0.25
 #: Pixels of the plate within this many pixels of its segmented outline or an opening (not the image's
@@ -66,7 +62,7 @@ class InspectOptions:
     Attributes
     ----------
     normals_method : {"robust", "lstsq"}
-        Per-pixel photometric estimator (see :func:`pipeline.normals.estimate_normals`).
+        Per-pixel photometric estimator (see :func:`pipeline.surface.normals.estimate_normals`).
     stereo_weight : float
         Weight of the stereo depth against the normal equations in the fusion
         (dimensionless, per pixel, log-depth units). The normals win above the
@@ -80,7 +76,7 @@ class InspectOptions:
         .. ``working distance * (1 + depth_margin)`` (1500-6000 mm for a 3000 mm hint at 1.0;
         1750-7000 mm without a hint). It only bounds where the plate is looked for: the fine
         search range comes from the plate's disparities found by the coarse pass, so a wrong
-        hint that still brackets the plate changes nothing (see :func:`pipeline.stereo.stereo_depth`).
+        hint that still brackets the plate changes nothing (see :func:`pipeline.surface.stereo.stereo_depth`).
     min_stereo_pct : float
         Below this share of the plate matched (percent), the stereo depth is not
         trusted (a plate outside the searched range gives a few wrong matches): the
@@ -91,13 +87,19 @@ class InspectOptions:
         of the fused surface.
     depth_tol : float
         Relative residual at which the depth solve stops (``tol`` of
-        :func:`pipeline.integration.integrate_normals`). Measured on a simulated plate at
+        :func:`pipeline.surface.integration.integrate_normals`). Measured on a simulated plate at
         2448x2048 against a solve to 1e-8: 1e-4 changes no depth by more than 1 um
         (1e-3: 20 um), in 4 iterations instead of 6 for 1e-6.
     workers : int or None
         Threads for the work that runs beside the main line (stereo, curvature, artifact
         writing) and for preprocessing; None: :func:`pipeline.parallel.default_workers`. The
         result does not depend on it.
+    working_cell_mm : float or None
+        The coarsest cell of the working grid on the plate, mm: a capture whose pixels see a finer
+        footprint (at its working distance, or :data:`NOMINAL_DISTANCE_MM`) is binned on loading by
+        the largest whole factor that keeps the cell within it, and measured on that grid (its
+        artifacts too). None: the capture's own pixels. See
+        :func:`pipeline.preprocess.working_binning`.
     """
 
     normals_method: str = "robust"
@@ -107,6 +109,7 @@ class InspectOptions:
     stereo_max_width: int = 1600
     depth_tol: float = 1e-4
     workers: int | None = None
+    working_cell_mm: float | None = WORKING_CELL_MM
 
 
 class StageClock:
@@ -191,14 +194,18 @@ def load_inputs(
     light_calibration: Lights | None,
     warnings: list[str],
     clock: StageClock,
+    opts: InspectOptions,
 ) -> tuple[Capture, Target]:
     """Stage *load*: the capture (with ``light_calibration`` applied, see :func:`pipeline.run.inspect`) and the target.
 
-    A warning about the light calibration is appended to ``warnings``. CaptureError when the capture
-    has neither a stereo pair nor a working distance (no metric scale).
+    The capture comes on the working grid of ``opts.working_cell_mm`` (binned, see
+    :class:`InspectOptions`). A warning about the light calibration is appended to ``warnings``.
+    CaptureError when the capture has neither a stereo pair nor a working distance (no metric scale).
     """
     clock.begin("load")
     cap = capture if isinstance(capture, Capture) else load_capture(capture)
+    factor = working_binning(cap, opts.working_cell_mm, NOMINAL_DISTANCE_MM)
+    cap = bin_capture(cap, factor, workers=opts.workers)
     tgt = target if isinstance(target, Target) else load_target(target)
     cap = _apply_light_calibration(cap, light_calibration, warnings)
     if not cap.has_stereo and cap.working_distance_mm is None:
@@ -549,7 +556,7 @@ def _qualify(
     judged: np.ndarray,
     pose: registration.Registration,
 ) -> uncertainty.Uncertainty:
-    """The measurement's expanded uncertainty (:mod:`pipeline.uncertainty`) on the judged pixels."""
+    """The measurement's expanded uncertainty (:mod:`pipeline.judge.uncertainty`) on the judged pixels."""
     inputs = uncertainty_inputs(cap, pre, surface, points, judged)
     radius = pose.fitted_radius_mm
     return uncertainty.propagate(
@@ -566,7 +573,7 @@ def uncertainty_inputs(
     points: np.ndarray,
     judged: np.ndarray,
 ) -> uncertainty.Inputs:
-    """What :func:`pipeline.uncertainty.propagate` needs of one view, ``judged``: the pixels to qualify."""
+    """What :func:`pipeline.judge.uncertainty.propagate` needs of one view, ``judged``: the pixels to qualify."""
     images, lights = pre.images, cap.lights
     if surface.refinement is not None:  # the normals came from the refitted lights
         refined = surface.refinement.lights
@@ -597,14 +604,15 @@ def _raw_noise(cap: Capture, lights: Lights) -> tuple[np.ndarray, np.ndarray | N
     """The raw noise of each photometric image and of the dark frame (None without one), each in the
     preprocessed images' units (raw counts / (intensity x full scale)).
 
-    Measured on the raw frames, before undistortion interpolates (and smooths) them.
+    Measured on the raw frames, before undistortion interpolates (and smooths) them; a binned capture's
+    before binning (``Capture.raw_noise``).
     """
     scale = np.asarray(lights.intensity, dtype=np.float64) * float(2**cap.bit_depth - 1)
-    everywhere = np.ones(cap.images.shape[1:], bool)
-    own: np.ndarray = image_noise(cap.images, everywhere) / scale
-    if cap.dark is None:
+    own_counts, dark_counts = raw_noise_counts(cap)
+    own: np.ndarray = own_counts / scale
+    if dark_counts is None:
         return own, None
-    dark: np.ndarray = float(image_noise(cap.dark[None], everywhere)[0]) / scale
+    dark: np.ndarray = dark_counts / scale
     return own, dark
 
 

@@ -1,5 +1,5 @@
 """Writes the JSON Schemas of the file formats to docs/schemas/, generated from the pydantic models
-that read them (pipeline/formats.py) and from the dataclasses of details.json (pipeline/details.py).
+that read them (pipeline/formats.py) and from the dataclasses of details.json (pipeline/judge/details.py).
 
     .venv/bin/python scripts/gen_schemas.py           # (re)write docs/schemas/*.schema.json
     .venv/bin/python scripts/gen_schemas.py --check   # exit 1 naming the stale files
@@ -19,7 +19,7 @@ from typing import Any
 from pydantic import TypeAdapter
 
 from pipeline import formats
-from pipeline.details import Details
+from pipeline.judge.details import Details
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "docs" / "schemas"

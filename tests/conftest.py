@@ -1,6 +1,6 @@
 """Configuration shared by every test package: the thread policy of a process that runs inspections,
 the fixtures of the cell's fake devices (Aravis' fake GigE Vision camera, the tests' own TCP
-light controller), used by the acquisition and the service's acquire tests, and the SQLite database
+light controller and conveyor), used by the acquisition and the service's acquire tests, and the SQLite database
 migrated once per session that the service and dashboard tests start from.
 
 The thread policy is set here, before any test runs a compiled kernel, as the CLI and the job
@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from pipeline.parallel import configure_process
-from tests.acquisition.devices import FakeGigECamera, LightServer
+from tests.acquisition.devices import ConveyorServer, FakeGigECamera, LightServer
 
 configure_process()
 
@@ -26,6 +26,20 @@ def light_server():
 
     def make(**kwargs) -> LightServer:
         servers.append(LightServer(**kwargs))
+        return servers[-1]
+
+    yield make
+    for server in servers:
+        server.close()
+
+
+@pytest.fixture
+def conveyor_server():
+    """A factory of :class:`ConveyorServer` (keyword arguments as its own); all closed after the test."""
+    servers = []
+
+    def make(**kwargs) -> ConveyorServer:
+        servers.append(ConveyorServer(**kwargs))
         return servers[-1]
 
     yield make

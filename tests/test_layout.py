@@ -1,8 +1,10 @@
-"""The repository's layout rules: short functions in the pipeline, and a pipeline that never imports the service."""
+"""The repository's layout rules: short functions in the pipeline, a pipeline that never imports the service,
+the method's wings (each naming its public API, none reaching into another's private names), thin routes."""
 
 from __future__ import annotations
 
 import ast
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -11,6 +13,10 @@ ROOT = Path(__file__).resolve().parents[1]
 PIPELINE = ROOT / "pipeline"
 CHECKER = ROOT / "scripts" / "check_function_length.py"
 SERVICE_PACKAGES = ("app", "web")
+#: The method's wings inside ``pipeline/`` (docs/architecture.md).
+WINGS = ("lights", "surface", "judge")
+#: Modules directly in ``pipeline/``: the entry point and the stage chain on top, ``__init__`` included.
+MAX_TOP_MODULES = 10
 #: Longest route (or websocket) handler, lines from its ``def`` to its last line, docstring excluded.
 MAX_ROUTE_LINES = 40
 #: Decorators (``@router.<name>(...)``, ``@app.<name>(...)``) that make a function a route or websocket.
@@ -121,3 +127,59 @@ def test_routes_are_thin():
     assert {"create_inspection", "put_target", "viewer_bridge", "result_page"} <= names
     long = {where: n for where, n in lengths.items() if n > MAX_ROUTE_LINES}
     assert long == {}, f"routes over {MAX_ROUTE_LINES} lines (docstring excluded): {long}"
+
+
+def test_at_most_ten_modules_sit_directly_in_the_pipeline():
+    top = sorted(path.name for path in PIPELINE.glob("*.py"))
+    assert len(top) <= MAX_TOP_MODULES, top
+    assert {"run.py", "stages.py", "cli.py"} <= set(top)
+
+
+def _private_imports(path: Path, own: str | None) -> list[str]:
+    """``pipeline.<wing>`` private names (a leading underscore) that ``path`` imports from another wing."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if not (isinstance(node, ast.ImportFrom) and node.level == 0 and node.module):
+            continue
+        parts = node.module.split(".")
+        if parts[0] != "pipeline" or len(parts) < 2 or parts[1] not in WINGS or parts[1] == own:
+            continue
+        found += [f"{node.module}.{a.name}" for a in node.names if a.name.startswith("_")]
+        found += [f"{node.module}" for part in parts[2:] if part.startswith("_")]
+    return found
+
+
+def test_no_wing_reaches_into_another_wings_private_names():
+    offenders = {}
+    for package in ("pipeline", *SERVICE_PACKAGES):
+        for path in sorted((ROOT / package).rglob("*.py")):
+            rel = path.relative_to(ROOT)
+            own = rel.parts[1] if package == "pipeline" and rel.parts[1] in WINGS else None
+            if found := _private_imports(path, own):
+                offenders[str(rel)] = found
+    assert offenders == {}
+
+
+def test_each_wing_names_its_public_api_and_every_name_loads():
+    """Each wing's ``__init__.pyi`` lists its public API; ``__init__.py`` loads those names lazily
+    (lazy_loader): with ``EAGER_IMPORT`` set every name is imported at once and must resolve."""
+    code = (
+        "import importlib\n"
+        f"for wing in {WINGS!r}:\n"
+        "    module = importlib.import_module('pipeline.' + wing)\n"
+        "    assert module.__all__, wing\n"
+        "    missing = [n for n in module.__all__ if getattr(module, n, None) is None]\n"
+        "    assert not missing, (wing, missing)\n"
+        "print('ok')\n"
+    )
+    for wing in WINGS:
+        assert (PIPELINE / wing / "__init__.pyi").is_file(), wing
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        env={**os.environ, "EAGER_IMPORT": "1"},
+    )
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "ok"

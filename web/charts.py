@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from app.axes import nice_ticks
-from pipeline.sections import Section
+from pipeline.judge.sections import Section
 
 #: Nice exaggeration factors for drawing mm-scale gaps on metre-scale sections.
 _EXAGGERATIONS = (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000, 2000, 5000)

@@ -30,6 +30,7 @@ from app.services import forming as forming_svc
 from app.services import inspections as inspection_svc
 from app.services import light_calibrations as light_calibration_svc
 from app.services import plates as plate_svc
+from app.services.stations import read_stations
 from app.storage import Storage
 from web import TEMPLATES_DIR
 from web.charts import FormingChart, forming_chart, trend_chart
@@ -227,8 +228,9 @@ def result_page(
     at_x: PointQuery = None,
     at_y: PointQuery = None,
 ) -> Response:
-    """Verdict, radius, deviation, the 3D view and the virtual templates of one inspection
-    (``at_x``, ``at_y``: one more template through that point of the plate, target frame, mm)."""
+    """Verdict, radius, deviation, the 3D view, the stations of a plate measured at stations and the
+    virtual templates of one inspection (``at_x``, ``at_y``: one more template through that point of
+    the plate, target frame, mm)."""
     row = _inspection_or_404(session, inspection_id)
     plate_viewer = getattr(request.app.state, "viewer", None)
     has_view = (
@@ -253,6 +255,7 @@ def result_page(
             session, row.plate_id, row if row.status == JobStatus.DONE else None, target_doc
         ),
         **found,
+        "stations": read_stations(storage.artifacts_dir(row.id)) if "details.json" in names else [],
         **templates_context(storage, row, spacing_mm, chosen_point(at_x, at_y)),
     }
     return _page(request, session, "result.html", context)

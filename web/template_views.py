@@ -16,7 +16,7 @@ from app.errors import scrub_paths
 from app.models import Inspection, JobStatus
 from app.plate_frame import frame_places
 from app.storage import Storage
-from pipeline.sections import load_sections
+from pipeline.judge.sections import load_sections
 from web.charts import section_drawings
 
 logger = logging.getLogger(__name__)

@@ -24,10 +24,12 @@ from app.services import leases, light_calibrations
 from app.services.acquisitions import ACQUIRED_SOURCE, capture_for_job
 from app.services.inspections import SIMULATION_FILE
 from app.services.leases import LeaseKeeper
+from app.services.stations import capture_bundles
 from app.settings import InspectFunction, Settings
 from app.storage import Storage
 from pipeline.acquisition import last_frame_lag_s
 from pipeline.formats import InputError, PipelineError
+from pipeline.lights import Lights
 
 log = logging.getLogger(__name__)
 
@@ -298,8 +300,8 @@ def _run(
     target_path: Path,
     light_calibration: LightCalibration | None,
 ) -> dict[str, Any]:
-    """The job's work: render a simulated capture or acquire one, load the lights, call the pipeline; the result
-    document."""
+    """The job's work: render a simulated capture or acquire one, load the lights, measure the bundles;
+    the result document."""
     out_dir = storage.clear_artifacts(inspection_id)
     if source == "simulated":
         progress(SIMULATE_STAGE, 0.0)
@@ -308,7 +310,7 @@ def _run(
         render_simulated_bundle(bundle_dir=capture_path, plate_id=plate_id, simulation=simulation)
     returned_at = None
     if source == ACQUIRED_SOURCE:
-        capture_for_job(
+        bundles = capture_for_job(
             inspection_id,
             settings=settings,
             storage=storage,
@@ -317,16 +319,40 @@ def _run(
             progress=progress,
         )
         returned_at = time.monotonic()
+    else:
+        bundles = capture_bundles(capture_path)
     lights = None
     if light_calibration is not None:
         lights = light_calibrations.load_lights(storage=storage, calibration=light_calibration)
-    inspect = settings.inspect_entry
-    result = inspect(
-        capture_path, target_path, out_dir=out_dir, progress=progress, light_calibration=lights
+    document = measure_bundles(
+        settings.inspect_entry, bundles, target_path, out_dir, progress=progress, lights=lights
     )
-    document: dict[str, Any] = json.loads(json.dumps(result.document))  # plain JSON types only
     if returned_at is not None:
-        _add_after_last_frame(document, capture_path, out_dir, returned_at)
+        _add_after_last_frame(document, bundles[-1], out_dir, returned_at)
+    return document
+
+
+def measure_bundles(
+    inspect: InspectFunction,
+    bundles: list[Path],
+    target_path: Path,
+    out_dir: Path,
+    *,
+    progress: ProgressWriter,
+    lights: Lights | None,
+) -> dict[str, Any]:
+    """Measure a job's capture bundles with the inspection entry (:func:`pipeline.run.inspect`): one
+    bundle as itself, several as the conveyor stations of one plate (the entry reports each station's
+    stages as ``station 2/4: normals``); the result document, plain JSON types only.
+
+    Every source of bundles comes here: an upload (one bundle, or a plate's stations), a simulated
+    capture, an acquisition (one bundle, or the stations of a cell with a conveyor).
+    """
+    capture: Path | list[Path] = bundles[0] if len(bundles) == 1 else list(bundles)
+    result = inspect(
+        capture, target_path, out_dir=out_dir, progress=progress, light_calibration=lights
+    )
+    document: dict[str, Any] = json.loads(json.dumps(result.document))
     return document
 
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from pipeline.formats import InputError
 from pipeline.io import Target
-from pipeline.lights import Lights
+from pipeline.lights.model import Lights
 
 #: Formed radius of a hull plate, mm: tighter than any plate is formed (bilge, bow), and flatter
 #: than a plate can be told from a plane (a 3 m plate bows by about 1 mm at 1 km).

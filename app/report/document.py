@@ -29,9 +29,10 @@ from app.report import tables
 from app.report.figures import DeviationMap, GapProfile, Histogram, PlateMapFigure
 from app.report.header import MARGIN_BOTTOM, MARGIN_X, PageHeader, numbered_canvas
 from app.report.text import NOT_RECORDED, escape, finite, num, text_or, when
+from app.schemas import StationOut
 from pipeline.artifacts.colours import default_limit_mm
-from pipeline.plate_map import PlateMap
-from pipeline.sections import Section
+from pipeline.judge.plate_map import PlateMap
+from pipeline.judge.sections import Section
 
 #: Width of the page's text block, points.
 TEXT_WIDTH = A4[0] - 2 * MARGIN_X
@@ -39,6 +40,7 @@ TEXT_WIDTH = A4[0] - 2 * MARGIN_X
 RADIUS_WIDTHS = tuple(w * mm for w in (42, 21, 21, 33, 27, 16, 14))
 DEFECT_WIDTHS = tuple(w * mm for w in (7, 13, 13, 17, 16, 15, 15, 17, 17, 16, 14))
 TEMPLATE_WIDTHS = tuple(w * mm for w in (46, 18, 14, 14, 16, 16, 16, 14))
+STATION_WIDTHS = tuple(w * mm for w in (16, 27, 25, 31, 25, 22, 22))
 #: Test uncertainty ratio (tolerance / U95) below which the measurement is flagged not capable.
 CAPABLE_RATIO = 4.0
 
@@ -63,7 +65,7 @@ class ReportData:
     plate_map : PlateMap or None
         The deviation map in the target's frame; the camera's deviation.png is printed otherwise.
     sections : list of Section
-        The virtual templates (:mod:`pipeline.sections`): each frame's gap along it.
+        The virtual templates (:mod:`pipeline.judge.sections`): each frame's gap along it.
     template_places : list of str
         Each section's place in the target's frame (:mod:`app.plate_frame`), in the same order;
         empty without a registration (the frames are then given from the target's first edge).
@@ -78,6 +80,9 @@ class ReportData:
         ``created_at`` are those of the uploaded calibration with the same content, else None.
     details : dict or None
         The inspection's details.json (``registration_rms_mm``).
+    stations : list of StationOut
+        The conveyor stations of a plate measured at stations (empty for one view): the map draws
+        their outlines and a table lists their travel and overlaps.
     """
 
     inspection: dict[str, Any]
@@ -94,6 +99,7 @@ class ReportData:
     capture: dict[str, Any] | None = None
     stereo_calibration: dict[str, Any] | None = None
     details: dict[str, Any] | None = None
+    stations: list[StationOut] = field(default_factory=list)
 
 
 def report_number(inspection: dict[str, Any]) -> str:
@@ -137,6 +143,7 @@ def _story(data: ReportData, styles: Any) -> list[Flowable]:
         _note(_radius_note(data), styles),
         KeepTogether(_statistics(data, styles)),
         KeepTogether([_section("Deviation map", styles), *_deviation_map(data, styles)]),
+        *_stations(data.stations, styles),
         *_defects(doc, data.details, styles),
         *_templates(data.sections, data.template_places, result, data.template_spacing_mm, styles),
         _section("Acquisition and calibrations", styles),
@@ -291,7 +298,7 @@ def _deviation_map(data: ReportData, styles: Any) -> list[Flowable]:
     defects = data.inspection.get("defects") or []
     if data.plate_map is not None and tolerance:
         return [
-            PlateMapFigure(data.plate_map, tolerance, defects, TEXT_WIDTH),
+            PlateMapFigure(data.plate_map, tolerance, defects, TEXT_WIDTH, data.stations),
             _note(
                 f"The plate in its target's frame, mm (x along the target's first side, y along its "
                 f"second, origin at its centre). Green: within ±{tolerance:g} mm; orange to dark "
@@ -313,6 +320,28 @@ def _deviation_map(data: ReportData, styles: Any) -> list[Flowable]:
             "target, towards the cameras; blue: below it).",
             styles,
         ),
+    ]
+
+
+def _stations(stations: list[StationOut], styles: Any) -> list[Flowable]:
+    """The stations of a plate measured at stations (nothing for one view)."""
+    if not stations:
+        return []
+    return [
+        KeepTogether(
+            [
+                _section("Stations", styles),
+                _table(tables.station_rows(stations), header=True, size=7.6, widths=STATION_WIDTHS),
+                _note(
+                    f"The plate was measured at {len(stations)} conveyor stations and stitched into "
+                    "one. Travel since station 0 as the registration found it (the plate's texture "
+                    "matched in each overlap) and as the conveyor's encoder read it. Overlap: with "
+                    "the station before; the distance between the two registered surfaces there. "
+                    "The map draws each station's view, numbered.",
+                    styles,
+                ),
+            ]
+        )
     ]
 
 

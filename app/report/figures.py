@@ -1,5 +1,6 @@
 """The report's drawings: the deviation map in the target's frame (colour bar in mm, a callout per
-defect with its value and tolerance), the camera's map when there is no plate map, the histogram
+defect with its value and tolerance, the outline of each conveyor station of a plate measured at
+stations), the camera's map when there is no plate map, the histogram
 of the deviation and each virtual template's gap along its frame.
 """
 
@@ -16,14 +17,17 @@ from reportlab.platypus import Flowable
 
 from app.axes import nice_ticks
 from app.report.text import signed
+from app.schemas import StationOut
 from pipeline.artifacts.colours import default_limit_mm, tolerance_band_colormap
 from pipeline.artifacts.png import deviation_png_layout
-from pipeline.plate_map import PlateMap
-from pipeline.sections import Section
+from pipeline.judge.plate_map import PlateMap
+from pipeline.judge.sections import Section
 
 #: Unmeasured cells of the map, as its legend says ("light grey: not measured").
 UNMEASURED_RGB = (214, 214, 214)
 RED, INK, GREY = colors.HexColor("#b3261e"), colors.HexColor("#1d2733"), colors.HexColor("#555555")
+#: The stations' outlines, as on the dashboard's map.
+STATION_COLOUR = colors.HexColor("#6a3fb0")
 
 
 def band_rgb(values_mm: np.ndarray, tolerance_mm: float) -> np.ndarray:
@@ -44,10 +48,16 @@ class PlateMapFigure(Flowable):  # type: ignore[misc]  # ReportLab is untyped
     LEFT, BOTTOM, TOP, BAR = 16 * mm, 11 * mm, 7 * mm, 24 * mm
 
     def __init__(
-        self, plate: PlateMap, tolerance_mm: float, defects: list[dict[str, Any]], width: float
+        self,
+        plate: PlateMap,
+        tolerance_mm: float,
+        defects: list[dict[str, Any]],
+        width: float,
+        stations: list[StationOut] | None = None,
     ) -> None:
         super().__init__()
         self.plate, self.defects, self.tolerance = plate, defects, tolerance_mm
+        self.stations = stations or []
         x0, x1, y0, y1 = plate.extent_mm
         self.scale = min(  # points per mm
             (width - self.LEFT - self.BAR - 4 * mm) / (x1 - x0),
@@ -75,6 +85,7 @@ class PlateMapFigure(Flowable):  # type: ignore[misc]  # ReportLab is untyped
         left, bottom = self._at(x0, y0)
         right, top = self._at(x1, y1)
         c.drawImage(self.image, left, bottom, width=right - left, height=top - bottom)
+        self._stations(c, left, bottom, right, top)
         self._axes(c, left, bottom, right, top)
         self._origin(c)
         self._colour_bar(c, right + 8 * mm, bottom, top)
@@ -83,6 +94,39 @@ class PlateMapFigure(Flowable):  # type: ignore[misc]  # ReportLab is untyped
             if d.get("centroid_mm"):
                 x, y = self._at(*d["centroid_mm"])
                 self._callout(c, x, y, d, placed, right)
+
+    def _stations(self, c: Any, left: float, bottom: float, right: float, top: float) -> None:
+        """Each conveyor station's outline (within the map) and its number at the map's left edge, a
+        quarter of the way up the part of the plate only that station sees (as the dashboard's map)."""
+        x0, _, y0, y1 = self.plate.extent_mm
+        c.saveState()
+        box = c.beginPath()
+        box.rect(left, bottom, right - left, top - bottom)
+        c.clipPath(box, stroke=0, fill=0)
+        c.setStrokeColor(STATION_COLOUR)
+        c.setFillColor(STATION_COLOUR)
+        c.setLineWidth(0.9)
+        c.setFont("Helvetica-Bold", 7)
+        outlines = [(s.index, s.outline_mm) for s in self.stations if s.outline_mm]
+        spans = [(min(y for _, y in o), max(y for _, y in o)) for _, o in outlines]
+        for k, (index, outline) in enumerate(outlines):
+            points = [self._at(x, y) for x, y in outline]
+            path = c.beginPath()
+            path.moveTo(*points[0])
+            for point in points[1:]:
+                path.lineTo(*point)
+            path.close()
+            c.drawPath(path, stroke=1, fill=0)
+            lo, hi = spans[k]
+            own = (
+                max(lo, spans[k - 1][1] if k > 0 else lo, y0),
+                min(hi, spans[k + 1][0] if k + 1 < len(spans) else hi, y1),
+            )
+            if own[0] >= own[1]:
+                own = (max(lo, y0), min(hi, y1))
+            lx, ly = self._at(x0, own[0] + 0.25 * (own[1] - own[0]))
+            c.drawString(lx + 3, ly - 2.5, f"station {index}")
+        c.restoreState()
 
     def _axes(self, c: Any, left: float, bottom: float, right: float, top: float) -> None:
         x0, x1, y0, y1 = self.plate.extent_mm

@@ -24,7 +24,8 @@ from app.report.text import (
     text_or,
     when,
 )
-from pipeline.sections import Section
+from app.schemas import StationOut
+from pipeline.judge.sections import Section
 
 #: Columns of the judged items' tables after the item's own.
 JUDGED = ["Nominal", "Actual", "Deviation", "Tolerance", "U (k=2)", "Result"]
@@ -276,3 +277,35 @@ def camera_serials(capture: dict[str, Any] | None) -> str:
         if isinstance(cameras.get(side), dict) and cameras[side].get("serial")
     ]
     return ", ".join(serials) or NOT_RECORDED
+
+
+#: Header of the stations' table.
+STATION_HEADER = [
+    "Station",
+    "Travel registered",
+    "Travel encoder",
+    "Registered - encoder",
+    "Overlap matches",
+    "Overlap RMS",
+    "Overlap max",
+]
+
+
+def station_rows(stations: list[StationOut]) -> list[list[str]]:
+    """The stations of a plate measured at stations: each one's travel (registered, encoder and
+    their difference, mm) and its overlap with the station before (matches, RMS and max distance
+    between the two surfaces, mm); ``-`` for station 0's overlap."""
+    rows = [STATION_HEADER]
+    for s in stations:
+        rows.append(
+            [
+                str(s.index),
+                num(s.travel_mm, 1, "mm"),
+                num(s.travel_encoder_mm, 1, "mm"),
+                signed(s.travel_mm - s.travel_encoder_mm, 1, "mm"),
+                "-" if s.overlap_matches is None else str(s.overlap_matches),
+                num(s.overlap_rms_mm, 2, "mm", missing="-"),
+                num(s.overlap_max_mm, 2, "mm", missing="-"),
+            ]
+        )
+    return rows

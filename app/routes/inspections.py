@@ -57,7 +57,12 @@ ERRORS: dict[int | str, dict[str, Any]] = {
 
 
 CaptureUpload = Annotated[
-    UploadFile, File(description="the capture bundle (plate-capture/1) as a .zip")
+    list[UploadFile],
+    File(
+        description="the capture bundle (plate-capture/1) as a .zip; a plate longer than the view: "
+        "one part per conveyor station (each a bundle with its station), or one .zip of station "
+        "folders (station_00/, station_01/, ...)"
+    ),
 ]
 TargetUpload = Annotated[
     UploadFile | None,
@@ -98,6 +103,11 @@ def create_inspection(
     operator: OperatorForm = None,
 ) -> JSONResponse:
     """Check the bundle (and target), store them and queue the inspection: 202 ``{"id", "status"}``.
+
+    A plate measured at conveyor stations: one ``capture`` part per station, or one zip of station
+    folders; the set is checked as ``plate-inspect inspect`` checks it (a ``station`` in every
+    bundle, one ``plate_id``, indices 0 .. n-1 without a duplicate; 422 naming the part or folder
+    and the field) and the stations are measured as one plate.
 
     The bundle is checked from capture.json and the image headers (no image is decoded here;
     the job decodes them and fails with the reason if a pixel is bad). A bad bundle or target,

@@ -16,8 +16,9 @@ from app.routes.common import InspectionIdPath, defects_and_reasons
 from app.schemas import ErrorOut, PlateMapOut
 from app.services import inspections as svc
 from app.services.plate_maps import NoPlateMap, plate_map_document, plate_map_of, plate_map_png
+from app.services.stations import read_stations
 from app.storage import Storage
-from pipeline.plate_map import PlateMap
+from pipeline.judge.plate_map import PlateMap
 
 router = APIRouter(tags=["inspections"])
 
@@ -48,10 +49,14 @@ def get_plate_map(
     inspection_id: InspectionIdPath, session: SessionDep, storage: StorageDep
 ) -> dict[str, Any]:
     """The deviation map in the target's own frame: mean deviation in square cells of its x and y,
-    mm, and the defects at their places. Only a done inspection has one (409 otherwise)."""
+    mm, the defects at their places, and a plate measured at stations' stations with their outlines.
+    Only a done inspection has one (409 otherwise)."""
     row, plate = _map_of(session, storage, inspection_id)
     defects = defects_and_reasons(storage, row, ["details.json"])["defects"]
-    return plate_map_document(plate, tolerance_mm=_tolerance(row), defects=defects)
+    stations = read_stations(storage.artifacts_dir(row.id))
+    return plate_map_document(
+        plate, tolerance_mm=_tolerance(row), defects=defects, stations=stations
+    )
 
 
 @router.get(

@@ -31,10 +31,11 @@ from app.services.cell import (
 from app.services.errors import UnprocessableError
 from app.services.forming import check_process
 from app.services.plates import current_target, get_or_create_plate
+from app.services.stations import capture_bundles
 from app.services.targets import TARGET_FILE, copy_target_files, create_target, validate_target_dir
 from app.settings import Settings
 from app.storage import Storage
-from pipeline.acquisition import CellConfig, acquire
+from pipeline.acquisition import CellConfig, acquire, acquire_stations
 from pipeline.formats import AcquisitionError, InputError, PipelineError
 
 log = logging.getLogger(__name__)
@@ -195,14 +196,17 @@ def capture_for_job(
     plate_id: str,
     bundle_dir: Path,
     progress: Callable[[str, float], None],
-) -> None:
-    """The capture of an acquired job, in the consumer: photograph the plate into ``bundle_dir``.
+) -> list[Path]:
+    """The capture of an acquired job, in the consumer: photograph the plate into ``bundle_dir``; the
+    bundles to measure: ``[bundle_dir]`` for a cell that photographs one view, or, for a cell with a
+    conveyor, its stations' bundles ``bundle_dir/station_00``, ... (:func:`pipeline.acquisition.acquire_stations`),
+    which :func:`app.jobs.execution.measure_bundles` measures as one plate.
 
-    A complete bundle already there (the job runs again after its worker died or was stopped) is
+    A complete capture already there (the job runs again after its worker died or was stopped) is
     kept: the plate photographed then is the one inspected. Progress is reported as stage
-    :data:`CAPTURE_STAGE`, its fraction the frames taken. The bundle's ``capture.json`` (with
-    the acquisition record) is copied into the artifacts. The cameras' state and thumbnails are
-    recorded for the dashboard.
+    :data:`CAPTURE_STAGE`, its fraction the frames taken (over all stations). The (first) bundle's
+    ``capture.json`` (with the acquisition record) is copied into the artifacts. The cameras' state
+    and thumbnails are recorded for the dashboard.
 
     Raises
     ------
@@ -218,9 +222,10 @@ def capture_for_job(
         (storage.inputs_dir(inspection_id) / ACQUISITION_FILE).read_text(encoding="utf-8")
     )
     progress(CAPTURE_STAGE, 0.0)
-    if not (bundle_dir / "capture.json").is_file():
-        storage.remove(bundle_dir)  # nothing complete: acquire writes it anew
-        _capture(
+    bundles = capture_bundles(bundle_dir)
+    if not all((bundle / "capture.json").is_file() for bundle in bundles):
+        storage.remove(bundle_dir)  # nothing complete: the acquisition writes it anew
+        bundles = _capture(
             inspection_id,
             settings=settings,
             storage=storage,
@@ -230,9 +235,10 @@ def capture_for_job(
             progress=progress,
         )
     shutil.copyfile(
-        bundle_dir / "capture.json", storage.artifacts_dir(inspection_id) / "capture.json"
+        bundles[0] / "capture.json", storage.artifacts_dir(inspection_id) / "capture.json"
     )
     progress(CAPTURE_STAGE, 1.0)
+    return bundles
 
 
 def _capture(
@@ -244,8 +250,9 @@ def _capture(
     bundle_dir: Path,
     cell_id: str,
     progress: Callable[[str, float], None],
-) -> None:
-    """Photograph the plate into ``bundle_dir`` with the cell ``cell_id``, holding the cameras' lock."""
+) -> list[Path]:
+    """Photograph the plate into ``bundle_dir`` with the cell ``cell_id``, holding the cameras' lock:
+    one view, or each station of a cell with a conveyor; the bundles written."""
     ensure_demo_cell(settings)
     try:
         config = load_cell(settings)
@@ -261,14 +268,29 @@ def _capture(
         raise AcquisitionFailed(
             f"the cameras stayed busy for {CAMERAS_WAIT_S:g} s: {lock.holder() or 'holder unknown'}"
         )
+
+    def report(stage: str, fraction: float) -> None:
+        progress(CAPTURE_STAGE, fraction)
+
     try:
-        acquire(
-            config.path,
-            plate_id,
-            bundle_dir,
-            progress=lambda stage, fraction: progress(CAPTURE_STAGE, fraction),
-            frame_timeout_s=settings.frame_timeout_s,
-        )
+        if config.conveyor is None:
+            bundles = [
+                acquire(
+                    config.path,
+                    plate_id,
+                    bundle_dir,
+                    progress=report,
+                    frame_timeout_s=settings.frame_timeout_s,
+                )
+            ]
+        else:
+            bundles = acquire_stations(
+                config.path,
+                plate_id,
+                bundle_dir,
+                progress=report,
+                frame_timeout_s=settings.frame_timeout_s,
+            )
     except AcquisitionError as err:
         raise AcquisitionFailed(f"acquisition failed: {err}") from None
     except InputError as err:
@@ -278,10 +300,11 @@ def _capture(
     finally:
         lock.release()
     try:
-        record_capture(storage.data_dir, bundle_dir, inspection_id=inspection_id)
+        record_capture(storage.data_dir, bundles[-1], inspection_id=inspection_id)
     except Exception:
         log.warning(
             "inspection %s: the cameras' last frames were not recorded",
             inspection_id,
             exc_info=True,
         )
+    return bundles

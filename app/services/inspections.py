@@ -25,9 +25,11 @@ from app.services.errors import UnprocessableError
 from app.services.forming import check_process
 from app.services.light_calibrations import light_calibration_for_capture
 from app.services.plates import current_target, get_or_create_plate
+from app.services.stations import STATIONS_DIR, stage_stations
 from app.services.targets import TARGET_FILE, copy_target_files, create_target, validate_target_dir
 from app.storage import Storage
 from pipeline.formats import InputError
+from pipeline.io import CaptureHeader
 
 if TYPE_CHECKING:
     from pipeline.simulate import CaptureSpec, PlateSpec
@@ -49,11 +51,15 @@ def create_uploaded_inspection(
     staging_dir: Path,
     limits: Limits = DEFAULT_LIMITS,
     process: dict[str, Any] | None = None,
+    sent_names: list[str] | None = None,
 ) -> Inspection:
-    """A queued inspection of an uploaded bundle.
+    """A queued inspection of an uploaded bundle, or of the bundles of a plate's conveyor stations.
 
-    ``staging_dir`` holds ``capture.zip`` and, optionally, ``target/target.json`` (+ mesh).
-    The bundle is checked without decoding an image (capture.json, calibration, lights, image
+    ``staging_dir`` holds ``capture.zip`` and, optionally, ``target/target.json`` (+ mesh). A plate
+    measured at stations (:mod:`app.services.stations`): ``parts/0.zip``, ``1.zip``, ... (the
+    multipart parts as sent, named ``sent_names`` in errors), or a ``capture.zip`` of station
+    folders; each bundle is checked as one bundle is, the set as the pipeline checks it, and the
+    stations are kept in ``inputs/stations/`` (``capture_path``). The bundle is checked without decoding an image (capture.json, calibration, lights, image
     headers; :func:`app.limits.work.read_capture_header`) and within ``limits`` (default:
     :data:`app.limits.DEFAULT_LIMITS`), as is the queue; the target is
     validated with the pipeline's loader. A target sent with the inspection becomes the plate's
@@ -76,11 +82,10 @@ def create_uploaded_inspection(
     """
     check_process(session=session, process=process)
     staging_dir = Path(staging_dir)
-    capture = read_capture_header(staging_dir / CAPTURE_FILE, limits)
-    check_lights(capture.lights, label=capture.label, field="photometric.lights")
+    capture, label, kept_as = _uploaded_capture(staging_dir, limits, sent_names or [CAPTURE_FILE])
     if capture.plate_id != plate_id:
         raise InputError(
-            "capture.json",
+            label,
             "plate_id",
             f"the bundle is of plate {capture.plate_id!r}, not of {plate_id!r}, the plate this "
             "inspection was started for",
@@ -130,7 +135,7 @@ def create_uploaded_inspection(
         inputs = storage.adopt(staging_dir, storage.inputs_dir(row.id))
         if not (inputs / "target" / TARGET_FILE).is_file():
             copy_target_files(storage=storage, target=target, destination=inputs / "target")
-        row.capture_path = storage.relative(inputs / CAPTURE_FILE)
+        row.capture_path = storage.relative(inputs / kept_as)
         row.target_path = storage.relative(inputs / "target" / TARGET_FILE)
         row.tolerance_mm = target.tolerance_mm
         row.target_radius_mm = target.radius_mm
@@ -142,6 +147,21 @@ def create_uploaded_inspection(
             storage.remove(storage.inspection_dir(row.id))
         raise
     return row
+
+
+def _uploaded_capture(
+    staging_dir: Path, limits: Limits, sent_names: list[str]
+) -> tuple[CaptureHeader, str, str]:
+    """The upload's capture checked: its header, how errors name its capture.json and what it is
+    kept as under the inputs. One bundle: ``capture.json``, :data:`CAPTURE_FILE`; a plate at
+    stations: station 0's header and capture.json as sent,
+    :data:`app.services.stations.STATIONS_DIR`."""
+    stations = stage_stations(staging_dir, CAPTURE_FILE, limits=limits, sent_names=sent_names)
+    if stations is not None:
+        return stations.headers[0], stations.labels[0], STATIONS_DIR
+    capture = read_capture_header(staging_dir / CAPTURE_FILE, limits)
+    check_lights(capture.lights, label=capture.label, field="photometric.lights")
+    return capture, "capture.json", CAPTURE_FILE
 
 
 def create_simulated_inspection(

@@ -22,7 +22,7 @@ from app.models import LightCalibration
 from app.storage import Storage
 from pipeline import io as pio
 from pipeline.io import Capture, CaptureHeader
-from pipeline.lights import Lights
+from pipeline.lights.model import Lights
 
 LIGHT_CALIBRATION_FILE = "lights.json"
 #: How error messages name a light calibration sent as a JSON request body (it has no file name).

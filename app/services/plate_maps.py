@@ -1,4 +1,4 @@
-"""An inspection's deviation map in the plate's own frame (:mod:`pipeline.plate_map`), as the page
+"""An inspection's deviation map in the plate's own frame (:mod:`pipeline.judge.plate_map`), as the page
 draws it: a tolerance-band PNG (one pixel per cell, ``y`` up) and the cells' values for the hover
 read-out and the comparison of two passes.
 
@@ -19,9 +19,10 @@ import numpy as np
 from PIL import Image
 
 from app.models import Inspection, JobStatus
+from app.schemas import StationOut
 from app.storage import Storage
 from pipeline.artifacts.colours import default_limit_mm, tolerance_band_colormap
-from pipeline.plate_map import PlateMap, load_plate_map
+from pipeline.judge.plate_map import PlateMap, load_plate_map
 
 log = logging.getLogger(__name__)
 
@@ -73,10 +74,15 @@ def plate_map_png(plate: PlateMap, *, tolerance_mm: float) -> bytes:
 
 
 def plate_map_document(
-    plate: PlateMap, *, tolerance_mm: float, defects: list[Any]
+    plate: PlateMap,
+    *,
+    tolerance_mm: float,
+    defects: list[Any],
+    stations: list[StationOut] | None = None,
 ) -> dict[str, Any]:
     """The map as JSON (:class:`app.schemas.PlateMapOut`): its grid (cells rounded to 0.01 mm, null
-    where empty, row 0 at the smallest ``y``), the tolerance, and the defects."""
+    where empty, row 0 at the smallest ``y``), the tolerance, the defects, and the stations of a plate
+    measured at stations (each with its outline; :func:`app.services.stations.read_stations`)."""
     values = np.round(plate.deviation_mm, 2)
     x0, x1, y0, y1 = plate.extent_mm
     return {
@@ -90,4 +96,5 @@ def plate_map_document(
         "tolerance_mm": tolerance_mm,
         "deviation_mm": [[None if math.isnan(v) else float(v) for v in row] for row in values],
         "defects": defects,
+        "stations": [s.model_dump(mode="json") for s in stations or []],
     }

@@ -26,9 +26,10 @@ from app.models import Calibration, Inspection, LightCalibration, Target
 from app.plate_frame import frame_places
 from app.report import ReportData, build_report
 from app.services.plate_maps import NoPlateMap, plate_map_of
+from app.services.stations import capture_bundles, read_stations
 from app.storage import Storage
-from pipeline.plate_map import PlateMap
-from pipeline.sections import Section, load_sections
+from pipeline.judge.plate_map import PlateMap
+from pipeline.judge.sections import Section, load_sections
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +52,7 @@ def inspection_report(
     """The PDF report of a done inspection (``document``: its API document as JSON; ``yard``: the
     yard's name, printed in every page's header)."""
     capture, calibration = _capture_and_calibration(storage, row)
+    details = _json_file(storage.artifacts_dir(row.id) / "details.json")
     sections, places = _sections(storage, row.id)
     light = (
         session.get(LightCalibration, row.light_calibration_id)
@@ -73,7 +75,8 @@ def inspection_report(
         yard=yard,
         capture=capture,
         stereo_calibration=_stereo_calibration(session, calibration),
-        details=_json_file(storage.artifacts_dir(row.id) / "details.json"),
+        details=details,
+        stations=read_stations(storage.artifacts_dir(row.id), details),
     )
     return build_report(data)
 
@@ -101,10 +104,14 @@ def _capture_and_calibration(
     storage: Storage, row: Inspection
 ) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
     """The bundle's capture.json (for its acquisition record) and its stereo calibration document,
-    from the bundle folder or .zip of the inspection's inputs; None where unreadable."""
+    from the bundle folder or .zip of the inspection's inputs (station 0's of a plate measured at
+    stations); None where unreadable."""
     if not row.capture_path:
         return None, None
-    bundle = storage.absolute(row.capture_path)
+    bundles = capture_bundles(storage.absolute(row.capture_path))
+    if not bundles:
+        return None, None
+    bundle = bundles[0]
     try:
         if bundle.is_dir():
             capture = _json_file(bundle / "capture.json")

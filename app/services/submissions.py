@@ -9,7 +9,7 @@ run inside it, so a refusal is remembered under the key like any other.
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +30,7 @@ from app.services.calibrations import CALIBRATION_FILE
 from app.services.cell import CellUnavailable, demo_target, load_cell
 from app.services.errors import ConflictError, UnprocessableError
 from app.services.inspections import CAPTURE_FILE
+from app.services.stations import PARTS_DIR, part_names
 from app.services.targets import TARGET_FILE, create_target
 from app.services.writes import (
     Location,
@@ -55,7 +56,7 @@ def submit_uploaded_inspection(
     jobs: JobQueue,
     limits: Limits,
     plate_id: str,
-    capture: UploadFile,
+    capture: Sequence[UploadFile],
     target: UploadFile | None,
     process: str | None,
     operator: str | None,
@@ -63,15 +64,19 @@ def submit_uploaded_inspection(
 ) -> JSONResponse:
     """Store an uploaded bundle (and target) and queue its inspection: 202 ``{"id", "status"}``.
 
+    ``capture``: the multipart parts ``capture``; one (a bundle, or a zip of a plate's station
+    folders) or several (a plate's conveyor stations, one bundle each; :mod:`app.services.stations`).
     ``process`` (JSON) and ``operator`` are the multipart fields as sent; a bad one is refused
     with 422 naming it (:func:`parse_process`, :func:`parse_operator`). A bad bundle is refused
-    naming the file as the client sent it (``bad.zip: ...``).
+    naming the file (and the part or the zip's folder of a station) as the client sent it
+    (``bad.zip: ...``, ``s1.zip:capture.json: ...``).
     """
+    sent = part_names([part.filename for part in capture])
 
     def work(staged: Staged) -> WorkAnswer:
         pass_ = None if process is None else parse_process(process)
         who = None if operator is None else parse_operator(operator)
-        save_upload(capture, staged.folder / CAPTURE_FILE)
+        _save_capture(capture, staged.folder)
         if target is not None:
             (staged.folder / "target").mkdir()
             save_upload(target, staged.folder / "target" / TARGET_FILE)
@@ -83,10 +88,11 @@ def submit_uploaded_inspection(
                 staging_dir=staged.folder,
                 limits=limits,
                 process=pass_,
+                sent_names=sent,
             )
         except InputError as err:
             raise _named_as_sent(
-                relabel_input_error(err, staged.folder), capture.filename
+                relabel_input_error(err, staged.folder), capture[0].filename
             ) from None
         row.operator = who
         return queued_inspection(row, staged, storage=storage, jobs=jobs)
@@ -319,6 +325,17 @@ def parse_operator(text: str) -> str:
             f"operator: expected a name of 1-80 printable characters, got {text[:100]!r}",
             field="operator",
         ) from None
+
+
+def _save_capture(parts: Sequence[UploadFile], folder: Path) -> None:
+    """One part as :data:`CAPTURE_FILE`; several (stations) as ``parts/0.zip``, ``1.zip``, ... in the
+    order sent (:data:`app.services.stations.PARTS_DIR`)."""
+    if len(parts) == 1:
+        save_upload(parts[0], folder / CAPTURE_FILE)
+        return
+    (folder / PARTS_DIR).mkdir()
+    for i, part in enumerate(parts):
+        save_upload(part, folder / PARTS_DIR / f"{i}.zip")
 
 
 def _named_as_sent(err: InputError, filename: str | None) -> InputError:

@@ -17,7 +17,7 @@ from pipeline.artifacts.colours import (
     tolerance_band_colormap,
 )
 from pipeline.artifacts.ply import read_mesh_ply, read_surface_ply
-from pipeline.plate_map import to_target_frame
+from pipeline.judge.plate_map import to_target_frame
 
 logger = logging.getLogger(__name__)
 

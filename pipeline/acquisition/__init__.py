@@ -1,15 +1,17 @@
 """Acquisition: the cell's cameras and lights take a capture bundle (``plate-inspect acquire``).
 
 A ``cell-config/1`` file (docs/formats.md) names the cameras (GenICam through Aravis, or the
-simulator), the light controller (tcp or simulated), the lights and the calibration;
-:func:`acquire` runs the sequence and writes a ``plate-capture/1`` bundle. Setting up a real cell:
-docs/acquisition.md.
+simulator), the light controller (tcp or simulated), the lights, the calibration and optionally a
+conveyor (tcp or simulated); :func:`acquire` runs the sequence and writes a ``plate-capture/1``
+bundle, :func:`acquire_stations` carries a long plate station by station and writes one bundle per
+station (docs/stations.md). Setting up a real cell: docs/acquisition.md.
 """
 
 from ..formats import AcquisitionError
 from .acquire import acquire, auto_exposure, last_frame_lag_s
 from .cameras import Camera, Frame, SimulatedCamera, SimulatedCell, open_camera
 from .config import CellConfig, load_cell_config
+from .conveyor import Conveyor, SimulatedConveyor, TcpConveyor, open_conveyor
 from .demo import write_demo_cell
 from .lights import (
     LightController,
@@ -17,22 +19,28 @@ from .lights import (
     TcpLightController,
     open_light_controller,
 )
+from .stations import acquire_stations
 
 __all__ = [
     "AcquisitionError",
     "Camera",
     "CellConfig",
+    "Conveyor",
     "Frame",
     "LightController",
     "SimulatedCamera",
     "SimulatedCell",
+    "SimulatedConveyor",
     "SimulatedLightController",
+    "TcpConveyor",
     "TcpLightController",
     "acquire",
+    "acquire_stations",
     "auto_exposure",
     "last_frame_lag_s",
     "load_cell_config",
     "open_camera",
+    "open_conveyor",
     "open_light_controller",
     "write_demo_cell",
 ]

@@ -22,8 +22,10 @@ Everything is written into ``OUT.partial`` beside ``OUT`` and renamed to ``OUT``
 failure the partial folder is removed, whatever was switched on is switched off, and the error
 names the device and the step.
 
-Kept as one module (~530 lines): the steps above share the open devices and the run folder and
-undo in one place when one fails; split, each would pass the run around.
+Kept as one module (~620 lines): the steps above share the open devices and the run folder and
+undo in one place when one fails; split, each would pass the run around. A cell with a conveyor
+(:mod:`~pipeline.acquisition.stations`) opens the devices once (:func:`open_devices`) and takes
+each station's bundle as one plate's (:func:`take_bundle`, :meth:`Run.next_bundle`).
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import ExitStack
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -54,6 +56,7 @@ from .cameras import (
     open_camera,
 )
 from .config import CellConfig, load_cell_config
+from .conveyor import Conveyor
 from .lights import LightController, open_light_controller
 
 #: Seconds a frame may take beyond its exposure time before the camera is taken to be gone.
@@ -78,8 +81,8 @@ Progress = Callable[[str, float], None]
 
 
 @dataclass
-class _Run:
-    """What one acquisition has taken so far."""
+class Run:
+    """What one bundle's acquisition has taken so far, on the open devices (:func:`open_devices`)."""
 
     config: CellConfig
     controller: LightController
@@ -96,6 +99,20 @@ class _Run:
     writes: list[Future[None]] = field(default_factory=list)
     exposure_us: dict[Side, float] = field(default_factory=dict)
     pre_shots: int = 0
+
+    def next_bundle(self, folder: Path, progress: Progress) -> Run:
+        """A fresh run on the same open devices, writing into ``folder`` (the next station's bundle):
+        no frame taken, no exposure set, its clock started now."""
+        return replace(
+            self,
+            folder=folder,
+            progress=progress,
+            t0=time.monotonic(),
+            frames=[],
+            writes=[],
+            exposure_us={},
+            pre_shots=0,
+        )
 
     def elapsed(self) -> float:
         """Seconds since the acquisition started."""
@@ -264,6 +281,13 @@ def acquire(
     if not plate_id:
         raise ValueError("plate_id: expected a non-empty plate id")
     config = load_cell_config(config_path)
+    if config.conveyor is not None:
+        raise InputError(
+            config.label,
+            "conveyor",
+            "this cell carries the plate station by station: acquire_stations writes one bundle per "
+            "station",
+        )
     out = Path(out_dir)
     if out.exists():
         raise InputError(str(out), "", "already exists; acquire writes a new bundle folder")
@@ -275,7 +299,7 @@ def acquire(
     try:
         with ExitStack() as stack:
             writer = stack.enter_context(ThreadPoolExecutor(max_workers=1))
-            run = _open(
+            run = open_devices(
                 stack,
                 config,
                 plate_id,
@@ -284,12 +308,7 @@ def acquire(
                 frame_timeout_s,
                 progress or (lambda stage, f: None),
             )
-            record = _sequence(run)
-            for done in run.writes:
-                done.result()
-        record["total_s"] = round(time.monotonic() - run.t0, 3)
-        record["time_per_image_s"] = round(record["total_s"] / len(run.frames), 4)
-        _write_manifest(run, plate_id, started_at, record)
+            take_bundle(run, plate_id, started_at)
         os.rename(partial, out)
     except BaseException:
         shutil.rmtree(partial, ignore_errors=True)
@@ -311,7 +330,28 @@ def last_frame_lag_s(bundle: str | os.PathLike[str]) -> float | None:
         return None
 
 
-def _open(
+def take_bundle(
+    run: Run,
+    plate_id: str,
+    started_at: datetime,
+    *,
+    station: dict[str, Any] | None = None,
+    conveyor: dict[str, Any] | None = None,
+) -> None:
+    """Take every frame of a bundle into ``run.folder`` and write its ``capture.json`` once every
+    image is written; ``station`` is the bundle's ``station`` field, ``conveyor`` goes into its
+    acquisition record."""
+    record = _sequence(run)
+    for done in run.writes:
+        done.result()
+    if conveyor is not None:
+        record["conveyor"] = conveyor
+    record["total_s"] = round(time.monotonic() - run.t0, 3)
+    record["time_per_image_s"] = round(record["total_s"] / len(run.frames), 4)
+    _write_manifest(run, plate_id, started_at, record, station)
+
+
+def open_devices(
     stack: ExitStack,
     config: CellConfig,
     plate_id: str,
@@ -319,15 +359,16 @@ def _open(
     writer: ThreadPoolExecutor,
     timeout_s: float,
     progress: Progress,
-) -> _Run:
-    """Connect the light controller and open, check and configure both cameras."""
+    conveyor: Conveyor | None = None,
+) -> Run:
+    """Connect the light controller and open, check and configure both cameras (closed by ``stack``)."""
     progress("connecting", 0.0)
     controller = open_light_controller(config.light_controller, config.lights.n)
     stack.callback(controller.close)
     cell = None
     if "simulated" in (config.left.driver, config.right.driver):
         cell = SimulatedCell(
-            config.rig, config.lights, config.working_distance_mm, controller, plate_id
+            config.rig, config.lights, config.working_distance_mm, controller, plate_id, conveyor
         )
     cameras: dict[Side, Camera] = {}
     sides: tuple[tuple[Side, CellCamera], ...] = (("left", config.left), ("right", config.right))
@@ -352,7 +393,7 @@ def _open(
         _check_settings(cam, cam_config, config)
         cam.start()
     n_frames = config.lights.n + 3
-    return _Run(
+    return Run(
         config,
         controller,
         left,
@@ -394,19 +435,19 @@ def _check_settings(cam: Camera, cam_config: CellCamera, config: CellConfig) -> 
             )
 
 
-def _all_lights(run: _Run, on: bool, *, step: str) -> None:
+def _all_lights(run: Run, on: bool, *, step: str) -> None:
     for k in range(run.config.lights.n):
         (run.controller.on if on else run.controller.off)(k, step=step)
 
 
-def _stereo_lighting(run: _Run, on: bool, *, step: str) -> None:
+def _stereo_lighting(run: Run, on: bool, *, step: str) -> None:
     if run.controller.has_stereo_light:
         (run.controller.stereo_on if on else run.controller.stereo_off)(step=step)
     else:
         _all_lights(run, on, step=step)
 
 
-def _exposures(run: _Run) -> tuple[float, dict[Side, float], dict[Side, str]]:
+def _exposures(run: Run) -> tuple[float, dict[Side, float], dict[Side, str]]:
     """The left camera's photometric exposure, both cameras' stereo exposures (by side), and where
     each camera's came from: the configuration, or auto-exposure pre-shots."""
     config, left, right = run.config, run.left, run.right
@@ -458,7 +499,7 @@ def _exposures(run: _Run) -> tuple[float, dict[Side, float], dict[Side, str]]:
     return photometric, stereo, source
 
 
-def _single_light_exposure(run: _Run, all_on_us: float) -> float:
+def _single_light_exposure(run: Run, all_on_us: float) -> float:
     """The photometric exposure (us) for frames lit by one light each, from the one metered with all on.
 
     Each photometric frame is lit by a single light, several times dimmer than all of them together:
@@ -484,7 +525,7 @@ def _single_light_exposure(run: _Run, all_on_us: float) -> float:
     return float(np.clip(all_on_us * EXPOSURE_TARGET / brightest, max(all_on_us, lo), hi))
 
 
-def _sequence(run: _Run) -> dict[str, Any]:
+def _sequence(run: Run) -> dict[str, Any]:
     """Take every frame of the bundle; returns the acquisition record (without total times)."""
     config, controller, left, right = run.config, run.controller, run.left, run.right
     photometric_us, stereo_us, source = _exposures(run)
@@ -551,7 +592,13 @@ def _sequence(run: _Run) -> dict[str, Any]:
     }
 
 
-def _write_manifest(run: _Run, plate_id: str, started_at: datetime, record: dict[str, Any]) -> None:
+def _write_manifest(
+    run: Run,
+    plate_id: str,
+    started_at: datetime,
+    record: dict[str, Any],
+    station: dict[str, Any] | None,
+) -> None:
     """``calibration.json`` (the configuration's, as it is) and ``capture.json``."""
     config = run.config
     shutil.copyfile(config.calibration_path, run.folder / "calibration.json")
@@ -570,5 +617,7 @@ def _write_manifest(run: _Run, plate_id: str, started_at: datetime, record: dict
         "working_distance_mm": config.working_distance_mm,
         "acquisition": record,
     }
+    if station is not None:
+        doc["station"] = station
     CaptureFile.model_validate(doc)
     (run.folder / "capture.json").write_text(json.dumps(doc, indent=2) + "\n")

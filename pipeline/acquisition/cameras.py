@@ -14,15 +14,20 @@ from __future__ import annotations
 
 import zlib
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
-from typing import Any, Literal
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
-from ..camera import StereoRig
-from ..formats import AcquisitionError, CellCamera
-from ..lights import Lights
-from .lights import LightController
+from pipeline.acquisition.conveyor import Conveyor, SimulatedConveyor
+from pipeline.acquisition.lights import LightController
+from pipeline.camera import StereoRig
+from pipeline.formats import AcquisitionError, CellCamera
+from pipeline.lights.model import Lights
+
+if TYPE_CHECKING:
+    from pipeline.simulate import PlateSpec
 
 Side = Literal["left", "right"]
 
@@ -150,17 +155,49 @@ def choose_pixel_format(left: Camera, right: Camera) -> str:
 SIMULATED_NOMINAL_EXPOSURE_US = 10_000.0
 
 
+def simulated_plate(
+    working_distance_mm: float, stations_mm: Sequence[float] | None = None
+) -> PlateSpec:
+    """The plate of the simulated cell: the simulator's default plate at the working distance, made
+    longer by the conveyor's last station position when there is one (so that every station sees as
+    much plate as the one view does).
+
+    Parameters
+    ----------
+    working_distance_mm : float
+    stations_mm : sequence of float, optional
+        The conveyor's station positions (0 first), mm.
+
+    Returns
+    -------
+    pipeline.simulate.PlateSpec
+    """
+    from pipeline.simulate import PlateSpec
+
+    plate = PlateSpec(distance_mm=working_distance_mm)
+    if stations_mm is None:
+        return plate
+    width, length = plate.size_mm
+    return replace(plate, size_mm=(width, length + float(stations_mm[-1])))
+
+
 class SimulatedCell:
     """The demo cell's scene: the simulator's default plate at the working distance, its lights.
 
     Both simulated cameras render from one cell, under the lights its controller has switched on
     (the stereo light counts as all the lights). The radiance of each light is rendered once per
-    camera, on its first frame; a frame adds the sensor's dark level, noise and quantisation.
+    camera and station, on its first frame there; a frame adds the sensor's dark level, noise and
+    quantisation.
+
+    With a conveyor, the plate is longer (:func:`simulated_plate`) and its middle lies under the
+    head halfway along the stations; the cameras render it where the conveyor has carried it
+    (:func:`pipeline.simulate.carried_pose`): a simulated conveyor's true travel and yaw, or another
+    conveyor's encoder reading.
 
     Parameters
     ----------
     rig : StereoRig
-    lights : pipeline.lights.Lights
+    lights : pipeline.lights.model.Lights
         The configuration's lights (the ones written into the bundle).
     working_distance_mm : float
         The plate's centre lies this far along the left camera's axis.
@@ -168,6 +205,8 @@ class SimulatedCell:
         Which lights are on.
     plate_id : str
         Seeds the plate's texture and the noise (the same plate id renders the same plate).
+    conveyor : Conveyor, optional
+        Where the plate is.
     """
 
     def __init__(
@@ -177,17 +216,22 @@ class SimulatedCell:
         working_distance_mm: float,
         controller: LightController,
         plate_id: str,
+        conveyor: Conveyor | None = None,
     ) -> None:
-        from ..simulate import CaptureSpec, PlateSpec
+        from pipeline.simulate import CaptureSpec
 
         self.rig = rig
         self.lights = lights
         self.controller = controller
-        self.plate = PlateSpec(distance_mm=working_distance_mm)
+        self.conveyor = conveyor
+        self.plate = simulated_plate(
+            working_distance_mm, None if conveyor is None else conveyor.config.stations_mm
+        )
         self.spec = CaptureSpec()
         self.seed = zlib.crc32(plate_id.encode())
         self._rng = np.random.default_rng(self.seed)
         self._radiance: dict[str, np.ndarray] = {}
+        self._radiance_at: tuple[float, float] | None = None
         w, h = rig.image_size
         self._dark = {
             side: (
@@ -197,13 +241,47 @@ class SimulatedCell:
             for k, side in enumerate(("left", "right"))
         }
 
+    def station(self) -> tuple[float, float]:
+        """``(travel_mm, yaw_deg)``: where the conveyor has carried the plate since station 0."""
+        conveyor = self.conveyor
+        if conveyor is None:
+            return 0.0, 0.0
+        if isinstance(conveyor, SimulatedConveyor):
+            return conveyor.true_travel_mm, conveyor.yaw_deg
+        readings = conveyor.readings_mm
+        return (readings[-1] - readings[0] if readings else 0.0), 0.0
+
+    def pose(self) -> np.ndarray | None:
+        """``T_cam_plate`` (4, 4) of the plate where it is now; None: the simulator's own pose."""
+        if self.conveyor is None:
+            return None
+        from pipeline.simulate import carried_pose
+
+        travel_mm, yaw_deg = self.station()
+        return carried_pose(
+            self.plate,
+            first_centre_y_mm=-0.5 * self.conveyor.config.stations_mm[-1],
+            travel_mm=travel_mm,
+            direction=self.conveyor.direction,
+            yaw_deg=yaw_deg,
+        )
+
     def radiance(self, side: Side) -> np.ndarray:
         """(N, H, W) float32: each light alone as camera ``side`` sees it at the nominal exposure."""
+        if self.station() != self._radiance_at:  # the conveyor moved the plate
+            self._radiance.clear()
+            self._radiance_at = self.station()
         if side not in self._radiance:
-            from ..simulate import render_radiance
+            from pipeline.simulate import render_radiance
 
             self._radiance[side] = render_radiance(
-                self.plate, self.rig, self.lights, side=side, capture=self.spec, seed=self.seed
+                self.plate,
+                self.rig,
+                self.lights,
+                side=side,
+                capture=self.spec,
+                seed=self.seed,
+                pose=self.pose(),
             )
         return self._radiance[side]
 
@@ -331,6 +409,6 @@ def open_camera(side: Side, config: CellCamera, *, cell: SimulatedCell | None) -
         if cell is None:
             raise ValueError("cell: a simulated camera needs the simulated cell")
         return SimulatedCamera(side, config, cell)
-    from .aravis import AravisCamera
+    from pipeline.acquisition.aravis import AravisCamera
 
     return AravisCamera(side, config)

@@ -12,12 +12,19 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..camera import StereoRig
-from ..formats import CELL_CONFIG_FORMAT, CellCamera, CellConfigFile, CellLights, InputError
-from ..io import load_calibration, load_light_calibration, read_json
-from ..io.capture import _check_light_positions
-from ..io.validation import _validate
-from ..lights import Lights
+from pipeline.camera import StereoRig
+from pipeline.formats import (
+    CELL_CONFIG_FORMAT,
+    CellCamera,
+    CellConfigFile,
+    CellConveyor,
+    CellLights,
+    InputError,
+)
+from pipeline.io import load_calibration, load_light_calibration, read_json
+from pipeline.io.capture import _check_light_positions
+from pipeline.io.validation import _validate
+from pipeline.lights.model import Lights
 
 
 @dataclass(frozen=True)
@@ -33,12 +40,15 @@ class CellConfig:
         The cameras as configured (driver, device id, optional exposure and gain).
     light_controller : pipeline.formats.CellLights
         The light controller as configured (driver, address, command templates).
-    lights : pipeline.lights.Lights
+    lights : pipeline.lights.model.Lights
         The N photometric lights in image order (left-camera frame, mm).
     rig : StereoRig
         The calibration; images are taken at ``rig.image_size``.
     calibration_path : Path
     working_distance_mm : float
+    conveyor : pipeline.formats.CellConveyor or None
+        The conveyor that carries a long plate station by station (driver, address, unit
+        ``direction``, ``stations_mm``); None: the cell photographs one view.
     """
 
     path: Path
@@ -50,6 +60,7 @@ class CellConfig:
     rig: StereoRig
     calibration_path: Path
     working_distance_mm: float
+    conveyor: CellConveyor | None = None
 
     @property
     def label(self) -> str:
@@ -75,7 +86,8 @@ def load_cell_config(path: str | os.PathLike[str]) -> CellConfig:
     InputError
         Naming the file and the field: an unreadable or malformed configuration (unknown or missing
         keys, a tcp controller without address or commands, a command that is not one line or lacks
-        ``{index}``, fewer than 3 lights), a missing or malformed calibration or light calibration,
+        ``{index}``, fewer than 3 lights, a conveyor's direction that is not a unit vector or stations
+        that do not start at 0 and increase), a missing or malformed calibration or light calibration,
         a light inside the camera head or behind the plate.
     """
     path = Path(path)
@@ -117,4 +129,5 @@ def load_cell_config(path: str | os.PathLike[str]) -> CellConfig:
         rig=rig,
         calibration_path=calibration_path,
         working_distance_mm=float(cfg.working_distance_mm),
+        conveyor=cfg.conveyor,
     )

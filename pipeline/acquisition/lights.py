@@ -16,21 +16,16 @@ checked before each command.
 
 from __future__ import annotations
 
-import socket
-import time
 from abc import ABC, abstractmethod
 from typing import Any, Literal
 
 from ..formats import AcquisitionError, CellLights
+from .tcp import ACCEPTED, CONNECT_TIMEOUT_S, LineConnection
 
-#: Seconds to wait for the connection to the controller.
-CONNECT_TIMEOUT_S = 3.0
 #: Seconds a controller that answers has to answer each command.
 COMMAND_TIMEOUT_S = 2.0
 #: Seconds to wait for an answer to the first command before taking the controller to be silent.
 FIRST_REPLY_S = 0.5
-#: First words of a line that accepts a command (case-insensitive).
-ACCEPTED = ("OK", "ACK")
 
 Command = Literal["on", "off", "stereo_on", "stereo_off"]
 
@@ -186,20 +181,8 @@ class TcpLightController(LightController):
         self._command_timeout_s = command_timeout_s
         self._first_reply_s = first_reply_s
         self._replies: bool | None = None  # unknown until the first command
-        self._pending = b""
         self._sent: set[str] = set()  # commands sent: a line that repeats one is an echo
-        host, _, port = address.rpartition(":")
-        try:
-            self._sock = socket.create_connection(
-                (host.strip("[]"), int(port)), timeout=connect_timeout_s
-            )
-        except TimeoutError:
-            raise AcquisitionError(
-                self.device, "connecting", f"no connection within {connect_timeout_s:g} s"
-            ) from None
-        except OSError as exc:
-            raise AcquisitionError(self.device, "connecting", exc.strerror or str(exc)) from None
-        self._sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self._connection = LineConnection(address, self.device, connect_timeout_s=connect_timeout_s)
 
     def describe(self) -> dict[str, Any]:
         return {
@@ -217,22 +200,10 @@ class TcpLightController(LightController):
                 self.device, step, f"the configuration names no {command} command"
             )
         line = text.format(index=index) if index is not None else text
-        if not line.endswith("\n"):
-            line += "\n"
         sent = line.strip()
         while (late := self._answer(0.0, step)) is not None:  # late answers to earlier commands
             self._check_reply(late, None, step)
-        try:
-            self._sock.settimeout(self._command_timeout_s)
-            self._sock.sendall(line.encode())
-        except TimeoutError:
-            raise AcquisitionError(
-                self.device, step, f"{sent!r} not taken within {self._command_timeout_s:g} s"
-            ) from None
-        except OSError as exc:
-            raise AcquisitionError(
-                self.device, step, f"sending {sent!r}: {exc.strerror or exc}"
-            ) from None
+        self._connection.send(line, step=step, timeout_s=self._command_timeout_s)
         self._sent.add(sent)
         if self._replies is False:
             return
@@ -255,34 +226,10 @@ class TcpLightController(LightController):
     def _answer(self, timeout_s: float, step: str) -> str | None:
         """The next line received within ``timeout_s`` (0: only what has arrived) that is not empty and
         not a command echoed back; None if none."""
-        deadline = time.monotonic() + timeout_s
-        while True:
-            while b"\n" not in self._pending:
-                left = deadline - time.monotonic()
-                try:
-                    if left <= 0:
-                        self._sock.setblocking(False)
-                    else:
-                        self._sock.settimeout(left)
-                    chunk = self._sock.recv(4096)
-                except (BlockingIOError, TimeoutError):
-                    return None
-                except OSError as exc:
-                    raise AcquisitionError(
-                        self.device, step, f"reading the answer: {exc.strerror or exc}"
-                    ) from None
-                if not chunk:
-                    raise AcquisitionError(
-                        self.device, step, "the controller closed the connection"
-                    )
-                self._pending += chunk
-            raw, self._pending = self._pending.split(b"\n", 1)
-            line = raw.decode(errors="replace").strip()
-            if line and line not in self._sent:
-                return line
+        return self._connection.read_line(timeout_s, step=step, skip=self._sent)
 
     def _disconnect(self) -> None:
-        self._sock.close()
+        self._connection.close()
 
 
 def open_light_controller(config: CellLights, n_lights: int) -> LightController:

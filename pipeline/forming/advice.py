@@ -10,7 +10,7 @@ within the tolerance::
     |k - k_target| <= band = 8 tol / w^2
 
 (for a 3 m plate and 2 mm: 1.8e-6 / mm, i.e. 0.9 % of a 5 m radius, 2.7 % of a 15 m one). Checked
-against :func:`pipeline.verdict.judge` on ray-cast cylinders in the tests: it passes up to about 0.95
+against :func:`pipeline.judge.verdict.judge` on ray-cast cylinders in the tests: it passes up to about 0.95
 of that band.
 
 Actions

@@ -9,7 +9,7 @@ The truth is the model's physics (:mod:`.rolling`) with values the advice does n
 - per pass: a displacement scatter (the roll's repeatability, the plate's feed) and a scatter of the
   yield factor of the material that pass yields (local variation);
 - per inspection: relative radius noise; the inspection's verdict passes a curvature error up to
-  ``verdict_band`` times :func:`.advice.curvature_band` (what :func:`pipeline.verdict.judge` does).
+  ``verdict_band`` times :func:`.advice.curvature_band` (what :func:`pipeline.judge.verdict.judge` does).
 
 Used by the tests and by ``benchmarks/bench_forming.py``.
 """

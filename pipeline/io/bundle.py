@@ -122,45 +122,9 @@ class _ZipBundle:
         self, *, max_total_bytes: int, max_ratio: float
     ) -> dict[str, zipfile.ZipInfo]:
         """Check every member before anything is read; the map of file members by name."""
-        where = str(self.path)
-        members: dict[str, zipfile.ZipInfo] = {}
-        total = 0
-        for info in self._zf.infolist():
-            name = info.filename
-            field = f"member {name!r}"
-            # A backslash is no separator in zip names, but one on Windows: treat it as one here.
-            if "\\" in name and ".." in re.split(r"[\\/]", name):
-                raise InputError(where, field, "refused: the member path leaves the bundle ('..')")
-            if name.startswith(("/", "\\")) or re.match(r"^[A-Za-z]:", name):
-                raise InputError(where, field, "refused: absolute member path")
-            if ".." in name.split("/"):
-                raise InputError(where, field, "refused: the member path leaves the bundle ('..')")
-            mode = info.external_attr >> 16
-            if stat.S_ISLNK(mode):
-                raise InputError(where, field, "refused: symbolic link")
-            if info.flag_bits & 0x1:
-                raise InputError(where, field, "refused: encrypted member")
-            if info.is_dir():
-                continue
-            if name in members:
-                raise InputError(where, field, "refused: duplicate member name")
-            total += info.file_size
-            if total > max_total_bytes:
-                raise InputError(
-                    where,
-                    "",
-                    f"refused: uncompressed size exceeds the limit of {max_total_bytes} bytes (zip bomb?)",
-                )
-            if info.file_size > ZIP_RATIO_EXEMPT_BYTES:
-                ratio = info.file_size / info.compress_size if info.compress_size else math.inf
-                if ratio > max_ratio:
-                    raise InputError(
-                        where,
-                        field,
-                        f"refused: compression ratio {ratio:.0f}:1 exceeds the limit of {max_ratio:g}:1 (zip bomb?)",
-                    )
-            members[name] = info
-        return members
+        return check_zip_members(
+            self._zf, str(self.path), max_total_bytes=max_total_bytes, max_ratio=max_ratio
+        )
 
     def _find_prefix(self) -> str:
         if "capture.json" in self._members:
@@ -228,3 +192,50 @@ def _open_bundle(path: Path, *, max_total_bytes: int, max_ratio: float) -> _Bund
     raise InputError(
         str(path), "", "expected a capture bundle folder holding capture.json, or a .zip of one"
     )
+
+
+def check_zip_members(
+    zf: zipfile.ZipFile, where: str, *, max_total_bytes: int, max_ratio: float
+) -> dict[str, zipfile.ZipInfo]:
+    """Every member of a bundle zip checked before anything is read (paths that leave the zip,
+    absolute paths, symbolic links, encryption, duplicate names, the uncompressed total and each
+    member's compression ratio: :class:`~pipeline.formats.InputError` naming ``where`` and the
+    member); the map of its file members by name."""
+    members: dict[str, zipfile.ZipInfo] = {}
+    total = 0
+    for info in zf.infolist():
+        name = info.filename
+        field = f"member {name!r}"
+        # A backslash is no separator in zip names, but one on Windows: treat it as one here.
+        if "\\" in name and ".." in re.split(r"[\\/]", name):
+            raise InputError(where, field, "refused: the member path leaves the bundle ('..')")
+        if name.startswith(("/", "\\")) or re.match(r"^[A-Za-z]:", name):
+            raise InputError(where, field, "refused: absolute member path")
+        if ".." in name.split("/"):
+            raise InputError(where, field, "refused: the member path leaves the bundle ('..')")
+        mode = info.external_attr >> 16
+        if stat.S_ISLNK(mode):
+            raise InputError(where, field, "refused: symbolic link")
+        if info.flag_bits & 0x1:
+            raise InputError(where, field, "refused: encrypted member")
+        if info.is_dir():
+            continue
+        if name in members:
+            raise InputError(where, field, "refused: duplicate member name")
+        total += info.file_size
+        if total > max_total_bytes:
+            raise InputError(
+                where,
+                "",
+                f"refused: uncompressed size exceeds the limit of {max_total_bytes} bytes (zip bomb?)",
+            )
+        if info.file_size > ZIP_RATIO_EXEMPT_BYTES:
+            ratio = info.file_size / info.compress_size if info.compress_size else math.inf
+            if ratio > max_ratio:
+                raise InputError(
+                    where,
+                    field,
+                    f"refused: compression ratio {ratio:.0f}:1 exceeds the limit of {max_ratio:g}:1 (zip bomb?)",
+                )
+        members[name] = info
+    return members

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import StereoRig
-from ..formats import (
+from pipeline.camera import StereoRig
+from pipeline.formats import (
     CALIBRATION_FORMAT,
     CAPTURE_FORMAT,
     CaptureFile,
@@ -17,12 +17,18 @@ from ..formats import (
     Station,
     StereoCalibrationFile,
 )
-from ..lights import CAMERA_HEAD_RADIUS_MM, Lights
-from .bundle import MAX_ZIP_RATIO, MAX_ZIP_TOTAL_BYTES, _Bundle, _check_relative, _open_bundle
-from .calibration import _calibration_from_doc
-from .images import _ImageJob, _load_images
-from .jsonfile import _json_type, _parse_json
-from .validation import _validate
+from pipeline.io.bundle import (
+    MAX_ZIP_RATIO,
+    MAX_ZIP_TOTAL_BYTES,
+    _Bundle,
+    _check_relative,
+    _open_bundle,
+)
+from pipeline.io.calibration import _calibration_from_doc
+from pipeline.io.images import _ImageJob, _load_images
+from pipeline.io.jsonfile import _json_type, _parse_json
+from pipeline.io.validation import _validate
+from pipeline.lights.model import CAMERA_HEAD_RADIUS_MM, Lights
 
 
 @dataclass(frozen=True)
@@ -38,7 +44,7 @@ class Capture:
         The calibration the bundle names; ``rig.image_size`` matches every image.
     bit_depth : int
         Significant bits per pixel; every pixel is ``<= 2**bit_depth - 1``.
-    lights : pipeline.lights.Lights
+    lights : pipeline.lights.model.Lights
         The N lights (distant or point lights), left-camera frame, mm.
     images : (N, H, W) float32
         Photometric images of the left camera, raw counts (distorted, dark not
@@ -53,6 +59,10 @@ class Capture:
     station : pipeline.formats.Station or None
         Where the plate stood on the conveyor (a station of a plate longer than the view,
         docs/stations.md); None for a plate measured in one view.
+    raw_noise : ((N,) float64, float or None) or None
+        The noise (raw counts, standard deviation) of each photometric image and of the dark frame
+        (None without one), when it was measured before the images were binned
+        (:func:`pipeline.preprocess.bin_capture`); None: it is measured on ``images``.
     """
 
     plate_id: str
@@ -67,6 +77,7 @@ class Capture:
     working_distance_mm: float | None
     source: Path
     station: Station | None = None
+    raw_noise: tuple[np.ndarray, float | None] | None = None
 
     @property
     def n_lights(self) -> int:

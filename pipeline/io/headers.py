@@ -8,15 +8,12 @@ from pathlib import Path
 
 from PIL import Image, UnidentifiedImageError
 
-from ..camera import StereoRig
-from ..formats import (
-    InputError,
-    Station,
-)
-from ..lights import Lights
-from .bundle import MAX_ZIP_RATIO, MAX_ZIP_TOTAL_BYTES, _Bundle, _open_bundle
-from .capture import _check_light_positions, _read_capture_json
-from .images import _ImageJob
+from pipeline.camera import StereoRig
+from pipeline.formats import InputError, Station
+from pipeline.io.bundle import MAX_ZIP_RATIO, MAX_ZIP_TOTAL_BYTES, _Bundle, _open_bundle
+from pipeline.io.capture import _check_light_positions, _read_capture_json
+from pipeline.io.images import _ImageJob
+from pipeline.lights.model import Lights
 
 
 class InputLimitError(InputError):

@@ -7,13 +7,10 @@ from typing import Any
 
 import numpy as np
 
-from ..formats import (
-    LIGHT_CALIBRATION_FORMAT,
-    LightCalibrationFile,
-)
-from ..lights import Lights
-from .jsonfile import read_json
-from .validation import _validate
+from pipeline.formats import LIGHT_CALIBRATION_FORMAT, LightCalibrationFile
+from pipeline.io.jsonfile import read_json
+from pipeline.io.validation import _validate
+from pipeline.lights.model import Lights
 
 
 def load_light_calibration(

@@ -34,7 +34,7 @@ hundreds of millimetres apart, so the plate is found as the near, smooth sheet o
    matcher smears the plate's depth a few pixels onto what lies beside it).
 7. *Surroundings step*: along the boundary, the depth of what lies beside the plate relative to the
    plate's surface, for telling segmentation artefacts at the edge from real edge defects
-   (:func:`pipeline.verdict.judge`).
+   (:func:`pipeline.judge.verdict.judge`).
 
 Without a usable stereo depth (no pair, or too little matched) the plate is the largest candidate
 component with small holes filled (the dark-background case), and the result says so.

@@ -44,7 +44,7 @@ def candidate_mask(
     (H, W) bool
         True where a pixel may be the plate. Over a dark conveyor this is the plate; over a lit floor
         it is most of the image. Meant both for :func:`segment_plate` and as the region the stereo
-        pair is matched over (``mask`` of :func:`pipeline.stereo.stereo_depth`).
+        pair is matched over (``mask`` of :func:`pipeline.surface.stereo.stereo_depth`).
 
     Raises
     ------

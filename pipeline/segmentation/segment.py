@@ -63,7 +63,7 @@ def segment_plate(
         The pixels that may be plate (default :func:`candidate_mask` of ``brightness``).
     normals : (H, W, 3) array_like of float, optional
         Photometric unit normals (left camera frame, towards the camera; NaN where unknown), e.g.
-        :func:`pipeline.normals.estimate_normals` over the candidates: they decide larger unmatched
+        :func:`pipeline.surface.normals.estimate_normals` over the candidates: they decide larger unmatched
         areas (step 4) and the normals check near the boundary (step 6: within ``edge_px +
         EDGE_NORMAL_ZONE_PX``, a normal over ``EDGE_NORMAL_DEG`` from the surface's joins the band).
     depth_band_mm : float

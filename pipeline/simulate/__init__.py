@@ -59,7 +59,7 @@ from .scene import (
     Support,
     rail_supports,
 )
-from .stations import simulate_stations, station_pose
+from .stations import carried_pose, simulate_stations, station_pose
 from .targets import plate_mesh
 
 __all__ = [
@@ -77,6 +77,7 @@ __all__ = [
     "PlateSpec",
     "ShapeName",
     "Support",
+    "carried_pose",
     "default_rig",
     "outline_polygon",
     "plate_height",

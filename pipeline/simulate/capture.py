@@ -6,7 +6,7 @@ Shading (intensities as fractions of the sensor's full scale ``2**bit_depth - 1`
           + dark + N(0, noise**2)
 
 with ``h_k`` the Blinn-Phong half vector of the light and the per-pixel view direction, the light's
-direction and attenuation per pixel (:class:`pipeline.lights.Lights`). Attached shadows come from
+direction and attenuation per pixel (:class:`pipeline.lights.model.Lights`). Attached shadows come from
 ``max(0, .)``; cast shadows and interreflections are not modelled. Values are quantised to
 ``bit_depth`` and saturate at full scale.
 
@@ -39,16 +39,22 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 
-from ..camera import StereoRig
-from ..formats import CAPTURE_FORMAT, CaptureFile, StereoCalibrationFile
-from ..io import calibration_document
-from ..lights import Lights
-from ..parallel import default_workers
-from .geometry import SURFACE_SUPPORT, Hits, conveyor_z, intersect, plate_pose
-from .rig import BASELINE_MM, default_rig, quantise, raw_pixel_rays, write_png
-from .scene import PlateSpec
-from .targets import target_object
-from .texture import TEXEL_MM, Texture, conveyor_texture, floor_texture, plate_albedo_texture
+from pipeline.camera import StereoRig
+from pipeline.formats import CAPTURE_FORMAT, CaptureFile, StereoCalibrationFile
+from pipeline.io import calibration_document
+from pipeline.lights.model import Lights
+from pipeline.parallel import default_workers
+from pipeline.simulate.geometry import SURFACE_SUPPORT, Hits, conveyor_z, intersect, plate_pose
+from pipeline.simulate.rig import BASELINE_MM, default_rig, quantise, raw_pixel_rays, write_png
+from pipeline.simulate.scene import PlateSpec
+from pipeline.simulate.targets import target_object
+from pipeline.simulate.texture import (
+    TEXEL_MM,
+    Texture,
+    conveyor_texture,
+    floor_texture,
+    plate_albedo_texture,
+)
 
 _CAPTURED_AT = "2026-01-01T00:00:00Z"
 
@@ -95,7 +101,7 @@ class CaptureSpec:
         (mm, along the optical axis) in front of the plate centre, i.e. that high above the plate,
         each seen from the plate centre at ``light_elevation_deg`` from the optical axis; the
         irradiance falls off with the inverse square of the distance and the LED profile ``led_mu``
-        (see :mod:`pipeline.lights`). Each light's ``intensity`` is chosen so that it casts
+        (see :mod:`pipeline.lights.model`). Each light's ``intensity`` is chosen so that it casts
         ``e_k`` (``1 +- intensity_spread``) on the plate centre, as bright as a distant light.
     led_mu : float
         Point lights: exponent of the LED beam profile ``cos^mu`` about its axis, which points at
@@ -266,7 +272,7 @@ def _shade(
     """Noise-free radiance (N, H, W) float32 in fractions of full scale, dark not added.
 
     Per pixel and light: the direction towards the light and its attenuation at the surface point
-    (:class:`pipeline.lights.Lights`; constant for distant lights).
+    (:class:`pipeline.lights.model.Lights`; constant for distant lights).
     """
     n = hits.normals.astype(np.float32)
     out = np.empty((lights.n, *albedo.shape), dtype=np.float32)
@@ -430,6 +436,7 @@ def render_radiance(
     side: Literal["left", "right"],
     capture: CaptureSpec = CaptureSpec(),
     seed: int = 0,
+    pose: np.ndarray | None = None,
 ) -> np.ndarray:
     """What one camera of the rig sees of the plate under each light alone, before the sensor.
 
@@ -441,12 +448,15 @@ def render_radiance(
     ----------
     plate : PlateSpec
     rig : StereoRig
-    lights : pipeline.lights.Lights
+    lights : pipeline.lights.model.Lights
         Left-camera frame, mm.
     side : {"left", "right"}
     capture : CaptureSpec
         Its ``exposure``, ``specular``, ``shininess``, ``texture`` and ``albedo_seed`` are used.
     seed : int
+    pose : (4, 4) float or None
+        ``T_cam_plate`` in place of :func:`~pipeline.simulate.plate_pose`, as for
+        :func:`simulate_capture` (a station of a long plate that a conveyor carried under the head).
 
     Returns
     -------
@@ -469,6 +479,8 @@ def render_radiance(
         else int(seeds[4].generate_state(1)[0])
     )
     scene = _scene(plate, capture, rig, tex_seed, int(seeds[5].generate_state(1)[0]))
+    if pose is not None:
+        scene = _Scene(scene.plate, np.asarray(pose, np.float64), scene.albedo, scene.conveyor)
     camera = getattr(rig, side)
     rays = raw_pixel_rays(camera)
     eye = np.zeros(3)

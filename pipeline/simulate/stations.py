@@ -21,6 +21,7 @@ import math
 from dataclasses import replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from ..camera import StereoRig
@@ -57,6 +58,51 @@ def station_pose(plate: PlateSpec, centre_y_mm: float, yaw_deg: float) -> np.nda
     turn[:3, :3] = rot_z(math.radians(yaw_deg))
     pose: np.ndarray = plate_pose(plate) @ turn @ shift
     return pose
+
+
+def carried_pose(
+    plate: PlateSpec,
+    *,
+    first_centre_y_mm: float,
+    travel_mm: float,
+    direction: np.ndarray,
+    yaw_deg: float = 0.0,
+) -> np.ndarray:
+    """``T_cam_plate`` (4, 4) of a plate that a conveyor carried ``travel_mm`` along ``direction``.
+
+    At station 0 the plate lies as :func:`station_pose` puts it with its point ``(0,
+    first_centre_y_mm)`` under the head; the conveyor translates it by ``travel_mm * direction``
+    (left camera frame), and the plate then turns by ``yaw_deg`` about its normal through the point
+    under the head (:func:`~pipeline.simulate.plate_pose`'s origin). With ``direction = -plate_pose(
+    plate)[:3, 1]`` this is ``station_pose(plate, first_centre_y_mm + travel_mm, yaw_deg)``; another
+    direction carries the plate across or out of its own plane, as a conveyor not aligned with the
+    plate would.
+
+    Parameters
+    ----------
+    plate : PlateSpec
+    first_centre_y_mm : float
+        Plate coordinate ``y_p`` (mm) under the head at station 0.
+    travel_mm : float
+        The plate's true travel since station 0, mm.
+    direction : (3,) float
+        Unit direction of the travel, left camera frame.
+    yaw_deg : float
+        Degrees.
+
+    Returns
+    -------
+    (4, 4) float64
+    """
+    base = plate_pose(plate)
+    pose = station_pose(plate, first_centre_y_mm, 0.0)
+    pose[:3, 3] += float(travel_mm) * np.asarray(direction, np.float64)
+    axis = base[:3, 2] * math.radians(yaw_deg)
+    turn = np.eye(4)
+    turn[:3, :3] = cv2.Rodrigues(axis.reshape(3, 1))[0]
+    turn[:3, 3] = base[:3, 3] - turn[:3, :3] @ base[:3, 3]
+    carried: np.ndarray = turn @ pose
+    return carried
 
 
 def simulate_stations(

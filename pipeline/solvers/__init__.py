@@ -19,7 +19,7 @@ weights are float32, the right-hand side and the solution float64. :func:`solve_
 solves it by conjugate gradients (:mod:`~pipeline.solvers.pcg`) preconditioned with one geometric
 multigrid V-cycle (:mod:`~pipeline.solvers.multigrid`): the exact least-squares solution on the
 masked domain, not a periodic (Fourier) approximation. The normal integration
-(:mod:`pipeline.integration`) assembles such systems.
+(:mod:`pipeline.surface.integration`) assembles such systems.
 
 The parallel kernels must not run concurrently from two threads (numba's workqueue layer aborts):
 :mod:`pipeline.stages` calls them from its main thread only. In numba, ``float(x)`` of a float32

@@ -21,9 +21,11 @@ from typing import Any
 
 import numpy as np
 
-from .. import artifacts, curvature, deviation, registration, target_geometry, uncertainty, verdict
-from ..artifacts import ARTIFACT_FILES
-from ..details import (
+from pipeline import artifacts
+from pipeline.artifacts import ARTIFACT_FILES
+from pipeline.io import Capture, Target, load_capture, load_target
+from pipeline.judge import curvature, deviation, registration, target_geometry, uncertainty, verdict
+from pipeline.judge.details import (
     BrightnessSegmentationDetails,
     Details,
     StationDetails,
@@ -33,13 +35,14 @@ from ..details import (
     refinement_details,
     region_details,
 )
-from ..io import Capture, Target, load_capture, load_target
-from ..lights import Lights
-from ..parallel import default_workers
-from ..stages import (
+from pipeline.lights.model import Lights
+from pipeline.parallel import default_workers
+from pipeline.stages import (
     DISAGREEMENT_FRACTION,
     EDGE_BAND_PX,
+    STAGES,
     InspectOptions,
+    ProgressCallback,
     StageClock,
     edge_band,
     load_inputs,
@@ -49,9 +52,9 @@ from ..stages import (
     write_deviation,
     write_target,
 )
-from .mosaic import Mosaic, build_mosaic
-from .plan import StationRef, plan_stations
-from .register import StationPoses, StationView, register_stations
+from pipeline.stations.mosaic import Mosaic, build_mosaic
+from pipeline.stations.plan import StationRef, plan_stations
+from pipeline.stations.register import StationPoses, StationView, register_stations
 
 
 @dataclass(frozen=True)
@@ -114,8 +117,16 @@ def measure_stations(
     # one station at a time: the numba kernels take every core (decoding the next station beside them
     # makes each parallel region wait for the busy core: measured slower)
     stations = [
-        _reconstruct(ref, _load(ref.source, clock), tgt, opts, light_calibration, clock)
-        for ref in refs
+        _reconstruct(
+            ref,
+            _load(ref.source, clock),
+            tgt,
+            opts,
+            light_calibration,
+            clock,
+            StageClock(station_progress(clock.progress, k, len(refs))),
+        )
+        for k, ref in enumerate(refs)
     ]
     views = [s.view for s in stations]
     t = time.perf_counter()
@@ -136,6 +147,23 @@ def _load(source: Capture | Path, clock: StageClock) -> Capture:
     return cap
 
 
+def station_progress(progress: ProgressCallback | None, k: int, n: int) -> ProgressCallback | None:
+    """The progress of station ``k`` (0-based) of ``n`` as the whole plate's: each stage of its view
+    reported as ``"station <k+1>/<n>: <stage>"``, its fraction within the share of the plate's
+    progress that :data:`pipeline.stages.STAGES` gives the stages of a view (``load`` .. ``depth``),
+    split evenly among the stations. None without ``progress``."""
+    if progress is None:
+        return None
+    view_stages = STAGES.index("curvature")
+    share = view_stages / len(STAGES)
+
+    def report(stage: str, fraction: float) -> None:
+        within = STAGES.index(stage) / view_stages if stage in STAGES[:view_stages] else 1.0
+        progress(f"station {k + 1}/{n}: {stage}", share * (k + within) / n)
+
+    return report
+
+
 def _reconstruct(
     ref: StationRef,
     capture: Capture,
@@ -143,11 +171,12 @@ def _reconstruct(
     opts: InspectOptions,
     light_calibration: Lights | None,
     clock: StageClock,
+    own: StageClock,
 ) -> _Station:
-    """One station (``capture``, decoded) through the stages of one view; its timings add to ``clock``'s."""
-    own = StageClock(None)
+    """One station (``capture``, decoded) through the stages of one view, timed and reported by
+    ``own``; its timings add to ``clock``'s."""
     warnings: list[str] = []
-    cap, _ = load_inputs(capture, tgt, light_calibration, warnings, own)
+    cap, _ = load_inputs(capture, tgt, light_calibration, warnings, own, opts)
     scene = preprocess_scene(cap, opts, own)
     with ThreadPoolExecutor(max_workers=opts.workers or default_workers()) as pool:
         view, _ = reconstruct_view(cap, tgt, scene, opts, pool, own)
@@ -319,7 +348,7 @@ def _qualify(
     judged: np.ndarray,
     tgt: Target,
 ) -> tuple[uncertainty.Uncertainty, list[float]]:
-    """The stitched plate's expanded uncertainty: each station's own (:func:`pipeline.uncertainty.propagate`
+    """The stitched plate's expanded uncertainty: each station's own (:func:`pipeline.judge.uncertainty.propagate`
     at the plate's fitted radius) resampled onto the grid, with each station's registration added.
 
     A station's registration adds ``u_reg``: the RMS surface distance of its overlaps with its neighbours
@@ -390,6 +419,29 @@ def _segmentation(
     )
 
 
+def station_footprint(
+    view: StationView, T_plate_station: np.ndarray, T_cam_target: np.ndarray
+) -> list[list[float]] | None:
+    """Where a station looked, on the target: the four corners of its image frame (the first pixel's,
+    then round the image: along its first row, ...) at the depth of its plate (the median z of its measured points), moved by
+    ``T_plate_station`` ((4, 4), its camera frame into the plate frame) into the plate frame and by
+    the inverse of ``T_cam_target`` ((4, 4), target frame into the plate frame) into the target's;
+    (4, 2) x, y, mm, rounded to 0.1 mm. None when the station measured no point."""
+    z = view.points[..., 2][view.mask]
+    if z.size == 0:
+        return None
+    height, width = view.mask.shape
+    corners = np.array(
+        [[-0.5, -0.5], [width - 0.5, -0.5], [width - 0.5, height - 0.5], [-0.5, height - 0.5]]
+    )
+    rays = np.linalg.solve(view.K, np.column_stack([corners, np.ones(4)]).T).T
+    in_station = rays / rays[:, 2:3] * float(np.median(z))
+    in_plate = in_station @ T_plate_station[:3, :3].T + T_plate_station[:3, 3]
+    T = np.asarray(T_cam_target, dtype=np.float64)
+    in_target = (in_plate - T[:3, 3]) @ T[:3, :3]
+    return [[float(x), float(y)] for x, y in np.round(in_target[:, :2], 1)]
+
+
 def stitched_details(plate: StitchedPlate, tgt: Target) -> Details:
     """details.json of a plate measured at stations (``stations`` says how it was stitched)."""
     m, judgement, first = plate.mosaic, plate.judgement, plate.stations[0]
@@ -405,6 +457,9 @@ def stitched_details(plate: StitchedPlate, tgt: Target) -> Details:
             registration_sd_mm=round(plate.registration_sd_mm[s.view.index], 4),
             stereo_fusion=s.details["stereo_fusion"],
             light_refinement=s.details["light_refinement"],
+            footprint_mm=station_footprint(
+                s.view, m.frame @ plate.poses.poses[s.view.index], plate.pose.T_cam_target
+            ),
         )
         for s in plate.stations
     ]

@@ -10,7 +10,7 @@ from __future__ import annotations
 import itertools
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,7 +18,7 @@ import numpy as np
 
 from ..camera import StereoRig
 from ..formats import InputError, Station
-from ..io import Capture, read_capture_header
+from ..io import Capture, CaptureHeader, read_capture_header
 
 #: Consecutive stations must share at least this fraction of the view along the travel.
 MIN_OVERLAP = 0.1
@@ -59,13 +59,20 @@ class StationRef:
         return unit
 
 
-def plan_stations(captures: Sequence[Capture | str | os.PathLike[str]]) -> list[StationRef]:
+def plan_stations(
+    captures: Sequence[Capture | str | os.PathLike[str]],
+    *,
+    headers: Mapping[Path, CaptureHeader] | None = None,
+) -> list[StationRef]:
     """The stations of one plate, checked as a set and sorted by index.
 
     Parameters
     ----------
     captures : list of Capture or path
         Two or more capture bundles (``plate-capture/1`` with ``station``), in any order.
+    headers : dict of Path to CaptureHeader, optional
+        Headers the caller has read already (:func:`pipeline.io.read_capture_header`), by bundle
+        path: those bundles are not read again.
 
     Returns
     -------
@@ -77,7 +84,8 @@ def plan_stations(captures: Sequence[Capture | str | os.PathLike[str]]) -> list[
     pipeline.formats.InputError
         Naming the bundle and the field (see the module docstring).
     """
-    refs = [_ref(c) for c in captures]
+    known = headers or {}
+    refs = [_ref(c, None if isinstance(c, Capture) else known.get(Path(c))) for c in captures]
     first = refs[0]
     for ref in refs[1:]:
         if ref.plate_id != first.plate_id:
@@ -163,8 +171,8 @@ def _check_travel(ordered: list[StationRef]) -> None:
             )
 
 
-def _ref(capture: Capture | str | os.PathLike[str]) -> StationRef:
-    """One bundle's station reference (its header only, for a path)."""
+def _ref(capture: Capture | str | os.PathLike[str], header: CaptureHeader | None) -> StationRef:
+    """One bundle's station reference (its header only, for a path: ``header`` when read already)."""
     if isinstance(capture, Capture):
         label = str(capture.source)
         plate_id, station, rig, wd = (
@@ -175,7 +183,7 @@ def _ref(capture: Capture | str | os.PathLike[str]) -> StationRef:
         )
         source: Capture | Path = capture
     else:
-        header = read_capture_header(capture)
+        header = header or read_capture_header(capture)
         label = header.label
         plate_id, station, rig, wd = (
             header.plate_id,

@@ -28,8 +28,8 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from ..details import OverlapDetails
-from ..formats import CaptureError
+from pipeline.formats import CaptureError
+from pipeline.judge.details import OverlapDetails
 
 #: Standard deviation of the encoder's travel as a prior on each station's pose, mm.
 ENCODER_SD_MM = 5.0

@@ -1,8 +1,11 @@
-"""Test devices: a TCP light controller of the tests' own and Aravis' fake GigE Vision camera.
+"""Test devices: a TCP light controller and a TCP conveyor of the tests' own, and Aravis' fake GigE
+Vision camera.
 
 :class:`LightServer` is a real TCP server on loopback that speaks the tcp driver's protocol (one
 command per line, an ``OK`` line per command unless told otherwise) and records every command; it
 can refuse a command, stop answering, or call back on a command (to pull a camera away mid-way).
+:class:`ConveyorServer` is one that speaks the tcp conveyor's (``MOVE <mm>`` answered ``OK
+<encoder_mm>``), with a conveyor's positioning errors; it can refuse a move or stop answering.
 :class:`FakeGigECamera` runs ``arv-fake-gv-camera-0.8 -i 127.0.0.1`` (Debian's aravis-tools), a
 separate process that speaks GigE Vision over loopback.
 """
@@ -14,10 +17,22 @@ import socketserver
 import subprocess
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 FAKE_GV_CAMERA = "arv-fake-gv-camera-0.8"
 FAKE_GV_ADDRESS = "127.0.0.1"
+
+
+class _Server(socketserver.ThreadingTCPServer):
+    daemon_threads = True
+    allow_reuse_address = True
+
+
+def _serve(handler: type[socketserver.StreamRequestHandler]) -> _Server:
+    """A TCP server on ``127.0.0.1:<free port>`` serving ``handler`` in a daemon thread, started."""
+    server = _Server(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    return server
 
 
 class LightServer:
@@ -67,14 +82,78 @@ class LightServer:
                     elif reply is not None:
                         self.wfile.write(reply.encode() + b"\n")
 
-        class Server(socketserver.ThreadingTCPServer):
-            daemon_threads = True
-            allow_reuse_address = True
-
-        self._server = Server(("127.0.0.1", 0), Handler)
+        self._server = _serve(Handler)
         self.address = f"127.0.0.1:{self._server.server_address[1]}"
-        self._thread = threading.Thread(target=self._server.serve_forever, daemon=True)
-        self._thread.start()
+
+    def close(self) -> None:
+        self._server.shutdown()
+        self._server.server_close()
+
+
+class ConveyorServer:
+    """A conveyor controller on ``127.0.0.1:<free port>``.
+
+    ``MOVE <mm>`` moves the plate by that much plus the move's positioning error and answers ``OK
+    <position>`` (the encoder's reading, 2 decimals, from the controller's own zero).
+
+    Parameters
+    ----------
+    start_mm : float
+        The encoder's reading before the first move.
+    errors_mm : sequence of float
+        The positioning error of each move in turn (0 after the last).
+    refuse : int or None
+        The move (0-based count of ``MOVE`` commands) answered ``ERR blocked`` instead.
+    stall : int or None
+        From this move on, read but never answer.
+    reply : str or None
+        Answer every move with this line instead of ``OK <position>``.
+    echo : bool
+        Send each command back first.
+    on_command : callable, optional
+        ``on_command(command)`` when a command arrives, in the server's thread.
+    """
+
+    def __init__(
+        self,
+        *,
+        start_mm: float = 1000.0,
+        errors_mm: Sequence[float] = (),
+        refuse: int | None = None,
+        stall: int | None = None,
+        reply: str | None = None,
+        echo: bool = False,
+        on_command: Callable[[str], None] | None = None,
+    ):
+        self.commands: list[str] = []
+        self.position_mm = start_mm
+        server = self
+
+        class Handler(socketserver.StreamRequestHandler):
+            def handle(self) -> None:
+                for raw in self.rfile:
+                    command = raw.decode().rstrip("\r\n")
+                    move = len(server.commands)
+                    server.commands.append(command)
+                    if on_command is not None:
+                        on_command(command)
+                    if stall is not None and move >= stall:
+                        continue
+                    if echo:
+                        self.wfile.write(raw)
+                    verb, _, amount = command.partition(" ")
+                    if verb != "MOVE":
+                        self.wfile.write(b"ERR unknown command\n")
+                    elif move == refuse:
+                        self.wfile.write(b"ERR blocked\n")
+                    else:
+                        error = errors_mm[move] if move < len(errors_mm) else 0.0
+                        server.position_mm += float(amount) + error
+                        line = reply if reply is not None else f"OK {server.position_mm:.2f}"
+                        self.wfile.write(line.encode() + b"\n")
+
+        self._server = _serve(Handler)
+        self.address = f"127.0.0.1:{self._server.server_address[1]}"
 
     def close(self) -> None:
         self._server.shutdown()

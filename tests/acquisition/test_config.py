@@ -11,7 +11,7 @@ import pytest
 from pipeline.acquisition import load_cell_config
 from pipeline.formats import InputError
 from pipeline.io import light_calibration_document
-from pipeline.lights import Lights
+from pipeline.lights.model import Lights
 from tests.acquisition.helpers import HEIGHT, WIDTH, ring_lights, write_cell
 
 ARAVIS = {"driver": "aravis", "device_id": "192.168.10.11"}
@@ -159,3 +159,56 @@ def test_simulated_drivers_need_no_device_id_or_address(tmp_path):
         and config.light_controller.address is None
         and config.lights.n == 4
     )
+
+
+CONVEYOR = {
+    "driver": "tcp",
+    "address": "192.168.10.30:5001",
+    "direction": [0.0, -0.9986, -0.0523],
+    "stations_mm": [0, 2100, 4200],
+}
+
+
+def _conveyor(tmp_path, **changes):
+    return _config(tmp_path, conveyor={**CONVEYOR, **changes})
+
+
+def test_a_conveyor_is_read_with_its_direction_normalised(tmp_path):
+    config = load_cell_config(_conveyor(tmp_path))
+    assert config.conveyor is not None and config.conveyor.stations_mm == [0, 2100, 4200]
+    assert np.linalg.norm(config.conveyor.direction) == pytest.approx(1.0, abs=1e-12)
+    np.testing.assert_allclose(config.conveyor.direction, CONVEYOR["direction"], atol=1e-3)
+    assert config.conveyor.move_timeout_s == 60.0
+    assert load_cell_config(_config(tmp_path / "plain")).conveyor is None
+
+
+@pytest.mark.parametrize(
+    ("changes", "field", "reason"),
+    [
+        (
+            {"direction": [0.0, -0.5, 0.0]},
+            "direction",
+            "expected a unit vector (the plate's motion), got length 0.5000",
+        ),
+        ({"direction": [0.0, 0.0, 0.0]}, "direction", "got the zero vector"),
+        ({"direction": [0.0, -1.0]}, "direction", "at least 3 items"),
+        ({"stations_mm": [100, 2100]}, "stations_mm", "expected station 0 at 0 mm"),
+        (
+            {"stations_mm": [0, 2100, 1900]},
+            "stations_mm",
+            "expected strictly increasing positions, got 1900 mm at station 2",
+        ),
+        ({"stations_mm": [0]}, "stations_mm", "at least 2 items"),
+        ({"address": None}, "address", "missing required key (a tcp conveyor needs HOST:PORT)"),
+        ({"address": "conveyor"}, "address", "expected HOST:PORT"),
+        ({"driver": "serial"}, "driver", "expected 'tcp' or 'simulated'"),
+        ({"move_timeout_s": 0}, "move_timeout_s", "greater than 0"),
+        ({"speed": 3}, "speed", "unknown key"),
+    ],
+)
+def test_bad_conveyor_names_file_and_field(tmp_path, changes, field, reason):
+    path = _conveyor(tmp_path, **changes)
+    with pytest.raises(
+        InputError, match=re.escape(f"{path}: conveyor.{field}: ") + ".*" + re.escape(reason)
+    ):
+        load_cell_config(path)

@@ -107,3 +107,24 @@ def test_photometric_frames_are_exposed_for_one_light_not_all(tmp_path):
         for k in range(8)
     )
     assert 0.5 < brightest / 65535 < 0.95
+
+
+def test_a_conveyor_along_the_plate_carries_it_to_the_stations_pose():
+    """carried_pose (the simulated cell's conveyor) and station_pose (simulate capture --stations)
+    put a plate carried along its own length at the same place, yaw included."""
+    from pipeline.simulate import carried_pose, plate_pose, station_pose
+
+    plate = PlateSpec(size_mm=(3000.0, 7200.0))
+    direction = -plate_pose(plate)[:3, 1]
+    for travel, yaw in ((0.0, 0.0), (2100.0, 0.25), (4200.0, -0.3)):
+        np.testing.assert_allclose(
+            carried_pose(
+                plate,
+                first_centre_y_mm=-2100.0,
+                travel_mm=travel,
+                direction=direction,
+                yaw_deg=yaw,
+            ),
+            station_pose(plate, -2100.0 + travel, yaw),
+            atol=1e-9,
+        )

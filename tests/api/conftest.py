@@ -16,7 +16,9 @@ from tests.api.helpers import (
     FAKE_INSPECT,
     TOKEN,
     Consumer,
+    render_stations,
     zip_folder,
+    zip_stations,
 )
 from tests.yard import servers
 
@@ -90,3 +92,17 @@ def bundle_zip(tmp_path_factory) -> bytes:
         seed=1,
     )
     return zip_folder(folder)
+
+
+@pytest.fixture(scope="session")
+def station_bundles(tmp_path_factory) -> dict:
+    """The stations of plate LONG-1 (helpers.render_stations): ``parts`` each station's bundle zipped,
+    ``folders`` one zip of the station folders, ``target`` the whole plate's target.json."""
+    root = tmp_path_factory.mktemp("stations")
+    bundles = render_stations(root)
+    return {
+        "parts": [zip_folder(b) for b in bundles],
+        "folders": zip_stations(bundles),
+        "nested": zip_stations(bundles, top="LONG-1/"),
+        "target": (root / "target.json").read_bytes(),
+    }

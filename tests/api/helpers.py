@@ -265,3 +265,46 @@ def process(
         "top_roll_displacement_mm": displacement_mm,
     }
     return {**body, "flipped": True} if flipped else body
+
+
+#: The stations of a long plate the service tests upload: 3 stations, 2400 mm apart, of a 3000 x 7500 mm
+#: plate, at 320 x 256 px and 6 lights (measured in seconds; tests/pipeline/test_stations.py measures
+#: the method at 480 x 384).
+STATIONS_PLATE = "LONG-1"
+
+
+def render_stations(folder: Path) -> list[Path]:
+    """The station bundles of :data:`STATIONS_PLATE` rendered by the simulator into ``folder``
+    (``station_00``, ... and the whole plate's ``target.json``)."""
+    from pipeline.simulate import CaptureSpec, PlateSpec, simulate_stations
+
+    return simulate_stations(
+        folder,
+        n_stations=3,
+        spacing_mm=2400.0,
+        plate=PlateSpec(size_mm=(3000.0, 7500.0)),
+        capture=CaptureSpec(width=320, height=256, n_lights=6),
+        plate_id=STATIONS_PLATE,
+        seed=5,
+    )
+
+
+def zip_stations(bundles: list[Path], *, top: str = "") -> bytes:
+    """One zip of station folders (``<top>station_00/capture.json``, ...), as a client sends them."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED) as zf:
+        for bundle in bundles:
+            for path in sorted(bundle.iterdir()):
+                if path.is_file() and path.name != "truth.npz":
+                    zf.write(path, f"{top}{bundle.name}/{path.name}")
+    return buf.getvalue()
+
+
+def edit_capture_json(bundle: bytes, change) -> bytes:
+    """A bundle zip whose capture.json ``change(doc)`` edited."""
+    import json
+
+    with zipfile.ZipFile(io.BytesIO(bundle)) as zf:
+        doc = json.loads(zf.read("capture.json"))
+    change(doc)
+    return rezip(bundle, replace={"capture.json": json.dumps(doc).encode()})

@@ -497,3 +497,43 @@ def test_a_camera_that_does_not_answer_in_time_is_reported_unreachable_without_w
         "opening: Device 'Nobody-0000' not found",
     )
     assert (cameras[1].state, cameras[1].serial) == ("connected", "SIM-RIGHT")
+
+
+# ------------------------------------------------------------------ a cell with a conveyor: every station
+
+
+def test_a_conveyor_cell_acquires_every_station_and_measures_one_plate(
+    service, consumers, tmp_path
+):
+    """Issue 29: an acquire job on a cell with a conveyor photographs each station (the simulated
+    conveyor's encoder a few mm off, the plate yawing) and the real pipeline measures them as one plate."""
+    from pipeline.run import inspect
+
+    write_demo_cell(
+        tmp_path / "data" / DEMO_CELL_DIR, n_lights=6, width=640, height=512, stations=3
+    )
+    client = service(demo=True, inspect_entry=inspect)
+    consumer = consumers(client.app.state.settings)
+    r = _acquire(client, "LONG-1")  # the demo cell's target: the whole plate
+    assert r.status_code == 202, r.text
+    body = wait_for(client, r.json()["id"], consumer=consumer, timeout_s=600)
+    assert body["status"] == "done", body
+    result = body["result"]
+    assert result["verdict"] == "pass", result
+    assert abs(result["radius_error_pct"]) < 0.1
+    bundle = _inputs(client, body["id"]) / "bundle"
+    stations = sorted(p.name for p in bundle.iterdir())
+    assert stations == ["station_00", "station_01", "station_02"]
+    assert [load_capture(bundle / s).station.index for s in stations] == [0, 1, 2]
+    details = client.get(body["artifacts"]["details.json"]).json()
+    assert [s["index"] for s in details["stations"]["stations"]] == [0, 1, 2]
+    # the measured travel against the encoder's: each a few mm off, refined on the overlaps
+    for station in details["stations"]["stations"][1:]:
+        assert abs(station["travel_mm"] - station["travel_encoder_mm"]) < 10.0
+    record = client.get(body["artifacts"]["capture.json"]).json()["acquisition"]
+    assert record["conveyor"]["driver"] == "simulated"
+    # the report reads the stations' acquisition record and calibration from the acquired bundles
+    report = client.get(f"/api/v1/inspections/{body['id']}/report.pdf")
+    assert report.status_code == 200, report.text
+    flat = " ".join(pdf_text(report.content, tmp_path).split())
+    assert "Camera serials L SIM-LEFT, R SIM-RIGHT" in flat

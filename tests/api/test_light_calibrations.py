@@ -31,7 +31,7 @@ def near_field(tmp_path_factory):
     """A near-field capture whose manifest gives only nominal light directions (plate NF-1, 12 LEDs
     2.8 m above the plate), zipped; its target; and the true lights as a light-calibration/1 document."""
     from pipeline.io import light_calibration_document
-    from pipeline.lights import Lights
+    from pipeline.lights.model import Lights
     from pipeline.simulate import CaptureSpec, PlateSpec, simulate_capture
 
     folder = tmp_path_factory.mktemp("near-field") / "NF-1"

@@ -12,8 +12,8 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.curvature import principal_curvatures
-from pipeline.surface_fits import (
+from pipeline.judge.curvature import principal_curvatures
+from pipeline.judge.fits import (
     CylinderFit,
     PlaneFit,
     SphereFit,

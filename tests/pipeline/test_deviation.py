@@ -9,12 +9,12 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from pipeline.deviation import deviation_map
 from pipeline.io import Target
-from pipeline.registration import Registration, fitted_target_radius, register_to_target
+from pipeline.judge.deviation import deviation_map
+from pipeline.judge.registration import Registration, fitted_target_radius, register_to_target
+from pipeline.judge.target_geometry import target_surface
+from pipeline.judge.verdict import judge
 from pipeline.stages import edge_band
-from pipeline.target_geometry import target_surface
-from pipeline.verdict import judge
 from tests.pipeline.surfaces import cylinder, dented, plate_grid, saddle, sphere
 
 PLATE_CENTRE = np.array([30.0, -20.0, 3000.0])  # where plate_grid puts the plate frame's origin

@@ -7,7 +7,6 @@ import json
 import pytest
 from scipy import optimize
 
-from pipeline.deviation import deviation_map
 from pipeline.forming import (
     AimSettings,
     FormingError,
@@ -22,8 +21,9 @@ from pipeline.forming import (
 )
 from pipeline.forming.advice import target_curvature
 from pipeline.io import Target
-from pipeline.registration import register_to_target
-from pipeline.verdict import judge
+from pipeline.judge.deviation import deviation_map
+from pipeline.judge.registration import register_to_target
+from pipeline.judge.verdict import judge
 from tests.pipeline.forming_cases import MACHINE, MACHINES, rolled, target
 from tests.pipeline.surfaces import cylinder, plate_grid
 
@@ -159,7 +159,7 @@ def test_group_history_is_used_and_reported():
 
 @pytest.mark.parametrize("radius", [3000.0, 8000.0])
 def test_band_matches_the_inspection_verdict(radius):
-    # curvature_band (8 tol / w^2) against pipeline.deviation on ray-cast cylinders: inside at 0.8 of it,
+    # curvature_band (8 tol / w^2) against pipeline.judge.deviation on ray-cast cylinders: inside at 0.8 of it,
     # out at 1.3 of it, on both sides
     w, tol = 3000.0, 2.0
     tgt = Target("cylinder", radius, (w, w), tol)

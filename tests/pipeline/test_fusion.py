@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.fusion import fuse_low_frequencies, smooth_stereo_depth
+from pipeline.surface.fusion import fuse_low_frequencies, smooth_stereo_depth
 
 H, W = 400, 480
 

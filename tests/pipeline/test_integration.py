@@ -1,4 +1,4 @@
-"""Normal integration (pipeline.integration) against analytic surfaces, an independent sparse
+"""Normal integration (pipeline.surface.integration) against analytic surfaces, an independent sparse
 least-squares solve, and two public datasets (BiNI's DiLiGenT depth maps, Queau's vase)."""
 
 import cv2
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import scipy.io
 
-from pipeline.integration import _log_depth_gradients, integrate_gradient, integrate_normals
+from pipeline.surface.integration import _log_depth_gradients, integrate_gradient, integrate_normals
 from tests.pipeline.surfaces import plate_camera, render_cylinder, sparse_least_squares
 from tests.realdata import BINI, VASE, load_bini, made_after_median_scale
 
@@ -316,8 +316,8 @@ def test_vase_plain_least_squares_rmse():
 def test_multigrid_preconditioner_is_symmetric_and_positive():
     # conjugate gradients needs a symmetric positive preconditioner: the V-cycle must be its own
     # adjoint (pre-smoothing red-black, post-smoothing black-red, restriction = prolongation^T)
-    from pipeline.integration import _fine_system
     from pipeline.solvers import Multigrid
+    from pipeline.surface.integration import _fine_system
 
     rng = np.random.default_rng(4)
     hw = (70, 90)

@@ -23,8 +23,8 @@ import pytest
 from pipeline.cli import main
 from pipeline.formats import CaptureError, InputError
 from pipeline.io import load_capture, load_light_calibration
-from pipeline.light_calibration import calibrate_lights
-from pipeline.lights import Lights
+from pipeline.lights.calibration import calibrate_lights
+from pipeline.lights.model import Lights
 from pipeline.simulate import CaptureSpec, PlateSpec, simulate_capture
 
 W, H = 612, 512

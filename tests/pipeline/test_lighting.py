@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from pipeline.cli import main as cli_main
-from pipeline.normals import NormalField
-from pipeline.reconstruct import integrate_and_fuse
 from pipeline.run import inspect
 from pipeline.simulate import CaptureSpec, PlateSpec, simulate_capture
+from pipeline.surface.normals import NormalField
+from pipeline.surface.reconstruct import integrate_and_fuse
 
 NEAR = dict(near_field_mm=2800.0, light_elevation_deg=30.0, led_mu=1.5, width=612, height=512)
 
@@ -142,7 +142,7 @@ def test_lights_calibrated_on_a_flat_plate_measure_a_curved_one(tmp_path):
     intensities). At 1224 x 1024: at 612 x 512 the calibration's positions are within ~12 mm and the
     radius within ~0.15 %."""
     from pipeline.io import load_capture
-    from pipeline.light_calibration import calibrate_lights
+    from pipeline.lights.calibration import calibrate_lights
 
     capture = CaptureSpec(manifest_lights="nominal", **dict(NEAR, width=1224, height=1024))
     ref = simulate_capture(

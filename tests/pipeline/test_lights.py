@@ -11,7 +11,7 @@ import pytest
 
 from pipeline.formats import InputError
 from pipeline.io import light_calibration_document, load_capture, load_light_calibration
-from pipeline.lights import CAMERA_HEAD_RADIUS_MM, Lights
+from pipeline.lights.model import CAMERA_HEAD_RADIUS_MM, Lights
 
 from .bundles import write_bundle
 

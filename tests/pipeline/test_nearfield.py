@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from pipeline.io import load_capture
-from pipeline.nearfield import estimate_normals_near
-from pipeline.normals import estimate_normals
+from pipeline.lights.nearfield import estimate_normals_near
 from pipeline.preprocess import preprocess
 from pipeline.simulate import CaptureSpec, PlateSpec, simulate_capture
+from pipeline.surface.normals import estimate_normals
 
 
 @pytest.fixture(scope="module")

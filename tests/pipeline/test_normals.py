@@ -1,4 +1,4 @@
-"""Photometric normals (pipeline/normals/) against analytic truth and real benchmark data."""
+"""Photometric normals (pipeline/surface/normals/) against analytic truth and real benchmark data."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 
 from pipeline.camera import undistorted_rays
 from pipeline.formats import CaptureError
-from pipeline.normals import NormalField, estimate_normals
+from pipeline.surface.normals import NormalField, estimate_normals
 from tests import realdata as rd
 
 H, W = 128, 160

@@ -45,3 +45,14 @@ def test_configure_process_sets_passive_waiting_unless_the_user_chose(monkeypatc
     monkeypatch.setenv("OMP_WAIT_POLICY", "ACTIVE")
     configure_process()
     assert os.environ["OMP_WAIT_POLICY"] == "ACTIVE"
+
+
+def test_freed_memory_is_kept_for_reuse_unless_the_user_chose(monkeypatch):
+    from pipeline.parallel import keep_freed_memory
+
+    monkeypatch.delenv("MALLOC_MMAP_THRESHOLD_", raising=False)
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
+    if sys.platform.startswith("linux"):  # glibc accepts the settings
+        assert keep_freed_memory()
+    monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "131072")
+    assert not keep_freed_memory()

@@ -1,4 +1,4 @@
-"""The deviation map in the target's frame (pipeline.plate_map) and the tolerance-band colours."""
+"""The deviation map in the target's frame (pipeline.judge.plate_map) and the tolerance-band colours."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from pipeline.artifacts.colours import (
     NO_DATA_RGB,
     tolerance_band_colormap,
 )
-from pipeline.plate_map import load_plate_map, plate_map, to_camera_frame, to_target_frame
+from pipeline.judge.plate_map import load_plate_map, plate_map, to_camera_frame, to_target_frame
 
 
 def _pose(seed: int) -> np.ndarray:

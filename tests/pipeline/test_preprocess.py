@@ -1,3 +1,5 @@
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -94,3 +96,67 @@ def test_a_glossy_plates_highlights_do_not_split_its_mask(tmp_path):
     assert np.count_nonzero(truth & ~pre.mask) < 0.1 * truth.sum()  # the eroded rim: ~6 %
     assert np.count_nonzero(pre.mask & ~truth) == 0
     assert plate_mask(pre.brightest).sum() < 0.8 * truth.sum()  # the maxima alone: the split
+
+
+def test_binning_averages_blocks_and_keeps_the_rays(tmp_path):
+    from pipeline.preprocess import bin_capture
+    from pipeline.surface.normals.noise import image_noise
+
+    cap = _sphere_capture(tmp_path)
+    small = bin_capture(cap, 2)
+    assert small.images.shape == (6, 40, 48) and small.rig.image_size == (48, 40)
+    for full, binned in [
+        (cap.images[3], small.images[3]),
+        (cap.dark, small.dark),
+        (cap.stereo_right, small.stereo_right),
+    ]:
+        np.testing.assert_allclose(binned, full.reshape(40, 2, 48, 2).mean(axis=(1, 3)), rtol=1e-6)
+    # a binned pixel sees the ray through the centre of its 2x2 block, both cameras alike
+    for side in ("left", "right"):
+        K_full, K_small = getattr(cap.rig, side).K, getattr(small.rig, side).K
+        u, v = 17.0, 9.0
+        centre = np.linalg.solve(K_full, [2 * u + 0.5, 2 * v + 0.5, 1.0])
+        np.testing.assert_allclose(np.linalg.solve(K_small, [u, v, 1.0]), centre, atol=1e-12)
+    # a size that is not a whole number of blocks (80 rows by 3): the last rows are left out, the rays
+    # still go through the blocks' centres
+    thirds = bin_capture(cap, 3)
+    assert thirds.images.shape == (6, 26, 32) and thirds.rig.image_size == (32, 26)
+    for side in ("left", "right"):
+        K_full, K_small = getattr(cap.rig, side).K, getattr(thirds.rig, side).K
+        centre = np.linalg.solve(K_full, [3 * 17.0 + 1, 3 * 20.0 + 1, 1.0])
+        np.testing.assert_allclose(np.linalg.solve(K_small, [17.0, 20.0, 1.0]), centre, atol=1e-12)
+    assert small.rig.rms_px == pytest.approx(cap.rig.rms_px / 2)
+    # the sensor's noise, measured on the images as given, falls by the factor
+    everywhere = np.ones((80, 96), bool)
+    own, dark = small.raw_noise
+    np.testing.assert_allclose(own, image_noise(cap.images, everywhere) / 2)
+    assert dark == pytest.approx(image_noise(cap.dark[None], everywhere)[0] / 2)
+    assert bin_capture(cap, 1) is cap
+
+
+def test_a_saturated_sample_saturates_its_bin(tmp_path):
+    from pipeline.preprocess import bin_capture, preprocess
+
+    img = np.full((80, 96), 20000, np.uint16)
+    img[41, 61] = 65535  # one raw sample of the block (20..21, 30..31) once binned
+    cap = _sphere_capture(tmp_path, files={"ps_02.png": img})
+    small = bin_capture(cap, 2)
+    assert small.images[2, 20, 30] == 65535
+    assert np.count_nonzero(small.images[2] == 65535) == 1
+    pre = preprocess(small)
+    # found saturated: the bin and its neighbours (preprocess dilates by one pixel before undistorting)
+    assert 1 <= pre.n_saturated <= 9
+
+
+def test_the_working_grid_follows_the_cells_geometry(tmp_path):
+    from pipeline.preprocess import working_binning
+
+    cap = _sphere_capture(tmp_path)  # fx 80 px at 1000 mm: 12.5 mm per pixel
+    assert cap.working_distance_mm == 1000.0
+    assert working_binning(cap, None, 3500.0) == 1
+    assert working_binning(cap, 12.0, 3500.0) == 1
+    assert working_binning(cap, 25.0, 3500.0) == 2
+    assert working_binning(cap, 38.0, 3500.0) == 3
+    # without a working distance, the depth assumed
+    far = replace(cap, working_distance_mm=None)
+    assert working_binning(far, 25.0, 2000.0) == 1

@@ -16,7 +16,7 @@ import pytest
 
 from pipeline.cli import main as cli_main
 from pipeline.formats import CaptureError, ResultFile
-from pipeline.run import STAGES, inspect, warm_up
+from pipeline.run import STAGES, InspectOptions, inspect, warm_up
 from pipeline.simulate import CaptureSpec, Dent, PlateSpec, simulate_capture
 
 FULL = dict(width=1224, height=1024)
@@ -78,6 +78,30 @@ def test_a_local_dent_fails_an_otherwise_good_plate(tmp_path):
     truth = np.load(bundle / "truth.npz")
     u, v = details["defects"][0]["centroid_px"]
     xy = truth["plate_xy_mm"][int(round(v)), int(round(u))]
+    assert np.hypot(xy[0] - 400.0, xy[1] + 300.0) < 60.0
+
+
+def test_a_dent_is_measured_on_a_binned_working_grid(tmp_path):
+    # a working cell of 7 mm bins the 1224x1024 capture (3.3 mm per pixel at 3 m) by 2: the dent and
+    # the radius are measured as on the capture's own pixels, the depth map comes on the working grid
+    plate = PlateSpec(
+        shape="cylinder",
+        radius_mm=6000.0,
+        dents=(Dent(x_mm=400.0, y_mm=-300.0, radius_mm=150.0, depth_mm=6.0),),
+    )
+    capture = CaptureSpec(n_lights=12, noise=0.004, **FULL)
+    bundle = simulate_capture(tmp_path / "bundle", plate=plate, capture=capture, seed=21)
+    out = tmp_path / "out"
+    options = InspectOptions(working_cell_mm=7.0)
+    doc = inspect(bundle, bundle / "target.json", out_dir=out, options=options).document
+    assert doc["verdict"] == "fail", doc
+    assert doc["deviation_mm"]["max_abs"] > 4.0
+    assert abs(doc["radius_error_pct"]) <= 0.2
+    assert np.load(out / "depth.npy").shape == (512, 612)
+    details = json.loads((out / "details.json").read_text())
+    truth = np.load(bundle / "truth.npz")
+    u, v = details["defects"][0]["centroid_px"]  # on the working grid: twice as coarse
+    xy = truth["plate_xy_mm"][int(round(2 * v + 0.5)), int(round(2 * u + 0.5))]
     assert np.hypot(xy[0] - 400.0, xy[1] + 300.0) < 60.0
 
 

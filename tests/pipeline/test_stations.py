@@ -5,6 +5,7 @@ figures at 1224 x 1024 are benchmarks/bench_stations.py's). The stations' encode
 each station yaws by up to 0.3 deg (the simulator's defaults).
 """
 
+import itertools
 import json
 from pathlib import Path
 
@@ -13,8 +14,8 @@ import pytest
 from pydantic import TypeAdapter
 
 from pipeline.cli import EXIT_NOT_MEASURABLE, main
-from pipeline.details import Details
 from pipeline.formats import CaptureError
+from pipeline.judge.details import Details
 from pipeline.run import inspect
 from pipeline.simulate import CaptureSpec, Dent, PlateSpec, simulate_stations
 
@@ -39,8 +40,15 @@ def _stations(root: Path, plate: PlateSpec, capture: CaptureSpec = SIZE) -> list
 def perfect(tmp_path_factory):
     root = tmp_path_factory.mktemp("perfect")
     bundles = _stations(root / "in", _plate())
-    result = inspect(bundles, root / "in" / "target.json", out_dir=root / "out")
+    reported: list[tuple[str, float]] = []
+    result = inspect(
+        bundles,
+        root / "in" / "target.json",
+        out_dir=root / "out",
+        progress=lambda stage, fraction: reported.append((stage, fraction)),
+    )
     details = json.loads((root / "out" / "details.json").read_text())
+    (root / "progress.json").write_text(json.dumps(reported))
     return bundles, result.document, details, root
 
 
@@ -66,6 +74,35 @@ def test_details_give_each_station_pose_travel_and_overlap(perfect):
     for o in seams:
         assert o["rms_mm"] < 0.5 and o["max_mm"] >= o["rms_mm"] and o["matches"] >= 12
     assert "stations_registration_mm" in details["uncertainty"]["components"]
+
+
+def test_each_station_footprint_covers_its_part_of_the_plate(perfect):
+    """The outline the map draws: each station's image frame on the target, consecutive ones overlapping
+    along the plate (its y) by the view's length less the spacing, together spanning its length."""
+    _, _, details, _ = perfect
+    spans = []
+    for s in details["stations"]["stations"]:
+        corners = np.asarray(s["footprint_mm"])
+        assert corners.shape == (4, 2)
+        spans.append((corners[:, 1].min(), corners[:, 1].max()))
+    assert spans[0][0] < -LENGTH_MM / 2 and spans[-1][1] > LENGTH_MM / 2
+    for (lo0, hi0), (lo1, hi1) in itertools.pairwise(spans):
+        assert lo0 < lo1 < hi0 < hi1
+        assert lo1 - lo0 == pytest.approx(
+            SPACING_MM, abs=20.0
+        )  # the travel, up to the yaw at the corners
+
+
+def test_progress_is_reported_per_station_then_for_the_plate(perfect):
+    _, _, _, root = perfect
+    reported = json.loads((root / "progress.json").read_text())
+    stages = [stage for stage, _ in reported]
+    for k in (1, 2, 3):
+        assert f"station {k}/3: normals" in stages
+    assert stages.index("station 1/3: depth") < stages.index("station 2/3: load")
+    assert stages.index("station 3/3: depth") < stages.index("curvature")
+    fractions = [f for _, f in reported]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0
 
 
 def test_all_artifacts_written(perfect):

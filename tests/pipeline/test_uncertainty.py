@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from pipeline.cli import main
+from pipeline.judge.verdict import judge
 from pipeline.run import inspect
 from pipeline.simulate import CaptureSpec, PlateSpec, simulate_capture
 from pipeline.stages import edge_band
-from pipeline.verdict import judge
 
 
 def _inspect(root: Path, name: str, capture: CaptureSpec, seed: int, **target_changes: float):

@@ -72,7 +72,7 @@ def _simulation() -> dict:
 def ring_of_lights(n: int = 8, *, radius_mm: float = 1616.58, height_mm: float = 200.0) -> dict:
     """A light-calibration/1 document: ``n`` LEDs on a ring around the cameras, aimed at a plate 2.8 m away."""
     from pipeline.io import light_calibration_document
-    from pipeline.lights import Lights
+    from pipeline.lights.model import Lights
 
     angles = np.arange(n) * 2 * np.pi / n
     positions = np.stack(

@@ -12,6 +12,7 @@ and pipeline on small images); there is no stand-in: if the pipeline fails, the 
 from __future__ import annotations
 
 import importlib
+import itertools
 import json
 import os
 import re
@@ -968,3 +969,73 @@ def test_map_readout_and_template_placement_by_keyboard(live_server, browser):
     page.keyboard.press("Enter")
     page.wait_for_selector("figure.template.chosen", timeout=15_000)
     assert f"at_x={x}" in page.url and f"at_y={y}" in page.url
+
+
+def test_a_plate_measured_at_stations_shows_them_on_its_map_and_page(
+    live_server, browser, tmp_path
+):
+    """Issue 29 in the browser: three station bundles chosen together in the Cell page's upload form,
+    measured as one plate by the real pipeline; the result page's map draws each station's outline,
+    numbered, along the plate, the page lists the stations, and the 3D view and the templates show the
+    whole plate."""
+    from tests.api.helpers import STATIONS_PLATE, render_stations, zip_folder
+
+    SHOTS.mkdir(exist_ok=True)
+    bundles = render_stations(tmp_path / "stations")
+    zips = []
+    for bundle in bundles:
+        zips.append(tmp_path / f"{bundle.name}.zip")
+        zips[-1].write_bytes(zip_folder(bundle))
+    page = browser.new_page(viewport={"width": 1920, "height": 1080})
+    errors = []
+    page.on("pageerror", lambda err: errors.append(str(err)))
+    violations = _watch_csp(page)
+    page.goto(f"{live_server['base']}/cell")
+    page.fill("input[name=plate_id]", STATIONS_PLATE)
+    page.check("input[name=source][value=upload]")
+    page.set_input_files("input[name=capture]", [str(z) for z in zips])
+    page.set_input_files("input[name=target]", str(tmp_path / "stations" / "target.json"))
+    page.click("button[type=submit]")
+    queued = re.compile(r"Inspection #(\d+) queued\.")  # the queue may not show the job yet
+    said = page.locator("#start-message", has_text=queued)
+    said.wait_for(timeout=30_000)
+    job_id = int(queued.search(said.inner_text()).group(1))
+    deadline = time.monotonic() + 180
+    while (doc := _api(live_server, "GET", f"/api/v1/inspections/{job_id}"))["status"] not in (
+        "done",
+        "error",
+    ):
+        assert time.monotonic() < deadline, "the inspection did not finish"
+        time.sleep(0.5)
+    assert doc["status"] == "done", (live_server["logs"] / "worker.log").read_text()[-3000:]
+    assert doc["plate_id"] == STATIONS_PLATE
+
+    page.goto(f"{live_server['base']}/inspections/{job_id}")
+    assert page.locator(".verdict-word").inner_text() == "PASS"
+    page.wait_for_selector("#plate-map[data-ready=true]", timeout=15_000)
+    outlines = page.locator("#plate-map .map-station")
+    assert outlines.count() == 3
+    assert [outlines.nth(k).get_attribute("data-station") for k in range(3)] == ["0", "1", "2"]
+    assert page.locator("#plate-map .map-station text").all_text_contents() == [
+        "station 0",
+        "station 1",
+        "station 2",
+    ]
+    # along the plate, in the order of the conveyor (y up on the map: station 0 lowest), overlapping
+    boxes = [
+        page.locator(f"#plate-map .map-station[data-station='{k}'] polygon").bounding_box()
+        for k in range(3)
+    ]
+    for lower, upper in itertools.pairwise(boxes):
+        assert upper["y"] < lower["y"] < upper["y"] + upper["height"], (lower, upper)
+    assert "each conveyor station's view" in page.locator(".map-legend").inner_text()
+    rows = page.locator("#station-table tbody tr")
+    assert rows.count() == 3
+    assert rows.nth(0).locator("td").first.inner_text() == "0"
+    assert re.fullmatch(r"\d+", rows.nth(1).locator("td").nth(4).inner_text())  # overlap matches
+    assert page.locator("figure.template").count() >= 1  # the templates cut the whole plate
+    frame = page.frame_locator("#viewer")
+    frame.get_by_text(f"Inspection {job_id}", exact=True).wait_for(timeout=30_000)
+    page.screenshot(path=SHOTS / "result-stations.png", full_page=True)
+    assert not errors, errors
+    assert not violations, violations

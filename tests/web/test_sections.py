@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.sections import cut_sections, plate_frame, section_positions
+from pipeline.judge.sections import cut_sections, plate_frame, section_positions
 from tests.web.plates import cylinder_grid
 
 
@@ -112,7 +112,7 @@ def test_trend_axis_ticks_are_round_numbers():
 
 
 def test_template_gap_enlargement_follows_the_tolerance_or_the_gap():
-    from pipeline.sections import Section
+    from pipeline.judge.sections import Section
     from web.charts import section_drawings
 
     u = np.linspace(0.0, 3000.0, 61)
@@ -141,7 +141,7 @@ def test_a_frame_goes_through_each_defect(tmp_path):
     import json
 
     from pipeline.artifacts.ply import write_surface_ply, write_target_ply
-    from pipeline.sections import load_sections
+    from pipeline.judge.sections import load_sections
 
     h, w = 60, 80
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
@@ -241,7 +241,7 @@ def test_a_frame_goes_through_a_chosen_point():
 def test_gap_labels_never_overlap_and_the_worst_gap_is_labelled():
     """A section measured over only a fifth of its length (a plate partly off the camera) with a
     sharp gap between two evenly spread label places: the labels keep apart, the worst gap has one."""
-    from pipeline.sections import Section
+    from pipeline.judge.sections import Section
     from web.charts import LABEL_SPACING_PX, section_drawings
 
     u = np.linspace(0.0, 3000.0, 241)

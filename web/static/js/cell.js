@@ -83,9 +83,10 @@ async function start(event) {
       created = await postJSON(`${base}/simulated`, body);
     } else {
       const data = new FormData();
-      const capture = form.elements.capture.files[0];
-      if (!capture) throw new Error("capture: choose a bundle .zip");
-      data.append("capture", capture);
+      // by its input: form.elements.capture also names the Capture button (its id)
+      const bundles = [...form.querySelector("input[name=capture]").files]; // several: a plate's stations
+      if (!bundles.length) throw new Error("capture: choose a bundle .zip");
+      for (const bundle of bundles) data.append("capture", bundle);
       if (form.elements.target.files[0]) data.append("target", form.elements.target.files[0]);
       const operator = operatorName();
       if (operator) data.append("operator", operator);

@@ -1,6 +1,7 @@
 // The deviation map in the plate's own frame (target frame, mm; y up): axes in mm, an orientation
-// mark at the origin, the defects numbered, the template frames, zoom and pan, the value under the
-// pointer. A click (not a drag) asks the page to put a template through that point.
+// mark at the origin, the defects numbered, the template frames, the outline of each conveyor station
+// of a plate measured at stations, zoom and pan, the value under the pointer. A click (not a drag)
+// asks the page to put a template through that point.
 import { getJSON } from "./api.js";
 
 // the SVG namespace, read from the page's own <svg> (the map's) when a map is made
@@ -79,9 +80,10 @@ export class PlateMap {
       href: this.figure.dataset.png, x: x0, y: -e[3], width: e[1] - e[0], height: e[3] - e[2],
       preserveAspectRatio: "none",
     }));
+    this.stationLayer = el("g", { class: "map-stations" });
     this.frameLayer = el("g", { class: "map-frames" });
     this.markLayer = el("g", { class: "map-marks" });
-    this.content.append(this.frameLayer, this.markLayer);
+    this.content.append(this.stationLayer, this.frameLayer, this.markLayer);
     // the plate's drawing stays inside the plot area when zoomed (the axes' margin is not the map)
     const clipId = `${this.figure.id || "plate-map"}-clip`;
     this.clipRect = el("rect");
@@ -134,9 +136,36 @@ export class PlateMap {
     const { x, y, w, h } = this.view;
     for (const [k, v] of Object.entries({ x, y: -(y + h), width: w, height: h })) this.clipRect.setAttribute(k, String(v));
     const unit = Math.max(this.view.w, this.view.h) / 100; // 1 % of the view, in mm
+    this.drawStations(unit);
     this.drawFrames(unit);
     this.drawMarks(unit);
     this.drawAxes(unit);
+  }
+
+  /** Each station's outline (where its image frame lies on the plate, target mm) and its number, at
+   * the map's left edge a quarter of the way up the part of the plate only that station sees (clear
+   * of the overlaps, and of the edge names at the middle of the sides). */
+  drawStations(unit) {
+    const [x0, , y0, y1] = this.data.extent_mm;
+    const stations = (this.data.stations || []).filter((s) => s.outline_mm);
+    const spans = stations.map((s) => {
+      const ys = s.outline_mm.map(([, y]) => y);
+      return [Math.min(...ys), Math.max(...ys)];
+    });
+    const outlines = stations.map((s, k) => {
+      const g = el("g", { class: "map-station", "data-station": s.index });
+      g.append(el("polygon", { points: s.outline_mm.map(([x, y]) => `${x},${-y}`).join(" ") }));
+      const [lo, hi] = spans[k];
+      let own = [Math.max(lo, spans[k - 1]?.[1] ?? lo, y0), Math.min(hi, spans[k + 1]?.[0] ?? hi, y1)];
+      if (own[0] >= own[1]) own = [Math.max(lo, y0), Math.min(hi, y1)];
+      const y = own[0] + 0.25 * (own[1] - own[0]);
+      g.append(
+        el("text", { x: x0 + unit, y: -y, "font-size": 2.6 * unit, "dominant-baseline": "central" }, `station ${s.index}`),
+        el("title", {}, `station ${s.index}: travel ${s.travel_mm.toFixed(1)} mm (encoder ${s.travel_encoder_mm.toFixed(1)} mm)`),
+      );
+      return g;
+    });
+    this.stationLayer.replaceChildren(...outlines);
   }
 
   drawFrames(unit) {

@@ -1,0 +1,371 @@
+"""The measurement's own uncertainty: per point and per result, expanded with k = 2 (GUM).
+
+Every component is propagated from what the inspection itself measured, never from the deviation
+it found:
+
+- **Photometric** (per point). The image noise of each photometric image (estimated on the plate
+  from its finest detail) and, where a pixel has more lights than unknowns, the residual of its
+  Lambertian fit, with the lights that lit it, give the covariance of its normal
+  ``sigma_I^2 (rho^2 L^T L)^-1``; its tangential part is a slope error per pixel step. The least-squares
+  integration of white slope errors over a region ``L`` pixels wide leaves a depth error of variance
+  ``sigma_g^2 (ln L / (2 pi) + 0.33)`` (the Neumann Laplacian's Green's function on a square,
+  summed exactly over its modes), where ``L`` is the scale above which the stereo pair governs the
+  shape (the correction's knot spacing, or the plate's extent when it sets only scale, tilt and
+  bend).
+- **Stereo correction** (per point). The standard deviation of the chosen correction from its fit's
+  covariance, the noise and its correlation measured on the data (:class:`pipeline.surface.fusion.Fusion`).
+- **Scale** (per point and radius). The stereo pair's scale rests on its disparities: the matcher's
+  disparity quantum (1/16 px, a rectangular distribution) and the calibration's reprojection
+  error over its board's corners give a relative scale uncertainty ``u_d / d``; a point moves by
+  that share of its height over the plate's best plane.
+- **Bend** (radius). How well the stereo pair fixes the plate's bend: the covariance of the
+  quadric correction's second derivatives, whichever correction was chosen (if the normals kept
+  the bend, the stereo pair could not prove it wrong by more than that).
+- **Registration** (per point and radius). The points' own noise over the independent patches the
+  best fit is made on (never the fit's residual, which holds the plate's real deviation too).
+
+The deviation's figure is the 95th percentile over the plate of the per-point expanded uncertainty
+``U = 2 u``; the radius's is ``U = 2 R sqrt(u_bend^2 + u_scale^2 + u_fit^2)`` (relative parts).
+
+References
+----------
+.. [1] JCGM 100:2008, "Evaluation of measurement data -- Guide to the expression of uncertainty in
+   measurement" (GUM).
+.. [2] ISO 14253-1:2017, "Decision rules for verifying conformity or nonconformity with
+   specifications".
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from pipeline.lights.model import Lights
+from pipeline.surface import fusion as fusion_mod
+from pipeline.surface.normals import NormalField
+from pipeline.surface.normals.noise import image_noise
+
+#: Coverage factor of every expanded uncertainty the inspection reports.
+COVERAGE_K = 2.0
+#: A tolerance over this many expanded uncertainties (95th percentile over the plate) is a capable
+#: measurement (the test uncertainty ratio of ISO 14253-1 practice); below it the result says so.
+CAPABLE_RATIO = 4.0
+#: Pixels sampled for the photometric part (every ``step``-th pixel in both directions so that about
+#: this many remain); the map is interpolated between them.
+PHOTOMETRIC_SAMPLES = 12_000
+#: The stereo matcher's disparity quantum (px): OpenCV's SGBM gives disparities in 1/16 px.
+DISPARITY_QUANTUM_PX = 1.0 / 16.0
+#: Patches (px) over which the registration's points count as independent (about the stereo blocks).
+REGISTRATION_PATCH_PX = 16.0
+#: The least-squares integration's depth variance per unit slope variance over a region L px wide:
+#: ``ln(L) / (2 pi) + INTEGRATION_OFFSET`` (exact sum over the Neumann Laplacian's modes of an
+#: L x L square; 0.320-0.326 for L = 32-2048).
+INTEGRATION_OFFSET = 0.326
+
+
+@dataclass(frozen=True)
+class Uncertainty:
+    """Expanded uncertainties (k = :data:`COVERAGE_K`) of an inspection.
+
+    Attributes
+    ----------
+    map_mm : (H, W) float32
+        Per-point expanded uncertainty of the surface along its normal, mm; NaN off the surface.
+    deviation_mm : float
+        The 95th percentile of ``map_mm`` over the judged surface, mm.
+    radius_mm : float or None
+        Expanded uncertainty of the fitted radius, mm (None without a radius).
+    components : dict
+        The standard uncertainties behind them (k = 1): ``photometric_mm``, ``correction_mm``
+        (95th percentiles over the plate), ``scale_rel``, ``bend_rel``, ``fit_rel``,
+        ``registration_mm``, and ``integration_scale_px`` (the ``L`` above).
+    """
+
+    map_mm: np.ndarray
+    deviation_mm: float
+    radius_mm: float | None
+    components: dict[str, float]
+
+    def capable(self, tolerance_mm: float) -> bool:
+        """Whether ``tolerance_mm / deviation_mm`` reaches :data:`CAPABLE_RATIO`."""
+        return bool(tolerance_mm >= CAPABLE_RATIO * self.deviation_mm)
+
+
+@dataclass(frozen=True)
+class Inputs:
+    """What the uncertainty is propagated from (one inspection's measurement).
+
+    Attributes
+    ----------
+    images : (N, H, W) float32
+        The preprocessed photometric images the normals came from (divided by the lights' intensities).
+    valid : (N, H, W) bool or None
+    lights : Lights
+        The lights the normals were estimated with (refined ones when they were refitted).
+    field : NormalField
+    points_mm : (H, W, 3) float
+        The measured surface, left camera frame, mm (NaN off it).
+    mask : (H, W) bool
+        The judged surface.
+    K : (3, 3) float
+    fusion : Fusion or None
+    baseline_mm : float or None
+        The stereo pair's baseline (None without a stereo pair: the working distance sets the scale).
+    calibration_rms_px : float or None
+    board_corners : int or None
+        Corners of the calibration board (None: unknown).
+    dark_noise : (N,) float or None
+        The dark frame's noise in each image's units (it was subtracted from every image: a noise
+        common to all of a pixel's samples), None without a dark frame.
+    own_noise : (N,) float or None
+        Each image's own noise in its units, measured on the raw (distorted) image: white, as the
+        sensor gives it. The undistorted images are interpolated, which lowers their per-pixel noise
+        but not the low frequencies the integration accumulates. None: measured on ``images``.
+    """
+
+    images: np.ndarray
+    valid: np.ndarray | None
+    lights: Lights
+    field: NormalField
+    points_mm: np.ndarray
+    mask: np.ndarray
+    K: np.ndarray
+    fusion: fusion_mod.Fusion | None
+    baseline_mm: float | None
+    calibration_rms_px: float | None
+    board_corners: int | None
+    dark_noise: np.ndarray | None = None
+    own_noise: np.ndarray | None = None
+
+
+def propagate(
+    x: Inputs, *, radius_mm: float | None, curved_direction: np.ndarray | None
+) -> Uncertainty:
+    """The inspection's expanded uncertainties (see the module docstring).
+
+    Parameters
+    ----------
+    x : Inputs
+    radius_mm : float or None
+        The fitted radius, mm (None: no radius to qualify).
+    curved_direction : (3,) float or None
+        Unit direction (camera frame) of the plate's stronger curvature (the radius's).
+
+    Returns
+    -------
+    Uncertainty
+    """
+    mask = x.mask & np.isfinite(x.points_mm[..., 2])
+    if not mask.any():
+        raise ValueError("mask: expected measured points to qualify, got none")
+    # every component on the grid of sampled pixels (the fields are smooth on its scale); the map
+    # is interpolated to every pixel at the end
+    step = _sample_step(mask)
+    grid = mask[::step, ::step]
+    z_typ = float(np.median(x.points_mm[::step, ::step, 2][grid]))
+    f_px = float(np.sqrt(x.K[0, 0] * x.K[1, 1]))
+    extent_px = _extent_px(mask)
+    scale_px = _integration_scale_px(x.fusion, extent_px)
+    var_ps = _photometric_var_mm2(x, mask, scale_px, step)
+    u_corr = np.zeros(grid.shape)
+    if (
+        x.fusion is not None
+    ):  # the chosen correction's noise, and what the next finer one would change
+        for part in (x.fusion.correction_sd_mm, x.fusion.model_sd_mm):
+            if part is not None:
+                u_corr = np.hypot(u_corr, np.nan_to_num(part[::step, ::step].astype(np.float64)))
+    u_scale = _scale_rel(x, z_typ, f_px)
+    height = _height_over_plane_mm(x.points_mm, mask, step) if u_scale > 0 else 0.0
+    u_reg = _registration_sd_mm(var_ps, u_corr, grid, step)
+    var = var_ps + u_corr**2 + (u_scale * height) ** 2 + u_reg**2
+    radius_u, bend_rel, fit_rel = None, 0.0, 0.0
+    if radius_mm is not None and math.isfinite(radius_mm):
+        bend_rel = _bend_rel(x, radius_mm, z_typ, f_px, curved_direction)
+        sagitta = _sagitta_mm(radius_mm, extent_px * z_typ / f_px)
+        fit_rel = u_reg / sagitta if sagitta > 0 else 0.0
+        radius_u = COVERAGE_K * radius_mm * math.sqrt(bend_rel**2 + u_scale**2 + fit_rel**2)
+    h, w = mask.shape
+    full = cv2.resize(var.astype(np.float32), (var.shape[1] * step, var.shape[0] * step))[:h, :w]
+    u_map = np.where(mask, np.sqrt(np.maximum(full, 0.0)), np.nan).astype(np.float32)
+    u95 = COVERAGE_K * float(np.percentile(u_map[mask], 95))  # the published map's own figure
+    return Uncertainty(
+        map_mm=COVERAGE_K * u_map,
+        deviation_mm=u95,
+        radius_mm=radius_u,
+        components={
+            "photometric_mm": round(float(np.sqrt(np.percentile(var_ps[grid], 95))), 4),
+            "correction_mm": round(float(np.percentile(u_corr[grid], 95)), 4),
+            "scale_rel": float(f"{u_scale:.3g}"),
+            "bend_rel": float(f"{bend_rel:.3g}"),
+            "fit_rel": float(f"{fit_rel:.3g}"),
+            "registration_mm": round(u_reg, 5),
+            "integration_scale_px": round(scale_px, 1),
+        },
+    )
+
+
+def _registration_sd_mm(
+    var_ps: np.ndarray, u_corr: np.ndarray, grid: np.ndarray, step: int
+) -> float:
+    """Standard uncertainty (mm) the best-fit registration adds at a point: the points' own noise over
+    the independent patches it is fitted to (:data:`REGISTRATION_PATCH_PX` wide). ``var_ps``,
+    ``u_corr`` and ``grid`` on the grid of every ``step``-th pixel.
+
+    Only the measurement's noise enters: the fit's residual also holds the plate's real deviation
+    from its target (a dent, an under-bent plate), which is what is measured, not noise.
+    """
+    typical = float(np.sqrt(np.median((var_ps + u_corr**2)[grid])))
+    patches = max(float(np.count_nonzero(grid)) * step**2 / REGISTRATION_PATCH_PX**2, 1.0)
+    return typical / math.sqrt(patches)
+
+
+def _extent_px(mask: np.ndarray) -> float:
+    rows = np.flatnonzero(mask.any(axis=1))
+    cols = np.flatnonzero(mask.any(axis=0))
+    return float(max(rows[-1] - rows[0] + 1, cols[-1] - cols[0] + 1))
+
+
+def _integration_scale_px(fused: fusion_mod.Fusion | None, extent_px: float) -> float:
+    """The width (px) up to which the normals alone make the shape: the correction's knot spacing, or
+    the plate's extent when the stereo pair sets only scale, tilt and bend (or there is none)."""
+    if fused is not None and fused.knot_spacing_px is not None:
+        return float(min(fused.knot_spacing_px, extent_px))
+    return extent_px
+
+
+def _sample_step(mask: np.ndarray) -> int:
+    """The grid step (px) that leaves about PHOTOMETRIC_SAMPLES of the mask's pixels."""
+    return max(1, int(math.sqrt(np.count_nonzero(mask) / PHOTOMETRIC_SAMPLES)))
+
+
+def _photometric_var_mm2(x: Inputs, mask: np.ndarray, scale_px: float, step: int) -> np.ndarray:
+    """Variance (mm^2) of the integrated depth from the normals' noise, on the grid of every ``step``-th
+    pixel (shape of ``mask[::step, ::step]``).
+
+    The normal's tangential standard deviation from its fit (image noise, and the fit's residual where
+    it has degrees of freedom left), times the pixel's footprint (mm per pixel step), smoothed over its
+    neighbourhood (the integration averages the slopes around a point) and scaled by the
+    integration's gain over ``scale_px``.
+    """
+    h, w = mask.shape
+    rows, cols = np.nonzero(mask[::step, ::step] & x.field.mask[::step, ::step])
+    rows, cols = rows * step, cols * step
+    images = x.images[:, rows, cols].astype(np.float64)  # (N, P)
+    valid = np.ones_like(images, bool) if x.valid is None else x.valid[:, rows, cols]
+    n = x.field.normals[rows, cols].astype(np.float64)  # (P, 3)
+    rho = x.field.albedo[rows, cols].astype(np.float64)
+    pts = x.points_mm[rows, cols]
+    dirs = x.lights.directions_at(pts)  # (N, P, 3)
+    att = x.lights.attenuation_at(pts)  # (N, P)
+    g = att[..., None] * dirs  # irradiance vectors per unit intensity
+    shade = np.einsum("npc,pc->np", g, n)
+    lit = valid & (shade > 0) & np.isfinite(images)
+    pred = rho[None] * shade
+    res = np.where(lit, images - pred, 0.0)
+    m = lit.sum(axis=0)
+    dark = np.zeros(len(images)) if x.dark_noise is None else np.asarray(x.dark_noise)
+    if x.own_noise is not None:
+        own = np.asarray(x.own_noise, dtype=np.float64)
+    else:  # the undistorted images' noise holds the dark frame's too
+        own = np.sqrt(np.maximum(image_noise(x.images, mask) ** 2 - dark**2, 0.0))
+    # the fit's residual where the pixel has more lights than unknowns, pooled with the images' own
+    # noise as a prior of 3 degrees of freedom; never below that noise (the residual of interpolated
+    # images understates the white noise the integration accumulates)
+    prior_dof = 3.0
+    s0 = (own[:, None] * lit).sum(axis=0) / np.maximum(m, 1)
+    pooled = (np.sum(res**2, axis=0) + prior_dof * s0**2) / (np.maximum(m - 3, 0) + prior_dof)
+    s2 = np.maximum(pooled, s0**2)
+    gram = np.einsum("npc,npd,np->pcd", g, g, lit.astype(np.float64))
+    # the dark frame's noise is one value shared by the pixel's samples: along gram^-1 G^T d
+    common = np.einsum("npc,np,n->pc", g, lit.astype(np.float64), dark)
+    tangential, shared = _tangential_parts(gram, common, n)  # per unit albedo
+    var_n = s2 * tangential + shared
+    var_n = var_n / np.maximum(rho, 1e-6) ** 2
+    var_n = np.where((m >= 3) & np.isfinite(var_n), var_n, np.nan)
+    footprint = pts[:, 2] / math.sqrt(x.K[0, 0] * x.K[1, 1])  # mm per pixel step
+    var_g = var_n * footprint**2 / np.maximum(-n[:, 2], 0.2) ** 4
+    gain = math.log(max(scale_px, 2.0)) / (2.0 * math.pi) + INTEGRATION_OFFSET
+    coarse = np.full(((h + step - 1) // step, (w + step - 1) // step), np.nan, np.float32)
+    coarse[rows // step, cols // step] = var_g * gain
+    return _spread(coarse, radius=max(2, int(round(8 / step)) + 1))
+
+
+def _tangential_parts(
+    gram: np.ndarray, common: np.ndarray, n: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel, from one inverse of ``gram``: the mean variance of the two tangential components of
+    ``gram^-1`` (the normal's covariance per unit image variance and albedo), and the mean squared
+    tangential component of ``gram^-1 common`` (a noise shared by all the pixel's samples); inf where
+    the lights leave the normal undetermined."""
+    independent = np.full(len(n), np.inf)
+    shared = np.full(len(n), np.inf)
+    ok = np.abs(np.linalg.det(gram)) > 1e-12
+    inv = np.linalg.inv(gram[ok])
+    nn = n[ok]
+    proj = np.eye(3)[None] - nn[:, :, None] * nn[:, None, :]
+    independent[ok] = 0.5 * np.einsum("pij,pjk,pki->p", proj, inv, proj)
+    t = np.einsum("pij,pjk,pk->pi", proj, inv, common[ok])
+    shared[ok] = 0.5 * np.sum(t * t, axis=1)
+    return independent, shared
+
+
+def _spread(coarse_var: np.ndarray, radius: int) -> np.ndarray:
+    """Sampled variances averaged over a neighbourhood of ``radius`` samples (NaN: no sample; where
+    none is near, the median)."""
+    have = np.isfinite(coarse_var)
+    num = cv2.blur(np.where(have, coarse_var, 0.0).astype(np.float32), (radius, radius))
+    den = cv2.blur(have.astype(np.float32), (radius, radius))
+    fallback = float(np.nanmedian(coarse_var)) if have.any() else 0.0
+    var: np.ndarray = np.where(den > 0, num / np.maximum(den, 1e-12), fallback).astype(np.float64)
+    return var
+
+
+def _scale_rel(x: Inputs, z_typ: float, f_px: float) -> float:
+    """Relative standard uncertainty of the stereo pair's scale (0 without a stereo pair: the working
+    distance is then a stated value, its own uncertainty the user's)."""
+    if x.baseline_mm is None or x.fusion is None:
+        return 0.0
+    disparity = f_px * x.baseline_mm / z_typ
+    u_d2 = (DISPARITY_QUANTUM_PX / math.sqrt(12.0)) ** 2
+    if x.calibration_rms_px is not None:
+        corners = max(x.board_corners or 1, 1)
+        u_d2 += x.calibration_rms_px**2 / corners
+    return math.sqrt(u_d2) / disparity
+
+
+def _height_over_plane_mm(points: np.ndarray, mask: np.ndarray, step: int) -> np.ndarray:
+    """Distance (mm) of the points of every ``step``-th pixel from the surface's best plane (shape of
+    ``mask[::step, ::step]``, 0 off the mask)."""
+    grid = mask[::step, ::step]
+    sampled = points[::step, ::step]
+    p = sampled[grid]
+    centre = p.mean(axis=0)
+    normal = np.linalg.svd(p - centre, full_matrices=False)[2][-1]
+    height = np.abs(np.nan_to_num((sampled - centre) @ normal))
+    out: np.ndarray = np.where(grid, height, 0.0)
+    return out
+
+
+def _sagitta_mm(radius_mm: float, chord_mm: float) -> float:
+    half = min(chord_mm / 2.0, radius_mm)
+    return radius_mm - math.sqrt(max(radius_mm**2 - half**2, 0.0))
+
+
+def _bend_rel(
+    x: Inputs, radius_mm: float, z_typ: float, f_px: float, direction: np.ndarray | None
+) -> float:
+    """Relative standard uncertainty of the radius from the stereo pair's hold on the bend."""
+    if x.fusion is None or x.fusion.bend_cov is None:
+        return 0.0
+    a, b = 1.0, 0.0
+    if direction is not None and np.all(np.isfinite(direction)):
+        d = np.asarray(direction, dtype=np.float64)[:2]
+        if np.linalg.norm(d) > 1e-9:
+            a, b = d / np.linalg.norm(d)
+    w = np.array([a * a, 2.0 * a * b, b * b])
+    sd = math.sqrt(max(float(w @ x.fusion.bend_cov @ w), 0.0))  # log depth per px^2
+    kappa_sd = f_px**2 / z_typ * sd  # 1/mm
+    return radius_mm * kappa_sd

@@ -1,0 +1,422 @@
+"""The joint fit of point lights (LEDs) on samples of a plate of known geometry (variable projection).
+
+Every light k is a point light (:mod:`pipeline.lights.model`) with position ``P_k`` (mm), LED axis ``a_k``
+(unit, 2 degrees of freedom), beam exponent ``mu_k >= 0`` and intensity ``e_k``; sample ``I_pk`` of
+surface point ``X_p`` (normal ``n_p``) under light k is modelled as
+
+    I_pk = rho_p * E_k(X_p, n_p)
+
+with the sample's unknown albedo (times exposure) ``rho_p``. All lights are fitted jointly
+(Levenberg-Marquardt on the 7 N x 7 N normal equations, analytic Jacobian) on the residuals
+``I_pk - rho_p E_k(X_p)`` with ``rho_p`` eliminated in closed form per sample (variable projection,
+``rho_p = sum_k I E / sum_k E^2``): only the ratios of a sample's values matter, so any albedo
+pattern cancels. Residuals stay linear in the image counts (the sensor's noise is additive), which
+keeps the fit unbiased where a fit of log ratios would not be. A fit per light with the other lights
+held fixed stalls far from the solution (the albedo estimate couples them); the joint fit from
+nominal lights converges.
+
+Used by the light calibration on a flat reference plate (:mod:`pipeline.lights.calibration`) and by
+the lights refitted at inspection on the stereo geometry (:mod:`pipeline.lights.refinement`).
+
+References
+----------
+.. [1] G. H. Golub, V. Pereyra, "The differentiation of pseudo-inverses and nonlinear least
+   squares problems whose variables separate", SIAM J. Numer. Anal. 10(2), 1973.
+.. [2] Y. Queau, B. Durix, T. Wu, D. Cremers, F. Lauze, J.-D. Durou, "LED-based photometric
+   stereo: modeling, calibration and numerical solution", J. Math. Imaging Vis. 60, 2018.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, overload
+
+import numpy as np
+
+from pipeline.lights.model import REFERENCE_DISTANCE_MM, Lights
+
+#: Parameters per light in the joint fit: position (3, mm), axis (2, tangent offsets), mu, log intensity.
+_N_PARAMS = 7
+
+
+@dataclass(frozen=True)
+class PlatePose:
+    """The reference plate's plane in one capture, from its stereo pair.
+
+    Attributes
+    ----------
+    normal : (3,) float64
+        Unit normal, left-camera frame, towards the cameras.
+    centre_mm : (3,) float64
+        Centre of the plate (the mean of its pixels' surface points), left-camera frame, mm.
+    rms_mm : float
+        RMS orthogonal distance (mm) of the stereo points kept by the robust fit to the plane.
+    stereo_points : int
+        Stereo points on the plate used by the fit.
+    """
+
+    normal: np.ndarray
+    centre_mm: np.ndarray
+    rms_mm: float
+    stereo_points: int
+
+
+@dataclass(frozen=True)
+class Samples:
+    """Block-mean samples of one or more captures (P samples, N lights)."""
+
+    intensity: np.ndarray  # (P, N) fraction of full scale, dark subtracted
+    points: np.ndarray  # (P, 3) mm
+    normals: np.ndarray  # (P, 3)
+
+
+@dataclass(frozen=True)
+class _Param:
+    """How the fit's parameter vector maps to lights: axis offsets in a fixed tangent basis."""
+
+    axis0: np.ndarray  # (N, 3) unit
+    tangents: np.ndarray  # (N, 2, 3) orthonormal, across axis0
+
+    @classmethod
+    def around(cls, axes: np.ndarray) -> _Param:
+        """The parametrisation about ``axes`` (N, 3): a tangent basis across each."""
+        tangents = np.empty((len(axes), 2, 3))
+        for k, a in enumerate(axes):
+            helper = np.eye(3)[int(np.argmin(np.abs(a)))]
+            t1 = np.cross(a, helper)
+            t1 /= np.linalg.norm(t1)
+            tangents[k] = (t1, np.cross(a, t1))
+        return cls(axis0=axes.copy(), tangents=tangents)
+
+    def vector(self, lights: Lights) -> np.ndarray:
+        """(N * 7,) from lights whose axes are ``axis0``."""
+        x = np.zeros((lights.n, _N_PARAMS))
+        x[:, :3] = lights.positions_mm
+        x[:, 5] = lights.mu
+        x[:, 6] = np.log(lights.intensity)
+        return x.ravel()
+
+    def axes(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Unit axes (N, 3) and the unnormalised ones' lengths (N,)."""
+        p = x.reshape(-1, _N_PARAMS)
+        raw = self.axis0 + p[:, 3:4] * self.tangents[:, 0] + p[:, 4:5] * self.tangents[:, 1]
+        length = np.linalg.norm(raw, axis=1)
+        return raw / length[:, None], length
+
+    def lights(self, x: np.ndarray) -> Lights:
+        """The point lights of a parameter vector."""
+        p = x.reshape(-1, _N_PARAMS)
+        axes, _ = self.axes(x)
+        return Lights.points(p[:, :3], np.exp(p[:, 6]), axes=axes, mu=np.maximum(p[:, 5], 0.0))
+
+
+def _irradiance_of(lights: Lights, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """E (P, N) of point lights (with axes) at samples: :meth:`Lights.irradiance`, vectorised over the lights."""
+    param = _Param(axis0=lights.axes, tangents=np.zeros((lights.n, 2, 3)))
+    return _irradiance(param.vector(lights), param, points, normals, jac=False)[0]
+
+
+@overload
+def _irradiance(
+    x: np.ndarray, param: _Param, points: np.ndarray, normals: np.ndarray, *, jac: Literal[False]
+) -> tuple[np.ndarray, None]: ...
+
+
+@overload
+def _irradiance(
+    x: np.ndarray, param: _Param, points: np.ndarray, normals: np.ndarray, *, jac: Literal[True]
+) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+def _irradiance(
+    x: np.ndarray, param: _Param, points: np.ndarray, normals: np.ndarray, *, jac: bool
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """E (P, N) of every light at every sample and, with ``jac``, dE/d(parameters of its light) (P, N, 7)."""
+    p = x.reshape(-1, _N_PARAMS)
+    axes, length = param.axes(x)
+    mu = p[:, 5]
+    v = p[None, :, :3] - points[:, None, :]  # (P, N, 3) surface -> light
+    d2 = np.einsum("pnc,pnc->pn", v, v)
+    d = np.sqrt(d2)
+    cos = -np.einsum("pnc,nc->pn", v, axes) / d  # axis against the ray light -> surface
+    facing = np.einsum("pnc,pc->pn", v, normals)
+    lit = (cos > 0) & (facing > 0)
+    cos_c = np.where(lit, cos, 1.0)
+    facing_c = np.where(lit, facing, 1.0)
+    log_cos = np.log(cos_c)
+    E = np.where(
+        lit,
+        np.exp(p[None, :, 6] + mu[None, :] * log_cos)
+        * REFERENCE_DISTANCE_MM**2
+        * facing_c
+        / (d2 * d),
+        0.0,
+    )
+    if not jac:
+        return E, None
+    G = np.empty((*E.shape, _N_PARAMS))
+    inv_d2 = 1.0 / d2
+    # d log E / d P = -3 v / d^2 + mu (-a / (cos d) - v / d^2) + n / (n . v)
+    G[..., :3] = (
+        -(3.0 + mu[None, :, None]) * v * inv_d2[..., None]
+        - (mu[None, :] / (cos_c * d))[..., None] * axes[None]
+        + normals[:, None, :] / facing_c[..., None]
+    )
+    # d log E / d a = -mu v / (d cos); da/du = (t - a (a . t)) / |raw|
+    g_axis = -(mu[None, :] / (d * cos_c))[..., None] * v
+    for i in range(2):
+        t = param.tangents[:, i]
+        da = (t - axes * np.einsum("nc,nc->n", axes, t)[:, None]) / length[:, None]
+        G[..., 3 + i] = np.einsum("pnc,nc->pn", g_axis, da)
+    G[..., 5] = log_cos
+    G[..., 6] = 1.0
+    G *= E[..., None]
+    return E, G
+
+
+# =========================================================================== fit
+
+
+@dataclass(frozen=True)
+class JointFit:
+    """What :func:`joint_fit` found: the lights, the residuals ``I - rho E`` (P, N), their RMS as a fraction
+    of the mean sample, the standard errors of the positions (mm), log intensities and mu, the Jacobian
+    evaluations, and whether (and how) it converged."""
+
+    lights: Lights
+    residuals: np.ndarray  # (P, N)
+    rms: float
+    position_std_mm: np.ndarray
+    intensity_std: np.ndarray
+    mu_std: np.ndarray
+    njev: int
+    success: bool
+    message: str
+
+
+def albedo_projected(I: np.ndarray, E: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-sample albedo ``rho`` (P,) eliminated in closed form, ``S = |E_p|^2`` (P,) and the residuals (P, N)."""
+    S = np.einsum("pn,pn->p", E, E)
+    rho = np.einsum("pn,pn->p", I, E) / np.maximum(S, 1e-300)
+    return rho, S, I - rho[:, None] * E
+
+
+def joint_fit(
+    start: Lights, data: Samples, *, fixed_mu: bool = False, max_iter: int = 100
+) -> JointFit:
+    """All lights at once: Levenberg-Marquardt on the variable-projection residuals.
+
+    The 7 N parameters (position mm, two axis offsets, mu, log intensity per light) are solved on
+    the normal equations ``(J^T J + lambda D^2) dx = -J^T r`` (D: the columns' norms), 7 N x 7 N:
+    far cheaper than factorising the (P N) x 7 N Jacobian every step (as scipy's least_squares
+    does). ``mu`` is kept >= 0 by projection; ``fixed_mu`` holds it at the start's
+    values. The common factor of the intensities is pinned by one extra residual,
+    ``w * mean(log e)``, which the data do not see (ratios).
+
+    Parameters
+    ----------
+    start : Lights
+        N point lights with axes, the start.
+    data : Samples
+        P samples of the N lights.
+    fixed_mu : bool
+    max_iter : int
+        Most Levenberg-Marquardt steps.
+
+    Returns
+    -------
+    JointFit
+    """
+    problem = _Problem(start, data)
+    x = problem.param.vector(start)
+    x[5::_N_PARAMS] = np.maximum(x[5::_N_PARAMS], 0.0)
+    free = np.ones(problem.n_par, bool)
+    free[5::_N_PARAMS] = not fixed_mu
+    x, r, njev, success, message = _levenberg_marquardt(problem, x, free, max_iter)
+    A, _ = problem.normal_equations(x)
+    njev += 1
+    P, N = data.intensity.shape
+    dof = max(P * N - P - (problem.n_par - 1), 1)
+    s2 = float(np.sum(r * r)) / dof
+    var = (s2 * _diagonal_of_inverse(A)).reshape(N, _N_PARAMS)
+    return JointFit(
+        lights=problem.param.lights(x),
+        residuals=r,
+        rms=float(np.sqrt(np.mean(r * r)) / np.mean(data.intensity)),
+        position_std_mm=np.sqrt(var[:, :3].sum(axis=1)),
+        intensity_std=np.sqrt(var[:, 6]),
+        mu_std=np.sqrt(var[:, 5]),
+        njev=njev,
+        success=success and bool(np.all(np.isfinite(x))),
+        message=message,
+    )
+
+
+class _Problem:
+    """The variable-projection least squares of :func:`joint_fit`: its cost and its normal equations."""
+
+    def __init__(self, start: Lights, data: Samples) -> None:
+        self.I, self.X, self.nrm = data.intensity, data.points, data.normals
+        self.P, self.N = self.I.shape
+        self.n_par = self.N * _N_PARAMS
+        self.param = _Param.around(start.axes)
+        self.gauge_row = np.zeros(self.n_par)
+        self.gauge_row[6::_N_PARAMS] = 1.0 / self.N
+        self.gauge_weight = float(np.sqrt(self.P) * np.mean(self.I))
+
+    def cost(self, x: np.ndarray) -> tuple[float, np.ndarray]:
+        """The cost (data and gauge residuals squared) and the data residuals (P, N) at ``x``."""
+        E, _ = _irradiance(x, self.param, self.X, self.nrm, jac=False)
+        _, _, r = albedo_projected(self.I, E)
+        gauge = self.gauge_weight * (self.gauge_row @ x)
+        return float(np.sum(r * r) + gauge * gauge), r
+
+    def normal_equations(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """J^T J (n_par, n_par) and J^T r (n_par,) of the data and the gauge residual.
+
+        With the albedo eliminated, ``r_pk = I_pk - rho_p E_pk`` and ``rho_p = (I_p . E_p) / S_p``
+        (``S_p = |E_p|^2``), the Jacobian is ``J[p, k, j] = -E_pk h_pj - [k == j] rho_p G_pj``
+        with ``G_pj = dE_pj / d(light j's parameters)`` and ``h_pj = G_pj (I_pj - 2 rho_p E_pj) / S_p``
+        (Golub and Pereyra's, exact for one linear parameter per sample). Its products are summed
+        in closed form instead of forming the (P N) x 7 N matrix; ``E_p . r_p = 0`` leaves
+        ``J^T r = -sum_p rho_p G_pj r_pj``.
+        """
+        I, P, N, n_par = self.I, self.P, self.N, self.n_par
+        E, G = _irradiance(x, self.param, self.X, self.nrm, jac=True)
+        rho, S, r = albedo_projected(I, E)
+        coef = (I - 2.0 * rho[:, None] * E) / np.maximum(S, 1e-300)[:, None]
+        H = (coef[:, :, None] * G).reshape(P, n_par)
+        F = (E[:, :, None] * G).reshape(P, n_par)
+        Gf = G.reshape(P, n_par)
+        cross = H.T @ (rho[:, None] * F)
+        A = H.T @ (S[:, None] * H) + cross + cross.T
+        rg = rho[:, None] * Gf
+        for j in range(N):
+            sl = slice(j * _N_PARAMS, (j + 1) * _N_PARAMS)
+            A[sl, sl] += rg[:, sl].T @ rg[:, sl]
+        g = -np.einsum("pj,pj->j", rg, np.repeat(r, _N_PARAMS, axis=1))
+        A += self.gauge_weight**2 * np.outer(self.gauge_row, self.gauge_row)
+        g += self.gauge_weight**2 * (self.gauge_row @ x) * self.gauge_row
+        return A, g
+
+
+def _levenberg_marquardt(
+    problem: _Problem, x: np.ndarray, free: np.ndarray, max_iter: int
+) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
+    """Levenberg-Marquardt steps over the ``free`` parameters from ``x`` (mu kept >= 0 by projection).
+
+    Returns the parameters, the residuals there, the Jacobian evaluations, whether it converged and how.
+    """
+    n_par = problem.n_par
+    cost, r = problem.cost(x)
+    lam, njev, success, message = 1e-3, 0, False, "maximum number of iterations reached"
+    for _ in range(max_iter):
+        A, g = problem.normal_equations(x)
+        njev += 1
+        D2 = np.maximum(np.diag(A), 1e-12 * np.max(np.diag(A)))
+        improved = False
+        while lam < 1e12:
+            try:
+                step = np.zeros(n_par)
+                step[free] = -np.linalg.solve((A + lam * np.diag(D2))[np.ix_(free, free)], g[free])
+            except np.linalg.LinAlgError:
+                lam *= 10.0
+                continue
+            trial = x + step
+            trial[5::_N_PARAMS] = np.maximum(trial[5::_N_PARAMS], 0.0)
+            new_cost, new_r = problem.cost(trial)
+            if np.isfinite(new_cost) and new_cost < cost:
+                improved = True
+                break
+            lam *= 4.0
+        if not improved:
+            success, message = True, "no step lowers the cost (converged)"
+            break
+        decrease = cost - new_cost
+        scaled_step = np.sqrt(np.sum(D2 * (trial - x) ** 2) / max(cost, 1e-300))
+        x, cost, r = trial, new_cost, new_r
+        lam = max(lam / 3.0, 1e-9)
+        if decrease <= 1e-10 * cost or scaled_step < 1e-8:
+            success, message = True, "converged"
+            break
+    return x, r, njev, success, message
+
+
+def _diagonal_of_inverse(A: np.ndarray) -> np.ndarray:
+    """diag(A^+) of a symmetric positive semi-definite matrix, scaled to unit diagonal first.
+
+    Columns the data do not see at all (an LED axis when ``mu = 0``) get ``inf``; a parameter that
+    is not determined gets a large variance, never a zero one.
+    """
+    d = np.diag(A).copy()
+    seen = d > 1e-300 * max(float(d.max()), 1e-300)
+    out = np.full(len(d), np.inf)
+    scale = 1.0 / np.sqrt(d[seen])
+    As = A[np.ix_(seen, seen)] * scale[:, None] * scale[None, :]
+    w, V = np.linalg.eigh(As)
+    keep = w > 1e-12 * w.max()
+    inv = np.where(keep, 1.0 / np.where(keep, w, 1.0), 0.0)
+    diag = (V * V) @ inv
+    diag[(V[:, ~keep] ** 2).sum(axis=1) > 1e-6] = np.inf  # along a null direction: undetermined
+    out[seen] = diag * scale * scale
+    return out
+
+
+def initial_point_lights(
+    given: Lights, pose: PlatePose, data: Samples, *, initial_mu: float
+) -> Lights:
+    """Point lights to start the joint fit from.
+
+    Point lights the capture gives are taken as they are (an axis towards the plate's centre and
+    ``initial_mu`` where none is given). A distant light (a nominal direction) becomes a point light on
+    the ray from the plate's centre in its direction, aimed at the centre, with the irradiance the
+    capture gives at the centre; its distance along the ray comes from a 1-D search (41 distances
+    from 0.15 to 4 times the centre's distance from the camera), one distance for all of them.
+    """
+    c = pose.centre_mm
+    n = given.n
+    dirs = given.directions_at(c)
+    positions = given.positions_mm.copy()
+    axes = given.axes.copy()
+    mu = given.mu.copy()
+    distant = ~given.is_point
+    at_centre = given.intensity * given.attenuation_at(
+        c
+    )  # irradiance at the centre, facing the light
+    for k in range(n):
+        if not np.isfinite(axes[k]).all():
+            towards = c - positions[k] if given.is_point[k] else -dirs[k]
+            axes[k] = towards / np.linalg.norm(towards)
+            mu[k] = initial_mu
+    intensity = given.intensity.copy()
+    if not distant.any():
+        return Lights.points(positions, intensity, axes=axes, mu=mu)
+
+    # a subsample is plenty for the search
+    step = max(1, len(data.intensity) // 1500)
+    I, X, nrm = data.intensity[::step], data.points[::step], data.normals[::step]
+    centre_distance = float(np.linalg.norm(c))
+
+    def lights_at(t: np.ndarray) -> Lights:
+        pos = positions.copy()
+        pos[distant] = c + t[distant, None] * dirs[distant]
+        ax = axes.copy()
+        ax[distant] = -dirs[distant]
+        unit = Lights.points(pos, np.ones(n), axes=ax, mu=mu)
+        return unit.with_intensity(at_centre / unit.attenuation_at(c))
+
+    def cost(t: np.ndarray) -> float:
+        E = _irradiance_of(lights_at(t), X, nrm)
+        _, _, r = albedo_projected(I, E)
+        return float(np.sum(r * r))
+
+    # one distance for all of them (a ring of lights at one height is the usual cell); a search per
+    # light with the others fixed was tried and can settle a light in a wrong, ill-determined minimum
+    t = np.full(n, np.nan)
+    grid = centre_distance * np.geomspace(0.15, 4.0, 41)
+    costs = []
+    for value in grid:
+        t[distant] = value
+        costs.append(cost(t))
+    t[distant] = grid[int(np.argmin(costs))]
+    return lights_at(t)

@@ -1,0 +1,308 @@
+"""Lights refined against the stereo geometry: what the images say the lights are, on the measured plate.
+
+A capture's light list can be wrong in ways that bend the photometric surface: a light bumped by a
+crane (its direction off by a degree), or LEDs 3 m away given only as their nominal direction from
+the plate's centre. The stereo pair measures the plate's shape independently; on a smooth surface
+through it (:func:`pipeline.surface.fusion.smooth_stereo_depth`) every sample block has a known point X and
+normal n, and its images must be ``I_k = rho * E_k(X, n)`` with one unknown albedo rho per block.
+Two models of the lights are fitted to block samples with the albedo eliminated in closed form:
+
+- **distant**: ``E_k = max(0, n . g_k)`` with ``g_k = e_k d_k``, by alternating least squares (rho
+  given g is a ratio, g given rho a 3x3 system per light). Where the plate's normals span too little
+  to fix a component of ``g_k`` (a cylinder bends one way only), a weak pull towards the given light
+  keeps it (Tikhonov);
+- **point**: position, LED axis and profile, intensity per light, the joint fit of
+  :mod:`pipeline.lights.fit` started on the given directions from the plate's centre.
+
+The point model is taken when it explains the samples clearly better than any distant model
+(nominal directions of what really are near-field LEDs); else the refined distant lights.
+
+References
+----------
+.. [1] Y. Queau et al., "LED-based photometric stereo: modeling, calibration and numerical solution",
+   J. Math. Imaging Vis. 60, 2018 (calibration of near-field lights on a known surface).
+.. [2] G. H. Golub, V. Pereyra, "The differentiation of pseudo-inverses and nonlinear least squares
+   problems whose variables separate", SIAM J. Numer. Anal. 10(2), 1973.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy import special
+from threadpoolctl import threadpool_limits
+
+from pipeline.lights import fit as light_fit
+from pipeline.lights.model import Lights
+
+#: At most this many sample blocks enter the fits.
+MAX_SAMPLES = 3000
+#: The point model is taken when its residual is below this fraction of the refined distant one's.
+POINT_MODEL_GAIN = 0.7
+#: Alternating least-squares rounds of the distant model.
+DISTANT_ROUNDS = 30
+#: Pull of a distant light towards the given one, relative to the data's mean eigenvalue.
+DISTANT_PRIOR = 1e-2
+#: Free parameters per light of the distant model (direction times intensity) and of the point model
+#: (position, axis, profile, intensity).
+DISTANT_PARAMS, POINT_PARAMS = 3, 7
+#: Significance level of the F-test that lets refined lights replace the given ones.
+SIGNIFICANCE = 1e-3
+
+
+def _significant(rms_given: float, rms_model: float, n_params: int, n_blocks: int) -> bool:
+    """Whether a refitted light model explains the samples better than the given lights beyond chance.
+
+    An F-test of the drop of the residual variance for the model's ``n_params`` parameters, with one
+    degree of freedom per sample block (a block's residuals under the N lights share its albedo and
+    the smooth surface's normal error, so they are counted as one observation, not N).
+    """
+    dof = n_blocks - n_params
+    if not (rms_model > 0 and dof > 0 and np.isfinite(rms_model)):
+        return False
+    f = ((rms_given**2 - rms_model**2) / n_params) / (rms_model**2 / dof)
+    # the F distribution's quantile through the regularised incomplete beta function
+    x = float(special.betaincinv(n_params / 2.0, dof / 2.0, 1.0 - SIGNIFICANCE))
+    return bool(f > dof / n_params * x / (1.0 - x))
+
+
+@dataclass(frozen=True)
+class LightRefinement:
+    """Lights fitted to a capture on the stereo geometry.
+
+    Attributes
+    ----------
+    lights : Lights
+        The refined lights (left-camera frame, mm): point lights when ``model == "point"``, else
+        distant ones. Intensities on the scale of the given lights (the same mean irradiance at the
+        plate's centre).
+    model : {"distant", "point"}
+    rms_given, rms_distant, rms_point : float
+        RMS residual of the samples under the given lights, the refined distant ones and the fitted
+        point lights, as a fraction of the mean sample (``rms_point`` NaN if the fit failed).
+    corrections : list of dict
+        Per light: ``turn_deg`` (angle between the given and the refined direction, seen from the
+        plate's centre), ``intensity_ratio`` (refined / given irradiance at the centre) and, for the
+        point model, ``position_mm``.
+    n_samples : int
+        Sample blocks used.
+    """
+
+    lights: Lights
+    model: str
+    rms_given: float
+    rms_distant: float
+    rms_point: float
+    corrections: list[dict[str, float | list[float]]]
+    n_samples: int
+
+
+def refine_lights(
+    images: np.ndarray,
+    valid: np.ndarray | None,
+    mask: np.ndarray,
+    lights: Lights,
+    depth_mm: np.ndarray,
+    K: np.ndarray,
+    *,
+    max_samples: int = MAX_SAMPLES,
+    seed: int = 0,
+) -> LightRefinement | None:
+    """Fit the lights to the images on a known smooth surface.
+
+    Parameters
+    ----------
+    images : (N, H, W) float32
+        Preprocessed images (dark-subtracted, undistorted, divided by each given light's intensity).
+    valid : (N, H, W) bool or None
+        Usable samples.
+    mask : (H, W) bool
+        Plate pixels.
+    lights : Lights
+        The lights the capture gives, in image order.
+    depth_mm : (H, W) float
+        A smooth surface through the stereo depth (mm along the optical axis), finite on ``mask``.
+    K : (3, 3) float
+        Intrinsics of the undistorted left grid, pixels.
+    max_samples : int
+        Sample blocks at most.
+    seed : int
+        Seeds the choice of blocks.
+
+    Returns
+    -------
+    LightRefinement or None
+        None when fewer than 50 blocks of the plate are lit by every light (nothing to fit), or when
+        neither refitted model explains the samples significantly better than the given lights
+        (:func:`_significant`): the given lights then stand.
+    """
+    data = _samples(images, valid, mask, lights, depth_mm, K, max_samples=max_samples, seed=seed)
+    if data is None:
+        return None
+    centre = data.points.mean(axis=0)
+    normal = data.normals.mean(axis=0)
+    normal /= np.linalg.norm(normal)
+    with threadpool_limits(limits=1, user_api="blas"):
+        rms_given = _rms(data, lights)
+        distant = _refine_distant(data, lights)
+        rms_distant = _rms(data, distant)
+        point, rms_point = _fit_points(data, lights, light_fit.PlatePose(normal, centre, 0.0, 0))
+    chosen: Lights
+    n_blocks = len(data.intensity)
+    if (
+        point is not None
+        and rms_point < POINT_MODEL_GAIN * rms_distant
+        and _significant(rms_given, rms_point, POINT_PARAMS * lights.n, n_blocks)
+    ):
+        model, chosen = "point", point
+    elif _significant(rms_given, rms_distant, DISTANT_PARAMS * lights.n, n_blocks):
+        model, chosen = "distant", distant
+    else:
+        return None  # the images do not prove other lights: the given ones stand
+    # the given scale: the same mean irradiance at the plate's centre, facing the light
+    given_at_c = lights.intensity * lights.attenuation_at(centre)
+    chosen_at_c = chosen.intensity * chosen.attenuation_at(centre)
+    chosen = chosen.with_intensity(
+        chosen.intensity * float(np.mean(given_at_c) / np.mean(chosen_at_c))
+    )
+    chosen_at_c = chosen.intensity * chosen.attenuation_at(centre)
+    before, after = lights.directions_at(centre), chosen.directions_at(centre)
+    corrections = []
+    for k in range(lights.n):
+        item: dict[str, float | list[float]] = {
+            "light": k,
+            "turn_deg": round(
+                float(np.degrees(np.arccos(np.clip(before[k] @ after[k], -1.0, 1.0)))), 3
+            ),
+            "intensity_ratio": round(float(chosen_at_c[k] / given_at_c[k]), 4),
+        }
+        if model == "point":
+            item["position_mm"] = [round(float(v), 1) for v in chosen.positions_mm[k]]
+        corrections.append(item)
+    return LightRefinement(
+        lights=chosen,
+        model=model,
+        rms_given=rms_given,
+        rms_distant=rms_distant,
+        rms_point=rms_point,
+        corrections=corrections,
+        n_samples=len(data.intensity),
+    )
+
+
+def _samples(
+    images: np.ndarray,
+    valid: np.ndarray | None,
+    mask: np.ndarray,
+    lights: Lights,
+    depth_mm: np.ndarray,
+    K: np.ndarray,
+    *,
+    max_samples: int,
+    seed: int,
+) -> light_fit.Samples | None:
+    """Block means of the images in counts (P, N), with the smooth surface's points and normals."""
+    n, h, w = images.shape
+    usable = mask & np.isfinite(depth_mm)
+    if valid is not None:
+        usable = usable & valid.all(axis=0)
+    count = int(np.count_nonzero(usable))
+    if count == 0:
+        return None
+    block = max(2, int(np.sqrt(count / max_samples)))
+    hb, wb = h // block, w // block
+
+    def blocks(img: np.ndarray) -> np.ndarray:
+        return cv2.resize(
+            np.ascontiguousarray(img[: hb * block, : wb * block]),
+            (wb, hb),
+            interpolation=cv2.INTER_AREA,
+        )
+
+    full = blocks(usable.astype(np.float32)) >= 1.0 - 1e-6
+    ii, jj = np.nonzero(full)
+    if len(ii) < 50:
+        return None
+    if len(ii) > max_samples:
+        pick = np.sort(np.random.default_rng(seed).choice(len(ii), max_samples, replace=False))
+        ii, jj = ii[pick], jj[pick]
+    intensity = np.empty((len(ii), n))
+    for k in range(n):
+        intensity[:, k] = blocks(images[k])[ii, jj] * lights.intensity[k]
+    # the block's centre and the smooth surface's point and normal there
+    u = jj * block + (block - 1) / 2.0
+    v = ii * block + (block - 1) / 2.0
+    z = blocks(np.where(usable, depth_mm, 0.0).astype(np.float64))[ii, jj]
+    kinv = np.linalg.inv(K)
+
+    def point(du: float, dv: float) -> np.ndarray:
+        pix = np.stack([u + du, v + dv, np.ones_like(u)], axis=1)
+        ui = np.clip(np.rint(u + du).astype(int), 0, w - 1)
+        vi = np.clip(np.rint(v + dv).astype(int), 0, h - 1)
+        zz = np.where(np.isfinite(depth_mm[vi, ui]), depth_mm[vi, ui], z)
+        return (pix @ kinv.T) * zz[:, None]
+
+    step = float(block)
+    tu = point(step, 0) - point(-step, 0)
+    tv = point(0, step) - point(0, -step)
+    normals = np.cross(tv, tu)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    points = (np.stack([u, v, np.ones_like(u)], axis=1) @ kinv.T) * z[:, None]
+    flip = np.einsum("pc,pc->p", normals, points) > 0  # towards the camera
+    normals[flip] *= -1.0
+    ok = np.all(np.isfinite(normals), axis=1) & np.all(intensity > 0, axis=1)
+    return light_fit.Samples(intensity=intensity[ok], points=points[ok], normals=normals[ok])
+
+
+def _rms(data: light_fit.Samples, lights: Lights) -> float:
+    E = lights.irradiance(data.points, data.normals).T  # (P, N)
+    _, _, r = light_fit.albedo_projected(data.intensity, E)
+    return float(np.sqrt(np.mean(r * r)) / np.mean(data.intensity))
+
+
+def _refine_distant(data: light_fit.Samples, lights: Lights) -> Lights:
+    """Distant lights g_k = e_k d_k refitted by alternating least squares (see the module docstring)."""
+    I, nrm = data.intensity, data.normals
+    centre = data.points.mean(axis=0)
+    g0 = lights.directions_at(centre) * (lights.intensity * lights.attenuation_at(centre))[:, None]
+    g = g0.copy()
+    for _ in range(DISTANT_ROUNDS):
+        E = np.maximum(nrm @ g.T, 0.0)  # (P, N)
+        rho = np.einsum("pn,pn->p", I, E) / np.maximum(np.einsum("pn,pn->p", E, E), 1e-300)
+        for k in range(lights.n):
+            lit = E[:, k] > 0
+            a = rho[lit, None] * nrm[lit]
+            M = a.T @ a
+            lam = DISTANT_PRIOR * np.trace(M) / 3.0
+            g[k] = np.linalg.solve(M + lam * np.eye(3), a.T @ I[lit, k] + lam * g0[k])
+        g *= np.mean(np.linalg.norm(g0, axis=1)) / np.mean(
+            np.linalg.norm(g, axis=1)
+        )  # the gauge of rho
+    e = np.linalg.norm(g, axis=1)
+    return Lights.distant(g / e[:, None], e)
+
+
+def _fit_points(
+    data: light_fit.Samples, lights: Lights, pose: light_fit.PlatePose
+) -> tuple[Lights | None, float]:
+    """Point lights fitted from the given ones (directions: along them from the plate's centre).
+
+    First with the LEDs' beam profile fixed (mu = 1), then free; when the free fit does not converge
+    to lights in front of the plate, the fixed-profile fit stands if it did.
+    """
+    try:
+        start = light_fit.initial_point_lights(lights, pose, data, initial_mu=1.0)
+        fixed = light_fit.joint_fit(start, data, fixed_mu=True)
+    except (np.linalg.LinAlgError, ValueError, FloatingPointError):
+        return None, float("nan")
+    candidates = [fixed]
+    with contextlib.suppress(np.linalg.LinAlgError, ValueError, FloatingPointError):
+        candidates.insert(0, light_fit.joint_fit(fixed.lights, data))
+    for fit in candidates:
+        behind = (fit.lights.positions_mm - pose.centre_mm) @ pose.normal <= 0
+        if fit.success and not behind.any() and np.all(np.isfinite(fit.lights.positions_mm)):
+            return fit.lights, _rms(data, fit.lights)
+    return None, float("nan")

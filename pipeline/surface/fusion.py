@@ -1,0 +1,684 @@
+"""Fusion of the photometric and the stereo shape: stereo governs the low frequencies, the normals the detail.
+
+Integrated normals are exact in their detail but carry any error of the light model as a smooth,
+plate-wide bend (a light 3 m away treated as distant bends a 5 m radius by tens of percent; a light
+bumped by a degree by half a percent). The stereo pair measures the same surface independently and
+without that bias, but with more noise per pixel. So the fused surface is
+
+    log z = log z_ps + c(u, v)
+
+where ``c`` is the smooth part of ``log z_stereo - log z_ps``: a tensor-product cubic B-spline on a
+coarse grid of knots, fitted robustly to the medians of that difference over small blocks of pixels
+(a median per block drops stereo mismatches; Huber re-weighting drops bad blocks). Everything the
+spline can represent -- scale, tilt, bend, twist, any shape error wider than about a knot spacing --
+comes from the stereo pair; everything finer from the normals. The spline averages thousands of
+stereo pixels per coefficient, so the stereo noise that reaches the surface is small, and a shape
+feature that both see (a dent) is not in the difference at all.
+
+The correction is chosen by the evidence (a lack-of-fit test): from a plane in (u, v) (scale and
+tilt, always the stereo pair's), a quadric (and bend) and splines of finer knots, the coarsest rung
+that the finest one does not beat by more than the stereo noise explains. The noise is measured on
+the data: the robust spread of the finest rung's block residuals and their correlation between
+neighbouring blocks (a stereo matcher's errors are correlated over its window and smoothness
+term), which inflates what pure noise takes out of the residual. So exact normals keep their shape
+(and their noise is all that reaches it), while wrong lights, whose bend the stereo pair proves,
+hand the plate's overall shape to it. The fit's covariance gives the correction's own standard
+deviation at every pixel and the bend's, for the uncertainty (:mod:`pipeline.judge.uncertainty`).
+
+References
+----------
+.. [1] D. Nehab, S. Rusinkiewicz, J. Davis, R. Ramamoorthi, "Efficiently combining positions and
+   normals for precise 3D geometry", SIGGRAPH 2005 (the same split of frequencies, there by a
+   Gaussian low-pass of positions).
+.. [2] P. Dierckx, "Curve and surface fitting with splines", Oxford, 1993 (penalised tensor-product
+   B-splines).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numba as nb
+import numpy as np
+import numpy.typing as npt
+from scipy import special
+
+#: Finest knot spacing of the correction spline as a fraction of the plate's larger extent in the
+#: image: at most, the stereo pair governs shape wider than about this.
+KNOT_FRACTION = 1.0 / 16.0
+#: Knot spacings tried, coarsest first (after a plane and a quadric in (u, v)).
+KNOT_LADDER = (1.0 / 2.0, 1.0 / 4.0, 1.0 / 8.0, 1.0 / 16.0)
+#: Significance level of the lack-of-fit test that lets a finer correction in (see :func:`_chosen`): a
+#: coarser rung is kept unless the finest explains the stereo pair better than noise would with
+#: probability 1 - SIGNIFICANCE.
+SIGNIFICANCE = 1e-3
+#: Largest neighbour correlation of the block residuals taken from the data (beyond it the
+#: inflation of the noise would grow without bound).
+MAX_NEIGHBOUR_CORRELATION = 0.9
+#: The polynomial rungs of the ladder: a plane (scale and tilt) and a quadric (and bend) in (u, v).
+PLANE, QUADRIC = "plane", "quadric"
+#: A rung of the ladder: the plane, the quadric, or a spline of a knot spacing (fraction of the extent).
+Rung = str | float
+_POLYNOMIAL: dict[Rung, int] = {PLANE: 3, QUADRIC: 6}
+_DEGREE: dict[Rung, int] = {PLANE: 1, QUADRIC: 2}
+#: The difference is reduced to medians over square blocks of pixels; about this many blocks.
+TARGET_BLOCKS = 12_000
+#: Blocks are at least this wide (px): wider than the stereo matcher's window and the reach of its
+#: smoothness term, so that the blocks' errors are roughly independent.
+MIN_BLOCK_PX = 8
+#: A block needs at least this fraction of its pixels with both depths to count.
+MIN_BLOCK_FILL = 0.25
+#: ... and the centroid of its samples within this fraction of its side from its centre (a block cut by
+#: the surface's edge would put a steep difference at the wrong place).
+MAX_CENTROID_OFFSET = 0.1
+#: Huber threshold, in robust standard deviations of the block residuals.
+HUBER_K = 2.0
+#: Re-weighted passes of the robust fit.
+IRLS_PASSES = 3
+#: Weight of the second-difference penalty on the spline coefficients, relative to the data's total
+#: weight per coefficient: bridges knot cells without stereo data, negligible where there is some.
+SMOOTHING = 1e-6
+
+
+@dataclass(frozen=True)
+class Fusion:
+    """The fused surface, how far the two shapes disagreed, and how sure the correction is.
+
+    Attributes
+    ----------
+    depth_mm : (H, W) float64
+        Fused depth along the left optical axis, mm; NaN outside the mask.
+    correction_mm : (H, W) float32
+        ``depth_mm - depth_ps`` (what the stereo pair changed), mm; NaN outside the mask.
+    disagreement_mm : float
+        The 95th percentile over the surface of ``|c - plane| z`` (mm): the correction without its
+        best-fit plane in (u, v), i.e. without a change of scale and tilt, which is no
+        disagreement of shape.
+    stereo_noise_mm : float
+        Robust standard deviation of a stereo sample about the fused surface, mm (from the block
+        medians' residuals of the finest rung, as if the noise were independent between samples).
+    noise_floor_mm : float
+        How much disagreement the stereo noise alone explains: 3 standard deviations of the chosen
+        correction's value (its covariance, the noise's correlation included), 95th percentile over
+        the surface, mm.
+    n_stereo : int
+        Stereo pixels in the fit.
+    knot_spacing_px : float or None
+        Knot spacing of the correction chosen; None: a polynomial (see ``model``).
+    model : {"plane", "quadric", "spline"}
+        The correction chosen: scale and tilt; and bend; or a spline of ``knot_spacing_px``.
+    noise_inflation : float
+        How much the block residuals' correlation between neighbours inflates the variance of a
+        smooth fit over pure, independent noise (1: independent), measured on the data.
+    evidence : dict
+        The lack-of-fit test per rung tried: ``{rung: [statistic, threshold]}`` (chi-square, its
+        quantile at 1 - :data:`SIGNIFICANCE`); the rung chosen is the coarsest whose statistic is
+        within its threshold.
+    correction_sd_mm : (H, W) float32 or None
+        Standard deviation of the chosen correction at every pixel from the stereo noise (its fit's
+        covariance), mm; NaN outside the mask.
+    model_sd_mm : (H, W) float32 or None
+        How far the next finer rung's correction lies from the chosen one at every pixel, mm (NaN
+        outside the mask; None when the finest was chosen): the structure the lack-of-fit test did
+        not let in, both what the stereo pair could not prove (a shape error of the normals below its
+        noise's reach) and that rung's own noise. The uncertainty counts it as the model's part.
+    bend_cov : (3, 3) float64 or None
+        Covariance of the quadric correction's second derivatives ``(d2/du2, d2/dudv, d2/dv2)`` of
+        log depth at the plate's centre, per px^2 squared: how well the stereo pair fixes the bend,
+        whichever rung was chosen (the radius's uncertainty).
+    """
+
+    depth_mm: np.ndarray
+    correction_mm: np.ndarray
+    disagreement_mm: float
+    stereo_noise_mm: float
+    noise_floor_mm: float
+    n_stereo: int
+    knot_spacing_px: float | None
+    model: str = "spline"
+    noise_inflation: float = 1.0
+    evidence: dict[str, list[float]] = field(default_factory=dict)
+    correction_sd_mm: np.ndarray | None = None
+    bend_cov: np.ndarray | None = None
+    model_sd_mm: np.ndarray | None = None
+
+
+def fuse_low_frequencies(
+    depth_ps_mm: np.ndarray,
+    stereo_depth_mm: np.ndarray,
+    mask: np.ndarray,
+    *,
+    knot_fraction: float = KNOT_FRACTION,
+    select: bool = True,
+) -> Fusion:
+    """Replace the low frequencies of a photometric surface by what the stereo pair proves of them.
+
+    Parameters
+    ----------
+    depth_ps_mm : (H, W) float
+        Depth integrated from the normals (mm along the optical axis), finite and > 0 on ``mask``.
+    stereo_depth_mm : (H, W) float
+        Stereo depth on the same grid (mm), NaN where unmatched.
+    mask : (H, W) bool
+        The surface's pixels.
+    knot_fraction : float
+        The finest knot spacing tried, as a fraction of the mask's larger extent (0 < . <= 1).
+    select : bool
+        True: the correction is chosen from a ladder, a plane in (u, v) (scale and tilt), a quadric
+        (and bend), then splines of knot spacing 1/2, 1/4, ... of the extent down to
+        ``knot_fraction``, by a lack-of-fit test (:func:`_chosen`): the coarsest rung that the
+        finest does not beat beyond the measured stereo noise. False: the spline of
+        ``knot_fraction`` (or, with too few stereo blocks for it, the finest rung they carry).
+
+    Returns
+    -------
+    Fusion
+
+    Raises
+    ------
+    ValueError
+        Bad shapes, a photometric depth that is not finite and positive on the mask, too few
+        stereo pixels for the coarsest correction.
+    """
+    z, zs, mask = _check_inputs(depth_ps_mm, stereo_depth_mm, mask, knot_fraction)
+    rows = np.flatnonzero(mask.any(axis=1))
+    cols = np.flatnonzero(mask.any(axis=0))
+    box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+    zb, zsb, mb = z[box], zs[box], mask[box]
+    if np.any(mb & ~((zb > 0) & (zb < np.inf))):
+        raise ValueError("depth_ps_mm: expected finite depths > 0 mm on the mask")
+    sparse = max(1, int(np.sqrt(mb.size / 100_000)))
+    z_typ = float(np.median(zb[::sparse, ::sparse][mb[::sparse, ::sparse]]))
+    blocks = _Blocks.of(zb, zsb, mb)
+    fits = _ladder_fits(blocks, mb.shape, knot_fraction, select)
+    chosen, inflation, evidence = _chosen(fits, blocks) if select else (fits[0], 1.0, {})
+    fraction = chosen.rung if chosen.rung not in _POLYNOMIAL else None
+    fused = np.full(z.shape, np.nan)
+    correction = np.full(z.shape, np.nan, np.float32)
+    _compose(zb, chosen.grid.evaluate(chosen.coef), mb, fused[box], correction[box])
+    sigma_pix = fits[-1].sigma_pix if select else chosen.sigma_pix  # the finest rung's: the noise
+    scale2 = _noise_variance(sigma_pix, blocks) * inflation
+    sd = model = None
+    if select:
+        sd = np.full(z.shape, np.nan, np.float32)
+        sd[box] = np.where(mb, _value_sd(chosen, scale2) * zb, np.nan)
+        if chosen is not fits[-1]:
+            finer = fits[next(i for i, f in enumerate(fits) if f is chosen) + 1]
+            model = np.full(z.shape, np.nan, np.float32)
+            model[box] = np.where(mb, _difference(finer, chosen) * zb, np.nan)
+    quadric = next((f for f in fits if f.rung == QUADRIC), None)
+    return Fusion(
+        depth_mm=fused,
+        correction_mm=correction,
+        disagreement_mm=_disagreement(zb, correction[box], mb),
+        stereo_noise_mm=float(sigma_pix * z_typ),
+        noise_floor_mm=float(3.0 * np.nanpercentile(sd[box][mb], 95)) if sd is not None else 0.0,
+        n_stereo=int(blocks.n_pixels),
+        knot_spacing_px=None if fraction is None else float(chosen.grid.spacing),
+        model=chosen.rung if isinstance(chosen.rung, str) else "spline",
+        noise_inflation=float(inflation),
+        evidence=evidence,
+        correction_sd_mm=sd,
+        bend_cov=None if quadric is None or not select else _bend_cov(quadric, scale2),
+        model_sd_mm=model,
+    )
+
+
+def _check_inputs(
+    depth_ps_mm: npt.ArrayLike,
+    stereo_depth_mm: npt.ArrayLike,
+    mask: npt.ArrayLike,
+    knot_fraction: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The arrays of :func:`fuse_low_frequencies` checked: photometric and stereo depth float64, mask."""
+    z = np.asarray(depth_ps_mm, dtype=np.float64)
+    zs = np.asarray(stereo_depth_mm, dtype=np.float64)
+    m = np.asarray(mask)
+    if z.ndim != 2 or zs.shape != z.shape or m.shape != z.shape or m.dtype != bool:
+        raise ValueError(
+            f"depth_ps_mm, stereo_depth_mm, mask: expected (H, W) arrays of one shape (mask bool), got "
+            f"{z.shape}, {zs.shape}, {m.shape} {m.dtype}"
+        )
+    if not 0 < knot_fraction <= 1:
+        raise ValueError(f"knot_fraction: expected in (0, 1], got {knot_fraction}")
+    if not m.any():
+        raise ValueError("mask: expected at least one surface pixel, got none")
+    return z, zs, m
+
+
+@dataclass(frozen=True)
+class _Fitted:
+    """One rung of the ladder fitted to the blocks (log depth).
+
+    ``coef`` the spline coefficients; ``sigma_pix`` the per-sample robust standard deviation;
+    ``residual`` (nbv, nbu) the block residuals; ``normal``
+    the normal equations' matrix of the last pass (with the penalty), ``basis`` the polynomial
+    basis in coefficient space (None for a spline); ``n_params`` the free parameters.
+    """
+
+    rung: Rung
+    grid: _Grid
+    coef: np.ndarray
+    sigma_pix: float
+    residual: np.ndarray
+    normal: np.ndarray
+    basis: np.ndarray | None
+    n_params: int
+
+
+def _ladder_fits(
+    blocks: _Blocks, shape: tuple[int, int], knot_fraction: float, select: bool
+) -> list[_Fitted]:
+    """The fits of every rung of the ladder that the blocks can carry, coarsest first (``select`` False:
+    only the spline of ``knot_fraction``, or the finest rung the blocks carry)."""
+    extent = float(max(shape))
+
+    def fit(rung: Rung) -> _Fitted | None:
+        grid = _Grid.over(shape, extent * (1.0 if isinstance(rung, str) else rung))
+        n_params = _POLYNOMIAL.get(rung, grid.size)
+        if blocks.n_used < 4 * n_params:
+            return None
+        return _fit(grid, blocks, rung=rung, n_params=n_params)
+
+    if not select:
+        ladder: list[Rung] = [
+            knot_fraction,
+            *(f for f in KNOT_LADDER[::-1] if f > knot_fraction),
+            QUADRIC,
+            PLANE,
+        ]
+        for rung in ladder:
+            fits = [f for f in (fit(rung),) if f is not None]
+            if fits:
+                break
+    else:
+        rungs: list[Rung] = [PLANE, QUADRIC, *(k for k in KNOT_LADDER if k >= knot_fraction)]
+        fits = [f for f in map(fit, rungs) if f is not None]
+    if not fits:
+        raise ValueError(
+            f"stereo_depth_mm: expected stereo depth over at least {4 * _POLYNOMIAL[PLANE]} blocks of {blocks.size} px of "
+            f"the surface, got {blocks.n_used}"
+        )
+    return fits
+
+
+def _chosen(fits: list[_Fitted], blocks: _Blocks) -> tuple[_Fitted, float, dict[str, list[float]]]:
+    """The rung taken by a lack-of-fit test against the finest, the noise inflation and the evidence.
+
+    Under pure noise, the drop of the standardised residual sum from a rung with ``p`` parameters to
+    the finest (``p_f``) is chi-square with ``p_f - p`` degrees of freedom, once divided by the
+    noise variance (the finest rung's residual sum over its ``n - p_f`` degrees of freedom, residuals
+    clipped at one robust scale for all rungs) and by the inflation that the residuals' correlation
+    between neighbouring blocks brings (measured on the finest rung's residuals). The coarsest rung whose drop is within the
+    ``1 - SIGNIFICANCE`` quantile is taken: a finer correction enters only where the stereo pair
+    proves it.
+    """
+    finest = fits[-1]
+    inflation = _noise_inflation(finest.residual, blocks)
+    used = blocks.count > 0
+    root_n = np.sqrt(blocks.samples[used]) / 1.2533
+    # one clip for every rung (the finest's robust scale), so that the sums compare
+    clip = HUBER_K * max(finest.sigma_pix, 1e-12)
+
+    def rss(f: _Fitted) -> float:
+        return float(np.sum(np.minimum(np.abs(f.residual[used] * root_n), clip) ** 2))
+
+    rss_finest = rss(finest)
+    dof_noise = max(int(np.count_nonzero(used)) - finest.n_params, 1)
+    noise2 = rss_finest / dof_noise * inflation
+    evidence: dict[str, list[float]] = {}
+    chosen = finest
+    for f in fits[:-1]:
+        dof = finest.n_params - f.n_params
+        statistic = (rss(f) - rss_finest) / noise2 if noise2 > 0 else np.inf
+        threshold = 2.0 * float(special.gammaincinv(dof / 2.0, 1.0 - SIGNIFICANCE))  # chi2 quantile
+        evidence[_rung_name(f.rung)] = [round(float(statistic), 1), round(threshold, 1)]
+        if statistic <= threshold and chosen is finest:
+            chosen = f
+    evidence[_rung_name(finest.rung)] = [0.0, 0.0]
+    return chosen, inflation, evidence
+
+
+def _rung_name(rung: Rung) -> str:
+    return rung if isinstance(rung, str) else f"spline 1/{round(1.0 / rung)}"
+
+
+def _noise_inflation(residual: np.ndarray, blocks: _Blocks) -> float:
+    """Variance inflation of a smooth fit by the correlation of neighbouring block residuals.
+
+    The standardised residuals' correlation between horizontal and between vertical neighbours
+    (both blocks used), taken as a first-order autoregression along each axis: a smooth function's
+    fit then sees ``(1 + r) / (1 - r)`` times the independent noise's variance per axis.
+    """
+    used = blocks.count > 0
+    s = residual * np.sqrt(blocks.samples)
+    scale = 1.4826 * float(np.median(np.abs(s[used]))) if used.any() else 0.0
+    if not scale > 0:
+        return 1.0
+    s = np.where(used, np.clip(s / scale, -HUBER_K * 2, HUBER_K * 2), 0.0)
+    factor = 1.0
+    for a, b, both in (
+        (s[:, 1:], s[:, :-1], used[:, 1:] & used[:, :-1]),
+        (s[1:, :], s[:-1, :], used[1:, :] & used[:-1, :]),
+    ):
+        if np.count_nonzero(both) < 10:
+            continue
+        x, y = a[both], b[both]
+        r = float(np.sum(x * y) / np.sqrt(np.sum(x * x) * np.sum(y * y)))
+        r = min(max(r, 0.0), MAX_NEIGHBOUR_CORRELATION)
+        factor *= (1.0 + r) / (1.0 - r)
+    return factor
+
+
+def _noise_variance(sigma_pix: float, blocks: _Blocks) -> float:
+    """The variance (log depth squared) that scales ``normal^-1`` into the coefficients' covariance.
+
+    A block's residual has variance ``(1.2533 sigma)^2 / samples`` (a median's efficiency) and the fit
+    weighs it by ``samples * stride^2`` (its pixels): the weighted least squares' covariance is
+    ``stride^2 (1.2533 sigma)^2 normal^-1``.
+    """
+    stride2 = float(np.mean(blocks.count[blocks.count > 0] / blocks.samples[blocks.count > 0]))
+    return stride2 * (1.2533 * sigma_pix) ** 2
+
+
+def _coef_cov(f: _Fitted, scale2: float) -> np.ndarray:
+    """Covariance of a fit's spline coefficients (``scale2``: :func:`_noise_variance` times the inflation)."""
+    if f.basis is not None:
+        Q = f.basis
+        inner = np.linalg.pinv(Q.T @ f.normal @ Q)
+        cov: np.ndarray = scale2 * (Q @ inner @ Q.T)
+        return cov
+    cov_spline: np.ndarray = scale2 * np.linalg.pinv(f.normal)
+    return cov_spline
+
+
+def _value_sd(f: _Fitted, scale2: float) -> np.ndarray:
+    """Standard deviation of a fit's value at every pixel of its box (log depth), from its covariance,
+    computed on every 8th pixel and interpolated."""
+    cov = _coef_cov(f, scale2)
+    grid = f.grid
+    h, w = grid.shape
+    rv, ru = np.arange(0, h + 7, 8).clip(max=h - 1), np.arange(0, w + 7, 8).clip(max=w - 1)
+    Bv, Bu = grid.basis(rv, grid.nv), grid.basis(ru, grid.nu)
+    # var(v, u) = sum_{ab,cd} Bv[v,a] Bu[u,b] C[ab,cd] Bv[v,c] Bu[u,d]
+    C = cov.reshape(grid.nv, grid.nu, grid.nv, grid.nu)
+    tmp = np.einsum("va,abcd->vbcd", Bv, C, optimize=True)
+    tmp = np.einsum("vc,vbcd->vbd", Bv, tmp, optimize=True)
+    var = np.einsum("ub,vbd,ud->vu", Bu, tmp, Bu, optimize=True)
+    sd = np.sqrt(np.clip(var, 0.0, None)).astype(np.float32)
+    full: np.ndarray = cv2.resize(
+        sd, (int(ru[-1] + 1), int(rv[-1] + 1)), interpolation=cv2.INTER_LINEAR
+    )
+    return full[:h, :w]
+
+
+def _difference(finer: _Fitted, chosen: _Fitted) -> np.ndarray:
+    """|finer - chosen| (log depth) at every pixel of their box, computed on every 8th pixel and
+    interpolated (both are smooth on the scale of the finer rung's knots)."""
+    h, w = chosen.grid.shape
+    rv, ru = np.arange(0, h + 7, 8).clip(max=h - 1), np.arange(0, w + 7, 8).clip(max=w - 1)
+
+    def sampled(f: _Fitted) -> np.ndarray:
+        g = f.grid
+        values: np.ndarray = (g.basis(rv, g.nv) @ f.coef.reshape(g.nv, g.nu)) @ g.basis(ru, g.nu).T
+        return values
+
+    d = np.abs(sampled(finer) - sampled(chosen)).astype(np.float32)
+    full: np.ndarray = cv2.resize(
+        d, (int(ru[-1] + 1), int(rv[-1] + 1)), interpolation=cv2.INTER_LINEAR
+    )
+    return full[:h, :w]
+
+
+def _bend_cov(quadric: _Fitted, scale2: float) -> np.ndarray:
+    """Covariance of the quadric's second derivatives of log depth ``(uu, uv, vv)`` per px^2 (see Fusion)."""
+    cov = _coef_cov(quadric, scale2)
+    grid = quadric.grid
+    h, w = grid.shape
+    c_v, c_u, d = (h - 1) / 2.0, (w - 1) / 2.0, max(h, w) / 4.0
+    # second differences of the spline's value at the centre, as linear maps of the coefficients
+    pts = {
+        (dv, du): np.kron(
+            grid.basis(np.array([c_v + dv * d]), grid.nv),
+            grid.basis(np.array([c_u + du * d]), grid.nu),
+        )[0]
+        for dv in (-1, 0, 1)
+        for du in (-1, 0, 1)
+    }
+    G = np.stack(
+        [
+            (pts[(0, 1)] - 2 * pts[(0, 0)] + pts[(0, -1)]) / d**2,
+            (pts[(1, 1)] - pts[(1, -1)] - pts[(-1, 1)] + pts[(-1, -1)]) / (4 * d**2),
+            (pts[(1, 0)] - 2 * pts[(0, 0)] + pts[(-1, 0)]) / d**2,
+        ]
+    )
+    bend: np.ndarray = G @ cov @ G.T
+    return bend
+
+
+def _disagreement(zb: np.ndarray, corr_b: np.ndarray, mb: np.ndarray) -> float:
+    """Disagreement of shape (mm, 95th percentile): the log correction without its best plane in (u, v)
+    (a scale and tilt), on every 4th pixel of the box."""
+    r_i, c_i = np.nonzero(mb[::4, ::4])
+    z_s = zb[::4, ::4][r_i, c_i]
+    log_corr = np.log1p(corr_b[::4, ::4][r_i, c_i].astype(np.float64) / z_s)
+    A = np.column_stack([np.ones(r_i.size), c_i, r_i]).astype(np.float64)
+    plane, *_ = np.linalg.lstsq(A, log_corr, rcond=None)
+    return float(np.percentile(np.abs(log_corr - A @ plane) * z_s, 95))
+
+
+def smooth_stereo_depth(
+    stereo_depth_mm: np.ndarray, mask: np.ndarray, *, knot_fraction: float = 1.0 / 8.0
+) -> np.ndarray:
+    """A complete, smooth surface through the stereo depth: (H, W) float64 mm on ``mask``, NaN elsewhere.
+
+    The robust spline of :func:`fuse_low_frequencies` (``knot_fraction``, no ladder) fitted to
+    ``log z_stereo`` itself: a starting surface for the near-field normals where the stereo pair
+    has holes and noise.
+    """
+    ones = np.where(mask, 1.0, np.nan)
+    return fuse_low_frequencies(
+        ones, stereo_depth_mm, mask, knot_fraction=knot_fraction, select=False
+    ).depth_mm
+
+
+@dataclass(frozen=True)
+class _Blocks:
+    """Medians of ``log z_stereo - log z_ps`` over b x b blocks of a box of pixels.
+
+    ``value`` (nbv, nbu) float64 (0 where unused), ``count`` (nbv, nbu) pixels with both depths
+    (0 where unused), ``samples`` how many of them the median was taken over (every ``stride``-th
+    pixel), ``centre_r``/``centre_c`` block centres in box pixels.
+    """
+
+    size: int
+    value: np.ndarray
+    count: np.ndarray
+    samples: np.ndarray
+    centre_r: np.ndarray
+    centre_c: np.ndarray
+
+    @property
+    def n_used(self) -> int:
+        return int(np.count_nonzero(self.count))
+
+    @property
+    def n_pixels(self) -> int:
+        return int(self.count.sum())
+
+    @classmethod
+    def of(cls, z: np.ndarray, zs: np.ndarray, mask: np.ndarray) -> _Blocks:
+        h, w = mask.shape
+        b = max(MIN_BLOCK_PX, int(round(np.sqrt(h * w / TARGET_BLOCKS))))
+        stride = max(1, b // 4)  # a median of up to 16 samples per block is plenty
+        k = -(-b // stride)  # samples per block side
+        b = k * stride
+        nbv, nbu = -(-h // b), -(-w // b)
+        padded = np.full((nbv * b, nbu * b), np.inf)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            r = np.log(zs[::stride, ::stride]) - np.log(z[::stride, ::stride])
+        padded[:h:stride, :w:stride] = np.where(
+            mask[::stride, ::stride] & np.isfinite(r), r, np.inf
+        )
+        tiles = padded[::stride, ::stride].reshape(nbv, k, nbu, k)
+        tiles = tiles.transpose(0, 2, 1, 3).reshape(nbv, nbu, k * k)  # type: ignore[assignment]  # numpy's stubs keep the 4-d shape type
+        have = np.isfinite(tiles)
+        count = have.sum(axis=2)
+        # a block's median stands for its centre only if its samples are spread around the centre
+        offsets = np.arange(k, dtype=np.float64) - (k - 1) / 2.0
+        with np.errstate(invalid="ignore", divide="ignore"):
+            off_r = (have.reshape(nbv, nbu, k, k).sum(axis=3) @ offsets) / count
+            off_c = (have.reshape(nbv, nbu, k, k).sum(axis=2) @ offsets) / count
+        centred = (np.abs(off_r) <= MAX_CENTROID_OFFSET * k) & (
+            np.abs(off_c) <= MAX_CENTROID_OFFSET * k
+        )
+        tiles.sort(axis=2)  # +inf (no data) last
+        lo = np.take_along_axis(tiles, np.maximum((count - 1) // 2, 0)[..., None], axis=2)[..., 0]
+        hi = np.take_along_axis(tiles, np.maximum(count // 2, 0)[..., None], axis=2)[..., 0]
+        med = 0.5 * (lo + hi)
+        used = (count >= max(1, int(MIN_BLOCK_FILL * k * k))) & centred
+        samples = np.where(used, count, 0).astype(np.float64)
+        centre = (
+            stride * (k - 1) / 2.0
+        )  # the centre of a block's samples (every stride-th pixel from its corner)
+        return cls(
+            size=b,
+            value=np.where(used, med, 0.0),
+            count=samples * stride * stride,  # pixels the samples stand for
+            samples=samples,
+            centre_r=np.arange(nbv) * b + centre,
+            centre_c=np.arange(nbu) * b + centre,
+        )
+
+
+class _Grid:
+    """Uniform cubic B-splines over a box of pixels: ``nv x nu`` coefficients, knots ``spacing`` px apart."""
+
+    def __init__(self, shape: tuple[int, int], spacing: float) -> None:
+        self.shape = shape
+        self.spacing = float(spacing)
+        self.nv = int(np.ceil(shape[0] / self.spacing)) + 3
+        self.nu = int(np.ceil(shape[1] / self.spacing)) + 3
+
+    @classmethod
+    def over(cls, shape: tuple[int, int], spacing: float) -> _Grid:
+        return cls(shape, max(4.0, spacing))
+
+    @property
+    def size(self) -> int:
+        return self.nv * self.nu
+
+    def basis(self, x: np.ndarray, n: int) -> np.ndarray:
+        """(len(x), n) dense cubic B-spline basis along one axis at pixel coordinates x (box pixels)."""
+        t = np.asarray(x, dtype=np.float64) / self.spacing
+        i = np.clip(np.floor(t).astype(np.int64), 0, n - 4)
+        f = t - i
+        w = (
+            np.stack(
+                [(1 - f) ** 3, 3 * f**3 - 6 * f**2 + 4, -3 * f**3 + 3 * f**2 + 3 * f + 1, f**3],
+                axis=1,
+            )
+            / 6.0
+        )
+        B = np.zeros((t.size, n))
+        for a in range(4):
+            B[np.arange(t.size), i + a] = w[:, a]
+        return B
+
+    def evaluate(self, coef: np.ndarray) -> np.ndarray:
+        """The spline on every pixel of the box: (H, W), separably."""
+        Bv = self.basis(np.arange(self.shape[0]), self.nv)
+        Bu = self.basis(np.arange(self.shape[1]), self.nu)
+        values: np.ndarray = (Bv @ coef.reshape(self.nv, self.nu)) @ Bu.T
+        return values
+
+    def penalty(self) -> np.ndarray:
+        """P^T P of the second differences of the coefficients along both grid directions (dense)."""
+
+        def dtd(n: int) -> np.ndarray:
+            d = np.diff(np.eye(n), 2, axis=0)
+            return d.T @ d
+
+        return np.kron(dtd(self.nv), np.eye(self.nu)) + np.kron(np.eye(self.nv), dtd(self.nu))
+
+
+def _fit(grid: _Grid, blocks: _Blocks, *, rung: Rung, n_params: int) -> _Fitted:
+    """Robust penalised least squares of the spline to the block medians (weights: pixel counts).
+
+    For the polynomial rungs the correction is a polynomial of degree 1 (scale and tilt) or 2 (and
+    bend) in (u, v).
+    """
+    Bv = grid.basis(blocks.centre_r, grid.nv)
+    Bu = grid.basis(blocks.centre_c, grid.nu)
+    R, W0 = blocks.value, blocks.count
+    Q = _polynomial_basis(grid, _DEGREE[rung]) if rung in _DEGREE else None
+    PtP = grid.penalty()
+    lam = SMOOTHING * W0.sum() / grid.size
+    w = W0.copy()
+    used = W0 > 0
+    coef = np.zeros(grid.size)
+    res = R.copy()
+    sigma_pix = 0.0
+    N = np.eye(grid.size)
+    for _ in range(IRLS_PASSES):
+        # normal equations of sum_ij w_ij (R_ij - (Bv C Bu^T)_ij)^2, separably
+        inner = Bu.T @ (w[:, :, None] * Bu[None])  # (nbv, nu, nu): Bu^T diag(w_i) Bu per block row
+        outer = Bv[:, :, None] * Bv[:, None, :]  # (nbv, nv, nv)
+        N = (outer.reshape(len(Bv), -1).T @ inner.reshape(len(Bv), -1)).reshape(
+            grid.nv, grid.nv, grid.nu, grid.nu
+        )
+        N = N.transpose(0, 2, 1, 3).reshape(grid.size, grid.size)
+        rhs = (Bv.T @ (w * R) @ Bu).ravel()
+        if Q is not None:
+            coef = Q @ np.linalg.solve(Q.T @ N @ Q, Q.T @ rhs)
+        else:
+            N = N + lam * PtP
+            coef = np.linalg.solve(N, rhs)
+        res = R - (Bv @ coef.reshape(grid.nv, grid.nu)) @ Bu.T
+        # per-sample units: a median of n samples ~ 1.25 sigma / sqrt(n)
+        scaled = (res * np.sqrt(blocks.samples))[used] / 1.2533
+        sigma_pix = 1.4826 * float(np.median(np.abs(scaled)))
+        if not sigma_pix > 0:
+            break
+        a = np.abs(res) * np.sqrt(W0) / (HUBER_K * sigma_pix)
+        w = W0 * np.where(a <= 1.0, 1.0, 1.0 / np.maximum(a, 1e-12))
+    return _Fitted(
+        rung=rung,
+        grid=grid,
+        coef=coef,
+        sigma_pix=sigma_pix,
+        residual=np.where(used, res, 0.0),
+        normal=N,
+        basis=Q,
+        n_params=n_params,
+    )
+
+
+def _polynomial_basis(grid: _Grid, degree: int) -> np.ndarray:
+    """(size, 3 or 6): spline coefficients of a polynomial of ``degree`` (1 or 2) in (u, v).
+
+    A polynomial in the coefficients' indices is one in (u, v): cubic B-splines reproduce it.
+    """
+    gv, gu = np.meshgrid(
+        np.arange(grid.nv, dtype=np.float64),
+        np.arange(grid.nu, dtype=np.float64),
+        indexing="ij",
+    )
+    gv, gu = gv.ravel() - gv.mean(), gu.ravel() - gu.mean()
+    columns = [np.ones(grid.size), gv, gu, gv * gv, gv * gu, gu * gu]
+    return np.column_stack(columns[: _POLYNOMIAL[PLANE] if degree == 1 else _POLYNOMIAL[QUADRIC]])
+
+
+@nb.njit(cache=True, parallel=True)
+def _compose(
+    z: np.ndarray, c: np.ndarray, mask: np.ndarray, fused: np.ndarray, correction: np.ndarray
+) -> None:
+    """fused = z exp(c) and correction = fused - z on the mask (left NaN elsewhere), in place."""
+    h, w = mask.shape
+    for i in nb.prange(h):
+        for j in range(w):
+            if mask[i, j]:
+                f = z[i, j] * np.exp(c[i, j])
+                fused[i, j] = f
+                correction[i, j] = f - z[i, j]

@@ -1,0 +1,332 @@
+"""From photometric images to a metric surface: normals, integration and fusion with the stereo pair.
+
+Two light models (:mod:`pipeline.lights.model`):
+
+- **Distant lights** (``direction``): the normals do not depend on the surface; they are
+  estimated once (:func:`pipeline.surface.normals.estimate_normals`), integrated, and the stereo pair
+  sets the low frequencies (:func:`pipeline.surface.fusion.fuse_low_frequencies`). Nominal directions of
+  what really are near-field LEDs, or a light bumped by a degree, bend the integrated surface
+  smoothly; the stereo pair takes that bend out.
+- **Point lights** (``position_mm``): the light vectors and irradiance at a pixel depend on the
+  surface point it sees. Starting from the stereo pair's smooth surface (or, without one, the plane
+  at the working distance), normals (:func:`pipeline.lights.nearfield.estimate_normals_near`) and the
+  fused surface are computed alternately until the depth stops moving.
+
+Normals that still face away from their pixel's ray are filled from their neighbours and counted
+(never an error while most of the plate is measurable).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from pipeline.formats import CaptureError
+from pipeline.lights import nearfield
+from pipeline.lights import refinement as light_refinement
+from pipeline.lights.model import Lights
+from pipeline.surface import fusion, integration, normals
+from pipeline.surface.normals.noise import image_noise
+
+#: Point lights: the alternation stops when the 99th percentile of the depth's change is below this
+#: (mm): a 1 mm move turns a light's direction by ~0.02 deg at 3 m.
+DEPTH_STEP_TOL_MM = 1.0
+#: Point lights: at most this many normal estimates (the first from the starting surface).
+MAX_NEAR_FIELD_ITERATIONS = 4
+
+
+@dataclass(frozen=True)
+class Surface:
+    """A reconstructed surface on the undistorted left grid.
+
+    Attributes
+    ----------
+    depth_mm : (H, W) float64
+        Depth along the optical axis, mm; NaN outside ``mask``.
+    mask : (H, W) bool
+    field : NormalField
+        The photometric normals the surface was integrated from.
+    fusion : Fusion or None
+        How the stereo pair corrected the low frequencies (None without a stereo prior).
+    iterations : int
+        Normal estimates made (1 for distant lights).
+    depth_steps_mm : tuple of float
+        Point lights: the 99th percentile of the depth's change at each alternation, mm.
+    normals_facing_away : int
+        Normals dropped as facing away from their ray and filled.
+    refinement : LightRefinement or None
+        The lights refitted against the stereo geometry, when the given ones disagreed with it
+        (:func:`remeasure_with_refined_lights`).
+    """
+
+    depth_mm: np.ndarray
+    mask: np.ndarray
+    field: normals.NormalField
+    fusion: fusion.Fusion | None
+    iterations: int
+    depth_steps_mm: tuple[float, ...]
+    normals_facing_away: int
+    refinement: light_refinement.LightRefinement | None = None
+
+
+def integrate_and_fuse(
+    field: normals.NormalField,
+    K: np.ndarray,
+    *,
+    prior_mm: np.ndarray | None,
+    working_distance_mm: float | None,
+    stereo_weight: float,
+    tol: float,
+) -> tuple[np.ndarray, np.ndarray, normals.NormalField, fusion.Fusion | None, int]:
+    """Integrate a normal field to metric depth and give its low frequencies to the stereo pair.
+
+    Parameters
+    ----------
+    field : NormalField
+    K : (3, 3) float
+        Intrinsics of the undistorted left grid, pixels.
+    prior_mm : (H, W) float or None
+        Stereo depth (mm, NaN where unmatched); None: the working distance sets the scale.
+    working_distance_mm : float or None
+        Depth (mm) on the optical axis; needed without a prior.
+    stereo_weight : float
+        Weight of the stereo depth in the integration (see :class:`pipeline.stages.InspectOptions`).
+    tol : float
+        Relative residual of the depth solve.
+
+    Returns
+    -------
+    (depth_mm, mask, field, fusion, dropped)
+        Depth (H, W) float64 mm (NaN outside ``mask``), the field after dropping normals facing
+        away, the fusion (None without a prior) and how many normals were dropped.
+    """
+    field, dropped = normals.drop_facing_away(field, K)
+    if prior_mm is not None:
+        depth = integration.integrate_normals(
+            field.normals,
+            field.mask,
+            K,
+            prior_depth_mm=prior_mm,
+            prior_weight=stereo_weight,
+            tol=tol,
+        )
+        mask = depth.mask & np.isfinite(depth.depth_mm)
+        fused = fusion.fuse_low_frequencies(depth.depth_mm, prior_mm, mask)
+        return fused.depth_mm, mask, field, fused, dropped
+    if working_distance_mm is None:
+        raise ValueError(
+            "working_distance_mm: expected a distance without a stereo prior, got none"
+        )
+    depth = integration.integrate_normals(
+        field.normals, field.mask, K, reference_depth_mm=working_distance_mm, tol=tol
+    )
+    z = scale_to_working_distance(depth.depth_mm, K, working_distance_mm)
+    return z, depth.mask & np.isfinite(z), field, None, dropped
+
+
+def distant_surface(field: normals.NormalField, K: np.ndarray, **kwargs: Any) -> Surface:
+    """The surface of normals estimated under distant lights (see :func:`integrate_and_fuse` for kwargs)."""
+    depth, mask, field, fused, dropped = integrate_and_fuse(field, K, **kwargs)
+    return Surface(depth, mask, field, fused, 1, (), dropped)
+
+
+def near_field_surface(
+    images: np.ndarray,
+    lights: Lights,
+    K: np.ndarray,
+    mask: np.ndarray,
+    *,
+    valid: np.ndarray | None,
+    method: str,
+    prior_mm: np.ndarray | None,
+    working_distance_mm: float | None,
+    stereo_weight: float,
+    tol: float,
+    max_iterations: int = MAX_NEAR_FIELD_ITERATIONS,
+    step_tol_mm: float = DEPTH_STEP_TOL_MM,
+    start_mm: np.ndarray | None = None,
+) -> Surface:
+    """Alternate near-field normals and the fused surface until the depth stops moving.
+
+    Parameters
+    ----------
+    images : (N, H, W) float32
+        Preprocessed photometric images (dark-subtracted, undistorted, divided by intensity).
+    lights : Lights
+        Left-camera frame, mm; point lights (distant ones may be mixed in).
+    K : (3, 3) float
+        Intrinsics of the undistorted left grid.
+    mask : (H, W) bool
+        Plate pixels.
+    valid : (N, H, W) bool or None
+    method : {"robust", "lstsq"}
+    prior_mm, working_distance_mm, stereo_weight, tol
+        As for :func:`integrate_and_fuse`.
+    max_iterations : int
+        Normal estimates at most.
+    step_tol_mm : float
+        Stop when the 99th percentile of the depth's change falls below this, mm.
+    start_mm : (H, W) float, optional
+        The starting surface, when already computed (default: the stereo pair's smooth surface,
+        or the plane at the working distance).
+
+    Returns
+    -------
+    Surface
+
+    Raises
+    ------
+    CaptureError
+        A light lies behind the plate's surface (the plate would not be lit from the camera side).
+    """
+    if start_mm is not None:
+        start = start_mm
+    elif prior_mm is not None:
+        start = fusion.smooth_stereo_depth(prior_mm, mask)
+    elif working_distance_mm is not None:
+        start = np.where(mask, float(working_distance_mm), np.nan)
+    else:
+        raise ValueError(
+            "working_distance_mm: expected a distance without a stereo prior, got none"
+        )
+    _check_lights_in_front(lights, start, mask)
+    depth = np.where(mask, start, np.nan)
+    steps: list[float] = []
+    field = fused = None
+    dropped = 0
+    surface_mask = mask
+    noise = float(np.median(image_noise(images, mask)))  # the images', the same at every estimate
+    for it in range(1, max_iterations + 1):  # noqa: B007 (the count is returned)
+        est_mask = surface_mask & np.isfinite(depth)
+        field = nearfield.estimate_normals_near(
+            images, lights, depth, K, est_mask, valid=valid, method=method, noise=noise
+        )
+        new_depth, surface_mask, field, fused, dropped = integrate_and_fuse(
+            field,
+            K,
+            prior_mm=prior_mm,
+            working_distance_mm=working_distance_mm,
+            stereo_weight=stereo_weight,
+            tol=tol,
+        )
+        both = surface_mask & np.isfinite(depth)
+        step = (
+            float(np.percentile(np.abs(new_depth[both] - depth[both]), 99))
+            if both.any()
+            else np.inf
+        )
+        steps.append(round(step, 4))
+        depth = new_depth
+        if step < step_tol_mm:
+            break
+    if field is None:
+        raise ValueError(f"max_iterations: expected at least 1, got {max_iterations}")
+    return Surface(depth, surface_mask, field, fused, it, tuple(steps), dropped)
+
+
+def disagrees(surface: Surface, tolerance_mm: float, fraction: float) -> bool:
+    """Whether the photometric and stereo shapes disagree beyond noise and ``fraction`` of the tolerance."""
+    f = surface.fusion
+    return f is not None and f.disagreement_mm > max(f.noise_floor_mm, fraction * tolerance_mm)
+
+
+def remeasure_with_refined_lights(
+    first: Surface,
+    images: np.ndarray,
+    lights: Lights,
+    K: np.ndarray,
+    mask: np.ndarray,
+    *,
+    valid: np.ndarray | None,
+    method: str,
+    prior_mm: np.ndarray,
+    working_distance_mm: float | None,
+    stereo_weight: float,
+    tol: float,
+) -> Surface:
+    """Refit the given lights on the stereo geometry and measure again with them.
+
+    For a surface measured with distant lights whose shape disagreed with the stereo pair's (see
+    :mod:`pipeline.lights.refinement`): the refined lights are point lights (near-field
+    reconstruction) or corrected distant ones. The new surface is kept when it agrees better with
+    the stereo pair, and then ``refinement`` records the fit; otherwise the first surface is returned
+    as it was (the given lights stand).
+
+    Parameters
+    ----------
+    first : Surface
+        The surface measured with the given lights.
+    images : (N, H, W) float32
+        Preprocessed images (divided by the given intensities).
+    lights : Lights
+        The given lights.
+    K, mask, valid, method, prior_mm, working_distance_mm, stereo_weight, tol
+        As for :func:`near_field_surface`; ``prior_mm`` is required.
+
+    Returns
+    -------
+    Surface
+    """
+    smooth = fusion.smooth_stereo_depth(prior_mm, mask)
+    refined = light_refinement.refine_lights(images, valid, mask, lights, smooth, K)
+    if refined is None:
+        return first
+    # the images were divided by the given intensities: by the refined ones instead
+    gain = (lights.intensity / refined.lights.intensity).astype(np.float32)
+    scaled = images * gain[:, None, None]
+    solve: dict[str, Any] = dict(
+        prior_mm=prior_mm,
+        working_distance_mm=working_distance_mm,
+        stereo_weight=stereo_weight,
+        tol=tol,
+    )
+    if refined.model == "point":
+        second = near_field_surface(
+            scaled, refined.lights, K, mask, valid=valid, method=method, start_mm=smooth, **solve
+        )
+    else:
+        field = normals.estimate_normals(
+            scaled, refined.lights.directions, mask, valid=valid, method=method, camera_matrix=K
+        )
+        second = distant_surface(field, K, **solve)
+    better = (
+        second.fusion is not None
+        and first.fusion is not None
+        and second.fusion.disagreement_mm < first.fusion.disagreement_mm
+    )
+    # the refitted lights count only if the plate measured with them is kept: otherwise the given
+    # lights stand, and the result says nothing about lights it did not use
+    return replace(second, refinement=refined) if better else first
+
+
+def _check_lights_in_front(lights: Lights, depth_mm: np.ndarray, mask: np.ndarray) -> None:
+    """A point light at or beyond the plate's nearest depth would light it from behind."""
+    if not lights.any_point:
+        return
+    nearest = float(np.nanmin(np.where(mask, depth_mm, np.nan)))
+    for k in np.flatnonzero(lights.is_point):
+        if lights.positions_mm[k, 2] >= nearest:
+            raise CaptureError(
+                f"photometric.lights[{k}].position_mm: the light (z = {lights.positions_mm[k, 2]:.0f} mm) is not in "
+                f"front of the plate, whose nearest point is at z = {nearest:.0f} mm (left camera frame)"
+            )
+
+
+def scale_to_working_distance(
+    depth_mm: np.ndarray, K: np.ndarray, working_distance_mm: float
+) -> np.ndarray:
+    """Scale an up-to-scale depth so the plate's depth on the optical axis is the working distance.
+
+    The working distance is the depth (mm, along the optical axis) of the surface point seen at the
+    principal point; where the plate does not cover it, the median depth over the plate stands in.
+    """
+    z = depth_mm
+    cx, cy = int(round(K[0, 2])), int(round(K[1, 2]))
+    window = z[max(cy - 2, 0) : cy + 3, max(cx - 2, 0) : cx + 3]
+    on_axis = window[np.isfinite(window)]
+    reference = float(np.median(on_axis)) if on_axis.size else float(np.nanmedian(z))
+    if not reference > 0:
+        raise CaptureError("depth: the integrated surface has no positive depth to scale")
+    return z * (working_distance_mm / reference)
