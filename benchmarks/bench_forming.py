@@ -4,7 +4,7 @@ Run from the project root:  .venv/bin/python benchmarks/bench_forming.py [--plat
                             [--compliance 2.0] [--gain 1.0] [--scatter 0.1] [--yield-scatter 0]
                             [--hardening 1.0] [--batch] [--over-probability 0.005]
        .venv/bin/python benchmarks/bench_forming.py --stress --seeds 0 1 ... 11   (issue 27's cases)
-                            [--cases model batch] [--modes learning]
+                            [--cases model batch] [--modes learning] [--diagnose]
 
 Each seed draws a batch (``pipeline.forming.campaign.random_batch``: radii 3-15 m, thickness 10-30 mm,
 AH36/DH36, hidden yield 1.05-1.35 x nominal) and rolls it plate after plate on issue 14's machine against
@@ -12,6 +12,9 @@ the hidden physics (compliance, displacement gain, displacement scatter per pass
 advice sees the finished plates; "alone": each plate from the nominal model and its own passes only.
 ``--batch``: each seed one grade and thickness with close yields, as plates of one heat. Prints the
 passes of every plate of the first seed, a summary per seed and mode, and the totals over the seeds.
+``--stress --diagnose``: after each case's row, every plate over-bent, past 4 passes or not done, pass
+by pass (the advice's prediction against the hidden truth), and how often the corrections' outcomes
+fell beyond their predicted 97.5 % quantile, early (the first 8 plates of a campaign) and late.
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.forming.advice import AimSettings
+from pipeline.forming.advice import AimSettings, aim, curvature_band, target_curvature
 from pipeline.forming.campaign import (
     GRADES,
     STRESS,
@@ -36,7 +39,8 @@ from pipeline.forming.campaign import (
     stress_plates,
     summary,
 )
-from pipeline.forming.records import Machine
+from pipeline.forming.learning import Priors, fit
+from pipeline.forming.records import Machine, PlateRecord
 
 MACHINE = Machine(
     "R3-01",
@@ -109,6 +113,12 @@ def main():
         default=["learning", "alone"],
         choices=["learning", "alone"],
         help="with --stress: the advice's modes to run (default both)",
+    )
+    ap.add_argument(
+        "--diagnose",
+        action="store_true",
+        help="with --stress: the plates over-bent, past 4 passes or not done, pass by pass, and the "
+        "corrections' calibration early and late in the campaigns",
     )
     args = ap.parse_args()
     if args.stress:
@@ -210,6 +220,90 @@ def stress(args) -> None:
                 f"| {max(s['mean_passes_after_first'] for s in sums):.2f} "
                 f"| {time.perf_counter() - t0:.0f} |",
                 flush=True,
+            )
+            if args.diagnose:
+                diagnose(
+                    name, mode, dict(zip(args.seeds, outs)), physics, learning=mode == "learning"
+                )
+
+
+def _with_true_scatter(outcome, j: int, history: list, physics: TruePhysics) -> str:
+    """The pass ``j`` that over-bent a plate, predicted and aimed by the same fit with the pass
+    scatter known at its true value."""
+    tg = outcome.record.target
+    before = PlateRecord(outcome.plate_id, tg, outcome.record.passes[:j])
+    priors = Priors(scatter_mm=physics.displacement_scatter_mm, scatter_weight=1e6)
+    fitted = fit(
+        [before, *history[-priors.max_plates :]],
+        {MACHINE.machine_id: MACHINE},
+        priors,
+        also_machines=[MACHINE.machine_id],
+    )
+    setting = outcome.record.passes[j].top_roll_displacement_mm
+    pred = fitted.predict(before, MACHINE.machine_id, setting)
+    z = (outcome.true_curvatures[j] - pred.mean) / pred.sd
+    aimed = aim(fitted, before, MACHINE)
+    moved = aimed["displacement_mm"] - setting
+    return (
+        f"with the true scatter ({physics.displacement_scatter_mm:g} mm) known: predicted "
+        f"{_bands(tg, pred.mean):+.2f} +- {1.96 * pred.sd / curvature_band(tg):.2f} (95 %), the truth "
+        f"{z:+.2f} sd out; the aim {aimed['displacement_mm']:.2f} mm ({moved:+.2f} mm), median "
+        f"{_bands(tg, aimed['prediction'].median):+.2f}"
+    )
+
+
+def _bands(target, curvature: float) -> float:
+    """A mid-surface curvature as bands from the target's (+: tighter)."""
+    return (curvature - target_curvature(target)) / curvature_band(target)
+
+
+def _curvature(target, radius_mm) -> float:
+    return 0.0 if radius_mm is None else 1.0 / target.mid_radius_mm(radius_mm)
+
+
+def diagnose(name: str, mode: str, runs: dict, physics: TruePhysics, *, learning: bool) -> None:
+    """Every plate over-bent, past 4 passes or not done, pass by pass: its setting, the hidden true
+    curvature, the advice's median and the half-width of its 95 % range (bands from the target), the
+    truth's distance from the median in those half-widths (``r``: beyond 1 is beyond the 97.5 %
+    quantile), the fitted scatter; for the pass that over-bent a plate, the aim of the same fit had
+    it known the true scatter (its prior at the truth, worth a million rows); then how often the
+    corrections' ``r`` passed 1, by campaign position."""
+    beyond: dict[str, list[float]] = {"early": [], "late": []}
+    for seed, outs in runs.items():
+        for i, o in enumerate(outs):
+            tg = o.record.target
+            flagged = o.over_bent or o.passes > 4 or o.final != "done"
+            if flagged:
+                print(
+                    f"    {name}, {mode}, seed {seed}, plate {i + 1} ({o.plate_id}, "
+                    f"{tg.material.thickness_mm:g} mm to {tg.radius_mm:.0f} mm): {o.final}"
+                    f"{', over-bent' if o.over_bent else ''}, {o.passes} passes"
+                )
+            for j, (q, k) in enumerate(zip(o.record.passes, o.true_curvatures)):
+                a = o.advice[j]
+                median = _curvature(tg, a["expected_radius_mm"])
+                upper = _curvature(tg, (a["expected_radius_range_mm"] or [None])[0])
+                r = (k - median) / (upper - median) if upper > median else float("nan")
+                if j > 0:
+                    beyond["early" if i < 8 else "late"].append(r)
+                if flagged:
+                    scatter = a["basis"].get("parameters", {}).get("scatter_mm", float("nan"))
+                    print(
+                        f"      pass {j + 1}: {q.top_roll_displacement_mm:.2f} mm, true "
+                        f"{_bands(tg, k):+.2f} bands, predicted {_bands(tg, median):+.2f} "
+                        f"+- {(upper - median) / curvature_band(tg):.2f} (95 %), r {r:+.2f}, "
+                        f"scatter {scatter:.3f} mm"
+                    )
+                if flagged and o.over_bent and _bands(tg, k) > physics.verdict_band:
+                    history = [x.record for x in outs[:i]] if learning else []
+                    print("        " + _with_true_scatter(o, j, history, physics))
+    for when, rs in beyond.items():
+        arr = np.array([r for r in rs if np.isfinite(r)])
+        if arr.size:
+            print(
+                f"    {name}, {mode}: corrections {when} in their campaign (plates "
+                f"{'1-8' if when == 'early' else '9-'}): {arr.size}, beyond their 97.5 % quantile "
+                f"{np.mean(arr > 1):.1%} (expected 2.5 %)"
             )
 
 

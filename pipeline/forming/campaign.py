@@ -89,6 +89,9 @@ class PlateOutcome:
         Its passes and inspections.
     advice : list of dict
         Every advice it was given.
+    true_curvatures : list of float
+        Its true mid-surface curvature after each pass, 1/mm (the hidden truth the inspections
+        measured with their noise).
     """
 
     plate_id: str
@@ -97,6 +100,7 @@ class PlateOutcome:
     over_bent: bool
     record: PlateRecord
     advice: list[dict[str, Any]] = field(default_factory=list)
+    true_curvatures: list[float] = field(default_factory=list)
 
 
 def random_batch(
@@ -218,7 +222,7 @@ def run_campaign(
         band_hi = target_curvature(record.target) + physics.verdict_band * curvature_band(
             record.target
         )
-        over, final, given = False, "stopped", []
+        over, final, given, truths = False, "stopped", [], []
         while True:
             advice = advise(
                 record,
@@ -235,13 +239,16 @@ def run_campaign(
             if len(record.passes) >= max_passes or advice.top_roll_displacement_mm is None:
                 break
             k = truth.roll(advice.top_roll_displacement_mm, rng)
+            truths.append(k)
             over |= k > band_hi
             radius, verdict = inspect(record, k, physics, rng)
             record = record.with_pass(
                 RollPass(machine.machine_id, advice.top_roll_displacement_mm, radius, verdict)
             )
         finished.append(record)
-        out.append(PlateOutcome(record.plate_id, len(record.passes), final, over, record, given))
+        out.append(
+            PlateOutcome(record.plate_id, len(record.passes), final, over, record, given, truths)
+        )
     return out
 
 

@@ -98,3 +98,19 @@ def test_an_over_bent_campaign_plate_is_told_reverse_with_a_setting(campaigns):
     assert advice.action == "reverse" and advice.top_roll_displacement_mm is not None
     assert "turn the plate over" in advice.basis["reason"]
     assert advice.expected_radius_mm > record.passes[-1].measured_radius_mm
+
+
+def test_the_campaign_keeps_each_passs_true_curvature(campaigns):
+    # the simulator keeps the hidden truth after each pass (bench_forming.py --stress --diagnose
+    # judges the advice's predictions against it): one a pass, each what its inspection measured
+    # within the inspection's noise (0.05 % of the radius, 5 sd here), and a plate is over-bent
+    # exactly when its truth passed the verdict's band on the tight side at some pass
+    for outcomes in campaigns.values():
+        for o in outcomes:
+            target = o.record.target
+            edge = target_curvature(target) + 0.95 * curvature_band(target)
+            assert len(o.true_curvatures) == o.passes
+            assert o.over_bent == any(k > edge for k in o.true_curvatures)
+            for q, k in zip(o.record.passes, o.true_curvatures):
+                measured = measured_curvature(o.record, q.measured_radius_mm)
+                assert measured == pytest.approx(k, rel=5 * 5e-4)
