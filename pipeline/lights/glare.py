@@ -57,6 +57,9 @@ Arr = npt.NDArray[Any]
 MIN_F = LOBE_MIN_F
 #: The lobe is measured on at most this many pixels (a regular subsample of the plate).
 LOBE_SEARCH_PIXELS = 8000
+#: The F-test is first run on about this many of those pixels (a regular subsample): a matte plate
+#: stops there.
+PRETEST_PIXELS = 1000
 #: Gauss-Newton passes per pixel before and after the residual cut.
 GN_ITERATIONS = 4
 #: As for the near-field Lambertian fit: samples of a light that lights the pixel less than this
@@ -83,10 +86,47 @@ def surface_normals(depth_mm: np.ndarray, K: np.ndarray) -> np.ndarray:
     )
     points = rays * depth_mm[..., None]
     n = np.cross(np.gradient(points, axis=1), np.gradient(points, axis=0))
+    return _orient(n, points)
+
+
+def surface_normals_at(depth_mm: np.ndarray, K: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """:func:`surface_normals` at the flat pixel indices ``idx`` only, (P, 3): the same central
+    differences (one-sided at the image's border), computed on the pixels' 3 x 3 neighbourhoods."""
+    h, w = depth_mm.shape
+    i, j = np.divmod(idx, w)
+    di = np.arange(-1, 2)
+    ii = np.clip(i[:, None] + di, 0, h - 1)  # (P, 3): up, centre, down
+    jj = np.clip(j[:, None] + di, 0, w - 1)  # (P, 3): left, centre, right
+    rows = np.broadcast_to(ii[:, :, None], (idx.size, 3, 3))
+    cols = np.broadcast_to(jj[:, None, :], (idx.size, 3, 3))
+    pts = _points(depth_mm[rows, cols], K, cols, rows)  # (P, 3, 3, 3)
+    d_u = (pts[:, 1, 2] - pts[:, 1, 0]) / (jj[:, 2] - jj[:, 0])[:, None]
+    d_v = (pts[:, 2, 1] - pts[:, 0, 1]) / (ii[:, 2] - ii[:, 0])[:, None]
+    return _orient(np.cross(d_u, d_v), pts[:, 1, 1])
+
+
+def _points(depth: np.ndarray, K: np.ndarray, uu: np.ndarray, vv: np.ndarray) -> np.ndarray:
+    """The 3-D points (P, 3, 3, 3) of pixels (uu, vv) (P, 3, 3) at depths ``depth``."""
+    uvw = np.stack([uu, vv, np.ones_like(uu)]).astype(np.float64)
+    points: np.ndarray = np.einsum("ij,jpab->pabi", np.linalg.inv(K), uvw) * depth[..., None]
+    return points
+
+
+def _orient(n: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Unit ``n`` turned towards the camera (NaN where undefined)."""
     with np.errstate(invalid="ignore", divide="ignore"):
-        n /= np.linalg.norm(n, axis=-1, keepdims=True)
-    flip = np.einsum("hwc,hwc->hw", n, points) > 0
+        n = n / np.linalg.norm(n, axis=-1, keepdims=True)
+    flip = np.einsum("...c,...c->...", n, points) > 0
     return np.where(flip[..., None], -n, n)
+
+
+def _normals_defined(depth_mm: np.ndarray) -> np.ndarray:
+    """Where :func:`surface_normals` can be finite: the pixel's left/right and up/down neighbours
+    (itself at the border) have a depth."""
+    f = np.isfinite(depth_mm)
+    pad = np.pad(f, 1, mode="edge")
+    defined: np.ndarray = pad[1:-1, :-2] & pad[1:-1, 2:] & pad[:-2, 1:-1] & pad[2:, 1:-1]
+    return defined
 
 
 def measure_lobe(
@@ -94,24 +134,61 @@ def measure_lobe(
     valid: np.ndarray | None,
     lights: Lights,
     depth_mm: np.ndarray,
-    normals: np.ndarray,
+    normals: np.ndarray | None,
     mask: np.ndarray,
     K: np.ndarray,
+    *,
+    start_mm: np.ndarray | None = None,
 ) -> Lobe:
     """The lobe's exponent and amplitude from the images on a known surface (see the module docstring).
 
     ``depth_mm`` gives each pixel's point, ``normals`` (H, W, 3) its normal (the stereo pair's); both
-    finite on ``mask``. Returns the lobe with its F-ratio (about 1 for a matte plate).
+    finite on ``mask``. With ``normals=None`` they are those of the depth map ``start_mm``
+    (:func:`surface_normals`), computed at the sampled pixels only. Returns the lobe with its
+    F-ratio (about 1 for a matte plate).
+
+    The test runs first on about PRETEST_PIXELS of the sampled pixels: a plate whose lobe explains
+    less than MIN_F / 2 there (a matte one: F about 1) is answered from that subsample; any other is
+    measured on all of them, so that the lobe of a glossy plate is the same as without the pretest.
     """
-    ok_px = mask & np.isfinite(depth_mm) & np.all(np.isfinite(normals), axis=-1)
+    if normals is not None:
+        finite_n = np.all(np.isfinite(normals), axis=-1)
+    elif start_mm is not None:
+        finite_n = _normals_defined(start_mm)
+    else:
+        raise ValueError("normals: expected the normals or start_mm, got neither")
+    ok_px = mask & np.isfinite(depth_mm) & finite_n
     idx = np.flatnonzero(ok_px.ravel())
     if idx.size < 100:
         return Lobe(float("nan"), 0.0, 0.0)
     idx = idx[:: max(1, idx.size // LOBE_SEARCH_PIXELS)]
-    w = mask.shape[1]
+    if normals is not None:
+        n_all = normals.reshape(-1, 3)[idx]
+    else:
+        assert start_mm is not None
+        n_all = surface_normals_at(start_mm, K, idx)
+        finite = np.all(np.isfinite(n_all), axis=-1)  # a degenerate neighbourhood: none in practice
+        idx, n_all = idx[finite], n_all[finite]
+    sub = slice(None, None, max(1, idx.size // PRETEST_PIXELS))
+    quick = _lobe_on(images, valid, lights, depth_mm, n_all[sub], idx[sub], mask.shape[1], K)
+    if quick.f_ratio < MIN_F / 2:
+        return quick
+    return _lobe_on(images, valid, lights, depth_mm, n_all, idx, mask.shape[1], K)
+
+
+def _lobe_on(
+    images: np.ndarray,
+    valid: np.ndarray | None,
+    lights: Lights,
+    depth_mm: np.ndarray,
+    n: np.ndarray,
+    idx: np.ndarray,
+    w: int,
+    K: np.ndarray,
+) -> Lobe:
+    """:func:`measure_lobe` on the flat pixels ``idx`` of normals ``n`` (P, 3)."""
     uv1 = np.stack([idx % w, idx // w, np.ones(idx.size)]).astype(np.float64)
     x = (np.linalg.inv(K) @ uv1).T * depth_mm.ravel()[idx, None]
-    n = normals.reshape(-1, 3)[idx]
     lv = lights.directions_at(x)  # (N, P, 3)
     att = lights.attenuation_at(x)  # (N, P)
     view = -x / np.linalg.norm(x, axis=-1, keepdims=True)

@@ -247,11 +247,11 @@ def _with_lobe(
     """A glossy coating: its lobe measured on the stereo pair's smooth surface ``start`` and the normals
     fitted with it from that surface's normals (:mod:`pipeline.lights.glare`), integrated and fused once
     more; a matte plate (no significant lobe) returns ``surface`` as it is."""
-    normals_start = glare.surface_normals(start, K)
     depth = surface.depth_mm
-    lobe = glare.measure_lobe(images, valid, lights, depth, normals_start, surface.mask, K)
+    lobe = glare.measure_lobe(images, valid, lights, depth, None, surface.mask, K, start_mm=start)
     if not (lobe.f_ratio >= glare.MIN_F and lobe.amplitude > 0):
         return surface
+    normals_start = glare.surface_normals(start, K)
     glossy, _ = glare.fit_with_lobe(
         images, valid, lights, depth, normals_start, K, lobe, surface.field, noise
     )

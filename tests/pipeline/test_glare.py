@@ -89,3 +89,35 @@ def test_the_lobe_fit_recovers_the_normals_the_lambertian_fit_misses(glossy):
         np.percentile(after, 95),
     )
     assert field.specular is not None and field.specular.modelled
+
+
+def test_the_normals_at_sampled_pixels_are_those_of_the_whole_map():
+    rng = np.random.default_rng(0)
+    h, w = 23, 31
+    vv, uu = np.mgrid[:h, :w]
+    depth = 3000.0 + 0.02 * (uu - 15.0) ** 2 + 0.5 * vv + rng.normal(0, 0.01, (h, w))
+    depth[5, 7] = depth[0, 12] = depth[h - 1, w - 1] = np.nan  # holes, two on the border
+    K = np.array([[900.0, 0, 15.5], [0, 900.0, 11.5], [0, 0, 1]])
+    full = glare.surface_normals(depth, K)
+    idx = np.arange(h * w)
+    np.testing.assert_array_equal(
+        glare.surface_normals_at(depth, K, idx), full.reshape(-1, 3), strict=True
+    )
+    defined = glare._normals_defined(depth)
+    np.testing.assert_array_equal(defined, np.all(np.isfinite(full), axis=-1))
+
+
+def test_the_lobe_measured_from_the_start_depth_is_the_lobe_of_its_normals(glossy, matte):
+    """measure_lobe(start_mm=) (normals at the sampled pixels only, and the matte pretest) decides
+    as the whole normal map does, and measures a glossy plate's lobe exactly as it does."""
+    for scene in (glossy, matte):
+        cap, pre, truth = scene
+        mask = pre.mask & truth["mask"]
+        depth = np.where(mask, truth["depth_mm"], np.nan)
+        K = cap.rig.left.K
+        args = (pre.images, pre.valid, cap.lights, depth)
+        whole = glare.measure_lobe(*args, glare.surface_normals(depth, K), mask, K)
+        sampled = glare.measure_lobe(*args, None, mask, K, start_mm=depth)
+        assert (whole.f_ratio >= glare.MIN_F) == (sampled.f_ratio >= glare.MIN_F)
+        if whole.f_ratio >= glare.MIN_F:
+            assert sampled == whole
