@@ -18,7 +18,8 @@ a fit of normals and lobe started from those Lambertian normals settles in the w
    is linear in (b, s_j) for each candidate e (:data:`~pipeline.surface.normals.specular.LOBE_EXPONENTS`);
    the e with the least residual is taken and s is the median of the s_j. The lobe is modelled
    only when it takes out LOBE_MIN_F times what one free parameter per pixel takes out of noise
-   (the F-ratio of the distant lights' specular stage): a matte plate skips this stage.
+   (the F-ratio of the distant lights' specular stage): a matte plate skips this stage (the test
+   runs first on ~PRETEST_PIXELS of the pixels, where a matte plate, F about 1, stops).
 2. Per pixel, b = rho n is fitted by Gauss-Newton on all the lit samples with the lobe's
    derivative in the Jacobian, started from the stereo surface's normal (a few degrees from the
    truth at most). A pixel that ends more than MAX_SPECULAR_TURN_DEG from that start, or whose
