@@ -36,6 +36,7 @@ from app.services.targets import TARGET_FILE, copy_target_files, create_target, 
 from app.settings import Settings
 from app.storage import Storage
 from pipeline.acquisition import CellConfig, acquire, acquire_stations
+from pipeline.acquisition.stations import StationDone
 from pipeline.formats import AcquisitionError, InputError, PipelineError
 
 log = logging.getLogger(__name__)
@@ -196,6 +197,7 @@ def capture_for_job(
     plate_id: str,
     bundle_dir: Path,
     progress: Callable[[str, float], None],
+    station_done: StationDone | None = None,
 ) -> list[Path]:
     """The capture of an acquired job, in the consumer: photograph the plate into ``bundle_dir``; the
     bundles to measure: ``[bundle_dir]`` for a cell that photographs one view, or, for a cell with a
@@ -206,7 +208,9 @@ def capture_for_job(
     kept: the plate photographed then is the one inspected. Progress is reported as stage
     :data:`CAPTURE_STAGE`, its fraction the frames taken (over all stations). The (first) bundle's
     ``capture.json`` (with the acquisition record) is copied into the artifacts. The cameras' state
-    and thumbnails are recorded for the dashboard.
+    and thumbnails are recorded for the dashboard. ``station_done(index, bundle)`` is the hook of
+    :func:`pipeline.acquisition.acquire_stations` (a cell with a conveyor, stations photographed
+    now): each station as soon as it is photographed, so that it is reconstructed while the next is.
 
     Raises
     ------
@@ -233,6 +237,7 @@ def capture_for_job(
             bundle_dir=bundle_dir,
             cell_id=request["cell_id"],
             progress=progress,
+            station_done=station_done,
         )
     shutil.copyfile(
         bundles[0] / "capture.json", storage.artifacts_dir(inspection_id) / "capture.json"
@@ -250,6 +255,7 @@ def _capture(
     bundle_dir: Path,
     cell_id: str,
     progress: Callable[[str, float], None],
+    station_done: StationDone | None,
 ) -> list[Path]:
     """Photograph the plate into ``bundle_dir`` with the cell ``cell_id``, holding the cameras' lock:
     one view, or each station of a cell with a conveyor; the bundles written."""
@@ -289,6 +295,7 @@ def _capture(
                 plate_id,
                 bundle_dir,
                 progress=report,
+                station_done=station_done,
                 frame_timeout_s=settings.frame_timeout_s,
             )
     except AcquisitionError as err:

@@ -330,6 +330,25 @@ def last_frame_lag_s(bundle: str | os.PathLike[str]) -> float | None:
         return None
 
 
+def add_after_last_frame(
+    document: dict[str, Any], bundle: str | os.PathLike[str], out_dir: Path, returned_at: float
+) -> None:
+    """``timings_s.after_last_frame`` of an acquired inspection's result ``document``: seconds from
+    the last frame's arrival (:func:`last_frame_lag_s` of the last ``bundle`` taken, before
+    ``returned_at``, the :func:`time.monotonic` when the acquisition returned) to now; written into
+    ``out_dir/result.json`` too. Nothing for a bundle without an acquisition record."""
+    tail = last_frame_lag_s(bundle)
+    if tail is None:
+        return  # no acquisition record: nothing to time against
+    timings = document.get("timings_s")
+    if not isinstance(timings, dict):
+        return
+    timings["after_last_frame"] = round(time.monotonic() - returned_at + tail, 3)
+    result_file = out_dir / "result.json"
+    if result_file.is_file():
+        result_file.write_text(json.dumps(document, indent=2) + "\n")
+
+
 def take_bundle(
     run: Run,
     plate_id: str,

@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -58,8 +58,11 @@ from pipeline.stations.register import StationPoses, StationView, register_stati
 
 
 @dataclass(frozen=True)
-class _Station:
-    """One station reconstructed: its view for the registration and what its uncertainty and details need."""
+class StationResult:
+    """One station reconstructed (the stages of one view, nothing judged): its view for the registration
+    and what its uncertainty and details need. :func:`measure_stations` makes it, or takes one made
+    already by :func:`reconstruct_station` (:class:`pipeline.stations.EarlyStations`: while the conveyor
+    moves on to the next station)."""
 
     ref: StationRef
     view: StationView
@@ -73,6 +76,8 @@ class _Station:
     saturated: int
     shadowed: int
     metric_scale: str
+    #: Seconds of each stage of its view (``load`` .. ``depth``, as :class:`pipeline.stages.StageClock`).
+    timings: dict[str, float]
 
 
 @dataclass(frozen=True)
@@ -88,9 +93,14 @@ class StitchedPlate:
     uncertainty: uncertainty.Uncertainty
     pixel_area: np.ndarray
     registration_sd_mm: list[float]
-    stations: list[_Station]
+    stations: list[StationResult]
     edge_band_mm: float
     warnings: list[str]
+
+
+#: The station reconstructed already for a planned station (its reference), or None: reconstruct it
+#: now. Raises what its reconstruction raised.
+Precomputed = Callable[[StationRef], "StationResult | None"]
 
 
 def measure_stations(
@@ -100,8 +110,14 @@ def measure_stations(
     clock: StageClock,
     opts: InspectOptions,
     light_calibration: Lights | None,
+    *,
+    precomputed: Precomputed | None = None,
 ) -> tuple[StitchedPlate, Target]:
     """Every stage of a plate at stations but the documents (details.json, result.json).
+
+    ``precomputed``: stations reconstructed already (with the same target, options and light
+    calibration: :class:`pipeline.stations.EarlyStations`), each taken in place of its
+    reconstruction; their stage timings add to ``clock``'s as a fresh station's do.
 
     Raises
     ------
@@ -116,18 +132,17 @@ def measure_stations(
     clock.end("load")
     # one station at a time: the numba kernels take every core (decoding the next station beside them
     # makes each parallel region wait for the busy core: measured slower)
-    stations = [
-        _reconstruct(
-            ref,
-            _load(ref.source, clock),
-            tgt,
-            opts,
-            light_calibration,
-            clock,
-            StageClock(station_progress(clock.progress, k, len(refs))),
-        )
-        for k, ref in enumerate(refs)
-    ]
+    stations = []
+    for k, ref in enumerate(refs):
+        report = station_progress(clock.progress, k, len(refs))
+        station = None if precomputed is None else precomputed(ref)
+        if station is None:
+            station = reconstruct_station(ref, tgt, opts, light_calibration, progress=report)
+        elif report is not None:
+            report("depth", 1.0)
+        for stage, seconds in station.timings.items():
+            clock.timings[stage] = round(clock.timings.get(stage, 0.0) + seconds, 4)
+        stations.append(station)
     views = [s.view for s in stations]
     t = time.perf_counter()
     poses = register_stations(views, seam_limit_mm=DISAGREEMENT_FRACTION * tgt.tolerance_mm)
@@ -137,14 +152,6 @@ def measure_stations(
     clock.timings["stations_mosaic"] = round(time.perf_counter() - t, 4)
     plate = _judge(stations, poses, mosaic, tgt, out, opts, clock)
     return plate, tgt
-
-
-def _load(source: Capture | Path, clock: StageClock) -> Capture:
-    """A station's capture, decoded (the one given when it is loaded already); the time adds to *load*."""
-    t = time.perf_counter()
-    cap = source if isinstance(source, Capture) else load_capture(source)
-    clock.timings["load"] = round(clock.timings.get("load", 0.0) + time.perf_counter() - t, 4)
-    return cap
 
 
 def station_progress(progress: ProgressCallback | None, k: int, n: int) -> ProgressCallback | None:
@@ -164,24 +171,31 @@ def station_progress(progress: ProgressCallback | None, k: int, n: int) -> Progr
     return report
 
 
-def _reconstruct(
+def reconstruct_station(
     ref: StationRef,
-    capture: Capture,
     tgt: Target,
     opts: InspectOptions,
     light_calibration: Lights | None,
-    clock: StageClock,
-    own: StageClock,
-) -> _Station:
-    """One station (``capture``, decoded) through the stages of one view, timed and reported by
-    ``own``; its timings add to ``clock``'s."""
+    *,
+    progress: ProgressCallback | None = None,
+) -> StationResult:
+    """One station (``ref``; decoded here unless loaded already) through the stages of one view
+    (:func:`pipeline.stages.load_inputs` .. :func:`~pipeline.stages.reconstruct_view`), timed by a
+    clock of its own (``StationResult.timings``; the decoding counts in *load*) that reports to
+    ``progress``.
+
+    Its parallel numba kernels run on the calling thread: no other thread may run one meanwhile.
+    """
+    own = StageClock(progress)
+    t = time.perf_counter()
+    capture = ref.source if isinstance(ref.source, Capture) else load_capture(ref.source)
+    decode_s = time.perf_counter() - t
     warnings: list[str] = []
     cap, _ = load_inputs(capture, tgt, light_calibration, warnings, own, opts)
+    own.timings["load"] = round(own.timings["load"] + decode_s, 4)
     scene = preprocess_scene(cap, opts, own)
     with ThreadPoolExecutor(max_workers=opts.workers or default_workers()) as pool:
         view, _ = reconstruct_view(cap, tgt, scene, opts, pool, own)
-    for stage, seconds in own.timings.items():
-        clock.timings[stage] = round(clock.timings.get(stage, 0.0) + seconds, 4)
     surface = view.surface
     judged = surface.mask & ~edge_band(surface.mask)
     inputs = uncertainty_inputs(cap, scene.pre, surface, view.points, judged)
@@ -198,7 +212,7 @@ def _reconstruct(
         direction=ref.direction,
     )
     warnings += _station_warnings(index, surface, tgt)
-    return _Station(
+    return StationResult(
         ref=ref,
         view=station_view,
         inputs=inputs,
@@ -214,6 +228,7 @@ def _reconstruct(
         saturated=scene.pre.n_saturated,
         shadowed=scene.pre.n_shadowed,
         metric_scale="stereo" if view.plate.prior is not None else "working_distance",
+        timings=dict(own.timings),
     )
 
 
@@ -237,7 +252,7 @@ def _station_warnings(index: int, surface: Any, tgt: Target) -> list[str]:
 
 
 def _judge(
-    stations: list[_Station],
+    stations: list[StationResult],
     poses: StationPoses,
     mosaic: Mosaic,
     tgt: Target,
@@ -341,7 +356,7 @@ def _grid_normals(points: np.ndarray, cell_mm: float) -> tuple[np.ndarray, np.nd
 
 
 def _qualify(
-    stations: list[_Station],
+    stations: list[StationResult],
     poses: StationPoses,
     mosaic: Mosaic,
     pose: registration.Registration,
