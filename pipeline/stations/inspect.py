@@ -66,7 +66,8 @@ class StationResult:
 
     ref: StationRef
     view: StationView
-    inputs: uncertainty.Inputs
+    #: Its points' own uncertainty (the radius's needs the whole plate's radius, found later).
+    qualified: uncertainty.PointUncertainty
     matched_pct: float | None
     details: dict[str, Any]
     warnings: list[str]
@@ -198,7 +199,9 @@ def reconstruct_station(
         view, _ = reconstruct_view(cap, tgt, scene, opts, pool, own)
     surface = view.surface
     judged = surface.mask & ~edge_band(surface.mask)
-    inputs = uncertainty_inputs(cap, scene.pre, surface, view.points, judged)
+    qualified = uncertainty.propagate_points(
+        uncertainty_inputs(cap, scene.pre, surface, view.points, judged)
+    )
     index = ref.station.index
     station_view = StationView(
         index=index,
@@ -215,7 +218,7 @@ def reconstruct_station(
     return StationResult(
         ref=ref,
         view=station_view,
-        inputs=inputs,
+        qualified=qualified,
         matched_pct=view.plate.matched_pct,
         details={
             "stereo_fusion": fusion_details(surface.fusion),
@@ -264,16 +267,11 @@ def _judge(
     points, mask = mosaic.points, mosaic.mask
     clock.begin("curvature")
     with ThreadPoolExecutor(max_workers=opts.workers or default_workers()) as pool:
-        curvature_job = pool.submit(
-            _curvature, points, mask
-        )  # beside the registration, as for one view
-        normals, area = _grid_normals(points, mosaic.cell_mm)
-        has_normal = mask & np.isfinite(normals).all(axis=-1)
+        # beside the registration, as for one view: the curvature, the grid's normals and areas
+        curvature_job = pool.submit(_curvature, points, mask)
+        normals_job = pool.submit(_grid_normals, points, mosaic.cell_mm)
         writes = [
             pool.submit(artifacts.save_depth, out / ARTIFACT_FILES["depth"], points[..., 2]),
-            pool.submit(
-                artifacts.write_normals_png, out / ARTIFACT_FILES["normals"], normals, has_normal
-            ),
         ]
         clock.begin("deviation")
         pose = registration.register_to_target(points, mask, tgt)
@@ -282,6 +280,13 @@ def _judge(
         dev = np.where(band, np.nan, dev)
         judged = mask & ~band
         qualified, reg_sd = _qualify(stations, poses, mosaic, pose, judged, tgt)
+        normals, area = normals_job.result()
+        has_normal = mask & np.isfinite(normals).all(axis=-1)
+        writes.append(
+            pool.submit(
+                artifacts.write_normals_png, out / ARTIFACT_FILES["normals"], normals, has_normal
+            )
+        )
         judgement = verdict.judge(
             dev, judged, tgt.tolerance_mm, pixel_area_mm2=area, uncertainty_mm=qualified.map_mm
         )
@@ -346,11 +351,12 @@ def _grid_normals(points: np.ndarray, cell_mm: float) -> tuple[np.ndarray, np.nd
     cross[..., 0] = dx[..., 1] * dy[..., 2] - dx[..., 2] * dy[..., 1]
     cross[..., 1] = dx[..., 2] * dy[..., 0] - dx[..., 0] * dy[..., 2]
     cross[..., 2] = dx[..., 0] * dy[..., 1] - dx[..., 1] * dy[..., 0]
-    area = np.sqrt(np.einsum("hwc,hwc->hw", cross, cross)).astype(np.float64)
+    length = np.sqrt(np.einsum("hwc,hwc->hw", cross, cross))
+    area = length.astype(np.float64)
     measured = np.isfinite(p[..., 2])
     area = np.where(np.isfinite(area), area, np.where(measured, cell_mm**2, np.nan))
     with np.errstate(invalid="ignore", divide="ignore"):
-        n = cross / np.sqrt(np.einsum("hwc,hwc->hw", cross, cross))[..., None]
+        n = cross / length[..., None]
     n = np.where(n[..., 2:3] > 0, -n, n)
     return n.astype(np.float32), area
 
@@ -363,7 +369,7 @@ def _qualify(
     judged: np.ndarray,
     tgt: Target,
 ) -> tuple[uncertainty.Uncertainty, list[float]]:
-    """The stitched plate's expanded uncertainty: each station's own (:func:`pipeline.judge.uncertainty.propagate`
+    """The stitched plate's expanded uncertainty: each station's own (:func:`pipeline.judge.uncertainty.with_radius`
     at the plate's fitted radius) resampled onto the grid, with each station's registration added.
 
     A station's registration adds ``u_reg``: the RMS surface distance of its overlaps with its neighbours
@@ -378,8 +384,8 @@ def _qualify(
         to_station = np.linalg.inv(mosaic.frame @ poses.poses[k])
         direction = to_station[:3, :3] @ np.asarray(pose.T_cam_target)[:3, 0]
         own.append(
-            uncertainty.propagate(
-                s.inputs,
+            uncertainty.with_radius(
+                s.qualified,
                 radius_mm=None if radius is None else float(radius),
                 curved_direction=direction,
             )
