@@ -12,6 +12,7 @@ acquisition beside it mostly waits on the conveyor and the cameras).
 
 from __future__ import annotations
 
+import logging
 import os
 import shutil
 import tempfile
@@ -31,6 +32,8 @@ from pipeline.stages import InspectOptions
 
 from .inspect import StationResult, reconstruct_station
 from .plan import StationRef, station_ref
+
+log = logging.getLogger(__name__)
 
 
 class EarlyStations:
@@ -93,15 +96,23 @@ class EarlyStations:
         self.close()
 
     def station_done(self, index: int, bundle: str | os.PathLike[str]) -> None:
-        """The acquisition's hook: station ``index``'s bundle is complete at ``bundle``."""
+        """The acquisition's hook: station ``index``'s bundle is complete at ``bundle``.
+
+        Never stops the acquisition: a bundle that cannot be linked (a full disk) is left to the
+        inspection, which reconstructs it from where it is written (a warning is logged).
+        """
         src = Path(bundle)
-        if self._links is None:
-            self._final.parent.mkdir(parents=True, exist_ok=True)
-            self._links = Path(
-                tempfile.mkdtemp(prefix=f".{self._final.name}.early-", dir=self._final.parent)
-            )
-        linked = self._links / src.name
-        shutil.copytree(src, linked, copy_function=_link)
+        try:
+            if self._links is None:
+                self._final.parent.mkdir(parents=True, exist_ok=True)
+                self._links = Path(
+                    tempfile.mkdtemp(prefix=f".{self._final.name}.early-", dir=self._final.parent)
+                )
+            linked = self._links / src.name
+            shutil.copytree(src, linked, copy_function=_link)
+        except OSError as err:
+            log.warning("station %d (%s): not reconstructed early: %s", index, src, err)
+            return
         self._jobs[index] = self._pool.submit(
             self._reconstruct, index, linked, self._final / src.name
         )

@@ -152,3 +152,21 @@ def test_the_cli_wants_target_and_result_together(tmp_path, small_cell, capsys):
     argv = ["acquire", str(small_cell), "--plate-id", "P", "--out", str(tmp_path / "s")]
     assert main([*argv, "--target", "t.json"]) != EXIT_OK
     assert "--target, --result: expected both" in capsys.readouterr().err
+
+
+def test_stations_the_early_reconstruction_missed_are_reconstructed_by_the_inspection(
+    acquired, tmp_path
+):
+    root, _, _ = acquired
+    bundles = sorted((root / "stations").iterdir())
+    target = root / "cell" / "target.json"
+    with EarlyStations(target, root / "stations") as early_stations:
+        for k in (0, 2):  # station 1 never reported (its bundle could not be linked, say)
+            early_stations.station_done(k, bundles[k])
+        doc = inspect(bundles, target, out_dir=tmp_path / "mixed", early=early_stations).document
+    after = json.loads((root / "after" / "result.json").read_text())
+    for key in ("verdict", "radius_mm", "principal_radii_mm", "deviation_mm", "uncertainty"):
+        assert doc[key] == after[key], key
+    np.testing.assert_array_equal(
+        np.load(tmp_path / "mixed" / "depth.npy"), np.load(root / "after" / "depth.npy")
+    )
