@@ -12,9 +12,11 @@ import logging
 import os
 import tempfile
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, TypedDict
 
+import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.jobs.memory import is_out_of_memory, out_of_memory_message
@@ -27,8 +29,8 @@ from app.services.leases import LeaseKeeper
 from app.services.stations import capture_bundles
 from app.settings import InspectFunction, Settings
 from app.storage import Storage
-from pipeline.acquisition import last_frame_lag_s
 from pipeline.formats import InputError, PipelineError
+from pipeline.io import Capture, load_capture
 from pipeline.lights import Lights
 
 log = logging.getLogger(__name__)
@@ -308,9 +310,9 @@ def _run(
         if simulation is None:
             raise ValueError(f"inspection {inspection_id}: simulated, but without its parameters")
         render_simulated_bundle(bundle_dir=capture_path, plate_id=plate_id, simulation=simulation)
-    returned_at = None
+    last_frame_at, frames = None, None
     if source == ACQUIRED_SOURCE:
-        bundles = capture_for_job(
+        captured = capture_for_job(
             inspection_id,
             settings=settings,
             storage=storage,
@@ -318,17 +320,23 @@ def _run(
             bundle_dir=capture_path,
             progress=progress,
         )
-        returned_at = time.monotonic()
+        bundles, frames, last_frame_at = captured.bundles, captured.frames, captured.last_frame_at
     else:
         bundles = capture_bundles(capture_path)
     lights = None
     if light_calibration is not None:
         lights = light_calibrations.load_lights(storage=storage, calibration=light_calibration)
     document = measure_bundles(
-        settings.inspect_entry, bundles, target_path, out_dir, progress=progress, lights=lights
+        settings.inspect_entry,
+        bundles,
+        target_path,
+        out_dir,
+        progress=progress,
+        lights=lights,
+        frames=frames,
     )
-    if returned_at is not None:
-        _add_after_last_frame(document, bundles[-1], out_dir, returned_at)
+    if last_frame_at is not None:
+        _add_after_last_frame(document, out_dir, last_frame_at)
     return document
 
 
@@ -340,15 +348,19 @@ def measure_bundles(
     *,
     progress: ProgressWriter,
     lights: Lights | None,
+    frames: Mapping[str, np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """Measure a job's capture bundles with the inspection entry (:func:`pipeline.run.inspect`): one
     bundle as itself, several as the conveyor stations of one plate (the entry reports each station's
     stages as ``station 2/4: normals``); the result document, plain JSON types only.
 
     Every source of bundles comes here: an upload (one bundle, or a plate's stations), a simulated
-    capture, an acquisition (one bundle, or the stations of a cell with a conveyor).
+    capture, an acquisition (one bundle, or the stations of a cell with a conveyor). ``frames``: one
+    bundle's images already in memory (an acquisition's), loaded from there instead of decoded again.
     """
-    capture: Path | list[Path] = bundles[0] if len(bundles) == 1 else list(bundles)
+    capture: Path | list[Path] | Capture = bundles[0] if len(bundles) == 1 else list(bundles)
+    if frames and len(bundles) == 1:
+        capture = load_capture(bundles[0], frames=frames)
     result = inspect(
         capture, target_path, out_dir=out_dir, progress=progress, light_calibration=lights
     )
@@ -356,19 +368,13 @@ def measure_bundles(
     return document
 
 
-def _add_after_last_frame(
-    document: dict[str, Any], capture_path: Path, out_dir: Path, returned_at: float
-) -> None:
+def _add_after_last_frame(document: dict[str, Any], out_dir: Path, last_frame_at: float) -> None:
     """``timings_s.after_last_frame`` of an acquired inspection: seconds from the last frame's arrival
-    (:func:`pipeline.acquisition.last_frame_lag_s` before ``returned_at``, the moment the acquisition
-    returned) to the result; written into result.json too."""
-    tail = last_frame_lag_s(capture_path)
-    if tail is None:
-        return  # no acquisition record: nothing to time against
+    (``last_frame_at``, ``time.monotonic()``) to the result; written into result.json too."""
     timings = document.get("timings_s")
     if not isinstance(timings, dict):
         return
-    timings["after_last_frame"] = round(time.monotonic() - returned_at + tail, 3)
+    timings["after_last_frame"] = round(time.monotonic() - last_frame_at, 3)
     result_file = out_dir / "result.json"
     if result_file.is_file():
         result_file.write_text(json.dumps(document, indent=2) + "\n")

@@ -99,6 +99,8 @@ class Run:
     writes: list[Future[None]] = field(default_factory=list)
     exposure_us: dict[Side, float] = field(default_factory=dict)
     pre_shots: int = 0
+    #: Receives each capture frame's image by its file name, when given (see :func:`acquire`).
+    images: dict[str, np.ndarray] | None = None
 
     def next_bundle(self, folder: Path, progress: Progress) -> Run:
         """A fresh run on the same open devices, writing into ``folder`` (the next station's bundle):
@@ -112,6 +114,7 @@ class Run:
             writes=[],
             exposure_us={},
             pre_shots=0,
+            images=None,
         )
 
     def elapsed(self) -> float:
@@ -134,6 +137,8 @@ class Run:
             }
         )
         self.writes.append(self.writer.submit(_write_png, self.folder / name, frame.image))
+        if self.images is not None:
+            self.images[name] = frame.image
         self.progress(f"{name} taken", len(self.frames) / self.n_frames)
 
     def expose(self, camera: Camera, exposure_us: float, *, step: str) -> None:
@@ -244,6 +249,7 @@ def acquire(
     *,
     progress: Progress | None = None,
     frame_timeout_s: float = FRAME_TIMEOUT_S,
+    frames: dict[str, np.ndarray] | None = None,
 ) -> Path:
     """Photograph a plate in the cell and write a ``plate-capture/1`` bundle (module docstring).
 
@@ -259,6 +265,10 @@ def acquire(
         ``progress(stage, fraction)`` after each step (fraction of the capture frames taken).
     frame_timeout_s : float
         Seconds a frame may take beyond its exposure before the camera counts as gone.
+    frames : dict, optional
+        Receives every capture frame's image as the camera gave it, by its file name in the bundle
+        (``"ps_00.png"``, ...), so that an inspection that follows at once takes them from memory
+        (:func:`pipeline.io.load_capture`'s ``frames``) instead of decoding the files again.
 
     Returns
     -------
@@ -308,6 +318,7 @@ def acquire(
                 frame_timeout_s,
                 progress or (lambda stage, f: None),
             )
+            run.images = frames
             take_bundle(run, plate_id, started_at)
         os.rename(partial, out)
     except BaseException:
