@@ -61,6 +61,9 @@ from .lights import LightController, open_light_controller
 
 #: Seconds a frame may take beyond its exposure time before the camera is taken to be gone.
 FRAME_TIMEOUT_S = 2.0
+#: Threads encoding the frames' PNGs beside the sequence: the stereo pair comes last, both frames at
+#: once, and its two files are what the bundle waits for after the last frame.
+PNG_WRITERS = 2
 #: Auto-exposure: the brightest samples (this percentile of a pre-shot) ...
 BRIGHTEST_PERCENTILE = 99.9
 #: ... are kept at or under this fraction of full scale ...
@@ -308,7 +311,7 @@ def acquire(
     started_at = datetime.now(UTC)
     try:
         with ExitStack() as stack:
-            writer = stack.enter_context(ThreadPoolExecutor(max_workers=1))
+            writer = stack.enter_context(ThreadPoolExecutor(max_workers=PNG_WRITERS))
             run = open_devices(
                 stack,
                 config,
