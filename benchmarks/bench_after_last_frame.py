@@ -1,6 +1,7 @@
 """From the last frame to the verdict: an acquisition on the simulated demo cell, then its inspection.
 
-Prints per run the acquisition's own time, the inspection's ``timings_s.total`` and
+Prints per run the acquisition's own time, the inspection's ``timings_s.total``, its verdict and
+deviation (the demo cell's plate is formed exactly: the right verdict is pass) and
 ``after_last_frame``: the seconds from the last frame's arrival (the acquisition record's last
 frame time) to ``result.json`` written, as the service's acquire job reports it. As in the job, the
 inspection starts when the bundle is written and takes the frames from memory (``--decode``: reads
@@ -36,8 +37,10 @@ def main() -> None:
     warm_up()
     width, height = (int(v) for v in args.size.lower().split("x"))
     print(f"\n## After the last frame, demo cell {width}x{height}, {args.lights} LEDs\n")
-    print("| run | acquire s | inspect total s | after last frame s |")
-    print("|---|---|---|---|")
+    print(
+        "| run | acquire s | inspect total s | after last frame s | verdict | radius error % | deviation RMS / max mm |"
+    )
+    print("|---|---|---|---|---|---|---|")
     afters = []
     with tempfile.TemporaryDirectory() as tmp:
         cell = write_demo_cell(Path(tmp) / "cell", n_lights=args.lights, width=width, height=height)
@@ -55,8 +58,10 @@ def main() -> None:
             ).document
             after = time.monotonic() - last_frame_at
             afters.append(after)
+            dev = doc["deviation_mm"]
             print(
-                f"| {i + 1} | {returned - t0:.2f} | {doc['timings_s']['total']:.2f} | {after:.2f} |"
+                f"| {i + 1} | {returned - t0:.2f} | {doc['timings_s']['total']:.2f} | {after:.2f} | "
+                f"{doc['verdict']} | {doc['radius_error_pct']:+.3f} | {dev['rms']:.2f} / {dev['max_abs']:.2f} |"
             )
     print(f"\nmedian after the last frame: {statistics.median(afters):.2f} s")
 
