@@ -32,6 +32,9 @@ from pipeline.formats import AcquisitionError, InputError, PipelineError
 from pipeline.parallel import configure_process
 
 if TYPE_CHECKING:
+    import numpy as np
+
+    from pipeline.io import Capture
     from pipeline.simulate import CaptureSpec, Cutout, Dent, Floor, PlateSpec
     from pipeline.stations import EarlyStations
 
@@ -294,7 +297,10 @@ def _cmd_acquire(args: argparse.Namespace) -> int:
     if args.target is not None:
         warm_up()  # kernel loading is start-up, not part of the measurement's timings
     if not conveyor:
-        out = acquire(args.config, args.plate_id, args.out, progress=progress, **timeout)
+        frames: dict[str, np.ndarray] = {}
+        out = acquire(
+            args.config, args.plate_id, args.out, progress=progress, frames=frames, **timeout
+        )
         returned_at = time.monotonic()
         record = json.loads((out / "capture.json").read_text())["acquisition"]
         print(
@@ -303,7 +309,7 @@ def _cmd_acquire(args: argparse.Namespace) -> int:
         )
         print(f"wrote {out}")
         if args.target is not None:
-            _inspect_acquired([out], args, returned_at, progress, None)
+            _inspect_acquired([out], args, returned_at, progress, None, frames)
         return EXIT_OK
     with contextlib.ExitStack() as stack:
         early = None
@@ -331,21 +337,23 @@ def _inspect_acquired(
     returned_at: float,
     progress: Callable[[str, float], None],
     early: EarlyStations | None,
+    frames: dict[str, np.ndarray] | None = None,
 ) -> None:
     """``acquire --target --result``: the bundles just photographed inspected (stations taken from
-    ``early``), ``timings_s.after_last_frame`` added, the result printed."""
-    from pipeline.acquisition import add_after_last_frame
+    ``early``, one view's images from ``frames`` in memory), ``timings_s.after_last_frame`` added,
+    the result printed."""
+    from pipeline.acquisition import add_after_last_frame, last_frame_time
+    from pipeline.io import load_capture
     from pipeline.run import inspect
 
-    result = inspect(
-        bundles if len(bundles) > 1 else bundles[0],
-        args.target,
-        out_dir=args.result,
-        progress=progress,
-        early=early,
-    )
+    last_frame_at = last_frame_time(bundles[-1], returned_at)
+    capture: Path | list[Path] | Capture = bundles if len(bundles) > 1 else bundles[0]
+    if frames and len(bundles) == 1:
+        capture = load_capture(bundles[0], frames=frames)
+    result = inspect(capture, args.target, out_dir=args.result, progress=progress, early=early)
     doc = dict(result.document)
-    add_after_last_frame(doc, bundles[-1], Path(args.result), returned_at)
+    if last_frame_at is not None:
+        add_after_last_frame(doc, Path(args.result), last_frame_at)
     _print_result(doc, Path(args.result))
 
 

@@ -12,10 +12,12 @@ import logging
 import os
 import tempfile
 import time
+from collections.abc import Mapping
 from contextlib import ExitStack
 from pathlib import Path
 from typing import Any, TypedDict
 
+import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.jobs.memory import is_out_of_memory, out_of_memory_message
@@ -30,6 +32,7 @@ from app.settings import InspectFunction, Settings
 from app.storage import Storage
 from pipeline.acquisition import add_after_last_frame
 from pipeline.formats import InputError, PipelineError
+from pipeline.io import Capture, load_capture
 from pipeline.lights import Lights
 
 log = logging.getLogger(__name__)
@@ -326,7 +329,7 @@ def _run(
         early = _early_stations(settings.inspect_entry, target_path, capture_path, lights)
         if early is not None:
             stack.enter_context(early)
-        bundles = capture_for_job(
+        captured = capture_for_job(
             inspection_id,
             settings=settings,
             storage=storage,
@@ -335,17 +338,18 @@ def _run(
             progress=progress,
             station_done=None if early is None else early.station_done,
         )
-        returned_at = time.monotonic()
         document = measure_bundles(
             settings.inspect_entry,
-            bundles,
+            captured.bundles,
             target_path,
             out_dir,
             progress=progress,
             lights=lights,
             early=early,
+            frames=captured.frames,
         )
-    add_after_last_frame(document, bundles[-1], out_dir, returned_at)
+    if captured.last_frame_at is not None:
+        add_after_last_frame(document, out_dir, captured.last_frame_at)
     return document
 
 
@@ -369,6 +373,7 @@ def measure_bundles(
     progress: ProgressWriter,
     lights: Lights | None,
     early: Any = None,
+    frames: Mapping[str, np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """Measure a job's capture bundles with the inspection entry (:func:`pipeline.run.inspect`): one
     bundle as itself, several as the conveyor stations of one plate (the entry reports each station's
@@ -377,9 +382,12 @@ def measure_bundles(
     Every source of bundles comes here: an upload (one bundle, or a plate's stations), a simulated
     capture, an acquisition (one bundle, or the stations of a cell with a conveyor). ``early``: the
     stations reconstructed while they were photographed (see :func:`_early_stations`), passed to the
-    entry for several bundles.
+    entry for several bundles. ``frames``: one bundle's images already in memory (an acquisition's),
+    loaded from there instead of decoded again.
     """
-    capture: Path | list[Path] = bundles[0] if len(bundles) == 1 else list(bundles)
+    capture: Path | list[Path] | Capture = bundles[0] if len(bundles) == 1 else list(bundles)
+    if frames and len(bundles) == 1:
+        capture = load_capture(bundles[0], frames=frames)
     more = {} if early is None or len(bundles) == 1 else {"early": early}
     result = inspect(
         capture, target_path, out_dir=out_dir, progress=progress, light_calibration=lights, **more
