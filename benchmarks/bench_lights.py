@@ -37,6 +37,10 @@ CASES = (
     ("glare, 18 distant lights", dict(n_lights=18, specular=0.5)),
     ("glare, 18 LEDs, nominal", dict(NEAR, n_lights=18, specular=0.5, manifest_lights="nominal")),
     ("glare, 18 LEDs, positions", dict(NEAR, n_lights=18, specular=0.5)),
+    (
+        "near-field, nominal directions 1 deg off",
+        dict(NEAR, manifest_lights="nominal", light_error_deg=1.0),
+    ),
 )
 
 _BEFORE = """
