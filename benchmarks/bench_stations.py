@@ -12,7 +12,8 @@ stations).
 Prints one row per plate: length, stations, the radius's error against the plate's true radius (%),
 the deviation's 95th percentile and maximum (mm), the dent's own depth where there is one, the verdict
 and the inspection's time; then the time of the 4-station plate against one of its stations inspected
-alone.
+alone (one run of each, the plate first in its process: the speed figure is
+``benchmarks/bench_stations_speed.py``'s, medians of alternating runs).
 
     .venv/bin/python benchmarks/bench_stations.py [--size 1224x1024] [--seeds 0 1 2 3]
 """

@@ -16,9 +16,11 @@ help and behaviour are read in one place.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import sys
+import time
 import traceback
 from collections.abc import Callable
 from dataclasses import replace
@@ -30,7 +32,11 @@ from pipeline.formats import AcquisitionError, InputError, PipelineError
 from pipeline.parallel import configure_process
 
 if TYPE_CHECKING:
+    import numpy as np
+
+    from pipeline.io import Capture
     from pipeline.simulate import CaptureSpec, Cutout, Dent, Floor, PlateSpec
+    from pipeline.stations import EarlyStations
 
 EXIT_OK, EXIT_INTERNAL, EXIT_BAD_INPUT, EXIT_NOT_MEASURABLE, EXIT_HARDWARE = 0, 1, 2, 3, 4
 #: ``simulate capture --plate-size``'s default (PlateSpec's own), mm.
@@ -269,9 +275,14 @@ def _cmd_calibrate_lights(args: argparse.Namespace) -> int:
 
 def _cmd_acquire(args: argparse.Namespace) -> int:
     from pipeline.acquisition import acquire, acquire_stations, load_cell_config
+    from pipeline.run import EarlyStations, warm_up
 
     if not args.plate_id.strip():
         raise BadArgument("--plate-id: expected a plate id, got an empty one")
+    if (args.target is None) != (args.result is None):
+        raise BadArgument(
+            "--target, --result: expected both (inspect what is photographed) or neither"
+        )
     timeout = {}
     if args.frame_timeout is not None:
         if not args.frame_timeout > 0:
@@ -282,28 +293,81 @@ def _cmd_acquire(args: argparse.Namespace) -> int:
         if args.verbose:
             print(f"[{100 * fraction:5.1f} %] {stage}", file=sys.stderr)
 
-    if load_cell_config(args.config).conveyor is None:
-        out = acquire(args.config, args.plate_id, args.out, progress=progress, **timeout)
+    conveyor = load_cell_config(args.config).conveyor is not None
+    if args.target is not None:
+        warm_up()  # kernel loading is start-up, not part of the measurement's timings
+    if not conveyor:
+        frames: dict[str, np.ndarray] = {}
+        out = acquire(
+            args.config, args.plate_id, args.out, progress=progress, frames=frames, **timeout
+        )
+        returned_at = time.monotonic()
         record = json.loads((out / "capture.json").read_text())["acquisition"]
         print(
             f"{args.plate_id}: {len(record['frames'])} frames ({len(record['frames']) - 3} photometric, dark, stereo pair) "
             f"in {record['total_s']:.2f} s ({record['time_per_image_s'] * 1000:.0f} ms per image)"
         )
         print(f"wrote {out}")
+        if args.target is not None:
+            _inspect_acquired([out], args, returned_at, progress, None, frames)
         return EXIT_OK
-    bundles = acquire_stations(args.config, args.plate_id, args.out, progress=progress, **timeout)
+    with contextlib.ExitStack() as stack:
+        early = None
+        if args.target is not None:
+            # each station reconstructed while the conveyor moves on and the next is photographed
+            early = stack.enter_context(EarlyStations(args.target, args.out))
+        bundles = acquire_stations(
+            args.config,
+            args.plate_id,
+            args.out,
+            progress=progress,
+            station_done=None if early is None else early.station_done,
+            **timeout,
+        )
+        returned_at = time.monotonic()
+        _print_stations(args.plate_id, bundles, args.out)
+        if early is not None:
+            _inspect_acquired(bundles, args, returned_at, progress, early)
+    return EXIT_OK
+
+
+def _inspect_acquired(
+    bundles: list[Path],
+    args: argparse.Namespace,
+    returned_at: float,
+    progress: Callable[[str, float], None],
+    early: EarlyStations | None,
+    frames: dict[str, np.ndarray] | None = None,
+) -> None:
+    """``acquire --target --result``: the bundles just photographed inspected (stations taken from
+    ``early``, one view's images from ``frames`` in memory), ``timings_s.after_last_frame`` added,
+    the result printed."""
+    from pipeline.acquisition import add_after_last_frame, last_frame_time
+    from pipeline.io import load_capture
+    from pipeline.run import inspect
+
+    last_frame_at = last_frame_time(bundles[-1], returned_at)
+    capture: Path | list[Path] | Capture = bundles if len(bundles) > 1 else bundles[0]
+    if frames and len(bundles) == 1:
+        capture = load_capture(bundles[0], frames=frames)
+    result = inspect(capture, args.target, out_dir=args.result, progress=progress, early=early)
+    doc = dict(result.document)
+    if last_frame_at is not None:
+        add_after_last_frame(doc, Path(args.result), last_frame_at)
+    _print_result(doc, Path(args.result))
+
+
+def _print_stations(plate_id: str, bundles: list[Path], out: str) -> None:
+    """What ``acquire`` took at each station."""
     for bundle in bundles:
         doc = json.loads((bundle / "capture.json").read_text())
         record = doc["acquisition"]
         print(
-            f"{args.plate_id} station {doc['station']['index']}: travel {doc['station']['travel_mm']:.1f} mm "
+            f"{plate_id} station {doc['station']['index']}: travel {doc['station']['travel_mm']:.1f} mm "
             f"(moved in {record['conveyor']['move_s']:.2f} s), {len(record['frames'])} frames in "
             f"{record['total_s']:.2f} s"
         )
-    print(
-        f"wrote {len(bundles)} station bundles in {args.out}: {' '.join(b.name for b in bundles)}"
-    )
-    return EXIT_OK
+    print(f"wrote {len(bundles)} station bundles in {out}: {' '.join(b.name for b in bundles)}")
 
 
 # --------------------------------------------------------------------------- inspect
@@ -326,9 +390,15 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
         progress=progress,
         options=InspectOptions(normals_method=args.normals),
     )
-    doc = result.document
+    _print_result(result.document, Path(args.out))
+    return EXIT_OK
+
+
+def _print_result(doc: dict[str, Any], out: Path) -> None:
+    """The one line of an inspection's result (and ``after_last_frame`` when timed), its file."""
     radius = doc["radius_mm"]
     dev = doc["deviation_mm"]
+    after = doc["timings_s"].get("after_last_frame")
     print(
         f"{doc['plate_id']}: {doc['verdict'].upper()}"
         + (
@@ -337,10 +407,11 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
             else ""
         )
         + f"  deviation rms {dev['rms']:.2f} mm, max {dev['max_abs']:.2f} mm, {doc['within_tolerance_pct']:.2f} % within"
-        f" {doc['tolerance_mm']} mm  ({doc['timings_s']['total']:.2f} s)"
+        f" {doc['tolerance_mm']} mm  ({doc['timings_s']['total']:.2f} s"
+        + ("" if after is None else f"; {after:.2f} s after the last frame")
+        + ")"
     )
-    print(f"wrote {Path(args.out) / 'result.json'}")
-    return EXIT_OK
+    print(f"wrote {out / 'result.json'}")
 
 
 def _cmd_gauge_study(args: argparse.Namespace) -> int:
@@ -621,6 +692,18 @@ def _add_acquire(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         default=None,
         metavar="S",
         help="seconds a frame may take beyond its exposure before the camera counts as gone (default 2)",
+    )
+    acq.add_argument(
+        "--target",
+        default=None,
+        help="inspect the plate against this target (plate-target/1) once photographed (with --result); "
+        "with a conveyor each station is reconstructed as soon as it is photographed",
+    )
+    acq.add_argument(
+        "--result",
+        default=None,
+        metavar="DIR",
+        help="where the inspection writes result.json and its artifacts (with --target)",
     )
     acq.set_defaults(handler=_cmd_acquire)
 

@@ -50,11 +50,13 @@ from pipeline.stages import (
     measure,
     preprocess_scene,
 )
+from pipeline.stations.early import EarlyStations
 from pipeline.surface import reconstruct
 
 __all__ = [
     "AREA_WARNING_RATIO",
     "STAGES",
+    "EarlyStations",
     "InspectOptions",
     "InspectionResult",
     "ProgressCallback",
@@ -93,6 +95,7 @@ def inspect(
     progress: ProgressCallback | None = None,
     options: InspectOptions | None = None,
     light_calibration: Lights | None = None,
+    early: EarlyStations | None = None,
 ) -> InspectionResult:
     """Measure a plate and judge it against its CAD target.
 
@@ -117,6 +120,12 @@ def inspect(
         given only as directions (nominal lights) and as many as its images; the result then
         carries a warning that says so. A capture that gives point lights keeps its own; a
         calibration with another count of lights is not applied (a warning says why).
+    early : EarlyStations, optional
+        Stations reconstructed while they were photographed (``station_done`` of
+        :func:`pipeline.acquisition.acquire_stations`), made with this ``target``, ``options`` and
+        ``light_calibration``: each station among ``capture`` that it reconstructed is taken from
+        it (a failure there is this inspection's error, naming the station), the others are
+        reconstructed here. Ignored for one bundle.
 
     Returns
     -------
@@ -145,7 +154,12 @@ def inspect(
                 raise ValueError("capture: expected at least one capture bundle, got none")
             if len(bundles) == 1:
                 return _inspect(bundles[0], target, out, clock, opts, light_calibration)
-            return _inspect_stations(bundles, target, out, clock, opts, light_calibration)
+            if early is not None and not early.matches(target, opts, light_calibration):
+                raise ValueError(
+                    "early: its stations were reconstructed with another target, options or light "
+                    "calibration than this inspection's"
+                )
+            return _inspect_stations(bundles, target, out, clock, opts, light_calibration, early)
     except PipelineError as err:
         # a capture that cannot be measured still leaves a result that says why
         _write_error_result(out, capture, target, err, clock)
@@ -190,11 +204,20 @@ def _inspect_stations(
     clock: StageClock,
     opts: InspectOptions,
     light_calibration: Lights | None,
+    early: EarlyStations | None,
 ) -> InspectionResult:
     """:func:`inspect` of a plate at conveyor stations (:mod:`pipeline.stations`)."""
     from pipeline.stations import measure_stations, stitched_details
 
-    plate, tgt = measure_stations(captures, target, out, clock, opts, light_calibration)
+    plate, tgt = measure_stations(
+        captures,
+        target,
+        out,
+        clock,
+        opts,
+        light_calibration,
+        precomputed=None if early is None else early.result,
+    )
     details = stitched_details(plate, tgt)
     warnings = list(plate.warnings)
     ratio = details.segmentation.area_ratio

@@ -12,9 +12,12 @@ import logging
 import os
 import tempfile
 import time
+from collections.abc import Mapping
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Any, TypedDict
 
+import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.jobs.memory import is_out_of_memory, out_of_memory_message
@@ -27,8 +30,9 @@ from app.services.leases import LeaseKeeper
 from app.services.stations import capture_bundles
 from app.settings import InspectFunction, Settings
 from app.storage import Storage
-from pipeline.acquisition import last_frame_lag_s
+from pipeline.acquisition import add_after_last_frame
 from pipeline.formats import InputError, PipelineError
+from pipeline.io import Capture, load_capture
 from pipeline.lights import Lights
 
 log = logging.getLogger(__name__)
@@ -308,28 +312,56 @@ def _run(
         if simulation is None:
             raise ValueError(f"inspection {inspection_id}: simulated, but without its parameters")
         render_simulated_bundle(bundle_dir=capture_path, plate_id=plate_id, simulation=simulation)
-    returned_at = None
-    if source == ACQUIRED_SOURCE:
-        bundles = capture_for_job(
+    lights = None
+    if light_calibration is not None:
+        lights = light_calibrations.load_lights(storage=storage, calibration=light_calibration)
+    if source != ACQUIRED_SOURCE:
+        return measure_bundles(
+            settings.inspect_entry,
+            capture_bundles(capture_path),
+            target_path,
+            out_dir,
+            progress=progress,
+            lights=lights,
+        )
+    with ExitStack() as stack:
+        # a cell with a conveyor: each station reconstructed while the next is photographed
+        early = _early_stations(settings.inspect_entry, target_path, capture_path, lights)
+        if early is not None:
+            stack.enter_context(early)
+        captured = capture_for_job(
             inspection_id,
             settings=settings,
             storage=storage,
             plate_id=plate_id,
             bundle_dir=capture_path,
             progress=progress,
+            station_done=None if early is None else early.station_done,
         )
-        returned_at = time.monotonic()
-    else:
-        bundles = capture_bundles(capture_path)
-    lights = None
-    if light_calibration is not None:
-        lights = light_calibrations.load_lights(storage=storage, calibration=light_calibration)
-    document = measure_bundles(
-        settings.inspect_entry, bundles, target_path, out_dir, progress=progress, lights=lights
-    )
-    if returned_at is not None:
-        _add_after_last_frame(document, bundles[-1], out_dir, returned_at)
+        document = measure_bundles(
+            settings.inspect_entry,
+            captured.bundles,
+            target_path,
+            out_dir,
+            progress=progress,
+            lights=lights,
+            early=early,
+            frames=captured.frames,
+        )
+    if captured.last_frame_at is not None:
+        add_after_last_frame(document, out_dir, captured.last_frame_at)
     return document
+
+
+def _early_stations(
+    inspect: InspectFunction, target_path: Path, stations_dir: Path, lights: Lights | None
+) -> Any:
+    """The inspection entry's reconstruction of stations as they arrive (its module's
+    ``EarlyStations``, as :class:`pipeline.stations.EarlyStations`, made with the target and lights
+    the entry will be given), or None when the module has none (a stand-in pipeline)."""
+    module = importlib.import_module(inspect.__module__)
+    early = getattr(module, "EarlyStations", None)
+    return None if early is None else early(target_path, stations_dir, light_calibration=lights)
 
 
 def measure_bundles(
@@ -340,38 +372,28 @@ def measure_bundles(
     *,
     progress: ProgressWriter,
     lights: Lights | None,
+    early: Any = None,
+    frames: Mapping[str, np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """Measure a job's capture bundles with the inspection entry (:func:`pipeline.run.inspect`): one
     bundle as itself, several as the conveyor stations of one plate (the entry reports each station's
     stages as ``station 2/4: normals``); the result document, plain JSON types only.
 
     Every source of bundles comes here: an upload (one bundle, or a plate's stations), a simulated
-    capture, an acquisition (one bundle, or the stations of a cell with a conveyor).
+    capture, an acquisition (one bundle, or the stations of a cell with a conveyor). ``early``: the
+    stations reconstructed while they were photographed (see :func:`_early_stations`), passed to the
+    entry for several bundles. ``frames``: one bundle's images already in memory (an acquisition's),
+    loaded from there instead of decoded again.
     """
-    capture: Path | list[Path] = bundles[0] if len(bundles) == 1 else list(bundles)
+    capture: Path | list[Path] | Capture = bundles[0] if len(bundles) == 1 else list(bundles)
+    if frames and len(bundles) == 1:
+        capture = load_capture(bundles[0], frames=frames)
+    more = {} if early is None or len(bundles) == 1 else {"early": early}
     result = inspect(
-        capture, target_path, out_dir=out_dir, progress=progress, light_calibration=lights
+        capture, target_path, out_dir=out_dir, progress=progress, light_calibration=lights, **more
     )
     document: dict[str, Any] = json.loads(json.dumps(result.document))
     return document
-
-
-def _add_after_last_frame(
-    document: dict[str, Any], capture_path: Path, out_dir: Path, returned_at: float
-) -> None:
-    """``timings_s.after_last_frame`` of an acquired inspection: seconds from the last frame's arrival
-    (:func:`pipeline.acquisition.last_frame_lag_s` before ``returned_at``, the moment the acquisition
-    returned) to the result; written into result.json too."""
-    tail = last_frame_lag_s(capture_path)
-    if tail is None:
-        return  # no acquisition record: nothing to time against
-    timings = document.get("timings_s")
-    if not isinstance(timings, dict):
-        return
-    timings["after_last_frame"] = round(time.monotonic() - returned_at + tail, 3)
-    result_file = out_dir / "result.json"
-    if result_file.is_file():
-        result_file.write_text(json.dumps(document, indent=2) + "\n")
 
 
 def _client_message(text: str, storage: Storage, inspection_id: int) -> str:

@@ -11,10 +11,13 @@ from __future__ import annotations
 import json
 import logging
 import shutil
+import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from sqlalchemy.orm import Session
 
 from app.limits import DEFAULT_LIMITS, Limits
@@ -35,7 +38,8 @@ from app.services.stations import capture_bundles
 from app.services.targets import TARGET_FILE, copy_target_files, create_target, validate_target_dir
 from app.settings import Settings
 from app.storage import Storage
-from pipeline.acquisition import CellConfig, acquire, acquire_stations
+from pipeline.acquisition import CellConfig, acquire, acquire_stations, last_frame_time
+from pipeline.acquisition.stations import StationDone
 from pipeline.formats import AcquisitionError, InputError, PipelineError
 
 log = logging.getLogger(__name__)
@@ -188,6 +192,19 @@ def _new_target(
     return target
 
 
+@dataclass(frozen=True)
+class JobCapture:
+    """What an acquired job photographed (:func:`capture_for_job`)."""
+
+    #: The bundles to measure: ``[bundle_dir]`` for a cell that photographs one view, or a conveyor
+    #: cell's stations ``bundle_dir/station_00``, ...
+    bundles: list[Path]
+    #: One view's frames as the cameras gave them, by file name (empty: read from the bundles).
+    frames: dict[str, np.ndarray] = field(default_factory=dict)
+    #: ``time.monotonic()`` when the last frame arrived; None for a capture kept from an earlier run.
+    last_frame_at: float | None = None
+
+
 def capture_for_job(
     inspection_id: int,
     *,
@@ -196,17 +213,21 @@ def capture_for_job(
     plate_id: str,
     bundle_dir: Path,
     progress: Callable[[str, float], None],
-) -> list[Path]:
+    station_done: StationDone | None = None,
+) -> JobCapture:
     """The capture of an acquired job, in the consumer: photograph the plate into ``bundle_dir``; the
     bundles to measure: ``[bundle_dir]`` for a cell that photographs one view, or, for a cell with a
     conveyor, its stations' bundles ``bundle_dir/station_00``, ... (:func:`pipeline.acquisition.acquire_stations`),
-    which :func:`app.jobs.execution.measure_bundles` measures as one plate.
+    which :func:`app.jobs.execution.measure_bundles` measures as one plate. A view photographed now
+    comes with its frames in memory, which the inspection takes instead of decoding the files again.
 
     A complete capture already there (the job runs again after its worker died or was stopped) is
     kept: the plate photographed then is the one inspected. Progress is reported as stage
     :data:`CAPTURE_STAGE`, its fraction the frames taken (over all stations). The (first) bundle's
     ``capture.json`` (with the acquisition record) is copied into the artifacts. The cameras' state
-    and thumbnails are recorded for the dashboard.
+    and thumbnails are recorded for the dashboard. ``station_done(index, bundle)`` is the hook of
+    :func:`pipeline.acquisition.acquire_stations` (a cell with a conveyor, stations photographed
+    now): each station as soon as it is photographed, so that it is reconstructed while the next is.
 
     Raises
     ------
@@ -222,10 +243,10 @@ def capture_for_job(
         (storage.inputs_dir(inspection_id) / ACQUISITION_FILE).read_text(encoding="utf-8")
     )
     progress(CAPTURE_STAGE, 0.0)
-    bundles = capture_bundles(bundle_dir)
-    if not all((bundle / "capture.json").is_file() for bundle in bundles):
+    captured = JobCapture(capture_bundles(bundle_dir))
+    if not all((bundle / "capture.json").is_file() for bundle in captured.bundles):
         storage.remove(bundle_dir)  # nothing complete: the acquisition writes it anew
-        bundles = _capture(
+        captured = _capture(
             inspection_id,
             settings=settings,
             storage=storage,
@@ -233,12 +254,13 @@ def capture_for_job(
             bundle_dir=bundle_dir,
             cell_id=request["cell_id"],
             progress=progress,
+            station_done=station_done,
         )
     shutil.copyfile(
-        bundles[0] / "capture.json", storage.artifacts_dir(inspection_id) / "capture.json"
+        captured.bundles[0] / "capture.json", storage.artifacts_dir(inspection_id) / "capture.json"
     )
     progress(CAPTURE_STAGE, 1.0)
-    return bundles
+    return captured
 
 
 def _capture(
@@ -250,9 +272,10 @@ def _capture(
     bundle_dir: Path,
     cell_id: str,
     progress: Callable[[str, float], None],
-) -> list[Path]:
+    station_done: StationDone | None,
+) -> JobCapture:
     """Photograph the plate into ``bundle_dir`` with the cell ``cell_id``, holding the cameras' lock:
-    one view, or each station of a cell with a conveyor; the bundles written."""
+    one view (its frames kept in memory too), or each station of a cell with a conveyor."""
     ensure_demo_cell(settings)
     try:
         config = load_cell(settings)
@@ -272,6 +295,7 @@ def _capture(
     def report(stage: str, fraction: float) -> None:
         progress(CAPTURE_STAGE, fraction)
 
+    frames: dict[str, np.ndarray] = {}
     try:
         if config.conveyor is None:
             bundles = [
@@ -281,6 +305,7 @@ def _capture(
                     bundle_dir,
                     progress=report,
                     frame_timeout_s=settings.frame_timeout_s,
+                    frames=frames,
                 )
             ]
         else:
@@ -289,8 +314,10 @@ def _capture(
                 plate_id,
                 bundle_dir,
                 progress=report,
+                station_done=station_done,
                 frame_timeout_s=settings.frame_timeout_s,
             )
+        returned = time.monotonic()  # the bundles are complete: the last frame came its lag before
     except AcquisitionError as err:
         raise AcquisitionFailed(f"acquisition failed: {err}") from None
     except InputError as err:
@@ -299,12 +326,13 @@ def _capture(
         ) from None
     finally:
         lock.release()
+    last_frame_at = last_frame_time(bundles[-1], returned)
     try:
-        record_capture(storage.data_dir, bundles[-1], inspection_id=inspection_id)
+        record_capture(storage.data_dir, bundles[-1], inspection_id=inspection_id, frames=frames)
     except Exception:
         log.warning(
             "inspection %s: the cameras' last frames were not recorded",
             inspection_id,
             exc_info=True,
         )
-    return bundles
+    return JobCapture(bundles, frames, last_frame_at)

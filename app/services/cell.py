@@ -23,6 +23,7 @@ import os
 import shutil
 import tempfile
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -219,19 +220,29 @@ class CellLock:
 # ------------------------------------------------------------------ the last capture
 
 
-def record_capture(data_dir: Path, bundle: Path, *, inspection_id: int) -> None:
+def record_capture(
+    data_dir: Path,
+    bundle: Path,
+    *,
+    inspection_id: int,
+    frames: Mapping[str, np.ndarray] | None = None,
+) -> None:
     """After a capture: its cameras' description (``cell/state.json``) and their last frames' thumbnails.
 
-    The last frame of each camera is its image of the stereo pair; the thumbnail is
-    :data:`THUMBNAIL_WIDTH` px wide, 8-bit, its brightest samples (99.5th percentile) white.
-    Every file is written beside its place and renamed into it (the web process reads them).
+    The last frame of each camera is its image of the stereo pair (taken from ``frames``, the
+    bundle's images in memory by file name, where it is there; else read from the bundle); the
+    thumbnail is :data:`THUMBNAIL_WIDTH` px wide, 8-bit, its brightest samples (99.5th percentile)
+    white. Every file is written beside its place and renamed into it (the web process reads them).
     """
     doc = json.loads((bundle / "capture.json").read_text(encoding="utf-8"))
     record = doc["acquisition"]
     folder = Path(data_dir) / CELL_DIR
     folder.mkdir(parents=True, exist_ok=True)
     for side in SIDES:
-        image = cv2.imread(str(bundle / doc["stereo"][side]), cv2.IMREAD_UNCHANGED)
+        name = doc["stereo"][side]
+        image = (frames or {}).get(name)
+        if image is None:
+            image = cv2.imread(str(bundle / name), cv2.IMREAD_UNCHANGED)
         if image is None:
             raise OSError(f"{side} image: could not read it")
         ok, png = cv2.imencode(".png", _thumbnail(image))

@@ -8,7 +8,13 @@ station (docs/stations.md). Setting up a real cell: docs/acquisition.md.
 """
 
 from ..formats import AcquisitionError
-from .acquire import acquire, auto_exposure, last_frame_lag_s
+from .acquire import (
+    acquire,
+    add_after_last_frame,
+    auto_exposure,
+    last_frame_lag_s,
+    last_frame_time,
+)
 from .cameras import Camera, Frame, SimulatedCamera, SimulatedCell, open_camera
 from .config import CellConfig, load_cell_config
 from .conveyor import Conveyor, SimulatedConveyor, TcpConveyor, open_conveyor
@@ -36,8 +42,10 @@ __all__ = [
     "TcpLightController",
     "acquire",
     "acquire_stations",
+    "add_after_last_frame",
     "auto_exposure",
     "last_frame_lag_s",
+    "last_frame_time",
     "load_cell_config",
     "open_camera",
     "open_conveyor",

@@ -61,6 +61,9 @@ from .lights import LightController, open_light_controller
 
 #: Seconds a frame may take beyond its exposure time before the camera is taken to be gone.
 FRAME_TIMEOUT_S = 2.0
+#: Threads encoding the frames' PNGs beside the sequence: the stereo pair comes last, both frames at
+#: once, and its two files are what the bundle waits for after the last frame.
+PNG_WRITERS = 2
 #: Auto-exposure: the brightest samples (this percentile of a pre-shot) ...
 BRIGHTEST_PERCENTILE = 99.9
 #: ... are kept at or under this fraction of full scale ...
@@ -99,6 +102,8 @@ class Run:
     writes: list[Future[None]] = field(default_factory=list)
     exposure_us: dict[Side, float] = field(default_factory=dict)
     pre_shots: int = 0
+    #: Receives each capture frame's image by its file name, when given (see :func:`acquire`).
+    images: dict[str, np.ndarray] | None = None
 
     def next_bundle(self, folder: Path, progress: Progress) -> Run:
         """A fresh run on the same open devices, writing into ``folder`` (the next station's bundle):
@@ -112,6 +117,7 @@ class Run:
             writes=[],
             exposure_us={},
             pre_shots=0,
+            images=None,
         )
 
     def elapsed(self) -> float:
@@ -134,6 +140,8 @@ class Run:
             }
         )
         self.writes.append(self.writer.submit(_write_png, self.folder / name, frame.image))
+        if self.images is not None:
+            self.images[name] = frame.image
         self.progress(f"{name} taken", len(self.frames) / self.n_frames)
 
     def expose(self, camera: Camera, exposure_us: float, *, step: str) -> None:
@@ -244,6 +252,7 @@ def acquire(
     *,
     progress: Progress | None = None,
     frame_timeout_s: float = FRAME_TIMEOUT_S,
+    frames: dict[str, np.ndarray] | None = None,
 ) -> Path:
     """Photograph a plate in the cell and write a ``plate-capture/1`` bundle (module docstring).
 
@@ -259,6 +268,10 @@ def acquire(
         ``progress(stage, fraction)`` after each step (fraction of the capture frames taken).
     frame_timeout_s : float
         Seconds a frame may take beyond its exposure before the camera counts as gone.
+    frames : dict, optional
+        Receives every capture frame's image as the camera gave it, by its file name in the bundle
+        (``"ps_00.png"``, ...), so that an inspection that follows at once takes them from memory
+        (:func:`pipeline.io.load_capture`'s ``frames``) instead of decoding the files again.
 
     Returns
     -------
@@ -298,7 +311,7 @@ def acquire(
     started_at = datetime.now(UTC)
     try:
         with ExitStack() as stack:
-            writer = stack.enter_context(ThreadPoolExecutor(max_workers=1))
+            writer = stack.enter_context(ThreadPoolExecutor(max_workers=PNG_WRITERS))
             run = open_devices(
                 stack,
                 config,
@@ -308,6 +321,7 @@ def acquire(
                 frame_timeout_s,
                 progress or (lambda stage, f: None),
             )
+            run.images = frames
             take_bundle(run, plate_id, started_at)
         os.rename(partial, out)
     except BaseException:
@@ -328,6 +342,27 @@ def last_frame_lag_s(bundle: str | os.PathLike[str]) -> float | None:
         return float(record["total_s"]) - float(record["frames"][-1]["t_s"])
     except (OSError, KeyError, IndexError, TypeError, ValueError):
         return None
+
+
+def last_frame_time(bundle: str | os.PathLike[str], returned_at: float) -> float | None:
+    """The :func:`time.monotonic` when the last frame of ``bundle`` arrived, from ``returned_at``, the
+    moment its acquisition returned (less :func:`last_frame_lag_s`); None without an acquisition
+    record."""
+    lag = last_frame_lag_s(bundle)
+    return None if lag is None else returned_at - lag
+
+
+def add_after_last_frame(document: dict[str, Any], out_dir: Path, last_frame_at: float) -> None:
+    """``timings_s.after_last_frame`` of an acquired inspection's result ``document``: seconds from
+    the last frame's arrival (``last_frame_at``, :func:`time.monotonic`, see :func:`last_frame_time`)
+    to now; written into ``out_dir/result.json`` too."""
+    timings = document.get("timings_s")
+    if not isinstance(timings, dict):
+        return
+    timings["after_last_frame"] = round(time.monotonic() - last_frame_at, 3)
+    result_file = out_dir / "result.json"
+    if result_file.is_file():
+        result_file.write_text(json.dumps(document, indent=2) + "\n")
 
 
 def take_bundle(

@@ -27,7 +27,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from ..formats import InputError
-from .acquire import FRAME_TIMEOUT_S, Progress, open_devices, take_bundle
+from .acquire import FRAME_TIMEOUT_S, PNG_WRITERS, Progress, open_devices, take_bundle
 from .config import load_cell_config
 from .conveyor import open_conveyor
 
@@ -106,7 +106,7 @@ def acquire_stations(
     bundles: list[Path] = []
     try:
         with ExitStack() as stack:
-            writer = stack.enter_context(ThreadPoolExecutor(max_workers=1))
+            writer = stack.enter_context(ThreadPoolExecutor(max_workers=PNG_WRITERS))
             report("connecting the conveyor", 0.0)
             conveyor = open_conveyor(config.conveyor, plate_id=plate_id)
             stack.callback(conveyor.close)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -104,6 +105,7 @@ def load_capture(
     max_total_bytes: int = MAX_ZIP_TOTAL_BYTES,
     max_ratio: float = MAX_ZIP_RATIO,
     workers: int | None = None,
+    frames: Mapping[str, np.ndarray] | None = None,
 ) -> Capture:
     """Load a ``plate-capture/1`` bundle: a folder holding capture.json, or a .zip of one.
 
@@ -119,6 +121,10 @@ def load_capture(
         size is more than ``max_ratio`` times its compressed size.
     workers : int, optional
         Decoding threads (default: the number of CPUs).
+    frames : mapping of str to (H, W) uint8 or uint16 array, optional
+        Images of the bundle already in memory, by their path in the bundle (``"ps_00.png"``): the
+        frames an acquisition has just written (:func:`pipeline.acquisition.acquire`'s ``frames``).
+        They are checked as their files would be and not decoded again; the rest is read.
 
     Returns
     -------
@@ -153,7 +159,7 @@ def load_capture(
     path = Path(path)
     bundle = _open_bundle(path, max_total_bytes=max_total_bytes, max_ratio=max_ratio)
     try:
-        return _load_capture(bundle, path, workers=workers)
+        return _load_capture(bundle, path, workers=workers, frames=frames)
     finally:
         bundle.close()
 
@@ -226,7 +232,9 @@ def _read_capture_json(
     )
 
 
-def _load_capture(bundle: _Bundle, source: Path, *, workers: int | None) -> Capture:
+def _load_capture(
+    bundle: _Bundle, source: Path, *, workers: int | None, frames: Mapping[str, np.ndarray] | None
+) -> Capture:
     label = bundle.capture_label
     cap, rig, wanted = _read_capture_json(bundle)
     size = rig.image_size
@@ -237,7 +245,14 @@ def _load_capture(bundle: _Bundle, source: Path, *, workers: int | None) -> Capt
         for key, job in wanted[n:]
     }
     jobs = [job for _, job in wanted]
-    _load_images(bundle, jobs, [*images, *named.values()], bit_depth=cap.bit_depth, workers=workers)
+    _load_images(
+        bundle,
+        jobs,
+        [*images, *named.values()],
+        bit_depth=cap.bit_depth,
+        workers=workers,
+        frames=frames,
+    )
 
     lights = Lights.from_documents(cap.photometric.lights)
     _check_light_positions(lights, rig, cap.working_distance_mm, label=label)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
@@ -89,6 +90,13 @@ def _decode_into(
             job.field,
             f"{name}: cannot decode as an image (expected an 8- or 16-bit PNG or TIFF)",
         )
+    _store(img, job, out, bit_depth=bit_depth, label=label)
+
+
+def _store(img: np.ndarray, job: _ImageJob, out: np.ndarray, *, bit_depth: int, label: str) -> None:
+    """Check one image's pixels (a decoded file, or a frame as the camera gave it) and write it as
+    grey float32 into ``out`` (H, W)."""
+    name = repr(job.rel)
     if img.dtype not in (np.uint8, np.uint16):
         raise InputError(
             label, job.field, f"{name}: expected 8- or 16-bit unsigned pixels, got {img.dtype}"
@@ -138,15 +146,22 @@ def _load_images(
     *,
     bit_depth: int,
     workers: int | None,
+    frames: Mapping[str, np.ndarray] | None = None,
 ) -> None:
     """Read and decode ``jobs`` into ``outs`` (float32 (H, W) each) in a thread pool.
 
+    ``frames``: images already in memory by their bundle path (``ps_00.png``: the frame the camera
+    gave, which the file holds losslessly); they are checked as a decoded file is, not read again.
     The first failure in job order is raised.
     """
 
     def one(k: int) -> None:
-        data = bundle.read(jobs[k].rel, field=jobs[k].field)
-        _decode_into(data, jobs[k], outs[k], bit_depth=bit_depth, label=bundle.capture_label)
+        job = jobs[k]
+        if frames is not None and job.rel in frames:
+            _store(frames[job.rel], job, outs[k], bit_depth=bit_depth, label=bundle.capture_label)
+            return
+        data = bundle.read(job.rel, field=job.field)
+        _decode_into(data, job, outs[k], bit_depth=bit_depth, label=bundle.capture_label)
 
     n = workers or min(len(jobs), os.cpu_count() or 1)
     if n <= 1:

@@ -141,6 +141,37 @@ class Inputs:
     own_noise: np.ndarray | None = None
 
 
+@dataclass(frozen=True)
+class PointUncertainty:
+    """What :func:`propagate` finds before the radius is known: the per-point map and what the
+    radius's uncertainty needs of the view (:func:`with_radius` completes it).
+
+    Attributes
+    ----------
+    map_mm, deviation_mm
+        As :class:`Uncertainty`'s.
+    components : dict
+        The radius-free components (``photometric_mm``, ``correction_mm``, ``scale_rel``,
+        ``registration_mm``, ``integration_scale_px``).
+    u_scale, u_reg : float
+        The scale's relative and the registration's standard uncertainties (mm).
+    z_typ_mm, f_px, extent_px : float
+        The view's median depth, focal length and extent of its measured points (px).
+    bend_cov : (3, 3) array or None
+        The stereo correction's covariance of the bend (:class:`pipeline.surface.fusion.Fusion`).
+    """
+
+    map_mm: np.ndarray
+    deviation_mm: float
+    components: dict[str, float]
+    u_scale: float
+    u_reg: float
+    z_typ_mm: float
+    f_px: float
+    extent_px: float
+    bend_cov: np.ndarray | None
+
+
 def propagate(
     x: Inputs, *, radius_mm: float | None, curved_direction: np.ndarray | None
 ) -> Uncertainty:
@@ -157,7 +188,13 @@ def propagate(
     Returns
     -------
     Uncertainty
+        :func:`with_radius` of :func:`propagate_points`.
     """
+    return with_radius(propagate_points(x), radius_mm=radius_mm, curved_direction=curved_direction)
+
+
+def propagate_points(x: Inputs) -> PointUncertainty:
+    """The part of :func:`propagate` that needs no radius: every point's uncertainty."""
     mask = x.mask & np.isfinite(x.points_mm[..., 2])
     if not mask.any():
         raise ValueError("mask: expected measured points to qualify, got none")
@@ -181,28 +218,52 @@ def propagate(
     height = _height_over_plane_mm(x.points_mm, mask, step) if u_scale > 0 else 0.0
     u_reg = _registration_sd_mm(var_ps, u_corr, grid, step)
     var = var_ps + u_corr**2 + (u_scale * height) ** 2 + u_reg**2
-    radius_u, bend_rel, fit_rel = None, 0.0, 0.0
-    if radius_mm is not None and math.isfinite(radius_mm):
-        bend_rel = _bend_rel(x, radius_mm, z_typ, f_px, curved_direction)
-        sagitta = _sagitta_mm(radius_mm, extent_px * z_typ / f_px)
-        fit_rel = u_reg / sagitta if sagitta > 0 else 0.0
-        radius_u = COVERAGE_K * radius_mm * math.sqrt(bend_rel**2 + u_scale**2 + fit_rel**2)
     h, w = mask.shape
     full = cv2.resize(var.astype(np.float32), (var.shape[1] * step, var.shape[0] * step))[:h, :w]
     u_map = np.where(mask, np.sqrt(np.maximum(full, 0.0)), np.nan).astype(np.float32)
     u95 = COVERAGE_K * float(np.percentile(u_map[mask], 95))  # the published map's own figure
-    return Uncertainty(
+    return PointUncertainty(
         map_mm=COVERAGE_K * u_map,
         deviation_mm=u95,
-        radius_mm=radius_u,
         components={
             "photometric_mm": round(float(np.sqrt(np.percentile(var_ps[grid], 95))), 4),
             "correction_mm": round(float(np.percentile(u_corr[grid], 95)), 4),
             "scale_rel": float(f"{u_scale:.3g}"),
-            "bend_rel": float(f"{bend_rel:.3g}"),
-            "fit_rel": float(f"{fit_rel:.3g}"),
             "registration_mm": round(u_reg, 5),
             "integration_scale_px": round(scale_px, 1),
+        },
+        u_scale=u_scale,
+        u_reg=u_reg,
+        z_typ_mm=z_typ,
+        f_px=f_px,
+        extent_px=extent_px,
+        bend_cov=None if x.fusion is None else x.fusion.bend_cov,
+    )
+
+
+def with_radius(
+    p: PointUncertainty, *, radius_mm: float | None, curved_direction: np.ndarray | None
+) -> Uncertainty:
+    """The uncertainties of :func:`propagate` from its radius-free part (see there)."""
+    radius_u, bend_rel, fit_rel = None, 0.0, 0.0
+    if radius_mm is not None and math.isfinite(radius_mm):
+        bend_rel = _bend_rel(p.bend_cov, radius_mm, p.z_typ_mm, p.f_px, curved_direction)
+        sagitta = _sagitta_mm(radius_mm, p.extent_px * p.z_typ_mm / p.f_px)
+        fit_rel = p.u_reg / sagitta if sagitta > 0 else 0.0
+        radius_u = COVERAGE_K * radius_mm * math.sqrt(bend_rel**2 + p.u_scale**2 + fit_rel**2)
+    c = p.components
+    return Uncertainty(
+        map_mm=p.map_mm,
+        deviation_mm=p.deviation_mm,
+        radius_mm=radius_u,
+        components={
+            "photometric_mm": c["photometric_mm"],
+            "correction_mm": c["correction_mm"],
+            "scale_rel": c["scale_rel"],
+            "bend_rel": float(f"{bend_rel:.3g}"),
+            "fit_rel": float(f"{fit_rel:.3g}"),
+            "registration_mm": c["registration_mm"],
+            "integration_scale_px": c["integration_scale_px"],
         },
     )
 
@@ -355,10 +416,15 @@ def _sagitta_mm(radius_mm: float, chord_mm: float) -> float:
 
 
 def _bend_rel(
-    x: Inputs, radius_mm: float, z_typ: float, f_px: float, direction: np.ndarray | None
+    bend_cov: np.ndarray | None,
+    radius_mm: float,
+    z_typ: float,
+    f_px: float,
+    direction: np.ndarray | None,
 ) -> float:
-    """Relative standard uncertainty of the radius from the stereo pair's hold on the bend."""
-    if x.fusion is None or x.fusion.bend_cov is None:
+    """Relative standard uncertainty of the radius from the stereo pair's hold on the bend
+    (``bend_cov``: the correction's covariance of it, None without one)."""
+    if bend_cov is None:
         return 0.0
     a, b = 1.0, 0.0
     if direction is not None and np.all(np.isfinite(direction)):
@@ -366,6 +432,6 @@ def _bend_rel(
         if np.linalg.norm(d) > 1e-9:
             a, b = d / np.linalg.norm(d)
     w = np.array([a * a, 2.0 * a * b, b * b])
-    sd = math.sqrt(max(float(w @ x.fusion.bend_cov @ w), 0.0))  # log depth per px^2
+    sd = math.sqrt(max(float(w @ bend_cov @ w), 0.0))  # log depth per px^2
     kappa_sd = f_px**2 / z_typ * sd  # 1/mm
     return radius_mm * kappa_sd

@@ -202,7 +202,12 @@ def albedo_projected(I: np.ndarray, E: np.ndarray) -> tuple[np.ndarray, np.ndarr
 
 
 def joint_fit(
-    start: Lights, data: Samples, *, fixed_mu: bool = False, max_iter: int = 100
+    start: Lights,
+    data: Samples,
+    *,
+    fixed_mu: bool = False,
+    max_iter: int = 100,
+    rays: np.ndarray | None = None,
 ) -> JointFit:
     """All lights at once: Levenberg-Marquardt on the variable-projection residuals.
 
@@ -222,6 +227,10 @@ def joint_fit(
     fixed_mu : bool
     max_iter : int
         Most Levenberg-Marquardt steps.
+    rays : (N, 3) float, optional
+        Unit directions along which each light's position may move (NaN rows: free in 3-D): a light
+        whose direction is known (a nominal direction from the plate's centre) keeps it, and the fit
+        finds only its distance along it. Steps are taken in that subspace of the parameters.
 
     Returns
     -------
@@ -230,15 +239,19 @@ def joint_fit(
     problem = _Problem(start, data)
     x = problem.param.vector(start)
     x[5::_N_PARAMS] = np.maximum(x[5::_N_PARAMS], 0.0)
-    free = np.ones(problem.n_par, bool)
-    free[5::_N_PARAMS] = not fixed_mu
-    x, r, njev, success, message = _levenberg_marquardt(problem, x, free, max_iter)
+    basis = _step_basis(start.n, fixed_mu, rays)
+    x, r, njev, success, message = _levenberg_marquardt(problem, x, basis, max_iter)
     A, _ = problem.normal_equations(x)
     njev += 1
     P, N = data.intensity.shape
-    dof = max(P * N - P - (problem.n_par - 1), 1)
-    s2 = float(np.sum(r * r)) / dof
-    var = (s2 * _diagonal_of_inverse(A)).reshape(N, _N_PARAMS)
+    s2 = float(np.sum(r * r)) / max(P * N - P - (problem.n_par - 1), 1)
+    if rays is None:
+        diag = _diagonal_of_inverse(A)
+    else:  # in the subspace the lights moved in, mapped back (NaN-free where a variance is inf)
+        reduced = _diagonal_of_inverse(basis.T @ A @ basis)
+        with np.errstate(invalid="ignore"):  # inf * 0 off a column's rows: masked out
+            diag = np.where(basis != 0, basis**2 * reduced, 0.0).sum(axis=1)
+    var = (s2 * diag).reshape(N, _N_PARAMS)
     return JointFit(
         lights=problem.param.lights(x),
         residuals=r,
@@ -250,6 +263,28 @@ def joint_fit(
         success=success and bool(np.all(np.isfinite(x))),
         message=message,
     )
+
+
+def _step_basis(n: int, fixed_mu: bool, rays: np.ndarray | None) -> np.ndarray:
+    """The columns (7 N, m) that span the fit's steps: every parameter, less each held ``mu``, with a
+    light's three position columns replaced by its ray where ``rays`` gives one."""
+    columns = []
+    for k in range(n):
+        for j in range(_N_PARAMS):
+            if j == 5 and fixed_mu:
+                continue
+            on_ray = rays is not None and bool(np.all(np.isfinite(rays[k])))
+            if j < 3 and on_ray:
+                if j == 0:
+                    assert rays is not None
+                    col = np.zeros(n * _N_PARAMS)
+                    col[k * _N_PARAMS : k * _N_PARAMS + 3] = rays[k] / np.linalg.norm(rays[k])
+                    columns.append(col)
+                continue
+            col = np.zeros(n * _N_PARAMS)
+            col[k * _N_PARAMS + j] = 1.0
+            columns.append(col)
+    return np.stack(columns, axis=1)
 
 
 class _Problem:
@@ -301,24 +336,24 @@ class _Problem:
 
 
 def _levenberg_marquardt(
-    problem: _Problem, x: np.ndarray, free: np.ndarray, max_iter: int
+    problem: _Problem, x: np.ndarray, basis: np.ndarray, max_iter: int
 ) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
-    """Levenberg-Marquardt steps over the ``free`` parameters from ``x`` (mu kept >= 0 by projection).
+    """Levenberg-Marquardt steps within the span of ``basis`` (7 N, m) from ``x`` (mu kept >= 0 by
+    projection).
 
     Returns the parameters, the residuals there, the Jacobian evaluations, whether it converged and how.
     """
-    n_par = problem.n_par
     cost, r = problem.cost(x)
     lam, njev, success, message = 1e-3, 0, False, "maximum number of iterations reached"
     for _ in range(max_iter):
         A, g = problem.normal_equations(x)
         njev += 1
-        D2 = np.maximum(np.diag(A), 1e-12 * np.max(np.diag(A)))
+        Ab, gb = basis.T @ A @ basis, basis.T @ g
+        D2 = np.maximum(np.diag(Ab), 1e-12 * np.max(np.diag(Ab)))
         improved = False
         while lam < 1e12:
             try:
-                step = np.zeros(n_par)
-                step[free] = -np.linalg.solve((A + lam * np.diag(D2))[np.ix_(free, free)], g[free])
+                step = basis @ -np.linalg.solve(Ab + lam * np.diag(D2), gb)
             except np.linalg.LinAlgError:
                 lam *= 10.0
                 continue
@@ -333,7 +368,8 @@ def _levenberg_marquardt(
             success, message = True, "no step lowers the cost (converged)"
             break
         decrease = cost - new_cost
-        scaled_step = np.sqrt(np.sum(D2 * (trial - x) ** 2) / max(cost, 1e-300))
+        moved = basis.T @ (trial - x)  # the step's coordinates (the columns are orthonormal)
+        scaled_step = np.sqrt(np.sum(D2 * moved**2) / max(cost, 1e-300))
         x, cost, r = trial, new_cost, new_r
         lam = max(lam / 3.0, 1e-9)
         if decrease <= 1e-10 * cost or scaled_step < 1e-8:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -58,12 +58,16 @@ from pipeline.stations.register import StationPoses, StationView, register_stati
 
 
 @dataclass(frozen=True)
-class _Station:
-    """One station reconstructed: its view for the registration and what its uncertainty and details need."""
+class StationResult:
+    """One station reconstructed (the stages of one view, nothing judged): its view for the registration
+    and what its uncertainty and details need. :func:`measure_stations` makes it, or takes one made
+    already by :func:`reconstruct_station` (:class:`pipeline.stations.EarlyStations`: while the conveyor
+    moves on to the next station)."""
 
     ref: StationRef
     view: StationView
-    inputs: uncertainty.Inputs
+    #: Its points' own uncertainty (the radius's needs the whole plate's radius, found later).
+    qualified: uncertainty.PointUncertainty
     matched_pct: float | None
     details: dict[str, Any]
     warnings: list[str]
@@ -73,6 +77,8 @@ class _Station:
     saturated: int
     shadowed: int
     metric_scale: str
+    #: Seconds of each stage of its view (``load`` .. ``depth``, as :class:`pipeline.stages.StageClock`).
+    timings: dict[str, float]
 
 
 @dataclass(frozen=True)
@@ -88,9 +94,14 @@ class StitchedPlate:
     uncertainty: uncertainty.Uncertainty
     pixel_area: np.ndarray
     registration_sd_mm: list[float]
-    stations: list[_Station]
+    stations: list[StationResult]
     edge_band_mm: float
     warnings: list[str]
+
+
+#: The station reconstructed already for a planned station (its reference), or None: reconstruct it
+#: now. Raises what its reconstruction raised.
+Precomputed = Callable[[StationRef], "StationResult | None"]
 
 
 def measure_stations(
@@ -100,8 +111,14 @@ def measure_stations(
     clock: StageClock,
     opts: InspectOptions,
     light_calibration: Lights | None,
+    *,
+    precomputed: Precomputed | None = None,
 ) -> tuple[StitchedPlate, Target]:
     """Every stage of a plate at stations but the documents (details.json, result.json).
+
+    ``precomputed``: stations reconstructed already (with the same target, options and light
+    calibration: :class:`pipeline.stations.EarlyStations`), each taken in place of its
+    reconstruction; their stage timings add to ``clock``'s as a fresh station's do.
 
     Raises
     ------
@@ -116,18 +133,17 @@ def measure_stations(
     clock.end("load")
     # one station at a time: the numba kernels take every core (decoding the next station beside them
     # makes each parallel region wait for the busy core: measured slower)
-    stations = [
-        _reconstruct(
-            ref,
-            _load(ref.source, clock),
-            tgt,
-            opts,
-            light_calibration,
-            clock,
-            StageClock(station_progress(clock.progress, k, len(refs))),
-        )
-        for k, ref in enumerate(refs)
-    ]
+    stations = []
+    for k, ref in enumerate(refs):
+        report = station_progress(clock.progress, k, len(refs))
+        station = None if precomputed is None else precomputed(ref)
+        if station is None:
+            station = reconstruct_station(ref, tgt, opts, light_calibration, progress=report)
+        elif report is not None:
+            report("depth", 1.0)
+        for stage, seconds in station.timings.items():
+            clock.timings[stage] = round(clock.timings.get(stage, 0.0) + seconds, 4)
+        stations.append(station)
     views = [s.view for s in stations]
     t = time.perf_counter()
     poses = register_stations(views, seam_limit_mm=DISAGREEMENT_FRACTION * tgt.tolerance_mm)
@@ -137,14 +153,6 @@ def measure_stations(
     clock.timings["stations_mosaic"] = round(time.perf_counter() - t, 4)
     plate = _judge(stations, poses, mosaic, tgt, out, opts, clock)
     return plate, tgt
-
-
-def _load(source: Capture | Path, clock: StageClock) -> Capture:
-    """A station's capture, decoded (the one given when it is loaded already); the time adds to *load*."""
-    t = time.perf_counter()
-    cap = source if isinstance(source, Capture) else load_capture(source)
-    clock.timings["load"] = round(clock.timings.get("load", 0.0) + time.perf_counter() - t, 4)
-    return cap
 
 
 def station_progress(progress: ProgressCallback | None, k: int, n: int) -> ProgressCallback | None:
@@ -164,27 +172,36 @@ def station_progress(progress: ProgressCallback | None, k: int, n: int) -> Progr
     return report
 
 
-def _reconstruct(
+def reconstruct_station(
     ref: StationRef,
-    capture: Capture,
     tgt: Target,
     opts: InspectOptions,
     light_calibration: Lights | None,
-    clock: StageClock,
-    own: StageClock,
-) -> _Station:
-    """One station (``capture``, decoded) through the stages of one view, timed and reported by
-    ``own``; its timings add to ``clock``'s."""
+    *,
+    progress: ProgressCallback | None = None,
+) -> StationResult:
+    """One station (``ref``; decoded here unless loaded already) through the stages of one view
+    (:func:`pipeline.stages.load_inputs` .. :func:`~pipeline.stages.reconstruct_view`), timed by a
+    clock of its own (``StationResult.timings``; the decoding counts in *load*) that reports to
+    ``progress``.
+
+    Its parallel numba kernels run on the calling thread: no other thread may run one meanwhile.
+    """
+    own = StageClock(progress)
+    t = time.perf_counter()
+    capture = ref.source if isinstance(ref.source, Capture) else load_capture(ref.source)
+    decode_s = time.perf_counter() - t
     warnings: list[str] = []
     cap, _ = load_inputs(capture, tgt, light_calibration, warnings, own, opts)
+    own.timings["load"] = round(own.timings["load"] + decode_s, 4)
     scene = preprocess_scene(cap, opts, own)
     with ThreadPoolExecutor(max_workers=opts.workers or default_workers()) as pool:
         view, _ = reconstruct_view(cap, tgt, scene, opts, pool, own)
-    for stage, seconds in own.timings.items():
-        clock.timings[stage] = round(clock.timings.get(stage, 0.0) + seconds, 4)
     surface = view.surface
     judged = surface.mask & ~edge_band(surface.mask)
-    inputs = uncertainty_inputs(cap, scene.pre, surface, view.points, judged)
+    qualified = uncertainty.propagate_points(
+        uncertainty_inputs(cap, scene.pre, surface, view.points, judged)
+    )
     index = ref.station.index
     station_view = StationView(
         index=index,
@@ -198,10 +215,10 @@ def _reconstruct(
         direction=ref.direction,
     )
     warnings += _station_warnings(index, surface, tgt)
-    return _Station(
+    return StationResult(
         ref=ref,
         view=station_view,
-        inputs=inputs,
+        qualified=qualified,
         matched_pct=view.plate.matched_pct,
         details={
             "stereo_fusion": fusion_details(surface.fusion),
@@ -214,6 +231,7 @@ def _reconstruct(
         saturated=scene.pre.n_saturated,
         shadowed=scene.pre.n_shadowed,
         metric_scale="stereo" if view.plate.prior is not None else "working_distance",
+        timings=dict(own.timings),
     )
 
 
@@ -237,7 +255,7 @@ def _station_warnings(index: int, surface: Any, tgt: Target) -> list[str]:
 
 
 def _judge(
-    stations: list[_Station],
+    stations: list[StationResult],
     poses: StationPoses,
     mosaic: Mosaic,
     tgt: Target,
@@ -249,16 +267,11 @@ def _judge(
     points, mask = mosaic.points, mosaic.mask
     clock.begin("curvature")
     with ThreadPoolExecutor(max_workers=opts.workers or default_workers()) as pool:
-        curvature_job = pool.submit(
-            _curvature, points, mask
-        )  # beside the registration, as for one view
-        normals, area = _grid_normals(points, mosaic.cell_mm)
-        has_normal = mask & np.isfinite(normals).all(axis=-1)
+        # beside the registration, as for one view: the curvature, the grid's normals and areas
+        curvature_job = pool.submit(_curvature, points, mask)
+        normals_job = pool.submit(_grid_normals, points, mosaic.cell_mm)
         writes = [
             pool.submit(artifacts.save_depth, out / ARTIFACT_FILES["depth"], points[..., 2]),
-            pool.submit(
-                artifacts.write_normals_png, out / ARTIFACT_FILES["normals"], normals, has_normal
-            ),
         ]
         clock.begin("deviation")
         pose = registration.register_to_target(points, mask, tgt)
@@ -267,6 +280,13 @@ def _judge(
         dev = np.where(band, np.nan, dev)
         judged = mask & ~band
         qualified, reg_sd = _qualify(stations, poses, mosaic, pose, judged, tgt)
+        normals, area = normals_job.result()
+        has_normal = mask & np.isfinite(normals).all(axis=-1)
+        writes.append(
+            pool.submit(
+                artifacts.write_normals_png, out / ARTIFACT_FILES["normals"], normals, has_normal
+            )
+        )
         judgement = verdict.judge(
             dev, judged, tgt.tolerance_mm, pixel_area_mm2=area, uncertainty_mm=qualified.map_mm
         )
@@ -331,24 +351,25 @@ def _grid_normals(points: np.ndarray, cell_mm: float) -> tuple[np.ndarray, np.nd
     cross[..., 0] = dx[..., 1] * dy[..., 2] - dx[..., 2] * dy[..., 1]
     cross[..., 1] = dx[..., 2] * dy[..., 0] - dx[..., 0] * dy[..., 2]
     cross[..., 2] = dx[..., 0] * dy[..., 1] - dx[..., 1] * dy[..., 0]
-    area = np.sqrt(np.einsum("hwc,hwc->hw", cross, cross)).astype(np.float64)
+    length = np.sqrt(np.einsum("hwc,hwc->hw", cross, cross))
+    area = length.astype(np.float64)
     measured = np.isfinite(p[..., 2])
     area = np.where(np.isfinite(area), area, np.where(measured, cell_mm**2, np.nan))
     with np.errstate(invalid="ignore", divide="ignore"):
-        n = cross / np.sqrt(np.einsum("hwc,hwc->hw", cross, cross))[..., None]
+        n = cross / length[..., None]
     n = np.where(n[..., 2:3] > 0, -n, n)
     return n.astype(np.float32), area
 
 
 def _qualify(
-    stations: list[_Station],
+    stations: list[StationResult],
     poses: StationPoses,
     mosaic: Mosaic,
     pose: registration.Registration,
     judged: np.ndarray,
     tgt: Target,
 ) -> tuple[uncertainty.Uncertainty, list[float]]:
-    """The stitched plate's expanded uncertainty: each station's own (:func:`pipeline.judge.uncertainty.propagate`
+    """The stitched plate's expanded uncertainty: each station's own (:func:`pipeline.judge.uncertainty.with_radius`
     at the plate's fitted radius) resampled onto the grid, with each station's registration added.
 
     A station's registration adds ``u_reg``: the RMS surface distance of its overlaps with its neighbours
@@ -363,8 +384,8 @@ def _qualify(
         to_station = np.linalg.inv(mosaic.frame @ poses.poses[k])
         direction = to_station[:3, :3] @ np.asarray(pose.T_cam_target)[:3, 0]
         own.append(
-            uncertainty.propagate(
-                s.inputs,
+            uncertainty.with_radius(
+                s.qualified,
                 radius_mm=None if radius is None else float(radius),
                 curved_direction=direction,
             )

@@ -140,9 +140,9 @@ def build_mosaic(
     footprints = []
     for view, pose in zip(views, to_plate, strict=True):
         fp, pts = _resample(view, pose, (x0, y0), cell, (height, width))
-        good = fp.weight > 0
-        window = total[fp.rows, fp.cols]
-        window[good] += fp.weight[good, None] * pts[good]
+        # pts is 0 where the weight is (no point): the weighted sum without selecting the cells
+        pts *= fp.weight[..., None]
+        total[fp.rows, fp.cols] += pts
         weights[fp.rows, fp.cols] += fp.weight
         footprints.append(fp)
     mask = weights > 0
@@ -170,7 +170,7 @@ def _resample(
     shape: tuple[int, int],
 ) -> tuple[Footprint, np.ndarray]:
     """One station's surface at the cells of its window (see the module docstring): its footprint and
-    its points (h, w, 3), plate frame, NaN where it has none."""
+    its points (h, w, 3), plate frame, 0 where it has none (its weight is 0 there)."""
     sub = view.points[::4, ::4][view.mask[::4, ::4]] @ pose[:3, :3].T + pose[:3, 3]
     c0 = max(int(np.floor((sub[:, 0].min() - origin[0]) / cell)) - 2, 0)
     c1 = min(int(np.ceil((sub[:, 0].max() - origin[0]) / cell)) + 3, shape[1])
@@ -188,8 +188,11 @@ def _resample(
     )
     u = v = np.zeros_like(gx)
     got = np.full((*gx.shape, 3), np.nan, np.float32)
+    xyz = np.stack([gx, gy, z], axis=-1)
+    a, b, c, d = (np.float32(x) for x in pose[2])
     for _ in range(STEPS):
-        cam = cv2.transform(np.stack([gx, gy, z], axis=-1), to_station)
+        xyz[..., 2] = z
+        cam = cv2.transform(xyz, to_station)
         with np.errstate(invalid="ignore", divide="ignore"):
             inv_z = 1.0 / cam[..., 2]
             u = fx * cam[..., 0] * inv_z + cx
@@ -202,16 +205,15 @@ def _resample(
             borderMode=cv2.BORDER_CONSTANT,
             borderValue=np.nan,
         )
-        a, b, c, d = (np.float32(x) for x in pose[2])
         height = a * got[..., 0] + b * got[..., 1] + c * got[..., 2] + d
-        z = np.where(np.isfinite(height), height, z)
+        np.copyto(z, height, where=np.isfinite(height))
     # the last points in float64 (the sums of the overlaps are made in float64)
     pts = cv2.transform(got.astype(np.float64), pose[:3])
     miss = np.hypot(pts[..., 0] - gx, pts[..., 1] - gy)
     ok = np.isfinite(miss) & (miss < CONVERGED_CELLS * cell)
-    pts[~ok] = np.nan
+    pts[~ok] = 0.0
     # feathering: the distance (px) to the station's image frame
-    frame_px = np.minimum.reduce([u, w - 1 - u, v, h - 1 - v]).astype(np.float64)
+    frame_px = np.minimum(np.minimum(u, w - 1 - u), np.minimum(v, h - 1 - v)).astype(np.float64)
     weight = np.where(ok, np.clip(frame_px, 0.0, None) + 1e-3, 0.0)
     fp = Footprint(
         rows=slice(r0, r1),

@@ -85,7 +85,9 @@ def plan_stations(
         Naming the bundle and the field (see the module docstring).
     """
     known = headers or {}
-    refs = [_ref(c, None if isinstance(c, Capture) else known.get(Path(c))) for c in captures]
+    refs = [
+        station_ref(c, None if isinstance(c, Capture) else known.get(Path(c))) for c in captures
+    ]
     first = refs[0]
     for ref in refs[1:]:
         if ref.plate_id != first.plate_id:
@@ -171,8 +173,11 @@ def _check_travel(ordered: list[StationRef]) -> None:
             )
 
 
-def _ref(capture: Capture | str | os.PathLike[str], header: CaptureHeader | None) -> StationRef:
-    """One bundle's station reference (its header only, for a path: ``header`` when read already)."""
+def station_ref(
+    capture: Capture | str | os.PathLike[str], header: CaptureHeader | None = None
+) -> StationRef:
+    """One bundle's station reference (its header only, for a path: ``header`` when read already);
+    InputError naming the bundle when it has no ``station``."""
     if isinstance(capture, Capture):
         label = str(capture.source)
         plate_id, station, rig, wd = (

@@ -10,7 +10,7 @@ import pytest
 
 from pipeline.acquisition import acquire, write_demo_cell
 from pipeline.cli import EXIT_BAD_INPUT, EXIT_HARDWARE, EXIT_NOT_MEASURABLE, EXIT_OK, main
-from pipeline.formats import AcquisitionError
+from pipeline.formats import AcquisitionError, InputError
 from pipeline.io import load_capture
 from tests.acquisition.devices import FakeGigECamera
 from tests.acquisition.helpers import HEIGHT, WIDTH, tcp_lights, write_cell
@@ -188,6 +188,31 @@ def test_demo_cell_renders_the_plate_light_by_light_and_inspects(tmp_path):
     )
     doc = json.loads((result / "result.json").read_text())
     assert doc["radius_mm"] == pytest.approx(5000.0, rel=0.01)
+
+
+def test_frames_handed_over_in_memory_load_as_the_files_do(tmp_path):
+    """The job's inspection takes the frames an acquisition has just written from memory: the same
+    capture, to the bit, as reading the files; a frame the files could not hold is refused as they
+    would be, naming the image and its field."""
+    config = write_demo_cell(tmp_path / "cell", n_lights=4, width=WIDTH, height=HEIGHT)
+    frames: dict[str, np.ndarray] = {}
+    out = acquire(config, "DEMO-2", tmp_path / "bundle", frames=frames)
+    assert sorted(frames) == sorted(p.name for p in out.glob("*.png"))
+    from_files, from_memory = load_capture(out), load_capture(out, frames=frames)
+    for name in ("images", "dark", "stereo_left", "stereo_right"):
+        assert np.array_equal(getattr(from_memory, name), getattr(from_files, name)), name
+    assert from_memory.source == from_files.source == out
+
+    too_bright = frames["ps_01.png"].astype(np.uint32) + 2**16
+    with pytest.raises(
+        InputError, match=r"photometric\.images\[1\].*'ps_01\.png': expected 8- or 16-bit"
+    ):
+        load_capture(out, frames={**frames, "ps_01.png": too_bright})
+    cropped = frames["stereo_right.png"][:-2]
+    with pytest.raises(
+        InputError, match=r"stereo\.right.*'stereo_right\.png' \(.*\) is \d+x\d+ px, expected"
+    ):
+        load_capture(out, frames={**frames, "stereo_right.png": cropped})
 
 
 def cv_blur(image: np.ndarray) -> np.ndarray:

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from pipeline.formats import RESULT_FORMAT, CaptureError, ResultFile
-from pipeline.io import load_capture, load_target
+from pipeline.io import Capture, load_capture, load_target
 
 STAGES = ("load", "normals", "depth", "curvature", "deviation", "artifacts")
 
@@ -46,14 +46,14 @@ def inspect(capture, target, *, out_dir: Path, progress=None, light_calibration=
     out_dir.mkdir(parents=True, exist_ok=True)
     inspection_id = out_dir.parent.name  # <data dir>/inspections/<id>/artifacts
     _record("start", inspection_id)
-    cap = load_capture(capture)
+    cap = capture if isinstance(capture, Capture) else load_capture(capture)  # as the real one
     tgt = load_target(target)
     if "UNMEASURABLE" in cap.plate_id:
         raise CaptureError(f"{cap.plate_id}: no plate found in the photometric images")
     if "CRASH" in cap.plate_id:
         raise RuntimeError("simulated bug")
     if "PATHERROR" in cap.plate_id:
-        leftover = Path(capture).resolve().parent / "bundle.partial"
+        leftover = Path(cap.source).resolve().parent / "bundle.partial"
         raise FileExistsError(errno.EEXIST, os.strerror(errno.EEXIST), str(leftover))
     if "HOG" in cap.plate_id:
         import numpy as np

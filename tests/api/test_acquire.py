@@ -502,6 +502,32 @@ def test_a_camera_that_does_not_answer_in_time_is_reported_unreachable_without_w
 # ------------------------------------------------------------------ a cell with a conveyor: every station
 
 
+def test_a_station_that_fails_while_the_next_is_photographed_is_the_jobs_error(
+    service, consumers, tmp_path
+):
+    """Issue 29: each station is reconstructed while the next is photographed; one that fails there
+    is the job's error, naming the station's bundle (tests/api/failing_station.py: station 1
+    loses its capture.json in the early reconstruction's links only)."""
+    write_demo_cell(
+        tmp_path / "data" / DEMO_CELL_DIR, n_lights=6, width=320, height=256, stations=3
+    )
+    client = service(demo=True, inspect_entry="tests.api.failing_station:inspect")
+    consumer = consumers(client.app.state.settings)
+    r = _acquire(client, "LONG-2")
+    assert r.status_code == 202, r.text
+    body = wait_for(client, r.json()["id"], consumer=consumer, timeout_s=600)
+    assert body["status"] == "error", body
+    assert body["error"] == (
+        "bundle/station_01/capture.json: file not found (a capture bundle folder must hold capture.json)"
+    )
+    bundle = _inputs(client, body["id"]) / "bundle"
+    # every station was still photographed, and nothing of the early reconstruction is left
+    assert sorted(p.name for p in bundle.iterdir()) == ["station_00", "station_01", "station_02"]
+    assert sorted(p.name for p in bundle.parent.iterdir()) == sorted(
+        ["acquisition.json", "bundle", "target"]
+    )
+
+
 def test_a_conveyor_cell_acquires_every_station_and_measures_one_plate(
     service, consumers, tmp_path
 ):

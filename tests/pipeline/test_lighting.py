@@ -59,6 +59,8 @@ def test_nominal_directions_of_leds_do_not_bend_the_radius(tmp_path):
     assert details["light_refinement"]["model"] == "point"
     assert details["light_refinement"]["rms_point"] < 0.2 * details["light_refinement"]["rms_given"]
     assert any("did not fit the plate the stereo pair measured" in w for w in doc["warnings"])
+    # each LED stays on its given direction from the plate's centre: only its distance was fitted
+    assert all(c["turn_deg"] < 0.01 for c in details["light_refinement"]["corrections"])
 
 
 @pytest.mark.parametrize(("width", "height"), [(612, 512), (1224, 1024)])

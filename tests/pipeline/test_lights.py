@@ -11,6 +11,7 @@ import pytest
 
 from pipeline.formats import InputError
 from pipeline.io import light_calibration_document, load_capture, load_light_calibration
+from pipeline.lights import fit as light_fit
 from pipeline.lights.model import CAMERA_HEAD_RADIUS_MM, Lights
 
 from .bundles import write_bundle
@@ -148,3 +149,41 @@ def test_light_calibration_round_trip_and_errors(tmp_path):
         load_light_calibration(path)
     with pytest.raises(InputError, match=r"format"):
         load_light_calibration({"format": "light-calibration/2", "lights": []})
+
+
+def test_a_light_held_on_its_ray_finds_its_distance_and_keeps_its_direction():
+    """The joint fit with ``rays``: LEDs whose directions from the plate's centre are known keep them
+    exactly and the images find only how far along them each light is (its axis, beam and intensity
+    too)."""
+    rng = np.random.default_rng(3)
+    centre = np.array([0.0, 0.0, 3000.0])
+    positions = np.asarray(_ring_positions(8))
+    towards_centre = centre - positions
+    truth = Lights.points(
+        positions,
+        rng.uniform(9.0, 11.0, 8),
+        axes=towards_centre / np.linalg.norm(towards_centre, axis=1, keepdims=True),
+        mu=np.full(8, 1.5),
+    )
+    xy = rng.uniform(-1400.0, 1400.0, (1500, 2))
+    sag = 5000.0 - np.sqrt(
+        5000.0**2 - xy[:, 0] ** 2
+    )  # a cylinder R 5000 mm bent towards the cameras
+    points = np.column_stack([xy, centre[2] - sag])
+    normals = np.column_stack([xy[:, 0] / 5000.0, np.zeros(len(xy)), -(5000.0 - sag) / 5000.0])
+    albedo = rng.uniform(0.3, 0.9, len(xy))
+    data = light_fit.Samples(
+        intensity=albedo[:, None] * truth.irradiance(points, normals).T,
+        points=points,
+        normals=normals,
+    )
+    rays = (positions - centre) / np.linalg.norm(positions - centre, axis=1, keepdims=True)
+    start = Lights.points(
+        centre + 0.7 * (positions - centre), np.full(8, 10.0), axes=-rays, mu=np.ones(8)
+    )
+    fit = light_fit.joint_fit(start, data, rays=rays)
+    off = fit.lights.positions_mm - centre
+    across = np.linalg.norm(np.cross(off, rays), axis=1)
+    assert np.all(across < 1e-6 * np.linalg.norm(off, axis=1))  # on the ray, exactly
+    assert np.allclose(fit.lights.positions_mm, positions, atol=1.0), fit.lights.positions_mm
+    assert np.allclose(fit.lights.mu, 1.5, atol=0.01)
