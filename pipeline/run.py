@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -50,8 +50,10 @@ from pipeline.stages import (
     measure,
     preprocess_scene,
 )
-from pipeline.stations.early import EarlyStations
 from pipeline.surface import reconstruct
+
+if TYPE_CHECKING:
+    from pipeline.stations.early import EarlyStations
 
 __all__ = [
     "AREA_WARNING_RATIO",
@@ -63,6 +65,17 @@ __all__ = [
     "inspect",
     "warm_up",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    """``EarlyStations`` on first use: the stations' machinery (and scipy.optimize) stays out of the
+    imports of a one-view inspection (the command line's start-up)."""
+    if name == "EarlyStations":
+        from pipeline.stations.early import EarlyStations
+
+        return EarlyStations
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 #: A measured area (mask and edge band) under this share of the target's gets a warning in the result.
 AREA_WARNING_RATIO = 0.9
