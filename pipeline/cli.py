@@ -725,7 +725,7 @@ def _add_inspect(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
     ins.add_argument(
         "--no-warm-up",
         action="store_true",
-        help="skip loading the compiled kernels on a small simulated plate first (~0.8 s); "
+        help="skip loading the compiled kernels on a small simulated plate first (~0.4 s); "
         "the first inspection of a process then includes that loading in its timings",
     )
     ins.set_defaults(handler=_cmd_inspect)
