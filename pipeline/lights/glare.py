@@ -39,7 +39,7 @@ import numba
 import numpy as np
 import numpy.typing as npt
 
-from pipeline.lights.model import REFERENCE_DISTANCE_MM, Lights
+from pipeline.lights.model import Lights, light_at
 from pipeline.surface.normals.field import OK, OUTSIDE, NormalField, field_from_fit
 from pipeline.surface.normals.robust import COS_MIN
 from pipeline.surface.normals.solve3 import DEGENERATE_RATIO, MIN_FIT
@@ -321,7 +321,6 @@ def _lobe_kernel(
     Writes b (3, H, W), the RMS of a_k * residual over the used samples, and ``good``.
     """
     n_img, h, w = images.shape
-    ref2 = REFERENCE_DISTANCE_MM * REFERENCE_DISTANCE_MM
     for i in numba.prange(h):
         lv = np.empty((n_img, 3))
         hv = np.empty((n_img, 3))
@@ -341,18 +340,7 @@ def _lobe_kernel(
             v0, v1, v2 = -x0 / xn, -x1 / xn, -x2 / xn
             a_max = 0.0
             for k in range(n_img):
-                if kind[k] == 1:
-                    d0, d1, d2 = geometry[k, 0] - x0, geometry[k, 1] - x1, geometry[k, 2] - x2
-                    dist2 = d0 * d0 + d1 * d1 + d2 * d2
-                    dist = np.sqrt(dist2)
-                    a = ref2 / dist2
-                    if mu[k] > 0.0:
-                        cs = -(d0 * axes[k, 0] + d1 * axes[k, 1] + d2 * axes[k, 2]) / dist
-                        a *= max(cs, 0.0) ** mu[k]
-                    l0, l1, l2 = d0 / dist, d1 / dist, d2 / dist
-                else:
-                    a = 1.0
-                    l0, l1, l2 = geometry[k, 0], geometry[k, 1], geometry[k, 2]
+                l0, l1, l2, a = light_at(k, x0, x1, x2, geometry, axes, kind, mu)
                 lv[k, 0], lv[k, 1], lv[k, 2] = l0, l1, l2
                 h0, h1, h2 = l0 + v0, l1 + v1, l2 + v2
                 hn = np.sqrt(h0 * h0 + h1 * h1 + h2 * h2)

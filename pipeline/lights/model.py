@@ -265,6 +265,34 @@ class Lights:
         return Lights.distant(dirs, self.intensity * att)
 
 
+@numba.njit(cache=True, inline="always")
+def light_at(
+    k: int,
+    x0: float,
+    x1: float,
+    x2: float,
+    geometry: npt.NDArray[np.float64],
+    axes: npt.NDArray[np.float64],
+    kind: npt.NDArray[np.int64],
+    mu: npt.NDArray[np.float64],
+) -> tuple[float, float, float, float]:
+    """Light k seen from the surface point (x0, x1, x2) mm: its unit vector and its attenuation a_k
+    (the documented model; ``geometry``, ``axes``, ``kind`` as :meth:`Lights.kernel_arrays`).
+
+    Inlined into the kernels that call it, which keep their own floating-point flags.
+    """
+    if kind[k] == 1:
+        d0, d1, d2 = geometry[k, 0] - x0, geometry[k, 1] - x1, geometry[k, 2] - x2
+        dist2 = d0 * d0 + d1 * d1 + d2 * d2
+        dist = np.sqrt(dist2)
+        a = REFERENCE_DISTANCE_MM * REFERENCE_DISTANCE_MM / dist2
+        if mu[k] > 0.0:
+            cos = -(d0 * axes[k, 0] + d1 * axes[k, 1] + d2 * axes[k, 2]) / dist
+            a *= max(cos, 0.0) ** mu[k]
+        return d0 / dist, d1 / dist, d2 / dist, a
+    return geometry[k, 0], geometry[k, 1], geometry[k, 2], 1.0
+
+
 @numba.njit(cache=True, fastmath={"nsz", "arcp", "contract", "reassoc"})
 def light_vectors_block(
     depth: npt.NDArray[np.floating[Any]],
@@ -291,7 +319,6 @@ def light_vectors_block(
     """
     n, w = samples.shape
     att = np.empty(n)
-    ref2 = REFERENCE_DISTANCE_MM * REFERENCE_DISTANCE_MM
     for j in range(w):
         z = depth[i, j0 + j]
         if not (z > 0.0):
@@ -304,18 +331,9 @@ def light_vectors_block(
         x2 = z * (kinv[2, 0] * u + kinv[2, 1] * v + kinv[2, 2])
         a_max = 0.0
         for k in range(n):
-            if kind[k] == 1:
-                d0, d1, d2 = geometry[k, 0] - x0, geometry[k, 1] - x1, geometry[k, 2] - x2
-                dist2 = d0 * d0 + d1 * d1 + d2 * d2
-                dist = np.sqrt(dist2)
-                a = ref2 / dist2
-                if mu[k] > 0.0:
-                    cos = -(d0 * axes[k, 0] + d1 * axes[k, 1] + d2 * axes[k, 2]) / dist
-                    a *= max(cos, 0.0) ** mu[k]
-                L[k, 0, j], L[k, 1, j], L[k, 2, j] = d0 / dist, d1 / dist, d2 / dist
-            else:
-                a = 1.0
-                L[k, 0, j], L[k, 1, j], L[k, 2, j] = geometry[k, 0], geometry[k, 1], geometry[k, 2]
+            L[k, 0, j], L[k, 1, j], L[k, 2, j], a = light_at(
+                k, x0, x1, x2, geometry, axes, kind, mu
+            )
             att[k] = a
             a_max = max(a_max, a)
         for k in range(n):
