@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.acquisition import acquire, last_frame_lag_s, write_demo_cell
+from pipeline.acquisition import acquire, last_frame_time, write_demo_cell
 from pipeline.io import load_capture
 from pipeline.parallel import configure_process
 from pipeline.run import inspect, warm_up
@@ -51,7 +51,7 @@ def main() -> None:
                 cell, plate_id=f"BENCH-{i}", out_dir=Path(tmp) / f"bundle{i}", frames=frames
             )
             returned = time.monotonic()
-            last_frame_at = returned - (last_frame_lag_s(bundle) or 0.0)
+            last_frame_at = last_frame_time(bundle, returned) or returned
             capture = bundle if args.decode else load_capture(bundle, frames=frames)
             doc = inspect(
                 capture, cell.parent / "target.json", out_dir=Path(tmp) / f"out{i}"
