@@ -120,6 +120,12 @@ def main():
         help="with --stress: the plates over-bent, past 4 passes or not done, pass by pass, and the "
         "corrections' calibration early and late in the campaigns",
     )
+    ap.add_argument(
+        "--scatter-share-dof",
+        action="store_true",
+        help="the parameters' share of a prediction that the scatter drives takes the scatter's "
+        "degrees of freedom (Priors.scatter_share_dof, a trial, off by default)",
+    )
     args = ap.parse_args()
     if args.stress:
         stress(args)
@@ -144,6 +150,7 @@ def main():
                 np.random.default_rng(seed + 100),
                 learning=mode == "learning",
                 settings=AimSettings(over_probability=args.over_probability),
+                priors=Priors(scatter_share_dof=args.scatter_share_dof),
             )
             rows.append((seed, mode, summary(runs[mode]), time.perf_counter() - t0))
             passes[mode].update(o.passes for o in runs[mode])
@@ -207,6 +214,7 @@ def stress(args) -> None:
                         physics,
                         np.random.default_rng(seed + 100),
                         learning=mode == "learning",
+                        priors=Priors(scatter_share_dof=args.scatter_share_dof),
                     )
                 )
             sums = [summary(o) for o in outs]

@@ -301,7 +301,8 @@ def aim(
         )
 
     def safe(d: float) -> float:
-        return predict_safe(d).quantile(p_hi) - limit
+        # over-bending is judged on the plate's true radius: the next inspection's noise is no risk
+        return predict_safe(d).truth().quantile(p_hi) - limit
 
     def centre(d: float) -> float:
         return predict(d).median - kt
@@ -318,11 +319,14 @@ def aim(
     # band as the inspection judges it within the allowed probability, else no setting
     over_edge = kt + settings.verdict_band * band
     least = safe(d_lo) >= 0
-    blocked = least and predict_safe(d_lo).probability_above(over_edge) > settings.pass_probability
+    blocked = (
+        least
+        and predict_safe(d_lo).truth().probability_above(over_edge) > settings.pass_probability
+    )
     if least and not blocked:
         # the deepest setting whose risk of ending past the verdict's edge is the allowed one
         def edge(x: float) -> float:
-            return predict_safe(x).probability_above(over_edge) - settings.pass_probability
+            return predict_safe(x).truth().probability_above(over_edge) - settings.pass_probability
 
         d = min(root(edge), d_centre)
     split = None if least else _two_pass(plate, predict, d_lo, d, settings)
@@ -331,7 +335,9 @@ def aim(
         warnings.append(split[1])
     if least:
         warnings.append(
-            _scatter_fills_band(stalled, d, predict_safe(d), over_edge, settings, given=not blocked)
+            _scatter_fills_band(
+                stalled, d, predict_safe(d).truth(), over_edge, settings, given=not blocked
+            )
         )
     return {
         "blocked": blocked,
@@ -535,7 +541,7 @@ def _aim_basis(
     pred = aimed["prediction"]
     return {
         "loaded_radius_mm": _surface_radius(target, pred.loaded_curvature),
-        "probability_over_band": aimed["safe_prediction"].probability_above(kt + band),
+        "probability_over_band": aimed["safe_prediction"].truth().probability_above(kt + band),
         "probability_within_band": pred.probability_above(kt - band)
         - pred.probability_above(kt + band),
         "over_probability": settings.over_probability,

@@ -41,6 +41,10 @@ The last round weighs the rows with the scatter's posterior mean
 variance ``nu s^2 / (nu - 2)`` (``nu`` its degrees of freedom, at least 3), so that with few rows the
 parameters' covariance carries the doubt about the scatter it was weighed with. Predictions use Student's t with the corresponding degrees of freedom
 (:meth:`Fit.predict`): with little data the tails are wide, and the advice aims further to the safe side.
+The parameters the rows pinned (a machine's gain and compliance from its plates, a plate's factor from
+its own passes) are as uncertain as the scatter those rows were weighed with: the covariance's share
+that scales with the scatter's variance, ``d cov / d log sigma_d^2`` (:func:`_scatter_share`), takes
+the scatter's degrees of freedom in a prediction, the rest (priors, inspection noise) none.
 
 A plate's next pass is predicted from its latest measured shape plus the model's increment to the new
 pass (:meth:`Fit.predict`, :func:`latest_state`), the increment starting where the pass that made that
@@ -48,7 +52,7 @@ shape really loaded the plate. Its setting is not that place: the pass scattered
 shape it left is what the parameters need ``x`` to be (``u(theta, d_p + x) = k_a``, ``u`` the curvature
 after one pass). So ``x`` is the fitted parameters' (the scatter the fit attributes to that pass), with
 their uncertainty; passes that by the model loaded the plate beyond it but left the shape unchanged
-bound it from below (a truncated normal). A plate that ended short of its prediction had its peak
+bound it from below, each with its own error (:func:`_stalled_peak`). A plate that ended short of its prediction had its peak
 pass scatter short, and its next pass moves it further than from the setting (taking ``x ~ N(0, s^2)``
 whatever the shape said made the aim under-predict that move and over-bend at a 0.2 mm scatter). A
 pass that does not load the plate beyond that peak leaves the shape: the prediction is
@@ -119,6 +123,11 @@ class Priors:
         inspection that reports no uncertainty.
     max_plates : int
         Most recent plates of the machine a fit uses besides the plate itself.
+    scatter_share_dof : bool
+        Give the share of the parameters' covariance that the scatter drives (:attr:`Fit.cov_scatter`:
+        a machine's gain and compliance, a plate's factor, pinned by rows weighed with the estimated
+        scatter) the scatter's degrees of freedom in a prediction, instead of counting it known
+        (issue 27, a trial: off by default, docs/forming.md, fifth round).
     """
 
     yield_factor: float = 1.17
@@ -135,6 +144,7 @@ class Priors:
     radius_noise: float = 5e-4
     sagitta_noise_mm: float = 0.1
     max_plates: int = 40
+    scatter_share_dof: bool = False
 
     def __post_init__(self) -> None:
         for name in (
@@ -181,6 +191,9 @@ class Prediction:
     floor : float
         The plate's present curvature, 1/mm: a pass that does not load it beyond its peak leaves it
         (``-inf``: no floor, a plate without an inspected shape).
+    inspection_var : float
+        The next inspection's noise in ``sd``, 1/mm^2: a prediction of what it will measure. The
+        plate's true curvature after the pass is :meth:`truth`.
     """
 
     loaded_curvature: float
@@ -189,6 +202,25 @@ class Prediction:
     dof: float
     scatter_sd: float = 0.0
     floor: float = -np.inf
+    inspection_var: float = 0.0
+
+    def truth(self) -> Prediction:
+        """The plate's true curvature after the pass: without the next inspection's noise (a known
+        variance, so the Welch-Satterthwaite degrees of freedom shrink with the total's square).
+        Over-bending is judged on the true radius; the inspection's noise is no risk of it."""
+        var = self.sd * self.sd
+        rest = max(var - self.inspection_var, 1e-6 * var)
+        if self.inspection_var <= 0 or var <= 0:
+            return self
+        return Prediction(
+            self.loaded_curvature,
+            self.mean,
+            float(np.sqrt(rest)),
+            max(self.dof * (rest / var) ** 2, 1.0),
+            self.scatter_sd,
+            self.floor,
+            0.0,
+        )
 
     @property
     def median(self) -> float:
@@ -222,6 +254,9 @@ class _Peak:
         Its variance from the parameters', and given those passes, mm^2.
     g_peak : float
         The shape's curvature per mm of that pass's displacement, 1/mm^2.
+    var_fit_scatter : float
+        The share of ``var_fit`` that scales with the scatter's variance (:attr:`Fit.cov_scatter`),
+        mm^2.
     """
 
     machine_id: str
@@ -231,6 +266,7 @@ class _Peak:
     var_fit: float
     var_x: float
     g_peak: float
+    var_fit_scatter: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -256,6 +292,12 @@ class Fit:
     machines : dict
         The machines of the fitted passes.
     priors : Priors
+    cov_scatter : (n, n) ndarray or None
+        The share of ``cov`` that scales with the pass scatter's variance, ``d cov / d log sigma_d^2``
+        (:func:`_scatter_share`): the parameters the rows pinned, each row weighed with a variance
+        that is mostly the estimated scatter. A prediction gives it the scatter's degrees of freedom
+        (:meth:`_prediction`). None: not computed (``Priors.scatter_share_dof`` off), the whole
+        parameters' share counted known as before.
     """
 
     machine_ids: tuple[str, ...]
@@ -271,6 +313,7 @@ class Fit:
     spread_dof: float
     machines: dict[str, Machine]
     priors: Priors
+    cov_scatter: np.ndarray | None = None
 
     def _index(self, kind: str, key: str | tuple[str, float]) -> int:
         m = len(self.machine_ids)
@@ -349,15 +392,20 @@ class Fit:
         idx = [self._index(kind, m) for kind in ("machine", "gain") for m in machines_used]
         idx.append(i_plate)
         fixed = {i_plate: yield_factor, self._index("machine", machine_id): compliance_mm_per_mn}
-        theta, cov = _conditioned(
-            self.mean, self.cov, {i: v for i, v in fixed.items() if v is not None}
+        given = {i: v for i, v in fixed.items() if v is not None}
+        theta, cov = _conditioned(self.mean, self.cov, given)
+        share = _conditioned_share(
+            self.cov,
+            np.zeros_like(self.cov) if self.cov_scatter is None else self.cov_scatter,
+            given,
         )
         anchor = latest_state(plate, self.curvatures(plate, theta)[0], self.priors)
         sub = cov[np.ix_(idx, idx)]
-        peak = None if anchor is None else self._anchor_peak(plate, theta, idx, sub, anchor)
+        sub_s = share[np.ix_(idx, idx)]
+        peak = None if anchor is None else self._anchor_peak(plate, theta, idx, sub, anchor, sub_s)
         if peak is not None and anchor is not None:
             return self._beyond_anchor(
-                plate, machine_id, displacement_mm, theta, idx, sub, anchor, peak
+                plate, machine_id, displacement_mm, theta, idx, (sub, sub_s), anchor, peak
             )
 
         def model(th: np.ndarray, d_shift: float = 0.0) -> tuple[float, float]:
@@ -371,6 +419,10 @@ class Fit:
         k_loaded, mean = model(theta)
         grad = self._gradient(lambda th: model(th)[1], theta, idx, mean)
         var_par = max(float(grad @ sub @ grad), 0.0)
+        # the share the rows pinned with the scatter's weight takes the scatter's degrees of freedom
+        # and, with them, the t's scale (the last round weighed the rows with nu s^2 / (nu - 2))
+        tied = self._untied(min(max(float(grad @ sub_s @ grad), 0.0), var_par))
+        var_par += tied[1] - tied[0]
         g_d = (model(theta, _H_D)[1] - mean) / _H_D
         var_scatter = (g_d * self.scatter_mm) ** 2
         var = 0.0
@@ -386,8 +438,25 @@ class Fit:
                     - self._single(plate, q.machine_id, q.top_roll_displacement_mm, theta)[1]
                 ) / _H_D
                 var_scatter += (g_peak * self.scatter_mm) ** 2
-        var += var_par + var_scatter + _inspection_variance(mean, plate, self.priors)
-        return self._prediction(plate, yield_factor, k_loaded, mean, var, var_par, var_scatter)
+        noise = _inspection_variance(mean, plate, self.priors)
+        var += var_par + var_scatter + noise
+        return self._prediction(
+            plate,
+            yield_factor,
+            k_loaded,
+            mean,
+            var,
+            var_par,
+            var_scatter,
+            var_par_scatter=tied[1],
+            inspection_var=noise,
+        )
+
+    def _untied(self, tied: float) -> tuple[float, float]:
+        """A variance share weighed with the scatter's posterior mean variance ``nu s^2 / (nu - 2)``
+        (the fit's last round), and the same share at the t's scale, ``s^2`` (mm)."""
+        nu = max(self.scatter_dof, 3.0)
+        return tied, tied * (nu - 2.0) / nu
 
     def _prediction(
         self,
@@ -399,16 +468,31 @@ class Fit:
         var_par: float,
         var_scatter: float,
         floor: float = -np.inf,
+        var_par_scatter: float = 0.0,
+        inspection_var: float = 0.0,
     ) -> Prediction:
-        """The Student-t of a prediction from its variance's shares (:func:`_effective_dof`)."""
+        """The Student-t of a prediction from its variance's shares (:func:`_effective_dof`).
+
+        ``var_par_scatter`` is the part of the parameters' share ``var_par`` that the rows pinned
+        with the estimated scatter's weight (:attr:`Fit.cov_scatter`): it is as uncertain as the
+        scatter, and joins the passes' scatter (one estimated variance, the scatter's degrees of
+        freedom); the rest of ``var_par`` is known (the plate has passes of its own, or its factor is
+        given) or as well as the plates' spread."""
         own = self.rows_per_plate.get(plate.plate_id, 0) > 0 or yield_factor is not None
+        tied = min(max(var_par_scatter, 0.0), var_par)
         dof = _effective_dof(
             var,
-            (var_scatter, self.scatter_dof),
-            (var_par, np.inf if own else self.spread_dof),
+            (var_scatter + tied, self.scatter_dof),
+            (var_par - tied, np.inf if own else self.spread_dof),
         )
         return Prediction(
-            k_loaded, mean, float(np.sqrt(var)), dof, float(np.sqrt(var_scatter)), floor
+            k_loaded,
+            mean,
+            float(np.sqrt(var)),
+            dof,
+            float(np.sqrt(var_scatter)),
+            floor,
+            inspection_var,
         )
 
     def _single(
@@ -440,6 +524,7 @@ class Fit:
         idx: list[int],
         cov: np.ndarray,
         anchor: State,
+        cov_s: np.ndarray | None = None,
     ) -> _Peak | None:
         """Where the pass that made the plate's latest shape really loaded it (module docstring).
 
@@ -449,8 +534,8 @@ class Fit:
         with the parameters: ``dx/dtheta = -(du/dtheta) / (du/dd)``, so its variance is the
         parameters' (``cov`` over ``idx``). Passes after it that by the model loaded the plate
         beyond it but left the shape unchanged (``anchor.unchanged``) each say ``x - e_j >= L_j`` (the
-        mm the model put them beyond it, ``e_j ~ N(0, s^2)`` their own error): ``x`` is then
-        conditioned on ``z = x - e > L`` (``L`` the largest), ``z ~ N(x, v_x + s^2)`` truncated.
+        mm the model put them beyond it, ``e_j ~ N(0, s^2)`` their own error, independent): ``x``
+        is then conditioned on all of them (:func:`_stalled_peak`).
 
         Returns None when the shape is not past the elastic range (flat, or no plastic set: the
         model cannot place its peak).
@@ -483,14 +568,10 @@ class Fit:
                 self._single(plate, m, d_p + _H_D, theta)[0] - self._single(plate, m, d_p, theta)[0]
             ) / _H_D
             if slope > 0:
-                lower = max(float(kl[j] - kl[anchor.peak_pass]) / slope for j in anchor.unchanged)
-                s2 = self.scatter_mm**2
-                sz = float(np.sqrt(v_x + s2))
-                mz, vz = stats.truncnorm.stats((lower - x) / sz, np.inf, moments="mv")
-                w = v_x / (v_x + s2)
-                mean_x = x + w * sz * float(mz)
-                var_x = max(v_x - w * w * (v_x + s2 - sz * sz * float(vz)), 0.0)
-        return _Peak(m, d_p, x, mean_x, v_x, var_x, g_peak)
+                lower = [float(kl[j] - kl[anchor.peak_pass]) / slope for j in anchor.unchanged]
+                mean_x, var_x = _stalled_peak(x, v_x, lower, self.scatter_mm)
+        v_s = 0.0 if cov_s is None else min(max(float(dx @ cov_s @ dx), 0.0), v_x)
+        return _Peak(m, d_p, x, mean_x, v_x, var_x, g_peak, v_s)
 
     def _beyond_anchor(
         self,
@@ -499,7 +580,7 @@ class Fit:
         displacement_mm: float,
         theta: np.ndarray,
         idx: list[int],
-        cov: np.ndarray,
+        covs: tuple[np.ndarray, np.ndarray],
         anchor: State,
         peak: _Peak,
     ) -> Prediction:
@@ -512,6 +593,7 @@ class Fit:
         (``x`` moves with them), less what the unchanged passes told about ``x``; the new pass's
         scatter; the new inspection's noise.
         """
+        cov, cov_s = covs
         k_loaded, ku_new = self._single(plate, machine_id, displacement_mm, theta)
         ku_peak = self._single(plate, peak.machine_id, peak.displacement_mm + peak.mean_x, theta)[1]
         mean = anchor.curvature + ku_new - ku_peak
@@ -524,13 +606,31 @@ class Fit:
         # the rows with the scatter's posterior mean variance nu s^2 / (nu - 2), which the t's
         # tails already carry
         var_peak = min(peak.g_peak**2 * peak.var_x, var_par)
-        nu = max(self.scatter_dof, 3.0)
         g_d = (self._single(plate, machine_id, displacement_mm + _H_D, theta)[1] - ku_new) / _H_D
-        var_scatter = (g_d * self.scatter_mm) ** 2 + var_peak * (nu - 2.0) / nu
+        var_scatter = (g_d * self.scatter_mm) ** 2 + self._untied(var_peak)[1]
         var_par -= var_peak
-        var = var_par + var_scatter + _inspection_variance(mean, plate, self.priors)
+        # of the rest, the share the rows pinned with the scatter's weight (a machine's gain and
+        # compliance from its plates, the plate's factor beyond its old peak) likewise
+        tied = self._untied(
+            min(
+                max(float(grad @ cov_s @ grad) - peak.g_peak**2 * peak.var_fit_scatter, 0.0),
+                var_par,
+            )
+        )
+        var_par += tied[1] - tied[0]
+        noise = _inspection_variance(mean, plate, self.priors)
+        var = var_par + var_scatter + noise
         return self._prediction(
-            plate, None, k_loaded, mean, var, var_par, var_scatter, floor=anchor.curvature
+            plate,
+            None,
+            k_loaded,
+            mean,
+            var,
+            var_par,
+            var_scatter,
+            floor=anchor.curvature,
+            var_par_scatter=tied[1],
+            inspection_var=noise,
         )
 
     def yield_factor_quantile(self, plate_id: str, p: float) -> float:
@@ -539,6 +639,35 @@ class Fit:
         mean, sd = self.parameter("plate", plate_id)
         dof = self.scatter_dof if self.rows_per_plate.get(plate_id, 0) else self.spread_dof
         return float(mean + sd * stats.t.ppf(p, dof))
+
+
+def _stalled_peak(
+    x: float, v_x: float, lower: Sequence[float], scatter_mm: float
+) -> tuple[float, float]:
+    """Mean and variance of the old peak's displacement error ``x`` (mm) given the passes that left
+    its shape unchanged (:meth:`Fit._anchor_peak`).
+
+    ``x ~ N(x, v_x)`` as the parameters place it; each unchanged pass ``j``, ``L_j`` mm beyond the
+    peak by the model with its own error ``e_j ~ N(0, s^2)``, says ``x - e_j > L_j``, with the
+    likelihood ``Phi((x - L_j) / s)``. The passes' errors are independent, so the posterior is the
+    prior times their product (on a grid). Before, ``x`` was conditioned on the deepest pass alone
+    (``x - e > max L_j``, a truncated normal): exact for one unchanged pass, but two or three of them
+    at nearly the same depth said no more than the deepest, and the next pass was predicted to move
+    the plate more than it did (the creeping plates at a 0.2 mm scatter).
+    """
+    if not lower or v_x <= 0 or scatter_mm <= 0:
+        return x, v_x
+    sd_x = float(np.sqrt(v_x))
+    lo = min(x - 8.0 * sd_x, min(lower) - 8.0 * scatter_mm)
+    hi = max(x + 8.0 * sd_x, max(lower) + 8.0 * scatter_mm)
+    grid = np.linspace(lo, hi, 4001)
+    log_p = -0.5 * ((grid - x) / sd_x) ** 2
+    for bound in lower:
+        log_p = log_p + stats.norm.logcdf((grid - bound) / scatter_mm)
+    w = np.exp(log_p - log_p.max())
+    w /= w.sum()
+    mean = float(np.dot(w, grid))
+    return mean, max(float(np.dot(w, (grid - mean) ** 2)), 0.0)
 
 
 #: Degrees of freedom of a prediction whose variance is all known (a Student-t that is a normal).
@@ -733,7 +862,8 @@ def _solve_round(
     sizes: tuple[int, int, int],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One round of :func:`fit`: bounded least squares with the round's variances; (theta, cov,
-    leverage), each data row's share of the fitted parameters (:func:`_leverage`)."""
+    J_rows), the data rows' weighted Jacobian at the optimum (for :func:`_leverage` and
+    :func:`_scatter_share`)."""
     M, G, P = sizes
     n_rows = len(rows.state_pass)
     state_pass, state_obs, sd_row, state_plate = (
@@ -784,7 +914,42 @@ def _solve_round(
     theta = sol.x
     J = jacobian(theta)
     cov = np.linalg.pinv(J.T @ J)
-    return theta, cov, _leverage(J[:n_rows], cov)
+    return theta, cov, J[:n_rows]
+
+
+def _scatter_share(J_rows: np.ndarray, cov: np.ndarray, share: np.ndarray) -> np.ndarray:
+    """The part of the parameters' covariance that scales with the pass scatter's variance,
+    ``d cov / d log sigma_d^2``, 1 per unit (n, n).
+
+    ``cov = (J^T J)^-1`` with the rows weighed by their variances ``v_i = m_i + s_i`` (``s_i`` the
+    scatter's part, ``share = s_i / v_i``); scaling every ``s_i`` by ``lambda`` gives ``d (J^T J) /
+    d log lambda = -sum_i share_i J_i J_i^T`` at ``lambda = 1``, so ``d cov / d log lambda = cov (J^T
+    diag(share) J) cov``. A parameter pinned by rows that are all scatter (a plate's factor from its
+    own passes, a machine's gain from its plates) has it equal to its variance: it is as uncertain as
+    the scatter's estimate; one held by its prior (a fresh machine's gain) or by the inspections' noise
+    has ~0.
+    """
+    middle = (J_rows * share[:, None]).T @ J_rows
+    scatter_cov: np.ndarray = cov @ middle @ cov
+    return scatter_cov
+
+
+def _conditioned_share(
+    cov: np.ndarray, share: np.ndarray, fixed: Mapping[int, float]
+) -> np.ndarray:
+    """The scatter's share (:func:`_scatter_share`) of the covariance conditioned on the parameters
+    ``fixed`` (:func:`_conditioned`): the derivative of ``C - C_xF C_FF^-1 C_Fx``."""
+    if not fixed:
+        return share
+    idx = list(fixed)
+    gain = cov[:, idx] @ np.linalg.pinv(cov[np.ix_(idx, idx)])
+    out: np.ndarray = (
+        share
+        - share[:, idx] @ gain.T
+        - gain @ share[idx, :]
+        + gain @ share[np.ix_(idx, idx)] @ gain.T
+    )
+    return out
 
 
 def _leverage(J_rows: np.ndarray, cov: np.ndarray) -> np.ndarray:
@@ -880,7 +1045,7 @@ def fit(
         nu = max(priors.scatter_weight + dof_rows, 3.0)
         inflate = nu / (nu - 2.0) if round_ == _ROUNDS - 1 else 1.0
         sd_row = np.sqrt(meas_var + inflate * (g * scatter) ** 2)
-        theta, cov, leverage = _solve_round(
+        theta, cov, J_rows = _solve_round(
             curvatures,
             theta,
             _Rows(state_pass, state_obs, sd_row, state_plate),
@@ -888,7 +1053,13 @@ def fit(
             (M, G, P),
         )
         if round_ == _ROUNDS - 1:
+            cov_scatter = (
+                _scatter_share(J_rows, cov, inflate * (g * scatter) ** 2 / sd_row**2)
+                if priors.scatter_share_dof
+                else None
+            )
             break
+        leverage = _leverage(J_rows, cov)
         # variance updates (module docstring)
         r2 = (curvatures(theta)[2][state_pass] - state_obs) ** 2
         scatter, dof_rows = _scatter_estimate(r2, meas_var, g, leverage, scatter, priors)
@@ -908,6 +1079,7 @@ def fit(
         priors.plate_spread_weight + len(plates_with_rows),
         {m: machines[m] for m in machine_ids},
         priors,
+        cov_scatter,
     )
 
 

@@ -192,8 +192,8 @@ def test_a_fresh_machines_first_pass_takes_its_compliance_at_the_floor():
     limit = target_curvature(plate.target) + settings.over_band * curvature_band(plate.target)
     at_floor = fitted.predict(plate, "R3-01", d, yield_factor=1.0, compliance_mm_per_mn=0.0)
     gaussian = fitted.predict(plate, "R3-01", d, yield_factor=1.0)
-    assert at_floor.quantile(p_hi) == pytest.approx(limit, rel=1e-5)
-    assert gaussian.quantile(p_hi) > limit  # the Gaussian alone would have aimed shallower
+    assert at_floor.truth().quantile(p_hi) == pytest.approx(limit, rel=1e-5)  # the true radius
+    assert gaussian.truth().quantile(p_hi) > limit  # the Gaussian alone would have aimed shallower
     assert aimed["safe_prediction"] == at_floor
 
 

@@ -166,6 +166,57 @@ def test_a_pass_that_changed_nothing_joins_the_shape_and_raises_the_old_peak():
     assert fitted_u.scatter_mm <= fitted_1.scatter_mm + 1e-12
 
 
+def test_every_pass_that_left_the_shape_unchanged_places_the_old_peak():
+    # each unchanged pass j says x - e_j > L_j with its own error e_j: with one, the posterior of the
+    # old peak's displacement error x is the truncated normal of x - e; with three at nearly the same
+    # depth it lies further out than the deepest alone says (a creeping plate's peak pass really
+    # went further than one stall tells), and its spread is narrower
+    from scipy import stats
+
+    from pipeline.forming.learning import _stalled_peak
+
+    x, v, s = 0.0, 0.03, 0.2
+    sz = np.sqrt(v + s * s)
+    mz, vz = stats.truncnorm.stats((0.2 - x) / sz, np.inf, moments="mv")
+    w = v / (v + s * s)
+    one = _stalled_peak(x, v, [0.2], s)
+    assert one[0] == pytest.approx(x + w * sz * mz, abs=1e-6)
+    assert one[1] == pytest.approx(v - w * w * (v + s * s - sz * sz * vz), rel=1e-4)
+    deepest = _stalled_peak(x, v, [0.41], s)
+    three = _stalled_peak(x, v, [0.11, 0.28, 0.41], s)
+    assert three[0] > deepest[0] + 0.05 and three[1] < deepest[1]
+    assert _stalled_peak(x, v, [], s) == (x, v)
+    assert _stalled_peak(x, 0.0, [0.4], s) == (x, 0.0)  # a peak the parameters pin exactly
+
+
+def test_over_bending_is_judged_on_the_true_curvature_not_the_next_inspection():
+    # a prediction is of what the next inspection will measure; its true-curvature counterpart
+    # drops that inspection's noise (a known variance: the Welch-Satterthwaite degrees of freedom
+    # shrink with the total's square), and the aim's over-bending risk is the truth's
+    from pipeline.forming import advise
+    from pipeline.forming.advice import curvature_band, target_curvature
+    from pipeline.forming.learning import Prediction, fit
+
+    p = Prediction(1e-4, 2e-4, 3e-6, 10.0, 2e-6, -np.inf, 4e-12)
+    t = p.truth()
+    assert t.sd == pytest.approx(np.sqrt(9e-12 - 4e-12))
+    assert t.dof == pytest.approx(10.0 * (5.0 / 9.0) ** 2)
+    assert t.inspection_var == 0.0 and t.truth() == t and t.mean == p.mean
+    assert t.probability_above(2.05e-4) < p.probability_above(2.05e-4)
+    machines = {"R3-01": MACHINE}
+    plate = _plate_after((70.0, 15000.0))
+    fitted = fit([plate], machines)
+    pred = fitted.predict(plate, "R3-01", 71.0)
+    assert 0 < pred.inspection_var < pred.sd**2
+    advice = advise(plate, machines)
+    target = plate.target
+    edge = target_curvature(target) + curvature_band(target)
+    safe = fitted.predict(plate, "R3-01", advice.top_roll_displacement_mm)
+    assert advice.basis["aim"]["probability_over_band"] == pytest.approx(
+        safe.truth().probability_above(edge), rel=1e-6
+    )
+
+
 def test_only_the_scatters_share_of_a_prediction_takes_its_few_degrees_of_freedom():
     # a fresh machine's first pass: its spread is the priors' (known), not the scatter's estimate
     # (4 pseudo-rows), so its tails are normal; a correction pass's spread is mostly scatter
@@ -184,6 +235,47 @@ def test_only_the_scatters_share_of_a_prediction_takes_its_few_degrees_of_freedo
     assert _effective_dof(2.0, (2.0, 5.0)) == pytest.approx(5.0)
     assert _effective_dof(2.0, (1.0, 5.0)) == pytest.approx(20.0)
     assert _effective_dof(2.0, (0.0, 5.0)) == _KNOWN_DOF
+
+
+def test_the_parameters_share_pinned_by_the_scatter_takes_its_degrees_of_freedom():
+    # a machine's gain and compliance learned from its plates, and a plate's factor from its own
+    # passes, are pinned by rows weighed with the estimated scatter: their share of a prediction is
+    # as uncertain as that estimate (Fit.cov_scatter), so it takes the scatter's few degrees of
+    # freedom; a fresh machine's gain, held by its prior, keeps its normal tails (Priors'
+    # scatter_share_dof, a trial, off by default)
+    import dataclasses
+
+    from pipeline.forming.campaign import TruePlate, inspect
+    from pipeline.forming.learning import Priors, fit
+    from pipeline.forming.records import RollPass
+
+    machines, priors = {"R3-01": MACHINE}, Priors(scatter_share_dof=True)
+    assert fit([_plate_after()], machines, also_machines=["R3-01"]).cov_scatter is None  # off
+    fresh = fit([_plate_after()], machines, priors, also_machines=["R3-01"])
+    assert fresh.cov_scatter is not None
+    assert np.allclose(fresh.cov_scatter, 0.0)  # no rows: all prior
+    physics = TruePhysics(compliance_mm_per_mn=2.0, displacement_scatter_mm=0.1)
+    rng = np.random.default_rng(3300)
+    history = []
+    for sim in random_batch(6, rng):
+        truth, record = TruePlate(sim, MACHINE, physics), sim.record
+        for d in (90.0, 96.0):
+            k = truth.roll(d, rng)
+            record = record.with_pass(RollPass("R3-01", d, *inspect(record, k, physics, rng)))
+        history.append(record)
+    probe = _plate_after((90.0, 9000.0))
+    fitted = fit([probe, *history], machines, priors)
+    share, cov = fitted.cov_scatter, fitted.cov
+    assert share is not None and np.allclose(share, share.T)
+    variances, shares = np.diag(cov), np.diag(share)
+    assert np.all(shares >= -1e-12 * variances) and np.all(shares <= variances * (1 + 1e-9))
+    i_gain = fitted._index("gain", "R3-01")
+    assert shares[i_gain] > 0.3 * variances[i_gain]  # six plates pin much of the gain
+    with_share = fitted.predict(probe, "R3-01", 95.0)
+    without = dataclasses.replace(fitted, cov_scatter=None).predict(probe, "R3-01", 95.0)
+    assert fitted.scatter_dof - 1e-9 <= with_share.dof < without.dof
+    assert with_share.sd <= without.sd  # the t's scale, not its variance: the tails carry the doubt
+    assert with_share.quantile(0.995) >= without.quantile(0.995) - 1e-12
 
 
 def test_the_scatter_is_estimated_with_the_rows_leverage_and_weights():
