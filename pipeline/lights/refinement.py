@@ -37,6 +37,7 @@ from scipy import special
 from threadpoolctl import threadpool_limits
 
 from pipeline.lights import fit as light_fit
+from pipeline.lights import glare
 from pipeline.lights.model import Lights
 
 #: At most this many sample blocks enter the fits.
@@ -51,6 +52,8 @@ DISTANT_PRIOR = 1e-2
 #: (position, axis, profile, intensity) and of a point light on its given direction (distance, axis,
 #: profile, intensity).
 DISTANT_PARAMS, POINT_PARAMS, ON_RAY_PARAMS = 3, 7, 5
+#: Parameters of the coating's lobe fitted with the point lights (amplitude and exponent).
+LOBE_PARAMS = 2
 #: Significance level of the F-test that lets refined lights replace the given ones.
 SIGNIFICANCE = 1e-3
 
@@ -91,6 +94,9 @@ class LightRefinement:
         point model, ``position_mm``.
     n_samples : int
         Sample blocks used.
+    lobe : Lobe or None
+        The coating's lobe fitted with the point lights (per unit irradiance, on the scale of the
+        fitted lights), None for a matte plate or the distant model.
     """
 
     lights: Lights
@@ -100,6 +106,7 @@ class LightRefinement:
     rms_point: float
     corrections: list[dict[str, float | list[float]]]
     n_samples: int
+    lobe: glare.Lobe | None = None
 
 
 def refine_lights(
@@ -155,13 +162,34 @@ def refine_lights(
         rms_given = _rms(data, lights)
         distant = _refine_distant(data, lights)
         rms_distant = _rms(data, distant)
-        point, rms_point = _fit_points(data, lights, light_fit.PlatePose(normal, centre, 0.0, 0))
+        pose = light_fit.PlatePose(normal, centre, 0.0, 0)
+        point, rms_point = _fit_points(data, lights, pose)
+        lobe = None
+        if point is not None:
+            # a glossy coating: the lobe under the fitted lights, tested on pixels of the smooth
+            # surface as for given point lights (a matte plate stops at the pretest, F about 1)
+            measured = glare.measure_lobe(
+                images,
+                valid,
+                point,
+                depth_mm,
+                None,
+                mask,
+                K,
+                start_mm=depth_mm,
+                gain=lights.intensity / point.intensity,
+            )
+            if measured.f_ratio >= glare.MIN_F and measured.amplitude > 0:
+                glossy = _fit_points_with_lobe(data, point, pose, _rays(lights, pose), measured)
+                if glossy is not None:
+                    point, rms_point, lobe = glossy
     chosen: Lights
     n_blocks = len(data.intensity)
+    point_params = _point_params(lights) + (0 if lobe is None else LOBE_PARAMS)
     if (
         point is not None
         and rms_point < POINT_MODEL_GAIN * rms_distant
-        and _significant(rms_given, rms_point, _point_params(lights), n_blocks)
+        and _significant(rms_given, rms_point, point_params, n_blocks)
     ):
         model, chosen = "point", point
     elif _significant(rms_given, rms_distant, DISTANT_PARAMS * lights.n, n_blocks):
@@ -171,9 +199,10 @@ def refine_lights(
     # the given scale: the same mean irradiance at the plate's centre, facing the light
     given_at_c = lights.intensity * lights.attenuation_at(centre)
     chosen_at_c = chosen.intensity * chosen.attenuation_at(centre)
-    chosen = chosen.with_intensity(
-        chosen.intensity * float(np.mean(given_at_c) / np.mean(chosen_at_c))
-    )
+    scale = float(np.mean(given_at_c) / np.mean(chosen_at_c))
+    chosen = chosen.with_intensity(chosen.intensity * scale)
+    if lobe is not None:  # per unit irradiance of the rescaled lights
+        lobe = glare.Lobe(lobe.exponent, lobe.amplitude / scale, lobe.f_ratio)
     chosen_at_c = chosen.intensity * chosen.attenuation_at(centre)
     before, after = lights.directions_at(centre), chosen.directions_at(centre)
     corrections = []
@@ -196,6 +225,7 @@ def refine_lights(
         rms_point=rms_point,
         corrections=corrections,
         n_samples=len(data.intensity),
+        lobe=lobe if model == "point" else None,
     )
 
 
@@ -313,9 +343,77 @@ def _fit_points(
     """
     # a light given by its direction keeps it: the images find its distance along it (its axis, beam
     # and intensity too); fitted freely, its direction absorbed the smooth stereo surface's own error
-    rays = np.where(lights.is_point[:, None], np.nan, lights.directions_at(pose.centre_mm))
     try:
         start = light_fit.initial_point_lights(lights, pose, data, initial_mu=1.0)
+    except (np.linalg.LinAlgError, ValueError, FloatingPointError):
+        return None, float("nan")
+    return _fit_points_lambertian(data, start, pose, _rays(lights, pose))
+
+
+def _rays(lights: Lights, pose: light_fit.PlatePose) -> np.ndarray:
+    """Each light's given direction from the plate's centre (N, 3); NaN rows for given point lights."""
+    return np.where(lights.is_point[:, None], np.nan, lights.directions_at(pose.centre_mm))
+
+
+def _fit_points_with_lobe(
+    data: light_fit.Samples,
+    start: Lights,
+    pose: light_fit.PlatePose,
+    rays: np.ndarray,
+    lobe: glare.Lobe,
+) -> tuple[Lights, float, glare.Lobe] | None:
+    """The point lights fitted jointly with the coating's lobe, from ``start`` (the Lambertian fit) and
+    ``lobe`` (measured under it): fixed profile first, then free; None if neither converges to lights
+    in front of the plate with a positive lobe.
+
+    Fitted as if Lambertian, the glare near the mirror directions pulled the LEDs of the glossy
+    18-LED cell to half their distance (1.6 m instead of 3.2 m). With the lobe in the model, the
+    mirror geometry also fixes where the rays start: their common origin (the plate's centre the
+    directions were given from, which the view's middle misses by tens of mm) is fitted too
+    (``free_origin``). On a matte plate that origin is not determined (moved 0.5 m for the same
+    residual in a trial), which is why only the glossy fit frees it.
+    """
+    try:
+        fixed = light_fit.joint_fit(
+            start,
+            data,
+            fixed_mu=True,
+            rays=rays,
+            free_origin=True,
+            lobe=(lobe.exponent, lobe.amplitude),
+        )
+    except (np.linalg.LinAlgError, ValueError, FloatingPointError):
+        return None
+    candidates = [fixed]
+    with contextlib.suppress(np.linalg.LinAlgError, ValueError, FloatingPointError):
+        candidates.insert(
+            0,
+            light_fit.joint_fit(
+                fixed.lights,
+                data,
+                rays=rays,
+                free_origin=True,
+                lobe=(fixed.lobe_exponent, fixed.lobe_amplitude),
+            ),
+        )
+    for fit in candidates:
+        if _usable(fit, pose) and fit.lobe_amplitude > 0 and np.isfinite(fit.lobe_exponent):
+            fitted = glare.Lobe(fit.lobe_exponent, fit.lobe_amplitude, lobe.f_ratio)
+            return fit.lights, fit.rms, fitted
+    return None
+
+
+def _usable(fit: light_fit.JointFit, pose: light_fit.PlatePose) -> bool:
+    """A converged fit whose lights are finite and in front of the plate."""
+    behind = (fit.lights.positions_mm - pose.centre_mm) @ pose.normal <= 0
+    return bool(fit.success and not behind.any() and np.all(np.isfinite(fit.lights.positions_mm)))
+
+
+def _fit_points_lambertian(
+    data: light_fit.Samples, start: Lights, pose: light_fit.PlatePose, rays: np.ndarray
+) -> tuple[Lights | None, float]:
+    """:func:`_fit_points` on a matte plate: the lights' joint fit from ``start``."""
+    try:
         fixed = light_fit.joint_fit(start, data, fixed_mu=True, rays=rays)
     except (np.linalg.LinAlgError, ValueError, FloatingPointError):
         return None, float("nan")
@@ -323,7 +421,6 @@ def _fit_points(
     with contextlib.suppress(np.linalg.LinAlgError, ValueError, FloatingPointError):
         candidates.insert(0, light_fit.joint_fit(fixed.lights, data, rays=rays))
     for fit in candidates:
-        behind = (fit.lights.positions_mm - pose.centre_mm) @ pose.normal <= 0
-        if fit.success and not behind.any() and np.all(np.isfinite(fit.lights.positions_mm)):
+        if _usable(fit, pose):
             return fit.lights, _rms(data, fit.lights)
     return None, float("nan")

@@ -335,7 +335,7 @@ def remeasure_with_refined_lights(
             valid=valid,
             method=method,
             start_mm=smooth,
-            model_lobe=False,
+            model_lobe=refined.lobe is not None,
             **solve,
         )
     else:
