@@ -239,6 +239,12 @@ def _lobe(
     return S, T, log_c
 
 
+def lobe_of(lights: Lights, points: np.ndarray, normals: np.ndarray, exponent: float) -> np.ndarray:
+    """The lobe (P, N) of point lights (with axes) per unit amplitude at samples (:func:`_lobe`)."""
+    param = _Param(axis0=lights.axes, tangents=np.zeros((lights.n, 2, 3)))
+    return _lobe(param.vector(lights), param, points, normals, exponent, jac=False)[0]
+
+
 # =========================================================================== fit
 
 

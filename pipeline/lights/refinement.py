@@ -54,6 +54,8 @@ DISTANT_PRIOR = 1e-2
 DISTANT_PARAMS, POINT_PARAMS, ON_RAY_PARAMS = 3, 7, 5
 #: Parameters of the coating's lobe fitted with the point lights (amplitude and exponent).
 LOBE_PARAMS = 2
+#: Side (px) of the sample blocks of the lights' fit with the lobe (the smallest; see refine_lights).
+GLOSSY_BLOCK_PX = 2
 #: Significance level of the F-test that lets refined lights replace the given ones.
 SIGNIFICANCE = 1e-3
 
@@ -179,10 +181,27 @@ def refine_lights(
                 start_mm=depth_mm,
                 gain=lights.intensity / point.intensity,
             )
+            fine = None
             if measured.f_ratio >= glare.MIN_F and measured.amplitude > 0:
-                glossy = _fit_points_with_lobe(data, point, pose, _rays(lights, pose), measured)
+                # the lobe's samples from the smallest blocks: fitted on the default blocks (13 px
+                # at 1224 x 1024) the ring of LEDs came out 27-39 mm too high, on 2 px ones 3-9 mm
+                fine = _samples(
+                    images,
+                    valid,
+                    mask,
+                    lights,
+                    depth_mm,
+                    K,
+                    max_samples=max_samples,
+                    seed=seed,
+                    block_px=GLOSSY_BLOCK_PX,
+                )
+            if fine is not None:
+                glossy = _fit_points_with_lobe(fine, point, pose, _rays(lights, pose), measured)
                 if glossy is not None:
-                    point, rms_point, lobe = glossy
+                    point, _, lobe = glossy
+                    # on the blocks the other models are scored on
+                    rms_point = _rms(data, point, lobe)
     chosen: Lights
     n_blocks = len(data.intensity)
     point_params = _point_params(lights) + (0 if lobe is None else LOBE_PARAMS)
@@ -239,8 +258,12 @@ def _samples(
     *,
     max_samples: int,
     seed: int,
+    block_px: int | None = None,
 ) -> light_fit.Samples | None:
-    """Block means of the images in counts (P, N), with the smooth surface's points and normals."""
+    """Block means of the images in counts (P, N), with the smooth surface's points and normals.
+
+    Blocks of ``block_px`` pixels a side (default: as large as ``max_samples`` blocks cover the
+    plate), at most ``max_samples`` of them chosen at random."""
     n, h, w = images.shape
     usable = mask & np.isfinite(depth_mm)
     if valid is not None:
@@ -248,7 +271,7 @@ def _samples(
     count = int(np.count_nonzero(usable))
     if count == 0:
         return None
-    block = max(2, int(np.sqrt(count / max_samples)))
+    block = max(2, int(np.sqrt(count / max_samples))) if block_px is None else block_px
     hb, wb = h // block, w // block
 
     def blocks(img: np.ndarray) -> np.ndarray:
@@ -300,9 +323,14 @@ def _point_params(lights: Lights) -> int:
     return POINT_PARAMS * n_point + ON_RAY_PARAMS * (lights.n - n_point)
 
 
-def _rms(data: light_fit.Samples, lights: Lights) -> float:
+def _rms(data: light_fit.Samples, lights: Lights, lobe: glare.Lobe | None = None) -> float:
+    """RMS residual of the samples under ``lights`` (and the coating's ``lobe``, per unit irradiance
+    of point lights), as a fraction of the mean sample."""
     E = lights.irradiance(data.points, data.normals).T  # (P, N)
-    _, _, r = light_fit.albedo_projected(data.intensity, E)
+    I = data.intensity
+    if lobe is not None:
+        I = I - lobe.amplitude * light_fit.lobe_of(lights, data.points, data.normals, lobe.exponent)
+    _, _, r = light_fit.albedo_projected(I, E)
     return float(np.sqrt(np.mean(r * r)) / np.mean(data.intensity))
 
 
