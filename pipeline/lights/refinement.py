@@ -15,6 +15,10 @@ Two models of the lights are fitted to block samples with the albedo eliminated 
   :mod:`pipeline.lights.fit` started on the given directions from the plate's centre; a light given
   by its direction stays on it (only its distance along it is fitted).
 
+On a glossy plate (a lobe under the point lights that passes :mod:`pipeline.lights.glare`'s test),
+the point lights are fitted jointly with the coating's lobe, and the rays' common origin with them
+(:func:`_fit_points_with_lobe`).
+
 The point model is taken when it explains the samples clearly better than any distant model
 (nominal directions of what really are near-field LEDs); else the refined distant lights.
 
