@@ -208,7 +208,8 @@ def refine_lights(
                     rms_point = _rms(data, point, lobe)
     chosen: Lights
     n_blocks = len(data.intensity)
-    point_params = _point_params(lights) + (0 if lobe is None else LOBE_PARAMS)
+    # the glossy fit ends free in 3-D: 7 parameters a light, and the lobe's 2
+    point_params = _point_params(lights) if lobe is None else POINT_PARAMS * lights.n + LOBE_PARAMS
     if (
         point is not None
         and rms_point < POINT_MODEL_GAIN * rms_distant
@@ -395,8 +396,9 @@ def _fit_points_with_lobe(
     lobe: glare.Lobe,
 ) -> tuple[Lights, float, glare.Lobe] | None:
     """The point lights fitted jointly with the coating's lobe, from ``start`` (the Lambertian fit) and
-    ``lobe`` (measured under it): fixed profile first, then free; None if neither converges to lights
-    in front of the plate with a positive lobe.
+    ``lobe`` (measured under it): on the given rays with their common origin free, fixed profile
+    first, then free; then every light free in 3-D from there (kept if it converges). None if no
+    fit on the rays converges to lights in front of the plate with a positive lobe.
 
     Fitted as if Lambertian, the glare near the mirror directions pulled the LEDs of the glossy
     18-LED cell to half their distance (1.6 m instead of 3.2 m). With the lobe in the model, the
@@ -428,11 +430,26 @@ def _fit_points_with_lobe(
                 lobe=(fixed.lobe_exponent, fixed.lobe_amplitude),
             ),
         )
-    for fit in candidates:
-        if _usable(fit, pose) and fit.lobe_amplitude > 0 and np.isfinite(fit.lobe_exponent):
-            fitted = glare.Lobe(fit.lobe_exponent, fit.lobe_amplitude, lobe.f_ratio)
-            return fit.lights, fit.rms, fitted
-    return None
+    on_rays = next((f for f in candidates if _usable_glossy(f, pose)), None)
+    if on_rays is None:
+        return None
+    best = on_rays
+    # then free in 3-D: the highlights place each light, so its direction, given a degree off, is
+    # found too (on a matte plate the free fit turned exact directions 4-8 deg to explain the smooth
+    # stereo surface's error instead)
+    with contextlib.suppress(np.linalg.LinAlgError, ValueError, FloatingPointError):
+        free = light_fit.joint_fit(
+            on_rays.lights, data, lobe=(on_rays.lobe_exponent, on_rays.lobe_amplitude)
+        )
+        if _usable_glossy(free, pose):
+            best = free
+    fitted = glare.Lobe(best.lobe_exponent, best.lobe_amplitude, lobe.f_ratio)
+    return best.lights, best.rms, fitted
+
+
+def _usable_glossy(fit: light_fit.JointFit, pose: light_fit.PlatePose) -> bool:
+    """:func:`_usable`, with a positive lobe of finite exponent."""
+    return _usable(fit, pose) and fit.lobe_amplitude > 0 and bool(np.isfinite(fit.lobe_exponent))
 
 
 def _usable(fit: light_fit.JointFit, pose: light_fit.PlatePose) -> bool:
