@@ -200,7 +200,7 @@ def reconstruct_station(
     surface = view.surface
     judged = surface.mask & ~edge_band(surface.mask)
     qualified = uncertainty.propagate_points(
-        uncertainty_inputs(cap, scene.pre, surface, view.points, judged)
+        uncertainty_inputs(cap, scene.pre, view, judged)
     )
     index = ref.station.index
     station_view = StationView(
