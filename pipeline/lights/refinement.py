@@ -184,8 +184,6 @@ def refine_lights(
                 K,
                 start_mm=depth_mm,
                 gain=lights.intensity / point.intensity,
-                # the start of the joint fit, which fits the exponent itself: on the grid
-                refine=False,
             )
             fine = None
             if measured.f_ratio >= glare.MIN_F and measured.amplitude > 0:
