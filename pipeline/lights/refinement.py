@@ -17,7 +17,9 @@ Two models of the lights are fitted to block samples with the albedo eliminated 
 
 On a glossy plate (a lobe under the point lights that passes :mod:`pipeline.lights.glare`'s test),
 the point lights are fitted jointly with the coating's lobe, and the rays' common origin with them
-(:func:`_fit_points_with_lobe`).
+(:func:`_fit_points_with_lobe`); likewise the distant lights with a lobe under them
+(:func:`_fit_distant_with_lobe`), unless the Lambertian point lights already explain the samples
+far better (then the distant model's misfit reads as a lobe).
 
 The point model is taken when it explains the samples clearly better than any distant model
 (nominal directions of what really are near-field LEDs); else the refined distant lights.
