@@ -46,6 +46,10 @@ CASES = (
         dict(NEAR, n_lights=18, specular=0.5, manifest_lights="nominal", light_error_deg=1.0),
     ),
     (
+        "glare, 18 distant lights, written 1 deg off",
+        dict(n_lights=18, specular=0.5, light_error_deg=1.0),
+    ),
+    (
         "glare (broad lobe), 18 LEDs, positions",
         dict(NEAR, n_lights=18, specular=0.5, shininess=15.0),
     ),

@@ -240,9 +240,132 @@ def _lobe(
 
 
 def lobe_of(lights: Lights, points: np.ndarray, normals: np.ndarray, exponent: float) -> np.ndarray:
-    """The lobe (P, N) of point lights (with axes) per unit amplitude at samples (:func:`_lobe`)."""
+    """The lobe (P, N) per unit amplitude at samples of point lights (with axes, :func:`_lobe`) or
+    of distant lights (all of them, :class:`_DistantModel`)."""
+    if not lights.any_point:
+        model = _DistantModel(lights)
+        return model.lobe(model.vector(lights), points, normals, exponent, jac=False)[0]
     param = _Param(axis0=lights.axes, tangents=np.zeros((lights.n, 2, 3)))
     return _lobe(param.vector(lights), param, points, normals, exponent, jac=False)[0]
+
+
+class _PointModel:
+    """Point lights in :func:`joint_fit`: 7 parameters a light (:class:`_Param`)."""
+
+    n_params = _N_PARAMS
+    log_intensity = 6
+
+    def __init__(self, start: Lights) -> None:
+        self.param = _Param.around(start.axes)
+
+    def vector(self, lights: Lights) -> np.ndarray:
+        x = self.param.vector(lights)
+        x[5::_N_PARAMS] = np.maximum(x[5::_N_PARAMS], 0.0)
+        return x
+
+    def lights(self, x: np.ndarray) -> Lights:
+        return self.param.lights(x)
+
+    def project(self, x: np.ndarray) -> None:
+        """Keeps mu >= 0 (in place)."""
+        x[5::_N_PARAMS] = np.maximum(x[5::_N_PARAMS], 0.0)
+
+    def irradiance(
+        self, x: np.ndarray, points: np.ndarray, normals: np.ndarray, *, jac: bool
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        if jac:
+            return _irradiance(x, self.param, points, normals, jac=True)
+        return _irradiance(x, self.param, points, normals, jac=False)
+
+    def lobe(
+        self, x: np.ndarray, points: np.ndarray, normals: np.ndarray, exponent: float, *, jac: bool
+    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+        return _lobe(x, self.param, points, normals, exponent, jac=jac)
+
+
+class _DistantModel:
+    """Distant lights in :func:`joint_fit_distant`: 3 parameters a light, two offsets of its direction
+    across the start's (a tangent basis, as the point lights' axes) and its log intensity.
+
+    ``E_pk = e_k max(0, n_p . d_k)`` and the lobe per unit amplitude ``S_pk = e_k max(0, n_p . h_pk)^e``
+    where ``n_p . d_k > 0``, ``h = normalize(d_k + v_p)`` (v towards the camera at the origin): the
+    simulated cell's and :mod:`pipeline.lights.glare`'s lobe under distant lights.
+    """
+
+    n_params = 3
+    log_intensity = 2
+
+    def __init__(self, start: Lights) -> None:
+        self.param = _Param.around(start.directions)
+
+    def vector(self, lights: Lights) -> np.ndarray:
+        x = np.zeros((lights.n, 3))
+        x[:, 2] = np.log(lights.intensity)
+        return x.ravel()
+
+    def _directions(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        p = x.reshape(-1, 3)
+        t = self.param.tangents
+        raw = self.param.axis0 + p[:, 0:1] * t[:, 0] + p[:, 1:2] * t[:, 1]
+        length = np.linalg.norm(raw, axis=1)
+        return raw / length[:, None], length
+
+    def lights(self, x: np.ndarray) -> Lights:
+        d, _ = self._directions(x)
+        return Lights.distant(d, np.exp(x.reshape(-1, 3)[:, 2]))
+
+    def project(self, x: np.ndarray) -> None:
+        """Nothing to keep in bounds."""
+
+    def _ddir(self, d: np.ndarray, length: np.ndarray) -> np.ndarray:
+        """d(direction)/d(offsets) (N, 2, 3)."""
+        t = self.param.tangents
+        along = np.einsum("nc,nic->ni", d, t)[..., None] * d[:, None, :]
+        out: np.ndarray = (t - along) / length[:, None, None]
+        return out
+
+    def irradiance(
+        self, x: np.ndarray, points: np.ndarray, normals: np.ndarray, *, jac: bool
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        d, length = self._directions(x)
+        e = np.exp(x.reshape(-1, 3)[:, 2])
+        cos = normals @ d.T  # (P, N)
+        E = np.where(cos > 0, e[None, :] * cos, 0.0)
+        if not jac:
+            return E, None
+        G = np.empty((*E.shape, 3))
+        dd = self._ddir(d, length)
+        lit = (cos > 0)[..., None]
+        G[..., :2] = np.where(lit, e[None, :, None] * np.einsum("pc,nic->pni", normals, dd), 0.0)
+        G[..., 2] = E
+        return E, G
+
+    def lobe(
+        self, x: np.ndarray, points: np.ndarray, normals: np.ndarray, exponent: float, *, jac: bool
+    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+        d, length = self._directions(x)
+        e = np.exp(x.reshape(-1, 3)[:, 2])
+        view = -points / np.linalg.norm(points, axis=1, keepdims=True)
+        half = d[None, :, :] + view[:, None, :]  # (P, N, 3)
+        half_len = np.linalg.norm(half, axis=-1)
+        h = half / half_len[..., None]
+        c = np.einsum("pnc,pc->pn", h, normals)
+        lit = (normals @ d.T > 0) & (c > 0)
+        log_c = np.log(np.where(lit, c, 1.0))
+        S = np.where(lit, e[None, :] * np.exp(exponent * log_c), 0.0)
+        if not jac:
+            return S, None, log_c
+        T = np.empty((*S.shape, 3))
+        # d log S / d d = e (I - h h^T) n / (|d + v| c)
+        w = (normals[:, None, :] - h * c[..., None]) / half_len[..., None]
+        dd = self._ddir(d, length)
+        T[..., :2] = exponent * np.einsum("pnc,nic->pni", w, dd) / np.where(lit, c, 1.0)[..., None]
+        T[..., 2] = 1.0
+        T *= S[..., None]
+        return S, T, log_c
+
+
+_Model = _PointModel | _DistantModel
 
 
 # =========================================================================== fit
@@ -319,10 +442,38 @@ def joint_fit(
     -------
     JointFit
     """
-    problem = _Problem(start, data, lobe is not None)
-    x = problem.param.vector(start)
-    x[5::_N_PARAMS] = np.maximum(x[5::_N_PARAMS], 0.0)
+    problem = _Problem(_PointModel(start), data, lobe is not None)
     basis = _step_basis(start.n, fixed_mu, rays, free_origin)
+    return _solve(problem, start, data, basis, lobe, max_iter, rays, free_origin)
+
+
+def joint_fit_distant(
+    start: Lights, data: Samples, *, lobe: tuple[float, float], max_iter: int = 100
+) -> JointFit:
+    """All distant lights at once with the coating's lobe: :func:`joint_fit` for lights given by their
+    directions (3 parameters a light, :class:`_DistantModel`) and the lobe's amplitude and exponent,
+    from ``start`` and ``lobe`` (exponent, amplitude).
+
+    ``JointFit.position_std_mm`` and ``mu_std`` are NaN (distant lights have neither).
+    """
+    problem = _Problem(_DistantModel(start), data, True)
+    basis = np.eye(problem.n_light)
+    return _solve(problem, start, data, basis, lobe, max_iter, None, False)
+
+
+def _solve(
+    problem: _Problem,
+    start: Lights,
+    data: Samples,
+    basis: np.ndarray,
+    lobe: tuple[float, float] | None,
+    max_iter: int,
+    rays: np.ndarray | None,
+    free_origin: bool,
+) -> JointFit:
+    """Levenberg-Marquardt of ``problem`` from ``start`` (and ``lobe``) in the span of ``basis``, and the
+    fit's standard errors: the shared part of :func:`joint_fit` and :func:`joint_fit_distant`."""
+    x = problem.model.vector(start)
     if lobe is not None:  # the amplitude and the log exponent, after the lights
         x = np.append(x, [float(lobe[1]), np.log(float(lobe[0]))])
         basis = np.block(
@@ -341,14 +492,16 @@ def joint_fit(
         reduced = _diagonal_of_inverse(basis.T @ A @ basis)
         with np.errstate(invalid="ignore"):  # inf * 0 off a column's rows: masked out
             diag = np.where(basis != 0, basis**2 * reduced, 0.0).sum(axis=1)
-    var = (s2 * diag[: problem.n_light]).reshape(N, _N_PARAMS)
+    var = (s2 * diag[: problem.n_light]).reshape(N, problem.model.n_params)
+    point = isinstance(problem.model, _PointModel)
+    nan = np.full(N, np.nan)
     return JointFit(
         lights=problem.lights(x),
         residuals=r,
         rms=float(np.sqrt(np.mean(r * r)) / np.mean(data.intensity)),
-        position_std_mm=np.sqrt(var[:, :3].sum(axis=1)),
-        intensity_std=np.sqrt(var[:, 6]),
-        mu_std=np.sqrt(var[:, 5]),
+        position_std_mm=np.sqrt(var[:, :3].sum(axis=1)) if point else nan,
+        intensity_std=np.sqrt(var[:, problem.model.log_intensity]),
+        mu_std=np.sqrt(var[:, 5]) if point else nan,
         njev=njev,
         success=success and bool(np.all(np.isfinite(x))),
         message=message,
@@ -398,28 +551,33 @@ class _Problem:
     the Jacobian too.
     """
 
-    def __init__(self, start: Lights, data: Samples, lobe: bool = False) -> None:
+    def __init__(self, model: _Model, data: Samples, lobe: bool = False) -> None:
         self.I, self.X, self.nrm = data.intensity, data.points, data.normals
         self.P, self.N = self.I.shape
         self.lobe = lobe
-        self.n_light = self.N * _N_PARAMS
+        self.model = model
+        self.k = model.n_params
+        self.n_light = self.N * self.k
         self.n_par = self.n_light + (2 if lobe else 0)
-        self.param = _Param.around(start.axes)
         self.gauge_row = np.zeros(self.n_par)
-        self.gauge_row[6 : self.n_light : _N_PARAMS] = 1.0 / self.N
+        self.gauge_row[model.log_intensity : self.n_light : self.k] = 1.0 / self.N
         self.gauge_weight = float(np.sqrt(self.P) * np.mean(self.I))
 
     def lights(self, x: np.ndarray) -> Lights:
-        """The point lights of a parameter vector (without the lobe's amplitude)."""
-        return self.param.lights(x[: self.n_light])
+        """The lights of a parameter vector (without the lobe's amplitude)."""
+        return self.model.lights(x[: self.n_light])
+
+    def project(self, x: np.ndarray) -> None:
+        """The lights' parameters back in bounds (in place)."""
+        self.model.project(x[: self.n_light])
 
     def cost(self, x: np.ndarray) -> tuple[float, np.ndarray]:
         """The cost (data and gauge residuals squared) and the data residuals (P, N) at ``x``."""
         xl = x[: self.n_light]
-        E, _ = _irradiance(xl, self.param, self.X, self.nrm, jac=False)
+        E, _ = self.model.irradiance(xl, self.X, self.nrm, jac=False)
         data = self.I
         if self.lobe:
-            S, _, _ = _lobe(xl, self.param, self.X, self.nrm, float(np.exp(x[-1])), jac=False)
+            S, _, _ = self.model.lobe(xl, self.X, self.nrm, float(np.exp(x[-1])), jac=False)
             data = data - x[-2] * S
         _, _, r = albedo_projected(data, E)
         gauge = self.gauge_weight * (self.gauge_row @ x)
@@ -439,11 +597,13 @@ class _Problem:
         """
         I, P, N, n_light = self.I, self.P, self.N, self.n_light
         xl = x[:n_light]
-        E, G = _irradiance(xl, self.param, self.X, self.nrm, jac=True)
+        k = self.k
+        E, G = self.model.irradiance(xl, self.X, self.nrm, jac=True)
+        assert G is not None
         data, S, T, s, e, log_c = I, None, None, 0.0, 0.0, None
         if self.lobe:
             e = float(np.exp(x[-1]))
-            S, T, log_c = _lobe(xl, self.param, self.X, self.nrm, e, jac=True)
+            S, T, log_c = self.model.lobe(xl, self.X, self.nrm, e, jac=True)
             s = float(x[-2])
             data = I - s * S
         rho, SE, r = albedo_projected(data, E)
@@ -456,21 +616,21 @@ class _Problem:
             Q3 += s * T
         H = H3.reshape(P, n_light)
         Q = Q3.reshape(P, n_light)
-        cross = H.T @ (np.repeat(E, _N_PARAMS, axis=1) * Q)
+        cross = H.T @ (np.repeat(E, k, axis=1) * Q)
         A = np.zeros((self.n_par, self.n_par))
         g = np.zeros(self.n_par)
         A[:n_light, :n_light] = H.T @ (SE[:, None] * H) + cross + cross.T
         for j in range(N):
-            sl = slice(j * _N_PARAMS, (j + 1) * _N_PARAMS)
+            sl = slice(j * k, (j + 1) * k)
             A[sl, sl] += Q[:, sl].T @ Q[:, sl]
-        g[:n_light] = -np.einsum("pj,pj->j", Q, np.repeat(r, _N_PARAMS, axis=1))
+        g[:n_light] = -np.einsum("pj,pj->j", Q, np.repeat(r, k, axis=1))
         if S is not None and log_c is not None:
             # the amplitude's and the log exponent's columns: -dD/d(.) projected off E_p
             cols = []
             for dD in (S, s * e * S * log_c):
                 cols.append(-(dD - E * (np.einsum("pn,pn->p", dD, E) * inv_se)[:, None]))
             for i, Jc in enumerate(cols):
-                col = -np.einsum("pj,pj->j", Q, np.repeat(Jc, _N_PARAMS, axis=1))
+                col = -np.einsum("pj,pj->j", Q, np.repeat(Jc, k, axis=1))
                 A[:n_light, n_light + i] = col
                 A[n_light + i, :n_light] = col
                 g[n_light + i] = float(np.sum(Jc * r))
@@ -504,7 +664,7 @@ def _levenberg_marquardt(
                 lam *= 10.0
                 continue
             trial = x + step
-            trial[5::_N_PARAMS] = np.maximum(trial[5::_N_PARAMS], 0.0)
+            problem.project(trial)
             new_cost, new_r = problem.cost(trial)
             if np.isfinite(new_cost) and new_cost < cost:
                 improved = True

@@ -213,17 +213,26 @@ def _led_ring(rng, centre, n=12):
     )
 
 
-def test_the_normal_equations_with_a_lobe_match_finite_differences():
+@pytest.mark.parametrize("kind", ["point", "distant"])
+def test_the_normal_equations_with_a_lobe_match_finite_differences(kind):
     """The analytic Jacobian of the variable-projection residuals with the lobe's amplitude and
-    exponent (and the lights' dependence of the lobe) against central differences."""
+    exponent (and the lights' dependence of the lobe) against central differences, for point lights
+    and for distant ones."""
     rng = np.random.default_rng(0)
     centre = np.array([0.0, 0.0, 3000.0])
     truth = _led_ring(rng, centre, n=5)
+    if kind == "distant":
+        truth = Lights.distant(truth.directions_at(centre), truth.intensity)
     data = _glossy_samples(rng, truth, centre, 0.4, 30.0, n=60)
-    problem = light_fit._Problem(truth, data, lobe=True)
-    x = np.append(problem.param.vector(truth), [0.3, np.log(20.0)])
-    x[3 : problem.n_light : 7] += 0.01  # off the given axes and the truth
-    x[0 : problem.n_light : 7] += 40.0
+    model = light_fit._PointModel(truth) if kind == "point" else light_fit._DistantModel(truth)
+    problem = light_fit._Problem(model, data, lobe=True)
+    x = np.append(problem.model.vector(truth), [0.3, np.log(20.0)])
+    if kind == "point":
+        x[3 : problem.n_light : 7] += 0.01  # off the given axes and the truth
+        x[0 : problem.n_light : 7] += 40.0
+    else:
+        x[0 : problem.n_light : 3] += 0.01  # off the given directions
+        x[1 : problem.n_light : 3] -= 0.02
     A, g = problem.normal_equations(x)
 
     def residuals(v):
@@ -240,6 +249,32 @@ def test_the_normal_equations_with_a_lobe_match_finite_differences():
     g_num = J.T @ residuals(x) + w2 * (problem.gauge_row @ x) * problem.gauge_row
     assert np.abs(A - A_num).max() < 1e-7 * np.abs(A_num).max()
     assert np.abs(g - g_num).max() < 1e-7 * np.abs(g_num).max()
+
+
+def test_distant_lights_over_a_glossy_plate_are_found_with_the_lobe():
+    """Distant lights written a degree off over a glossy cylinder: fitted as if Lambertian the glare
+    biases their directions; fitted jointly with the lobe (from a rough one), the directions, the
+    intensities' ratios and the lobe come out."""
+    rng = np.random.default_rng(5)
+    centre = np.array([0.0, 0.0, 3000.0])
+    ring = _led_ring(rng, centre, n=12)
+    truth = Lights.distant(ring.directions_at(centre), ring.intensity)
+    data = _glossy_samples(rng, truth, centre, 0.5, 30.0, n=1500)
+    turn = np.radians(1.0)
+    off = np.empty_like(truth.directions)
+    for k, d in enumerate(truth.directions):
+        across = np.cross(d, rng.normal(size=3))
+        off[k] = np.cos(turn) * d + np.sin(turn) * across / np.linalg.norm(across)
+    start = Lights.distant(off, np.full(12, 10.0))
+    fit = light_fit.joint_fit_distant(start, data, lobe=(15.0, 0.2))
+    assert fit.success
+    cos = np.einsum("nc,nc->n", fit.lights.directions, truth.directions)
+    assert np.degrees(np.arccos(np.clip(cos, -1, 1))).max() < 0.02
+    ratio = fit.lights.intensity / truth.intensity
+    assert np.allclose(ratio / ratio.mean(), 1.0, atol=1e-3)
+    assert fit.lobe_exponent == pytest.approx(30.0, rel=0.01)
+    assert fit.lobe_amplitude * ratio.mean() == pytest.approx(0.5, rel=0.01)
+    assert np.all(np.isnan(fit.position_std_mm)) and np.all(np.isfinite(fit.intensity_std))
 
 
 def test_leds_over_a_glossy_plate_are_found_with_the_lobe_and_the_rays_origin():
