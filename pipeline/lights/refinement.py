@@ -117,6 +117,65 @@ class LightRefinement:
     lobe: glare.Lobe | None = None
 
 
+def _plate_pose(data: light_fit.Samples) -> light_fit.PlatePose:
+    """The plate's pose the point lights are fitted against: its mean normal, and its centre on its
+    surface, the sample nearest the samples' centroid across the view (the centroid itself lies off a
+    bent plate, behind its middle)."""
+    mean = data.points.mean(axis=0)
+    across = data.points[:, :2] / data.points[:, 2:] - mean[:2] / mean[2]
+    centre = data.points[int(np.argmin(np.einsum("pc,pc->p", across, across)))]
+    normal = data.normals.mean(axis=0)
+    normal /= np.linalg.norm(normal)
+    return light_fit.PlatePose(normal, centre, 0.0, 0)
+
+
+def _distant_with_lobe(
+    data: light_fit.Samples,
+    glossy: _GlossySamples,
+    distant: Lights,
+    rms_distant: float,
+    *,
+    near: bool,
+) -> tuple[Lights, float, glare.Lobe | None]:
+    """The distant lights refitted with the coating's lobe where it shows, with their residual and lobe.
+
+    A glossy coating under distant lights: refitted as if Lambertian, the glare turned them 15-21 deg
+    off on the glossy 18-light cell written 1 deg off; so the lobe is tested under them and fitted
+    with them. Not where the Lambertian point lights already explain the samples far better
+    (``near``): there the distant model's misfit (light falling off across the plate) reads as a
+    lobe (F 25 on the matte 12-LED nominal cell, 0.9 under its point lights).
+    """
+    tested = None if near else glossy.lobe_under(distant)
+    if tested is not None:
+        fitted = _fit_distant_with_lobe(tested[0], distant, tested[1])
+        if fitted is not None:
+            distant, lobe = fitted
+            return distant, _rms(data, distant, lobe), lobe
+    return distant, rms_distant, None
+
+
+def _points_with_lobe(
+    data: light_fit.Samples,
+    glossy: _GlossySamples,
+    point: Lights,
+    rms_point: float,
+    pose: light_fit.PlatePose,
+    rays: np.ndarray,
+) -> tuple[Lights, float, glare.Lobe | None]:
+    """The point lights refitted with the coating's lobe where it shows, with their residual (on the
+    blocks the other models are scored on) and lobe: the lobe is tested under the fitted lights on
+    pixels of the smooth surface, as for given point lights (a matte plate stops at the pretest, F
+    about 1)."""
+    tested = glossy.lobe_under(point)
+    if tested is not None:
+        fine, measured = tested
+        fitted = _fit_points_with_lobe(fine, point, pose, rays, measured)
+        if fitted is not None:
+            point, _, lobe = fitted
+            return point, _rms(data, point, lobe), lobe
+    return point, rms_point, None
+
+
 def refine_lights(
     images: np.ndarray,
     valid: np.ndarray | None,
@@ -159,45 +218,23 @@ def refine_lights(
     data = _samples(images, valid, mask, lights, depth_mm, K, max_samples=max_samples, seed=seed)
     if data is None:
         return None
-    # the plate's centre on its surface: the sample nearest the samples' centroid across the view
-    # (the centroid itself lies off a bent plate, behind its middle)
-    mean = data.points.mean(axis=0)
-    across = data.points[:, :2] / data.points[:, 2:] - mean[:2] / mean[2]
-    centre = data.points[int(np.argmin(np.einsum("pc,pc->p", across, across)))]
-    normal = data.normals.mean(axis=0)
-    normal /= np.linalg.norm(normal)
+    pose = _plate_pose(data)
+    centre = pose.centre_mm
     with threadpool_limits(limits=1, user_api="blas"):
         rms_given = _rms(data, lights)
         glossy = _GlossySamples(images, valid, mask, lights, depth_mm, K, max_samples, seed)
         distant = _refine_distant(data, lights)
         rms_distant = _rms(data, distant)
-        pose = light_fit.PlatePose(normal, centre, 0.0, 0)
         point, rms_point = _fit_points(data, lights, pose)
-        distant_lobe = None
-        # a glossy coating under distant lights: refitted as if Lambertian, the glare turned them
-        # 15-21 deg off on the glossy 18-light cell written 1 deg off; so the lobe is tested under
-        # them and fitted with them. Not where the Lambertian point lights already explain the
-        # samples far better: there the distant model's misfit (light falling off across the
-        # plate) reads as a lobe (F 25 on the matte 12-LED nominal cell, 0.9 under its point lights)
         near = point is not None and rms_point < POINT_MODEL_GAIN * rms_distant
-        tested = None if near else glossy.lobe_under(distant)
-        if tested is not None:
-            fitted_distant = _fit_distant_with_lobe(tested[0], distant, tested[1])
-            if fitted_distant is not None:
-                distant, distant_lobe = fitted_distant
-                rms_distant = _rms(data, distant, distant_lobe)
+        distant, rms_distant, distant_lobe = _distant_with_lobe(
+            data, glossy, distant, rms_distant, near=near
+        )
         lobe = None
         if point is not None:
-            # a glossy coating: the lobe under the fitted lights, tested on pixels of the smooth
-            # surface as for given point lights (a matte plate stops at the pretest, F about 1)
-            tested = glossy.lobe_under(point)
-            if tested is not None:
-                fine, measured = tested
-                fitted = _fit_points_with_lobe(fine, point, pose, _rays(lights, pose), measured)
-                if fitted is not None:
-                    point, _, lobe = fitted
-                    # on the blocks the other models are scored on
-                    rms_point = _rms(data, point, lobe)
+            point, rms_point, lobe = _points_with_lobe(
+                data, glossy, point, rms_point, pose, _rays(lights, pose)
+            )
     chosen: Lights
     n_blocks = len(data.intensity)
     # the glossy fit ends free in 3-D: 7 parameters a light, and the lobe's 2
