@@ -41,6 +41,18 @@ CASES = (
         "near-field, nominal directions 1 deg off",
         dict(NEAR, manifest_lights="nominal", light_error_deg=1.0),
     ),
+    (
+        "glare, 18 LEDs, nominal 1 deg off",
+        dict(NEAR, n_lights=18, specular=0.5, manifest_lights="nominal", light_error_deg=1.0),
+    ),
+    (
+        "glare, 18 distant lights, written 1 deg off",
+        dict(n_lights=18, specular=0.5, light_error_deg=1.0),
+    ),
+    (
+        "glare (broad lobe), 18 LEDs, positions",
+        dict(NEAR, n_lights=18, specular=0.5, shininess=15.0),
+    ),
 )
 
 _BEFORE = """

@@ -241,12 +241,16 @@ class View:
         Measured points, mm, left camera frame (NaN off the plate).
     rays : (H, W, 3) float64
         The left camera's pixel rays ``K^-1 (u, v, 1)`` (undistorted grid).
+    raw_noise : ((N,) float64, float or None)
+        The sensor noise of the photometric images and of the dark frame, raw counts
+        (:func:`pipeline.preprocess.raw_noise_counts`; measured beside the normals).
     """
 
     surface: reconstruct.Surface
     plate: Plate
     points: np.ndarray
     rays: np.ndarray
+    raw_noise: tuple[np.ndarray, float | None]
 
 
 def reconstruct_view(
@@ -269,6 +273,7 @@ def reconstruct_view(
     rays_job = pool.submit(
         cap.rig.left.pixel_rays
     )  # (H, W, 3) float64, for the surface and the areas
+    noise_job = pool.submit(raw_noise_counts, cap)  # for the uncertainty, needs the raw frames only
     field = None
     clock.begin("normals")
     if not cap.lights.any_point:
@@ -296,7 +301,10 @@ def reconstruct_view(
     rays = rays_job.result()
     points = surface.depth_mm[..., None] * rays
     clock.end("depth")
-    return View(surface=surface, plate=plate, points=points, rays=rays), writes
+    view = View(
+        surface=surface, plate=plate, points=points, rays=rays, raw_noise=noise_job.result()
+    )
+    return view, writes
 
 
 def measure(
@@ -314,8 +322,8 @@ def measure(
     )
     pre, surface, points = scene.pre, view.surface, view.points
 
-    def qualify(judged: np.ndarray, pose: registration.Registration) -> uncertainty.Uncertainty:
-        return _qualify(cap, pre, surface, points, judged, pose)
+    def qualify(judged: np.ndarray) -> uncertainty.PointUncertainty:
+        return uncertainty.propagate_points(uncertainty_inputs(cap, pre, view, judged))
 
     K = cap.rig.left.K
     return _judge(points, view.rays, surface, view.plate, tgt, K, out, pool, writes, clock, qualify)
@@ -463,12 +471,13 @@ def _judge(
     pool: ThreadPoolExecutor,
     writes: list[Future[Any]],
     clock: StageClock,
-    qualify: Callable[[np.ndarray, registration.Registration], uncertainty.Uncertainty],
+    qualify: Callable[[np.ndarray], uncertainty.PointUncertainty],
 ) -> Measurement:
-    """Stages *curvature*, *deviation* and *artifacts* (its files but details.json): curvature and the pixel
-    areas beside the registration, each artifact written beside the main line as soon as it is known.
-    ``writes``: the artifact writes under way (normals.png when the distant normals were written already);
-    ``qualify``: the measurement's uncertainty on the judged pixels after the registration."""
+    """Stages *curvature*, *deviation* and *artifacts* (its files but details.json): curvature, the pixel
+    areas and every point's uncertainty beside the registration, each artifact written beside the main
+    line as soon as it is known. ``writes``: the artifact writes under way (normals.png when the distant
+    normals were written already); ``qualify``: every point's uncertainty on the judged pixels (the
+    surface without its edge band: :func:`edge_band`)."""
     field, surface_mask = surface.field, surface.mask
     normals_written = bool(writes)
     clock.begin("curvature")
@@ -486,10 +495,19 @@ def _judge(
                 field.mask,
             )
         )
+    band = edge_band(surface_mask)
+    judged = surface_mask & ~band
+    points_job = pool.submit(qualify, judged)
     clock.begin("deviation")
     pose = registration.register_to_target(points, surface_mask, tgt)
-    dev, judged = _deviation(points, surface_mask, tgt, pose)
-    qualified = qualify(judged, pose)
+    # NaN in the edge band, left out by geometry so that every artifact agrees
+    dev = np.where(band, np.nan, deviation.deviation_map(points, surface_mask, tgt, pose))
+    radius = pose.fitted_radius_mm
+    qualified = uncertainty.with_radius(
+        points_job.result(),
+        radius_mm=None if radius is None else float(radius),
+        curved_direction=np.asarray(pose.T_cam_target)[:3, 0],
+    )
     writes += write_deviation(pool, out, points, surface_mask, dev, tgt.tolerance_mm)
     writes.append(
         pool.submit(
@@ -528,16 +546,6 @@ def _judge(
     )
 
 
-def _deviation(
-    points: np.ndarray, surface_mask: np.ndarray, tgt: Target, pose: registration.Registration
-) -> tuple[np.ndarray, np.ndarray]:
-    """The deviation map (NaN in the edge band, left out by geometry so that every artifact agrees) and
-    the judged pixels (the surface without its edge band)."""
-    dev = deviation.deviation_map(points, surface_mask, tgt, pose)
-    band = edge_band(surface_mask)
-    return np.where(band, np.nan, dev), surface_mask & ~band
-
-
 def edge_band(mask: np.ndarray, width_px: int = EDGE_BAND_PX) -> np.ndarray:
     """(H, W) bool: the mask's pixels within ``width_px`` of its outline or an opening; the image's frame
     is no edge (the plate goes on beyond it)."""
@@ -548,32 +556,11 @@ def edge_band(mask: np.ndarray, width_px: int = EDGE_BAND_PX) -> np.ndarray:
     return band
 
 
-def _qualify(
-    cap: Capture,
-    pre: Preprocessed,
-    surface: reconstruct.Surface,
-    points: np.ndarray,
-    judged: np.ndarray,
-    pose: registration.Registration,
-) -> uncertainty.Uncertainty:
-    """The measurement's expanded uncertainty (:mod:`pipeline.judge.uncertainty`) on the judged pixels."""
-    inputs = uncertainty_inputs(cap, pre, surface, points, judged)
-    radius = pose.fitted_radius_mm
-    return uncertainty.propagate(
-        inputs,
-        radius_mm=None if radius is None else float(radius),
-        curved_direction=np.asarray(pose.T_cam_target)[:3, 0],
-    )
-
-
 def uncertainty_inputs(
-    cap: Capture,
-    pre: Preprocessed,
-    surface: reconstruct.Surface,
-    points: np.ndarray,
-    judged: np.ndarray,
+    cap: Capture, pre: Preprocessed, view: View, judged: np.ndarray
 ) -> uncertainty.Inputs:
     """What :func:`pipeline.judge.uncertainty.propagate` needs of one view, ``judged``: the pixels to qualify."""
+    surface, points = view.surface, view.points
     images, lights = pre.images, cap.lights
     if surface.refinement is not None:  # the normals came from the refitted lights
         refined = surface.refinement.lights
@@ -582,7 +569,7 @@ def uncertainty_inputs(
     rig = cap.rig
     board = rig.board or {}
     corners = board.get("inner_corners")
-    own_noise, dark_noise = _raw_noise(cap, lights)
+    own_noise, dark_noise = _raw_noise(cap, lights, view.raw_noise)
     return uncertainty.Inputs(
         images=images,
         valid=pre.valid,
@@ -600,15 +587,18 @@ def uncertainty_inputs(
     )
 
 
-def _raw_noise(cap: Capture, lights: Lights) -> tuple[np.ndarray, np.ndarray | None]:
+def _raw_noise(
+    cap: Capture, lights: Lights, counts: tuple[np.ndarray, float | None]
+) -> tuple[np.ndarray, np.ndarray | None]:
     """The raw noise of each photometric image and of the dark frame (None without one), each in the
-    preprocessed images' units (raw counts / (intensity x full scale)).
+    preprocessed images' units (raw counts / (intensity x full scale)); ``counts`` in raw counts
+    (:attr:`View.raw_noise`).
 
     Measured on the raw frames, before undistortion interpolates (and smooths) them; a binned capture's
     before binning (``Capture.raw_noise``).
     """
     scale = np.asarray(lights.intensity, dtype=np.float64) * float(2**cap.bit_depth - 1)
-    own_counts, dark_counts = raw_noise_counts(cap)
+    own_counts, dark_counts = counts
     own: np.ndarray = own_counts / scale
     if dark_counts is None:
         return own, None

@@ -174,6 +174,200 @@ def _irradiance(
     return E, G
 
 
+def _lobe(
+    x: np.ndarray,
+    param: _Param,
+    points: np.ndarray,
+    normals: np.ndarray,
+    exponent: float,
+    *,
+    jac: bool,
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """The coating's lobe per unit amplitude, S (P, N), with ``jac`` dS/d(parameters of its light)
+    (P, N, 7), and ``log(n . h)`` (P, N) (0 where S is 0: dS/d exponent = S log(n . h)).
+
+    ``S_pk = e_k a_k(X_p) max(0, n_p . h_pk)^exponent`` where the light lights the sample (the same
+    ``lit`` as :func:`_irradiance`), ``h = normalize(l + v)`` the half vector between the light's
+    unit vector l and the unit vector v towards the camera (at the origin); the simulated cell's and
+    :mod:`pipeline.lights.glare`'s lobe.
+    """
+    p = x.reshape(-1, _N_PARAMS)
+    axes, length = param.axes(x)
+    mu = p[:, 5]
+    v = p[None, :, :3] - points[:, None, :]  # (P, N, 3) surface -> light
+    d2 = np.einsum("pnc,pnc->pn", v, v)
+    d = np.sqrt(d2)
+    cos = -np.einsum("pnc,nc->pn", v, axes) / d
+    facing = np.einsum("pnc,pc->pn", v, normals)
+    l = v / d[..., None]
+    view = -points / np.linalg.norm(points, axis=1, keepdims=True)
+    half = l + view[:, None, :]
+    half_len = np.linalg.norm(half, axis=-1)
+    h = half / half_len[..., None]
+    c = np.einsum("pnc,pc->pn", h, normals)
+    lit = (cos > 0) & (facing > 0) & (c > 0)
+    cos_c = np.where(lit, cos, 1.0)
+    c_c = np.where(lit, c, 1.0)
+    base = np.where(
+        lit,
+        np.exp(p[None, :, 6] + mu[None, :] * np.log(cos_c)) * REFERENCE_DISTANCE_MM**2 / d2,
+        0.0,
+    )
+    log_c = np.log(c_c)
+    S = base * np.exp(exponent * log_c)
+    if not jac:
+        return S, None, log_c
+    T = np.empty((*S.shape, _N_PARAMS))
+    inv_d2 = 1.0 / d2
+    # d log S / d P = -2 v / d^2 + mu (-a / (cos d) - v / d^2) + e (dc/dP) / c, with
+    # dc/dP = (I - l l^T) / d (I - h h^T) / |l + v| n
+    w = (normals[:, None, :] - h * c[..., None]) / half_len[..., None]
+    dc = (w - l * np.einsum("pnc,pnc->pn", l, w)[..., None]) / d[..., None]
+    T[..., :3] = (
+        -(2.0 + mu[None, :, None]) * v * inv_d2[..., None]
+        - (mu[None, :] / (cos_c * d))[..., None] * axes[None]
+        + exponent * dc / c_c[..., None]
+    )
+    g_axis = -(mu[None, :] / (d * cos_c))[..., None] * v
+    for i in range(2):
+        t = param.tangents[:, i]
+        da = (t - axes * np.einsum("nc,nc->n", axes, t)[:, None]) / length[:, None]
+        T[..., 3 + i] = np.einsum("pnc,nc->pn", g_axis, da)
+    T[..., 5] = np.log(cos_c)
+    T[..., 6] = 1.0
+    T *= S[..., None]
+    return S, T, log_c
+
+
+def lobe_of(lights: Lights, points: np.ndarray, normals: np.ndarray, exponent: float) -> np.ndarray:
+    """The lobe (P, N) per unit amplitude at samples of point lights (with axes, :func:`_lobe`) or
+    of distant lights (all of them, :class:`_DistantModel`)."""
+    if not lights.any_point:
+        model = _DistantModel(lights)
+        return model.lobe(model.vector(lights), points, normals, exponent, jac=False)[0]
+    param = _Param(axis0=lights.axes, tangents=np.zeros((lights.n, 2, 3)))
+    return _lobe(param.vector(lights), param, points, normals, exponent, jac=False)[0]
+
+
+class _PointModel:
+    """Point lights in :func:`joint_fit`: 7 parameters a light (:class:`_Param`)."""
+
+    n_params = _N_PARAMS
+    log_intensity = 6
+
+    def __init__(self, start: Lights) -> None:
+        self.param = _Param.around(start.axes)
+
+    def vector(self, lights: Lights) -> np.ndarray:
+        x = self.param.vector(lights)
+        x[5::_N_PARAMS] = np.maximum(x[5::_N_PARAMS], 0.0)
+        return x
+
+    def lights(self, x: np.ndarray) -> Lights:
+        return self.param.lights(x)
+
+    def project(self, x: np.ndarray) -> None:
+        """Keeps mu >= 0 (in place)."""
+        x[5::_N_PARAMS] = np.maximum(x[5::_N_PARAMS], 0.0)
+
+    def irradiance(
+        self, x: np.ndarray, points: np.ndarray, normals: np.ndarray, *, jac: bool
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        if jac:
+            return _irradiance(x, self.param, points, normals, jac=True)
+        return _irradiance(x, self.param, points, normals, jac=False)
+
+    def lobe(
+        self, x: np.ndarray, points: np.ndarray, normals: np.ndarray, exponent: float, *, jac: bool
+    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+        return _lobe(x, self.param, points, normals, exponent, jac=jac)
+
+
+class _DistantModel:
+    """Distant lights in :func:`joint_fit_distant`: 3 parameters a light, two offsets of its direction
+    across the start's (a tangent basis, as the point lights' axes) and its log intensity.
+
+    ``E_pk = e_k max(0, n_p . d_k)`` and the lobe per unit amplitude ``S_pk = e_k max(0, n_p . h_pk)^e``
+    where ``n_p . d_k > 0``, ``h = normalize(d_k + v_p)`` (v towards the camera at the origin): the
+    simulated cell's and :mod:`pipeline.lights.glare`'s lobe under distant lights.
+    """
+
+    n_params = 3
+    log_intensity = 2
+
+    def __init__(self, start: Lights) -> None:
+        self.param = _Param.around(start.directions)
+
+    def vector(self, lights: Lights) -> np.ndarray:
+        x = np.zeros((lights.n, 3))
+        x[:, 2] = np.log(lights.intensity)
+        return x.ravel()
+
+    def _directions(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        p = x.reshape(-1, 3)
+        t = self.param.tangents
+        raw = self.param.axis0 + p[:, 0:1] * t[:, 0] + p[:, 1:2] * t[:, 1]
+        length = np.linalg.norm(raw, axis=1)
+        return raw / length[:, None], length
+
+    def lights(self, x: np.ndarray) -> Lights:
+        d, _ = self._directions(x)
+        return Lights.distant(d, np.exp(x.reshape(-1, 3)[:, 2]))
+
+    def project(self, x: np.ndarray) -> None:
+        """Nothing to keep in bounds."""
+
+    def _ddir(self, d: np.ndarray, length: np.ndarray) -> np.ndarray:
+        """d(direction)/d(offsets) (N, 2, 3)."""
+        t = self.param.tangents
+        along = np.einsum("nc,nic->ni", d, t)[..., None] * d[:, None, :]
+        out: np.ndarray = (t - along) / length[:, None, None]
+        return out
+
+    def irradiance(
+        self, x: np.ndarray, points: np.ndarray, normals: np.ndarray, *, jac: bool
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        d, length = self._directions(x)
+        e = np.exp(x.reshape(-1, 3)[:, 2])
+        cos = normals @ d.T  # (P, N)
+        E = np.where(cos > 0, e[None, :] * cos, 0.0)
+        if not jac:
+            return E, None
+        G = np.empty((*E.shape, 3))
+        dd = self._ddir(d, length)
+        lit = (cos > 0)[..., None]
+        G[..., :2] = np.where(lit, e[None, :, None] * np.einsum("pc,nic->pni", normals, dd), 0.0)
+        G[..., 2] = E
+        return E, G
+
+    def lobe(
+        self, x: np.ndarray, points: np.ndarray, normals: np.ndarray, exponent: float, *, jac: bool
+    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+        d, length = self._directions(x)
+        e = np.exp(x.reshape(-1, 3)[:, 2])
+        view = -points / np.linalg.norm(points, axis=1, keepdims=True)
+        half = d[None, :, :] + view[:, None, :]  # (P, N, 3)
+        half_len = np.linalg.norm(half, axis=-1)
+        h = half / half_len[..., None]
+        c = np.einsum("pnc,pc->pn", h, normals)
+        lit = (normals @ d.T > 0) & (c > 0)
+        log_c = np.log(np.where(lit, c, 1.0))
+        S = np.where(lit, e[None, :] * np.exp(exponent * log_c), 0.0)
+        if not jac:
+            return S, None, log_c
+        T = np.empty((*S.shape, 3))
+        # d log S / d d = e (I - h h^T) n / (|d + v| c)
+        w = (normals[:, None, :] - h * c[..., None]) / half_len[..., None]
+        dd = self._ddir(d, length)
+        T[..., :2] = exponent * np.einsum("pnc,nic->pni", w, dd) / np.where(lit, c, 1.0)[..., None]
+        T[..., 2] = 1.0
+        T *= S[..., None]
+        return S, T, log_c
+
+
+_Model = _PointModel | _DistantModel
+
+
 # =========================================================================== fit
 
 
@@ -192,6 +386,8 @@ class JointFit:
     njev: int
     success: bool
     message: str
+    lobe_amplitude: float = float("nan")
+    lobe_exponent: float = float("nan")
 
 
 def albedo_projected(I: np.ndarray, E: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -208,6 +404,8 @@ def joint_fit(
     fixed_mu: bool = False,
     max_iter: int = 100,
     rays: np.ndarray | None = None,
+    free_origin: bool = False,
+    lobe: tuple[float, float] | None = None,
 ) -> JointFit:
     """All lights at once: Levenberg-Marquardt on the variable-projection residuals.
 
@@ -231,15 +429,56 @@ def joint_fit(
         Unit directions along which each light's position may move (NaN rows: free in 3-D): a light
         whose direction is known (a nominal direction from the plate's centre) keeps it, and the fit
         finds only its distance along it. Steps are taken in that subspace of the parameters.
+    free_origin : bool
+        With ``rays``: the rays' common origin (the point the directions were given from, the
+        plate's centre, which the images' own estimate of it misses by tens of mm) moves too, as one
+        shift of every light on a ray (3 parameters for all of them); the rays keep their directions.
+    lobe : (exponent, amplitude), optional
+        A glossy coating: the samples are modelled as ``rho_p E_pk + s S_pk`` with the lobe
+        ``S`` of :func:`_lobe` (this exponent) and one amplitude ``s`` for the plate, fitted with
+        the lights from the given start; ``JointFit.lobe_amplitude`` is the fitted ``s``.
 
     Returns
     -------
     JointFit
     """
-    problem = _Problem(start, data)
-    x = problem.param.vector(start)
-    x[5::_N_PARAMS] = np.maximum(x[5::_N_PARAMS], 0.0)
-    basis = _step_basis(start.n, fixed_mu, rays)
+    problem = _Problem(_PointModel(start), data, lobe is not None)
+    basis = _step_basis(start.n, fixed_mu, rays, free_origin)
+    return _solve(problem, start, data, basis, lobe, max_iter, rays, free_origin)
+
+
+def joint_fit_distant(
+    start: Lights, data: Samples, *, lobe: tuple[float, float], max_iter: int = 100
+) -> JointFit:
+    """All distant lights at once with the coating's lobe: :func:`joint_fit` for lights given by their
+    directions (3 parameters a light, :class:`_DistantModel`) and the lobe's amplitude and exponent,
+    from ``start`` and ``lobe`` (exponent, amplitude).
+
+    ``JointFit.position_std_mm`` and ``mu_std`` are NaN (distant lights have neither).
+    """
+    problem = _Problem(_DistantModel(start), data, True)
+    basis = np.eye(problem.n_light)
+    return _solve(problem, start, data, basis, lobe, max_iter, None, False)
+
+
+def _solve(
+    problem: _Problem,
+    start: Lights,
+    data: Samples,
+    basis: np.ndarray,
+    lobe: tuple[float, float] | None,
+    max_iter: int,
+    rays: np.ndarray | None,
+    free_origin: bool,
+) -> JointFit:
+    """Levenberg-Marquardt of ``problem`` from ``start`` (and ``lobe``) in the span of ``basis``, and the
+    fit's standard errors: the shared part of :func:`joint_fit` and :func:`joint_fit_distant`."""
+    x = problem.model.vector(start)
+    if lobe is not None:  # the amplitude and the log exponent, after the lights
+        x = np.append(x, [float(lobe[1]), np.log(float(lobe[0]))])
+        basis = np.block(
+            [[basis, np.zeros((len(basis), 2))], [np.zeros((2, basis.shape[1])), np.eye(2)]]
+        )
     x, r, njev, success, message = _levenberg_marquardt(problem, x, basis, max_iter)
     A, _ = problem.normal_equations(x)
     njev += 1
@@ -247,27 +486,36 @@ def joint_fit(
     s2 = float(np.sum(r * r)) / max(P * N - P - (problem.n_par - 1), 1)
     if rays is None:
         diag = _diagonal_of_inverse(A)
+    elif free_origin:  # the columns overlap: the covariance in the subspace, mapped back
+        diag = _diagonal_in_subspace(A, basis)
     else:  # in the subspace the lights moved in, mapped back (NaN-free where a variance is inf)
         reduced = _diagonal_of_inverse(basis.T @ A @ basis)
         with np.errstate(invalid="ignore"):  # inf * 0 off a column's rows: masked out
             diag = np.where(basis != 0, basis**2 * reduced, 0.0).sum(axis=1)
-    var = (s2 * diag).reshape(N, _N_PARAMS)
+    var = (s2 * diag[: problem.n_light]).reshape(N, problem.model.n_params)
+    point = isinstance(problem.model, _PointModel)
+    nan = np.full(N, np.nan)
     return JointFit(
-        lights=problem.param.lights(x),
+        lights=problem.lights(x),
         residuals=r,
         rms=float(np.sqrt(np.mean(r * r)) / np.mean(data.intensity)),
-        position_std_mm=np.sqrt(var[:, :3].sum(axis=1)),
-        intensity_std=np.sqrt(var[:, 6]),
-        mu_std=np.sqrt(var[:, 5]),
+        position_std_mm=np.sqrt(var[:, :3].sum(axis=1)) if point else nan,
+        intensity_std=np.sqrt(var[:, problem.model.log_intensity]),
+        mu_std=np.sqrt(var[:, 5]) if point else nan,
         njev=njev,
         success=success and bool(np.all(np.isfinite(x))),
         message=message,
+        lobe_amplitude=float("nan") if lobe is None else float(x[-2]),
+        lobe_exponent=float("nan") if lobe is None else float(np.exp(x[-1])),
     )
 
 
-def _step_basis(n: int, fixed_mu: bool, rays: np.ndarray | None) -> np.ndarray:
+def _step_basis(
+    n: int, fixed_mu: bool, rays: np.ndarray | None, free_origin: bool = False
+) -> np.ndarray:
     """The columns (7 N, m) that span the fit's steps: every parameter, less each held ``mu``, with a
-    light's three position columns replaced by its ray where ``rays`` gives one."""
+    light's three position columns replaced by its ray where ``rays`` gives one; with
+    ``free_origin``, three more that shift every light on a ray alike (orthonormalised)."""
     columns = []
     for k in range(n):
         for j in range(_N_PARAMS):
@@ -284,52 +532,110 @@ def _step_basis(n: int, fixed_mu: bool, rays: np.ndarray | None) -> np.ndarray:
             col = np.zeros(n * _N_PARAMS)
             col[k * _N_PARAMS + j] = 1.0
             columns.append(col)
-    return np.stack(columns, axis=1)
+    basis = np.stack(columns, axis=1)
+    ray_lights = [] if rays is None else [k for k in range(n) if np.all(np.isfinite(rays[k]))]
+    if not (free_origin and ray_lights):
+        return basis
+    shift = np.zeros((n * _N_PARAMS, 3))
+    for k in ray_lights:
+        shift[k * _N_PARAMS : k * _N_PARAMS + 3] = np.eye(3)
+    q, _ = np.linalg.qr(np.concatenate([basis, shift], axis=1))
+    return q
 
 
 class _Problem:
-    """The variable-projection least squares of :func:`joint_fit`: its cost and its normal equations."""
+    """The variable-projection least squares of :func:`joint_fit`: its cost and its normal equations.
 
-    def __init__(self, start: Lights, data: Samples) -> None:
+    With a lobe (``lobe=True``), the parameter vector ends with its amplitude s and the log of its
+    exponent, and the data are ``I - s S`` (:func:`_lobe`), whose dependence on the lights enters
+    the Jacobian too.
+    """
+
+    def __init__(self, model: _Model, data: Samples, lobe: bool = False) -> None:
         self.I, self.X, self.nrm = data.intensity, data.points, data.normals
         self.P, self.N = self.I.shape
-        self.n_par = self.N * _N_PARAMS
-        self.param = _Param.around(start.axes)
+        self.lobe = lobe
+        self.model = model
+        self.k = model.n_params
+        self.n_light = self.N * self.k
+        self.n_par = self.n_light + (2 if lobe else 0)
         self.gauge_row = np.zeros(self.n_par)
-        self.gauge_row[6::_N_PARAMS] = 1.0 / self.N
+        self.gauge_row[model.log_intensity : self.n_light : self.k] = 1.0 / self.N
         self.gauge_weight = float(np.sqrt(self.P) * np.mean(self.I))
+
+    def lights(self, x: np.ndarray) -> Lights:
+        """The lights of a parameter vector (without the lobe's amplitude)."""
+        return self.model.lights(x[: self.n_light])
+
+    def project(self, x: np.ndarray) -> None:
+        """The lights' parameters back in bounds (in place)."""
+        self.model.project(x[: self.n_light])
 
     def cost(self, x: np.ndarray) -> tuple[float, np.ndarray]:
         """The cost (data and gauge residuals squared) and the data residuals (P, N) at ``x``."""
-        E, _ = _irradiance(x, self.param, self.X, self.nrm, jac=False)
-        _, _, r = albedo_projected(self.I, E)
+        xl = x[: self.n_light]
+        E, _ = self.model.irradiance(xl, self.X, self.nrm, jac=False)
+        data = self.I
+        if self.lobe:
+            S, _, _ = self.model.lobe(xl, self.X, self.nrm, float(np.exp(x[-1])), jac=False)
+            data = data - x[-2] * S
+        _, _, r = albedo_projected(data, E)
         gauge = self.gauge_weight * (self.gauge_row @ x)
         return float(np.sum(r * r) + gauge * gauge), r
 
     def normal_equations(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """J^T J (n_par, n_par) and J^T r (n_par,) of the data and the gauge residual.
 
-        With the albedo eliminated, ``r_pk = I_pk - rho_p E_pk`` and ``rho_p = (I_p . E_p) / S_p``
-        (``S_p = |E_p|^2``), the Jacobian is ``J[p, k, j] = -E_pk h_pj - [k == j] rho_p G_pj``
-        with ``G_pj = dE_pj / d(light j's parameters)`` and ``h_pj = G_pj (I_pj - 2 rho_p E_pj) / S_p``
-        (Golub and Pereyra's, exact for one linear parameter per sample). Its products are summed
-        in closed form instead of forming the (P N) x 7 N matrix; ``E_p . r_p = 0`` leaves
-        ``J^T r = -sum_p rho_p G_pj r_pj``.
+        With the albedo eliminated, ``r_pk = D_pk - rho_p E_pk`` (data ``D = I``, or ``I - s S``
+        with a lobe) and ``rho_p = (D_p . E_p) / S_p`` (``S_p = |E_p|^2``), the Jacobian is
+        ``J[p, k, j] = -E_pk h_pj - [k == j] q_pj`` with ``G_pj = dE_pj / d(light j's parameters)``,
+        ``h_pj = G_pj (D_pj - 2 rho_p E_pj) / S_p`` and ``q_pj = rho_p G_pj`` (Golub and Pereyra's,
+        exact for one linear parameter per sample); a lobe adds ``-s E_pj T_pj / S_p`` to h and
+        ``s T_pj`` to q (``T = dS/d(parameters)``), and the amplitude's column is ``-S`` projected
+        off ``E_p``. Its products are summed in closed form instead of forming the (P N) x 7 N
+        matrix; ``E_p . r_p = 0`` leaves ``J^T r = -sum_p q_pj r_pj``.
         """
-        I, P, N, n_par = self.I, self.P, self.N, self.n_par
-        E, G = _irradiance(x, self.param, self.X, self.nrm, jac=True)
-        rho, S, r = albedo_projected(I, E)
-        coef = (I - 2.0 * rho[:, None] * E) / np.maximum(S, 1e-300)[:, None]
-        H = (coef[:, :, None] * G).reshape(P, n_par)
-        F = (E[:, :, None] * G).reshape(P, n_par)
-        Gf = G.reshape(P, n_par)
-        cross = H.T @ (rho[:, None] * F)
-        A = H.T @ (S[:, None] * H) + cross + cross.T
-        rg = rho[:, None] * Gf
+        I, P, N, n_light = self.I, self.P, self.N, self.n_light
+        xl = x[:n_light]
+        k = self.k
+        E, G = self.model.irradiance(xl, self.X, self.nrm, jac=True)
+        assert G is not None
+        data, S, T, s, e, log_c = I, None, None, 0.0, 0.0, None
+        if self.lobe:
+            e = float(np.exp(x[-1]))
+            S, T, log_c = self.model.lobe(xl, self.X, self.nrm, e, jac=True)
+            s = float(x[-2])
+            data = I - s * S
+        rho, SE, r = albedo_projected(data, E)
+        inv_se = 1.0 / np.maximum(SE, 1e-300)
+        coef = (data - 2.0 * rho[:, None] * E) * inv_se[:, None]
+        H3 = coef[:, :, None] * G
+        Q3 = rho[:, None, None] * G
+        if T is not None:
+            H3 -= s * (E * inv_se[:, None])[:, :, None] * T
+            Q3 += s * T
+        H = H3.reshape(P, n_light)
+        Q = Q3.reshape(P, n_light)
+        cross = H.T @ (np.repeat(E, k, axis=1) * Q)
+        A = np.zeros((self.n_par, self.n_par))
+        g = np.zeros(self.n_par)
+        A[:n_light, :n_light] = H.T @ (SE[:, None] * H) + cross + cross.T
         for j in range(N):
-            sl = slice(j * _N_PARAMS, (j + 1) * _N_PARAMS)
-            A[sl, sl] += rg[:, sl].T @ rg[:, sl]
-        g = -np.einsum("pj,pj->j", rg, np.repeat(r, _N_PARAMS, axis=1))
+            sl = slice(j * k, (j + 1) * k)
+            A[sl, sl] += Q[:, sl].T @ Q[:, sl]
+        g[:n_light] = -np.einsum("pj,pj->j", Q, np.repeat(r, k, axis=1))
+        if S is not None and log_c is not None:
+            # the amplitude's and the log exponent's columns: -dD/d(.) projected off E_p
+            cols = []
+            for dD in (S, s * e * S * log_c):
+                cols.append(-(dD - E * (np.einsum("pn,pn->p", dD, E) * inv_se)[:, None]))
+            for i, Jc in enumerate(cols):
+                col = -np.einsum("pj,pj->j", Q, np.repeat(Jc, k, axis=1))
+                A[:n_light, n_light + i] = col
+                A[n_light + i, :n_light] = col
+                g[n_light + i] = float(np.sum(Jc * r))
+                for i2, Jc2 in enumerate(cols):
+                    A[n_light + i, n_light + i2] = float(np.sum(Jc * Jc2))
         A += self.gauge_weight**2 * np.outer(self.gauge_row, self.gauge_row)
         g += self.gauge_weight**2 * (self.gauge_row @ x) * self.gauge_row
         return A, g
@@ -358,7 +664,7 @@ def _levenberg_marquardt(
                 lam *= 10.0
                 continue
             trial = x + step
-            trial[5::_N_PARAMS] = np.maximum(trial[5::_N_PARAMS], 0.0)
+            problem.project(trial)
             new_cost, new_r = problem.cost(trial)
             if np.isfinite(new_cost) and new_cost < cost:
                 improved = True
@@ -376,6 +682,23 @@ def _levenberg_marquardt(
             success, message = True, "converged"
             break
     return x, r, njev, success, message
+
+
+def _diagonal_in_subspace(A: np.ndarray, basis: np.ndarray) -> np.ndarray:
+    """diag(B (B^T A B)^+ B^T) for orthonormal columns B (7 N, m): the variances of the parameters when
+    the fit moves in the span of B; ``inf`` on the parameters a null direction touches."""
+    reduced = basis.T @ A @ basis
+    d = np.diag(reduced).copy()
+    scale = 1.0 / np.sqrt(np.maximum(d, 1e-300))
+    w, V = np.linalg.eigh(reduced * scale[:, None] * scale[None, :])
+    keep = w > 1e-12 * w.max()
+    Vs = (V * scale[:, None])[:, keep]
+    mapped = basis @ Vs  # (7 N, kept)
+    diag = (mapped * mapped) @ (1.0 / w[keep])
+    null = basis @ (V * scale[:, None])[:, ~keep]
+    diag[np.any(np.abs(null) > 1e-3, axis=1)] = np.inf
+    out: np.ndarray = diag
+    return out
 
 
 def _diagonal_of_inverse(A: np.ndarray) -> np.ndarray:

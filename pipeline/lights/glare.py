@@ -140,13 +140,15 @@ def measure_lobe(
     K: np.ndarray,
     *,
     start_mm: np.ndarray | None = None,
+    gain: np.ndarray | None = None,
 ) -> Lobe:
     """The lobe's exponent and amplitude from the images on a known surface (see the module docstring).
 
     ``depth_mm`` gives each pixel's point, ``normals`` (H, W, 3) its normal (the stereo pair's); both
     finite on ``mask``. With ``normals=None`` they are those of the depth map ``start_mm``
-    (:func:`surface_normals`), computed at the sampled pixels only. Returns the lobe with its
-    F-ratio (about 1 for a matte plate).
+    (:func:`surface_normals`), computed at the sampled pixels only. ``gain`` (N,): the images
+    times it are those divided by ``lights``' intensities (images divided by other lights'). Returns
+    the lobe with its F-ratio (about 1 for a matte plate).
 
     The test runs first on about PRETEST_PIXELS of the sampled pixels: a plate whose lobe explains
     less than MIN_F / 2 there (a matte one: F about 1) is answered from that subsample; any other is
@@ -171,10 +173,11 @@ def measure_lobe(
         finite = np.all(np.isfinite(n_all), axis=-1)  # a degenerate neighbourhood: none in practice
         idx, n_all = idx[finite], n_all[finite]
     sub = slice(None, None, max(1, idx.size // PRETEST_PIXELS))
-    quick = _lobe_on(images, valid, lights, depth_mm, n_all[sub], idx[sub], mask.shape[1], K)
+    w = mask.shape[1]
+    quick = _lobe_on(images, valid, lights, depth_mm, n_all[sub], idx[sub], w, K, gain)
     if quick.f_ratio < MIN_F / 2:
         return quick
-    return _lobe_on(images, valid, lights, depth_mm, n_all, idx, mask.shape[1], K)
+    return _lobe_on(images, valid, lights, depth_mm, n_all, idx, w, K, gain)
 
 
 def _lobe_on(
@@ -186,10 +189,35 @@ def _lobe_on(
     idx: np.ndarray,
     w: int,
     K: np.ndarray,
+    gain: np.ndarray | None = None,
 ) -> Lobe:
     """:func:`measure_lobe` on the flat pixels ``idx`` of normals ``n`` (P, 3)."""
     uv1 = np.stack([idx % w, idx // w, np.ones(idx.size)]).astype(np.float64)
     x = (np.linalg.inv(K) @ uv1).T * depth_mm.ravel()[idx, None]
+    n_img = images.shape[0]
+    raw = images.reshape(n_img, -1)[:, idx].astype(np.float64)
+    if gain is not None:
+        raw *= np.asarray(gain, np.float64)[:, None]
+    use = None if valid is None else valid.reshape(n_img, -1)[:, idx]
+    return lobe_of(raw, use, lights, x, n)
+
+
+def lobe_on_samples(
+    intensity: np.ndarray, points: np.ndarray, normals: np.ndarray, lights: Lights
+) -> Lobe:
+    """The lobe measured like :func:`measure_lobe` on samples (P, N) of points and normals (P, 3)
+    under ``lights`` (sample blocks of :mod:`pipeline.lights.refinement`, whose values carry the
+    lights' intensities)."""
+    raw = intensity.T / lights.intensity[:, None]
+    return lobe_of(raw, None, lights, points, normals)
+
+
+def lobe_of(
+    raw: np.ndarray, valid: np.ndarray | None, lights: Lights, x: np.ndarray, n: np.ndarray
+) -> Lobe:
+    """The lobe of values ``raw`` (N, P) (divided by the lights' intensities) at points ``x`` and
+    normals ``n`` (P, 3): per point ``raw_k / a_k = b . l_k + s_p g_e(n . h_k)`` for each exponent,
+    the exponent of least residual and the median amplitude, with the F-ratio against b alone."""
     lv = lights.directions_at(x)  # (N, P, 3)
     att = lights.attenuation_at(x)  # (N, P)
     view = -x / np.linalg.norm(x, axis=-1, keepdims=True)
@@ -197,11 +225,9 @@ def _lobe_on(
     half /= np.linalg.norm(half, axis=-1, keepdims=True)
     c = np.maximum(np.einsum("kpc,pc->kp", half, n), 0.0)
     nl = np.einsum("kpc,pc->kp", lv, n)
-    n_img = images.shape[0]
-    raw = images.reshape(n_img, -1)[:, idx].astype(np.float64)
     use = (nl > COS_MIN) & (att > MIN_RELATIVE_ATTENUATION * att.max(axis=0)) & np.isfinite(raw)
     if valid is not None:
-        use &= valid.reshape(n_img, -1)[:, idx]
+        use &= valid
     wt = use.astype(np.float64)
     y = np.where(use, raw / np.where(use, att, 1.0), 0.0)
 
@@ -219,7 +245,7 @@ def _lobe_on(
         if r < best[0]:
             best = (r, e, float(np.median(sol[:, 3])))
     r, e, s = best
-    p = idx.size
+    p = x.shape[0]
     dof = max(float(wt.sum()) - 4 * p, 1.0)
     f_ratio = ((r_lambert - r) / p) / max(r / dof, 1e-30)
     return Lobe(float(e), max(s, 0.0), float(f_ratio))

@@ -15,6 +15,12 @@ Two models of the lights are fitted to block samples with the albedo eliminated 
   :mod:`pipeline.lights.fit` started on the given directions from the plate's centre; a light given
   by its direction stays on it (only its distance along it is fitted).
 
+On a glossy plate (a lobe under the point lights that passes :mod:`pipeline.lights.glare`'s test),
+the point lights are fitted jointly with the coating's lobe, and the rays' common origin with them
+(:func:`_fit_points_with_lobe`); likewise the distant lights with a lobe under them
+(:func:`_fit_distant_with_lobe`), unless the Lambertian point lights already explain the samples
+far better (then the distant model's misfit reads as a lobe).
+
 The point model is taken when it explains the samples clearly better than any distant model
 (nominal directions of what really are near-field LEDs); else the refined distant lights.
 
@@ -37,6 +43,7 @@ from scipy import special
 from threadpoolctl import threadpool_limits
 
 from pipeline.lights import fit as light_fit
+from pipeline.lights import glare
 from pipeline.lights.model import Lights
 
 #: At most this many sample blocks enter the fits.
@@ -51,6 +58,10 @@ DISTANT_PRIOR = 1e-2
 #: (position, axis, profile, intensity) and of a point light on its given direction (distance, axis,
 #: profile, intensity).
 DISTANT_PARAMS, POINT_PARAMS, ON_RAY_PARAMS = 3, 7, 5
+#: Parameters of the coating's lobe fitted with the point lights (amplitude and exponent).
+LOBE_PARAMS = 2
+#: Side (px) of the sample blocks of the lights' fit with the lobe (the smallest; see refine_lights).
+GLOSSY_BLOCK_PX = 2
 #: Significance level of the F-test that lets refined lights replace the given ones.
 SIGNIFICANCE = 1e-3
 
@@ -91,6 +102,9 @@ class LightRefinement:
         point model, ``position_mm``.
     n_samples : int
         Sample blocks used.
+    lobe : Lobe or None
+        The coating's lobe fitted with the lights (per unit irradiance, on the scale of the
+        fitted lights), None for a matte plate.
     """
 
     lights: Lights
@@ -100,6 +114,66 @@ class LightRefinement:
     rms_point: float
     corrections: list[dict[str, float | list[float]]]
     n_samples: int
+    lobe: glare.Lobe | None = None
+
+
+def _plate_pose(data: light_fit.Samples) -> light_fit.PlatePose:
+    """The plate's pose the point lights are fitted against: its mean normal, and its centre on its
+    surface, the sample nearest the samples' centroid across the view (the centroid itself lies off a
+    bent plate, behind its middle)."""
+    mean = data.points.mean(axis=0)
+    across = data.points[:, :2] / data.points[:, 2:] - mean[:2] / mean[2]
+    centre = data.points[int(np.argmin(np.einsum("pc,pc->p", across, across)))]
+    normal = data.normals.mean(axis=0)
+    normal /= np.linalg.norm(normal)
+    return light_fit.PlatePose(normal, centre, 0.0, 0)
+
+
+def _distant_with_lobe(
+    data: light_fit.Samples,
+    glossy: _GlossySamples,
+    distant: Lights,
+    rms_distant: float,
+    *,
+    near: bool,
+) -> tuple[Lights, float, glare.Lobe | None]:
+    """The distant lights refitted with the coating's lobe where it shows, with their residual and lobe.
+
+    A glossy coating under distant lights: refitted as if Lambertian, the glare turned them 15-21 deg
+    off on the glossy 18-light cell written 1 deg off; so the lobe is tested under them and fitted
+    with them. Not where the Lambertian point lights already explain the samples far better
+    (``near``): there the distant model's misfit (light falling off across the plate) reads as a
+    lobe (F 25 on the matte 12-LED nominal cell, 0.9 under its point lights).
+    """
+    tested = None if near else glossy.lobe_under(distant)
+    if tested is not None:
+        fitted = _fit_distant_with_lobe(tested[0], distant, tested[1])
+        if fitted is not None:
+            distant, lobe = fitted
+            return distant, _rms(data, distant, lobe), lobe
+    return distant, rms_distant, None
+
+
+def _points_with_lobe(
+    data: light_fit.Samples,
+    glossy: _GlossySamples,
+    point: Lights,
+    rms_point: float,
+    pose: light_fit.PlatePose,
+    rays: np.ndarray,
+) -> tuple[Lights, float, glare.Lobe | None]:
+    """The point lights refitted with the coating's lobe where it shows, with their residual (on the
+    blocks the other models are scored on) and lobe: the lobe is tested under the fitted lights on
+    pixels of the smooth surface, as for given point lights (a matte plate stops at the pretest, F
+    about 1)."""
+    tested = glossy.lobe_under(point)
+    if tested is not None:
+        fine, measured = tested
+        fitted = _fit_points_with_lobe(fine, point, pose, rays, measured)
+        if fitted is not None:
+            point, _, lobe = fitted
+            return point, _rms(data, point, lobe), lobe
+    return point, rms_point, None
 
 
 def refine_lights(
@@ -144,36 +218,45 @@ def refine_lights(
     data = _samples(images, valid, mask, lights, depth_mm, K, max_samples=max_samples, seed=seed)
     if data is None:
         return None
-    # the plate's centre on its surface: the sample nearest the samples' centroid across the view
-    # (the centroid itself lies off a bent plate, behind its middle)
-    mean = data.points.mean(axis=0)
-    across = data.points[:, :2] / data.points[:, 2:] - mean[:2] / mean[2]
-    centre = data.points[int(np.argmin(np.einsum("pc,pc->p", across, across)))]
-    normal = data.normals.mean(axis=0)
-    normal /= np.linalg.norm(normal)
+    pose = _plate_pose(data)
+    centre = pose.centre_mm
     with threadpool_limits(limits=1, user_api="blas"):
         rms_given = _rms(data, lights)
+        glossy = _GlossySamples(images, valid, mask, lights, depth_mm, K, max_samples, seed)
         distant = _refine_distant(data, lights)
         rms_distant = _rms(data, distant)
-        point, rms_point = _fit_points(data, lights, light_fit.PlatePose(normal, centre, 0.0, 0))
+        point, rms_point = _fit_points(data, lights, pose)
+        near = point is not None and rms_point < POINT_MODEL_GAIN * rms_distant
+        distant, rms_distant, distant_lobe = _distant_with_lobe(
+            data, glossy, distant, rms_distant, near=near
+        )
+        lobe = None
+        if point is not None:
+            point, rms_point, lobe = _points_with_lobe(
+                data, glossy, point, rms_point, pose, _rays(lights, pose)
+            )
     chosen: Lights
     n_blocks = len(data.intensity)
+    # the glossy fit ends free in 3-D: 7 parameters a light, and the lobe's 2
+    point_params = _point_params(lights) if lobe is None else POINT_PARAMS * lights.n + LOBE_PARAMS
+    distant_params = DISTANT_PARAMS * lights.n + (0 if distant_lobe is None else LOBE_PARAMS)
     if (
         point is not None
         and rms_point < POINT_MODEL_GAIN * rms_distant
-        and _significant(rms_given, rms_point, _point_params(lights), n_blocks)
+        and _significant(rms_given, rms_point, point_params, n_blocks)
     ):
         model, chosen = "point", point
-    elif _significant(rms_given, rms_distant, DISTANT_PARAMS * lights.n, n_blocks):
-        model, chosen = "distant", distant
+    elif _significant(rms_given, rms_distant, distant_params, n_blocks):
+        model, chosen, lobe = "distant", distant, distant_lobe
     else:
         return None  # the images do not prove other lights: the given ones stand
     # the given scale: the same mean irradiance at the plate's centre, facing the light
     given_at_c = lights.intensity * lights.attenuation_at(centre)
     chosen_at_c = chosen.intensity * chosen.attenuation_at(centre)
-    chosen = chosen.with_intensity(
-        chosen.intensity * float(np.mean(given_at_c) / np.mean(chosen_at_c))
-    )
+    scale = float(np.mean(given_at_c) / np.mean(chosen_at_c))
+    chosen = chosen.with_intensity(chosen.intensity * scale)
+    if lobe is not None:  # per unit irradiance of the rescaled lights
+        lobe = glare.Lobe(lobe.exponent, lobe.amplitude / scale, lobe.f_ratio)
     chosen_at_c = chosen.intensity * chosen.attenuation_at(centre)
     before, after = lights.directions_at(centre), chosen.directions_at(centre)
     corrections = []
@@ -196,7 +279,63 @@ def refine_lights(
         rms_point=rms_point,
         corrections=corrections,
         n_samples=len(data.intensity),
+        lobe=lobe,
     )
+
+
+class _GlossySamples:
+    """The lobe's pretest under refitted lights and the samples of the fits with it, shared by the
+    distant and the point model: the fine blocks are made once, when a first pretest finds a lobe."""
+
+    def __init__(
+        self,
+        images: np.ndarray,
+        valid: np.ndarray | None,
+        mask: np.ndarray,
+        lights: Lights,
+        depth_mm: np.ndarray,
+        K: np.ndarray,
+        max_samples: int,
+        seed: int,
+    ) -> None:
+        self.args = (images, valid, mask, lights, depth_mm, K)
+        self.max_samples, self.seed = max_samples, seed
+        self.fine: light_fit.Samples | None = None
+        self.made = False
+
+    def lobe_under(self, fitted: Lights) -> tuple[light_fit.Samples, glare.Lobe] | None:
+        """The fine samples and the lobe measured under ``fitted`` on pixels of the smooth surface (a
+        matte plate stops at the pretest, F about 1); None without a significant lobe."""
+        images, valid, mask, lights, depth_mm, K = self.args
+        measured = glare.measure_lobe(
+            images,
+            valid,
+            fitted,
+            depth_mm,
+            None,
+            mask,
+            K,
+            start_mm=depth_mm,
+            gain=lights.intensity / fitted.intensity,
+        )
+        if not (measured.f_ratio >= glare.MIN_F and measured.amplitude > 0):
+            return None
+        if not self.made:
+            # the lobe's samples from the smallest blocks: fitted on the default blocks (13 px at
+            # 1224 x 1024) the ring of LEDs came out 27-39 mm too high, on 2 px ones 3-9 mm
+            self.fine = _samples(
+                images,
+                valid,
+                mask,
+                lights,
+                depth_mm,
+                K,
+                max_samples=self.max_samples,
+                seed=self.seed,
+                block_px=GLOSSY_BLOCK_PX,
+            )
+            self.made = True
+        return None if self.fine is None else (self.fine, measured)
 
 
 def _samples(
@@ -209,8 +348,12 @@ def _samples(
     *,
     max_samples: int,
     seed: int,
+    block_px: int | None = None,
 ) -> light_fit.Samples | None:
-    """Block means of the images in counts (P, N), with the smooth surface's points and normals."""
+    """Block means of the images in counts (P, N), with the smooth surface's points and normals.
+
+    Blocks of ``block_px`` pixels a side (default: as large as ``max_samples`` blocks cover the
+    plate), at most ``max_samples`` of them chosen at random."""
     n, h, w = images.shape
     usable = mask & np.isfinite(depth_mm)
     if valid is not None:
@@ -218,7 +361,7 @@ def _samples(
     count = int(np.count_nonzero(usable))
     if count == 0:
         return None
-    block = max(2, int(np.sqrt(count / max_samples)))
+    block = max(2, int(np.sqrt(count / max_samples))) if block_px is None else block_px
     hb, wb = h // block, w // block
 
     def blocks(img: np.ndarray) -> np.ndarray:
@@ -270,9 +413,14 @@ def _point_params(lights: Lights) -> int:
     return POINT_PARAMS * n_point + ON_RAY_PARAMS * (lights.n - n_point)
 
 
-def _rms(data: light_fit.Samples, lights: Lights) -> float:
+def _rms(data: light_fit.Samples, lights: Lights, lobe: glare.Lobe | None = None) -> float:
+    """RMS residual of the samples under ``lights`` (and the coating's ``lobe``, per unit irradiance
+    of point lights), as a fraction of the mean sample."""
     E = lights.irradiance(data.points, data.normals).T  # (P, N)
-    _, _, r = light_fit.albedo_projected(data.intensity, E)
+    I = data.intensity
+    if lobe is not None:
+        I = I - lobe.amplitude * light_fit.lobe_of(lights, data.points, data.normals, lobe.exponent)
+    _, _, r = light_fit.albedo_projected(I, E)
     return float(np.sqrt(np.mean(r * r)) / np.mean(data.intensity))
 
 
@@ -313,9 +461,108 @@ def _fit_points(
     """
     # a light given by its direction keeps it: the images find its distance along it (its axis, beam
     # and intensity too); fitted freely, its direction absorbed the smooth stereo surface's own error
-    rays = np.where(lights.is_point[:, None], np.nan, lights.directions_at(pose.centre_mm))
     try:
         start = light_fit.initial_point_lights(lights, pose, data, initial_mu=1.0)
+    except (np.linalg.LinAlgError, ValueError, FloatingPointError):
+        return None, float("nan")
+    return _fit_points_lambertian(data, start, pose, _rays(lights, pose))
+
+
+def _rays(lights: Lights, pose: light_fit.PlatePose) -> np.ndarray:
+    """Each light's given direction from the plate's centre (N, 3); NaN rows for given point lights."""
+    return np.where(lights.is_point[:, None], np.nan, lights.directions_at(pose.centre_mm))
+
+
+def _fit_distant_with_lobe(
+    data: light_fit.Samples, start: Lights, lobe: glare.Lobe
+) -> tuple[Lights, glare.Lobe] | None:
+    """The distant lights fitted jointly with the coating's lobe (:func:`light_fit.joint_fit_distant`),
+    from ``start`` (the Lambertian refit) and ``lobe`` (measured under it); None unless it converges
+    with a positive lobe of finite exponent."""
+    try:
+        fit = light_fit.joint_fit_distant(start, data, lobe=(lobe.exponent, lobe.amplitude))
+    except (np.linalg.LinAlgError, ValueError, FloatingPointError):
+        return None
+    if not (fit.success and fit.lobe_amplitude > 0 and np.isfinite(fit.lobe_exponent)):
+        return None
+    return fit.lights, glare.Lobe(fit.lobe_exponent, fit.lobe_amplitude, lobe.f_ratio)
+
+
+def _fit_points_with_lobe(
+    data: light_fit.Samples,
+    start: Lights,
+    pose: light_fit.PlatePose,
+    rays: np.ndarray,
+    lobe: glare.Lobe,
+) -> tuple[Lights, float, glare.Lobe] | None:
+    """The point lights fitted jointly with the coating's lobe, from ``start`` (the Lambertian fit) and
+    ``lobe`` (measured under it): on the given rays with their common origin free, fixed profile
+    first, then free; then every light free in 3-D from there (kept if it converges). None if no
+    fit on the rays converges to lights in front of the plate with a positive lobe.
+
+    Fitted as if Lambertian, the glare near the mirror directions pulled the LEDs of the glossy
+    18-LED cell to half their distance (1.6 m instead of 3.2 m). With the lobe in the model, the
+    mirror geometry also fixes where the rays start: their common origin (the plate's centre the
+    directions were given from, which the view's middle misses by tens of mm) is fitted too
+    (``free_origin``). On a matte plate that origin is not determined (moved 0.5 m for the same
+    residual in a trial), which is why only the glossy fit frees it.
+    """
+    try:
+        fixed = light_fit.joint_fit(
+            start,
+            data,
+            fixed_mu=True,
+            rays=rays,
+            free_origin=True,
+            lobe=(lobe.exponent, lobe.amplitude),
+        )
+    except (np.linalg.LinAlgError, ValueError, FloatingPointError):
+        return None
+    candidates = [fixed]
+    with contextlib.suppress(np.linalg.LinAlgError, ValueError, FloatingPointError):
+        candidates.insert(
+            0,
+            light_fit.joint_fit(
+                fixed.lights,
+                data,
+                rays=rays,
+                free_origin=True,
+                lobe=(fixed.lobe_exponent, fixed.lobe_amplitude),
+            ),
+        )
+    on_rays = next((f for f in candidates if _usable_glossy(f, pose)), None)
+    if on_rays is None:
+        return None
+    best = on_rays
+    # then free in 3-D: the highlights place each light, so its direction, given a degree off, is
+    # found too (on a matte plate the free fit turned exact directions 4-8 deg to explain the smooth
+    # stereo surface's error instead)
+    with contextlib.suppress(np.linalg.LinAlgError, ValueError, FloatingPointError):
+        free = light_fit.joint_fit(
+            on_rays.lights, data, lobe=(on_rays.lobe_exponent, on_rays.lobe_amplitude)
+        )
+        if _usable_glossy(free, pose):
+            best = free
+    fitted = glare.Lobe(best.lobe_exponent, best.lobe_amplitude, lobe.f_ratio)
+    return best.lights, best.rms, fitted
+
+
+def _usable_glossy(fit: light_fit.JointFit, pose: light_fit.PlatePose) -> bool:
+    """:func:`_usable`, with a positive lobe of finite exponent."""
+    return _usable(fit, pose) and fit.lobe_amplitude > 0 and bool(np.isfinite(fit.lobe_exponent))
+
+
+def _usable(fit: light_fit.JointFit, pose: light_fit.PlatePose) -> bool:
+    """A converged fit whose lights are finite and in front of the plate."""
+    behind = (fit.lights.positions_mm - pose.centre_mm) @ pose.normal <= 0
+    return bool(fit.success and not behind.any() and np.all(np.isfinite(fit.lights.positions_mm)))
+
+
+def _fit_points_lambertian(
+    data: light_fit.Samples, start: Lights, pose: light_fit.PlatePose, rays: np.ndarray
+) -> tuple[Lights | None, float]:
+    """:func:`_fit_points` on a matte plate: the lights' joint fit from ``start``."""
+    try:
         fixed = light_fit.joint_fit(start, data, fixed_mu=True, rays=rays)
     except (np.linalg.LinAlgError, ValueError, FloatingPointError):
         return None, float("nan")
@@ -323,7 +570,6 @@ def _fit_points(
     with contextlib.suppress(np.linalg.LinAlgError, ValueError, FloatingPointError):
         candidates.insert(0, light_fit.joint_fit(fixed.lights, data, rays=rays))
     for fit in candidates:
-        behind = (fit.lights.positions_mm - pose.centre_mm) @ pose.normal <= 0
-        if fit.success and not behind.any() and np.all(np.isfinite(fit.lights.positions_mm)):
+        if _usable(fit, pose):
             return fit.lights, _rms(data, fit.lights)
     return None, float("nan")

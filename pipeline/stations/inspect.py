@@ -199,9 +199,7 @@ def reconstruct_station(
         view, _ = reconstruct_view(cap, tgt, scene, opts, pool, own)
     surface = view.surface
     judged = surface.mask & ~edge_band(surface.mask)
-    qualified = uncertainty.propagate_points(
-        uncertainty_inputs(cap, scene.pre, surface, view.points, judged)
-    )
+    qualified = uncertainty.propagate_points(uncertainty_inputs(cap, scene.pre, view, judged))
     index = ref.station.index
     station_view = StationView(
         index=index,

@@ -175,9 +175,9 @@ def near_field_surface(
     model_lobe : bool
         With a stereo prior and the robust estimator: test the images for a specular lobe on the
         starting surface and, when there is one, fit the normals with it once the alternation
-        stops (:mod:`pipeline.lights.glare`). False for refitted lights: even held on their given
-        directions, their distances are not exact enough for the lobe's half vectors (on the glossy
-        18-LED cell with nominal directions the lobe fit read max 6.6 mm against 4.5 mm without).
+        stops (:mod:`pipeline.lights.glare`). Refitted lights: True when they were fitted with the
+        lobe (:attr:`LightRefinement.lobe`); refitted as if Lambertian on a glossy plate, their
+        distances were too far off for the lobe's half vectors (max 6.6 mm against 4.5 mm without).
 
     Returns
     -------
@@ -335,7 +335,7 @@ def remeasure_with_refined_lights(
             valid=valid,
             method=method,
             start_mm=smooth,
-            model_lobe=False,
+            model_lobe=refined.lobe is not None,
             **solve,
         )
     else:

@@ -187,3 +187,134 @@ def test_a_light_held_on_its_ray_finds_its_distance_and_keeps_its_direction():
     assert np.all(across < 1e-6 * np.linalg.norm(off, axis=1))  # on the ray, exactly
     assert np.allclose(fit.lights.positions_mm, positions, atol=1.0), fit.lights.positions_mm
     assert np.allclose(fit.lights.mu, 1.5, atol=0.01)
+
+
+def _glossy_samples(rng, truth, centre, s, e, n=2000):
+    """Samples of a cylinder R 5000 mm under ``truth`` with a Blinn-Phong lobe ``s max(0, n.h)^e``
+    per unit irradiance (the simulated cell's), the camera at the origin."""
+    xy = rng.uniform(-1400.0, 1400.0, (n, 2))
+    sag = 5000.0 - np.sqrt(5000.0**2 - xy[:, 0] ** 2)
+    points = np.column_stack([xy, centre[2] - sag])
+    normals = np.column_stack([xy[:, 0] / 5000.0, np.zeros(n), -(5000.0 - sag) / 5000.0])
+    albedo = rng.uniform(0.1, 0.6, n)
+    lobe = light_fit.lobe_of(truth, points, normals, e)
+    intensity = albedo[:, None] * truth.irradiance(points, normals).T + s * lobe
+    return light_fit.Samples(intensity=intensity, points=points, normals=normals)
+
+
+def _led_ring(rng, centre, n=12):
+    ring = centre + np.asarray(_ring_positions(n, radius=1600.0, z=0.0)) - [0, 0, 2800.0]
+    towards = centre - ring
+    return Lights.points(
+        ring,
+        rng.uniform(9.0, 11.0, n),
+        axes=towards / np.linalg.norm(towards, axis=1, keepdims=True),
+        mu=np.full(n, 1.5),
+    )
+
+
+@pytest.mark.parametrize("kind", ["point", "distant"])
+def test_the_normal_equations_with_a_lobe_match_finite_differences(kind):
+    """The analytic Jacobian of the variable-projection residuals with the lobe's amplitude and
+    exponent (and the lights' dependence of the lobe) against central differences, for point lights
+    and for distant ones."""
+    rng = np.random.default_rng(0)
+    centre = np.array([0.0, 0.0, 3000.0])
+    truth = _led_ring(rng, centre, n=5)
+    if kind == "distant":
+        truth = Lights.distant(truth.directions_at(centre), truth.intensity)
+    data = _glossy_samples(rng, truth, centre, 0.4, 30.0, n=60)
+    model = light_fit._PointModel(truth) if kind == "point" else light_fit._DistantModel(truth)
+    problem = light_fit._Problem(model, data, lobe=True)
+    x = np.append(problem.model.vector(truth), [0.3, np.log(20.0)])
+    if kind == "point":
+        x[3 : problem.n_light : 7] += 0.01  # off the given axes and the truth
+        x[0 : problem.n_light : 7] += 40.0
+    else:
+        x[0 : problem.n_light : 3] += 0.01  # off the given directions
+        x[1 : problem.n_light : 3] -= 0.02
+    A, g = problem.normal_equations(x)
+
+    def residuals(v):
+        return problem.cost(v)[1].ravel()
+
+    J = np.empty((data.intensity.size, x.size))
+    for i in range(x.size):
+        h = 1e-6 * max(1.0, abs(x[i]))
+        step = np.zeros_like(x)
+        step[i] = h
+        J[:, i] = (residuals(x + step) - residuals(x - step)) / (2 * h)
+    w2 = problem.gauge_weight**2
+    A_num = J.T @ J + w2 * np.outer(problem.gauge_row, problem.gauge_row)
+    g_num = J.T @ residuals(x) + w2 * (problem.gauge_row @ x) * problem.gauge_row
+    assert np.abs(A - A_num).max() < 1e-7 * np.abs(A_num).max()
+    assert np.abs(g - g_num).max() < 1e-7 * np.abs(g_num).max()
+
+
+def test_distant_lights_over_a_glossy_plate_are_found_with_the_lobe():
+    """Distant lights written a degree off over a glossy cylinder: fitted as if Lambertian the glare
+    biases their directions; fitted jointly with the lobe (from a rough one), the directions, the
+    intensities' ratios and the lobe come out."""
+    rng = np.random.default_rng(5)
+    centre = np.array([0.0, 0.0, 3000.0])
+    ring = _led_ring(rng, centre, n=12)
+    truth = Lights.distant(ring.directions_at(centre), ring.intensity)
+    data = _glossy_samples(rng, truth, centre, 0.5, 30.0, n=1500)
+    turn = np.radians(1.0)
+    off = np.empty_like(truth.directions)
+    for k, d in enumerate(truth.directions):
+        across = np.cross(d, rng.normal(size=3))
+        off[k] = np.cos(turn) * d + np.sin(turn) * across / np.linalg.norm(across)
+    start = Lights.distant(off, np.full(12, 10.0))
+    fit = light_fit.joint_fit_distant(start, data, lobe=(15.0, 0.2))
+    assert fit.success
+    cos = np.einsum("nc,nc->n", fit.lights.directions, truth.directions)
+    assert np.degrees(np.arccos(np.clip(cos, -1, 1))).max() < 0.02
+    ratio = fit.lights.intensity / truth.intensity
+    assert np.allclose(ratio / ratio.mean(), 1.0, atol=1e-3)
+    assert fit.lobe_exponent == pytest.approx(30.0, rel=0.01)
+    assert fit.lobe_amplitude * ratio.mean() == pytest.approx(0.5, rel=0.01)
+    assert np.all(np.isnan(fit.position_std_mm)) and np.all(np.isfinite(fit.intensity_std))
+
+
+def test_leds_over_a_glossy_plate_are_found_with_the_lobe_and_the_rays_origin():
+    """Fitted as if Lambertian, the glare pulls LEDs on their rays far off their distance; fitted with
+    the lobe (amplitude and exponent free) and the rays' common origin free (given 60 mm off, as the
+    view's middle misses the plate's centre), the lights, the lobe and the origin come out."""
+    rng = np.random.default_rng(4)
+    centre = np.array([0.0, 0.0, 3000.0])
+    truth = _led_ring(rng, centre)
+    data = _glossy_samples(rng, truth, centre, 0.4, 40.0)
+    rays = truth.directions_at(centre)
+    guess = centre + np.array([50.0, -30.0, 10.0])  # where the rays are given from
+    start = Lights.points(
+        guess + 2600.0 * rays, np.full(truth.n, 10.0), axes=-rays, mu=np.ones(truth.n)
+    )
+    lambertian = light_fit.joint_fit(start, data, rays=rays)
+    glossy = light_fit.joint_fit(start, data, rays=rays, free_origin=True, lobe=(20.0, 0.1))
+    err = np.linalg.norm(glossy.lights.positions_mm - truth.positions_mm, axis=1)
+    assert glossy.success and err.max() < 2.0, err
+    assert glossy.lobe_exponent == pytest.approx(40.0, rel=1e-3)
+    # the amplitude per unit of the fitted intensities, whose common factor the fit pins (ratios)
+    gauge = np.exp(np.mean(np.log(truth.intensity / glossy.lights.intensity)))
+    assert glossy.lobe_amplitude / gauge == pytest.approx(0.4, rel=1e-3)
+    assert np.allclose(glossy.lights.mu, 1.5, atol=0.01)
+    # the directions stay the given ones: every light moved along its ray plus one common shift
+    shift = glossy.lights.positions_mm - start.positions_mm
+    across = np.eye(3) - np.einsum("ni,nj->nij", rays, rays)  # off each ray
+    common = np.linalg.solve(across.sum(axis=0), np.einsum("nij,nj->i", across, shift))
+    off_ray = np.einsum("nij,nj->ni", across, shift - common)
+    assert np.linalg.norm(off_ray, axis=1).max() < 1e-6 * 3000.0
+    assert np.linalg.norm(guess + common - centre) < 2.0  # the origin found: the plate's centre
+    lambertian_err = np.linalg.norm(lambertian.lights.positions_mm - truth.positions_mm, axis=1)
+    assert lambertian_err.min() > 50.0  # what the lobe model fixes
+
+
+def test_a_free_origin_is_off_without_rays():
+    rng = np.random.default_rng(5)
+    centre = np.array([0.0, 0.0, 3000.0])
+    truth = _led_ring(rng, centre, n=6)
+    data = _glossy_samples(rng, truth, centre, 0.0, 40.0, n=300)
+    plain = light_fit.joint_fit(truth, data, fixed_mu=True)
+    freed = light_fit.joint_fit(truth, data, fixed_mu=True, free_origin=True)
+    np.testing.assert_allclose(freed.lights.positions_mm, plain.lights.positions_mm)

@@ -20,6 +20,7 @@ smoothed normal bias falls from ~1 deg to ~0.01 deg.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Any
 
@@ -92,6 +93,15 @@ def _lobe_tables(exponent: float) -> tuple[np.ndarray, np.ndarray]:
     g = c**exponent
     dg = exponent * c ** (exponent - 1.0)
     return np.append(g, g[-1]), np.append(dg, dg[-1])
+
+
+@functools.cache
+def _search_tables() -> np.ndarray:
+    """The lobe tables g of every exponent in LOBE_EXPONENTS, (_LOBE_TABLE + 1, E) float64, read-only:
+    made once a process (every plate's search reads them)."""
+    tables = np.stack([_lobe_tables(e)[0] for e in LOBE_EXPONENTS], axis=1)
+    tables.flags.writeable = False
+    return tables
 
 
 @numba.njit(cache=True, fastmath=FASTMATH, inline="always")
@@ -173,7 +183,7 @@ def _lobe_search(
     pv = np.stack([cols, rows, np.ones(sel.size)], axis=1) @ view_map.T
     pv /= np.linalg.norm(pv, axis=1, keepdims=True)
     exps = np.array(LOBE_EXPONENTS)
-    tables = np.stack([_lobe_tables(e)[0] for e in exps], axis=1)
+    tables = _search_tables()
     out = np.empty((sel.size, exps.size + 2))
     _lobe_search_kernel(
         samples,
