@@ -1015,15 +1015,7 @@ def fit(
     prior_mu, prior_sd = _prior_block(m_, G, priors)
     x0 = np.concatenate([prior_mu, np.full(P, priors.yield_factor)])
 
-    def curvatures(
-        theta: np.ndarray, d_shift: float = 0.0
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Each pass's loaded curvature, the largest so far, the curvature after it."""
-        f = theta[M + G + pass_plate]
-        kl = setup.loaded_curvature(d + d_shift, f, theta[pass_machine], theta[m_ + pass_machine])
-        peak = _peaks(kl, starts)
-        return kl, peak, setup.unloaded_curvature(peak, f)
-
+    curvatures = _pass_curvatures(setup, d, pass_plate + M + G, pass_machine, m_, starts)
     # states: the passes after which an inspection saw a new shape (nominal parameters decide which pass
     # raised the peak, the inspections whether it did), with the mean of their inspections
     state_pass, state_obs, meas_var, state_plate = _inspected_states(
@@ -1081,6 +1073,32 @@ def fit(
         priors,
         cov_scatter,
     )
+
+
+def _pass_curvatures(
+    setup: PassSetup,
+    d: np.ndarray,
+    plate_param: np.ndarray,
+    pass_machine: np.ndarray,
+    n_machines: int,
+    starts: np.ndarray,
+) -> Callable[..., tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The passes' curvatures as a function of the parameters ``theta`` (and a shift of every
+    displacement, ``d_shift``): each pass's loaded curvature, the largest so far, the curvature after
+    it. ``plate_param``: each pass's plate factor's index in ``theta``; the machines' compliances and
+    gains are its first ``2 * n_machines`` entries."""
+
+    def curvatures(
+        theta: np.ndarray, d_shift: float = 0.0
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        f = theta[plate_param]
+        kl = setup.loaded_curvature(
+            d + d_shift, f, theta[pass_machine], theta[n_machines + pass_machine]
+        )
+        peak = _peaks(kl, starts)
+        return kl, peak, setup.unloaded_curvature(peak, f)
+
+    return curvatures
 
 
 def _prior_block(n_machines: int, n_groups: int, priors: Priors) -> tuple[np.ndarray, np.ndarray]:
