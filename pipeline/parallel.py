@@ -65,12 +65,10 @@ def configure_process() -> None:
     An inspection allocates and frees images of several MB many times over: with glibc's default
     policy most of them are fresh mappings, and zeroing their pages took ~0.3 of the ~1.4
     core-seconds of an inspection at 1224x1024 (measured with ``perf``). :func:`keep_freed_memory`
-    keeps freed blocks for reuse, and :func:`small_pages_for_arrays` keeps the first inspection of a
-    process from stalling on huge-page faults.
+    keeps freed blocks for reuse.
     """
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     keep_freed_memory()
-    small_pages_for_arrays()
 
 
 def keep_freed_memory() -> bool:
@@ -100,31 +98,3 @@ def keep_freed_memory() -> bool:
         mallopt(_M_MMAP_THRESHOLD, MALLOC_MMAP_THRESHOLD_BYTES)
         and mallopt(_M_TRIM_THRESHOLD, MALLOC_TRIM_THRESHOLD_BYTES)
     )
-
-
-def small_pages_for_arrays() -> bool:
-    """Stop numpy asking the kernel for transparent huge pages for its large arrays.
-
-    numpy advises huge pages (``madvise(MADV_HUGEPAGE)``) for every array of 4 MB or more. Where the
-    kernel's THP ``defrag`` setting is ``madvise`` (Debian's default), a fault in such an array
-    compacts memory synchronously to find a free 2 MB page. The first inspection of a process
-    touches some 450 MB of fresh memory (at 1224x1024) and paid about a quarter more CPU time that way
-    than with ordinary pages; later inspections reuse the heap and run alike either way (measured in
-    docs/figures.md, *Speed, end to end*). Nothing is changed when ``NUMPY_MADVISE_HUGEPAGE`` is
-    set in the environment (numpy reads it itself), or where numpy has no such switch.
-
-    Returns
-    -------
-    bool
-        Whether the advice was turned off here.
-    """
-    if "NUMPY_MADVISE_HUGEPAGE" in os.environ:
-        return False
-    import numpy as np
-
-    switch = getattr(getattr(np, "_core", None), "multiarray", None)
-    set_advice = getattr(switch, "_set_madvise_hugepage", None)
-    if set_advice is None:
-        return False
-    set_advice(False)
-    return True

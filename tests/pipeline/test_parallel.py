@@ -56,16 +56,3 @@ def test_freed_memory_is_kept_for_reuse_unless_the_user_chose(monkeypatch):
         assert keep_freed_memory()
     monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "131072")
     assert not keep_freed_memory()
-
-
-def test_numpy_arrays_get_ordinary_pages_unless_the_user_chose(monkeypatch):
-    from numpy._core import multiarray
-
-    from pipeline.parallel import small_pages_for_arrays
-
-    monkeypatch.delenv("NUMPY_MADVISE_HUGEPAGE", raising=False)
-    assert small_pages_for_arrays()
-    # the switch returns its previous state: off since the call above
-    assert multiarray._set_madvise_hugepage(False) is False
-    monkeypatch.setenv("NUMPY_MADVISE_HUGEPAGE", "1")
-    assert not small_pages_for_arrays()
