@@ -110,6 +110,22 @@ class _Param:
         return Lights.points(p[:, :3], np.exp(p[:, 6]), axes=axes, mu=np.maximum(p[:, 5], 0.0))
 
 
+def _geometry(
+    x: np.ndarray, param: _Param, points: np.ndarray, normals: np.ndarray
+) -> tuple[np.ndarray, ...]:
+    """The point lights' geometry at the samples: parameters (N, 7), unit axes (N, 3) and their raw
+    lengths (N,), the vectors surface -> light v (P, N, 3), their squared lengths and lengths, the
+    cosine of the axis against the ray light -> surface, and ``n . v`` (each (P, N))."""
+    p = x.reshape(-1, _N_PARAMS)
+    axes, length = param.axes(x)
+    v = p[None, :, :3] - points[:, None, :]
+    d2 = np.einsum("pnc,pnc->pn", v, v)
+    d = np.sqrt(d2)
+    cos = -np.einsum("pnc,nc->pn", v, axes) / d
+    facing = np.einsum("pnc,pc->pn", v, normals)
+    return p, axes, length, v, d2, d, cos, facing
+
+
 def _irradiance_of(lights: Lights, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """E (P, N) of point lights (with axes) at samples: :meth:`Lights.irradiance`, vectorised over the lights."""
     param = _Param(axis0=lights.axes, tangents=np.zeros((lights.n, 2, 3)))
@@ -132,14 +148,8 @@ def _irradiance(
     x: np.ndarray, param: _Param, points: np.ndarray, normals: np.ndarray, *, jac: bool
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """E (P, N) of every light at every sample and, with ``jac``, dE/d(parameters of its light) (P, N, 7)."""
-    p = x.reshape(-1, _N_PARAMS)
-    axes, length = param.axes(x)
+    p, axes, length, v, d2, d, cos, facing = _geometry(x, param, points, normals)
     mu = p[:, 5]
-    v = p[None, :, :3] - points[:, None, :]  # (P, N, 3) surface -> light
-    d2 = np.einsum("pnc,pnc->pn", v, v)
-    d = np.sqrt(d2)
-    cos = -np.einsum("pnc,nc->pn", v, axes) / d  # axis against the ray light -> surface
-    facing = np.einsum("pnc,pc->pn", v, normals)
     lit = (cos > 0) & (facing > 0)
     cos_c = np.where(lit, cos, 1.0)
     facing_c = np.where(lit, facing, 1.0)
@@ -191,14 +201,8 @@ def _lobe(
     unit vector l and the unit vector v towards the camera (at the origin); the simulated cell's and
     :mod:`pipeline.lights.glare`'s lobe.
     """
-    p = x.reshape(-1, _N_PARAMS)
-    axes, length = param.axes(x)
+    p, axes, length, v, d2, d, cos, facing = _geometry(x, param, points, normals)
     mu = p[:, 5]
-    v = p[None, :, :3] - points[:, None, :]  # (P, N, 3) surface -> light
-    d2 = np.einsum("pnc,pnc->pn", v, v)
-    d = np.sqrt(d2)
-    cos = -np.einsum("pnc,nc->pn", v, axes) / d
-    facing = np.einsum("pnc,pc->pn", v, normals)
     l = v / d[..., None]
     view = -points / np.linalg.norm(points, axis=1, keepdims=True)
     half = l + view[:, None, :]
