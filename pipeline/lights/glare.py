@@ -42,7 +42,7 @@ import numpy.typing as npt
 from pipeline.lights.model import Lights, light_at
 from pipeline.surface.normals.field import OK, OUTSIDE, NormalField, field_from_fit
 from pipeline.surface.normals.robust import COS_MIN
-from pipeline.surface.normals.solve3 import DEGENERATE_RATIO, MIN_FIT
+from pipeline.surface.normals.solve3 import DEGENERATE_RATIO, MIN_FIT, adjugate3, adjugate_times
 from pipeline.surface.normals.specular import (
     LOBE_EXPONENTS,
     LOBE_MIN_F,
@@ -435,20 +435,15 @@ def _lobe_kernel(
                     r2 += j2 * r
                     ss += (r * att[k]) ** 2
                     cnt += 1
-                c00 = m11 * m22 - m12 * m12
-                c01 = m02 * m12 - m01 * m22
-                c02 = m01 * m12 - m02 * m11
-                c11 = m00 * m22 - m02 * m02
-                c12 = m01 * m02 - m00 * m12
-                c22 = m00 * m11 - m01 * m01
-                det = m00 * c00 + m01 * c01 + m02 * c02
+                c00, c01, c02, c11, c12, c22, det = adjugate3(m00, m01, m02, m11, m12, m22)
                 tr = (m00 + m11 + m22) / 3.0
                 if cnt < MIN_FIT or not det > DEGENERATE_RATIO * tr * tr * tr:
                     converged = False
                     break
-                b0 += (c00 * r0 + c01 * r1 + c02 * r2) / det
-                b1 += (c01 * r0 + c11 * r1 + c12 * r2) / det
-                b2 += (c02 * r0 + c12 * r1 + c22 * r2) / det
+                d0, d1, d2 = adjugate_times(c00, c01, c02, c11, c12, c22, r0, r1, r2)
+                b0 += d0 / det
+                b1 += d1 / det
+                b2 += d2 / det
             ok_px = converged and rho_ok and np.isfinite(b0 + b1 + b2)
             good[i, j] = ok_px
             b[0, i, j], b[1, i, j], b[2, i, j] = b0, b1, b2
