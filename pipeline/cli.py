@@ -34,7 +34,6 @@ from pipeline.parallel import configure_process
 if TYPE_CHECKING:
     import numpy as np
 
-    from pipeline.io import Capture
     from pipeline.simulate import CaptureSpec, Cutout, Dent, Floor, PlateSpec
     from pipeline.stations import EarlyStations
 
@@ -343,14 +342,13 @@ def _inspect_acquired(
     ``early``, one view's images from ``frames`` in memory), ``timings_s.after_last_frame`` added,
     the result printed."""
     from pipeline.acquisition import add_after_last_frame, last_frame_time
-    from pipeline.io import load_capture
     from pipeline.run import inspect
 
     last_frame_at = last_frame_time(bundles[-1], returned_at)
-    capture: Path | list[Path] | Capture = bundles if len(bundles) > 1 else bundles[0]
-    if frames and len(bundles) == 1:
-        capture = load_capture(bundles[0], frames=frames)
-    result = inspect(capture, args.target, out_dir=args.result, progress=progress, early=early)
+    capture: Path | list[Path] = bundles if len(bundles) > 1 else bundles[0]
+    result = inspect(
+        capture, args.target, out_dir=args.result, progress=progress, early=early, frames=frames
+    )
     doc = dict(result.document)
     if last_frame_at is not None:
         add_after_last_frame(doc, Path(args.result), last_frame_at)

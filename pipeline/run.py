@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import tempfile
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -109,6 +109,7 @@ def inspect(
     options: InspectOptions | None = None,
     light_calibration: Lights | None = None,
     early: EarlyStations | None = None,
+    frames: Mapping[str, np.ndarray] | None = None,
 ) -> InspectionResult:
     """Measure a plate and judge it against its CAD target.
 
@@ -139,6 +140,11 @@ def inspect(
         ``light_calibration``: each station among ``capture`` that it reconstructed is taken from
         it (a failure there is this inspection's error, naming the station), the others are
         reconstructed here. Ignored for one bundle.
+    frames : mapping of str to array, optional
+        One bundle's images already in memory by their bundle path (``ps_00.png``: the frame an
+        acquisition's camera gave, which the file holds losslessly), loaded from there instead of
+        decoded again (:func:`pipeline.io.load_capture`). Ignored for several bundles and for a
+        loaded Capture.
 
     Returns
     -------
@@ -161,12 +167,12 @@ def inspect(
         # per inspection at 1224x1024)
         with threadpool_limits(limits=1, user_api="blas"):
             if isinstance(capture, (Capture, str, Path)):
-                return _inspect(capture, target, out, clock, opts, light_calibration)
+                return _inspect(capture, target, out, clock, opts, light_calibration, frames)
             bundles = list(capture)
             if not bundles:
                 raise ValueError("capture: expected at least one capture bundle, got none")
             if len(bundles) == 1:
-                return _inspect(bundles[0], target, out, clock, opts, light_calibration)
+                return _inspect(bundles[0], target, out, clock, opts, light_calibration, frames)
             if early is not None and not early.matches(target, opts, light_calibration):
                 raise ValueError(
                     "early: its stations were reconstructed with another target, options or light "
@@ -186,10 +192,11 @@ def _inspect(
     clock: StageClock,
     opts: InspectOptions,
     light_calibration: Lights | None,
+    frames: Mapping[str, np.ndarray] | None = None,
 ) -> InspectionResult:
     """:func:`inspect` inside its BLAS limit and error handling: every stage, then the two documents."""
     warnings: list[str] = []
-    cap, tgt = load_inputs(capture, target, light_calibration, warnings, clock, opts)
+    cap, tgt = load_inputs(capture, target, light_calibration, warnings, clock, opts, frames)
     scene = preprocess_scene(cap, opts, clock)
     # Work that does not need the main line's next result runs beside it. The stereo pair
     # needs only the plate mask (matched while the normals are estimated); curvature and the pixel

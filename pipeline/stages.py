@@ -12,7 +12,7 @@ are read together; the stages' own work lives in their modules.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -195,15 +195,19 @@ def load_inputs(
     warnings: list[str],
     clock: StageClock,
     opts: InspectOptions,
+    frames: Mapping[str, np.ndarray] | None = None,
 ) -> tuple[Capture, Target]:
     """Stage *load*: the capture (with ``light_calibration`` applied, see :func:`pipeline.run.inspect`) and the target.
+
+    ``frames``: a bundle's images already in memory by their bundle path (see
+    :func:`pipeline.io.load_capture`), taken from there instead of decoded from its files.
 
     The capture comes on the working grid of ``opts.working_cell_mm`` (binned, see
     :class:`InspectOptions`). A warning about the light calibration is appended to ``warnings``.
     CaptureError when the capture has neither a stereo pair nor a working distance (no metric scale).
     """
     clock.begin("load")
-    cap = capture if isinstance(capture, Capture) else load_capture(capture)
+    cap = capture if isinstance(capture, Capture) else load_capture(capture, frames=frames)
     factor = working_binning(cap, opts.working_cell_mm, NOMINAL_DISTANCE_MM)
     cap = bin_capture(cap, factor, workers=opts.workers)
     tgt = target if isinstance(target, Target) else load_target(target)

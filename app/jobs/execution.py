@@ -32,7 +32,6 @@ from app.settings import InspectFunction, Settings
 from app.storage import Storage
 from pipeline.acquisition import add_after_last_frame
 from pipeline.formats import InputError, PipelineError
-from pipeline.io import Capture, load_capture
 from pipeline.lights import Lights
 
 log = logging.getLogger(__name__)
@@ -385,10 +384,10 @@ def measure_bundles(
     entry for several bundles. ``frames``: one bundle's images already in memory (an acquisition's),
     loaded from there instead of decoded again.
     """
-    capture: Path | list[Path] | Capture = bundles[0] if len(bundles) == 1 else list(bundles)
+    capture: Path | list[Path] = bundles[0] if len(bundles) == 1 else list(bundles)
+    more: dict[str, Any] = {} if early is None or len(bundles) == 1 else {"early": early}
     if frames and len(bundles) == 1:
-        capture = load_capture(bundles[0], frames=frames)
-    more = {} if early is None or len(bundles) == 1 else {"early": early}
+        more["frames"] = frames
     result = inspect(
         capture, target_path, out_dir=out_dir, progress=progress, light_calibration=lights, **more
     )

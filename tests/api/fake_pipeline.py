@@ -40,13 +40,17 @@ class FakeResult:
     out_dir: Path
 
 
-def inspect(capture, target, *, out_dir: Path, progress=None, light_calibration=None) -> FakeResult:
+def inspect(
+    capture, target, *, out_dir: Path, progress=None, light_calibration=None, frames=None
+) -> FakeResult:
     delay = float(os.environ.get("PLATE_INSPECT_TEST_STAGE_DELAY_S", "0"))
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     inspection_id = out_dir.parent.name  # <data dir>/inspections/<id>/artifacts
     _record("start", inspection_id)
-    cap = capture if isinstance(capture, Capture) else load_capture(capture)  # as the real one
+    cap = (  # as the real one
+        capture if isinstance(capture, Capture) else load_capture(capture, frames=frames)
+    )
     tgt = load_target(target)
     if "UNMEASURABLE" in cap.plate_id:
         raise CaptureError(f"{cap.plate_id}: no plate found in the photometric images")
