@@ -68,6 +68,11 @@ class Preprocessed:
         (the highlights of a glossy plate or conveyor under a few lights do not reach
         it): a part of the plate mask, and what :func:`pipeline.segmentation.segment_plate`
         takes as its brightness.
+    glare_free : (H, W) float32 or None
+        The pixel's median sample (rank ``N // 2`` from the top): a broad glare lobe that lights more
+        than HIGHLIGHT_SHARE of the samples (of a conveyor beside the plate, too) leaves it to the diffuse
+        part, so the plate and its surroundings differ in it by their albedos. The outline beside lit
+        surroundings is found by it (:mod:`pipeline.segmentation.outline`).
     """
 
     images: np.ndarray
@@ -78,6 +83,7 @@ class Preprocessed:
     brightest: np.ndarray | None = None
     seen: np.ndarray | None = None
     brightness: np.ndarray | None = None
+    glare_free: np.ndarray | None = None
 
 
 def working_binning(capture: Capture, cell_mm: float | None, distance_mm: float) -> int:
@@ -283,7 +289,8 @@ def preprocess(
 
     brightest = np.empty((h, w), np.float32)
     brightness = np.empty((h, w), np.float32)
-    _brightest(images, brightest, int(HIGHLIGHT_SHARE * n), brightness)
+    glare_free = np.empty((h, w), np.float32)
+    _brightest(images, brightest, int(HIGHLIGHT_SHARE * n), brightness, n // 2, glare_free)
     # what either brightness tells from the dark: the maxima keep a rim that few lights reach, the
     # maxima without their highlights keep a glossy plate's body (see Notes)
     mask = plate_mask(brightest, erode_px=erode_px, highlight_free=brightness) & seen
@@ -300,21 +307,23 @@ def preprocess(
         brightest=brightest,
         seen=seen,
         brightness=brightness,
+        glare_free=glare_free,
     )
 
 
 @numba.njit(parallel=True, cache=True)
-def _brightest(images: Arr, out: Arr, rank: int, ranked: Arr) -> None:
-    """out (H, W) = the brightest of the N images (N, H, W) at each pixel; ranked (H, W) the sample of
-    the given rank from the top (0: the brightest)."""
+def _brightest(images: Arr, out: Arr, rank: int, ranked: Arr, rank2: int, ranked2: Arr) -> None:
+    """out (H, W) = the brightest of the N images (N, H, W) at each pixel; ranked, ranked2 (H, W) the
+    samples of the given ranks from the top (0: the brightest)."""
     n, h, w = images.shape
+    deep = max(rank, rank2) + 1
     for i in numba.prange(h):
-        # the row's rank + 1 brightest samples, descending: each image's row is passed down through
+        # the row's deep brightest samples, descending: each image's row is passed down through
         # them by compare-exchanges (branch-free, vectorised over the row's pixels)
-        top = np.full((rank + 1, w), -np.inf, np.float32)
+        top = np.full((deep, w), -np.inf, np.float32)
         for k in range(n):
             x = images[k, i].copy()
-            for p in range(rank + 1):
+            for p in range(deep):
                 row = top[p]
                 for j in range(w):
                     hi = max(row[j], x[j])
@@ -322,6 +331,7 @@ def _brightest(images: Arr, out: Arr, rank: int, ranked: Arr) -> None:
                     row[j] = hi
         out[i] = top[0]
         ranked[i] = top[rank]
+        ranked2[i] = top[rank2]
 
 
 @numba.njit(parallel=True, cache=True)

@@ -728,6 +728,7 @@ def _segment(
         depth_scale_px=depth_scale,
         normals=None if field is None else field.normals,  # NaN off the field's mask (NormalField)
         target_area_mm2=target_geometry.target_area_mm2(tgt),
+        glare_free=pre.glare_free,
     )
 
 

@@ -27,6 +27,12 @@ hundreds of millimetres apart, so the plate is found as the near, smooth sheet o
    straddle the edge) are added only where darkness bounds them within ``reach_px`` (a dark
    background makes the edge sharp); next to a lit floor they stay out (there the unmatched strip is
    mostly the floor hidden from the right camera).
+5b. *The outline beside lit surroundings*: the stereo matcher carries the plate's depth up to
+   ``OUTLINE_REACH_PX`` onto what lies beside it; next to darkness the candidates bound it, next to
+   lit surroundings (a dark conveyor under a broad glare lobe) the glare-free brightness (the median
+   sample) does: where most lit pixels within reach outside are darker than ``OUTLINE_ALBEDO_RATIO``
+   times the plate just inside, the region's pixels within reach nearer their brightness are
+   surroundings (:mod:`~pipeline.segmentation.outline`; they join the edge band).
 6. *Edge band*: the plate's pixels within ``edge_px`` of its boundary (outline and openings; the
    image frame does not count) mix plate and surroundings in the photometric images; they are
    excluded from the mask and counted. Given photometric normals, pixels a little further in whose
@@ -42,7 +48,8 @@ component with small holes filled (the dark-background case), and the result say
 Modules, one job each: :mod:`~pipeline.segmentation.candidates` (step 1),
 :mod:`~pipeline.segmentation.surface` (step 2: the smooth surface and its geometry),
 :mod:`~pipeline.segmentation.classify` (steps 3-5 and 7 on the depth's grid),
-:mod:`~pipeline.segmentation.edge_band` (step 6 and the result), :mod:`~pipeline.segmentation.segment`
+:mod:`~pipeline.segmentation.outline` (step 5b), :mod:`~pipeline.segmentation.edge_band` (step 6 and
+the result), :mod:`~pipeline.segmentation.segment`
 (:func:`segment_plate`, and the brightness-only fallback), :mod:`~pipeline.segmentation.plain` (plain
 scenes that need no segmentation), :mod:`~pipeline.segmentation.result` (:class:`Segmentation`),
 :mod:`~pipeline.segmentation.checks` (input checks).
@@ -61,6 +68,7 @@ from .classify import (
     SUPPORT_WIDTH_MM,
 )
 from .edge_band import EDGE_NORMAL_DEG, EDGE_NORMAL_ZONE_PX
+from .outline import OUTLINE_ALBEDO_RATIO, OUTLINE_REACH_PX
 from .plain import (
     PLAIN_LIT_SHARE,
     PLAIN_MARGIN_PX,
@@ -85,6 +93,8 @@ __all__ = [
     "FIT_SAMPLES",
     "MAX_DROPOUT_MM2",
     "MIN_MATCHED_SHARE",
+    "OUTLINE_ALBEDO_RATIO",
+    "OUTLINE_REACH_PX",
     "PLAIN_LIT_SHARE",
     "PLAIN_MARGIN_PX",
     "PLAIN_OFF_SURFACE_SHARE",

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 
 from .classify import DROPOUT_NORMAL_DEG, Parts
+from .outline import OUTLINE_REACH_PX, lit_surroundings
 from .result import Segmentation
 from .surface import Geometry, surface_depth, surface_geometry
 
@@ -37,7 +38,8 @@ def finish(
     support_width_mm: float,
     target_area_mm2: float | None,
 ) -> Segmentation:
-    """Step 6 (edge band, normals check) on the full grid, areas and counts, the result.
+    """Steps 5b (the outline beside lit surroundings) and 6 (edge band, normals check) on the full grid,
+    areas and counts, the result. ``b``: the brightness the outline is found by (glare-free).
 
     ``reasons`` (what was decided so far) is extended with what the parts and the edge band show.
     """
@@ -49,8 +51,10 @@ def finish(
     finite = np.isfinite(depth) & (depth > 0) & ok
     with np.errstate(invalid="ignore"):
         off = finite & cand & ~(np.abs(depth - z_fit) < depth_band_mm)
+    # the matcher's reach onto lit surroundings, told by the brightness step (step 5b)
+    beside = lit_surroundings(region, b, cand & ok, OUTLINE_REACH_PX * depth_scale_px)
     mask, n_normal_off = _measured(
-        parts, ok, normals, geometry, edge_px, depth_scale_px, support_width_mm
+        parts, region & ~beside, ok, normals, geometry, edge_px, depth_scale_px, support_width_mm
     )
     edge_band = region & ~mask
     step = np.where(region, parts.step, np.float32(np.nan)).astype(np.float32)
@@ -66,6 +70,11 @@ def finish(
         int(np.count_nonzero(edge_band)),
         band_area,
     )
+    if beside.any():
+        reasons.append(
+            f"{int(np.count_nonzero(beside))} px of lit surroundings that the stereo depth reached onto, told by the "
+            "glare-free brightness step at the outline, put in the edge band"
+        )
     if target_area_mm2 is not None:
         reasons += _area_reasons(plate_area + band_area, target_area_mm2)
     return Segmentation(
@@ -108,6 +117,7 @@ def inner_region(region: np.ndarray, edge_px: int) -> np.ndarray:
 
 def _measured(
     parts: Parts,
+    region: np.ndarray,
     ok: np.ndarray,
     normals: np.ndarray | None,
     geometry: Geometry,
@@ -116,8 +126,8 @@ def _measured(
     support_width_mm: float,
 ) -> tuple[np.ndarray, int]:
     """The plate's pixels to measure (the edge band left out, wider where a support met the plate), and how
-    many pixels near the boundary the normals check put in the band."""
-    region = parts.region
+    many pixels near the boundary the normals check put in the band. ``region``: the plate's region less
+    the lit surroundings the stereo depth took in (step 5b)."""
     mask = inner_region(region, edge_px) & ok
     if parts.feet.any():
         # where a support met the plate, its foot may be left at the plate's edge: a wider band there

@@ -43,6 +43,7 @@ def segment_plate(
     step_zone_px: int = 8,
     target_area_mm2: float | None = None,
     dark_fraction: float = DARK_FRACTION,
+    glare_free: npt.ArrayLike | None = None,
 ) -> Segmentation:
     """Segment the plate from its surroundings by the stereo depth, brightness only as a first guess.
 
@@ -91,6 +92,11 @@ def segment_plate(
         more than 5 % over or 10 % under).
     dark_fraction : float
         See :func:`candidate_mask`.
+    glare_free : (H, W) array_like of float, optional
+        A brightness of the same pixels that a broad glare lobe does not reach (the pipeline gives the
+        median photometric sample, :attr:`pipeline.preprocess.Preprocessed.glare_free`): the outline
+        where the depth cannot draw it is found at its step (:mod:`~pipeline.segmentation.outline`).
+        None: ``brightness``.
 
     Returns
     -------
@@ -134,8 +140,14 @@ def segment_plate(
         support_width_mm=float(support_width_mm),
         step_zone_px=int(step_zone_px),
     )
+    gf = b if glare_free is None else check_image("glare_free", glare_free).astype(np.float32)
+    if gf.shape != b.shape:
+        raise ValueError(
+            f"glare_free: expected shape {b.shape} to match brightness, got {gf.shape}"
+        )
     return _segmented(
         b,
+        gf,
         depth,
         K,
         ok,
@@ -150,6 +162,7 @@ def segment_plate(
 
 def _segmented(
     b: np.ndarray,
+    glare_free: np.ndarray,
     depth: np.ndarray | None,
     K: np.ndarray,
     ok: np.ndarray,
@@ -184,7 +197,7 @@ def _segmented(
         else:
             return finish(
                 parts,
-                b,
+                glare_free,
                 depth,
                 K,
                 ok,
