@@ -16,7 +16,9 @@ a fit of normals and lobe started from those Lambertian normals settles in the w
    They are measured on the stereo pair's smooth surface, whose normals owe nothing to the
    photometric model: on a subsample of pixels, ``I_k / a_k = b . l_k + s_j g_e(n_stereo . h_k)``
    is linear in (b, s_j) for each candidate e (:data:`~pipeline.surface.normals.specular.LOBE_EXPONENTS`);
-   the e with the least residual is taken and s is the median of the s_j. The lobe is modelled
+   the e with the least residual is taken, refined between its neighbours on that grid (a
+   golden-section search: the grid's steps are 26 %, and a broad lobe read at 15.9 for 15 bent the
+   normals by twice what noise does), and s is the median of the s_j. The lobe is modelled
    only when it takes out LOBE_MIN_F times what one free parameter per pixel takes out of noise
    (the F-ratio of the distant lights' specular stage): a matte plate skips this stage (the test
    runs first on ~PRETEST_PIXELS of the pixels, where a matte plate, F about 1, stops).
@@ -61,6 +63,10 @@ LOBE_SEARCH_PIXELS = 8000
 #: The F-test is first run on about this many of those pixels (a regular subsample): a matte plate
 #: stops there.
 PRETEST_PIXELS = 1000
+#: Golden-section steps refining the exponent between the grid's neighbours of its best one (the
+#: grid's steps are 26 %; a broad lobe measured at 15.9 for the simulator's 15 bent the normals by
+#: 0.9 deg in the median against 0.4 with the exact exponent): the bracket shrinks to 0.2 %.
+EXPONENT_STEPS = 10
 #: Gauss-Newton passes per pixel before and after the residual cut.
 GN_ITERATIONS = 4
 #: As for the near-field Lambertian fit: samples of a light that lights the pixel less than this
@@ -141,6 +147,7 @@ def measure_lobe(
     *,
     start_mm: np.ndarray | None = None,
     gain: np.ndarray | None = None,
+    refine: bool = True,
 ) -> Lobe:
     """The lobe's exponent and amplitude from the images on a known surface (see the module docstring).
 
@@ -148,7 +155,8 @@ def measure_lobe(
     finite on ``mask``. With ``normals=None`` they are those of the depth map ``start_mm``
     (:func:`surface_normals`), computed at the sampled pixels only. ``gain`` (N,): the images
     times it are those divided by ``lights``' intensities (images divided by other lights'). Returns
-    the lobe with its F-ratio (about 1 for a matte plate).
+    the lobe with its F-ratio (about 1 for a matte plate). ``refine=False``: the exponent stays on
+    the grid of LOBE_EXPONENTS (a start for a fit that fits the exponent itself).
 
     The test runs first on about PRETEST_PIXELS of the sampled pixels: a plate whose lobe explains
     less than MIN_F / 2 there (a matte one: F about 1) is answered from that subsample; any other is
@@ -174,10 +182,10 @@ def measure_lobe(
         idx, n_all = idx[finite], n_all[finite]
     sub = slice(None, None, max(1, idx.size // PRETEST_PIXELS))
     w = mask.shape[1]
-    quick = _lobe_on(images, valid, lights, depth_mm, n_all[sub], idx[sub], w, K, gain)
+    quick = _lobe_on(images, valid, lights, depth_mm, n_all[sub], idx[sub], w, K, gain, refine)
     if quick.f_ratio < MIN_F / 2:
         return quick
-    return _lobe_on(images, valid, lights, depth_mm, n_all, idx, w, K, gain)
+    return _lobe_on(images, valid, lights, depth_mm, n_all, idx, w, K, gain, refine)
 
 
 def _lobe_on(
@@ -190,6 +198,7 @@ def _lobe_on(
     w: int,
     K: np.ndarray,
     gain: np.ndarray | None = None,
+    refine: bool = True,
 ) -> Lobe:
     """:func:`measure_lobe` on the flat pixels ``idx`` of normals ``n`` (P, 3)."""
     uv1 = np.stack([idx % w, idx // w, np.ones(idx.size)]).astype(np.float64)
@@ -199,7 +208,7 @@ def _lobe_on(
     if gain is not None:
         raw *= np.asarray(gain, np.float64)[:, None]
     use = None if valid is None else valid.reshape(n_img, -1)[:, idx]
-    return lobe_of(raw, use, lights, x, n)
+    return lobe_of(raw, use, lights, x, n, refine=refine)
 
 
 def lobe_on_samples(
@@ -213,11 +222,19 @@ def lobe_on_samples(
 
 
 def lobe_of(
-    raw: np.ndarray, valid: np.ndarray | None, lights: Lights, x: np.ndarray, n: np.ndarray
+    raw: np.ndarray,
+    valid: np.ndarray | None,
+    lights: Lights,
+    x: np.ndarray,
+    n: np.ndarray,
+    *,
+    refine: bool = True,
 ) -> Lobe:
     """The lobe of values ``raw`` (N, P) (divided by the lights' intensities) at points ``x`` and
     normals ``n`` (P, 3): per point ``raw_k / a_k = b . l_k + s_p g_e(n . h_k)`` for each exponent,
-    the exponent of least residual and the median amplitude, with the F-ratio against b alone."""
+    the exponent of least residual (on LOBE_EXPONENTS, then refined between the best one's
+    neighbours unless ``refine`` is False) and the median amplitude, with the F-ratio against b
+    alone."""
     lv = lights.directions_at(x)  # (N, P, 3)
     att = lights.attenuation_at(x)  # (N, P)
     view = -x / np.linalg.norm(x, axis=-1, keepdims=True)
@@ -238,17 +255,55 @@ def lobe_of(
         res = (y - np.einsum("kpi,pi->kp", cols, sol)) * wt
         return sol, float(np.sum(res * res))
 
-    _, r_lambert = fit(lv)
-    best = (np.inf, float("nan"), 0.0)
-    for e in LOBE_EXPONENTS:
+    def with_lobe(e: float) -> tuple[float, float]:
         sol, r = fit(np.concatenate([lv, (c**e)[..., None]], axis=-1))
-        if r < best[0]:
-            best = (r, e, float(np.median(sol[:, 3])))
-    r, e, s = best
+        return r, float(np.median(sol[:, 3]))
+
+    _, r_lambert = fit(lv)
+    grid = [with_lobe(e) for e in LOBE_EXPONENTS]
+    i = int(np.argmin([r for r, _ in grid]))
+    r, s = grid[i]
+    e = LOBE_EXPONENTS[i]
+    if refine and np.isfinite(r):
+        r, e, s = _refine_exponent(
+            with_lobe,
+            LOBE_EXPONENTS[max(i - 1, 0)],
+            LOBE_EXPONENTS[min(i + 1, len(LOBE_EXPONENTS) - 1)],
+            (r, e, s),
+        )
     p = x.shape[0]
     dof = max(float(wt.sum()) - 4 * p, 1.0)
     f_ratio = ((r_lambert - r) / p) / max(r / dof, 1e-30)
     return Lobe(float(e), max(s, 0.0), float(f_ratio))
+
+
+def _refine_exponent(
+    with_lobe: Any, lo: float, hi: float, best: tuple[float, float, float]
+) -> tuple[float, float, float]:
+    """The exponent of least residual between the grid's neighbours ``lo`` and ``hi`` of its best
+    exponent: golden-section search on log e (EXPONENT_STEPS steps). ``with_lobe(e)`` returns the
+    residual and the amplitude; ``best`` (residual, exponent, amplitude) is the grid's, kept unless
+    beaten."""
+    golden = (np.sqrt(5.0) - 1.0) / 2.0
+    a, b = np.log(lo), np.log(hi)
+    x1, x2 = b - golden * (b - a), a + golden * (b - a)
+    f1, f2 = with_lobe(float(np.exp(x1))), with_lobe(float(np.exp(x2)))
+    for _ in range(EXPONENT_STEPS):
+        for x, (r, s) in ((x1, f1), (x2, f2)):
+            if r < best[0]:
+                best = (r, float(np.exp(x)), s)
+        if f1[0] < f2[0]:
+            b, x2, f2 = x2, x1, f1
+            x1 = b - golden * (b - a)
+            f1 = with_lobe(float(np.exp(x1)))
+        else:
+            a, x1, f1 = x1, x2, f2
+            x2 = a + golden * (b - a)
+            f2 = with_lobe(float(np.exp(x2)))
+    for x, (r, s) in ((x1, f1), (x2, f2)):
+        if r < best[0]:
+            best = (r, float(np.exp(x)), s)
+    return best
 
 
 def fit_with_lobe(

@@ -317,6 +317,7 @@ class _GlossySamples:
             K,
             start_mm=depth_mm,
             gain=lights.intensity / fitted.intensity,
+            refine=False,
         )
         if not (measured.f_ratio >= glare.MIN_F and measured.amplitude > 0):
             return None

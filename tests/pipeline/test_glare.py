@@ -121,3 +121,46 @@ def test_the_lobe_measured_from_the_start_depth_is_the_lobe_of_its_normals(gloss
         assert (whole.f_ratio >= glare.MIN_F) == (sampled.f_ratio >= glare.MIN_F)
         if whole.f_ratio >= glare.MIN_F:
             assert sampled == whole
+
+
+def _lobe_samples(exponent, amplitude, noise, seed=0):
+    """Samples of 2000 points of a gently bent plate 3 m away under the 18 LEDs of the simulated cell
+    (the simulator's shading, unit intensities), with ``noise`` (fraction of full scale)."""
+    rng = np.random.default_rng(seed)
+    spec = CaptureSpec(**NEAR)
+    lights = spec.lights(np.array([0.0, 0.0, 3000.0]), np.ones(18))
+    p = 2000
+    x = np.column_stack(
+        [rng.uniform(-1400, 1400, p), rng.uniform(-1400, 1400, p), np.full(p, 3000.0)]
+    )
+    n = np.column_stack([x[:, 0] / 5000.0, rng.normal(0, 0.02, p), -np.ones(p)])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    rho = rng.uniform(0.2, 0.8, p)
+    lv, att = lights.directions_at(x), lights.attenuation_at(x)
+    view = -x / np.linalg.norm(x, axis=-1, keepdims=True)
+    half = lv + view[None]
+    half /= np.linalg.norm(half, axis=-1, keepdims=True)
+    nl = np.einsum("kpc,pc->kp", lv, n)
+    c = np.maximum(np.einsum("kpc,pc->kp", half, n), 0.0)
+    raw = att * (rho * np.maximum(nl, 0) + np.where(nl > 0, amplitude * c**exponent, 0.0))
+    return raw + rng.normal(0, noise, raw.shape), lights, x, n
+
+
+@pytest.mark.parametrize("exponent", [15.0, 40.0, 100.0])
+def test_the_lobe_exponent_is_measured_between_the_grid_points(exponent):
+    """A broad lobe (the simulator's shininess 15, between the grid's 12.6 and 15.9) read on the
+    grid bent the normals by twice the noise's share; the exponent is refined between the grid's
+    neighbours of the best one."""
+    raw, lights, x, n = _lobe_samples(exponent, 0.425, noise=0.0005)
+    lobe = glare.lobe_of(raw, None, lights, x, n)
+    assert abs(lobe.exponent / exponent - 1) < 0.01, lobe
+    assert abs(lobe.amplitude / 0.425 - 1) < 0.01, lobe
+    assert lobe.f_ratio > 10 * glare.MIN_F
+    on_grid = glare.lobe_of(raw, None, lights, x, n, refine=False)
+    assert on_grid.exponent in glare.LOBE_EXPONENTS
+    assert lobe.f_ratio >= on_grid.f_ratio  # refining never leaves a larger residual
+
+
+def test_a_matte_plate_has_no_lobe_to_refine():
+    raw, lights, x, n = _lobe_samples(15.0, 0.0, noise=0.0005)
+    assert glare.lobe_of(raw, None, lights, x, n).f_ratio < glare.MIN_F
