@@ -116,7 +116,7 @@ class HeightResult:
 # idg, b) is described in pipeline.solvers. Parallel kernels run on the caller's thread only.
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(nogil=True, cache=True, parallel=True)
 def _log_depth_gradients(
     normals: Arr, mask: Arr, kinv: Arr, unit_tol: float, p: Arr, q: Arr
 ) -> int:
@@ -152,7 +152,7 @@ def _log_depth_gradients(
     return bad
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(nogil=True, cache=True, parallel=True)
 def _fine_system(
     mask: Arr,
     p: Arr,
@@ -484,7 +484,7 @@ def _prior_terms(
     return wd, log_prior, shift, n_used
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(nogil=True, cache=True, parallel=True)
 def _prior_arrays(
     mask: Arr, prior: Arr, weight: Arr, wd: Arr, log_prior: Arr
 ) -> tuple[int, int, int]:
@@ -533,7 +533,7 @@ def _integrate(
     return x, it, rel, (labels, n, int(np.count_nonzero(~has_prior)), has_prior)
 
 
-@nb.njit(cache=True)
+@nb.njit(nogil=True, cache=True)
 def _parts_with_prior(labels: Arr, wd: Arr, n: int) -> Arr:
     out = np.zeros(n + 1, np.bool_)
     h, w = labels.shape
@@ -544,7 +544,7 @@ def _parts_with_prior(labels: Arr, wd: Arr, n: int) -> Arr:
     return out
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(nogil=True, cache=True, parallel=True)
 def _exp_depth(x: Arr, mask: Arr, shift: float, depth: Arr) -> None:
     """depth = exp(x + shift) on the mask, NaN elsewhere."""
     h, w = mask.shape
@@ -553,7 +553,7 @@ def _exp_depth(x: Arr, mask: Arr, shift: float, depth: Arr) -> None:
             depth[i, j] = np.exp(x[i, j] + shift) if mask[i, j] else np.nan
 
 
-@nb.njit(cache=True)
+@nb.njit(nogil=True, cache=True)
 def _gather(values: Arr, labels: Arr, label: int | np.integer[Any], out: Arr) -> int:
     """The values of the cells with ``labels == label`` (label -1: every cell with label > 0), in
     row-major order; returns how many."""
@@ -568,7 +568,7 @@ def _gather(values: Arr, labels: Arr, label: int | np.integer[Any], out: Arr) ->
     return k
 
 
-@nb.njit(cache=True)
+@nb.njit(nogil=True, cache=True)
 def _scale_parts(depth: Arr, labels: Arr, factor: Arr) -> None:
     """depth *= factor[label] on the cells with label > 0."""
     h, w = labels.shape

@@ -104,7 +104,7 @@ def _search_tables() -> np.ndarray:
     return tables
 
 
-@numba.njit(cache=True, fastmath=FASTMATH, inline="always")
+@numba.njit(nogil=True, cache=True, fastmath=FASTMATH, inline="always")
 def _lookup(table: Arr, c: float) -> float:
     """Linear interpolation of a lobe table at c (clamped to [0, 1]: the lobe is 0 for c <= 0)."""
     x = min(max(c, 0.0), 1.0) * (_LOBE_TABLE - 1)
@@ -298,7 +298,7 @@ def _revert_turned(b: Arr, b_start: Arr, fit: Arr) -> int:
     return int(revert.sum())
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(nogil=True, parallel=True, cache=True)
 def _lobe_search_kernel(
     samples: Arr,
     usable: Arr,
@@ -390,7 +390,7 @@ def _lobe_search_kernel(
                 out[p, e] = num * num / den
 
 
-@numba.njit(parallel=True, cache=True, fastmath=FASTMATH, error_model="numpy")
+@numba.njit(nogil=True, parallel=True, cache=True, fastmath=FASTMATH, error_model="numpy")
 def _specular_pass_kernel(
     images: Arr,
     valid: Arr,
