@@ -8,6 +8,7 @@ line take a ``workers`` count whose default comes from :func:`default_workers`; 
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import ctypes.util
 import functools
@@ -31,6 +32,8 @@ MALLOC_ARENAS = 1
 #: Heap paged in at start-up (:func:`prefault_heap`), beside the imports: an inspection's working set
 #: (~380 MB at 1224x1024, ~500 MB for a 2448x2048 capture measured on its 1224x1024 working grid).
 PREFAULT_HEAP_BYTES = 512 * 2**20
+#: The paging-in thread's nice value: it takes only time the process's other threads leave.
+PREFAULT_NICE = 19
 #: The blocks it is paged in by: under :data:`MALLOC_MMAP_THRESHOLD_BYTES`, so they come from the heap.
 PREFAULT_BLOCK_BYTES = 16 * 2**20
 #: mallopt parameters (glibc's malloc.h).
@@ -122,8 +125,9 @@ def prefault_heap(total_bytes: int = PREFAULT_HEAP_BYTES) -> threading.Thread | 
     Call after :func:`keep_freed_memory` succeeded: the blocks (each
     :data:`PREFAULT_BLOCK_BYTES`) then come from the heap and stay there when freed, paged in, so
     that the first inspection's images land on memory the kernel has already zeroed. The work is
-    done by libc (``malloc``, ``memset``, ``free`` through ctypes, which releases the GIL): it runs
-    on a core the process's imports leave idle. Returns the thread (None off glibc).
+    done by libc (``malloc``, ``memset``, ``free`` through ctypes, which releases the GIL) on a thread
+    of nice :data:`PREFAULT_NICE`: it runs on a core the process's imports leave idle, and yields to
+    the warm-up and the inspection. Returns the thread (None off glibc).
     """
     libc = _glibc()
     if libc is None:
@@ -137,6 +141,8 @@ def prefault_heap(total_bytes: int = PREFAULT_HEAP_BYTES) -> threading.Thread | 
     free.argtypes, free.restype = [ctypes.c_void_p], None
 
     def page_in() -> None:
+        with contextlib.suppress(OSError, AttributeError):  # the idle core's time only
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), PREFAULT_NICE)
         blocks = []
         for _ in range(max(1, total_bytes // PREFAULT_BLOCK_BYTES)):
             block = malloc(PREFAULT_BLOCK_BYTES)
