@@ -303,7 +303,7 @@ def preprocess(
     )
 
 
-@numba.njit(nogil=True, parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True)
 def _brightest(images: Arr, out: Arr, rank: int, ranked: Arr) -> None:
     """out (H, W) = the brightest of the N images (N, H, W) at each pixel; ranked (H, W) the sample of
     the given rank from the top (0: the brightest)."""
@@ -324,7 +324,7 @@ def _brightest(images: Arr, out: Arr, rank: int, ranked: Arr) -> None:
         ranked[i] = top[rank]
 
 
-@numba.njit(nogil=True, parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True)
 def _validity(
     images: Arr,
     brightest: Arr,

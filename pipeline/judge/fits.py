@@ -225,7 +225,7 @@ def check_grid(
     return pts, m
 
 
-@numba.njit(nogil=True, parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True)
 def _nonfinite_inside(points: np.ndarray, mask: np.ndarray) -> int:
     """How many points (H, W, 3) inside ``mask`` have a NaN or inf coordinate (one pass, rows in
     parallel; the grid is checked by each stage that takes it)."""

@@ -318,7 +318,7 @@ def fit_with_lobe(
     return field_from_fit(out, status, mask, specular=fit), reverted
 
 
-@numba.njit(nogil=True, parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True)
 def _lobe_kernel(
     images: Arr,
     valid: Arr,

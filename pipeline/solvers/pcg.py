@@ -111,7 +111,7 @@ def pcg(
     return it, float(rel)
 
 
-@nb.njit(nogil=True, cache=True, fastmath=FASTMATH, parallel=True)
+@nb.njit(cache=True, fastmath=FASTMATH, parallel=True)
 def _residual_norm2(ex: Arr, ey: Arr, wd: Arr, x: Arr, b: Arr, r: Arr) -> float:
     """r = b - A x with the diagonal summed in float64 from the weights; returns ||r||^2."""
     h, w = wd.shape[0] - 2, wd.shape[1] - 2
@@ -133,7 +133,7 @@ def _residual_norm2(ex: Arr, ey: Arr, wd: Arr, x: Arr, b: Arr, r: Arr) -> float:
     return acc
 
 
-@nb.njit(nogil=True, cache=True, fastmath=FASTMATH, parallel=True)
+@nb.njit(cache=True, fastmath=FASTMATH, parallel=True)
 def _direction_matvec(z: Arr, beta: float, pdir: Arr, ex: Arr, ey: Arr, wd: Arr, ap: Arr) -> float:
     """p = z + beta p, then ap = A p (diagonal summed in float64 from the weights); returns p . A p."""
     h, w = wd.shape[0] - 2, wd.shape[1] - 2
@@ -156,7 +156,7 @@ def _direction_matvec(z: Arr, beta: float, pdir: Arr, ex: Arr, ey: Arr, wd: Arr,
     return acc
 
 
-@nb.njit(nogil=True, cache=True, fastmath=FASTMATH, parallel=True)
+@nb.njit(cache=True, fastmath=FASTMATH, parallel=True)
 def _norm2(a: Arr) -> float:
     h, w = a.shape
     acc = 0.0
@@ -166,7 +166,7 @@ def _norm2(a: Arr) -> float:
     return acc
 
 
-@nb.njit(nogil=True, cache=True, fastmath=FASTMATH, parallel=True)
+@nb.njit(cache=True, fastmath=FASTMATH, parallel=True)
 def _cg_step(alpha: float, pdir: Arr, ap: Arr, x: Arr, r: Arr) -> float:
     """x += alpha p, r -= alpha A p; returns ||r||^2."""
     h, w = x.shape

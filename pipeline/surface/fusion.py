@@ -670,7 +670,7 @@ def _polynomial_basis(grid: _Grid, degree: int) -> np.ndarray:
     return np.column_stack(columns[: _POLYNOMIAL[PLANE] if degree == 1 else _POLYNOMIAL[QUADRIC]])
 
 
-@nb.njit(nogil=True, cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True)
 def _compose(
     z: np.ndarray, c: np.ndarray, mask: np.ndarray, fused: np.ndarray, correction: np.ndarray
 ) -> None:

@@ -116,7 +116,7 @@ class HeightResult:
 # idg, b) is described in pipeline.solvers. Parallel kernels run on the caller's thread only.
 
 
-@nb.njit(nogil=True, cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True)
 def _log_depth_gradients(
     normals: Arr, mask: Arr, kinv: Arr, unit_tol: float, p: Arr, q: Arr
 ) -> int:
@@ -152,7 +152,7 @@ def _log_depth_gradients(
     return bad
 
 
-@nb.njit(nogil=True, cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True)
 def _fine_system(
     mask: Arr,
     p: Arr,
@@ -484,7 +484,7 @@ def _prior_terms(
     return wd, log_prior, shift, n_used
 
 
-@nb.njit(nogil=True, cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True)
 def _prior_arrays(
     mask: Arr, prior: Arr, weight: Arr, wd: Arr, log_prior: Arr
 ) -> tuple[int, int, int]:
@@ -544,7 +544,7 @@ def _parts_with_prior(labels: Arr, wd: Arr, n: int) -> Arr:
     return out
 
 
-@nb.njit(nogil=True, cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True)
 def _exp_depth(x: Arr, mask: Arr, shift: float, depth: Arr) -> None:
     """depth = exp(x + shift) on the mask, NaN elsewhere."""
     h, w = mask.shape

@@ -181,7 +181,7 @@ def drop_facing_away(
     ), count
 
 
-@numba.njit(nogil=True, parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True)
 def _facing_away(normals: Arr, mask: Arr, kinv: Arr, min_cos: float, bad: Arr) -> int:
     """bad = mask pixels whose normal is not within acos(min_cos) of facing its ray (NaN: bad); returns the count."""
     h, w = mask.shape
@@ -203,7 +203,7 @@ def _facing_away(normals: Arr, mask: Arr, kinv: Arr, min_cos: float, bad: Arr) -
     return count
 
 
-@numba.njit(nogil=True, parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True)
 def _finalize(b: Arr, status: Arr, normals: Arr, albedo: Arr) -> None:
     """rho = |b|, n = b / rho into (H, W, 3) / (H, W); NaN where no estimate.
 

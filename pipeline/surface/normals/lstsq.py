@@ -57,7 +57,7 @@ def lstsq(
     return b, status
 
 
-@numba.njit(nogil=True, parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True)
 def _lstsq_partial_kernel(
     images: Arr, valid: Arr, mask: Arr, L: Arr, min_samples: int, b: Arr, status: Arr
 ) -> None:

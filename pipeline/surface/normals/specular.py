@@ -298,7 +298,7 @@ def _revert_turned(b: Arr, b_start: Arr, fit: Arr) -> int:
     return int(revert.sum())
 
 
-@numba.njit(nogil=True, parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True)
 def _lobe_search_kernel(
     samples: Arr,
     usable: Arr,
@@ -390,7 +390,7 @@ def _lobe_search_kernel(
                 out[p, e] = num * num / den
 
 
-@numba.njit(nogil=True, parallel=True, cache=True, fastmath=FASTMATH, error_model="numpy")
+@numba.njit(parallel=True, cache=True, fastmath=FASTMATH, error_model="numpy")
 def _specular_pass_kernel(
     images: Arr,
     valid: Arr,
