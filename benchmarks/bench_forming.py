@@ -126,6 +126,13 @@ def main():
         help="the parameters' share of a prediction that the scatter drives takes the scatter's "
         "degrees of freedom (Priors.scatter_share_dof, a trial, off by default)",
     )
+    ap.add_argument(
+        "--scatter-confidence",
+        type=float,
+        default=None,
+        help="keep the risk past the verdict's edge also with the scatter at this upper credible "
+        "bound of its posterior (AimSettings.scatter_confidence; default: off)",
+    )
     args = ap.parse_args()
     if args.stress:
         stress(args)
@@ -149,7 +156,7 @@ def main():
                 physics,
                 np.random.default_rng(seed + 100),
                 learning=mode == "learning",
-                settings=AimSettings(over_probability=args.over_probability),
+                settings=_settings(args),
                 priors=Priors(scatter_share_dof=args.scatter_share_dof),
             )
             rows.append((seed, mode, summary(runs[mode]), time.perf_counter() - t0))
@@ -193,6 +200,12 @@ def main():
         )
 
 
+def _settings(args) -> AimSettings:
+    return AimSettings(
+        over_probability=args.over_probability, scatter_confidence=args.scatter_confidence
+    )
+
+
 def stress(args) -> None:
     """Every stress case over the seeds, with and without learning: one table."""
     print(
@@ -214,6 +227,7 @@ def stress(args) -> None:
                         physics,
                         np.random.default_rng(seed + 100),
                         learning=mode == "learning",
+                        settings=_settings(args),
                         priors=Priors(scatter_share_dof=args.scatter_share_dof),
                     )
                 )

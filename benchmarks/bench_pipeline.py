@@ -93,12 +93,15 @@ CELLS = (
 )
 
 #: Run in a child process whose working directory is the tree to time (its ``pipeline`` is then the
-#: one imported): warm up as that tree's CLI does, inspect every bundle once, print the timings.
+#: one imported): set that tree's own process policy (a tree without ``pipeline/parallel.py``, such as
+#: 59f1066, has none: this environment's editable install would otherwise hand it this tree's), warm
+#: up as that tree's CLI does, inspect every bundle once, print the timings.
 RUNNER = """
 import json, sys, time
 from pathlib import Path
-from pipeline.parallel import configure_process
-configure_process()
+if Path("pipeline/parallel.py").exists():  # the tree's own process policy; an older tree has none
+    from pipeline.parallel import configure_process
+    configure_process()
 import pipeline.run as run
 if hasattr(run, "warm_up"):
     run.warm_up()

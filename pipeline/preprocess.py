@@ -191,10 +191,13 @@ def _bin_into(raw: np.ndarray, out: np.ndarray, factor: int, threshold: float) -
     """out (h, w) = the block means of ``raw`` (H, W); a block with a sample at or above ``threshold``
     takes its brightest sample."""
     h, w = out.shape
-    cv2.resize(raw[: h * factor, : w * factor], (w, h), dst=out, interpolation=cv2.INTER_AREA)
+    whole = raw[: h * factor, : w * factor]
+    cv2.resize(whole, (w, h), dst=out, interpolation=cv2.INTER_AREA)
     if raw.max() >= threshold:
-        block = raw[: h * factor, : w * factor].reshape(h, factor, w, factor).max(axis=(1, 3))
-        np.copyto(out, block, where=block >= threshold)
+        # a block's brightest sample is one of its samples at or above the threshold (and its mean no
+        # brighter): the saturated samples alone set those blocks
+        rows, cols = np.nonzero(whole >= threshold)
+        np.maximum.at(out, (rows // factor, cols // factor), whole[rows, cols].astype(np.float32))
 
 
 def preprocess(

@@ -233,7 +233,7 @@ def write_normals_png(
         )
 
 
-@numba.njit(cache=True)
+@numba.njit(nogil=True, cache=True)
 def _encode_normals(
     n: npt.NDArray[np.float32], mask: npt.NDArray[np.bool_], bgr: npt.NDArray[np.uint8]
 ) -> tuple[int, float]:

@@ -109,6 +109,12 @@ class AimSettings:
         When one pass would land within the band with less than even odds, its spread mostly the
         model's parameters (which a shorter step shrinks), the approach takes two passes, the first
         to this fraction of the remaining bend (:func:`_two_pass`).
+    scatter_confidence : float or None
+        The over-bending risk past the verdict's edge (``verdict_band``) is also kept within
+        ``pass_probability`` with the passes' scatter at this upper credible bound of its posterior
+        (:meth:`.learning.Fit.scatter_upper_scale`, normal tails): a tolerance bound, the risk kept
+        whatever the scatter within that credibility, besides the predictive Student-t (which keeps it
+        on average over the scatter's posterior). None: the Student-t alone (issue 27, sixth round).
     reverse_open_probability : float
         Allowed probability that a reverse pass opens the plate beyond ``target - over_band * band`` (it
         then needs one more bending pass, not a reverse or the scrap heap: a milder risk).
@@ -123,6 +129,7 @@ class AimSettings:
     verdict_band: float = 0.95
     setting_step_mm: float = 0.1
     planned_passes: int = 1
+    scatter_confidence: float | None = None
 
     @property
     def pass_probability(self) -> float:
@@ -160,6 +167,11 @@ class AimSettings:
         if not (isinstance(self.planned_passes, int) and self.planned_passes >= 1):
             raise ValueError(
                 f"planned_passes: expected a positive integer, got {self.planned_passes!r}"
+            )
+        if self.scatter_confidence is not None and not 0 < self.scatter_confidence < 1:
+            raise ValueError(
+                f"scatter_confidence: expected a number in (0, 1) or None, "
+                f"got {self.scatter_confidence!r}"
             )
         if not (isinstance(self.min_rows, int) and self.min_rows >= 0):
             raise ValueError(f"min_rows: expected a non-negative integer, got {self.min_rows!r}")
@@ -300,9 +312,13 @@ def aim(
             f"({d_max:.1f} mm, loaded radius {bender.min_loaded_radius_mm(machine, t):.0f} mm)"
         )
 
-    def safe(d: float) -> float:
-        # over-bending is judged on the plate's true radius: the next inspection's noise is no risk
-        return predict_safe(d).truth().quantile(p_hi) - limit
+    over_edge = kt + settings.verdict_band * band
+    upper = (
+        None
+        if settings.scatter_confidence is None
+        else fitted.scatter_upper_scale(settings.scatter_confidence)
+    )
+    safe, risk = _over_risks(predict_safe, limit, over_edge, p_hi, upper)
 
     def centre(d: float) -> float:
         return predict(d).median - kt
@@ -317,16 +333,12 @@ def aim(
     d = min(root(safe), d_centre)
     # the least move already past the aim's margin: given when it keeps the risk of ending past the
     # band as the inspection judges it within the allowed probability, else no setting
-    over_edge = kt + settings.verdict_band * band
     least = safe(d_lo) >= 0
-    blocked = (
-        least
-        and predict_safe(d_lo).truth().probability_above(over_edge) > settings.pass_probability
-    )
+    blocked = least and risk(d_lo) > settings.pass_probability
     if least and not blocked:
         # the deepest setting whose risk of ending past the verdict's edge is the allowed one
         def edge(x: float) -> float:
-            return predict_safe(x).truth().probability_above(over_edge) - settings.pass_probability
+            return risk(x) - settings.pass_probability
 
         d = min(root(edge), d_centre)
     split = None if least else _two_pass(plate, predict, d_lo, d, settings)
@@ -334,11 +346,7 @@ def aim(
         d = split[0]
         warnings.append(split[1])
     if least:
-        warnings.append(
-            _scatter_fills_band(
-                stalled, d, predict_safe(d).truth(), over_edge, settings, given=not blocked
-            )
-        )
+        warnings.append(_scatter_fills_band(stalled, d, risk(d), settings, given=not blocked))
     return {
         "blocked": blocked,
         "displacement_mm": float(d),
@@ -347,6 +355,40 @@ def aim(
         "yield_factor": factor,
         "warnings": warnings,
     }
+
+
+def _over_risks(
+    predict_safe: Callable[[float], Prediction],
+    limit: float,
+    over_edge: float,
+    p_hi: float,
+    upper: float | None,
+) -> tuple[Callable[[float], float], Callable[[float], float]]:
+    """The aim's over-bending constraints as functions of the displacement, judged on the plate's
+    true curvature (the next inspection's noise is no risk of over-bending).
+
+    ``safe(d)``: how far the ``p_hi`` quantile is past ``limit`` (the aim's margin); ``risk(d)``: the
+    probability of ending past ``over_edge`` (the verdict's). With ``upper`` (the scatter's variance
+    at an upper credible bound over its estimate, ``AimSettings.scatter_confidence``) each is also
+    taken with the scatter's share at that bound, normal tails, against ``over_edge``, and the larger
+    counts.
+    """
+
+    def risk(d: float) -> float:
+        truth = predict_safe(d).truth()
+        p = truth.probability_above(over_edge)
+        if upper is None:
+            return p
+        return max(p, truth.with_scatter_variance(upper).probability_above(over_edge))
+
+    def safe(d: float) -> float:
+        truth = predict_safe(d).truth()
+        margin = truth.quantile(p_hi) - limit
+        if upper is None:
+            return margin
+        return max(margin, truth.with_scatter_variance(upper).quantile(p_hi) - over_edge)
+
+    return safe, risk
 
 
 def _least_setting(
@@ -763,8 +805,7 @@ def _stalled(fitted: Fit, plate: PlateRecord, machine_id: str) -> float | None:
 def _scatter_fills_band(
     stalled: float | None,
     d: float,
-    safe: Prediction,
-    over_edge: float,
+    probability: float,
     settings: AimSettings,
     *,
     given: bool,
@@ -778,8 +819,7 @@ def _scatter_fills_band(
         f"{d - stalled:.2f} mm beyond it,"
     )
     risk = (
-        f"would end past the band with {safe.probability_above(over_edge):.2%} (allowed: "
-        f"{settings.pass_probability:.2%})"
+        f"would end past the band with {probability:.2%} (allowed: {settings.pass_probability:.2%})"
     )
     if given:
         return (

@@ -222,6 +222,21 @@ class Prediction:
             0.0,
         )
 
+    def with_scatter_variance(self, scale: float) -> Prediction:
+        """The same prediction with the passes' scatter share's variance times ``scale`` and taken
+        as known (normal tails): the spread should the scatter be ``sqrt(scale)`` times its estimate
+        (:meth:`.Fit.scatter_upper_scale`)."""
+        var = self.sd * self.sd + (scale - 1.0) * self.scatter_sd * self.scatter_sd
+        return Prediction(
+            self.loaded_curvature,
+            self.mean,
+            float(np.sqrt(max(var, 0.0))),
+            _KNOWN_DOF,
+            float(self.scatter_sd * np.sqrt(scale)),
+            self.floor,
+            self.inspection_var,
+        )
+
     @property
     def median(self) -> float:
         """The median curvature after the pass, 1/mm."""
@@ -451,6 +466,13 @@ class Fit:
             var_par_scatter=tied[1],
             inspection_var=noise,
         )
+
+    def scatter_upper_scale(self, confidence: float) -> float:
+        """The scatter's variance at the ``confidence`` upper credible bound of its posterior, over
+        its estimate: ``nu / chi2_{1 - confidence}(nu)`` (the scaled inverse chi-square posterior of
+        the conjugate update, ``nu`` its degrees of freedom, the prior's rows included)."""
+        nu = max(self.scatter_dof, 1.0)
+        return float(nu / stats.chi2.ppf(1.0 - confidence, nu))
 
     def _untied(self, tied: float) -> tuple[float, float]:
         """A variance share weighed with the scatter's posterior mean variance ``nu s^2 / (nu - 2)``

@@ -265,7 +265,7 @@ class Lights:
         return Lights.distant(dirs, self.intensity * att)
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(nogil=True, cache=True, inline="always")
 def light_at(
     k: int,
     x0: float,
@@ -293,7 +293,7 @@ def light_at(
     return geometry[k, 0], geometry[k, 1], geometry[k, 2], 1.0
 
 
-@numba.njit(cache=True, fastmath={"nsz", "arcp", "contract", "reassoc"})
+@numba.njit(nogil=True, cache=True, fastmath={"nsz", "arcp", "contract", "reassoc"})
 def light_vectors_block(
     depth: npt.NDArray[np.floating[Any]],
     kinv: npt.NDArray[np.float64],

@@ -115,7 +115,7 @@ class _Level:
         return self.b
 
 
-@nb.njit(cache=True, fastmath=FASTMATH)
+@nb.njit(nogil=True, cache=True, fastmath=FASTMATH)
 def _presmooth_restrict(
     ex: Arr, ey: Arr, dg: Arr, idg: Arr, x: Arr, b: Arr, bc: Arr, zero_start: bool
 ) -> None:
@@ -171,7 +171,7 @@ def _presmooth_restrict(
                 bc[ic, jc] += tmp[2 * jc - 1] + tmp[2 * jc]
 
 
-@nb.njit(cache=True, fastmath=FASTMATH)
+@nb.njit(nogil=True, cache=True, fastmath=FASTMATH)
 def _prolong_postsmooth(ex: Arr, ey: Arr, idg: Arr, x: Arr, b: Arr, xc: Arr) -> float:
     """x += P xc, then black then red Gauss-Seidel half-sweeps; returns b . x (final x).
 
@@ -208,7 +208,7 @@ def _prolong_postsmooth(ex: Arr, ey: Arr, idg: Arr, x: Arr, b: Arr, xc: Arr) -> 
     return acc
 
 
-@nb.njit(cache=True, fastmath=FASTMATH)
+@nb.njit(nogil=True, cache=True, fastmath=FASTMATH)
 def _coarsen(
     ex: Arr,
     ey: Arr,
@@ -238,7 +238,7 @@ def _coarsen(
             idgc[ic, jc] = 1.0 / d if d > 0.0 else 0.0
 
 
-@nb.njit(cache=True, fastmath=FASTMATH)
+@nb.njit(nogil=True, cache=True, fastmath=FASTMATH)
 def _restrict(r: Arr, rc: Arr) -> None:
     """rc = P^T r: sums over the 2x2 blocks (padded grids)."""
     hc, wc = rc.shape[0] - 2, rc.shape[1] - 2
@@ -252,7 +252,7 @@ def _restrict(r: Arr, rc: Arr) -> None:
             )
 
 
-@nb.njit(cache=True, fastmath=FASTMATH)
+@nb.njit(nogil=True, cache=True, fastmath=FASTMATH)
 def _interpolate(xc: Arr, dgc: Arr, idg: Arr, x: Arr) -> None:
     """x = bilinear interpolation of the coarse cells in the system (cell-centred: a fine cell lies
     1/4 of a coarse cell from its block's centre); cells outside the system get 0. Used for the
@@ -277,7 +277,7 @@ def _interpolate(xc: Arr, dgc: Arr, idg: Arr, x: Arr) -> None:
             x[i, j] = s / sw if sw > 0.0 else xc[ic0, jc0]
 
 
-@nb.njit(cache=True, fastmath=FASTMATH)
+@nb.njit(nogil=True, cache=True, fastmath=FASTMATH)
 def _coarsest_solve(ex: Arr, ey: Arr, idg: Arr, x: Arr, b: Arr, sweeps: int) -> float:
     """x ~ A^-1 b on the coarsest grid by ``sweeps`` symmetric red-black Gauss-Seidel sweeps from
     zero, in the palindromic order red, black, red, ..., black, red (a symmetric operator);

@@ -533,7 +533,7 @@ def _integrate(
     return x, it, rel, (labels, n, int(np.count_nonzero(~has_prior)), has_prior)
 
 
-@nb.njit(cache=True)
+@nb.njit(nogil=True, cache=True)
 def _parts_with_prior(labels: Arr, wd: Arr, n: int) -> Arr:
     out = np.zeros(n + 1, np.bool_)
     h, w = labels.shape
@@ -553,7 +553,7 @@ def _exp_depth(x: Arr, mask: Arr, shift: float, depth: Arr) -> None:
             depth[i, j] = np.exp(x[i, j] + shift) if mask[i, j] else np.nan
 
 
-@nb.njit(cache=True)
+@nb.njit(nogil=True, cache=True)
 def _gather(values: Arr, labels: Arr, label: int | np.integer[Any], out: Arr) -> int:
     """The values of the cells with ``labels == label`` (label -1: every cell with label > 0), in
     row-major order; returns how many."""
@@ -568,7 +568,7 @@ def _gather(values: Arr, labels: Arr, label: int | np.integer[Any], out: Arr) ->
     return k
 
 
-@nb.njit(cache=True)
+@nb.njit(nogil=True, cache=True)
 def _scale_parts(depth: Arr, labels: Arr, factor: Arr) -> None:
     """depth *= factor[label] on the cells with label > 0."""
     h, w = labels.shape

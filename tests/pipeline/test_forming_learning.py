@@ -319,3 +319,30 @@ def _scatter_estimate_is_the_truths(physics: TruePhysics, priors, rel: float) ->
         assert 0 < fitted.scatter_dof - priors.scatter_weight < rows
         variances.append(fitted.scatter_mm**2)
     assert np.sqrt(np.mean(variances)) == pytest.approx(0.1, rel=rel)
+
+
+def test_the_scatters_upper_credible_bound_widens_only_its_share():
+    # AimSettings.scatter_confidence (a trial, off): the scatter's variance at an upper credible bound
+    # of its scaled inverse chi-square posterior, its share of a prediction taken known at that value
+    from scipy import stats
+
+    from pipeline.forming import advise
+    from pipeline.forming.advice import AimSettings
+    from pipeline.forming.learning import _KNOWN_DOF, Prediction, fit
+
+    p = Prediction(1e-4, 2e-4, 3e-6, 10.0, 2e-6, -np.inf, 0.0)
+    up = p.with_scatter_variance(2.0)
+    assert up.sd == pytest.approx(np.sqrt(9e-12 + 4e-12))
+    assert up.scatter_sd == pytest.approx(2e-6 * np.sqrt(2.0))
+    assert up.dof == _KNOWN_DOF and up.mean == p.mean
+    machines = {"R3-01": MACHINE}
+    plate = _plate_after((70.0, 15000.0))
+    fitted = fit([plate], machines)
+    nu = fitted.scatter_dof
+    assert fitted.scatter_upper_scale(0.95) == pytest.approx(nu / stats.chi2.ppf(0.05, nu))
+    assert fitted.scatter_upper_scale(0.5) < fitted.scatter_upper_scale(0.95)
+    plain = advise(plate, machines)
+    bounded = advise(plate, machines, settings=AimSettings(scatter_confidence=0.95))
+    assert bounded.top_roll_displacement_mm <= plain.top_roll_displacement_mm
+    with pytest.raises(ValueError, match="scatter_confidence"):
+        AimSettings(scatter_confidence=1.0)

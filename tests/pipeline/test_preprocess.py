@@ -1,5 +1,6 @@
 from dataclasses import replace
 
+import cv2
 import numpy as np
 import pytest
 
@@ -146,6 +147,25 @@ def test_a_saturated_sample_saturates_its_bin(tmp_path):
     pre = preprocess(small)
     # found saturated: the bin and its neighbours (preprocess dilates by one pixel before undistorting)
     assert 1 <= pre.n_saturated <= 9
+
+
+def test_a_bin_with_saturated_samples_takes_its_brightest():
+    # the blocks with a sample at or above the threshold take the block's brightest sample, the
+    # others its mean; rows and columns beyond the last whole block (80 by 3: row 79) are left out
+    from pipeline.preprocess import _bin_into
+
+    rng = np.random.default_rng(5)
+    raw = rng.uniform(1000.0, 2000.0, (80, 97)).astype(np.float32)
+    hot = rng.choice(raw.size, 60, replace=False)
+    raw.flat[hot] = rng.uniform(3000.0, 4000.0, hot.size)
+    raw[79, :] = 5000.0  # beyond the last block of 3 rows
+    out = np.empty((26, 32), np.float32)
+    _bin_into(raw, out, 3, 3000.0)
+    blocks = raw[:78, :96].reshape(26, 3, 32, 3)
+    brightest = blocks.max(axis=(1, 3))
+    mean = cv2.resize(raw[:78, :96], (32, 26), interpolation=cv2.INTER_AREA)
+    np.testing.assert_array_equal(out, np.where(brightest >= 3000.0, brightest, mean))
+    assert 0 < np.count_nonzero(brightest >= 3000.0) < out.size
 
 
 def test_the_working_grid_follows_the_cells_geometry(tmp_path):

@@ -311,3 +311,33 @@ def test_a_brightness_lobe_that_differs_between_the_views_is_not_disparity():
     assert abs(np.mean(err)) < 0.01
     smooth = cv2.GaussianBlur(err.astype(np.float32), (0, 0), 15)
     assert np.percentile(np.abs(smooth), 95) < 0.03
+
+
+def test_the_refinement_in_bands_of_rows_gives_the_whole_windows_values(plate_3m, monkeypatch):
+    # the refinement and correlation check run in bands of rows on the worker threads, each with
+    # CHECK_HALO_PX rows of its neighbours: the depth is the same to the bit whatever the count
+    from pipeline.surface.stereo import depth as depth_module
+
+    rig, left, right, _, mask = plate_3m
+    maps = {}
+    for parts in (1, 2, 5):
+        monkeypatch.setattr(depth_module, "default_workers", lambda parts=parts: parts)
+        maps[parts] = stereo_depth(
+            left, right, rig, z_min_mm=2500.0, z_max_mm=3500.0, mask=mask
+        ).depth_mm
+    assert len(depth_module.row_bands(mask.shape[0], 5, depth_module.CHECK_HALO_PX)) > 2
+    np.testing.assert_array_equal(maps[2], maps[1])
+    np.testing.assert_array_equal(maps[5], maps[1])
+
+
+def test_row_bands_tile_the_rows_with_their_halo():
+    from pipeline.surface.stereo.depth import row_bands
+
+    bands = row_bands(1000, 3, 40)
+    assert [(keep_lo, keep_hi) for _, _, keep_lo, keep_hi in bands] == [
+        (0, 333),
+        (333, 667),
+        (667, 1000),
+    ]
+    assert [(lo, hi) for lo, hi, _, _ in bands] == [(0, 373), (293, 707), (627, 1000)]
+    assert row_bands(300, 2, 40) == [(0, 300, 0, 300)]  # under 4 halos a band: one band

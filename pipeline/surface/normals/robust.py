@@ -235,7 +235,7 @@ def robust_kernel(
         )
 
 
-@numba.njit(cache=True, fastmath=FASTMATH)
+@numba.njit(nogil=True, cache=True, fastmath=FASTMATH)
 def _load_block(
     images: Arr, valid: Arr, use_valid: bool, mask: Arr, i: int, j0: int, j1: int
 ) -> tuple[Arr, Arr, Arr, Arr]:
@@ -259,7 +259,7 @@ def _load_block(
     return samples, usable, m, finite
 
 
-@numba.njit(cache=True, fastmath=FASTMATH)
+@numba.njit(nogil=True, cache=True, fastmath=FASTMATH)
 def _robust_block(
     samples: Arr,
     usable: Arr,
@@ -326,7 +326,7 @@ def _robust_block(
         b_out[2, i, j0 + j] = b[2, j]
 
 
-@numba.njit(cache=True, fastmath=FASTMATH)
+@numba.njit(nogil=True, cache=True, fastmath=FASTMATH)
 def _trim_levels(
     samples: Arr,
     usable: Arr,
@@ -355,7 +355,7 @@ def _trim_levels(
     return low, top
 
 
-@numba.njit(cache=True, fastmath=FASTMATH)
+@numba.njit(nogil=True, cache=True, fastmath=FASTMATH)
 def _first_fit(
     samples: Arr, usable: Arr, m: Arr, L: Arr, low: Arr, top: Arr, keep: Arr
 ) -> tuple[Arr, Arr]:
@@ -393,7 +393,7 @@ def _first_fit(
     return b, ok
 
 
-@numba.njit(cache=True, fastmath=FASTMATH)
+@numba.njit(nogil=True, cache=True, fastmath=FASTMATH)
 def _refit(
     samples: Arr,
     usable: Arr,
@@ -458,7 +458,7 @@ def _refit(
                 keep_k[j] = trial_k[j] if accept[j] else keep_k[j]
 
 
-@numba.njit(cache=True, fastmath=FASTMATH)
+@numba.njit(nogil=True, cache=True, fastmath=FASTMATH)
 def _fit_row(samples: Arr, weight: Arr, L: Arr, b: Arr, ok: Arr) -> None:
     """Per pixel j of a block: weighted (0/1) least squares b[:, j] over the samples.
 
@@ -516,7 +516,7 @@ def _fit_row(samples: Arr, weight: Arr, L: Arr, b: Arr, ok: Arr) -> None:
         ok[j] = _F32_ONE if good else _F32_ZERO
 
 
-@numba.njit(cache=True, fastmath=FASTMATH)
+@numba.njit(nogil=True, cache=True, fastmath=FASTMATH)
 def _sort_row(values: Arr, pairs: Arr) -> None:
     """Sort every column of values (N, W) in place with the sorting network ``pairs`` (branch-free)."""
     w = values.shape[1]

@@ -21,7 +21,7 @@ MIN_FIT = 3
 DEGENERATE_RATIO = 1e-4
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(nogil=True, cache=True, inline="always")
 def adjugate3(
     m00: float, m01: float, m02: float, m11: float, m12: float, m22: float
 ) -> tuple[float, float, float, float, float, float, float]:
@@ -43,7 +43,7 @@ def adjugate3(
     return c00, c01, c02, c11, c12, c22, det
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(nogil=True, cache=True, inline="always")
 def adjugate_times(
     c00: float,
     c01: float,

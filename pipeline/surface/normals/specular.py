@@ -104,7 +104,7 @@ def _search_tables() -> np.ndarray:
     return tables
 
 
-@numba.njit(cache=True, fastmath=FASTMATH, inline="always")
+@numba.njit(nogil=True, cache=True, fastmath=FASTMATH, inline="always")
 def _lookup(table: Arr, c: float) -> float:
     """Linear interpolation of a lobe table at c (clamped to [0, 1]: the lobe is 0 for c <= 0)."""
     x = min(max(c, 0.0), 1.0) * (_LOBE_TABLE - 1)

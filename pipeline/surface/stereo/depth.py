@@ -31,7 +31,10 @@ stereo pairs", Machine Vision and Applications 12, 2000.
 
 from __future__ import annotations
 
+import itertools
+import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -39,6 +42,7 @@ import numpy as np
 import numpy.typing as npt
 
 from pipeline.camera import StereoRig
+from pipeline.parallel import default_workers
 from pipeline.surface.stereo.matching import (
     BLOCK_SIZE,
     MatchPass,
@@ -69,6 +73,10 @@ COARSE_PERCENTILES = (0.5, 99.5)
 FINE_MARGIN_PX = 8
 #: Fewer trusted coarse matches than this: the fine pass searches the whole given depth range instead.
 COARSE_MIN_MATCHES = 50
+#: Rows of its neighbours computed beside each band of the refinement and correlation check
+#: (:func:`_checked_disparity`): a row depends on rows within ``REFINE_ITERATIONS + 1`` Gaussian
+#: windows (OpenCV's radius ``4 sigma`` for float images), with room to spare.
+CHECK_HALO_PX = (REFINE_ITERATIONS + 1) * math.ceil(4 * REFINE_SIGMA_PX) + 16
 
 
 @dataclass(frozen=True)
@@ -400,9 +408,35 @@ def _triangulate(disparity: np.ndarray, f: float, bx: float) -> np.ndarray:
 
 def _checked_disparity(fp: MatchPass, shift: int, refine: bool) -> np.ndarray:
     """The fine pass's disparities refined (``refine``) and correlation-checked: matches whose windowed ZNCC
-    is under ``MIN_ZNCC`` are holes (NaN). Rectified window grid, full-size pixels."""
+    is under ``MIN_ZNCC`` are holes (NaN). Rectified window grid, full-size pixels.
+
+    The window is checked in bands of rows on :func:`pipeline.parallel.default_workers` threads (OpenCV's
+    filters and numpy's loops release the GIL), each with :data:`CHECK_HALO_PX` rows of its
+    neighbours: a row's result depends on rows within ``(REFINE_ITERATIONS + 1)`` Gaussian windows
+    (radius ``4 REFINE_SIGMA_PX``) only, so the bands give the very values of one pass over the
+    whole window (``tests/pipeline/test_stereo.py``)."""
     scaled_l, scaled_r = scaled(fp.rect_l, *fp.levels[0]), scaled(fp.rect_r, *fp.levels[1])
     d_rel = fp.d_win - np.float32(shift)
+    bands = row_bands(d_rel.shape[0], default_workers(), CHECK_HALO_PX)
+
+    def check(band: tuple[int, int, int, int]) -> np.ndarray:
+        lo, hi, keep_lo, keep_hi = band
+        rows = slice(lo, hi)
+        d = _checked_band(scaled_l[rows], scaled_r[rows], d_rel[rows], refine)
+        return d[keep_lo - lo : keep_hi - lo]
+
+    if len(bands) == 1:
+        checked = check(bands[0])
+    else:
+        with ThreadPoolExecutor(max_workers=len(bands)) as pool:
+            checked = np.concatenate(list(pool.map(check, bands)))
+    return (checked + np.float32(shift)).astype(np.float32)
+
+
+def _checked_band(
+    scaled_l: np.ndarray, scaled_r: np.ndarray, d_rel: np.ndarray, refine: bool
+) -> np.ndarray:
+    """:func:`_checked_disparity` on one band of rows (disparities relative to the pass's shift)."""
     if refine:
         d_rel = refine_disparity(
             scaled_l,
@@ -412,9 +446,21 @@ def _checked_disparity(fp: MatchPass, shift: int, refine: bool) -> np.ndarray:
             iterations=REFINE_ITERATIONS,
             max_step_px=REFINE_MAX_STEP_PX,
         )
+    else:
+        d_rel = d_rel.copy()
     zncc = match_correlation(scaled_l, scaled_r, d_rel, sigma_px=REFINE_SIGMA_PX)
     d_rel[~(zncc >= MIN_ZNCC)] = np.nan
-    return (d_rel + np.float32(shift)).astype(np.float32)
+    return d_rel
+
+
+def row_bands(height: int, parts: int, halo: int) -> list[tuple[int, int, int, int]]:
+    """``parts`` bands of rows of an image ``height`` tall, each ``(lo, hi, keep_lo, keep_hi)``: rows
+    ``lo:hi`` are computed, ``keep_lo:keep_hi`` kept (the bands' kept rows tile the image); ``halo``
+    rows of each neighbour are computed beside a band's own. One band when the image is under
+    ``4 halo`` rows a band."""
+    parts = max(1, min(int(parts), height // (4 * halo) if halo > 0 else height))
+    edges = [round(i * height / parts) for i in range(parts + 1)]
+    return [(max(0, a - halo), min(height, b + halo), a, b) for a, b in itertools.pairwise(edges)]
 
 
 def _on_left_grid(
