@@ -195,11 +195,14 @@ class AravisCamera(Camera):
                     step,
                     f"no frame within {timeout_s:.1f} s (camera gone or not triggered?)",
                 )
-            if (
+            cleared = buffer.get_status() == self._Aravis.BufferStatus.CLEARED
+            if not cleared and (
                 not 0 < buffer.get_system_timestamp() < self._trigger_ns
             ):  # 0: nothing received, a failed frame
                 break
-            self._stream.push_buffer(buffer)  # begun before the trigger: not this frame
+            # begun before the trigger, or handed back unfilled (status cleared: the stream recycled
+            # it, no packet of any frame in it, seen on a loaded machine): not this frame
+            self._stream.push_buffer(buffer)
         try:
             return self._frame(buffer, step)
         finally:
