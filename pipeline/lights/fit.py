@@ -264,7 +264,7 @@ class _PointModel:
 
     def vector(self, lights: Lights) -> np.ndarray:
         x = self.param.vector(lights)
-        x[5::_N_PARAMS] = np.maximum(x[5::_N_PARAMS], 0.0)
+        self.project(x)
         return x
 
     def lights(self, x: np.ndarray) -> Lights:

@@ -35,6 +35,7 @@ References
 from __future__ import annotations
 
 import contextlib
+import functools
 from dataclasses import dataclass
 
 import cv2
@@ -283,59 +284,53 @@ def refine_lights(
     )
 
 
+@dataclass
 class _GlossySamples:
     """The lobe's pretest under refitted lights and the samples of the fits with it, shared by the
     distant and the point model: the fine blocks are made once, when a first pretest finds a lobe."""
 
-    def __init__(
-        self,
-        images: np.ndarray,
-        valid: np.ndarray | None,
-        mask: np.ndarray,
-        lights: Lights,
-        depth_mm: np.ndarray,
-        K: np.ndarray,
-        max_samples: int,
-        seed: int,
-    ) -> None:
-        self.args = (images, valid, mask, lights, depth_mm, K)
-        self.max_samples, self.seed = max_samples, seed
-        self.fine: light_fit.Samples | None = None
-        self.made = False
+    images: np.ndarray
+    valid: np.ndarray | None
+    mask: np.ndarray
+    lights: Lights
+    depth_mm: np.ndarray
+    K: np.ndarray
+    max_samples: int
+    seed: int
+
+    @functools.cached_property
+    def fine(self) -> light_fit.Samples | None:
+        """The samples from the smallest blocks: fitted on the default blocks (13 px at 1224 x 1024)
+        the ring of LEDs came out 27-39 mm too high, on 2 px ones 3-9 mm."""
+        return _samples(
+            self.images,
+            self.valid,
+            self.mask,
+            self.lights,
+            self.depth_mm,
+            self.K,
+            max_samples=self.max_samples,
+            seed=self.seed,
+            block_px=GLOSSY_BLOCK_PX,
+        )
 
     def lobe_under(self, fitted: Lights) -> tuple[light_fit.Samples, glare.Lobe] | None:
         """The fine samples and the lobe measured under ``fitted`` on pixels of the smooth surface (a
         matte plate stops at the pretest, F about 1); None without a significant lobe."""
-        images, valid, mask, lights, depth_mm, K = self.args
         measured = glare.measure_lobe(
-            images,
-            valid,
+            self.images,
+            self.valid,
             fitted,
-            depth_mm,
+            self.depth_mm,
             None,
-            mask,
-            K,
-            start_mm=depth_mm,
-            gain=lights.intensity / fitted.intensity,
+            self.mask,
+            self.K,
+            start_mm=self.depth_mm,
+            gain=self.lights.intensity / fitted.intensity,
             refine=False,
         )
         if not (measured.f_ratio >= glare.MIN_F and measured.amplitude > 0):
             return None
-        if not self.made:
-            # the lobe's samples from the smallest blocks: fitted on the default blocks (13 px at
-            # 1224 x 1024) the ring of LEDs came out 27-39 mm too high, on 2 px ones 3-9 mm
-            self.fine = _samples(
-                images,
-                valid,
-                mask,
-                lights,
-                depth_mm,
-                K,
-                max_samples=self.max_samples,
-                seed=self.seed,
-                block_px=GLOSSY_BLOCK_PX,
-            )
-            self.made = True
         return None if self.fine is None else (self.fine, measured)
 
 

@@ -82,17 +82,15 @@ def lit_surroundings(
         # plate the matcher left unmatched at its rim, or surroundings as bright as the plate)
         dim = ring & (b < OUTLINE_ALBEDO_RATIO * inside)
     outside, dim_share = _local_mean(b, dim, size)
-    _, ring_share = _local_mean(b, ring, size)
+    ring_share = cv2.blur(ring.astype(np.float32), (size, size), borderType=cv2.BORDER_CONSTANT)
     with np.errstate(invalid="ignore", divide="ignore"):
         # told apart where most of the lit pixels just outside are such surroundings
         apart = (in_share > 0) & (dim_share > 0.5 * ring_share) & (ring_share > 0)
         darker = b < 0.5 * (inside + outside)
     candidates = zone & apart & darker
     # joined to the outside through such pixels: grown from those touching it
-    grown: np.ndarray = candidates & cv2.dilate(
-        (~region).view(np.uint8), np.ones((3, 3), np.uint8)
-    ).view(bool)
     kernel = np.ones((3, 3), np.uint8)
+    grown: np.ndarray = candidates & cv2.dilate((~region).view(np.uint8), kernel).view(bool)
     for _ in range(reach_px):
         nxt = candidates & cv2.dilate(grown.view(np.uint8), kernel).view(bool)
         if np.array_equal(nxt, grown):

@@ -140,11 +140,11 @@ def segment_plate(
         support_width_mm=float(support_width_mm),
         step_zone_px=int(step_zone_px),
     )
-    gf = b if glare_free is None else check_image("glare_free", glare_free).astype(np.float32)
-    if gf.shape != b.shape:
-        raise ValueError(
-            f"glare_free: expected shape {b.shape} to match brightness, got {gf.shape}"
-        )
+    gf = (
+        b
+        if glare_free is None
+        else check_image("glare_free", glare_free, b.shape).astype(np.float32)
+    )
     return _segmented(
         b,
         gf,
