@@ -17,7 +17,12 @@ feature that both see (a dent) is not in the difference at all.
 
 The correction is chosen by the evidence (a lack-of-fit test): from a plane in (u, v) (scale and
 tilt, always the stereo pair's), a quadric (and bend) and splines of finer knots, the coarsest rung
-that the finest one does not beat by more than the stereo noise explains. The noise is measured on
+that the finest one does not beat by more than the stereo noise explains. When the test takes the
+finest spline, it is estimated as a smoother: its second-difference penalty a prior on the
+correction's roughness whose weight the data set (REML, :func:`_penalised`), so that its knot cells
+at the outline or in a thin part of the mask, which few stereo blocks hold, follow the plate inside
+as far as those blocks are weak instead of their correlated stereo error (bench_lights case 11, the
+plate's edge beside a glare-lit conveyor). The noise is measured on
 the data: the robust spread of the finest rung's block residuals and their correlation between
 neighbouring blocks (a stereo matcher's errors are correlated over its window and smoothness
 term), which inflates what pure noise takes out of the residual. So exact normals keep their shape
@@ -42,7 +47,7 @@ import cv2
 import numba as nb
 import numpy as np
 import numpy.typing as npt
-from scipy import special
+from scipy import linalg, special
 
 #: Finest knot spacing of the correction spline as a fraction of the plate's larger extent in the
 #: image: at most, the stereo pair governs shape wider than about this.
@@ -76,8 +81,10 @@ MAX_CENTROID_OFFSET = 0.1
 HUBER_K = 2.0
 #: Re-weighted passes of the robust fit.
 IRLS_PASSES = 3
-#: Weight of the second-difference penalty on the spline coefficients, relative to the data's total
-#: weight per coefficient: bridges knot cells without stereo data, negligible where there is some.
+#: Weight of the second-difference penalty on the spline coefficients of a rung of fixed size (and of
+#: the finest rung's first pass), relative to the data's total weight per coefficient: bridges knot
+#: cells without stereo data, negligible where there is some. The finest spline, once chosen, is
+#: estimated with the data's own weight (REML, :func:`_penalised`).
 SMOOTHING = 1e-6
 
 
@@ -193,6 +200,11 @@ def fuse_low_frequencies(
     blocks = _Blocks.of(zb, zsb, mb)
     fits = _ladder_fits(blocks, mb.shape, knot_fraction, select)
     chosen, inflation, evidence = _chosen(fits, blocks) if select else (fits[0], 1.0, {})
+    finest = chosen is fits[-1]
+    if select and finest and chosen.basis is None:  # the finest spline: estimated as a smoother
+        chosen = _fit(
+            chosen.grid, blocks, rung=chosen.rung, n_params=chosen.grid.size, smoother=True
+        )
     fraction = chosen.rung if chosen.rung not in _POLYNOMIAL else None
     fused = np.full(z.shape, np.nan)
     correction = np.full(z.shape, np.nan, np.float32)
@@ -203,7 +215,7 @@ def fuse_low_frequencies(
     if select:
         sd = np.full(z.shape, np.nan, np.float32)
         sd[box] = np.where(mb, _value_sd(chosen, scale2) * zb, np.nan)
-        if chosen is not fits[-1]:
+        if not finest:
             finer = fits[next(i for i, f in enumerate(fits) if f is chosen) + 1]
             model = np.full(z.shape, np.nan, np.float32)
             model[box] = np.where(mb, _difference(finer, chosen) * zb, np.nan)
@@ -253,8 +265,10 @@ class _Fitted:
 
     ``coef`` the spline coefficients; ``sigma_pix`` the per-sample robust standard deviation;
     ``residual`` (nbv, nbu) the block residuals; ``normal``
-    the normal equations' matrix of the last pass (with the penalty), ``basis`` the polynomial
-    basis in coefficient space (None for a spline); ``n_params`` the free parameters.
+    the normal equations' matrix of the last pass (with the penalty), ``inverse`` its inverse when the
+    penalised fit had it at hand (None: computed when needed), ``basis`` the polynomial basis in
+    coefficient space (None for a spline); ``n_params`` the free parameters (a penalised spline's
+    effective degrees of freedom).
     """
 
     rung: Rung
@@ -263,8 +277,9 @@ class _Fitted:
     sigma_pix: float
     residual: np.ndarray
     normal: np.ndarray
+    inverse: np.ndarray | None
     basis: np.ndarray | None
-    n_params: int
+    n_params: float
 
 
 def _ladder_fits(
@@ -389,7 +404,8 @@ def _coef_cov(f: _Fitted, scale2: float) -> np.ndarray:
         inner = np.linalg.pinv(Q.T @ f.normal @ Q)
         cov: np.ndarray = scale2 * (Q @ inner @ Q.T)
         return cov
-    cov_spline: np.ndarray = scale2 * np.linalg.pinv(f.normal)
+    inverse = f.inverse if f.inverse is not None else np.linalg.pinv(f.normal)
+    cov_spline: np.ndarray = scale2 * inverse
     return cov_spline
 
 
@@ -603,7 +619,9 @@ class _Grid:
         return np.kron(dtd(self.nv), np.eye(self.nu)) + np.kron(np.eye(self.nv), dtd(self.nu))
 
 
-def _fit(grid: _Grid, blocks: _Blocks, *, rung: Rung, n_params: int) -> _Fitted:
+def _fit(
+    grid: _Grid, blocks: _Blocks, *, rung: Rung, n_params: int, smoother: bool = False
+) -> _Fitted:
     """Robust penalised least squares of the spline to the block medians (weights: pixel counts).
 
     For the polynomial rungs the correction is a polynomial of degree 1 (scale and tilt) or 2 (and
@@ -614,13 +632,15 @@ def _fit(grid: _Grid, blocks: _Blocks, *, rung: Rung, n_params: int) -> _Fitted:
     R, W0 = blocks.value, blocks.count
     Q = _polynomial_basis(grid, _DEGREE[rung]) if rung in _DEGREE else None
     PtP = grid.penalty()
-    lam = SMOOTHING * W0.sum() / grid.size
+    lam = SMOOTHING * W0.sum() / grid.size  # before the noise is known: a bridge over empty cells
     w = W0.copy()
     used = W0 > 0
     coef = np.zeros(grid.size)
     res = R.copy()
     sigma_pix = 0.0
     N = np.eye(grid.size)
+    inverse: np.ndarray | None = None
+    edf = float(n_params)
     for _ in range(IRLS_PASSES):
         # normal equations of sum_ij w_ij (R_ij - (Bv C Bu^T)_ij)^2, separably
         inner = Bu.T @ (w[:, :, None] * Bu[None])  # (nbv, nu, nu): Bu^T diag(w_i) Bu per block row
@@ -633,8 +653,8 @@ def _fit(grid: _Grid, blocks: _Blocks, *, rung: Rung, n_params: int) -> _Fitted:
         if Q is not None:
             coef = Q @ np.linalg.solve(Q.T @ N @ Q, Q.T @ rhs)
         else:
-            N = N + lam * PtP
-            coef = np.linalg.solve(N, rhs)
+            noise = sigma_pix if smoother else 0.0  # a fixed rung: the bridge over empty cells only
+            coef, N, inverse, edf = _penalised(N, rhs, PtP, lam, noise, res, blocks)
         res = R - (Bv @ coef.reshape(grid.nv, grid.nu)) @ Bu.T
         # per-sample units: a median of n samples ~ 1.25 sigma / sqrt(n)
         scaled = (res * np.sqrt(blocks.samples))[used] / 1.2533
@@ -650,9 +670,83 @@ def _fit(grid: _Grid, blocks: _Blocks, *, rung: Rung, n_params: int) -> _Fitted:
         sigma_pix=sigma_pix,
         residual=np.where(used, res, 0.0),
         normal=N,
+        inverse=inverse,
         basis=Q,
-        n_params=n_params,
+        n_params=edf,
     )
+
+
+def _penalised(
+    N: np.ndarray,
+    rhs: np.ndarray,
+    PtP: np.ndarray,
+    lam: float,
+    sigma_pix: float,
+    res: np.ndarray,
+    blocks: _Blocks,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, float]:
+    """One pass of the spline's penalised fit: coefficients, normal matrix with the penalty, its inverse
+    (None in the first pass), effective degrees of freedom.
+
+    The second-difference penalty is a prior on the correction's roughness: the coefficients' second
+    differences independent with variance ``tau^2``, so its weight is ``s^2 / tau^2`` (``s^2`` the
+    block noise per unit weight, :func:`_noise_variance` times the residuals' :func:`_noise_inflation`,
+    from the previous pass). ``tau^2`` is not set but estimated from the data by REML, i.e. the weight
+    that maximises the marginal likelihood of the block medians [3]_: a plate whose low frequencies
+    the stereo pair proves rough gets a small one, and a coefficient that many blocks hold follows
+    them whatever it is, while one that few blocks hold (a knot cell at the outline, a thin part of
+    the mask) is drawn to the smooth continuation of its neighbours by as much as its data are weak
+    against that prior, instead of following a few blocks' correlated stereo error. In the first
+    pass (no noise measured yet), and for the ladder's fits (``sigma_pix`` 0: the lack-of-fit test
+    compares nested least squares; only the finest spline, once the test takes it, is estimated so,
+    see :func:`fuse_low_frequencies`), the weight is ``lam`` (:data:`SMOOTHING`), a bridge over knot
+    cells without data and nothing more.
+
+    With ``A = N + k PtP`` (``k`` balances the two's traces) and the generalised eigenvectors ``V``
+    (``V^T A V = I``, ``V^T k PtP V = diag(g)``, ``0 <= g <= 1``), every weight ``mu k`` is
+    diagonal: ``(N + mu k PtP)^-1 = V diag(1 / (1 + (mu - 1) g)) V^T``, so the REML criterion is
+    searched over ``mu`` at no further factorisation.
+
+    References
+    ----------
+    .. [3] S. N. Wood, "Generalized additive models", 2nd ed., CRC, 2017, sec. 6.2 (smoothing
+       parameters by REML; a penalty as a Gaussian prior on the coefficients).
+    """
+    scale2 = (
+        _noise_variance(sigma_pix, blocks) * _noise_inflation(res, blocks) if sigma_pix > 0 else 0.0
+    )
+    if not scale2 > 0:
+        normal = N + lam * PtP
+        return np.linalg.solve(normal, rhs), normal, None, float(PtP.shape[0])
+    k = float(np.trace(N) / np.trace(PtP))
+    try:
+        g, V = linalg.eigh(k * PtP, N + k * PtP)
+    except linalg.LinAlgError:  # data too sparse for the penalty's null space: no prior fitted
+        normal = N + lam * PtP
+        return np.linalg.solve(normal, rhs), normal, None, float(PtP.shape[0])
+    g = np.clip(g, 0.0, 1.0)
+    b2 = (V.T @ rhs) ** 2
+    # the penalty's rank: all but its null space, the bilinear terms (1, u, v, uv)
+    rank = int(np.count_nonzero(g > _PENALTY_NULL))
+    mu = _PENALTY_GRID[:, None]
+    d = 1.0 + (mu - 1.0) * g[None, :]
+    # -2 log marginal likelihood (REML) up to a constant, per weight
+    criterion = (
+        -rank * np.log(mu[:, 0]) + np.log(d).sum(axis=1) - (b2[None, :] / d).sum(axis=1) / scale2
+    )
+    best = _PENALTY_GRID[int(np.argmin(criterion))]
+    d_best = 1.0 + (best - 1.0) * g
+    coef = V @ ((V.T @ rhs) / d_best)
+    edf = float(np.sum((1.0 - g) / d_best))  # trace of the hat matrix
+    inverse = (V / d_best) @ V.T  # (N + best k PtP)^-1, for the coefficients' covariance
+    return coef, N + best * k * PtP, inverse, edf
+
+
+#: Weights of the penalty searched (times the trace balance k, see :func:`_penalised`): from none to
+#: far beyond any data, 0.05 decade apart (the criterion is flat on that scale near its minimum).
+_PENALTY_GRID = np.logspace(-8.0, 10.0, 361)
+#: Generalised eigenvalues below this are the penalty's null space (round-off of exact zeros).
+_PENALTY_NULL = 1e-9
 
 
 def _polynomial_basis(grid: _Grid, degree: int) -> np.ndarray:
