@@ -2,8 +2,8 @@
 
 Prints one row per capture: the deviation's p95 and max, the expanded uncertainty U95 (k = 2) and
 the test uncertainty ratio, the radius error against its U, the verdict and any warning. The
-right verdict is pass for every plate formed exactly and fail for the dent and the under-bent
-plate (docs/uncertainty.md).
+right verdict is pass for every plate formed exactly and fail for the dent, the under-bent plate
+and the bump on the glossy plate (docs/uncertainty.md).
 
     .venv/bin/python benchmarks/bench_capable.py [--seeds 1 2] [--size 1224x1024]
 """
@@ -29,6 +29,9 @@ from pipeline.simulate import (
 
 FLOOR = Floor(gap_mm=400.0, supports=rail_supports((3000.0, 3000.0), 400.0, 3))
 LED = {"near_field_mm": 2800.0, "led_mu": 1.0}
+#: A glossy coating (a specular lobe half as bright as the diffuse light) under 18 lights.
+GLARE = {"n_lights": 18, "specular": 0.5}
+GLARE_LEDS = {**GLARE, "near_field_mm": 2800.0, "light_elevation_deg": 30.0, "led_mu": 1.5}
 #: (name, PlateSpec keywords, CaptureSpec keywords, target radius or None for the plate's own)
 CASES: tuple[tuple[str, dict[str, Any], dict[str, Any], float | None], ...] = (
     ("12 distant lights", {}, {}, None),
@@ -48,9 +51,18 @@ CASES: tuple[tuple[str, dict[str, Any], dict[str, Any], float | None], ...] = (
         LED,
         None,
     ),
+    ("glare, 18 distant lights", {}, GLARE, None),
+    ("glare, 18 LEDs 2.8 m, positions", {}, GLARE_LEDS, None),
+    ("glare (broad lobe), 18 LEDs, positions", {}, {**GLARE_LEDS, "shininess": 15.0}, None),
     ("sphere R 8000", {"shape": "sphere", "radius_mm": 8000.0}, {}, None),
     ("dent 5 mm (fail)", {"dents": (Dent(-600.0, 300.0, 150.0, 5.0),)}, {}, None),
     ("under-bent R 5250 against R 5000 (fail)", {"radius_mm": 5250.0}, {}, 5000.0),
+    (
+        "bump 2.8 mm, glare, 18 LEDs (fail)",
+        {"dents": (Dent(400.0, -300.0, 250.0, -2.8),)},
+        GLARE_LEDS,
+        None,
+    ),
 )
 
 

@@ -322,10 +322,12 @@ def _brightest(images: Arr, out: Arr, rank: int, ranked: Arr, rank2: int, ranked
     deep = max(rank, rank2) + 1
     for i in numba.prange(h):
         # the row's deep brightest samples, descending: each image's row is passed down through
-        # them by compare-exchanges (branch-free, vectorised over the row's pixels)
+        # them by compare-exchanges (branch-free, vectorised over the row's pixels); two arrays a row
+        # (every thread allocates from one malloc arena, pipeline.parallel.MALLOC_ARENAS)
         top = np.full((deep, w), -np.inf, np.float32)
+        x = np.empty(w, np.float32)
         for k in range(n):
-            x = images[k, i].copy()
+            x[:] = images[k, i]
             for p in range(deep):
                 row = top[p]
                 for j in range(w):

@@ -49,6 +49,7 @@ from pipeline.stages import (
     load_inputs,
     measure,
     preprocess_scene,
+    start_capture_work,
 )
 from pipeline.surface import reconstruct
 
@@ -197,14 +198,16 @@ def _inspect(
     """:func:`inspect` inside its BLAS limit and error handling: every stage, then the two documents."""
     warnings: list[str] = []
     cap, tgt = load_inputs(capture, target, light_calibration, warnings, clock, opts, frames)
-    scene = preprocess_scene(cap, opts, clock)
-    # Work that does not need the main line's next result runs beside it. The stereo pair
-    # needs only the plate mask (matched while the normals are estimated); curvature and the pixel
-    # areas run beside the registration; the artifacts (image encoding and file writing release the
-    # GIL) as soon as they are known.
+    # Work that does not need the main line's next result runs beside it. What needs the capture
+    # only (the pixel rays, the sensor noise) beside the preprocessing; the stereo pair needs only
+    # the plate mask (matched while the normals are estimated); curvature and the pixel areas run
+    # beside the registration; the artifacts (image encoding and file writing release the GIL) as
+    # soon as they are known.
     # numba's parallel kernels (normals, depth) run on this thread only: never two at once.
     with ThreadPoolExecutor(max_workers=opts.workers or default_workers()) as pool:
-        m = measure(cap, tgt, scene, opts, out, pool, clock)
+        started = start_capture_work(cap, pool)
+        scene = preprocess_scene(cap, opts, clock)
+        m = measure(cap, tgt, scene, opts, out, pool, clock, started)
     details = _details(m, scene.pre, tgt, near_field=cap.lights.any_point)
     warnings += _warnings(m.surface, tgt, details)
     warnings += _capability_warnings(m, cap, tgt)

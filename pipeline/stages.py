@@ -257,6 +257,31 @@ class View:
     raw_noise: tuple[np.ndarray, float | None]
 
 
+@dataclass(frozen=True)
+class CaptureWork:
+    """A view's work that needs its capture only, started on the pool before the images are
+    preprocessed (:func:`start_capture_work`): it then fills the preprocessing's serial steps (the
+    plate mask, the candidates) instead of taking a core from the stereo pair and the normals.
+
+    Attributes
+    ----------
+    rays : Future of (H, W, 3) float64
+        The left camera's pixel rays, for the surface and the areas.
+    raw_noise : Future of ((N,) float64, float or None)
+        :func:`pipeline.preprocess.raw_noise_counts`, for the uncertainty.
+    """
+
+    rays: Future[np.ndarray]
+    raw_noise: Future[tuple[np.ndarray, float | None]]
+
+
+def start_capture_work(cap: Capture, pool: ThreadPoolExecutor) -> CaptureWork:
+    """Submit :class:`CaptureWork` of ``cap`` to ``pool``."""
+    return CaptureWork(
+        rays=pool.submit(cap.rig.left.pixel_rays), raw_noise=pool.submit(raw_noise_counts, cap)
+    )
+
+
 def reconstruct_view(
     cap: Capture,
     tgt: Target,
@@ -266,18 +291,17 @@ def reconstruct_view(
     clock: StageClock,
     *,
     normals_png: Path | None = None,
+    started: CaptureWork | None = None,
 ) -> tuple[View, list[Future[Any]]]:
     """Stages *normals*, *stereo* and *depth* of one view, work beside the main line on ``pool``.
 
-    ``normals_png``: where normals.png is written (beside the depth solve), None: not written. Returns the
-    view and the artifact writes under way.
+    ``normals_png``: where normals.png is written (beside the depth solve), None: not written.
+    ``started``: the capture's work already submitted (:func:`start_capture_work`), None: submitted
+    here. Returns the view and the artifact writes under way.
     """
     pre, K = scene.pre, cap.rig.left.K
     stereo_job = pool.submit(_stereo_depth, cap, scene.region, opts) if cap.has_stereo else None
-    rays_job = pool.submit(
-        cap.rig.left.pixel_rays
-    )  # (H, W, 3) float64, for the surface and the areas
-    noise_job = pool.submit(raw_noise_counts, cap)  # for the uncertainty, needs the raw frames only
+    started = started or start_capture_work(cap, pool)
     field = None
     clock.begin("normals")
     if not cap.lights.any_point:
@@ -302,11 +326,15 @@ def reconstruct_view(
         )
     _check_stereo_share(plate, cap, opts)
     surface = _surface(cap, tgt, scene, plate, field, opts, clock)
-    rays = rays_job.result()
+    rays = started.rays.result()
     points = surface.depth_mm[..., None] * rays
     clock.end("depth")
     view = View(
-        surface=surface, plate=plate, points=points, rays=rays, raw_noise=noise_job.result()
+        surface=surface,
+        plate=plate,
+        points=points,
+        rays=rays,
+        raw_noise=started.raw_noise.result(),
     )
     return view, writes
 
@@ -319,10 +347,19 @@ def measure(
     out: Path,
     pool: ThreadPoolExecutor,
     clock: StageClock,
+    started: CaptureWork | None = None,
 ) -> Measurement:
-    """Stages *normals* to *artifacts* (details.json and result.json excepted), work beside the main line on ``pool``."""
+    """Stages *normals* to *artifacts* (details.json and result.json excepted), work beside the main line on
+    ``pool`` (``started``: see :func:`reconstruct_view`)."""
     view, writes = reconstruct_view(
-        cap, tgt, scene, opts, pool, clock, normals_png=out / ARTIFACT_FILES["normals"]
+        cap,
+        tgt,
+        scene,
+        opts,
+        pool,
+        clock,
+        normals_png=out / ARTIFACT_FILES["normals"],
+        started=started,
     )
     pre, surface, points = scene.pre, view.surface, view.points
 

@@ -14,6 +14,7 @@ import numpy as np
 from ..formats import (
     InputError,
 )
+from .png import PNG_SIGNATURE, PngError, decode_grey_into
 
 if TYPE_CHECKING:
     from .bundle import _Bundle
@@ -27,13 +28,12 @@ class _ImageJob:
     what: str  # "photometric image", "dark frame", ...
 
 
-_PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 _TIFF_MAGICS = (b"II*\x00", b"MM\x00*")
 
 
 def _header_size(data: bytes) -> tuple[int, int] | None:
     """``(width, height)`` from a PNG's IHDR or a TIFF's first IFD, without decoding; None if unreadable."""
-    if data.startswith(_PNG_MAGIC) and len(data) >= 24 and data[12:16] == b"IHDR":
+    if data.startswith(PNG_SIGNATURE) and len(data) >= 24 and data[12:16] == b"IHDR":
         return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
     if data[:4] in _TIFF_MAGICS:
         order: Literal["little", "big"] = "little" if data[:2] == b"II" else "big"
@@ -62,7 +62,7 @@ def _decode_into(
     image is refused before anything is allocated for it.
     """
     name = repr(job.rel)
-    if not (data.startswith(_PNG_MAGIC) or data[:4] in _TIFF_MAGICS):
+    if not (data.startswith(PNG_SIGNATURE) or data[:4] in _TIFF_MAGICS):
         raise InputError(
             label,
             job.field,
@@ -76,6 +76,14 @@ def _decode_into(
             job.field,
             f"{name} ({job.what}) is {header[0]}x{header[1]} px, expected {ew}x{eh} (calibration image_size, width x height)",
         )
+    try:
+        # a camera's grey PNG: decoded straight into ``out`` (pipeline.io.png); any other: libpng
+        decoded = decode_grey_into(data, out) if data.startswith(PNG_SIGNATURE) else None
+    except PngError as err:
+        raise InputError(label, job.field, f"{name}: cannot decode as a PNG: {err}") from err
+    if decoded is not None:
+        _check_bits(*decoded, job, bit_depth=bit_depth, label=label)
+        return
     try:
         img = (
             cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
@@ -117,7 +125,20 @@ def _store(img: np.ndarray, job: _ImageJob, out: np.ndarray, *, bit_depth: int, 
             job.field,
             f"{name} ({job.what}) is {w}x{h} px, expected {ew}x{eh} (calibration image_size, width x height)",
         )
-    file_bits = 8 if img.dtype == np.uint8 else 16
+    _check_bits(
+        8 if img.dtype == np.uint8 else 16, int(img.max()), job, bit_depth=bit_depth, label=label
+    )
+    if img.ndim == 2:
+        np.copyto(out, img, casting="unsafe")
+    else:
+        code = cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
+        cv2.cvtColor(img.astype(np.float32), code, dst=out)
+
+
+def _check_bits(file_bits: int, peak: int, job: _ImageJob, *, bit_depth: int, label: str) -> None:
+    """An image of ``file_bits`` bits whose brightest pixel is ``peak`` checked against the capture's
+    ``bit_depth``."""
+    name = repr(job.rel)
     if bit_depth > file_bits:
         raise InputError(
             label,
@@ -125,18 +146,12 @@ def _store(img: np.ndarray, job: _ImageJob, out: np.ndarray, *, bit_depth: int, 
             f"{name}: an {file_bits}-bit file cannot hold bit_depth {bit_depth} values",
         )
     limit = 2**bit_depth - 1
-    peak = int(img.max())
     if peak > limit:
         raise InputError(
             label,
             job.field,
             f"{name}: pixel value {peak} exceeds {limit} = 2^{bit_depth} - 1 (bit_depth {bit_depth})",
         )
-    if img.ndim == 2:
-        np.copyto(out, img, casting="unsafe")
-    else:
-        code = cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
-        cv2.cvtColor(img.astype(np.float32), code, dst=out)
 
 
 def _load_images(

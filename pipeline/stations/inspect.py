@@ -48,6 +48,7 @@ from pipeline.stages import (
     load_inputs,
     preprocess_scene,
     reconstruct_view,
+    start_capture_work,
     uncertainty_inputs,
     write_deviation,
     write_target,
@@ -194,9 +195,10 @@ def reconstruct_station(
     warnings: list[str] = []
     cap, _ = load_inputs(capture, tgt, light_calibration, warnings, own, opts)
     own.timings["load"] = round(own.timings["load"] + decode_s, 4)
-    scene = preprocess_scene(cap, opts, own)
     with ThreadPoolExecutor(max_workers=opts.workers or default_workers()) as pool:
-        view, _ = reconstruct_view(cap, tgt, scene, opts, pool, own)
+        started = start_capture_work(cap, pool)
+        scene = preprocess_scene(cap, opts, own)
+        view, _ = reconstruct_view(cap, tgt, scene, opts, pool, own, started=started)
     surface = view.surface
     judged = surface.mask & ~edge_band(surface.mask)
     qualified = uncertainty.propagate_points(uncertainty_inputs(cap, scene.pre, view, judged))

@@ -180,7 +180,9 @@ def test_missing_image_file(tmp_path):
 
 def test_corrupt_image(tmp_path):
     good = (write_bundle(tmp_path, name="g") / "ps_01.png").read_bytes()
-    for content in (good[: len(good) // 2], good[:40] + bytes(200)):
+    mid = len(good) // 2
+    flipped = good[:mid] + bytes([good[mid] ^ 0xFF]) + good[mid + 1 :]  # fails its chunk's CRC
+    for content in (good[:mid], good[:40] + bytes(200), flipped):
         bundle = write_bundle(tmp_path, name="bad", files={"ps_01.png": content})
         with pytest.raises(
             InputError,

@@ -11,7 +11,7 @@ import pytest
 from pipeline.cli import main
 from pipeline.judge.verdict import judge
 from pipeline.run import inspect
-from pipeline.simulate import CaptureSpec, PlateSpec, simulate_capture
+from pipeline.simulate import CaptureSpec, Dent, PlateSpec, simulate_capture
 from pipeline.stages import edge_band
 
 
@@ -105,3 +105,41 @@ def test_gauge_study_prints_cg_and_cgk(capsys):
     out = capsys.readouterr().out
     assert code == 0
     assert "| radius mm |" in out and "Cgk" in out and "deviation at (+0, +0) mm" in out
+
+
+GLOSSY_LEDS = CaptureSpec(
+    n_lights=18,
+    specular=0.5,
+    near_field_mm=2800.0,
+    light_elevation_deg=30.0,
+    led_mu=1.5,
+)
+
+
+@pytest.mark.slow
+def test_a_glossy_plates_lobe_is_not_counted_as_noise(tmp_path):
+    """18 LEDs over a glossy plate, positions given: the normals are fitted with the coating's lobe,
+    and so is the residual the photometric uncertainty is measured from. Counted as noise, the lobe
+    made U95 17 times the deviation's p95 here and the measurement 'not capable' of a 2 mm
+    tolerance."""
+    doc, details, _ = _inspect(tmp_path, "glossy", GLOSSY_LEDS, seed=3)
+    dev, u = doc["deviation_mm"], doc["uncertainty"]
+    assert doc["verdict"] == "pass" and "warnings" not in doc
+    assert 0.8 * dev["p95"] <= u["deviation_mm"] <= 4.0 * dev["p95"], (dev, u)
+    assert details["uncertainty"]["components"]["photometric_mm"] <= 2.0 * dev["p95"]
+
+
+@pytest.mark.slow
+def test_a_bump_beyond_the_tolerance_by_more_than_the_noise_fails_a_glossy_plate(tmp_path):
+    """A 2.8 mm bump against a 2 mm tolerance on the glossy plate: beyond the tolerance by far more than
+    the measurement's noise there (with the lobe taken for noise, U/2 was about 1.1 mm and the bump no
+    defect)."""
+    bump = Dent(x_mm=400.0, y_mm=-300.0, radius_mm=250.0, depth_mm=-2.8)
+    bundle = simulate_capture(
+        tmp_path / "bump", plate=PlateSpec(dents=(bump,)), capture=GLOSSY_LEDS, seed=3
+    )
+    doc = inspect(bundle, bundle / "target.json", out_dir=tmp_path / "bump-out").document
+    details = json.loads((tmp_path / "bump-out" / "details.json").read_text())
+    assert doc["verdict"] == "fail", doc
+    assert len(details["defects"]) == 1, details["defects"]
+    assert details["defects"][0]["peak_deviation_mm"] == pytest.approx(2.8, abs=0.3)

@@ -79,9 +79,13 @@ _F32_MIN_FIT = np.float32(MIN_FIT)
 _F32_DEGENERATE = np.float32(DEGENERATE_RATIO)
 _F32_MAD = np.float32(1.4826)  # median |r| -> standard deviation for Gaussian noise
 
-#: Pixels per work block of the robust kernel: a block's N x width scratch arrays should
-#: stay in the L2 cache (N = 12: 256 px, ~12 kB per float32 array).
-_BLOCK_SAMPLES = 3072
+#: Samples per work block of the robust kernel (N lights x width pixels). Each block allocates its
+#: scratch arrays (about ten), and every thread allocates from the process's one malloc arena
+#: (:data:`pipeline.parallel.MALLOC_ARENAS`): with blocks of 256 px (N = 12) the two threads
+#: contended for it, and the kernel alone took 72-170 ms at 1224x1024 (12 lights, two threads,
+#: after ``configure_process``) against 49-51 ms with 1024 px, the same to the bit (94 against
+#: 87 ms on one thread). A block's arrays stay within the L2 cache (N = 12: 48 kB per float32 array).
+_BLOCK_SAMPLES = 12288
 
 # The robust kernel works on one block of an image row at a time with every per-pixel quantity
 # an array over the block's pixels, so that each step is a branch-free loop over pixels that
