@@ -368,7 +368,7 @@ def _without_lobe(
     pts: np.ndarray,
 ) -> tuple[np.ndarray, int]:
     """The Lambertian residuals ``res`` (N, P) of the pixels' lit samples less the specular lobe the
-    normals were fitted with, and the parameters that took (0 or 1 per pixel).
+    normals were fitted with, and the parameters the lobe took of each pixel (0 or 1).
 
     On a glossy plate the normals come from a fit with the coating's lobe
     (:mod:`pipeline.lights.glare`: ``I_k = a_k (rho n . l_k + s max(0, n . h_k)^e)``, ``h_k`` the half
