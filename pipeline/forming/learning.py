@@ -409,10 +409,9 @@ class Fit:
         fixed = {i_plate: yield_factor, self._index("machine", machine_id): compliance_mm_per_mn}
         given = {i: v for i, v in fixed.items() if v is not None}
         theta, cov = _conditioned(self.mean, self.cov, given)
+        # no scatter share (Priors.scatter_share_dof off): nothing to condition
         share = (
-            np.zeros_like(
-                self.cov
-            )  # no scatter share (Priors.scatter_share_dof off): nothing to condition
+            np.zeros_like(self.cov)
             if self.cov_scatter is None
             else _conditioned_share(self.cov, self.cov_scatter, given)
         )

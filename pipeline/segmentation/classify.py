@@ -218,13 +218,21 @@ def _with_rim(
 ) -> np.ndarray:
     """Step 5: the region grown by the ``reachable`` (unmatched, lit) pixels next to it that darkness bounds
     within ``reach_px`` (a dark background), up to ``reach_px`` steps."""
-    kernel = np.ones((3, 3), np.uint8)
     near_dark = cv2.distanceTransform((~dark).view(np.uint8), cv2.DIST_L2, 3) <= reach_px + 1
-    reachable = (reachable & near_dark).view(np.uint8)
-    grown: np.ndarray = region.view(np.uint8).copy()
-    for _ in range(reach_px):
-        dilated: np.ndarray = cv2.dilate(grown, kernel)
-        grown = dilated & (reachable | grown)
+    return grow_within(region, region | (reachable & near_dark), reach_px)
+
+
+def grow_within(seed: np.ndarray, allowed: np.ndarray, steps: int) -> np.ndarray:
+    """(H, W) bool: ``seed`` grown through the ``allowed`` pixels (8-neighbours), at most ``steps`` pixels
+    (``seed`` within ``allowed``)."""
+    kernel = np.ones((3, 3), np.uint8)
+    keep = allowed.view(np.uint8)
+    grown: np.ndarray = seed.view(np.uint8).copy()
+    for _ in range(steps):
+        nxt: np.ndarray = np.bitwise_and(cv2.dilate(grown, kernel), keep)
+        if np.array_equal(nxt, grown):
+            break
+        grown = nxt
     return grown.astype(bool)
 
 

@@ -23,6 +23,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from .classify import grow_within
+
 #: How far (px, at the depth's own resolution) the stereo matcher may carry the plate's depth onto what lies
 #: beside it: its correlation window (Gaussian, std REFINE_SIGMA_PX = 3 px, to 3 std) and half the SGBM block
 #: (BLOCK_SIZE = 5): 9 + 2 px.
@@ -89,11 +91,7 @@ def lit_surroundings(
         darker = b < 0.5 * (inside + outside)
     candidates = zone & apart & darker
     # joined to the outside through such pixels: grown from those touching it
-    kernel = np.ones((3, 3), np.uint8)
-    grown: np.ndarray = candidates & cv2.dilate((~region).view(np.uint8), kernel).view(bool)
-    for _ in range(reach_px):
-        nxt = candidates & cv2.dilate(grown.view(np.uint8), kernel).view(bool)
-        if np.array_equal(nxt, grown):
-            break
-        grown = nxt
-    return grown
+    touching = candidates & cv2.dilate((~region).view(np.uint8), np.ones((3, 3), np.uint8)).view(
+        bool
+    )
+    return grow_within(touching, candidates, reach_px)
