@@ -6,16 +6,19 @@ depth (foreground fattening): next to darkness the candidates bound the plate th
 surroundings lit well enough to be candidates (a conveyor under a broad glare lobe beside a plate's dim
 edge, bench_lights case 11) nothing did, and the plate reached up to ``OUTLINE_REACH_PX`` onto them, with
 their flat normals bending the measured edge. There the plate and what lies beside it still differ in
-the glare-free brightness (the median sample, :attr:`pipeline.preprocess.Preprocessed.glare_free`) by
-their albedos: where most of the lit pixels within reach outside are darker than ``OUTLINE_ALBEDO_RATIO``
+the glare-free brightness (the brightest of the darkest quarter of the samples, which the lobe lights
+least, :attr:`pipeline.preprocess.Preprocessed.glare_free`) mostly by their albedos: where most of the lit pixels within reach outside are darker than ``OUTLINE_ALBEDO_RATIO``
 times the plate's mean further inside (no painted or rusty steel is that much darker than the plate beside
 it), the region's pixels within reach that are nearer the outside's brightness than the plate's, and
 joined to the outside through such pixels, are surroundings. Elsewhere (a lit floor as bright as the
 plate, a plate's own unmatched rim) nothing changes and the depth alone draws the outline.
 
-Limits: a rust patch (albedo ~0.34) at the plate's edge beside a glare-lit dark conveyor is only about
-twice as bright in the median sample as the conveyor, not told apart, and the depth's outline stays
-(bench_lights case 11 seed 1, docs/figures.md).
+Limits: even there the lobe is not gone. Beside a rust patch (albedo ~0.34) at the plate's edge the
+glare-lit dark conveyor (0.05) reads ~0.43 of the rust (0.53 in the median sample, which kept 205 px of
+it in the mask on bench_lights case 11 seed 1); it is told apart because the plate within reach further
+inside is partly paint (its local mean sets the ratio: ~0.3). A rust patch that lined the edge over the
+whole reference zone (``reach_px`` to ``2 reach_px`` inside) would not be, and the depth's outline would
+stay (docs/figures.md).
 """
 
 from __future__ import annotations

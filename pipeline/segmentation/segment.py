@@ -93,8 +93,9 @@ def segment_plate(
     dark_fraction : float
         See :func:`candidate_mask`.
     glare_free : (H, W) array_like of float, optional
-        A brightness of the same pixels that a broad glare lobe does not reach (the pipeline gives the
-        median photometric sample, :attr:`pipeline.preprocess.Preprocessed.glare_free`): the outline
+        A brightness of the same pixels that a broad glare lobe reaches least (the pipeline gives the
+        brightest of the darkest quarter of the photometric samples,
+        :attr:`pipeline.preprocess.Preprocessed.glare_free`): the outline
         where the depth cannot draw it is found at its step (:mod:`~pipeline.segmentation.outline`).
         None: ``brightness``.
 
