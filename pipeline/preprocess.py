@@ -42,7 +42,7 @@ HIGHLIGHT_SHARE = 0.3
 #: by (:attr:`Preprocessed.glare_free`): a broad lobe lights every sample, least the darkest; the
 #: darkest quarter's brightest keeps clear of up to a quarter of the samples in attached shadow or
 #: noise. On bench_lights case 11 the glare-lit conveyor reads 0.26-0.28 of the plate beside it in
-#: any of its six darkest samples (0.33 in the median, true albedos 0.12).
+#: any of its six darkest samples (0.34 in the median, true albedos 0.12).
 GLARE_FREE_SHARE = 0.25
 
 
