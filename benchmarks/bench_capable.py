@@ -72,7 +72,10 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--size", default="1224x1024")
     parser.add_argument(
-        "--cases", nargs="+", default=None, help="run only the captures whose name contains one of these"
+        "--cases",
+        nargs="+",
+        default=None,
+        help="run only the captures whose name contains one of these",
     )
     args = parser.parse_args()
     configure_process()
