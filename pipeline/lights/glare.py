@@ -448,6 +448,53 @@ def fit_with_lobe(
     return field_from_fit(out, status, mask, specular=fit), reverted
 
 
+def normals_with_lobe(
+    images: np.ndarray,
+    valid: np.ndarray | None,
+    lights: Lights,
+    depth_mm: np.ndarray,
+    start_normals: np.ndarray,
+    kinv: np.ndarray,
+    exponent: float,
+    amplitude: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals (H, W, 3) fitted with a given lobe from ``start_normals`` on the pixels where
+    ``depth_mm`` is finite, and where the fit converged (H, W): the Gauss-Newton of
+    :func:`fit_with_lobe` without its residual cut, on any grid (``kinv`` maps its pixel (u, v, 1) to
+    a ray; a subsampled grid's is ``K^-1 diag(step, step, 1)``). For the uncertainty: the normals'
+    change when the lobe's parameters move (:mod:`pipeline.judge.uncertainty`).
+    """
+    h, w = depth_mm.shape
+    mask = np.isfinite(depth_mm) & np.all(np.isfinite(start_normals), axis=-1)
+    geometry, axes, kind = lights.kernel_arrays()
+    b = np.zeros((3, h, w), np.float64)
+    good = np.zeros((h, w), np.bool_)
+    _lobe_kernel(
+        np.ascontiguousarray(images),
+        np.ascontiguousarray(valid) if valid is not None else np.ones((1, 1, 1), dtype=bool),
+        valid is not None,
+        mask,
+        np.where(mask, depth_mm, 0.0).astype(np.float64),
+        np.ascontiguousarray(kinv, dtype=np.float64),
+        geometry,
+        axes,
+        kind,
+        lights.mu.astype(np.float64),
+        np.ascontiguousarray(np.where(mask[..., None], start_normals, 0.0), dtype=np.float64),
+        float(amplitude),
+        float(exponent),
+        GN_ITERATIONS,
+        np.inf,
+        False,
+        b,
+        np.full((h, w), np.nan),
+        good,
+    )
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n = np.moveaxis(b / np.linalg.norm(b, axis=0), 0, -1)
+    return n, good & mask
+
+
 @numba.njit(parallel=True, cache=True)
 def _lobe_kernel(
     images: Arr,
