@@ -433,9 +433,8 @@ class _CurvedModel:
         """Normal, axis (None for a sphere) and offset along the normal of parameters ``x``."""
         if self.cylinder:
             ax = self.axis0 + x[0] * self.u1 + x[1] * self.u2
-            ax /= math.sqrt(
-                ax @ ax
-            )  # np.linalg.norm's arithmetic, without its overhead on 3 numbers
+            # math.sqrt(v @ v): np.linalg.norm's arithmetic, without its overhead on 3 numbers
+            ax /= math.sqrt(ax @ ax)
             b1 = self.n0 - (self.n0 @ ax) * ax
             b1 /= math.sqrt(b1 @ b1)
             b2 = _cross3(ax, b1)
