@@ -2,8 +2,9 @@
 result's own ``timings_s.total`` (interpreter start-up, imports, the kernels' warm-up, writing and
 exiting), for this tree and another commit's, on the same capture, runs interleaved.
 
-Each run is a fresh process (``python -c 'from pipeline.cli import main; main()' inspect ...``, the
-console script's entry) in the tree's own folder, in this environment, after one untimed run per
+Each run is a fresh process running the tree's own console script entry (``python -c 'from
+pipeline.cli import run; run()' inspect ...`` here, ``main`` in 59f1066: its pyproject.toml's) in the
+tree's own folder, in this environment, after one untimed run per
 tree (a fresh worktree compiles its numba kernels into its own cache, as an install does). Prints
 every run and the medians; the speed issue's acceptance is the overhead's median at most the older
 commit's.
@@ -21,13 +22,20 @@ import subprocess
 import sys
 import tempfile
 import time
+import tomllib
 from pathlib import Path
 
 from bench_pipeline import PLATES, ROOT, _worktree
 
 from pipeline.simulate import CaptureSpec, simulate_capture
 
-ENTRY = "import sys; from pipeline.cli import main; sys.exit(main())"
+
+def entry(tree: Path) -> str:
+    """What the tree's console script ``plate-inspect`` runs (its pyproject.toml's
+    ``[project.scripts]``), as a ``python -c`` program: each tree's own command line."""
+    scripts = tomllib.loads((tree / "pyproject.toml").read_text())["project"]["scripts"]
+    module, function = scripts["plate-inspect"].split(":")
+    return f"import sys; from {module} import {function}; sys.exit({function}())"
 
 
 def _one(tree: Path, bundle: Path, out: Path) -> tuple[float, float]:
@@ -38,7 +46,7 @@ def _one(tree: Path, bundle: Path, out: Path) -> tuple[float, float]:
         [
             sys.executable,
             "-c",
-            ENTRY,
+            entry(tree),
             "inspect",
             str(bundle),
             "--target",

@@ -8,9 +8,12 @@ Prints two tables:
    (12 lights, median of ``--repeat`` runs, each in a fresh process after the CLI's warm-up);
    with ``--against REV`` the same captures are inspected by that commit's tree too (a temporary
    git worktree, run in this environment, runs interleaved), and the table gives the ratio of the
-   median totals, so that a regression shows as a ratio on whatever machine it runs.
+   median totals, so that a regression shows as a ratio on whatever machine it runs. By default a
+   run times its process's first inspection (the command line's case); ``--in-process N`` times the
+   N-th in a row instead (a service's steady state: a tree without ``pipeline.parallel``'s heap
+   policy, such as 59f1066, pays for paging its memory in on its first).
 
-    .venv/bin/python benchmarks/bench_pipeline.py --only timing --against 59f1066 [--repeat 3]
+    .venv/bin/python benchmarks/bench_pipeline.py --only timing --against 59f1066 [--repeat 3] [--in-process 4]
     .venv/bin/python benchmarks/bench_pipeline.py [--seeds 0 1] [--repeat 3] [--quick]
 
 Bundles are rendered once into a temporary folder by this tree's simulator; only ``inspect`` is
@@ -106,11 +109,13 @@ import pipeline.run as run
 if hasattr(run, "warm_up"):
     run.warm_up()
 out = {}
-for bundle in sys.argv[1:]:
+inspections = int(sys.argv[1])  # per bundle in this process: the last one's timings are kept
+for bundle in sys.argv[2:]:
     b = Path(bundle)
-    t = time.perf_counter()
     try:
-        doc = run.inspect(b, b / "target.json", out_dir=b.parent / (b.name + "-out")).document
+        for _ in range(inspections):
+            t = time.perf_counter()
+            doc = run.inspect(b, b / "target.json", out_dir=b.parent / (b.name + "-out")).document
         dev = doc["deviation_mm"] or {}
         out[bundle] = dict(doc["timings_s"], wall=time.perf_counter() - t,
                            dev_p95=dev.get("p95", float("nan")), dev_max=dev.get("max_abs", float("nan")))
@@ -120,10 +125,11 @@ print("TIMINGS " + json.dumps(out))
 """
 
 
-def _run_tree(tree: Path, bundles: list[Path]) -> dict[str, dict[str, float]]:
-    """Inspect ``bundles`` with the code of ``tree`` in a child process; timings per bundle."""
+def _run_tree(tree: Path, bundles: list[Path], inspections: int = 1) -> dict[str, dict[str, float]]:
+    """Inspect ``bundles`` with the code of ``tree`` in a child process, each ``inspections`` times in
+    a row; timings per bundle (its last inspection's)."""
     done = subprocess.run(
-        [sys.executable, "-c", RUNNER, *map(str, bundles)],
+        [sys.executable, "-c", RUNNER, str(inspections), *map(str, bundles)],
         cwd=tree,
         capture_output=True,
         text=True,
@@ -142,10 +148,12 @@ def timing_table(
     repeat: int,
     against: str | None,
     cells: list[str] | None = None,
+    inspections: int = 1,
 ) -> None:
     """Per-stage medians of ``repeat`` runs of each cell and size; with ``against``, the same captures
     timed with that commit's tree (a temporary worktree), runs interleaved, and the ratio of the
-    medians of ``total``."""
+    medians of ``total``. Each run inspects a capture ``inspections`` times in its process and keeps
+    the last."""
     bundles = [
         (
             name,
@@ -169,8 +177,11 @@ def timing_table(
         runs: dict[str, list[dict[str, dict[str, float]]]] = {k: [] for k in trees}
         for _ in range(repeat):
             for key, tree in trees.items():
-                runs[key].append(_run_tree(tree, paths))
-    print(f"\n## Per-stage timings, 12 lights, cylinder R5000 (median of {repeat} runs, seconds)\n")
+                runs[key].append(_run_tree(tree, paths, inspections))
+    which = "" if inspections == 1 else f", each the last of {inspections} in its process"
+    print(
+        f"\n## Per-stage timings, 12 lights, cylinder R5000 (median of {repeat} runs{which}, seconds)\n"
+    )
     print(
         "Stages overlap (stereo beside normals, curvature beside deviation): they do not add up.\n"
     )
@@ -269,6 +280,14 @@ def main() -> None:
         "--sizes", nargs="+", default=None, help="timing sizes WIDTHxHEIGHT (default both)"
     )
     parser.add_argument(
+        "--in-process",
+        type=int,
+        default=1,
+        metavar="N",
+        help="inspect each capture N times in each process and time the last (steady state: a "
+        "tree's first inspection of a process may pay for its memory; default 1, the first)",
+    )
+    parser.add_argument(
         "--cells",
         nargs="+",
         default=None,
@@ -282,7 +301,7 @@ def main() -> None:
         sizes = [(int(a), int(b)) for a, b in (v.lower().split("x") for v in args.sizes)]
     with tempfile.TemporaryDirectory() as tmp:
         if args.only != "lights":
-            timing_table(Path(tmp), sizes, args.repeat, args.against, args.cells)
+            timing_table(Path(tmp), sizes, args.repeat, args.against, args.cells, args.in_process)
         if args.only != "timing":
             lights_table(Path(tmp), seeds, lights)
 

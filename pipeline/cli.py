@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import gc
 import json
 import logging
 import sys
@@ -26,7 +27,7 @@ from collections.abc import Callable
 from dataclasses import replace
 from importlib.metadata import entry_points
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NoReturn
 
 from pipeline.formats import AcquisitionError, InputError, PipelineError
 from pipeline.parallel import configure_process
@@ -788,5 +789,18 @@ def _one_line(err: BaseException) -> str:
     return " ".join(str(err).split())
 
 
+def run() -> NoReturn:
+    """The console script ``plate-inspect``: :func:`main` on the command line, then exit.
+
+    Before exiting, the objects alive are frozen out of the garbage collector (``gc.freeze``): the
+    interpreter's finalisation otherwise walks every object of numba, scipy and OpenCV once more for
+    cycles, 0.23 s after an inspection at 1224x1024 (0.08 s with them frozen, measured to the process's
+    end). Objects are still freed, files closed and atexit handlers run. Not in :func:`main`, which
+    tests and other programs call in their own process."""
+    code = main()
+    gc.freeze()
+    sys.exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    run()

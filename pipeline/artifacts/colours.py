@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 import numpy.typing as npt
 
@@ -43,16 +44,37 @@ def deviation_colormap(deviation_mm: npt.ArrayLike, *, limit_mm: float) -> npt.N
         and limit_mm > 0
     ):
         raise ValueError(f"limit_mm: expected a positive finite number of mm, got {limit_mm!r}")
-    if np.isinf(dev).any():
-        raise ValueError(
-            f"deviation_mm: expected finite values or NaN, got {int(np.isinf(dev).sum())} infinite"
-        )
-    # a lookup table of _LUT_SIZE steps over [-limit, +limit] (finer than 8-bit colour can show), last entry = no data
-    index = np.rint((dev / float(limit_mm) + 1.0) * (0.5 * (_LUT_SIZE - 1)))
-    np.clip(index, 0, _LUT_SIZE - 1, out=index)
-    index[np.isnan(dev)] = _LUT_SIZE
-    rgb: npt.NDArray[np.uint8] = _COLOUR_LUT[index.astype(np.intp)]
+    rgb: npt.NDArray[np.uint8] = np.empty((*dev.shape, 3), np.uint8)
+    infinite = _colour(dev.ravel(), float(limit_mm), _COLOUR_LUT, rgb.reshape(-1, 3))
+    if infinite:
+        raise ValueError(f"deviation_mm: expected finite values or NaN, got {infinite} infinite")
     return rgb
+
+
+@numba.njit(cache=True, nogil=True)
+def _colour(
+    dev: npt.NDArray[np.float64],
+    limit_mm: float,
+    lut: npt.NDArray[np.uint8],
+    rgb: npt.NDArray[np.uint8],
+) -> int:
+    """Each deviation's colour from ``lut`` (size + 1 entries: ``size`` steps over [-limit, +limit],
+    finer than 8-bit colour can show, then no data) into ``rgb`` (N, 3); the count of infinite ones.
+
+    One pass over memory, the same float64 arithmetic as ``np.rint((d / limit + 1) * (size - 1) / 2)``
+    clipped (its array temporaries and gather took 12 ms for a map of 1224x1024)."""
+    size = lut.shape[0] - 1
+    half = 0.5 * (size - 1)
+    infinite = 0
+    for i in range(dev.size):
+        d = dev[i]
+        k = size
+        if np.isinf(d):
+            infinite += 1
+        elif not np.isnan(d):
+            k = int(min(max(np.rint((d / limit_mm + 1.0) * half), 0.0), size - 1.0))
+        rgb[i, 0], rgb[i, 1], rgb[i, 2] = lut[k, 0], lut[k, 1], lut[k, 2]
+    return infinite
 
 
 def _colour_lut(size: int) -> npt.NDArray[np.uint8]:

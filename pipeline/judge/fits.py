@@ -291,6 +291,17 @@ def local_quadric(q: np.ndarray) -> np.ndarray:
     return scaled
 
 
+#: Angle step (rad) of the central differences of :meth:`_CurvedModel.unpack` in its Jacobian.
+_ANGLE_STEP = 1e-6
+
+
+def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.cross`` of two 3-vectors (the same arithmetic; np.cross costs ~10 us of overhead a call)."""
+    return np.array(
+        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    )
+
+
 def _orthonormal_pair(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     a = np.eye(3)[np.argmin(np.abs(v))]
     u1 = np.cross(v, a)
@@ -422,16 +433,17 @@ class _CurvedModel:
         """Normal, axis (None for a sphere) and offset along the normal of parameters ``x``."""
         if self.cylinder:
             ax = self.axis0 + x[0] * self.u1 + x[1] * self.u2
-            ax /= np.linalg.norm(ax)
+            # math.sqrt(v @ v): np.linalg.norm's arithmetic, without its overhead on 3 numbers
+            ax /= math.sqrt(ax @ ax)
             b1 = self.n0 - (self.n0 @ ax) * ax
-            b1 /= np.linalg.norm(b1)
-            b2 = np.cross(ax, b1)
+            b1 /= math.sqrt(b1 @ b1)
+            b2 = _cross3(ax, b1)
             n = math.cos(x[2]) * b1 + math.sin(x[2]) * b2
             t = x[3]
         else:
             ax = None
             n = self.n0 + x[0] * self.u1 + x[1] * self.u2
-            n /= np.linalg.norm(n)
+            n /= math.sqrt(n @ n)
             t = x[2]
         return n, ax, t
 
@@ -452,6 +464,43 @@ class _CurvedModel:
         sag: np.ndarray = g / (1.0 + np.sqrt(np.maximum(1.0 + k * g, 0.0)))
         return sag
 
+    def jacobian(self, x: np.ndarray, k_fixed: float | None) -> np.ndarray:
+        """The residuals' derivatives (M, free parameters) at ``x``: the chain rule through the sag of
+        :meth:`residuals`; the normal's and the axis's derivatives in the angles by central differences
+        of :meth:`unpack` (3-vectors: exact to ~1e-10, where differences of the residuals cost a pass
+        over the points each and were exact to ~1e-6)."""
+        n, ax, t = self.unpack(x)
+        k = x[self.n_shape] if k_fixed is None else k_fixed
+        n_angles = self.n_shape - 1  # the parameters before the offset t
+        columns = [n] if ax is None else [n, ax]
+        for i in range(n_angles):
+            step = np.zeros_like(x)
+            step[i] = _ANGLE_STEP
+            (n_p, ax_p, _), (n_m, ax_m, _) = self.unpack(x + step), self.unpack(x - step)
+            columns.append((n_p - n_m) / (2.0 * _ANGLE_STEP))
+            if ax_p is not None and ax_m is not None:
+                columns.append((ax_p - ax_m) / (2.0 * _ANGLE_STEP))
+        wc = self.w @ np.stack(columns, axis=1)
+        wn = wc[:, 0]
+        s2 = self.ww - 2.0 * t * wn + t * t
+        d_g = -2.0 * (k * t + 1.0) * (wc[:, 1:] if ax is None else wc[:, 2::2])
+        if ax is not None:  # |w - t n|^2 less its part along the axis
+            s2 -= wc[:, 1] * wc[:, 1]
+            d_g -= 2.0 * k * wc[:, 1:2] * wc[:, 3::2]
+        g = k * s2 - 2.0 * (wn - t)
+        q2 = 1.0 + k * g
+        q = np.sqrt(np.maximum(q2, 0.0))
+        reach = q2 > 0.0  # beyond it the sag is clamped to g: d sag / d g = 1
+        safe_q = np.where(reach, q, 1.0)
+        d_sag_dg = np.where(reach, (1.0 + q - 0.5 * k * g / safe_q) / (1.0 + q) ** 2, 1.0)
+        jac = np.empty((len(wn), len(x)))
+        jac[:, :n_angles] = d_sag_dg[:, None] * d_g
+        jac[:, n_angles] = d_sag_dg * (2.0 + 2.0 * k * (t - wn))
+        if k_fixed is None:
+            d_sag_dk = np.where(reach, -0.5 * g * g / (safe_q * (1.0 + q) ** 2), 0.0)
+            jac[:, self.n_shape] = d_sag_dg * s2 + d_sag_dk
+        return jac
+
     def solve(
         self, x0: np.ndarray, k_fixed: float | None, f_scale: float, max_iter: int = 60
     ) -> tuple[np.ndarray, float]:
@@ -463,6 +512,7 @@ class _CurvedModel:
             self.steps[:n_free],
             f_scale,
             max_iter=max_iter,
+            jacobian=lambda x, _: self.jacobian(x, k_fixed),
         )
 
     def fit_free(self, curvature_per_mm: float | None) -> tuple[np.ndarray, float]:

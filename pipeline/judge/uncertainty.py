@@ -43,7 +43,10 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy import sparse
+from scipy.sparse.linalg import factorized
 
+from pipeline.lights import glare
 from pipeline.lights.model import Lights
 from pipeline.surface import fusion as fusion_mod
 from pipeline.surface.normals import NormalField, SpecularFit
@@ -61,6 +64,9 @@ PHOTOMETRIC_SAMPLES = 12_000
 DISPARITY_QUANTUM_PX = 1.0 / 16.0
 #: Patches (px) over which the registration's points count as independent (about the stereo blocks).
 REGISTRATION_PATCH_PX = 16.0
+#: Pixels of the coarse grid on which the lobe's part re-solves the normals (its error is a bend of the
+#: whole plate, smooth on the grid's scale; :func:`_lobe_var_mm2`).
+LOBE_GRID_SAMPLES = 1500
 #: The least-squares integration's depth variance per unit slope variance over a region L px wide:
 #: ``ln(L) / (2 pi) + INTEGRATION_OFFSET`` (exact sum over the Neumann Laplacian's modes of an
 #: L x L square; 0.320-0.326 for L = 32-2048).
@@ -153,7 +159,8 @@ class PointUncertainty:
         As :class:`Uncertainty`'s.
     components : dict
         The radius-free components (``photometric_mm``, ``correction_mm``, ``scale_rel``,
-        ``registration_mm``, ``integration_scale_px``).
+        ``registration_mm``, ``integration_scale_px``, and ``lobe_mm`` where a lobe's parameters
+        were propagated).
     u_scale, u_reg : float
         The scale's relative and the registration's standard uncertainties (mm).
     z_typ_mm, f_px, extent_px : float
@@ -219,6 +226,12 @@ def propagate_points(x: Inputs) -> PointUncertainty:
     height = _height_over_plane_mm(x.points_mm, mask, step) if u_scale > 0 else 0.0
     u_reg = _registration_sd_mm(var_ps, u_corr, grid, step)
     var = var_ps + u_corr**2 + (u_scale * height) ** 2 + u_reg**2
+    var_lobe = _lobe_var_mm2(x, mask)
+    lobe_part = {}
+    if var_lobe is not None:  # a lobe measured once for the plate: its parameters' uncertainty
+        var_lobe = cv2.resize(var_lobe.astype(np.float32), (var.shape[1], var.shape[0]))
+        var = var + var_lobe
+        lobe_part = {"lobe_mm": round(float(np.sqrt(np.percentile(var_lobe[grid], 95))), 4)}
     h, w = mask.shape
     full = cv2.resize(var.astype(np.float32), (var.shape[1] * step, var.shape[0] * step))[:h, :w]
     u_map = np.where(mask, np.sqrt(np.maximum(full, 0.0)), np.nan).astype(np.float32)
@@ -232,6 +245,7 @@ def propagate_points(x: Inputs) -> PointUncertainty:
             "scale_rel": float(f"{u_scale:.3g}"),
             "registration_mm": round(u_reg, 5),
             "integration_scale_px": round(scale_px, 1),
+            **lobe_part,
         },
         u_scale=u_scale,
         u_reg=u_reg,
@@ -265,6 +279,7 @@ def with_radius(
             "fit_rel": float(f"{fit_rel:.3g}"),
             "registration_mm": c["registration_mm"],
             "integration_scale_px": c["integration_scale_px"],
+            **({"lobe_mm": c["lobe_mm"]} if "lobe_mm" in c else {}),
         },
     )
 
@@ -389,6 +404,142 @@ def _without_lobe(
         np.sum(res * lobe, axis=0) / np.maximum(np.sum(lobe * lobe, axis=0), 1e-30), 0.0
     )
     return res - amplitude[None] * lobe, 1
+
+
+def _lobe_var_mm2(x: Inputs, mask: np.ndarray) -> np.ndarray | None:
+    """Variance (mm^2) of the depth from the uncertainty of a lobe measured once for the plate, on a
+    coarse grid (every ``step``-th pixel, about :data:`LOBE_GRID_SAMPLES` of the mask); None where
+    no such lobe was fitted (a matte plate; a lobe fitted pixel by pixel).
+
+    The lobe's exponent and amplitude bend every pixel's normal the same way: a smooth shape error no
+    pixel's residual shows. Each of the two independent directions of the fit's covariance (``ln e``
+    by its standard uncertainty with the amplitude its correlation pulls along; the amplitude's own
+    part) moves the lobe both ways; the normals are re-solved with it
+    (:func:`pipeline.lights.glare.normals_with_lobe`), the half difference integrated to log depth
+    (:func:`_integrate_log_depth`), and what the stereo pair's chosen correction takes out of it
+    (:func:`pipeline.surface.fusion.correction_basis`; the plane at least) is removed. The rest, times
+    the depth, adds in quadrature over the two directions.
+    """
+    spec = x.field.specular
+    if spec is None or not spec.modelled or spec.log_exponent_sd is None:
+        return None
+    if spec.amplitude_sd is None or not np.isfinite(spec.exponent):
+        return None
+    step = max(1, int(math.sqrt(np.count_nonzero(mask) / LOBE_GRID_SAMPLES)))
+    sub = mask[::step, ::step] & x.field.mask[::step, ::step]
+    depth = np.where(sub, x.points_mm[::step, ::step, 2], np.nan)
+    start = x.field.normals[::step, ::step].astype(np.float64)
+    kinv = np.linalg.inv(x.K) @ np.diag([float(step), float(step), 1.0])
+    images = x.images[:, ::step, ::step]
+    valid = None if x.valid is None else x.valid[:, ::step, ::step]
+    e, s, u_log_e = float(spec.exponent), float(spec.amplitude_median), spec.log_exponent_sd
+    rho = spec.lobe_correlation
+    # the covariance's Cholesky factor: the exponent with the amplitude it pulls along, then the
+    # amplitude's own part
+    cholesky = (
+        (u_log_e, rho * spec.amplitude_sd),
+        (0.0, spec.amplitude_sd * math.sqrt(max(1.0 - rho**2, 0.0))),
+    )
+    moves = [m for m in cholesky if all(np.isfinite(m)) and any(m)]
+    if not moves:
+        return None
+    solved = [
+        glare.normals_with_lobe(
+            images,
+            valid,
+            x.lights,
+            depth,
+            start,
+            kinv,
+            e * math.exp(sign * d_log_e),
+            max(s + sign * d_s, 0.0),
+        )
+        for d_log_e, d_s in moves
+        for sign in (1.0, -1.0)
+    ]
+    good = sub & np.logical_and.reduce([ok for _, ok in solved])
+    slopes = [_log_depth_slopes(n, kinv) for n, _ in solved]
+    du = np.stack([0.5 * (a[0] - b[0]) for a, b in zip(slopes[::2], slopes[1::2], strict=True)])
+    dv = np.stack([0.5 * (a[1] - b[1]) for a, b in zip(slopes[::2], slopes[1::2], strict=True)])
+    change = _without_correction(_integrate_log_depth(du, dv, good), good, x.fusion, step)
+    var = np.sum(change**2, axis=0) * np.nan_to_num(depth) ** 2
+    # the grid's last values carried two cells beyond the mask, so that the finer grid's interpolation
+    # at the plate's edge does not blend them with the zeros outside
+    grown = cv2.dilate(cv2.dilate(var.astype(np.float32), np.ones((3, 3))), np.ones((3, 3)))
+    return np.where(sub, var, grown)
+
+
+def _log_depth_slopes(n: np.ndarray, kinv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The gradient of ``ln z`` per grid step (u, v) that unit normals ``n`` (h, w, 3) of a grid give
+    (``kinv``: the grid's pixel to ray): a surface point ``z r(u, v)`` is tangent to its normal, so
+    ``d ln z / du = -(n . dr/du) / (n . r)``."""
+    h, w = n.shape[:2]
+    vv, uu = np.mgrid[:h, :w].astype(np.float64)
+    rays = np.einsum("ij,jhw->hwi", kinv, np.stack([uu, vv, np.ones_like(uu)]))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        nr = np.einsum("hwc,hwc->hw", n, rays)
+        gu = -np.einsum("hwc,c->hw", n, kinv[:, 0]) / nr
+        gv = -np.einsum("hwc,c->hw", n, kinv[:, 1]) / nr
+    return gu, gv
+
+
+def _integrate_log_depth(gu: np.ndarray, gv: np.ndarray, good: np.ndarray) -> np.ndarray:
+    """The least-squares ``ln z`` (k, h, w) of ``k`` slope fields ``gu``, ``gv`` (k, h, w; per grid
+    step) on the pixels ``good`` (0 elsewhere; mean 0): the equations of the pipeline's integration
+    (:func:`pipeline.surface.integration.integrate_normals`, neighbours both good, their slopes
+    averaged) without its stereo prior, on a coarse grid; one factorisation for all ``k``."""
+    out = np.zeros(gu.shape)
+    n = int(np.count_nonzero(good))
+    if n < 3:
+        return out
+    idx = np.full(good.shape, -1, np.int64)
+    idx[good] = np.arange(n)
+    pairs: list[np.ndarray] = []
+    rhs: list[np.ndarray] = []
+    for a, b, g in (
+        (idx[:, :-1], idx[:, 1:], 0.5 * (gu[:, :, :-1] + gu[:, :, 1:])),
+        (idx[:-1, :], idx[1:, :], 0.5 * (gv[:, :-1, :] + gv[:, 1:, :])),
+    ):
+        both = (a >= 0) & (b >= 0) & np.all(np.isfinite(g), axis=0)
+        pairs.append(np.stack([a[both], b[both]], axis=1))
+        rhs.append(g[:, both])
+    pair, values = np.concatenate(pairs), np.concatenate(rhs, axis=1)
+    m = len(pair)
+    A = sparse.csr_matrix(
+        (np.tile([-1.0, 1.0], m), (np.repeat(np.arange(m), 2), pair.ravel())), shape=(m, n)
+    )
+    # the normal equations, with a vanishing pull towards 0 that fixes the free offset
+    solve = factorized((A.T @ A + 1e-9 * sparse.identity(n)).tocsc())
+    for k in range(len(gu)):
+        sol = solve(A.T @ values[k])
+        out[k][good] = sol - sol.mean()
+    return out
+
+
+def _without_correction(
+    change: np.ndarray, good: np.ndarray, fused: fusion_mod.Fusion | None, step: int
+) -> np.ndarray:
+    """``change`` (k, h, w: log depth on the grid of every ``step``-th pixel) less its least-squares
+    part in the span of the stereo correction the fusion chose (the plane without a stereo pair: its
+    scale is the working distance's, its tilt the registration's); 0 off ``good``."""
+    rows, cols = np.nonzero(good)
+    out = np.zeros(change.shape)
+    if rows.size < 10:
+        return out
+    r0, c0 = rows.min(), cols.min()
+    shape = ((rows.max() - r0 + 1) * step, (cols.max() - c0 + 1) * step)
+    model, spacing = ("plane", None) if fused is None else (fused.model, fused.knot_spacing_px)
+    basis = sparse.csr_matrix(
+        fusion_mod.correction_basis(model, spacing, (rows - r0) * step, (cols - c0) * step, shape)
+    )
+    # the least-squares coefficients (a vanishing ridge bridges knot cells without a grid point)
+    gram = (basis.T @ basis).tocsc()
+    ridge = 1e-9 * float(gram.diagonal().mean()) * sparse.identity(gram.shape[0], format="csc")
+    solve = factorized(gram + ridge)
+    for k in range(len(change)):
+        y = change[k][rows, cols]
+        out[k][rows, cols] = y - basis @ solve(basis.T @ y)
+    return out
 
 
 def _tangential_parts(

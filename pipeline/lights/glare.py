@@ -67,6 +67,13 @@ PRETEST_PIXELS = 1000
 #: grid's steps are 26 %; a broad lobe measured at 15.9 for the simulator's 15 bent the normals by
 #: 0.9 deg in the median against 0.4 with the exact exponent): the bracket shrinks to 0.2 %.
 EXPONENT_STEPS = 10
+#: The lobe's own uncertainty (:func:`_lobe_spread`) treats the sampled pixels of one cell of an
+#: ``n x n`` grid over the plate's larger extent as one cluster: the stereo surface the lobe is
+#: measured on is a spline of knots 1/8 of the extent (:func:`pipeline.surface.fusion.smooth_stereo_depth`),
+#: so its normals' errors are shared within a knot cell, not between cells.
+LOBE_CLUSTERS_PER_SIDE = 8
+#: Step in log exponent of the finite differences of the lobe fit's residual (its curvature).
+LOG_EXPONENT_STEP = 0.02
 #: Gauss-Newton passes per pixel before and after the residual cut.
 GN_ITERATIONS = 4
 #: As for the near-field Lambertian fit: samples of a light that lights the pixel less than this
@@ -76,11 +83,19 @@ MIN_RELATIVE_ATTENUATION = 0.02
 
 @dataclass(frozen=True)
 class Lobe:
-    """The coating's lobe measured on the stereo surface: ``s * max(0, n . h)^e`` per unit irradiance."""
+    """The coating's lobe measured on the stereo surface: ``s * max(0, n . h)^e`` per unit irradiance.
+
+    ``log_exponent_sd`` and ``amplitude_sd`` are the standard uncertainties of ``ln e`` and of ``s``
+    from the fit itself, ``correlation`` theirs (:func:`_lobe_spread`). None where not measured (a
+    lobe of another fit).
+    """
 
     exponent: float
     amplitude: float
     f_ratio: float
+    log_exponent_sd: float | None = None
+    amplitude_sd: float | None = None
+    correlation: float = 0.0
 
 
 def surface_normals(depth_mm: np.ndarray, K: np.ndarray) -> np.ndarray:
@@ -274,7 +289,64 @@ def lobe_of(
     p = x.shape[0]
     dof = max(float(wt.sum()) - 4 * p, 1.0)
     f_ratio = ((r_lambert - r) / p) / max(r / dof, 1e-30)
-    return Lobe(float(e), max(s, 0.0), float(f_ratio))
+    if not (f_ratio >= MIN_F and np.isfinite(e)):  # no lobe to model: nothing to qualify
+        return Lobe(float(e), max(s, 0.0), float(f_ratio))
+    sd_log_e, sd_s, corr = _lobe_spread(lv, c, y, wt, x, float(e))
+    return Lobe(float(e), max(s, 0.0), float(f_ratio), sd_log_e, sd_s, corr)
+
+
+def _lobe_spread(
+    lv: np.ndarray, c: np.ndarray, y: np.ndarray, wt: np.ndarray, x: np.ndarray, e: float
+) -> tuple[float, float, float]:
+    """Standard uncertainties of the lobe's ``ln e`` and median amplitude ``s`` from the fit of
+    :func:`lobe_of` (its arrays: light directions ``lv`` (N, P, 3), ``c = n . h`` (N, P), values ``y``
+    and weights ``wt`` (N, P), points ``x`` (P, 3)), and their correlation.
+
+    A delete-one-cluster jackknife, linearised: the stereo normals the lobe is measured on share
+    their errors within a knot cell, so the pixels of a cell (:data:`LOBE_CLUSTERS_PER_SIDE` per
+    side of the plate's larger extent) are left out together, never one by one (independent
+    residuals would understate the spread). The exponent minimises the residual sum
+    ``R(ln e)`` (every pixel's ``b`` and ``s_p`` fitted); without cluster ``k`` it moves by
+    ``g_k / R''`` (``g_k``: the cluster's share of ``dR / d ln e``, which sums to 0 at the minimum;
+    the cluster-robust sandwich). The amplitude is then the median of the other clusters' ``s_p``
+    at that exponent (``s_p`` to first order in it).
+    """
+    h = LOG_EXPONENT_STEP
+    (r_lo, s_lo), (r_0, s_0), (r_hi, s_hi) = (
+        _pixel_fit(lv, c, y, wt, e * float(np.exp(d))) for d in (-h, 0.0, h)
+    )
+    curvature = float(np.sum(r_hi - 2.0 * r_0 + r_lo)) / h**2
+    lo, hi = x[:, :2].min(axis=0), x[:, :2].max(axis=0)
+    cell = max(float(np.max(hi - lo)) / LOBE_CLUSTERS_PER_SIDE, 1e-9)
+    ij = np.minimum(((x[:, :2] - lo) / cell).astype(np.int64), LOBE_CLUSTERS_PER_SIDE - 1)
+    _, cluster = np.unique(ij[:, 0] * LOBE_CLUSTERS_PER_SIDE + ij[:, 1], return_inverse=True)
+    n_cl = int(cluster.max()) + 1
+    if n_cl < 2 or not curvature > 0:
+        return float("inf"), float("inf"), 0.0
+    d_log_e = np.bincount(cluster, (r_hi - r_lo) / (2.0 * h), minlength=n_cl) / curvature
+    slope = (s_hi - s_lo) / (2.0 * h)
+    d_s = np.array(
+        [np.median((s_0 + d_log_e[k] * slope)[cluster != k]) for k in range(n_cl)]
+    ) - float(np.median(s_0))
+    theta = np.stack([d_log_e, d_s], axis=1)
+    theta -= theta.mean(axis=0)
+    cov = (n_cl - 1) / n_cl * theta.T @ theta
+    sd = np.sqrt(np.diag(cov))
+    corr = float(cov[0, 1] / (sd[0] * sd[1])) if sd[0] * sd[1] > 0 else 0.0
+    return float(sd[0]), float(sd[1]), corr
+
+
+def _pixel_fit(
+    lv: np.ndarray, c: np.ndarray, y: np.ndarray, wt: np.ndarray, e: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel, the least-squares fit of ``y = b . l + s_p c^e`` (weights ``wt``): its residual sum
+    of squares and ``s_p`` (P,) each (the fit of :func:`lobe_of` at one exponent, pixel by pixel)."""
+    cols = np.concatenate([lv, (c**e)[..., None]], axis=-1)
+    m = np.einsum("kpi,kpj,kp->pij", cols, cols, wt) + 1e-12 * np.eye(4)
+    rhs = np.einsum("kpi,kp,kp->pi", cols, y, wt)
+    sol = np.linalg.solve(m, rhs[..., None])[..., 0]
+    res = (y - np.einsum("kpi,pi->kp", cols, sol)) * wt
+    return np.sum(res * res, axis=0), sol[:, 3]
 
 
 def _refine_exponent(
@@ -369,8 +441,58 @@ def fit_with_lobe(
         f_ratio=lobe.f_ratio,
         amplitude_median=lobe.amplitude,
         n_reverted=reverted,
+        log_exponent_sd=lobe.log_exponent_sd,
+        amplitude_sd=lobe.amplitude_sd,
+        lobe_correlation=lobe.correlation,
     )
     return field_from_fit(out, status, mask, specular=fit), reverted
+
+
+def normals_with_lobe(
+    images: np.ndarray,
+    valid: np.ndarray | None,
+    lights: Lights,
+    depth_mm: np.ndarray,
+    start_normals: np.ndarray,
+    kinv: np.ndarray,
+    exponent: float,
+    amplitude: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals (H, W, 3) fitted with a given lobe from ``start_normals`` on the pixels where
+    ``depth_mm`` is finite, and where the fit converged (H, W): the Gauss-Newton of
+    :func:`fit_with_lobe` without its residual cut, on any grid (``kinv`` maps its pixel (u, v, 1) to
+    a ray; a subsampled grid's is ``K^-1 diag(step, step, 1)``). For the uncertainty: the normals'
+    change when the lobe's parameters move (:mod:`pipeline.judge.uncertainty`).
+    """
+    h, w = depth_mm.shape
+    mask = np.isfinite(depth_mm) & np.all(np.isfinite(start_normals), axis=-1)
+    geometry, axes, kind = lights.kernel_arrays()
+    b = np.zeros((3, h, w), np.float64)
+    good = np.zeros((h, w), np.bool_)
+    _lobe_kernel(
+        np.ascontiguousarray(images),
+        np.ascontiguousarray(valid) if valid is not None else np.ones((1, 1, 1), dtype=bool),
+        valid is not None,
+        mask,
+        np.where(mask, depth_mm, 0.0).astype(np.float64),
+        np.ascontiguousarray(kinv, dtype=np.float64),
+        geometry,
+        axes,
+        kind,
+        lights.mu.astype(np.float64),
+        np.ascontiguousarray(np.where(mask[..., None], start_normals, 0.0), dtype=np.float64),
+        float(amplitude),
+        float(exponent),
+        GN_ITERATIONS,
+        np.inf,
+        False,
+        b,
+        np.full((h, w), np.nan),
+        good,
+    )
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n = np.moveaxis(b / np.linalg.norm(b, axis=0), 0, -1)
+    return n, good & mask
 
 
 @numba.njit(parallel=True, cache=True)

@@ -484,6 +484,31 @@ def _disagreement(zb: np.ndarray, corr_b: np.ndarray, mb: np.ndarray) -> float:
     return float(np.percentile(np.abs(log_corr - A @ plane) * z_s, 95))
 
 
+def correction_basis(
+    model: str,
+    knot_spacing_px: float | None,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    shape: tuple[int, int],
+) -> np.ndarray:
+    """(P, k): the freedom of a correction (a :class:`Fusion`'s ``model`` and ``knot_spacing_px``) at
+    pixels (``rows``, ``cols``) of the surface's bounding box (``shape`` px; box coordinates): a plane
+    or a quadric in (u, v), or the cubic splines of its knot spacing over the box. Whatever change of
+    the photometric log depth lies in their span, the stereo pair's correction takes out (the
+    uncertainty's lobe part; the finest spline, estimated as a smoother, takes out a little less).
+    """
+    if knot_spacing_px is not None:
+        grid = _Grid.over(shape, knot_spacing_px)
+        Bv = grid.basis(np.asarray(rows, np.float64), grid.nv)
+        Bu = grid.basis(np.asarray(cols, np.float64), grid.nu)
+        splines: np.ndarray = (Bv[:, :, None] * Bu[:, None, :]).reshape(len(Bv), -1)
+        return splines
+    scale = max(float(max(shape)), 1.0)
+    v, u = np.asarray(rows, np.float64) / scale, np.asarray(cols, np.float64) / scale
+    columns = [np.ones(v.size), v, u, v * v, v * u, u * u]
+    return np.column_stack(columns[: _POLYNOMIAL[QUADRIC if model == QUADRIC else PLANE]])
+
+
 def smooth_stereo_depth(
     stereo_depth_mm: np.ndarray, mask: np.ndarray, *, knot_fraction: float = 1.0 / 8.0
 ) -> np.ndarray:

@@ -69,6 +69,29 @@ def test_colormap_rejects_infinite_deviation():
         deviation_colormap(np.array([0.0, np.inf]), limit_mm=1.0)
 
 
+def test_colormap_is_the_tables_nearest_step():
+    # each deviation takes the table's step nearest to it (ties to even), clipped to the ends: the
+    # compiled pass against the same arithmetic written in numpy, on every half step of the table
+    # (the ties), strided views and shapes of any rank
+    from pipeline.artifacts.colours import _COLOUR_LUT
+
+    size = len(_COLOUR_LUT) - 1
+    rng = np.random.default_rng(5)
+    for limit in (4.0, 0.7):
+        dev = rng.normal(0.0, limit, (300, 400))
+        dev[rng.random(dev.shape) < 0.1] = np.nan
+        half_steps = ((np.arange(-size, size + 1) + 0.5) / ((size - 1) / 2) - 1.0) * limit
+        dev.ravel()[: half_steps.size] = half_steps
+        index = np.clip(np.rint((dev / limit + 1.0) * (0.5 * (size - 1))), 0, size - 1)
+        index[np.isnan(dev)] = size
+        expected = _COLOUR_LUT[index.astype(np.intp)]
+        np.testing.assert_array_equal(deviation_colormap(dev, limit_mm=limit), expected)
+        np.testing.assert_array_equal(
+            deviation_colormap(dev[::3, ::2], limit_mm=limit), expected[::3, ::2]
+        )
+    assert deviation_colormap(0.0, limit_mm=1.0).tolist() == [247, 247, 247]
+
+
 # --------------------------------------------------------------------------- surface PLY
 
 

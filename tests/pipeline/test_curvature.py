@@ -115,6 +115,36 @@ def test_plane_fit_normal_towards_camera():
     assert fit_cylinder(pts[m]).radius_mm > 1e6
 
 
+@pytest.mark.parametrize("cyl", [True, False])
+@pytest.mark.parametrize("R", [5000.0, -3000.0, 1e9])
+def test_curved_fit_jacobian_matches_differences(cyl, R):
+    # the Gauss-Newton fit's Jacobian (the chain rule through the sag) against central differences of
+    # its residuals, with the curvature free and fixed, away from the start (angles, offset, k moved)
+    from pipeline.judge.fits import _CurvedModel
+
+    rng = np.random.default_rng(3)
+    u = rng.uniform(-800.0, 800.0, (3000, 2))
+    r2 = u[:, 0] ** 2 if cyl else (u**2).sum(axis=1)
+    sag = R - math.copysign(1.0, R) * np.sqrt(R**2 - r2) if abs(R) < 1e8 else 0.0 * r2
+    model = _CurvedModel(
+        np.column_stack([u, 2000.0 + sag + rng.normal(0.0, 0.1, len(u))]), cylinder=cyl
+    )
+    x = rng.normal(0.0, 1e-3, model.n_shape + 1)
+    x[model.n_shape - 1], x[model.n_shape] = 0.3, 1.01 * model.k0
+    for k_fixed in (None, model.k0):
+        xs = x if k_fixed is None else x[: model.n_shape]
+        jac = model.jacobian(xs, k_fixed)
+        steps = np.where(np.arange(len(xs)) == model.n_shape - 1, 1e-5, 1e-7)
+        steps[model.n_shape :] = 1e-9
+        for i, h in enumerate(steps):
+            dx = np.zeros_like(xs)
+            dx[i] = h
+            numeric = (model.residuals(xs + dx, k_fixed) - model.residuals(xs - dx, k_fixed)) / (
+                2 * h
+            )
+            assert np.abs(jac[:, i] - numeric).max() <= 1e-7 * np.abs(numeric).max() + 1e-12
+
+
 # --------------------------------------------------------------------------- principal curvatures
 
 

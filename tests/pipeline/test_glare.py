@@ -164,3 +164,27 @@ def test_the_lobe_exponent_is_measured_between_the_grid_points(exponent):
 def test_a_matte_plate_has_no_lobe_to_refine():
     raw, lights, x, n = _lobe_samples(15.0, 0.0, noise=0.0005)
     assert glare.lobe_of(raw, None, lights, x, n).f_ratio < glare.MIN_F
+
+
+def test_the_lobes_uncertainty_is_the_spread_of_its_fit_over_the_noise():
+    """The lobe's standard uncertainties (ln e and the amplitude, from its own fit: a jackknife over
+    the plate's cells) describe how its fit scatters when the images' noise is drawn again."""
+    fits = []
+    for seed in range(16):
+        raw, lights, x, n = _lobe_samples(15.0, 0.425, noise=0.001, seed=seed)
+        fits.append(glare.lobe_of(raw, None, lights, x, n))
+    log_e = np.log([f.exponent for f in fits])
+    amplitude = np.array([f.amplitude for f in fits])
+    said_e = np.median([f.log_exponent_sd for f in fits])
+    said_s = np.median([f.amplitude_sd for f in fits])
+    # measured: 0.0101 against 0.0095 said (ln e), 0.0030 against 0.0027 (amplitude)
+    assert 0.7 * said_e <= np.std(log_e, ddof=1) <= 1.4 * said_e, (np.std(log_e, ddof=1), said_e)
+    assert 0.7 * said_s <= np.std(amplitude, ddof=1) <= 1.4 * said_s, (
+        np.std(amplitude, ddof=1),
+        said_s,
+    )
+    assert all(-1.0 <= f.correlation <= 1.0 for f in fits)
+    raw, lights, x, n = _lobe_samples(15.0, 0.0, noise=0.001)
+    assert (
+        glare.lobe_of(raw, None, lights, x, n).log_exponent_sd is None
+    )  # matte: nothing to qualify

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -9,10 +10,16 @@ import numpy as np
 import pytest
 
 from pipeline.cli import main
+from pipeline.io import load_capture
+from pipeline.judge import uncertainty
 from pipeline.judge.verdict import judge
+from pipeline.lights import glare
+from pipeline.lights.nearfield import estimate_normals_near
+from pipeline.preprocess import preprocess
 from pipeline.run import inspect
 from pipeline.simulate import CaptureSpec, Dent, PlateSpec, simulate_capture
 from pipeline.stages import edge_band
+from pipeline.surface.integration import integrate_normals
 
 
 def _inspect(root: Path, name: str, capture: CaptureSpec, seed: int, **target_changes: float):
@@ -143,3 +150,62 @@ def test_a_bump_beyond_the_tolerance_by_more_than_the_noise_fails_a_glossy_plate
     assert doc["verdict"] == "fail", doc
     assert len(details["defects"]) == 1, details["defects"]
     assert details["defects"][0]["peak_deviation_mm"] == pytest.approx(2.8, abs=0.3)
+
+
+def test_a_lobe_exponent_off_by_its_stated_uncertainty_bends_the_shape_as_u_says(tmp_path):
+    """A broad lobe (shininess 15) over a glossy plate, 18 LEDs: the normals fitted with its exponent
+    off by 2 % (a known error) and integrated as the pipeline does give a shape error, less the
+    plane the stereo pair sets; the lobe's part of U, told that the exponent is uncertain by 2 %,
+    says how large it is. On the Lambertian field (no lobe) that part is absent."""
+    bundle = simulate_capture(
+        tmp_path / "broad",
+        plate=PlateSpec(),
+        capture=dataclasses.replace(GLOSSY_LEDS, width=408, height=340, shininess=15.0),
+        seed=3,
+    )
+    cap, truth = load_capture(bundle), np.load(bundle / "truth.npz")
+    pre = preprocess(cap)
+    K, mask = cap.rig.left.K, pre.mask & truth["mask"]
+    depth = np.where(mask, truth["depth_mm"], np.nan)
+    lambert = estimate_normals_near(pre.images, cap.lights, depth, K, mask, valid=pre.valid)
+    start = np.nan_to_num(truth["normals"]).astype(np.float64)
+    lobe = glare.measure_lobe(pre.images, pre.valid, cap.lights, depth, start, mask, K)
+    off = 0.02
+    right, wrong = (
+        glare.fit_with_lobe(
+            pre.images, pre.valid, cap.lights, depth, start, K,
+            dataclasses.replace(lobe, exponent=lobe.exponent * np.exp(d)), lambert, noise=0.0,
+        )[0]
+        for d in (0.0, off)
+    )  # fmt: skip
+    both = right.mask & wrong.mask & mask
+    ref = float(np.median(depth[both]))
+    t = [np.log(integrate_normals(f.normals, both, K, reference_depth_mm=ref).depth_mm) for f in (right, wrong)]  # fmt: skip
+    rows, cols = np.nonzero(both)
+    change = (t[1] - t[0])[both]
+    plane = np.column_stack([np.ones(rows.size), rows, cols])
+    change -= plane @ np.linalg.lstsq(plane, change, rcond=None)[0]
+    actual = float(np.percentile(np.abs(change) * depth[both], 95))
+    vv, uu = np.mgrid[: mask.shape[0], : mask.shape[1]]
+    rays = np.einsum("ij,jhw->hwi", np.linalg.inv(K), np.stack([uu, vv, np.ones_like(uu)]))
+    spec = dataclasses.replace(
+        right.specular, log_exponent_sd=off, amplitude_sd=0.0, lobe_correlation=0.0
+    )
+    x = uncertainty.Inputs(
+        images=pre.images,
+        valid=pre.valid,
+        lights=cap.lights,
+        field=dataclasses.replace(right, specular=spec),
+        points_mm=rays * depth[..., None],
+        mask=both,
+        K=K,
+        fusion=None,
+        baseline_mm=None,
+        calibration_rms_px=None,
+        board_corners=None,
+    )
+    said = uncertainty.propagate_points(x).components["lobe_mm"]
+    assert actual > 0.02, actual  # a shape error worth measuring
+    assert 0.8 * actual <= said <= 1.25 * actual, (said, actual)
+    matte = uncertainty.propagate_points(dataclasses.replace(x, field=lambert))
+    assert "lobe_mm" not in matte.components

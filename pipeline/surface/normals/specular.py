@@ -77,6 +77,13 @@ class SpecularFit:
     n_reverted : int
         Pixels the lobe turned by more than MAX_SPECULAR_TURN_DEG (or away from the camera):
         they keep the robust Lambertian estimate.
+    log_exponent_sd, amplitude_sd : float or None
+        Standard uncertainties of ``ln e`` and of the amplitude from the lobe's own fit, where it was
+        measured once for the plate (:func:`pipeline.lights.glare.lobe_of`, near-field LEDs); None
+        for this stage's lobe. The uncertainty propagates them through the normals
+        (:mod:`pipeline.judge.uncertainty`).
+    lobe_correlation : float
+        The correlation of those two (the fit's amplitude follows its exponent).
     """
 
     modelled: bool
@@ -84,6 +91,9 @@ class SpecularFit:
     f_ratio: float
     amplitude_median: float
     n_reverted: int = 0
+    log_exponent_sd: float | None = None
+    amplitude_sd: float | None = None
+    lobe_correlation: float = 0.0
 
 
 def _lobe_tables(exponent: float) -> tuple[np.ndarray, np.ndarray]:
