@@ -289,19 +289,18 @@ def reconstruct_view(
     opts: InspectOptions,
     pool: ThreadPoolExecutor,
     clock: StageClock,
+    started: CaptureWork,
     *,
     normals_png: Path | None = None,
-    started: CaptureWork | None = None,
 ) -> tuple[View, list[Future[Any]]]:
     """Stages *normals*, *stereo* and *depth* of one view, work beside the main line on ``pool``.
 
+    ``started``: the capture's work, submitted before the preprocessing (:func:`start_capture_work`).
     ``normals_png``: where normals.png is written (beside the depth solve), None: not written.
-    ``started``: the capture's work already submitted (:func:`start_capture_work`), None: submitted
-    here. Returns the view and the artifact writes under way.
+    Returns the view and the artifact writes under way.
     """
     pre, K = scene.pre, cap.rig.left.K
     stereo_job = pool.submit(_stereo_depth, cap, scene.region, opts) if cap.has_stereo else None
-    started = started or start_capture_work(cap, pool)
     field = None
     clock.begin("normals")
     if not cap.lights.any_point:
@@ -347,7 +346,7 @@ def measure(
     out: Path,
     pool: ThreadPoolExecutor,
     clock: StageClock,
-    started: CaptureWork | None = None,
+    started: CaptureWork,
 ) -> Measurement:
     """Stages *normals* to *artifacts* (details.json and result.json excepted), work beside the main line on
     ``pool`` (``started``: see :func:`reconstruct_view`)."""
@@ -358,8 +357,8 @@ def measure(
         opts,
         pool,
         clock,
+        started,
         normals_png=out / ARTIFACT_FILES["normals"],
-        started=started,
     )
     pre, surface, points = scene.pre, view.surface, view.points
 

@@ -264,10 +264,7 @@ def lobe_of(
     y = np.where(use, raw / np.where(use, att, 1.0), 0.0)
 
     def fit(cols: np.ndarray) -> tuple[np.ndarray, float]:
-        m = np.einsum("kpi,kpj,kp->pij", cols, cols, wt) + 1e-12 * np.eye(cols.shape[-1])
-        rhs = np.einsum("kpi,kp,kp->pi", cols, y, wt)
-        sol = np.linalg.solve(m, rhs[..., None])[..., 0]
-        res = (y - np.einsum("kpi,pi->kp", cols, sol)) * wt
+        sol, res = _weighted_fits(cols, y, wt)
         return sol, float(np.sum(res * res))
 
     def with_lobe(e: float) -> tuple[float, float]:
@@ -341,12 +338,20 @@ def _pixel_fit(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per pixel, the least-squares fit of ``y = b . l + s_p c^e`` (weights ``wt``): its residual sum
     of squares and ``s_p`` (P,) each (the fit of :func:`lobe_of` at one exponent, pixel by pixel)."""
-    cols = np.concatenate([lv, (c**e)[..., None]], axis=-1)
-    m = np.einsum("kpi,kpj,kp->pij", cols, cols, wt) + 1e-12 * np.eye(4)
-    rhs = np.einsum("kpi,kp,kp->pi", cols, y, wt)
-    sol = np.linalg.solve(m, rhs[..., None])[..., 0]
-    res = (y - np.einsum("kpi,pi->kp", cols, sol)) * wt
+    sol, res = _weighted_fits(np.concatenate([lv, (c**e)[..., None]], axis=-1), y, wt)
     return np.sum(res * res, axis=0), sol[:, 3]
+
+
+def _weighted_fits(
+    cols: np.ndarray, y: np.ndarray, wt: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Every pixel's weighted least squares ``y_kp ~ cols_kp . sol_p`` (weights ``wt`` (N, P)): the
+    solutions (P, k) and the weighted residuals (N, P)."""
+    m = np.einsum("kpi,kpj,kp->pij", cols, cols, wt) + 1e-12 * np.eye(cols.shape[-1])
+    rhs = np.einsum("kpi,kp,kp->pi", cols, y, wt)
+    sol: np.ndarray = np.linalg.solve(m, rhs[..., None])[..., 0]
+    res: np.ndarray = (y - np.einsum("kpi,pi->kp", cols, sol)) * wt
+    return sol, res
 
 
 def _refine_exponent(
@@ -397,29 +402,13 @@ def fit_with_lobe(
     """
     h, w = images.shape[1:]
     mask = fallback.mask
-    start = np.where(np.isfinite(start_normals), start_normals, fallback.normals).astype(np.float64)
-    depth = np.where(mask & np.isfinite(depth_mm), depth_mm, 0.0).astype(np.float64)
-    geometry, axes, kind = lights.kernel_arrays()
-    use_valid = valid is not None
-    v = valid if use_valid else np.ones((1, 1, 1), dtype=bool)
+    start = np.where(np.isfinite(start_normals), start_normals, fallback.normals)
+    depth = np.where(mask & np.isfinite(depth_mm), depth_mm, 0.0)
     b = np.zeros((3, h, w), np.float64)
     rms = np.full((h, w), np.nan)
     good = np.zeros((h, w), np.bool_)
-    args = (
-        np.ascontiguousarray(images),
-        np.ascontiguousarray(v),
-        use_valid,
-        np.ascontiguousarray(mask),
-        depth,
-        np.linalg.inv(K),
-        geometry,
-        axes,
-        kind,
-        lights.mu.astype(np.float64),
-        np.ascontiguousarray(start),
-        float(lobe.amplitude),
-        float(lobe.exponent),
-        GN_ITERATIONS,
+    args = _kernel_args(
+        images, valid, lights, mask, depth, start, np.linalg.inv(K), lobe.exponent, lobe.amplitude
     )
     _lobe_kernel(*args, np.inf, False, b, rms, good)
     scale = max(float(np.nanmedian(rms[good])) if good.any() else 0.0, noise)
@@ -466,33 +455,52 @@ def normals_with_lobe(
     """
     h, w = depth_mm.shape
     mask = np.isfinite(depth_mm) & np.all(np.isfinite(start_normals), axis=-1)
-    geometry, axes, kind = lights.kernel_arrays()
     b = np.zeros((3, h, w), np.float64)
     good = np.zeros((h, w), np.bool_)
-    _lobe_kernel(
+    start = np.where(mask[..., None], start_normals, 0.0)
+    depth = np.where(mask, depth_mm, 0.0)
+    args = _kernel_args(images, valid, lights, mask, depth, start, kinv, exponent, amplitude)
+    _lobe_kernel(*args, np.inf, False, b, np.full((h, w), np.nan), good)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n = np.moveaxis(b / np.linalg.norm(b, axis=0), 0, -1)
+    return n, good & mask
+
+
+#: :func:`_lobe_kernel`'s arguments up to its iterations (:func:`_kernel_args`).
+_KernelArgs = tuple[Arr, Arr, bool, Arr, Arr, Arr, Arr, Arr, Arr, Arr, Arr, float, float, int]
+
+
+def _kernel_args(
+    images: np.ndarray,
+    valid: np.ndarray | None,
+    lights: Lights,
+    mask: np.ndarray,
+    depth_mm: np.ndarray,
+    start_normals: np.ndarray,
+    kinv: np.ndarray,
+    exponent: float,
+    amplitude: float,
+) -> _KernelArgs:
+    """The leading arguments of :func:`_lobe_kernel` (through its iterations), in the dtypes and
+    layouts it is compiled for: ``depth_mm`` (H, W) and ``start_normals`` (H, W, 3) finite on
+    ``mask``; ``kinv`` the grid's pixel to ray."""
+    geometry, axes, kind = lights.kernel_arrays()
+    return (
         np.ascontiguousarray(images),
         np.ascontiguousarray(valid) if valid is not None else np.ones((1, 1, 1), dtype=bool),
         valid is not None,
-        mask,
-        np.where(mask, depth_mm, 0.0).astype(np.float64),
+        np.ascontiguousarray(mask),
+        np.ascontiguousarray(depth_mm, dtype=np.float64),
         np.ascontiguousarray(kinv, dtype=np.float64),
         geometry,
         axes,
         kind,
         lights.mu.astype(np.float64),
-        np.ascontiguousarray(np.where(mask[..., None], start_normals, 0.0), dtype=np.float64),
+        np.ascontiguousarray(start_normals, dtype=np.float64),
         float(amplitude),
         float(exponent),
         GN_ITERATIONS,
-        np.inf,
-        False,
-        b,
-        np.full((h, w), np.nan),
-        good,
     )
-    with np.errstate(invalid="ignore", divide="ignore"):
-        n = np.moveaxis(b / np.linalg.norm(b, axis=0), 0, -1)
-    return n, good & mask
 
 
 @numba.njit(parallel=True, cache=True)

@@ -198,7 +198,7 @@ def reconstruct_station(
     with ThreadPoolExecutor(max_workers=opts.workers or default_workers()) as pool:
         started = start_capture_work(cap, pool)
         scene = preprocess_scene(cap, opts, own)
-        view, _ = reconstruct_view(cap, tgt, scene, opts, pool, own, started=started)
+        view, _ = reconstruct_view(cap, tgt, scene, opts, pool, own, started)
     surface = view.surface
     judged = surface.mask & ~edge_band(surface.mask)
     qualified = uncertainty.propagate_points(uncertainty_inputs(cap, scene.pre, view, judged))
