@@ -208,3 +208,20 @@ def _apply(doc: dict, overrides: dict) -> dict:
         else:
             doc[key] = value
     return doc
+
+
+def before_segmentation(bundle: Path):
+    """A (simulated) bundle as the inspection has it when it segments the plate: the capture, its
+    preprocessing, the candidates (plate and lit surroundings) and the stereo depth matched over them."""
+    from pipeline.io import load_capture
+    from pipeline.preprocess import preprocess
+    from pipeline.segmentation import candidate_mask
+    from pipeline.surface import stereo
+
+    cap = load_capture(bundle)
+    pre = preprocess(cap)
+    cand = candidate_mask(pre.brightness, seen=pre.seen)
+    depth = stereo.stereo_depth(
+        cap.stereo_left, cap.stereo_right, cap.rig, z_min_mm=1500.0, z_max_mm=6000.0, mask=cand
+    ).depth_mm
+    return cap, pre, cand, depth

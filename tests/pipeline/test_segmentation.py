@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 
 from pipeline.formats import CaptureError
-from pipeline.io import load_capture, load_target
+from pipeline.io import load_target
 from pipeline.judge.target_geometry import target_area_mm2
-from pipeline.preprocess import plate_mask, preprocess
+from pipeline.preprocess import plate_mask
 from pipeline.segmentation import Segmentation, candidate_mask, segment_plate
 from pipeline.simulate import (
     CaptureSpec,
@@ -30,8 +30,8 @@ from pipeline.simulate import (
     rail_supports,
     simulate_capture,
 )
-from pipeline.surface import stereo
 from pipeline.surface.normals import estimate_normals
+from tests.pipeline.bundles import before_segmentation
 
 W, H = 612, 512
 FLOOR = Floor(gap_mm=300.0, supports=rail_supports((3000.0, 3000.0), 300.0, 3))
@@ -45,12 +45,7 @@ def _scene(tmp_path_factory, name: str, plate: PlateSpec, seed: int = 5):
         capture=CaptureSpec(width=W, height=H),
         seed=seed,
     )
-    cap = load_capture(out)
-    pre = preprocess(cap)
-    cand = candidate_mask(pre.brightness, seen=pre.seen)
-    depth = stereo.stereo_depth(
-        cap.stereo_left, cap.stereo_right, cap.rig, z_min_mm=1500.0, z_max_mm=6000.0, mask=cand
-    ).depth_mm
+    cap, pre, cand, depth = before_segmentation(out)
     # photometric normals over the candidates (plate and surroundings), as the inspection has them
     field = estimate_normals(
         pre.images, cap.light_dirs, cand, valid=pre.valid, camera_matrix=cap.rig.left.K

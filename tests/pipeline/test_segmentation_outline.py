@@ -10,12 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.io import load_capture
-from pipeline.preprocess import preprocess
-from pipeline.segmentation import candidate_mask, segment_plate
+from pipeline.segmentation import segment_plate
 from pipeline.segmentation.outline import OUTLINE_REACH_PX, lit_surroundings
 from pipeline.simulate import CaptureSpec, PlateSpec, simulate_capture
-from pipeline.surface import stereo
+from tests.pipeline.bundles import before_segmentation
 
 H, W = 200, 240
 TRUE_LEFT = 80  # the plate's true outline: columns >= TRUE_LEFT, rows 30..169
@@ -79,12 +77,7 @@ def test_a_rust_patch_at_the_edge_beside_a_glare_lit_conveyor_is_told_apart(tmp_
     near = dict(near_field_mm=2800.0, light_elevation_deg=30.0, led_mu=1.5)
     spec = CaptureSpec(width=1224, height=1024, n_lights=18, specular=0.5, shininess=15.0, **near)
     out = simulate_capture(tmp_path / "case11", plate=PlateSpec(), capture=spec, seed=101)
-    cap = load_capture(out)
-    pre = preprocess(cap)
-    cand = candidate_mask(pre.brightness, seen=pre.seen)
-    depth = stereo.stereo_depth(
-        cap.stereo_left, cap.stereo_right, cap.rig, z_min_mm=1500.0, z_max_mm=6000.0, mask=cand
-    ).depth_mm
+    cap, pre, cand, depth = before_segmentation(out)
     seg = segment_plate(
         pre.brightness,
         depth,
