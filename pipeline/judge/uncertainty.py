@@ -395,10 +395,7 @@ def _without_lobe(
     """
     if specular is None or not specular.modelled or not np.isfinite(specular.exponent):
         return res, 0
-    view = -pts / np.linalg.norm(pts, axis=-1, keepdims=True)  # towards the camera (P, 3)
-    half = dirs + view[None]
-    half /= np.linalg.norm(half, axis=-1, keepdims=True)
-    lobe = att * np.maximum(np.einsum("npc,pc->np", half, n), 0.0) ** specular.exponent
+    lobe = att * glare.lobe_cosines(dirs, pts, n) ** specular.exponent
     lobe = np.where(lit, lobe, 0.0)
     amplitude = np.maximum(
         np.sum(res * lobe, axis=0) / np.maximum(np.sum(lobe * lobe, axis=0), 1e-30), 0.0

@@ -236,6 +236,17 @@ def lobe_on_samples(
     return lobe_of(raw, None, lights, points, normals)
 
 
+def lobe_cosines(lv: np.ndarray, x: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """``max(0, n . h_k)`` (N, P): the cosine the lobe is raised to at points ``x`` (P, 3, camera frame,
+    mm) with normals ``n`` (P, 3), ``h_k`` the half vector of the light direction ``lv`` (N, P, 3)
+    and the view towards the camera."""
+    view = -x / np.linalg.norm(x, axis=-1, keepdims=True)
+    half = lv + view[None]
+    half /= np.linalg.norm(half, axis=-1, keepdims=True)
+    c: np.ndarray = np.maximum(np.einsum("kpc,pc->kp", half, n), 0.0)
+    return c
+
+
 def lobe_of(
     raw: np.ndarray,
     valid: np.ndarray | None,
@@ -252,10 +263,7 @@ def lobe_of(
     alone."""
     lv = lights.directions_at(x)  # (N, P, 3)
     att = lights.attenuation_at(x)  # (N, P)
-    view = -x / np.linalg.norm(x, axis=-1, keepdims=True)
-    half = lv + view[None]
-    half /= np.linalg.norm(half, axis=-1, keepdims=True)
-    c = np.maximum(np.einsum("kpc,pc->kp", half, n), 0.0)
+    c = lobe_cosines(lv, x, n)
     nl = np.einsum("kpc,pc->kp", lv, n)
     use = (nl > COS_MIN) & (att > MIN_RELATIVE_ATTENUATION * att.max(axis=0)) & np.isfinite(raw)
     if valid is not None:
