@@ -30,7 +30,8 @@ hundreds of millimetres apart, so the plate is found as the near, smooth sheet o
 5b. *The outline beside lit surroundings*: the stereo matcher carries the plate's depth up to
    ``OUTLINE_REACH_PX`` onto what lies beside it; next to darkness the candidates bound it, next to
    lit surroundings (a dark conveyor under a broad glare lobe) the glare-free brightness (the brightest
-   of the darkest quarter of the samples, which a broad lobe lights least) does: where most lit pixels within reach outside are darker than ``OUTLINE_ALBEDO_RATIO``
+   of the darkest quarter of the samples, which a broad lobe lights least) does: where most lit pixels
+   within reach outside are darker than ``OUTLINE_ALBEDO_RATIO``
    times the plate just inside, the region's pixels within reach nearer their brightness are
    surroundings (:mod:`~pipeline.segmentation.outline`; they join the edge band).
 6. *Edge band*: the plate's pixels within ``edge_px`` of its boundary (outline and openings; the

@@ -7,7 +7,8 @@ surroundings lit well enough to be candidates (a conveyor under a broad glare lo
 edge, bench_lights case 11) nothing did, and the plate reached up to ``OUTLINE_REACH_PX`` onto them, with
 their flat normals bending the measured edge. There the plate and what lies beside it still differ in
 the glare-free brightness (the brightest of the darkest quarter of the samples, which the lobe lights
-least, :attr:`pipeline.preprocess.Preprocessed.glare_free`) mostly by their albedos: where most of the lit pixels within reach outside are darker than ``OUTLINE_ALBEDO_RATIO``
+least, :attr:`pipeline.preprocess.Preprocessed.glare_free`) mostly by their albedos: where most of the
+lit pixels within reach outside are darker than ``OUTLINE_ALBEDO_RATIO``
 times the plate's mean further inside (no painted or rusty steel is that much darker than the plate beside
 it), the region's pixels within reach that are nearer the outside's brightness than the plate's, and
 joined to the outside through such pixels, are surroundings. Elsewhere (a lit floor as bright as the

@@ -505,8 +505,7 @@ def correction_basis(
         return splines
     scale = max(float(max(shape)), 1.0)
     v, u = np.asarray(rows, np.float64) / scale, np.asarray(cols, np.float64) / scale
-    columns = [np.ones(v.size), v, u, v * v, v * u, u * u]
-    return np.column_stack(columns[: _POLYNOMIAL[QUADRIC if model == QUADRIC else PLANE]])
+    return _monomials(v, u, _POLYNOMIAL[QUADRIC if model == QUADRIC else PLANE])
 
 
 def smooth_stereo_depth(
@@ -785,8 +784,13 @@ def _polynomial_basis(grid: _Grid, degree: int) -> np.ndarray:
         indexing="ij",
     )
     gv, gu = gv.ravel() - gv.mean(), gu.ravel() - gu.mean()
-    columns = [np.ones(grid.size), gv, gu, gv * gv, gv * gu, gu * gu]
-    return np.column_stack(columns[: _POLYNOMIAL[PLANE] if degree == 1 else _POLYNOMIAL[QUADRIC]])
+    return _monomials(gv, gu, _POLYNOMIAL[PLANE] if degree == 1 else _POLYNOMIAL[QUADRIC])
+
+
+def _monomials(v: np.ndarray, u: np.ndarray, count: int) -> np.ndarray:
+    """(len(v), count): the first ``count`` of 1, v, u, v^2, v u, u^2 (a plane's 3, a quadric's 6)."""
+    columns = [np.ones(v.size), v, u, v * v, v * u, u * u]
+    return np.column_stack(columns[:count])
 
 
 @nb.njit(cache=True, parallel=True)
