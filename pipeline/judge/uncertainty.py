@@ -49,6 +49,7 @@ from scipy.sparse.linalg import factorized
 from pipeline.lights import glare
 from pipeline.lights.model import Lights
 from pipeline.surface import fusion as fusion_mod
+from pipeline.surface import integration
 from pipeline.surface.normals import NormalField, SpecularFit
 from pipeline.surface.normals.noise import image_noise
 
@@ -454,8 +455,10 @@ def _lobe_var_mm2(x: Inputs, mask: np.ndarray) -> np.ndarray | None:
         for d_log_e, d_s in moves
         for sign in (1.0, -1.0)
     ]
-    good = sub & np.logical_and.reduce([ok for _, ok in solved])
-    slopes = [_log_depth_slopes(n, kinv) for n, _ in solved]
+    converged = sub & np.logical_and.reduce([ok for _, ok in solved])
+    # the integration's own slopes of each solution, where every one of them is usable
+    slopes = [integration.log_depth_gradients(n, converged, kinv) for n, _ in solved]
+    good = converged & np.logical_and.reduce([usable for _, _, usable in slopes])
     du = np.stack([0.5 * (a[0] - b[0]) for a, b in zip(slopes[::2], slopes[1::2], strict=True)])
     dv = np.stack([0.5 * (a[1] - b[1]) for a, b in zip(slopes[::2], slopes[1::2], strict=True)])
     change = _without_correction(_integrate_log_depth(du, dv, good), good, x.fusion, step)
@@ -464,20 +467,6 @@ def _lobe_var_mm2(x: Inputs, mask: np.ndarray) -> np.ndarray | None:
     # at the plate's edge does not blend them with the zeros outside
     grown = cv2.dilate(cv2.dilate(var.astype(np.float32), np.ones((3, 3))), np.ones((3, 3)))
     return np.where(sub, var, grown)
-
-
-def _log_depth_slopes(n: np.ndarray, kinv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The gradient of ``ln z`` per grid step (u, v) that unit normals ``n`` (h, w, 3) of a grid give
-    (``kinv``: the grid's pixel to ray): a surface point ``z r(u, v)`` is tangent to its normal, so
-    ``d ln z / du = -(n . dr/du) / (n . r)``."""
-    h, w = n.shape[:2]
-    vv, uu = np.mgrid[:h, :w].astype(np.float64)
-    rays = np.einsum("ij,jhw->hwi", kinv, np.stack([uu, vv, np.ones_like(uu)]))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        nr = np.einsum("hwc,hwc->hw", n, rays)
-        gu = -np.einsum("hwc,c->hw", n, kinv[:, 0]) / nr
-        gv = -np.einsum("hwc,c->hw", n, kinv[:, 1]) / nr
-    return gu, gv
 
 
 def _integrate_log_depth(gu: np.ndarray, gv: np.ndarray, good: np.ndarray) -> np.ndarray:

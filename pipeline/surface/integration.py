@@ -118,9 +118,10 @@ class HeightResult:
 
 @nb.njit(cache=True, parallel=True)
 def _log_depth_gradients(
-    normals: Arr, mask: Arr, kinv: Arr, unit_tol: float, p: Arr, q: Arr
+    normals: Arr, mask: Arr, kinv: Arr, unit_tol: float, p: Arr, q: Arr, usable: Arr
 ) -> int:
-    """p = d(log z)/du, q = d(log z)/dv on the mask (0 outside); returns the count of unusable normals."""
+    """p = d(log z)/du, q = d(log z)/dv on the mask (0 outside) and where each is ``usable`` (the
+    normal a finite unit vector facing the camera); returns the count of unusable normals."""
     h, w = mask.shape
     bad = 0
     a0, a1, a2 = kinv[0, 0], kinv[0, 1], kinv[0, 2]
@@ -131,6 +132,7 @@ def _log_depth_gradients(
         for j in range(w):
             p[i, j] = 0.0
             q[i, j] = 0.0
+            usable[i, j] = False
             if not mask[i, j]:
                 continue
             nx = np.float64(normals[i, j, 0])
@@ -149,6 +151,7 @@ def _log_depth_gradients(
                 continue
             p[i, j] = -(nx * a0 + ny * b0 + nz * c0) / nr
             q[i, j] = -(nx * a1 + ny * b1 + nz * c1) / nr
+            usable[i, j] = True
     return bad
 
 
@@ -342,11 +345,35 @@ def _check_normals_inputs(
     return np.ascontiguousarray(n), np.ascontiguousarray(m), k
 
 
-def _gradients(normals: Arr, mask: Arr, K: Arr) -> tuple[Arr, Arr]:
-    """The log-depth gradients p = d(log z)/du, q = d(log z)/dv (H, W) float64 of the normals on the mask."""
+def log_depth_gradients(normals: Arr, mask: Arr, kinv: Arr) -> tuple[Arr, Arr, Arr]:
+    """The log-depth gradients p = d(log z)/du, q = d(log z)/dv (H, W) float64 that the integration
+    takes from unit normals (H, W, 3) on ``mask`` (``kinv``: the grid's pixel (u, v, 1) to its ray,
+    ``K^-1`` or a subsampled grid's), and where they are usable (a finite unit normal facing the
+    camera; 0 elsewhere)."""
+    p, q, usable, _ = _slopes(normals, mask, kinv)
+    return p, q, usable
+
+
+def _slopes(normals: Arr, mask: Arr, kinv: Arr) -> tuple[Arr, Arr, Arr, int]:
+    """:func:`log_depth_gradients` and the count of the mask's unusable normals."""
     p = np.empty(mask.shape)
     q = np.empty(mask.shape)
-    bad = _log_depth_gradients(normals, mask, np.linalg.inv(K), _UNIT_TOL, p, q)
+    usable = np.empty(mask.shape, np.bool_)
+    bad = _log_depth_gradients(
+        np.ascontiguousarray(normals),
+        np.ascontiguousarray(mask),
+        np.ascontiguousarray(kinv, dtype=np.float64),
+        _UNIT_TOL,
+        p,
+        q,
+        usable,
+    )
+    return p, q, usable, bad
+
+
+def _gradients(normals: Arr, mask: Arr, K: Arr) -> tuple[Arr, Arr]:
+    """The log-depth gradients p = d(log z)/du, q = d(log z)/dv (H, W) float64 of the normals on the mask."""
+    p, q, _, bad = _slopes(normals, mask, np.linalg.inv(K))
     if bad:
         raise ValueError(
             f"normals: expected finite unit vectors facing the camera (n . ray < 0) inside the mask, "

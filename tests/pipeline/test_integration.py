@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import scipy.io
 
-from pipeline.surface.integration import _log_depth_gradients, integrate_gradient, integrate_normals
+from pipeline.surface.integration import integrate_gradient, integrate_normals, log_depth_gradients
 from tests.pipeline.surfaces import plate_camera, render_cylinder, sparse_least_squares
 from tests.realdata import BINI, VASE, load_bini, made_after_median_scale
 
@@ -28,9 +28,8 @@ def rms(a):
 
 def test_log_depth_gradient_matches_rendered_surface(plate):
     K, n, mask, depth = plate
-    p = np.empty(mask.shape)
-    q = np.empty(mask.shape)
-    assert _log_depth_gradients(n, mask, np.linalg.inv(K), 1e-2, p, q) == 0
+    p, q, usable = log_depth_gradients(n, mask, np.linalg.inv(K))
+    assert np.array_equal(usable, mask)  # every normal of the plate usable, none outside it
     t = np.log(depth)
     c = np.s_[2:-2, 2:-2]
     # fourth-order central differences of the true log depth (3-point ones are off by ~1e-7 here)
@@ -41,6 +40,14 @@ def test_log_depth_gradient_matches_rendered_surface(plate):
     np.testing.assert_allclose(p[c][inner], fd_u[inner], atol=1e-9)
     np.testing.assert_allclose(q[c][inner], fd_v[inner], atol=1e-9)
     assert np.abs(p[mask]).max() > 1e-4  # non-trivial: the plate is tilted and curved
+    # a normal facing away from the camera, or not a unit vector, gives no slope and is flagged
+    i, j = np.argwhere(mask)[len(np.argwhere(mask)) // 2]
+    bent = n.copy()
+    bent[i, j] *= -1.0
+    bent[i, j + 1] *= 2.0
+    p2, q2, usable2 = log_depth_gradients(bent, mask, np.linalg.inv(K))
+    assert not usable2[i, j] and not usable2[i, j + 1] and p2[i, j] == q2[i, j + 1] == 0.0
+    assert np.count_nonzero(mask & ~usable2) == 2
 
 
 # ------------------------------------------------------------------------------ accuracy on the plate
