@@ -3,7 +3,9 @@
 The library sets nothing process-wide on import. Its functions that run work beside their main
 line take a ``workers`` count whose default comes from :func:`default_workers`; the entry points
 (``plate-inspect``'s :func:`pipeline.cli.main`, the service's job consumer) call
-:func:`configure_process` once at start, before any compiled kernel runs.
+:func:`configure_process` once at start, before any compiled kernel runs, and
+:func:`pipeline.run.inspect` sets the same policy on its first call when nothing did before
+(:func:`set_process_policy`).
 """
 
 from __future__ import annotations
@@ -67,6 +69,10 @@ def default_workers() -> int:
     return os.cpu_count() or 1
 
 
+_policy_lock = threading.Lock()
+_policy_set = False
+
+
 def configure_process() -> None:
     """Set the process-wide thread policy of a process that runs inspections; call it once at start.
 
@@ -84,9 +90,31 @@ def configure_process() -> None:
     :func:`prefault_heap` pages the heap in on a thread of its own while the process imports its
     modules on the other core.
     """
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    if keep_freed_memory():
+    if set_process_policy():
         prefault_heap()
+
+
+def set_process_policy() -> bool:
+    """The thread and memory policy of :func:`configure_process` without its paging-in, once per process.
+
+    :func:`pipeline.run.inspect` calls it, so that a program that calls the inspection without the
+    entry points' start-up (a script, a notebook, another service) runs it as fast as the command line
+    does (measured: 0.70 s against 0.60 s for a 1224x1024 inspection). Its effects are a process's
+    performance only, never a result. The second and later calls do nothing.
+
+    Returns
+    -------
+    bool
+        Whether this call set the malloc policy (see :func:`keep_freed_memory`); False on every call
+        after the first.
+    """
+    global _policy_set
+    with _policy_lock:
+        if _policy_set:
+            return False
+        _policy_set = True
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    return keep_freed_memory()
 
 
 def keep_freed_memory() -> bool:

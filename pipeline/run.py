@@ -37,7 +37,7 @@ from pipeline.judge.registration import Registration, pixel_in_target_frame
 from pipeline.judge.target_geometry import target_area_mm2
 from pipeline.judge.verdict import Judgement
 from pipeline.lights.model import Lights
-from pipeline.parallel import default_workers
+from pipeline.parallel import default_workers, set_process_policy
 from pipeline.preprocess import Preprocessed
 from pipeline.stages import (
     DISAGREEMENT_FRACTION,
@@ -158,6 +158,7 @@ def inspect(
     pipeline.formats.CaptureError
         A valid capture that cannot be measured (no plate found, no metric scale).
     """
+    set_process_policy()  # a caller without the entry points' start-up: the same threads and heap
     opts = options or InspectOptions()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
