@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from pipeline.parallel import WORKERS_ENV, configure_process, default_workers
+from pipeline.parallel import WORKERS_ENV, default_workers
 
 
 def test_default_workers_is_the_cpus_of_the_process(monkeypatch):
