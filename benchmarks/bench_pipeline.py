@@ -11,7 +11,9 @@ Prints two tables:
    median totals, so that a regression shows as a ratio on whatever machine it runs. By default a
    run times its process's first inspection (the command line's case); ``--in-process N`` times the
    N-th in a row instead (a service's steady state: a tree without ``pipeline.parallel``'s heap
-   policy, such as 59f1066, pays for paging its memory in on its first).
+   policy, such as 59f1066, pays for paging its memory in on its first). ``--bare`` runs each process as
+   a script that only imports ``pipeline.run`` and calls ``inspect`` (no process policy set before it,
+   no warm-up; with ``--in-process 1`` its first call loads the compiled kernels).
 
     .venv/bin/python benchmarks/bench_pipeline.py --only timing --against 59f1066 [--repeat 3] [--in-process 4]
     .venv/bin/python benchmarks/bench_pipeline.py [--seeds 0 1] [--repeat 3] [--quick]
@@ -25,6 +27,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -102,15 +105,16 @@ CELLS = (
 RUNNER = """
 import json, sys, time
 from pathlib import Path
-if Path("pipeline/parallel.py").exists():  # the tree's own process policy; an older tree has none
+bare = sys.argv[2] == "bare"  # a script that imports the pipeline and calls inspect(), nothing else
+if Path("pipeline/parallel.py").exists() and not bare:  # the tree's own process policy; an older tree has none
     from pipeline.parallel import configure_process
     configure_process()
 import pipeline.run as run
-if hasattr(run, "warm_up"):
+if hasattr(run, "warm_up") and not bare:
     run.warm_up()
 out = {}
 inspections = int(sys.argv[1])  # per bundle in this process: the last one's timings are kept
-for bundle in sys.argv[2:]:
+for bundle in sys.argv[3:]:
     b = Path(bundle)
     try:
         for _ in range(inspections):
@@ -125,12 +129,26 @@ print("TIMINGS " + json.dumps(out))
 """
 
 
-def _run_tree(tree: Path, bundles: list[Path], inspections: int = 1) -> dict[str, dict[str, float]]:
+def _run_tree(
+    tree: Path, bundles: list[Path], inspections: int = 1, bare: bool = False
+) -> dict[str, dict[str, float]]:
     """Inspect ``bundles`` with the code of ``tree`` in a child process, each ``inspections`` times in
-    a row; timings per bundle (its last inspection's)."""
+    a row; timings per bundle (its last inspection's). ``bare``: the child neither sets the process
+    policy nor warms up, and inherits none of this process's (a script that calls ``inspect``)."""
+    env = dict(os.environ)
+    if bare:
+        env.pop("OMP_WAIT_POLICY", None)  # set by this process's configure_process
     done = subprocess.run(
-        [sys.executable, "-c", RUNNER, str(inspections), *map(str, bundles)],
+        [
+            sys.executable,
+            "-c",
+            RUNNER,
+            str(inspections),
+            "bare" if bare else "cli",
+            *map(str, bundles),
+        ],
         cwd=tree,
+        env=env,
         capture_output=True,
         text=True,
         check=False,
@@ -149,6 +167,7 @@ def timing_table(
     against: str | None,
     cells: list[str] | None = None,
     inspections: int = 1,
+    bare: bool = False,
 ) -> None:
     """Per-stage medians of ``repeat`` runs of each cell and size; with ``against``, the same captures
     timed with that commit's tree (a temporary worktree), runs interleaved, and the ratio of the
@@ -177,8 +196,10 @@ def timing_table(
         runs: dict[str, list[dict[str, dict[str, float]]]] = {k: [] for k in trees}
         for _ in range(repeat):
             for key, tree in trees.items():
-                runs[key].append(_run_tree(tree, paths, inspections))
+                runs[key].append(_run_tree(tree, paths, inspections, bare))
     which = "" if inspections == 1 else f", each the last of {inspections} in its process"
+    if bare:
+        which += ", called as a bare script: no process policy, no warm-up"
     print(
         f"\n## Per-stage timings, 12 lights, cylinder R5000 (median of {repeat} runs{which}, seconds)\n"
     )
@@ -288,6 +309,12 @@ def main() -> None:
         "tree's first inspection of a process may pay for its memory; default 1, the first)",
     )
     parser.add_argument(
+        "--bare",
+        action="store_true",
+        help="each process only imports pipeline.run and calls inspect(): no process policy set "
+        "before, no warm-up (a script's or a notebook's call; default: the command line's start-up)",
+    )
+    parser.add_argument(
         "--cells",
         nargs="+",
         default=None,
@@ -301,7 +328,9 @@ def main() -> None:
         sizes = [(int(a), int(b)) for a, b in (v.lower().split("x") for v in args.sizes)]
     with tempfile.TemporaryDirectory() as tmp:
         if args.only != "lights":
-            timing_table(Path(tmp), sizes, args.repeat, args.against, args.cells, args.in_process)
+            timing_table(
+                Path(tmp), sizes, args.repeat, args.against, args.cells, args.in_process, args.bare
+            )
         if args.only != "timing":
             lights_table(Path(tmp), seeds, lights)
 

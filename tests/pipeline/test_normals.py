@@ -430,6 +430,34 @@ def test_specular_stage_leaves_a_matte_plate_alone():
     np.testing.assert_array_equal(field.normals, plain.normals)
 
 
+@pytest.mark.parametrize("amplitude", [0.0, 0.006, 0.008, 0.01, 0.02])
+def test_the_lobes_pretest_stops_only_where_the_whole_search_would(monkeypatch, amplitude):
+    # lobes from none to clear (F-ratio about 0.5, 2.7, ~4, 6, 22 on this plate): the pretest on a
+    # quarter of the search pixels decides as the search on all of them, to the bit
+    from pipeline.surface.normals import specular
+
+    rng = np.random.default_rng(17)
+    n_true, rho = curved_plate()
+    lights, K = ring_lights(12, polar_deg=45.0), pinhole()
+    images = render_lobe(
+        n_true,
+        0.25 * rho,
+        lights,
+        perspective_view(K),
+        rng,
+        noise=0.002,
+        specular=amplitude,
+        lobe=lambda c: c**40,
+    )
+    mask = np.ones((H, W), bool)
+    field = estimate_normals(images, lights, mask, method="robust", camera_matrix=K)
+    monkeypatch.setattr(specular, "LOBE_PRETEST_PIXELS", 10**9)  # no pretest: one search on all
+    whole = estimate_normals(images, lights, mask, method="robust", camera_matrix=K)
+    assert field.specular is not None and whole.specular is not None
+    assert field.specular.modelled == whole.specular.modelled
+    np.testing.assert_array_equal(field.normals, whole.normals)
+
+
 def test_specular_stage_on_a_sphere_with_orthographic_view():
     rng = np.random.default_rng(23)
     n_true, mask = sphere()

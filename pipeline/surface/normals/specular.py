@@ -9,7 +9,8 @@ as the diffuse part), and the integrated surface gets the wrong curvature. This 
 the lobe's shape g(c) = max(0, c)^e is fitted globally (1-D search over LOBE_EXPONENTS on a
 subsample of pixels: the e whose per-pixel non-negative amplitude removes the most residual); if
 the lobe explains less than LOBE_MIN_F times what a free parameter takes out of pure noise the
-stage stops (matte: the robust estimate stands). Otherwise SPECULAR_ITERATIONS joint Gauss-Newton
+stage stops (matte: the robust estimate stands; the test runs first on ~LOBE_PRETEST_PIXELS of the
+pixels, where a matte plate, F about 1, stops). Otherwise SPECULAR_ITERATIONS joint Gauss-Newton
 passes fit b = rho n per pixel and the amplitude s >= 0 pooled over SPECULAR_WINDOW-pixel boxes (a
 per-pixel s is not identifiable; the pooled normal equation of s has the pixel's b eliminated:
 Schur complement), on the lit samples with residuals within SPECULAR_K global noise scales (the
@@ -41,6 +42,10 @@ Arr = npt.NDArray[Any]
 LOBE_EXPONENTS = tuple(float(x) for x in np.geomspace(2.0, 1000.0, 28))
 #: The search uses at most this many pixels (a regular subsample of the estimated ones).
 LOBE_SEARCH_PIXELS = 40000
+#: The F-test is first run on about this many of those pixels (a regular subsample of them), where a
+#: matte plate stops: its F-ratio, about 1, is then read within a few hundredths (a mean over
+#: thousands of pixels), so one below half of LOBE_MIN_F cannot reach LOBE_MIN_F on all of them.
+LOBE_PRETEST_PIXELS = 5000
 #: The lobe is modelled only when it explains this many times the residual that one extra
 #: free parameter per pixel removes from pure noise (an F-ratio over the search pixels).
 LOBE_MIN_F = 4.0
@@ -155,7 +160,10 @@ def specular(
     fit = status == OK
     flat = np.flatnonzero(fit)
     sel = flat[:: max(1, flat.size // LOBE_SEARCH_PIXELS)]
-    exponent, f_ratio, sigma = _lobe_search(images, valid, b, sel, w, view_map, L)
+    pretest = sel[:: max(1, sel.size // LOBE_PRETEST_PIXELS)]
+    exponent, f_ratio, sigma = _lobe_search(images, valid, b, pretest, w, view_map, L)
+    if f_ratio >= LOBE_MIN_F / 2 and pretest.size < sel.size:
+        exponent, f_ratio, sigma = _lobe_search(images, valid, b, sel, w, view_map, L)
     if not f_ratio >= LOBE_MIN_F:
         return SpecularFit(
             modelled=False, exponent=float("nan"), f_ratio=f_ratio, amplitude_median=0.0
