@@ -55,6 +55,7 @@ CASES: tuple[tuple[str, dict[str, Any], dict[str, Any], float | None], ...] = (
     ("glare, 18 distant lights", {}, GLARE, None),
     ("glare, 18 LEDs 2.8 m, positions", {}, GLARE_LEDS, None),
     ("glare (broad lobe), 18 LEDs, positions", {}, {**GLARE_LEDS, "shininess": 15.0}, None),
+    ("glare (broad lobe), 12 distant lights", {}, {"specular": 0.4, "shininess": 15.0}, None),
     ("sphere R 8000", {"shape": "sphere", "radius_mm": 8000.0}, {}, None),
     ("dent 5 mm (fail)", {"dents": (Dent(-600.0, 300.0, 150.0, 5.0),)}, {}, None),
     ("under-bent R 5250 against R 5000 (fail)", {"radius_mm": 5250.0}, {}, 5000.0),
@@ -62,6 +63,12 @@ CASES: tuple[tuple[str, dict[str, Any], dict[str, Any], float | None], ...] = (
         "bump 2.8 mm, glare, 18 LEDs (fail)",
         {"dents": (Dent(400.0, -300.0, 250.0, -2.8),)},
         GLARE_LEDS,
+        None,
+    ),
+    (
+        "dent 6 mm, broad lobe, 12 distant lights (fail)",
+        {"dents": (Dent(-600.0, 300.0, 150.0, 6.0),)},
+        {"specular": 0.4, "shininess": 15.0},
         None,
     ),
 )

@@ -324,7 +324,7 @@ def reconstruct_view(
             pool.submit(artifacts.write_normals_png, normals_png, field.normals, field.mask)
         )
     _check_stereo_share(plate, cap, opts)
-    surface = _surface(cap, tgt, scene, plate, field, opts, clock)
+    surface = _surface(cap, tgt, scene, plate, field, opts, pool, clock)
     rays = started.rays.result()
     points = surface.depth_mm[..., None] * rays
     clock.end("depth")
@@ -441,10 +441,13 @@ def _surface(
     plate: Plate,
     field: normals.NormalField | None,
     opts: InspectOptions,
+    pool: ThreadPoolExecutor,
     clock: StageClock,
 ) -> reconstruct.Surface:
     """Stages *normals* (point lights) and *depth*: the metric surface, with the lights refitted on the stereo
-    geometry when they bend it away from the stereo pair's (``plate`` then holds the segmented plate)."""
+    geometry when they bend it away from the stereo pair's (``plate`` then holds the segmented plate).
+    Under distant lights a glossy coating's lobe is measured on the stereo surface on ``pool`` beside the
+    integration, and the normals are fitted with it (:func:`pipeline.surface.reconstruct.with_lobe`)."""
     pre, K = scene.pre, cap.rig.left.K
     solve: dict[str, Any] = dict(
         prior_mm=plate.prior,
@@ -471,7 +474,20 @@ def _surface(
     clock.begin("depth")
     if field is None:
         raise ValueError("normals: distant lights need the normals estimated before the surface")
+    lobe_job = (
+        # the normals' specular stage saw a lobe: measured again on the stereo pair's surface, beside the
+        # integration (a broad lobe's exponent is misread from the images alone)
+        pool.submit(
+            reconstruct.stereo_lobe, pre.images, pre.valid, cap.lights, K, plate.prior, plate.mask
+        )
+        if plate.prior is not None and field.specular is not None and field.specular.modelled
+        else None
+    )
     surface = reconstruct.distant_surface(field, K, **solve)
+    if lobe_job is not None:
+        surface = reconstruct.with_lobe(
+            surface, pre.images, cap.lights, K, pre.valid, lobe_job.result(), solve
+        )
     if plate.prior is None or not reconstruct.disagrees(
         surface, tgt.tolerance_mm, DISAGREEMENT_FRACTION
     ):

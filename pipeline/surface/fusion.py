@@ -158,6 +158,7 @@ def fuse_low_frequencies(
     *,
     knot_fraction: float = KNOT_FRACTION,
     select: bool = True,
+    parallel: bool = True,
 ) -> Fusion:
     """Replace the low frequencies of a photometric surface by what the stereo pair proves of them.
 
@@ -177,6 +178,8 @@ def fuse_low_frequencies(
         ``knot_fraction``, by a lack-of-fit test (:func:`_chosen`): the coarsest rung that the
         finest does not beat beyond the measured stereo noise. False: the spline of
         ``knot_fraction`` (or, with too few stereo blocks for it, the finest rung they carry).
+    parallel : bool
+        False: no parallel kernel (a caller on a worker thread, beside the main thread's).
 
     Returns
     -------
@@ -208,7 +211,8 @@ def fuse_low_frequencies(
     fraction = chosen.rung if chosen.rung not in _POLYNOMIAL else None
     fused = np.full(z.shape, np.nan)
     correction = np.full(z.shape, np.nan, np.float32)
-    _compose(zb, chosen.grid.evaluate(chosen.coef), mb, fused[box], correction[box])
+    compose = _compose if parallel else _compose_serial
+    compose(zb, chosen.grid.evaluate(chosen.coef), mb, fused[box], correction[box])
     sigma_pix = fits[-1].sigma_pix if select else chosen.sigma_pix  # the finest rung's: the noise
     scale2 = _noise_variance(sigma_pix, blocks) * inflation
     sd = model = None
@@ -509,17 +513,22 @@ def correction_basis(
 
 
 def smooth_stereo_depth(
-    stereo_depth_mm: np.ndarray, mask: np.ndarray, *, knot_fraction: float = 1.0 / 8.0
+    stereo_depth_mm: np.ndarray,
+    mask: np.ndarray,
+    *,
+    knot_fraction: float = 1.0 / 8.0,
+    parallel: bool = True,
 ) -> np.ndarray:
     """A complete, smooth surface through the stereo depth: (H, W) float64 mm on ``mask``, NaN elsewhere.
 
     The robust spline of :func:`fuse_low_frequencies` (``knot_fraction``, no ladder) fitted to
-    ``log z_stereo`` itself: a starting surface for the near-field normals where the stereo pair
-    has holes and noise.
+    ``log z_stereo`` itself: a starting surface for the near-field normals, and for the lobe's
+    measurement, where the stereo pair has holes and noise. ``parallel``: as for
+    :func:`fuse_low_frequencies`.
     """
     ones = np.where(mask, 1.0, np.nan)
     return fuse_low_frequencies(
-        ones, stereo_depth_mm, mask, knot_fraction=knot_fraction, select=False
+        ones, stereo_depth_mm, mask, knot_fraction=knot_fraction, select=False, parallel=parallel
     ).depth_mm
 
 
@@ -805,3 +814,12 @@ def _compose(
                 f = z[i, j] * np.exp(c[i, j])
                 fused[i, j] = f
                 correction[i, j] = f - z[i, j]
+
+
+def _compose_serial(
+    z: np.ndarray, c: np.ndarray, mask: np.ndarray, fused: np.ndarray, correction: np.ndarray
+) -> None:
+    """:func:`_compose` without a parallel kernel (for a worker thread)."""
+    f = z[mask] * np.exp(c[mask])
+    fused[mask] = f
+    correction[mask] = (f - z[mask]).astype(correction.dtype)
