@@ -53,6 +53,14 @@ CASES = (
         "glare (broad lobe), 18 LEDs, positions",
         dict(NEAR, n_lights=18, specular=0.5, shininess=15.0),
     ),
+    (
+        "glare (broad lobe), 18 LEDs, nominal",
+        dict(NEAR, n_lights=18, specular=0.5, shininess=15.0, manifest_lights="nominal"),
+    ),
+    (
+        "glare (broad lobe), 12 distant lights",
+        dict(specular=0.4, shininess=15.0),
+    ),
 )
 
 _BEFORE = """

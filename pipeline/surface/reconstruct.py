@@ -214,7 +214,6 @@ def near_field_surface(
     step_tol_mm: float = DEPTH_STEP_TOL_MM,
     start_mm: np.ndarray | None = None,
     model_lobe: bool = True,
-    refine_lobe_exponent: bool = True,
 ) -> Surface:
     """Alternate near-field normals and the fused surface until the depth stops moving.
 
@@ -245,12 +244,9 @@ def near_field_surface(
         stops (:mod:`pipeline.lights.glare`). Refitted lights: True when they were fitted with the
         lobe (:attr:`LightRefinement.lobe`); refitted as if Lambertian on a glossy plate, their
         distances were too far off for the lobe's half vectors (max 6.6 mm against 4.5 mm without).
-    refine_lobe_exponent : bool
-        Refine the lobe's exponent between the grid's points (:func:`pipeline.lights.glare.lobe_of`).
-        False for lights refitted with the lobe: there the refined exponent (40.04-40.07 against
-        the grid's 39.86) moved the normals by < 0.01 deg in the median but flipped the stereo
-        fusion's model from a spline to the plane (glossy nominal cells, seeds 0-2: max 0.46-0.60
-        -> 0.80-1.32 mm), so that path is left as it was.
+        The lobe's exponent is refined between the grid's points (:func:`pipeline.lights.glare.lobe_of`),
+        for refitted lights too: a broad lobe (e 15) read on the grid (15.87) left a plate under
+        18 LEDs given by their directions at p95 0.66-0.71 mm, max 1.8 mm; refined, 0.25 / 0.9-1.0 mm.
 
     Returns
     -------
@@ -304,9 +300,7 @@ def near_field_surface(
         raise ValueError(f"max_iterations: expected at least 1, got {max_iterations}")
     surface = Surface(depth, surface_mask, field, fused, it, tuple(steps), dropped)
     if model_lobe and prior_mm is not None and method == "robust":
-        surface = _with_lobe(
-            surface, images, lights, K, valid, start, noise, solve_kw, refine_lobe_exponent
-        )
+        surface = _with_lobe(surface, images, lights, K, valid, start, noise, solve_kw)
     return surface
 
 
@@ -319,7 +313,6 @@ def _with_lobe(
     start: np.ndarray,
     noise: float,
     solve_kw: dict[str, Any],
-    refine: bool = True,
 ) -> Surface:
     """A glossy coating: its lobe measured on the stereo pair's smooth surface ``start`` and the normals
     fitted with it from that surface's normals (:mod:`pipeline.lights.glare`), integrated and fused once
@@ -333,7 +326,6 @@ def _with_lobe(
         surface.mask,
         K,
         start_mm=start,
-        refine=refine,
     )
     if not (lobe.f_ratio >= glare.MIN_F and lobe.amplitude > 0):
         return surface
@@ -438,7 +430,6 @@ def remeasure_with_refined_lights(
             method=method,
             start_mm=smooth,
             model_lobe=refined.lobe is not None,
-            refine_lobe_exponent=False,  # as before the refinement (see near_field_surface)
             **solve,
         )
     else:
