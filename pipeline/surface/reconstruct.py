@@ -437,6 +437,9 @@ def remeasure_with_refined_lights(
             scaled, refined.lights.directions, mask, valid=valid, method=method, camera_matrix=K
         )
         second = distant_surface(field, K, **solve)
+        if field.specular is not None and field.specular.modelled:  # as for given distant lights
+            lobe = stereo_lobe(scaled, valid, refined.lights, K, prior_mm, mask)
+            second = with_lobe(second, scaled, refined.lights, K, valid, lobe, solve)
     better = (
         second.fusion is not None
         and first.fusion is not None
