@@ -186,13 +186,17 @@ def with_lobe(
     valid: np.ndarray | None,
     measured: StereoLobe,
     solve_kw: dict[str, Any],
+    *,
+    noise: float | None = None,
 ) -> Surface:
     """``surface`` with its normals fitted with the lobe ``measured`` from the stereo surface's normals
     (:func:`pipeline.lights.glare.fit_with_lobe`), integrated and fused once more (``solve_kw``: as
-    for :func:`integrate_and_fuse`); ``surface`` itself when the lobe is not significant."""
+    for :func:`integrate_and_fuse`); ``surface`` itself when the lobe is not significant (a matte
+    plate). ``noise``: the images' noise (default: measured on the surface's mask)."""
     if not measured.significant:
         return surface
-    noise = float(np.median(image_noise(images, surface.mask)))
+    if noise is None:
+        noise = float(np.median(image_noise(images, surface.mask)))
     return _refit_with_lobe(
         surface, images, lights, K, valid, measured.start_mm, measured.lobe, noise, solve_kw
     )
@@ -300,36 +304,13 @@ def near_field_surface(
         raise ValueError(f"max_iterations: expected at least 1, got {max_iterations}")
     surface = Surface(depth, surface_mask, field, fused, it, tuple(steps), dropped)
     if model_lobe and prior_mm is not None and method == "robust":
-        surface = _with_lobe(surface, images, lights, K, valid, start, noise, solve_kw)
+        lobe = glare.measure_lobe(
+            images, valid, lights, surface.depth_mm, None, surface.mask, K, start_mm=start
+        )
+        surface = with_lobe(
+            surface, images, lights, K, valid, StereoLobe(lobe, start), solve_kw, noise=noise
+        )
     return surface
-
-
-def _with_lobe(
-    surface: Surface,
-    images: np.ndarray,
-    lights: Lights,
-    K: np.ndarray,
-    valid: np.ndarray | None,
-    start: np.ndarray,
-    noise: float,
-    solve_kw: dict[str, Any],
-) -> Surface:
-    """A glossy coating: its lobe measured on the stereo pair's smooth surface ``start`` and the normals
-    fitted with it from that surface's normals (:mod:`pipeline.lights.glare`), integrated and fused once
-    more; a matte plate (no significant lobe) returns ``surface`` as it is."""
-    lobe = glare.measure_lobe(
-        images,
-        valid,
-        lights,
-        surface.depth_mm,
-        None,
-        surface.mask,
-        K,
-        start_mm=start,
-    )
-    if not (lobe.f_ratio >= glare.MIN_F and lobe.amplitude > 0):
-        return surface
-    return _refit_with_lobe(surface, images, lights, K, valid, start, lobe, noise, solve_kw)
 
 
 def _refit_with_lobe(
@@ -344,7 +325,7 @@ def _refit_with_lobe(
     solve_kw: dict[str, Any],
 ) -> Surface:
     """The normals fitted with ``lobe`` from the normals of the smooth surface ``start``, integrated and
-    fused once more (:func:`_with_lobe`, :func:`with_lobe`)."""
+    fused once more (:func:`with_lobe`)."""
     depth = surface.depth_mm
     normals_start = glare.surface_normals(start, K)
     glossy, _ = glare.fit_with_lobe(
