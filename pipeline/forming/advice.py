@@ -334,29 +334,7 @@ def aim(
         else fitted.scatter_upper_scale(settings.scatter_confidence)
     )
 
-    def centre(d: float) -> float:
-        return predict(d).median - kt
-
-    def root(g: Callable[[float], float]) -> float:
-        """The least displacement from ``d_lo`` where ``g`` reaches 0 (``d_max`` if it never does)."""
-        if g(d_lo) >= 0:
-            return d_lo
-        return d_max if g(d_max) <= 0 else optimize.brentq(g, d_lo, d_max, xtol=1e-3)
-
-    d_centre = root(centre)
-
-    def place(alpha: float) -> _Placed:
-        """The pass's setting when it may take the over-bending risk ``alpha``."""
-        safe, risk = _over_risks(predict_safe, limit, over_edge, 1.0 - alpha, upper)
-        d = min(root(safe), d_centre)
-        # the least move already past the aim's margin: given when it keeps the risk of ending past
-        # the band as the inspection judges it within the allowed probability, else no setting
-        least = safe(d_lo) >= 0
-        blocked = least and risk(d_lo) > alpha
-        if least and not blocked:
-            # the deepest setting whose risk of ending past the verdict's edge is the allowed one
-            d = min(root(lambda x: risk(x) - alpha), d_centre)
-        return _Placed(float(d), least, blocked, risk(d))
+    place = _placer(predict, predict_safe, (kt, limit, over_edge), upper, (d_lo, d_max))
 
     alpha, passes_left = settings.pass_probability, None
     if settings.adaptive_split and factor is None:
@@ -381,6 +359,47 @@ def aim(
         "plate_risk_spent": spent,
         "expected_passes": passes_left,
     }
+
+
+def _placer(
+    predict: Callable[[float], Prediction],
+    predict_safe: Callable[[float], Prediction],
+    levels: tuple[float, float, float],
+    upper: float | None,
+    span: tuple[float, float],
+) -> Callable[[float], _Placed]:
+    """The aim's rule as a function of the over-bending risk the pass may take: the setting (the
+    smallest of the one whose median is the target, the one at the aim's margin, the least move's
+    rule; module docstring). ``levels``: the target's curvature, the aim's margin, the verdict's
+    edge; ``span``: the least and the deepest setting."""
+    kt, limit, over_edge = levels
+    d_lo, d_max = span
+
+    def centre(d: float) -> float:
+        return predict(d).median - kt
+
+    def root(g: Callable[[float], float]) -> float:
+        """The least displacement from ``d_lo`` where ``g`` reaches 0 (``d_max`` if it never does)."""
+        if g(d_lo) >= 0:
+            return d_lo
+        return d_max if g(d_max) <= 0 else optimize.brentq(g, d_lo, d_max, xtol=1e-3)
+
+    d_centre = root(centre)
+
+    def place(alpha: float) -> _Placed:
+        """The pass's setting when it may take the over-bending risk ``alpha``."""
+        safe, risk = _over_risks(predict_safe, limit, over_edge, 1.0 - alpha, upper)
+        d = min(root(safe), d_centre)
+        # the least move already past the aim's margin: given when it keeps the risk of ending past
+        # the band as the inspection judges it within the allowed probability, else no setting
+        least = safe(d_lo) >= 0
+        blocked = least and risk(d_lo) > alpha
+        if least and not blocked:
+            # the deepest setting whose risk of ending past the verdict's edge is the allowed one
+            d = min(root(lambda x: risk(x) - alpha), d_centre)
+        return _Placed(float(d), least, blocked, risk(d))
+
+    return place
 
 
 @dataclass(frozen=True)
@@ -972,9 +991,7 @@ def _scatter_fills_band(
         else f"the pass at {stalled:.2f} mm did not move the plate: the next setting, "
         f"{d - stalled:.2f} mm beyond it,"
     )
-    risk = (
-        f"would end past the band with {probability:.2%} (allowed: {allowed:.2%})"
-    )
+    risk = f"would end past the band with {probability:.2%} (allowed: {allowed:.2%})"
     if given:
         return (
             f"the pass's scatter fills the tolerance band: {move} is the least move, and {risk}; "
