@@ -133,6 +133,12 @@ def main():
         help="keep the risk past the verdict's edge also with the scatter at this upper credible "
         "bound of its posterior (AimSettings.scatter_confidence; default: off)",
     )
+    ap.add_argument(
+        "--adaptive-split",
+        action="store_true",
+        help="keep the over-bending risk per plate, split over the passes it is expected to need "
+        "(AimSettings.adaptive_split; default: per pass)",
+    )
     args = ap.parse_args()
     if args.stress:
         stress(args)
@@ -202,7 +208,9 @@ def main():
 
 def _settings(args) -> AimSettings:
     return AimSettings(
-        over_probability=args.over_probability, scatter_confidence=args.scatter_confidence
+        over_probability=args.over_probability,
+        scatter_confidence=args.scatter_confidence,
+        adaptive_split=args.adaptive_split,
     )
 
 

@@ -43,6 +43,7 @@ the gain's 2 % alone spreads it over several bands.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
@@ -115,6 +116,14 @@ class AimSettings:
         (:meth:`.learning.Fit.scatter_upper_scale`, normal tails): a tolerance bound, the risk kept
         whatever the scatter within that credibility, besides the predictive Student-t (which keeps it
         on average over the scatter's posterior). None: the Student-t alone (issue 27, sixth round).
+    adaptive_split : bool
+        Keep ``over_probability`` per plate, split adaptively over its passes (issue 27, seventh
+        round): a correction pass (the plate inspected) may take the plate's remaining budget (the
+        risks its earlier bending passes took, as the advice then predicted them, subtracted) times
+        the probability that it lands within the band, i.e. over the passes the plate is still
+        expected to need (:func:`_split_risk`); ``planned_passes`` is then not used. A first pass
+        keeps ``pass_probability`` (it is aimed for a low yield factor, a probe). False: each pass
+        ``pass_probability``.
     reverse_open_probability : float
         Allowed probability that a reverse pass opens the plate beyond ``target - over_band * band`` (it
         then needs one more bending pass, not a reverse or the scrap heap: a milder risk).
@@ -130,6 +139,7 @@ class AimSettings:
     setting_step_mm: float = 0.1
     planned_passes: int = 1
     scatter_confidence: float | None = None
+    adaptive_split: bool = False
 
     @property
     def pass_probability(self) -> float:
@@ -266,7 +276,12 @@ def state_action(plate: PlateRecord) -> tuple[Action, str] | None:
 
 
 def aim(
-    fitted: Fit, plate: PlateRecord, machine: Machine, settings: AimSettings = AimSettings()
+    fitted: Fit,
+    plate: PlateRecord,
+    machine: Machine,
+    settings: AimSettings = AimSettings(),
+    *,
+    spent: float = 0.0,
 ) -> dict[str, Any]:
     """The next displacement of a plate that needs bending (module docstring), with its prediction.
 
@@ -318,7 +333,47 @@ def aim(
         if settings.scatter_confidence is None
         else fitted.scatter_upper_scale(settings.scatter_confidence)
     )
-    safe, risk = _over_risks(predict_safe, limit, over_edge, p_hi, upper)
+
+    place = _placer(predict, predict_safe, (kt, limit, over_edge), upper, (d_lo, d_max))
+
+    alpha, passes_left = settings.pass_probability, None
+    if settings.adaptive_split and factor is None:
+        alpha, passes_left = _split_risk(place, predict, kt, band, settings, spent)
+    placed = place(alpha)
+    d = placed.displacement_mm
+    split = None if placed.least else _two_pass(plate, predict, d_lo, d, settings)
+    if split is not None:
+        d = split[0]
+        warnings.append(split[1])
+    if placed.least:
+        words = _scatter_fills_band(stalled, d, placed.risk, alpha, given=not placed.blocked)
+        warnings.append(words)
+    return {
+        "blocked": placed.blocked,
+        "displacement_mm": float(d),
+        "prediction": predict(d),
+        "safe_prediction": predict_safe(d),
+        "yield_factor": factor,
+        "warnings": warnings,
+        "pass_probability": alpha,
+        "plate_risk_spent": spent,
+        "expected_passes": passes_left,
+    }
+
+
+def _placer(
+    predict: Callable[[float], Prediction],
+    predict_safe: Callable[[float], Prediction],
+    levels: tuple[float, float, float],
+    upper: float | None,
+    span: tuple[float, float],
+) -> Callable[[float], _Placed]:
+    """The aim's rule as a function of the over-bending risk the pass may take: the setting (the
+    smallest of the one whose median is the target, the one at the aim's margin, the least move's
+    rule; module docstring). ``levels``: the target's curvature, the aim's margin, the verdict's
+    edge; ``span``: the least and the deepest setting."""
+    kt, limit, over_edge = levels
+    d_lo, d_max = span
 
     def centre(d: float) -> float:
         return predict(d).median - kt
@@ -330,31 +385,104 @@ def aim(
         return d_max if g(d_max) <= 0 else optimize.brentq(g, d_lo, d_max, xtol=1e-3)
 
     d_centre = root(centre)
-    d = min(root(safe), d_centre)
-    # the least move already past the aim's margin: given when it keeps the risk of ending past the
-    # band as the inspection judges it within the allowed probability, else no setting
-    least = safe(d_lo) >= 0
-    blocked = least and risk(d_lo) > settings.pass_probability
-    if least and not blocked:
-        # the deepest setting whose risk of ending past the verdict's edge is the allowed one
-        def edge(x: float) -> float:
-            return risk(x) - settings.pass_probability
 
-        d = min(root(edge), d_centre)
-    split = None if least else _two_pass(plate, predict, d_lo, d, settings)
-    if split is not None:
-        d = split[0]
-        warnings.append(split[1])
-    if least:
-        warnings.append(_scatter_fills_band(stalled, d, risk(d), settings, given=not blocked))
-    return {
-        "blocked": blocked,
-        "displacement_mm": float(d),
-        "prediction": predict(d),
-        "safe_prediction": predict_safe(d),
-        "yield_factor": factor,
-        "warnings": warnings,
-    }
+    def place(alpha: float) -> _Placed:
+        """The pass's setting when it may take the over-bending risk ``alpha``."""
+        safe, risk = _over_risks(predict_safe, limit, over_edge, 1.0 - alpha, upper)
+        d = min(root(safe), d_centre)
+        # the least move already past the aim's margin: given when it keeps the risk of ending past
+        # the band as the inspection judges it within the allowed probability, else no setting
+        least = safe(d_lo) >= 0
+        blocked = least and risk(d_lo) > alpha
+        if least and not blocked:
+            # the deepest setting whose risk of ending past the verdict's edge is the allowed one
+            d = min(root(lambda x: risk(x) - alpha), d_centre)
+        return _Placed(float(d), least, blocked, risk(d))
+
+    return place
+
+
+@dataclass(frozen=True)
+class _Placed:
+    """A pass placed at an allowed risk: its setting, whether it is the least move (already past the
+    aim's margin), whether even that is past the allowed risk (no setting), its risk past the
+    verdict's edge."""
+
+    displacement_mm: float
+    least: bool
+    blocked: bool
+    risk: float
+
+
+def _split_risk(
+    place: Callable[[float], _Placed],
+    predict: Callable[[float], Prediction],
+    kt: float,
+    band: float,
+    settings: AimSettings,
+    spent: float,
+) -> tuple[float, float]:
+    """The over-bending risk this pass may take, and the passes the plate is expected to need from
+    here (``AimSettings.adaptive_split``): ``(alpha, n)``.
+
+    A plate over-bends at most once, on a pass it reaches, so its risk is at most the sum over its
+    passes of the probability of reaching the pass times the pass's risk. The passes already rolled
+    were reached: their risks (``spent``, :func:`_spent_risk`) are taken from the plate's budget
+    ``over_probability``; what remains, ``R``, is shared by the passes to come, each taking ``alpha``:
+    the plate's remaining risk is ``alpha n``, ``n`` the passes it is expected to need from here.
+
+    ``n = 1 + (1 - p) / q``: this pass, aimed at ``alpha``, lands within the band
+    (``|k - k_target| <= band``, the advice's own predictive distribution) with ``p``; should it not,
+    each later pass lands with ``q``, the probability of a pass whose spread is only this one's
+    scatter share (the new pass's and the old peak's, plus the inspection's noise: the part a later,
+    shorter step does not shrink; Student-t of this prediction's degrees of freedom), aimed by the
+    same rule (median at the target, or short of it by the ``1 - alpha`` quantile of that spread
+    below ``target + over_band * band``): geometric, ``1 / q`` passes. Then ``alpha = R / n(alpha)``,
+    the largest fixed point (``n`` falls as ``alpha`` grows: a deeper aim lands closer to the target),
+    searched down from ``R`` by halves, then refined between the last two. A sharp prediction well
+    inside the band (``p``, ``q`` near 1) takes the whole remaining budget; a pass whose scatter fills
+    the band (``q`` about a half) about a third of it, the next what is left. A pass given no setting
+    lands nowhere (``p = 0``); when the fixed point leaves the pass no setting (its least move past
+    ``alpha``), the least move is given if its risk is within ``R``, and takes that risk. ``R`` is kept at least ``over_probability / 1000`` should the earlier
+    passes' risks, recomputed on a history that has since grown, add up to the budget.
+    """
+    remaining = max(settings.over_probability - spent, settings.over_probability * 1e-3)
+    limit = kt + settings.over_band * band
+
+    def passes_left(alpha: float) -> float:
+        placed = place(alpha)
+        pred = predict(placed.displacement_mm)
+        p = 0.0 if placed.blocked else _within(pred, kt, band)
+        truth_sd = pred.scatter_sd
+        later = Prediction(
+            0.0, 0.0, math.sqrt(truth_sd**2 + pred.inspection_var), pred.dof, truth_sd
+        )
+        median = min(kt, limit - truth_sd * float(stats.t.ppf(1.0 - alpha, pred.dof)))
+        q = _within(dataclasses.replace(later, mean=median), kt, band)
+        return 1.0 + (1.0 - p) / max(q, 1e-12)
+
+    def excess(log_alpha: float) -> float:
+        alpha = math.exp(log_alpha)
+        return remaining / passes_left(alpha) - alpha
+
+    hi, alpha = math.log(remaining), None
+    for _ in range(12):
+        lo = hi - math.log(2.0)
+        if excess(lo) >= 0:
+            alpha = math.exp(optimize.brentq(excess, lo, hi, xtol=0.05))
+            break
+        hi = lo
+    alpha = math.exp(hi) if alpha is None else alpha
+    least = place(alpha)
+    if least.blocked and least.risk <= remaining:
+        # the least move within what the plate has left: given (its risk spent), not refused
+        alpha = least.risk * (1.0 + 1e-9)
+    return alpha, passes_left(alpha)
+
+
+def _within(pred: Prediction, kt: float, band: float) -> float:
+    """The probability that the prediction lands within the band, ``|k - kt| <= band``."""
+    return max(pred.probability_above(kt - band) - pred.probability_above(kt + band), 0.0)
 
 
 def _over_risks(
@@ -466,6 +594,44 @@ def _next_machine(
     return machine_id
 
 
+def _spent_risk(
+    plate: PlateRecord,
+    machines: Mapping[str, Machine],
+    history: Sequence[PlateRecord],
+    priors: Priors,
+    settings: AimSettings,
+) -> float:
+    """The over-bending risk the plate's corrections so far took (``AimSettings.adaptive_split``):
+    for each, the probability that its true curvature ends past the verdict's edge, as the advice
+    before it predicted (fitted on the plate's passes before it and the history), with the scatter
+    also at its upper credible bound when ``scatter_confidence`` is set.
+
+    The first pass, a probe aimed for the plate's yield at a low quantile or at the nominal minimum
+    (a hard bound: a plate's factor is never below 1), is not counted: the predictive Student-t of a
+    plate without passes of its own knows no such bound, and on a fresh machine puts 3-5 % past the
+    verdict's edge at the probe's setting (seed 0 of the 0.2 mm stress case), more than the plate's
+    whole budget, while no probe of the stress campaigns has over-bent a plate."""
+    edge = target_curvature(plate.target) + settings.verdict_band * curvature_band(plate.target)
+    total = 0.0
+    passes = plate.forward.passes
+    for j, q in enumerate(passes):
+        if j == 0:
+            continue  # the probe: its own rule, outside the split (docstring)
+        before = PlateRecord(plate.plate_id, plate.target, passes[:j])
+        others = _history_for(plate, q.machine_id, history, priors.max_plates)
+        known = [h for h in others if all(p.machine_id in machines for p in h.passes)]
+        fitted = fit(
+            [before, *(h.forward for h in known)], machines, priors, also_machines=[q.machine_id]
+        )
+        truth = fitted.predict(before, q.machine_id, q.top_roll_displacement_mm).truth()
+        risk = truth.probability_above(edge)
+        if settings.scatter_confidence is not None:
+            upper = fitted.scatter_upper_scale(settings.scatter_confidence)
+            risk = max(risk, truth.with_scatter_variance(upper).probability_above(edge))
+        total += risk
+    return total
+
+
 def _history_for(
     plate: PlateRecord, machine_id: str, history: Sequence[PlateRecord], limit: int
 ) -> list[PlateRecord]:
@@ -548,7 +714,12 @@ def advise(
             settings,
             basis,
         )
-    aimed = aim(fitted, plate, machines[machine_id], settings)
+    spent = (
+        _spent_risk(plate, machines, history, priors, settings)
+        if settings.adaptive_split and plate.passes
+        else 0.0
+    )
+    aimed = aim(fitted, plate, machines[machine_id], settings, spent=spent)
     if aimed["blocked"]:
         basis.update(_data_basis(plate, known, machine_id, fitted, settings))
         basis["warnings"] += aimed["warnings"]
@@ -587,7 +758,9 @@ def _aim_basis(
         "probability_within_band": pred.probability_above(kt - band)
         - pred.probability_above(kt + band),
         "over_probability": settings.over_probability,
-        "pass_probability": settings.pass_probability,
+        "pass_probability": aimed["pass_probability"],
+        "plate_risk_spent": aimed["plate_risk_spent"],
+        "expected_passes": aimed["expected_passes"],
         "over_band": settings.over_band,
         "yield_factor_aimed": aimed["yield_factor"],
     }
@@ -806,7 +979,7 @@ def _scatter_fills_band(
     stalled: float | None,
     d: float,
     probability: float,
-    settings: AimSettings,
+    allowed: float,
     *,
     given: bool,
 ) -> str:
@@ -818,9 +991,7 @@ def _scatter_fills_band(
         else f"the pass at {stalled:.2f} mm did not move the plate: the next setting, "
         f"{d - stalled:.2f} mm beyond it,"
     )
-    risk = (
-        f"would end past the band with {probability:.2%} (allowed: {settings.pass_probability:.2%})"
-    )
+    risk = f"would end past the band with {probability:.2%} (allowed: {allowed:.2%})"
     if given:
         return (
             f"the pass's scatter fills the tolerance band: {move} is the least move, and {risk}; "

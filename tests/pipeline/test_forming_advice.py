@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 import pytest
-from scipy import optimize
+from scipy import optimize, stats
 
 from pipeline.forming import (
     AimSettings,
@@ -19,7 +19,8 @@ from pipeline.forming import (
     advise,
     curvature_band,
 )
-from pipeline.forming.advice import target_curvature
+from pipeline.forming.advice import _Placed, _split_risk, target_curvature
+from pipeline.forming.learning import Prediction
 from pipeline.io import Target
 from pipeline.judge.deviation import deviation_map
 from pipeline.judge.registration import register_to_target
@@ -286,3 +287,46 @@ def test_a_new_grade_after_two_plates_approaches_from_the_open_side():
         after = rolled(third, advice.top_roll_displacement_mm, factor=factor, compliance=compliance)
         k = 1 / third.target.mid_radius_mm(after.passes[-1].measured_radius_mm)
         assert k <= target_curvature(third.target) + 0.95 * curvature_band(third.target)
+
+
+def _synthetic(sd: float):
+    """A synthetic prediction in bands (target 0, band 1): the setting is the median, the spread
+    ``sd`` all the passes' scatter, normal tails; and the aim's rule on it (median at the target, or
+    short of it by the ``1 - alpha`` quantile below 0.8 of the band)."""
+
+    def predict(d: float) -> Prediction:
+        return Prediction(0.0, d, sd, 1e9, sd)
+
+    def place(alpha: float) -> _Placed:
+        d = min(0.0, 0.8 - sd * float(stats.norm.isf(alpha)))
+        return _Placed(d, False, False, float(stats.norm.sf((0.95 - d) / sd)))
+
+    return predict, place
+
+
+def _passes_left(alpha: float, sd: float) -> float:
+    """``1 + (1 - p) / q`` by hand: here the later passes' spread is this one's (all scatter)."""
+    m = min(0.0, 0.8 - sd * float(stats.norm.isf(alpha)))
+    p = float(stats.norm.cdf((1 - m) / sd) - stats.norm.cdf((-1 - m) / sd))
+    return 1.0 + (1.0 - p) / p
+
+
+def test_the_adaptive_split_shares_the_plates_budget_by_the_passes_it_expects():
+    settings = AimSettings(adaptive_split=True)
+    budget = settings.over_probability
+    # a sharp prediction well inside the band: about one pass, the whole budget
+    predict, place = _synthetic(0.05)
+    alpha, n = _split_risk(place, predict, 0.0, 1.0, settings, 0.0)
+    assert n == pytest.approx(1.0, abs=1e-6) and alpha == pytest.approx(budget, rel=0.05)
+    # a spread that fills the band (95 % within +-1.6 bands, a 0.2 mm scatter's): a share of the budget, the fixed point alpha n = R, n as the
+    # landing probabilities say, and a shallower aim than the per-pass rule's
+    predict, place = _synthetic(0.8)
+    alpha, n = _split_risk(place, predict, 0.0, 1.0, settings, 0.0)
+    assert 2.0 < n < 8.0 and n == pytest.approx(_passes_left(alpha, 0.8), rel=1e-6)
+    assert alpha * n == pytest.approx(budget, rel=0.05)
+    assert place(alpha).displacement_mm < place(budget).displacement_mm
+    # the risk the plate's earlier passes took is no longer there to share
+    spent = 0.4 * budget
+    alpha_after, n_after = _split_risk(place, predict, 0.0, 1.0, settings, spent)
+    assert alpha_after * n_after == pytest.approx(budget - spent, rel=0.05)
+    assert alpha_after < alpha
