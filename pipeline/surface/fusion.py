@@ -158,7 +158,6 @@ def fuse_low_frequencies(
     *,
     knot_fraction: float = KNOT_FRACTION,
     select: bool = True,
-    parallel: bool = True,
 ) -> Fusion:
     """Replace the low frequencies of a photometric surface by what the stereo pair proves of them.
 
@@ -178,8 +177,6 @@ def fuse_low_frequencies(
         ``knot_fraction``, by a lack-of-fit test (:func:`_chosen`): the coarsest rung that the
         finest does not beat beyond the measured stereo noise. False: the spline of
         ``knot_fraction`` (or, with too few stereo blocks for it, the finest rung they carry).
-    parallel : bool
-        False: no parallel kernel (a caller on a worker thread, beside the main thread's).
 
     Returns
     -------
@@ -211,8 +208,7 @@ def fuse_low_frequencies(
     fraction = chosen.rung if chosen.rung not in _POLYNOMIAL else None
     fused = np.full(z.shape, np.nan)
     correction = np.full(z.shape, np.nan, np.float32)
-    compose = _compose if parallel else _compose_serial
-    compose(zb, chosen.grid.evaluate(chosen.coef), mb, fused[box], correction[box])
+    _compose(zb, chosen.grid.evaluate(chosen.coef), mb, fused[box], correction[box])
     sigma_pix = fits[-1].sigma_pix if select else chosen.sigma_pix  # the finest rung's: the noise
     scale2 = _noise_variance(sigma_pix, blocks) * inflation
     sd = model = None
@@ -517,18 +513,16 @@ def smooth_stereo_depth(
     mask: np.ndarray,
     *,
     knot_fraction: float = 1.0 / 8.0,
-    parallel: bool = True,
 ) -> np.ndarray:
     """A complete, smooth surface through the stereo depth: (H, W) float64 mm on ``mask``, NaN elsewhere.
 
     The robust spline of :func:`fuse_low_frequencies` (``knot_fraction``, no ladder) fitted to
     ``log z_stereo`` itself: a starting surface for the near-field normals, and for the lobe's
-    measurement, where the stereo pair has holes and noise. ``parallel``: as for
-    :func:`fuse_low_frequencies`.
+    measurement, where the stereo pair has holes and noise.
     """
     ones = np.where(mask, 1.0, np.nan)
     return fuse_low_frequencies(
-        ones, stereo_depth_mm, mask, knot_fraction=knot_fraction, select=False, parallel=parallel
+        ones, stereo_depth_mm, mask, knot_fraction=knot_fraction, select=False
     ).depth_mm
 
 
@@ -802,24 +796,19 @@ def _monomials(v: np.ndarray, u: np.ndarray, count: int) -> np.ndarray:
     return np.column_stack(columns[:count])
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(nogil=True, cache=True)
 def _compose(
     z: np.ndarray, c: np.ndarray, mask: np.ndarray, fused: np.ndarray, correction: np.ndarray
 ) -> None:
-    """fused = z exp(c) and correction = fused - z on the mask (left NaN elsewhere), in place."""
+    """fused = z exp(c) and correction = fused - z on the mask (left NaN elsewhere), in place.
+
+    Serial and without the GIL, so that any thread may fuse
+    (:func:`pipeline.surface.reconstruct.stereo_lobe` smooths the stereo depth on a worker, beside the
+    main thread's parallel kernels)."""
     h, w = mask.shape
-    for i in nb.prange(h):
+    for i in range(h):
         for j in range(w):
             if mask[i, j]:
                 f = z[i, j] * np.exp(c[i, j])
                 fused[i, j] = f
                 correction[i, j] = f - z[i, j]
-
-
-def _compose_serial(
-    z: np.ndarray, c: np.ndarray, mask: np.ndarray, fused: np.ndarray, correction: np.ndarray
-) -> None:
-    """:func:`_compose` without a parallel kernel (for a worker thread)."""
-    f = z[mask] * np.exp(c[mask])
-    fused[mask] = f
-    correction[mask] = (f - z[mask]).astype(correction.dtype)

@@ -171,9 +171,9 @@ def stereo_lobe(
     Lambertian model there, so that stage finds little of it and the integrated plate bends (a plate
     formed exactly read p95 0.4-1.0 mm and failed, 12 distant lights). On the stereo surface the
     lobe is told from the diffuse light. Needs no photometric result: it runs beside the integration.
-    Numpy only, so that it may run on a worker thread (the parallel kernels stay on the main one).
+    No parallel kernel, so that it may run on a worker thread (those stay on the main one).
     """
-    start = fusion.smooth_stereo_depth(prior_mm, mask, parallel=False)
+    start = fusion.smooth_stereo_depth(prior_mm, mask)
     lobe = glare.measure_lobe(images, valid, lights, start, None, mask, K, start_mm=start)
     return StereoLobe(lobe, start)
 
