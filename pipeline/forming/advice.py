@@ -755,8 +755,7 @@ def _aim_basis(
     return {
         "loaded_radius_mm": _surface_radius(target, pred.loaded_curvature),
         "probability_over_band": aimed["safe_prediction"].truth().probability_above(kt + band),
-        "probability_within_band": pred.probability_above(kt - band)
-        - pred.probability_above(kt + band),
+        "probability_within_band": _within(pred, kt, band),
         "over_probability": settings.over_probability,
         "pass_probability": aimed["pass_probability"],
         "plate_risk_spent": aimed["plate_risk_spent"],
