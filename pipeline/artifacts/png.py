@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 
@@ -101,8 +102,14 @@ def deviation_png_layout(shape_hw: tuple[int, ...]) -> tuple[int, int]:
     return stride, max(1, min(math.ceil(MIN_PNG_HEIGHT / h), MAX_PNG_WIDTH // w))
 
 
+@functools.lru_cache(maxsize=16)
 def _scale_panel(height: int, *, limit_mm: float, tolerance_mm: float) -> np.ndarray:
-    """(height, width, 3) uint8 RGB: colour bar, ticks in mm, tolerance marks, legend."""
+    """(height, width, 3) uint8 RGB, read-only: colour bar, ticks in mm, tolerance marks, legend.
+
+    Drawn once a process for each height, limit and tolerance (a cell's maps share them): OpenCV
+    sets up its font in every thread that first draws text (``cv2.getTextSize`` / ``putText``), and
+    the inspections' artifact writers are new threads each time.
+    """
     font = cv2.FONT_HERSHEY_SIMPLEX
     text_px = max(14, round(height / 40))
     scale = text_px / 22.0  # FONT_HERSHEY_SIMPLEX capitals are ~22 px high at scale 1
@@ -180,6 +187,7 @@ def _scale_panel(height: int, *, limit_mm: float, tolerance_mm: float) -> np.nda
     for i, text in enumerate(legend):
         y = bottom + round((i + 1.5) * 1.5 * text_px)
         cv2.putText(panel, text, (margin, y), font, scale, black, thick, cv2.LINE_AA)
+    panel.flags.writeable = False  # shared by every call with the same arguments
     return panel
 
 
