@@ -537,7 +537,12 @@ def _judge(
     field, surface_mask = surface.field, surface.mask
     normals_written = bool(writes)
     clock.begin("curvature")
+    band = edge_band(surface_mask)
+    judged = surface_mask & ~band
+    # the two longest first, one a worker: the registration's wait for every point's uncertainty is
+    # the main line's, the writes and the areas fill in after them
     curvature_job = pool.submit(_curvature, points, surface_mask)
+    points_job = pool.submit(qualify, judged)
     area_job = pool.submit(_pixel_area_mm2, surface.depth_mm, field.normals, rays, K)
     writes.append(
         pool.submit(artifacts.save_depth, out / ARTIFACT_FILES["depth"], surface.depth_mm)
@@ -551,9 +556,6 @@ def _judge(
                 field.mask,
             )
         )
-    band = edge_band(surface_mask)
-    judged = surface_mask & ~band
-    points_job = pool.submit(qualify, judged)
     clock.begin("deviation")
     pose = registration.register_to_target(points, surface_mask, tgt)
     # NaN in the edge band, left out by geometry so that every artifact agrees
