@@ -19,7 +19,9 @@ On a glossy plate (a lobe under the point lights that passes :mod:`pipeline.ligh
 the point lights are fitted jointly with the coating's lobe, and the rays' common origin with them
 (:func:`_fit_points_with_lobe`); likewise the distant lights with a lobe under them
 (:func:`_fit_distant_with_lobe`), unless the Lambertian point lights already explain the samples
-far better (then the distant model's misfit reads as a lobe).
+far better (then the distant model's misfit reads as a lobe); a caller whose plate measured with the
+point lights came out no better asks for the distant model alone (``point_model=False``:
+:func:`pipeline.surface.reconstruct.remeasure_with_refined_lights`).
 
 The point model is taken when it explains the samples clearly better than any distant model
 (nominal directions of what really are near-field LEDs); else the refined distant lights.
@@ -187,6 +189,7 @@ def refine_lights(
     *,
     max_samples: int = MAX_SAMPLES,
     seed: int = 0,
+    point_model: bool = True,
 ) -> LightRefinement | None:
     """Fit the lights to the images on a known smooth surface.
 
@@ -208,6 +211,9 @@ def refine_lights(
         Sample blocks at most.
     seed : int
         Seeds the choice of blocks.
+    point_model : bool
+        Whether point lights are fitted too (False: the distant model only, with the coating's lobe where
+        it shows whatever point lights would explain).
 
     Returns
     -------
@@ -226,7 +232,7 @@ def refine_lights(
         glossy = _GlossySamples(images, valid, mask, lights, depth_mm, K, max_samples, seed)
         distant = _refine_distant(data, lights)
         rms_distant = _rms(data, distant)
-        point, rms_point = _fit_points(data, lights, pose)
+        point, rms_point = _fit_points(data, lights, pose) if point_model else (None, np.nan)
         near = point is not None and rms_point < POINT_MODEL_GAIN * rms_distant
         distant, rms_distant, distant_lobe = _distant_with_lobe(
             data, glossy, distant, rms_distant, near=near

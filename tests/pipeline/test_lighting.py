@@ -198,6 +198,20 @@ def test_distant_lights_refitted_on_a_glossy_plate_are_measured_with_the_stereo_
 
 
 @pytest.mark.slow
+def test_a_broad_lobe_under_distant_lights_a_degree_off_is_refitted_with_distant_lights(tmp_path):
+    """Free point lights explain a broad lobe under distant lights written a degree off far better
+    than distant Lambertian ones, so the lobe under those was never tested; the plate measured with
+    the point lights came out no closer to the stereo pair's, and the given lights stood with a 4 mm
+    disagreement (seed 61 of the sweep in docs/figures.md failed at 4.9 mm). The distant lights are
+    then refitted with the lobe."""
+    doc, details = _run(tmp_path, light_error_deg=1.0, **GLOSSY_DISTANT)
+    dev = doc["deviation_mm"]
+    assert doc["verdict"] == "pass" and dev["p95"] <= 0.3 and dev["max_abs"] <= 1.2, dev
+    assert details["light_refinement"]["model"] == "distant", details["light_refinement"]
+    assert not any("disagreed" in w for w in doc.get("warnings", [])), doc["warnings"]
+
+
+@pytest.mark.slow
 def test_a_dent_still_fails_a_glossy_plate_under_distant_lights(tmp_path):
     _dent_fails(tmp_path, **GLOSSY_DISTANT)
 
