@@ -61,6 +61,10 @@ CASES = (
         "glare (broad lobe), 12 distant lights",
         dict(specular=0.4, shininess=15.0),
     ),
+    (
+        "glare (broad lobe), 12 distant lights, written 1 deg off",
+        dict(specular=0.4, shininess=15.0, light_error_deg=1.0),
+    ),
 )
 
 _BEFORE = """

@@ -539,8 +539,7 @@ def _judge(
     clock.begin("curvature")
     band = edge_band(surface_mask)
     judged = surface_mask & ~band
-    # the two longest first, one a worker: the registration's wait for every point's uncertainty is
-    # the main line's, the writes and the areas fill in after them
+    # the two longest first, a worker each: the registration then does not wait for the uncertainty
     curvature_job = pool.submit(_curvature, points, surface_mask)
     points_job = pool.submit(qualify, judged)
     area_job = pool.submit(_pixel_area_mm2, surface.depth_mm, field.normals, rays, K)

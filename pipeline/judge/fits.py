@@ -320,6 +320,74 @@ def _signed_distance(w: np.ndarray, n: np.ndarray, k: float, axis: np.ndarray | 
     return sag
 
 
+@numba.njit(nogil=True, cache=True)
+def _sag(
+    w: np.ndarray,
+    ww: np.ndarray,
+    n: np.ndarray,
+    ax: np.ndarray,
+    cylinder: bool,
+    t: float,
+    k: float,
+    out: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    """``out`` = :func:`_signed_distance` of ``w - t n`` (``_CurvedModel.residuals``) in one pass over the
+    points: with ``n`` orthogonal to the axis, ``(w - t n).ax = w.ax``, ``(w - t n).n = w.n - t`` and
+    ``|w - t n|^2 = |w|^2 - 2 t w.n + t^2``. ``ax`` is ignored for a sphere."""
+    for i in range(w.shape[0]):
+        wn = w[i, 0] * n[0] + w[i, 1] * n[1] + w[i, 2] * n[2]
+        s2 = ww[i] - 2.0 * t * wn + t * t
+        if cylinder:
+            wa = w[i, 0] * ax[0] + w[i, 1] * ax[1] + w[i, 2] * ax[2]
+            s2 -= wa * wa
+        g = k * s2 - 2.0 * (wn - t)
+        out[i] = g / (1.0 + math.sqrt(max(1.0 + k * g, 0.0)))
+
+
+@numba.njit(nogil=True, cache=True)
+def _sag_jacobian(
+    w: np.ndarray,
+    ww: np.ndarray,
+    columns: np.ndarray,
+    cylinder: bool,
+    t: float,
+    k: float,
+    k_free: bool,
+    jac: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    """``jac`` (M, angles + 1 [+ 1 with ``k_free``]) = the derivatives of :func:`_sag` (see
+    ``_CurvedModel.jacobian``): ``columns`` holds the normal, for a cylinder the axis, then per angle the
+    normal's derivative and, for a cylinder, the axis's. One pass over the points."""
+    n_cols = columns.shape[0]
+    first = 2 if cylinder else 1  # the first derivative column
+    per = 2 if cylinder else 1
+    n_angles = (n_cols - first) // per
+    wc = np.empty(n_cols)
+    for i in range(w.shape[0]):
+        for c in range(n_cols):
+            wc[c] = w[i, 0] * columns[c, 0] + w[i, 1] * columns[c, 1] + w[i, 2] * columns[c, 2]
+        wn = wc[0]
+        s2 = ww[i] - 2.0 * t * wn + t * t
+        if cylinder:  # |w - t n|^2 less its part along the axis
+            s2 -= wc[1] * wc[1]
+        g = k * s2 - 2.0 * (wn - t)
+        q2 = 1.0 + k * g
+        if q2 > 0.0:
+            q = math.sqrt(q2)
+            d_sag_dg = (1.0 + q - 0.5 * k * g / q) / ((1.0 + q) * (1.0 + q))
+            d_sag_dk = -0.5 * g * g / (q * (1.0 + q) * (1.0 + q))
+        else:  # beyond the reach the sag is clamped to g: d sag / d g = 1
+            d_sag_dg, d_sag_dk = 1.0, 0.0
+        for a in range(n_angles):
+            d_g = -2.0 * (k * t + 1.0) * wc[first + per * a]
+            if cylinder:
+                d_g -= 2.0 * k * wc[1] * wc[first + per * a + 1]
+            jac[i, a] = d_sag_dg * d_g
+        jac[i, n_angles] = d_sag_dg * (2.0 + 2.0 * k * (t - wn))
+        if k_free:
+            jac[i, n_angles + 1] = d_sag_dg * s2 + d_sag_dk
+
+
 # --------------------------------------------------------------------------- plane
 
 
@@ -453,15 +521,8 @@ class _CurvedModel:
         # axis (unpack), hence (w - t n).ax = w.ax, (w - t n).n = w.n - t, |w - t n|^2 = |w|^2 - 2 t w.n + t^2.
         n, ax, t = self.unpack(x)
         k = x[self.n_shape] if k_fixed is None else k_fixed
-        if ax is None:
-            wn = self.w @ n
-            s2 = self.ww - 2.0 * t * wn + t * t
-        else:
-            wa = self.w @ np.stack([n, ax], axis=1)
-            wn = wa[:, 0]
-            s2 = self.ww - wa[:, 1] * wa[:, 1] - 2.0 * t * wn + t * t
-        g = k * s2 - 2.0 * (wn - t)
-        sag: np.ndarray = g / (1.0 + np.sqrt(np.maximum(1.0 + k * g, 0.0)))
+        sag = np.empty(len(self.ww))
+        _sag(self.w, self.ww, n, n if ax is None else ax, ax is not None, float(t), float(k), sag)
         return sag
 
     def jacobian(self, x: np.ndarray, k_fixed: float | None) -> np.ndarray:
@@ -480,25 +541,10 @@ class _CurvedModel:
             columns.append((n_p - n_m) / (2.0 * _ANGLE_STEP))
             if ax_p is not None and ax_m is not None:
                 columns.append((ax_p - ax_m) / (2.0 * _ANGLE_STEP))
-        wc = self.w @ np.stack(columns, axis=1)
-        wn = wc[:, 0]
-        s2 = self.ww - 2.0 * t * wn + t * t
-        d_g = -2.0 * (k * t + 1.0) * (wc[:, 1:] if ax is None else wc[:, 2::2])
-        if ax is not None:  # |w - t n|^2 less its part along the axis
-            s2 -= wc[:, 1] * wc[:, 1]
-            d_g -= 2.0 * k * wc[:, 1:2] * wc[:, 3::2]
-        g = k * s2 - 2.0 * (wn - t)
-        q2 = 1.0 + k * g
-        q = np.sqrt(np.maximum(q2, 0.0))
-        reach = q2 > 0.0  # beyond it the sag is clamped to g: d sag / d g = 1
-        safe_q = np.where(reach, q, 1.0)
-        d_sag_dg = np.where(reach, (1.0 + q - 0.5 * k * g / safe_q) / (1.0 + q) ** 2, 1.0)
-        jac = np.empty((len(wn), len(x)))
-        jac[:, :n_angles] = d_sag_dg[:, None] * d_g
-        jac[:, n_angles] = d_sag_dg * (2.0 + 2.0 * k * (t - wn))
-        if k_fixed is None:
-            d_sag_dk = np.where(reach, -0.5 * g * g / (safe_q * (1.0 + q) ** 2), 0.0)
-            jac[:, self.n_shape] = d_sag_dg * s2 + d_sag_dk
+        jac = np.empty((len(self.ww), len(x)))
+        _sag_jacobian(
+            self.w, self.ww, np.array(columns), ax is not None, float(t), float(k), k_fixed is None, jac
+        )
         return jac
 
     def solve(
