@@ -543,7 +543,14 @@ class _CurvedModel:
                 columns.append((ax_p - ax_m) / (2.0 * _ANGLE_STEP))
         jac = np.empty((len(self.ww), len(x)))
         _sag_jacobian(
-            self.w, self.ww, np.array(columns), ax is not None, float(t), float(k), k_fixed is None, jac
+            self.w,
+            self.ww,
+            np.array(columns),
+            ax is not None,
+            float(t),
+            float(k),
+            k_fixed is None,
+            jac,
         )
         return jac
 

@@ -21,7 +21,6 @@ Normals that still face away from their pixel's ray are filled from their neighb
 from __future__ import annotations
 
 import functools
-
 from dataclasses import dataclass, replace
 from typing import Any
 
