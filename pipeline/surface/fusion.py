@@ -158,6 +158,7 @@ def fuse_low_frequencies(
     *,
     knot_fraction: float = KNOT_FRACTION,
     select: bool = True,
+    coarsest: Rung = PLANE,
 ) -> Fusion:
     """Replace the low frequencies of a photometric surface by what the stereo pair proves of them.
 
@@ -177,6 +178,11 @@ def fuse_low_frequencies(
         ``knot_fraction``, by a lack-of-fit test (:func:`_chosen`): the coarsest rung that the
         finest does not beat beyond the measured stereo noise. False: the spline of
         ``knot_fraction`` (or, with too few stereo blocks for it, the finest rung they carry).
+    coarsest : {"plane", "quadric"}
+        With ``select``: the coarsest rung the test may take. :data:`QUADRIC`: the stereo pair sets
+        the bend whatever the test says, for normals whose bend is not to be trusted (fitted with a
+        specular lobe: :func:`pipeline.surface.reconstruct.with_lobe`). The evidence of every rung
+        is reported all the same.
 
     Returns
     -------
@@ -199,7 +205,7 @@ def fuse_low_frequencies(
     z_typ = float(np.median(zb[::sparse, ::sparse][mb[::sparse, ::sparse]]))
     blocks = _Blocks.of(zb, zsb, mb)
     fits = _ladder_fits(blocks, mb.shape, knot_fraction, select)
-    chosen, inflation, evidence = _chosen(fits, blocks) if select else (fits[0], 1.0, {})
+    chosen, inflation, evidence = _chosen(fits, blocks, coarsest) if select else (fits[0], 1.0, {})
     finest = chosen is fits[-1]
     if select and finest and chosen.basis is None:  # the finest spline: estimated as a smoother
         chosen = _fit(
@@ -318,8 +324,11 @@ def _ladder_fits(
     return fits
 
 
-def _chosen(fits: list[_Fitted], blocks: _Blocks) -> tuple[_Fitted, float, dict[str, list[float]]]:
-    """The rung taken by a lack-of-fit test against the finest, the noise inflation and the evidence.
+def _chosen(
+    fits: list[_Fitted], blocks: _Blocks, coarsest: Rung = PLANE
+) -> tuple[_Fitted, float, dict[str, list[float]]]:
+    """The rung taken by a lack-of-fit test against the finest, the noise inflation and the evidence
+    (rungs coarser than ``coarsest`` are tested but never taken).
 
     Under pure noise, the drop of the standardised residual sum from a rung with ``p`` parameters to
     the finest (``p_f``) is chi-square with ``p_f - p`` degrees of freedom, once divided by the
@@ -344,12 +353,14 @@ def _chosen(fits: list[_Fitted], blocks: _Blocks) -> tuple[_Fitted, float, dict[
     noise2 = rss_finest / dof_noise * inflation
     evidence: dict[str, list[float]] = {}
     chosen = finest
+    allowed = coarsest == PLANE or coarsest not in [f.rung for f in fits]
     for f in fits[:-1]:
+        allowed = allowed or f.rung == coarsest
         dof = finest.n_params - f.n_params
         statistic = (rss(f) - rss_finest) / noise2 if noise2 > 0 else np.inf
         threshold = 2.0 * float(special.gammaincinv(dof / 2.0, 1.0 - SIGNIFICANCE))  # chi2 quantile
         evidence[_rung_name(f.rung)] = [round(float(statistic), 1), round(threshold, 1)]
-        if statistic <= threshold and chosen is finest:
+        if statistic <= threshold and chosen is finest and allowed:
             chosen = f
     evidence[_rung_name(finest.rung)] = [0.0, 0.0]
     return chosen, inflation, evidence

@@ -160,6 +160,19 @@ def test_a_glossy_plates_lobe_is_not_counted_as_noise(tmp_path):
 
 
 @pytest.mark.slow
+def test_a_glossy_plate_formed_exactly_reads_its_radius_within_its_uncertainty(tmp_path):
+    """The same glossy cell, seed 0 (truth: R 5000 mm). The normals fitted with the lobe bend the
+    integrated plate at the images' noise (radius -0.035 % with the lobe measured exactly); the
+    lack-of-fit test kept the plane, so that bend stood, outside U (0.029 %). The stereo pair now sets
+    the bend of such normals (the quadric at least), and U's bend part is that quadric's."""
+    doc, details, _ = _inspect(tmp_path, "glossy", GLOSSY_LEDS, seed=0)
+    u = doc["uncertainty"]
+    assert details["uncertainty"]["components"]["lobe_mm"] > 0  # the lobe was modelled
+    assert abs(doc["radius_mm"] - 5000.0) <= u["radius_mm"] <= 0.0015 * 5000.0, (doc, u)
+    assert details["stereo_fusion"]["correction"] != "plane"
+
+
+@pytest.mark.slow
 def test_a_bump_beyond_the_tolerance_by_more_than_the_noise_fails_a_glossy_plate(tmp_path):
     """A 2.8 mm bump against a 2 mm tolerance on the glossy plate: beyond the tolerance by far more than
     the measurement's noise there (with the lobe taken for noise, U/2 was about 1.1 mm and the bump no
