@@ -44,6 +44,12 @@ CASES: tuple[tuple[str, dict[str, Any], dict[str, Any], float | None], ...] = (
         None,
     ),
     (
+        "12 lights, head 2.5 m away",
+        {"distance_mm": 2500.0},
+        {"working_distance_mm": 2500.0},
+        None,
+    ),
+    (
         "12 lights, head 4.2 m away",
         {"distance_mm": 4200.0},
         {"working_distance_mm": 4200.0},
