@@ -386,7 +386,8 @@ def remeasure_with_refined_lights(
     :mod:`pipeline.lights.refinement`): the refined lights are point lights (near-field
     reconstruction) or corrected distant ones. The new surface is kept when it agrees better with
     the stereo pair, and then ``refinement`` records the fit; otherwise the first surface is returned
-    as it was (the given lights stand).
+    as it was (the given lights stand). Point lights that measure the plate no closer are followed by
+    the distant model alone (with the coating's lobe where it shows), kept on the same terms.
 
     Parameters
     ----------
