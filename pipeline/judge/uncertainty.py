@@ -48,6 +48,7 @@ from scipy.sparse.linalg import factorized
 
 from pipeline.lights import glare
 from pipeline.lights.model import Lights
+from pipeline.solvers import percentile
 from pipeline.surface import fusion as fusion_mod
 from pipeline.surface import integration
 from pipeline.surface.normals import NormalField, SpecularFit
@@ -236,7 +237,7 @@ def propagate_points(x: Inputs) -> PointUncertainty:
     h, w = mask.shape
     full = cv2.resize(var.astype(np.float32), (var.shape[1] * step, var.shape[0] * step))[:h, :w]
     u_map = np.where(mask, np.sqrt(np.maximum(full, 0.0)), np.nan).astype(np.float32)
-    u95 = COVERAGE_K * float(np.percentile(u_map[mask], 95))  # the published map's own figure
+    u95 = COVERAGE_K * float(percentile(u_map[mask], 95))  # the published map's own figure
     return PointUncertainty(
         map_mm=COVERAGE_K * u_map,
         deviation_mm=u95,

@@ -9,6 +9,8 @@ import numpy as np
 import numpy.typing as npt
 from scipy import ndimage
 
+from pipeline.solvers import percentile
+
 #: Default smallest out-of-tolerance region (mm^2) that fails a plate: 100 mm^2 = 1 cm^2, i.e. tens of
 #: pixels at 1.2-3.5 mm/pixel, far more than a noisy pixel, far less than a real dent (a 6 mm dent of
 #: radius 100 mm is out of a 2 mm tolerance over ~13 000 mm^2).
@@ -138,7 +140,7 @@ def judge(
     a = np.abs(dev[judged])
     rms = float(np.sqrt(np.mean(np.square(a, dtype=np.float64))))
     max_abs = float(a.max())
-    p95 = float(np.percentile(a, 95))
+    p95 = float(percentile(a, 95))
     w = np.full(n, float(area)) if area_judged is None else area_judged
     outside = a > tolerance_mm
     total_area = float(w.sum())

@@ -8,6 +8,8 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from pipeline.solvers import percentile
+
 from .checks import check_bool_image, check_image
 
 #: Default share of the image's bright level (95th percentile of the brightest sample) below which a
@@ -63,7 +65,7 @@ def candidate_mask(
         1, int(math.sqrt(b.size / 200_000))
     )  # the level from ~200k pixels: as good, and cheaper
     lit = smooth[::step, ::step][ok[::step, ::step]]
-    level = float(np.percentile(lit, 95)) if lit.size else 0.0
+    level = float(percentile(lit, 95)) if lit.size else 0.0
     if not level > 0:
         raise ValueError("brightness: expected some light on the seen pixels, got none above zero")
     bright = ok & (smooth >= dark_fraction * level)

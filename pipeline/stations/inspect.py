@@ -37,6 +37,7 @@ from pipeline.judge.details import (
 )
 from pipeline.lights.model import Lights
 from pipeline.parallel import default_workers
+from pipeline.solvers import percentile
 from pipeline.stages import (
     DISAGREEMENT_FRACTION,
     EDGE_BAND_PX,
@@ -401,7 +402,7 @@ def _qualify(
     u_map = np.where(judged, np.sqrt(u_own**2 + u_seam**2), np.nan).astype(np.float32)
     u_map = np.where(np.isfinite(u_map), u_map, np.nan).astype(np.float32)
     finite = judged & np.isfinite(u_map)
-    u95 = float(np.percentile(u_map[finite], 95)) if finite.any() else math.nan
+    u95 = float(percentile(u_map[finite], 95)) if finite.any() else math.nan
     radius_u = None
     if radius is not None and math.isfinite(radius):
         parts = [u.radius_mm for u in own if u.radius_mm is not None]

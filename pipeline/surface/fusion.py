@@ -49,6 +49,8 @@ import numpy as np
 import numpy.typing as npt
 from scipy import linalg, special
 
+from pipeline.solvers import percentile
+
 #: Finest knot spacing of the correction spline as a fraction of the plate's larger extent in the
 #: image: at most, the stereo pair governs shape wider than about this.
 KNOT_FRACTION = 1.0 / 16.0
@@ -231,7 +233,7 @@ def fuse_low_frequencies(
         correction_mm=correction,
         disagreement_mm=_disagreement(zb, correction[box], mb),
         stereo_noise_mm=float(sigma_pix * z_typ),
-        noise_floor_mm=float(3.0 * np.nanpercentile(sd[box][mb], 95)) if sd is not None else 0.0,
+        noise_floor_mm=float(3.0 * _nan_p95(sd[box][mb])) if sd is not None else 0.0,
         n_stereo=int(blocks.n_pixels),
         knot_spacing_px=None if fraction is None else float(chosen.grid.spacing),
         model=chosen.rung if isinstance(chosen.rung, str) else "spline",
@@ -484,6 +486,12 @@ def _bend_cov(quadric: _Fitted, scale2: float) -> np.ndarray:
     return bend
 
 
+def _nan_p95(values: np.ndarray) -> float:
+    """``np.nanpercentile(values, 95)`` of a 1-D sample (its finite values' 95th percentile, the same to the bit)."""
+    finite = values[~np.isnan(values)]
+    return float(percentile(finite, 95)) if finite.size else float("nan")
+
+
 def _disagreement(zb: np.ndarray, corr_b: np.ndarray, mb: np.ndarray) -> float:
     """Disagreement of shape (mm, 95th percentile): the log correction without its best plane in (u, v)
     (a scale and tilt), on every 4th pixel of the box."""
@@ -492,7 +500,7 @@ def _disagreement(zb: np.ndarray, corr_b: np.ndarray, mb: np.ndarray) -> float:
     log_corr = np.log1p(corr_b[::4, ::4][r_i, c_i].astype(np.float64) / z_s)
     A = np.column_stack([np.ones(r_i.size), c_i, r_i]).astype(np.float64)
     plane, *_ = np.linalg.lstsq(A, log_corr, rcond=None)
-    return float(np.percentile(np.abs(log_corr - A @ plane) * z_s, 95))
+    return float(percentile(np.abs(log_corr - A @ plane) * z_s, 95))
 
 
 def correction_basis(

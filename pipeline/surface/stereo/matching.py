@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 
 from pipeline.camera import StereoRig
+from pipeline.solvers import percentile
 
 #: Matching window of SGBM, pixels (odd).
 BLOCK_SIZE = 5
@@ -83,7 +84,7 @@ def _grey_levels(
     on every ``stride``-th row and column: the same levels to a fraction of a grey level, at a fraction
     of the cost of sorting every pixel."""
     img, ok = image[::stride, ::stride], valid[::stride, ::stride]
-    lo, hi = np.percentile(img[ok] if ok.any() else img.ravel(), [low_pct, high_pct])
+    lo, hi = percentile(img[ok] if ok.any() else img.ravel(), [low_pct, high_pct])
     return float(lo), float(hi)
 
 
