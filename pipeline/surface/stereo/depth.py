@@ -43,6 +43,7 @@ import numpy.typing as npt
 
 from pipeline.camera import StereoRig
 from pipeline.parallel import default_workers
+from pipeline.solvers import percentile
 from pipeline.surface.stereo.matching import (
     BLOCK_SIZE,
     MatchPass,
@@ -366,8 +367,8 @@ def _coarse_span(
         # grey levels from the whole reduced images, not the window (whose width follows the given range):
         # the coarse pass then sees the same pixels whatever the range, and its span barely moves with it
         levels=(
-            tuple(np.percentile(small_l, [0.5, 99.5])),
-            tuple(np.percentile(small_r, [0.5, 99.5])),
+            tuple(percentile(small_l, [0.5, 99.5])),
+            tuple(percentile(small_r, [0.5, 99.5])),
         ),
     )
     d_c = cp.d_win
@@ -378,7 +379,7 @@ def _coarse_span(
     good = d_c[np.isfinite(d_c) & (zncc >= MIN_ZNCC)]
     if good.size < COARSE_MIN_MATCHES:
         return None
-    p_lo, p_hi = np.percentile(good, COARSE_PERCENTILES)
+    p_lo, p_hi = percentile(good, COARSE_PERCENTILES)
     return float(c * p_lo), float(c * p_hi)
 
 
