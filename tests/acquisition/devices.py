@@ -63,11 +63,23 @@ class LightServer:
     ):
         self.commands: list[str] = []
         self.connections = 0
+        self._reading = 0  # connections whose commands are still being read
+        self._read = threading.Condition()
         server = self
 
         class Handler(socketserver.StreamRequestHandler):
             def handle(self) -> None:
-                server.connections += 1
+                with server._read:
+                    server.connections += 1
+                    server._reading += 1
+                try:
+                    self._commands()
+                finally:
+                    with server._read:
+                        server._reading -= 1
+                        server._read.notify_all()
+
+            def _commands(self) -> None:
                 for raw in self.rfile:
                     command = raw.decode().rstrip("\r\n")
                     server.commands.append(command)
@@ -84,6 +96,16 @@ class LightServer:
 
         self._server = _serve(Handler)
         self.address = f"127.0.0.1:{self._server.server_address[1]}"
+
+    def settled(self, connections: int = 1, timeout_s: float = 10.0) -> list[str]:
+        """The commands once ``connections`` connections have been read to their end (the client closed
+        them). A client of a silent controller does not wait for its commands to be read: they may
+        still be in the socket when it returns."""
+        with self._read:
+            self._read.wait_for(
+                lambda: self.connections >= connections and self._reading == 0, timeout_s
+            )
+        return self.commands
 
     def close(self) -> None:
         self._server.shutdown()

@@ -298,7 +298,7 @@ def test_silent_light_controller_is_used_without_answers(tmp_path, light_server)
         "acquisition"
     ]
     assert record["light_controller"]["replies"] is False
-    assert server.commands == SEQUENCE + _all("ON") + _all("OFF")  # no pre-shots
+    assert server.settled() == SEQUENCE + _all("ON") + _all("OFF")  # no pre-shots
 
 
 @pytest.mark.parametrize(("reply", "answering"), [("OK", True), (None, False)])
@@ -311,7 +311,7 @@ def test_echoed_commands_are_skipped(tmp_path, light_server, reply, answering):
         "acquisition"
     ]
     assert record["light_controller"]["replies"] is answering
-    assert server.commands == SEQUENCE + _all("ON") + _all("OFF")
+    assert server.settled() == SEQUENCE + _all("ON") + _all("OFF")
 
 
 @pytest.mark.slow
