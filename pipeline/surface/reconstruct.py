@@ -174,9 +174,13 @@ def stereo_lobe(
     K: np.ndarray,
     prior_mm: np.ndarray,
     mask: np.ndarray,
+    *,
+    smooth_mm: np.ndarray | None = None,
 ) -> StereoLobe:
     """The lobe of the plate ``mask`` measured on the stereo pair's smooth surface through ``prior_mm``
     (:func:`pipeline.lights.glare.measure_lobe`), whose normals owe nothing to the photometric model.
+    ``smooth_mm``: that surface when the caller has it already (:func:`pipeline.surface.fusion.
+    smooth_stereo_depth` of ``prior_mm`` over ``mask``).
 
     Under distant lights the specular stage of the normals (:mod:`pipeline.surface.normals.specular`)
     fits the lobe from the images alone; a broad lobe (e = 15-25) lies almost within the span of the
@@ -185,7 +189,7 @@ def stereo_lobe(
     lobe is told from the diffuse light. Needs no photometric result: it runs beside the integration.
     No parallel kernel, so that it may run on a worker thread (those stay on the main one).
     """
-    start = fusion.smooth_stereo_depth(prior_mm, mask)
+    start = fusion.smooth_stereo_depth(prior_mm, mask) if smooth_mm is None else smooth_mm
     lobe = glare.measure_lobe(images, valid, lights, start, None, mask, K, start_mm=start)
     return StereoLobe(lobe, start)
 
@@ -476,7 +480,10 @@ def _with_refined(
     )
     second = distant_surface(field, K, **solve)
     if field.specular is not None and field.specular.modelled:  # as for given distant lights
-        lobe = stereo_lobe(scaled, valid, refined.lights, K, solve["prior_mm"], mask)
+        # the smooth surface the lights were refitted on: the same prior over the same mask
+        lobe = stereo_lobe(
+            scaled, valid, refined.lights, K, solve["prior_mm"], mask, smooth_mm=smooth
+        )
         second = with_lobe(second, scaled, refined.lights, K, valid, lobe, solve)
     return second
 
