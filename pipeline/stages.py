@@ -504,7 +504,10 @@ def _surface(
     t_refit = time.perf_counter()
     if plate.seg is None and plate.depth_mm is not None:
         # so far on the brightness mask: lights that do not fit light the plate unevenly, and the
-        # mask follows its darker edges; measured again on the segmented plate
+        # mask follows its darker edges (a rust patch at the edge under LEDs given as directions
+        # fell outside it, and the stereo pair, matched over that mask, left it a hole); the pair is
+        # matched again over every pixel that may be plate and the plate segmented on that depth
+        plate.depth_mm, _, plate.depth_scale = _stereo_depth(cap, scene.candidates, opts)
         plate.seg = _segment(
             pre, plate.depth_mm, K, scene.candidates, plate.depth_scale, field, tgt
         )
