@@ -31,9 +31,11 @@ hundreds of millimetres apart, so the plate is found as the near, smooth sheet o
    ``OUTLINE_REACH_PX`` onto what lies beside it; next to darkness the candidates bound it, next to
    lit surroundings (a dark conveyor under a broad glare lobe) the glare-free brightness (the brightest
    of the darkest quarter of the samples, which a broad lobe lights least) does: where most lit pixels
-   within reach outside are darker than ``OUTLINE_ALBEDO_RATIO``
-   times the plate just inside, the region's pixels within reach nearer their brightness are
-   surroundings (:mod:`~pipeline.segmentation.outline`; they join the edge band).
+   within reach outside are darker than ``OUTLINE_ALBEDO_RATIO`` times the plate just inside (its
+   local mean, or its brighter steel: the paint beside a rust patch), the region's pixels near the
+   outline nearer their brightness than the plate's (its mean, or its darker steel) are surroundings,
+   as far as the comparison sees them (surroundings matched at their own depth within the depth band
+   reach beyond the matcher's reach) (:mod:`~pipeline.segmentation.outline`; they join the edge band).
 6. *Edge band*: the plate's pixels within ``edge_px`` of its boundary (outline and openings; the
    image frame does not count) mix plate and surroundings in the photometric images; they are
    excluded from the mask and counted. Given photometric normals, pixels a little further in whose

@@ -67,6 +67,57 @@ def test_darkness_beside_the_plate_changes_nothing():
     assert not lit_surroundings(region, b, lit, OUTLINE_REACH_PX).any()
 
 
+def _rust_lined(overshoot: int, rust_rows: tuple[int, int], rust_px: int):
+    """(region, brightness, lit, truth): ``_scene``'s plate (paint) with a rust patch (0.45 of the paint)
+    over rows ``rust_rows`` of its outer ``rust_px`` columns, a glare-lit conveyor (0.2 of the paint,
+    0.44 of the rust) beside it, and a stereo region ``overshoot`` px onto the conveyor."""
+    region, b, lit, truth = _scene(plate_rim=1.0, beside=0.2)
+    b[rust_rows[0] : rust_rows[1], TRUE_LEFT : TRUE_LEFT + rust_px] *= 0.45
+    region = np.zeros((H, W), bool)
+    region[30:170, TRUE_LEFT - overshoot :] = True
+    return region, b, lit, truth
+
+
+def _found(
+    beside: np.ndarray, region: np.ndarray, truth: np.ndarray, rows: slice
+) -> tuple[float, bool]:
+    """Share of the overshoot on ``rows`` found, and whether no plate pixel more than ``4`` px inside the
+    step was taken (anywhere): the local mean's reference, kept, takes a few rust pixels at the step into
+    the edge band."""
+    overshoot = (region & ~truth)[rows]
+    share = np.count_nonzero(beside[rows] & overshoot) / np.count_nonzero(overshoot)
+    return share, not (beside & truth)[:, TRUE_LEFT + 4 :].any()
+
+
+def test_a_rust_patch_lining_the_edge_and_its_reference_is_told_apart_from_the_conveyor():
+    # the rust lines the edge over 55 rows (longer than the 45 px box) and 20 px in: the zone inside
+    # the outline and the plate's whole reference zone there. Its mean reads the rust, and the conveyor
+    # ~0.44 of it, over OUTLINE_ALBEDO_RATIO: the local mean alone found half of the overshoot on those
+    # rows. The paint beside the rust, within the box along the edge, tells what steel may be; the rust
+    # what the plate's darker pixels are
+    region, b, lit, truth = _rust_lined(OVERSHOOT, (70, 125), rust_px=20)
+    beside = lit_surroundings(region, b, lit, OUTLINE_REACH_PX)
+    share, plate_kept = _found(beside, region, truth, slice(70, 125))
+    assert share >= 0.95 and plate_kept
+
+
+def test_surroundings_matched_beyond_the_matchers_reach_are_cut_as_far_as_they_are_seen():
+    # the conveyor matched at its own depth within the depth band (38 mm below the plate's edge, inside
+    # 50 mm): the region reaches 18 px onto it, beyond the matcher's fattening, and the plate's reference
+    # zone holds conveyor too. All but the column that the blur mixes with the plate at the step is found
+    region, b, lit, truth = _rust_lined(18, (0, 0), rust_px=0)
+    beside = lit_surroundings(region, b, lit, OUTLINE_REACH_PX)
+    share, plate_kept = _found(beside, region, truth, slice(40, 160))
+    assert share >= 0.9 and plate_kept
+
+
+def test_a_rust_patch_filling_every_reference_is_left_to_the_depth():
+    # the limit: no paint within reach to tell what steel may be, so the conveyor (0.44 of the rust)
+    # could be a darker coating of the plate: nothing is cut
+    region, b, lit, _truth = _rust_lined(OVERSHOOT, (0, H), rust_px=W)
+    assert not lit_surroundings(region, b, lit, OUTLINE_REACH_PX).any()
+
+
 def test_a_rust_patch_at_the_edge_beside_a_glare_lit_conveyor_is_told_apart(tmp_path):
     # bench_lights case 11, seed 1 (simulate_capture seed 101): a broad lobe (18 LEDs, shininess 15) lights
     # the dark conveyor (albedo 0.05) into the candidates beside the plate's left edge, where a rust patch
