@@ -35,7 +35,7 @@ from pipeline.preprocess import (
     raw_noise_counts,
     working_binning,
 )
-from pipeline.surface import normals, reconstruct, stereo
+from pipeline.surface import fusion, normals, reconstruct, stereo
 
 #: Stage names in the order they run; ``progress`` reports these.
 STAGES = ("load", "preprocess", "normals", "stereo", "depth", "curvature", "deviation", "artifacts")
@@ -502,18 +502,10 @@ def _surface(
         return surface
     # the given lights bend the surface away from the stereo pair's: refit them on its geometry
     t_refit = time.perf_counter()
-    if plate.seg is None and plate.depth_mm is not None:
-        # so far on the brightness mask: lights that do not fit light the plate unevenly, and the
-        # mask follows its darker edges (a rust patch at the edge under LEDs given as directions
-        # fell outside it, and the stereo pair, matched over that mask, left it a hole); the pair is
-        # matched again over every pixel that may be plate and the plate segmented on that depth
-        plate.depth_mm, _, plate.depth_scale = _stereo_depth(cap, scene.candidates, opts)
-        plate.seg = _segment(
-            pre, plate.depth_mm, K, scene.candidates, plate.depth_scale, field, tgt
-        )
-        plate.plain, plate.mask = False, plate.seg.mask
-        solve["prior_mm"] = plate.seg.stereo_prior(plate.depth_mm)
-    surface = reconstruct.remeasure_with_refined_lights(
+    replain = plate.seg is None and plate.depth_mm is not None
+    if replain:
+        solve["prior_mm"] = _segmented_on_candidates(cap, tgt, scene, plate, field, opts)
+    refitted = reconstruct.remeasure_with_refined_lights(
         surface,
         pre.images,
         cap.lights,
@@ -523,8 +515,55 @@ def _surface(
         method=opts.normals_method,
         **solve,
     )
+    if replain and refitted is surface:
+        lobe_fitted = lobe_job is not None and lobe_job.result().significant
+        refitted = _on_segmented_plate(surface, plate.mask, K, solve, lobe_fitted=lobe_fitted)
     clock.timings["light_refinement"] = round(time.perf_counter() - t_refit, 4)
-    return surface
+    return refitted
+
+
+def _segmented_on_candidates(
+    cap: Capture,
+    tgt: Target,
+    scene: Scene,
+    plate: Plate,
+    field: normals.NormalField,
+    opts: InspectOptions,
+) -> np.ndarray:
+    """A plain scene's plate segmented before its lights are refitted (``plate`` updated); the new stereo
+    prior.
+
+    So far on the brightness mask: lights that do not fit light the plate unevenly, and the mask
+    follows its darker edges (a rust patch at the edge under LEDs given by their directions fell
+    outside it, and the stereo pair, matched over that mask, left it a hole and a notch of the plate
+    unmeasured); the pair is matched again over every pixel that may be plate and the plate
+    segmented on that depth.
+    """
+    plate.depth_mm, _, plate.depth_scale = _stereo_depth(cap, scene.candidates, opts)
+    plate.seg = _segment(
+        scene.pre, plate.depth_mm, cap.rig.left.K, scene.candidates, plate.depth_scale, field, tgt
+    )
+    plate.plain, plate.mask = False, plate.seg.mask
+    prior: np.ndarray = plate.seg.stereo_prior(plate.depth_mm)
+    return prior
+
+
+def _on_segmented_plate(
+    surface: reconstruct.Surface,
+    mask: np.ndarray,
+    K: np.ndarray,
+    solve: dict[str, Any],
+    *,
+    lobe_fitted: bool,
+) -> reconstruct.Surface:
+    """The first surface of a plain scene, measured again on the plate segmented for a light refit that was
+    not kept. It was measured on the brightness mask, which may hold what the segmentation has since left
+    out (the tops of rails beside a plate over a dark floor, at the plate's depth). Normals fitted with a
+    lobe keep the stereo pair's bend (:data:`pipeline.surface.reconstruct.LOBE_BEND_FROM_STEREO`)."""
+    coarsest = reconstruct.LOBE_BEND_FROM_STEREO if lobe_fitted else fusion.PLANE
+    return reconstruct.distant_surface(
+        _restricted(surface.field, mask), K, coarsest=coarsest, **solve
+    )
 
 
 def stereo_weight_on_grid(weight: float, K: np.ndarray, distance_mm: float) -> float:
