@@ -502,10 +502,14 @@ def _surface(
         return surface
     # the given lights bend the surface away from the stereo pair's: refit them on its geometry
     t_refit = time.perf_counter()
-    replain = plate.seg is None and plate.depth_mm is not None
-    if replain:
+    if plate.seg is None and plate.depth_mm is not None:
         solve["prior_mm"] = _segmented_on_candidates(cap, tgt, scene, plate, field, opts)
-    refitted = reconstruct.remeasure_with_refined_lights(
+        # the given lights measured again on that plate: the refit is compared with them there, and
+        # they stand on it when it is not kept (the brightness mask may hold what the segmentation
+        # left out: the tops of rails beside a plate over a dark floor, at the plate's depth)
+        lobe_fitted = lobe_job is not None and lobe_job.result().significant
+        surface = _on_segmented_plate(surface, plate.mask, K, solve, lobe_fitted=lobe_fitted)
+    surface = reconstruct.remeasure_with_refined_lights(
         surface,
         pre.images,
         cap.lights,
@@ -515,11 +519,8 @@ def _surface(
         method=opts.normals_method,
         **solve,
     )
-    if replain and refitted is surface:
-        lobe_fitted = lobe_job is not None and lobe_job.result().significant
-        refitted = _on_segmented_plate(surface, plate.mask, K, solve, lobe_fitted=lobe_fitted)
     clock.timings["light_refinement"] = round(time.perf_counter() - t_refit, 4)
-    return refitted
+    return surface
 
 
 def _segmented_on_candidates(
@@ -556,10 +557,9 @@ def _on_segmented_plate(
     *,
     lobe_fitted: bool,
 ) -> reconstruct.Surface:
-    """The first surface of a plain scene, measured again on the plate segmented for a light refit that was
-    not kept. It was measured on the brightness mask, which may hold what the segmentation has since left
-    out (the tops of rails beside a plate over a dark floor, at the plate's depth). Normals fitted with a
-    lobe keep the stereo pair's bend (:data:`pipeline.surface.reconstruct.LOBE_BEND_FROM_STEREO`)."""
+    """The first surface of a plain scene (measured on the brightness mask) measured again on the plate
+    segmented for its lights' refit, ``mask``. Normals fitted with a lobe keep the stereo pair's bend
+    (:data:`pipeline.surface.reconstruct.LOBE_BEND_FROM_STEREO`)."""
     coarsest = reconstruct.LOBE_BEND_FROM_STEREO if lobe_fitted else fusion.PLANE
     return reconstruct.distant_surface(
         _restricted(surface.field, mask), K, coarsest=coarsest, **solve
