@@ -23,11 +23,16 @@ from pipeline.run import inspect
 from pipeline.simulate import CaptureSpec, Cutout, Floor, PlateSpec, rail_supports, simulate_capture
 
 FLOOR = Floor(gap_mm=300.0, supports=rail_supports((3000.0, 3000.0), 300.0, 3))
+#: rails over a dark floor: only their bright tops are lit, and they join the plate's brightness mask
+DARK_FLOOR = Floor(
+    gap_mm=300.0, albedo=0.03, texture=0.0, supports=rail_supports((3000.0, 3000.0), 300.0, 3)
+)
 CUT = (Cutout.circle(400.0, -300.0, 260.0),)
 NEAR = dict(near_field_mm=2800.0, light_elevation_deg=30.0, led_mu=1.5)
 #: name, plate, target radius (mm), capture options, right verdict
 SCENES = (
     ("lit floor, rails", PlateSpec(floor=FLOOR), 5000.0, {}, "pass"),
+    ("dark floor, rails", PlateSpec(floor=DARK_FLOOR), 5000.0, {}, "pass"),
     ("lit floor, 520 mm cut-out", PlateSpec(cutouts=CUT, floor=FLOOR), 5000.0, {}, "pass"),
     ("dark background, cut-out", PlateSpec(cutouts=CUT), 5000.0, {}, "pass"),
     ("under-bent R4600, lit floor", PlateSpec(radius_mm=4600.0, floor=FLOOR), 5000.0, {}, "fail"),

@@ -321,7 +321,7 @@ def reconstruct_view(
         )
         clock.end("normals")
     clock.begin("stereo")
-    plate, field = _plate(stereo_job, scene, field, K, tgt, clock)
+    plate, field = _plate(stereo_job, cap, scene, field, tgt, opts, clock)
     writes = []
     if field is not None and normals_png is not None:
         # normals.png now, while the depth is solved on this thread (the few normals dropped later as facing
@@ -377,21 +377,21 @@ def measure(
 
 def _plate(
     stereo_job: Future[tuple[np.ndarray, float, int]] | None,
+    cap: Capture,
     scene: Scene,
     field: normals.NormalField | None,
-    K: np.ndarray,
     tgt: Target,
+    opts: InspectOptions,
     clock: StageClock,
 ) -> tuple[Plate, normals.NormalField | None]:
     """The stereo depth, and the plate among its surroundings (#17): the near, smooth sheet of the stereo
     depth; openings stay holes, supports beside the plate and an edge band are left out. A plain scene (a
     plate over a dark conveyor, no opening), or no stereo pair: the brightness mask. The distant normal
     field comes back restricted to the plate."""
-    pre = scene.pre
+    pre, K = scene.pre, cap.rig.left.K
     depth_c, stereo_s, depth_scale = (
         stereo_job.result() if stereo_job is not None else (None, 0.0, 1)
     )
-    clock.timings["stereo"] = stereo_s
     t_seg = time.perf_counter()
     seg = None
     plain = (
@@ -400,6 +400,13 @@ def _plate(
         and segmentation.plain_depth(pre.mask, depth_c, K)
     )
     if depth_c is not None and not plain:
+        if scene.plain_outline:
+            # the pair was matched over the brightness mask only, which the depth shows holds more than
+            # one sheet (the tops of rails under the plate's edge): matched again over every pixel that
+            # may be plate, so that the segmentation sees the plate's rim and what the mask left out
+            depth_c, again_s, depth_scale = _stereo_depth(cap, scene.candidates, opts)
+            stereo_s += again_s
+            t_seg += again_s
         seg = _segment(pre, depth_c, K, scene.candidates, depth_scale, field, tgt)
     mask = pre.mask if seg is None else seg.mask
     prior: np.ndarray | None
@@ -409,6 +416,7 @@ def _plate(
         prior = None if depth_c is None else np.where(mask, depth_c, np.nan)
     if field is not None:
         field = _restricted(field, mask)
+    clock.timings["stereo"] = stereo_s
     clock.timings["segmentation"] = round(time.perf_counter() - t_seg, 4)
     matched_pct = (
         None if prior is None else 100.0 * np.count_nonzero(np.isfinite(prior) & mask) / mask.sum()

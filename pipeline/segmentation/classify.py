@@ -4,6 +4,7 @@ taken out, and the depth step to the surroundings along the boundary."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import cv2
@@ -114,17 +115,17 @@ def classify(
     geometry = surface_geometry(surface, K, shape)
     area = geometry.area_full(shape)
     mm_per_px = math.sqrt(float(np.nanmedian(area[core])))
-    protrusions = _protrusions(
+    supports = protrusions(
         core,
-        residual,
+        lambda parts: residual[parts],
         mm_per_px,
         support_width_mm,
         max(PROTRUSION_RESIDUAL_MM, 5.0 * surface.rms_mm),
     )
-    if protrusions.any():
-        core &= ~protrusions
+    if supports.any():
+        core &= ~supports
         core = largest_component(core)
-    feet = _wide_parts(protrusions, max(1.5, support_width_mm / mm_per_px / 20))
+    feet = support_feet(supports, mm_per_px, support_width_mm)
     enclosed = _enclosed(core, off | dark | ~ok, area, geometry, normals, max_dropout_mm2)
     # the rim: a pixel mostly dark (under half the plate's median brightness, unsmoothed) is not taken
     lit = b >= 0.5 * float(np.median(b[::4, ::4][core[::4, ::4]]))
@@ -144,7 +145,7 @@ def classify(
         filled_mm2=enclosed.filled_mm2,
         filled_by_normals_mm2=enclosed.by_normals_mm2,
         largest_by_normals_mm2=enclosed.largest_by_normals_mm2,
-        protrusions_mm2=float(np.nansum(area[protrusions])),
+        protrusions_mm2=float(np.nansum(area[supports])),
     )
 
 
@@ -260,15 +261,17 @@ def _surroundings_step(
     return step
 
 
-def _protrusions(
+def protrusions(
     core: np.ndarray,
-    residual: np.ndarray,
+    residual_at: Callable[[np.ndarray], np.ndarray],
     mm_per_px: float,
     width_mm: float,
     max_residual_mm: float,
 ) -> np.ndarray:
     """(H, W) bool: the parts of ``core`` narrower than ``width_mm`` (removed by an opening with a disc
-    of that diameter) of which ``PROTRUSION_SHARE`` have ``|residual|`` (mm) over ``max_residual_mm``.
+    of that diameter) of which ``PROTRUSION_SHARE`` have ``|residual|`` (mm) over ``max_residual_mm``;
+    ``residual_at(parts)``: the stereo depth's residual from the smooth surface at the pixels of the
+    (H, W) bool ``parts`` (NaN where unmatched), in their ``np.nonzero`` order.
 
     The opening runs on the mask reduced so the disc is ~15 px across (a plate is smooth at that scale);
     the slivers that the reduction adds along straight edges follow the surface and are kept."""
@@ -292,7 +295,7 @@ def _protrusions(
     if not parts.any():
         return parts
     n, labels = cv2.connectedComponents(parts.view(np.uint8), connectivity=8)
-    res = np.abs(residual[parts])
+    res = np.abs(residual_at(parts))
     ok = np.isfinite(res)
     lab = labels[parts][ok]
     # a support's part holds the plate's edge strip next to it too (the reduced opening's slivers), whose depth
@@ -303,6 +306,12 @@ def _protrusions(
     out[0] = False
     kept: np.ndarray = out[labels] & parts
     return kept
+
+
+def support_feet(supports: np.ndarray, mm_per_px: float, width_mm: float) -> np.ndarray:
+    """The parts of :func:`protrusions` at least a tenth of ``width_mm`` wide somewhere (3 px at least):
+    supports, not a corner's sliver with a pixel of stereo noise."""
+    return _wide_parts(supports, max(1.5, width_mm / mm_per_px / 20))
 
 
 def _wide_parts(parts: np.ndarray, min_half_width_px: float) -> np.ndarray:

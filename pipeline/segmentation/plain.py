@@ -8,7 +8,14 @@ import cv2
 import numpy as np
 
 from .checks import check_bool_image, check_camera_matrix
-from .surface import DEPTH_BAND_MM, FIT_SAMPLES, design, fit_surface, normalised_coords
+from .classify import PROTRUSION_RESIDUAL_MM, SUPPORT_WIDTH_MM, protrusions, support_feet
+from .surface import (
+    DEPTH_BAND_MM,
+    FIT_SAMPLES,
+    design,
+    fit_surface,
+    normalised_coords,
+)
 
 #: plain_outline / plain_depth: the shares of the brightness mask's area that may be dark inside it (an opening), lit
 #: outside it (a floor, supports) and off its smooth surface in depth. Measured at 1224x1024: plain
@@ -74,8 +81,12 @@ def plain_depth(
     -------
     bool
         True when at most PLAIN_OFF_SURFACE_SHARE of the matched mask pixels lie off the smooth
-        surface fitted to them. With :func:`plain_outline`, the brightness mask is then the plate
-        and :func:`segment_plate` is not needed (docs/figures.md: what it costs).
+        surface fitted to them, and no part of the mask narrower than SUPPORT_WIDTH_MM leaves that
+        surface as a support does (:func:`pipeline.segmentation.classify.protrusions`, the test of
+        :func:`segment_plate`'s step 3): the bright top of a rail under the plate's edge, reaching out
+        beside it at its depth, joins the brightness mask and stays within the depth band near the
+        plate. With :func:`plain_outline`, the brightness mask is then the plate and
+        :func:`segment_plate` is not needed (docs/figures.md: what it costs).
     """
     mask = check_bool_image("bright_mask", bright_mask, np.shape(bright_mask))
     depth = np.asarray(depth_mm, dtype=np.float64)
@@ -92,4 +103,24 @@ def plain_depth(
     with np.errstate(divide="ignore", invalid="ignore"):
         off = np.abs(z[inside] - 1.0 / (X @ surface.coef)) > depth_band_mm
     n_inside = int(np.count_nonzero(inside))
-    return bool(np.count_nonzero(off) <= PLAIN_OFF_SURFACE_SHARE * max(n_inside, 1))
+    if np.count_nonzero(off) > PLAIN_OFF_SURFACE_SHARE * max(n_inside, 1):
+        return False
+    # on every pixel, as the segmentation tests them: a support's part is a few of the sampled pixels
+    Kinv = np.linalg.inv(K)
+
+    def residual_at(parts: np.ndarray) -> np.ndarray:
+        v, u = np.nonzero(parts)
+        x = Kinv[0, 0] * u + Kinv[0, 1] * v + Kinv[0, 2]
+        y = Kinv[1, 1] * v + Kinv[1, 2]
+        with np.errstate(invalid="ignore"):
+            return np.asarray(depth[parts] - surface.depth(x, y), dtype=np.float64)
+
+    mm_per_px = float(np.median(z[inside])) / math.sqrt(K[0, 0] * K[1, 1])
+    supports = protrusions(
+        mask & np.isfinite(depth) & (depth > 0),
+        residual_at,
+        mm_per_px,
+        SUPPORT_WIDTH_MM,
+        max(PROTRUSION_RESIDUAL_MM, 5.0 * surface.rms_mm),
+    )
+    return not support_feet(supports, mm_per_px, SUPPORT_WIDTH_MM).any()
