@@ -77,6 +77,7 @@ from .plain import (
     PLAIN_MARGIN_PX,
     PLAIN_OFF_SURFACE_SHARE,
     PLAIN_OPENING_SHARE,
+    PLAIN_SUPPORT_MIN_WIDTH_MM,
     plain_depth,
     plain_outline,
 )
@@ -102,6 +103,7 @@ __all__ = [
     "PLAIN_MARGIN_PX",
     "PLAIN_OFF_SURFACE_SHARE",
     "PLAIN_OPENING_SHARE",
+    "PLAIN_SUPPORT_MIN_WIDTH_MM",
     "PROTRUSION_RESIDUAL_MM",
     "PROTRUSION_SHARE",
     "SEED_SHARE",

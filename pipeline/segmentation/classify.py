@@ -4,7 +4,6 @@ taken out, and the depth step to the surroundings along the boundary."""
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import cv2
@@ -115,17 +114,17 @@ def classify(
     geometry = surface_geometry(surface, K, shape)
     area = geometry.area_full(shape)
     mm_per_px = math.sqrt(float(np.nanmedian(area[core])))
-    supports = protrusions(
+    protrusions = _protrusions(
         core,
-        lambda parts: residual[parts],
+        residual,
         mm_per_px,
         support_width_mm,
         max(PROTRUSION_RESIDUAL_MM, 5.0 * surface.rms_mm),
     )
-    if supports.any():
-        core &= ~supports
+    if protrusions.any():
+        core &= ~protrusions
         core = largest_component(core)
-    feet = support_feet(supports, mm_per_px, support_width_mm)
+    feet = wide_parts(protrusions, max(1.5, support_width_mm / mm_per_px / 20))
     enclosed = _enclosed(core, off | dark | ~ok, area, geometry, normals, max_dropout_mm2)
     # the rim: a pixel mostly dark (under half the plate's median brightness, unsmoothed) is not taken
     lit = b >= 0.5 * float(np.median(b[::4, ::4][core[::4, ::4]]))
@@ -145,7 +144,7 @@ def classify(
         filled_mm2=enclosed.filled_mm2,
         filled_by_normals_mm2=enclosed.by_normals_mm2,
         largest_by_normals_mm2=enclosed.largest_by_normals_mm2,
-        protrusions_mm2=float(np.nansum(area[supports])),
+        protrusions_mm2=float(np.nansum(area[protrusions])),
     )
 
 
@@ -261,20 +260,38 @@ def _surroundings_step(
     return step
 
 
-def protrusions(
+def _protrusions(
     core: np.ndarray,
-    residual_at: Callable[[np.ndarray], np.ndarray],
+    residual: np.ndarray,
     mm_per_px: float,
     width_mm: float,
     max_residual_mm: float,
 ) -> np.ndarray:
-    """(H, W) bool: the parts of ``core`` narrower than ``width_mm`` (removed by an opening with a disc
-    of that diameter) of which ``PROTRUSION_SHARE`` have ``|residual|`` (mm) over ``max_residual_mm``;
-    ``residual_at(parts)``: the stereo depth's residual from the smooth surface at the pixels of the
-    (H, W) bool ``parts`` (NaN where unmatched), in their ``np.nonzero`` order.
+    """(H, W) bool: the parts of ``core`` narrower than ``width_mm`` (:func:`narrow_parts`) of which
+    ``PROTRUSION_SHARE`` have ``|residual|`` (mm) over ``max_residual_mm``."""
+    parts = narrow_parts(core, mm_per_px, width_mm)
+    if not parts.any():
+        return parts
+    n, labels = cv2.connectedComponents(parts.view(np.uint8), connectivity=8)
+    res = np.abs(residual[parts])
+    ok = np.isfinite(res)
+    lab = labels[parts][ok]
+    # a support's part holds the plate's edge strip next to it too (the reduced opening's slivers), whose depth
+    # follows the surface: a part is a support when a good share of it (not necessarily half) leaves it
+    above = np.bincount(lab, weights=(res[ok] > max_residual_mm).astype(np.float64), minlength=n)
+    counted = np.bincount(lab, minlength=n)
+    out = above > PROTRUSION_SHARE * counted
+    out[0] = False
+    kept: np.ndarray = out[labels] & parts
+    return kept
+
+
+def narrow_parts(core: np.ndarray, mm_per_px: float, width_mm: float) -> np.ndarray:
+    """(H, W) bool: the parts of ``core`` narrower than ``width_mm``, removed by an opening with a disc of
+    that diameter (none when ``width_mm`` or ``mm_per_px`` is not positive).
 
     The opening runs on the mask reduced so the disc is ~15 px across (a plate is smooth at that scale);
-    the slivers that the reduction adds along straight edges follow the surface and are kept."""
+    the reduction adds slivers along straight edges."""
     if width_mm <= 0 or not math.isfinite(mm_per_px) or mm_per_px <= 0:
         return np.zeros_like(core)
     h, w = core.shape
@@ -292,29 +309,10 @@ def protrusions(
     )
     back = cv2.resize(opened, (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
     parts: np.ndarray = core & ~back
-    if not parts.any():
-        return parts
-    n, labels = cv2.connectedComponents(parts.view(np.uint8), connectivity=8)
-    res = np.abs(residual_at(parts))
-    ok = np.isfinite(res)
-    lab = labels[parts][ok]
-    # a support's part holds the plate's edge strip next to it too (the reduced opening's slivers), whose depth
-    # follows the surface: a part is a support when a good share of it (not necessarily half) leaves it
-    above = np.bincount(lab, weights=(res[ok] > max_residual_mm).astype(np.float64), minlength=n)
-    counted = np.bincount(lab, minlength=n)
-    out = above > PROTRUSION_SHARE * counted
-    out[0] = False
-    kept: np.ndarray = out[labels] & parts
-    return kept
+    return parts
 
 
-def support_feet(supports: np.ndarray, mm_per_px: float, width_mm: float) -> np.ndarray:
-    """The parts of :func:`protrusions` at least a tenth of ``width_mm`` wide somewhere (3 px at least):
-    supports, not a corner's sliver with a pixel of stereo noise."""
-    return _wide_parts(supports, max(1.5, width_mm / mm_per_px / 20))
-
-
-def _wide_parts(parts: np.ndarray, min_half_width_px: float) -> np.ndarray:
+def wide_parts(parts: np.ndarray, min_half_width_px: float) -> np.ndarray:
     """The connected components of ``parts`` (8-neighbour) at least ``2 min_half_width_px`` wide somewhere
     (slivers along an edge are not)."""
     if not parts.any():

@@ -8,14 +8,8 @@ import cv2
 import numpy as np
 
 from .checks import check_bool_image, check_camera_matrix
-from .classify import PROTRUSION_RESIDUAL_MM, SUPPORT_WIDTH_MM, protrusions, support_feet
-from .surface import (
-    DEPTH_BAND_MM,
-    FIT_SAMPLES,
-    design,
-    fit_surface,
-    normalised_coords,
-)
+from .classify import SUPPORT_WIDTH_MM, narrow_parts, wide_parts
+from .surface import DEPTH_BAND_MM, FIT_SAMPLES, design, fit_surface, normalised_coords
 
 #: plain_outline / plain_depth: the shares of the brightness mask's area that may be dark inside it (an opening), lit
 #: outside it (a floor, supports) and off its smooth surface in depth. Measured at 1224x1024: plain
@@ -26,6 +20,10 @@ PLAIN_LIT_SHARE = 0.02
 PLAIN_OFF_SURFACE_SHARE = 0.002
 #: ... lit pixels within this many pixels of the mask are its own (mixed) edge.
 PLAIN_MARGIN_PX = 5
+#: plain_depth: the narrowest support (mm) whose top, lit beside the plate and joined to its brightness mask,
+#: is looked for (rails and blocks are 100-200 mm wide; the slivers the stereo pair leaves unmatched along
+#: the plate's rim are a few pixels wide).
+PLAIN_SUPPORT_MIN_WIDTH_MM = 100.0
 
 
 def plain_outline(bright_mask: np.ndarray, candidates: np.ndarray) -> bool:
@@ -81,46 +79,49 @@ def plain_depth(
     -------
     bool
         True when at most PLAIN_OFF_SURFACE_SHARE of the matched mask pixels lie off the smooth
-        surface fitted to them, and no part of the mask narrower than SUPPORT_WIDTH_MM leaves that
-        surface as a support does (:func:`pipeline.segmentation.classify.protrusions`, the test of
-        :func:`segment_plate`'s step 3): the bright top of a rail under the plate's edge, reaching out
-        beside it at its depth, joins the brightness mask and stays within the depth band near the
-        plate. With :func:`plain_outline`, the brightness mask is then the plate and
-        :func:`segment_plate` is not needed (docs/figures.md: what it costs).
+        surface fitted to them, and no part of the mask narrower than a support
+        (:func:`pipeline.segmentation.classify.narrow_parts`, SUPPORT_WIDTH_MM) but at least
+        PLAIN_SUPPORT_MIN_WIDTH_MM wide is mostly unmatched. The bright tops of rails under a plate's
+        edge join the brightness mask and reach out beside the plate: flat where its continuation turns
+        away (off the surface), or without a depth where their tops show the stereo pair nothing to
+        match. A bent corner is matched and within the band: it stays, to be measured and judged. With
+        :func:`plain_outline`, the brightness mask is then the plate and :func:`segment_plate` is not
+        needed (docs/figures.md: what it costs).
     """
     mask = check_bool_image("bright_mask", bright_mask, np.shape(bright_mask))
     depth = np.asarray(depth_mm, dtype=np.float64)
     K = check_camera_matrix(camera_matrix)
-    surface = fit_surface(depth, mask, K, depth_band_mm)
-    if surface is None:
-        return False
     stride = max(1, int(round(math.sqrt(depth.size / FIT_SAMPLES))))
     z = depth[::stride, ::stride]
     inside = mask[::stride, ::stride] & np.isfinite(z) & (z > 0)
+    if not inside.any():
+        return False
+    mm_per_px = float(np.median(z[inside])) / math.sqrt(K[0, 0] * K[1, 1])
+    parts = narrow_parts(mask, mm_per_px, SUPPORT_WIDTH_MM)
+    if _unmatched_support(parts, depth, mm_per_px):
+        return False
+    surface = fit_surface(depth, mask, K, depth_band_mm)
+    if surface is None:
+        return False
     x, y = normalised_coords(K, depth.shape, stride)
     x, y = x[: z.shape[0], : z.shape[1]], y[: z.shape[0], : z.shape[1]]
     X = design(x[inside], y[inside], surface.degree, surface.scale)
     with np.errstate(divide="ignore", invalid="ignore"):
         off = np.abs(z[inside] - 1.0 / (X @ surface.coef)) > depth_band_mm
     n_inside = int(np.count_nonzero(inside))
-    if np.count_nonzero(off) > PLAIN_OFF_SURFACE_SHARE * max(n_inside, 1):
+    return bool(np.count_nonzero(off) <= PLAIN_OFF_SURFACE_SHARE * max(n_inside, 1))
+
+
+def _unmatched_support(parts: np.ndarray, depth: np.ndarray, mm_per_px: float) -> bool:
+    """Whether a part of ``parts`` at least PLAIN_SUPPORT_MIN_WIDTH_MM wide somewhere has most of its
+    pixels unmatched (no finite ``depth``)."""
+    wide = wide_parts(parts, 0.5 * PLAIN_SUPPORT_MIN_WIDTH_MM / mm_per_px)
+    if not wide.any():
         return False
-    # on every pixel, as the segmentation tests them: a support's part is a few of the sampled pixels
-    Kinv = np.linalg.inv(K)
-
-    def residual_at(parts: np.ndarray) -> np.ndarray:
-        v, u = np.nonzero(parts)
-        x = Kinv[0, 0] * u + Kinv[0, 1] * v + Kinv[0, 2]
-        y = Kinv[1, 1] * v + Kinv[1, 2]
-        with np.errstate(invalid="ignore"):
-            return np.asarray(depth[parts] - surface.depth(x, y), dtype=np.float64)
-
-    mm_per_px = float(np.median(z[inside])) / math.sqrt(K[0, 0] * K[1, 1])
-    supports = protrusions(
-        mask & np.isfinite(depth) & (depth > 0),
-        residual_at,
-        mm_per_px,
-        SUPPORT_WIDTH_MM,
-        max(PROTRUSION_RESIDUAL_MM, 5.0 * surface.rms_mm),
+    n, labels = cv2.connectedComponents(wide.view(np.uint8), connectivity=8)
+    unmatched = ~np.isfinite(depth[wide])
+    share = (
+        np.bincount(labels[wide], weights=unmatched.astype(np.float64), minlength=n)[1:]
+        / (np.bincount(labels[wide], minlength=n)[1:])
     )
-    return not support_feet(supports, mm_per_px, SUPPORT_WIDTH_MM).any()
+    return bool(np.any(share > 0.5))
