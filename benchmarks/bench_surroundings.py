@@ -20,7 +20,15 @@ from pathlib import Path
 
 from pipeline.parallel import configure_process
 from pipeline.run import inspect
-from pipeline.simulate import CaptureSpec, Cutout, Floor, PlateSpec, rail_supports, simulate_capture
+from pipeline.simulate import (
+    CaptureSpec,
+    Cutout,
+    Dent,
+    Floor,
+    PlateSpec,
+    rail_supports,
+    simulate_capture,
+)
 
 FLOOR = Floor(gap_mm=300.0, supports=rail_supports((3000.0, 3000.0), 300.0, 3))
 #: rails over a dark floor: only their bright tops are lit, and they join the plate's brightness mask
@@ -28,6 +36,8 @@ DARK_FLOOR = Floor(
     gap_mm=300.0, albedo=0.03, texture=0.0, supports=rail_supports((3000.0, 3000.0), 300.0, 3)
 )
 CUT = (Cutout.circle(400.0, -300.0, 260.0),)
+#: a corner bent 30 mm towards the cameras (a forming defect: the plate fails)
+BENT_CORNER = (Dent(x_mm=-1500.0, y_mm=-1500.0, radius_mm=150.0, depth_mm=-30.0),)
 NEAR = dict(near_field_mm=2800.0, light_elevation_deg=30.0, led_mu=1.5)
 #: name, plate, target radius (mm), capture options, right verdict
 SCENES = (
@@ -36,6 +46,8 @@ SCENES = (
     ("lit floor, 520 mm cut-out", PlateSpec(cutouts=CUT, floor=FLOOR), 5000.0, {}, "pass"),
     ("dark background, cut-out", PlateSpec(cutouts=CUT), 5000.0, {}, "pass"),
     ("under-bent R4600, lit floor", PlateSpec(radius_mm=4600.0, floor=FLOOR), 5000.0, {}, "fail"),
+    ("bent corner, dark background", PlateSpec(dents=BENT_CORNER), 5000.0, {}, "fail"),
+    ("bent corner, lit floor", PlateSpec(dents=BENT_CORNER, floor=FLOOR), 5000.0, {}, "fail"),
     ("LEDs, lit floor, cut-out", PlateSpec(cutouts=CUT, floor=FLOOR), 5000.0, NEAR, "pass"),
     (
         "concave R3500, floor 400 mm",
