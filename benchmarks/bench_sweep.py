@@ -5,8 +5,9 @@ so every deviation is the measurement's own error. A row is flagged ``OUT`` when
 issue 24 asks of a real cell or of an honest uncertainty: deviation p95 over 0.3 mm or max over
 1.2 mm, a failing verdict, a radius off by more than 0.2 %, U95 under 0.8 of the deviation's p95,
 the radius error outside its own U, or a warning about the lights (refitted, or the photometric and
-stereo shapes disagreeing) on a capture whose lights are given exactly (``lights warned``). Use seeds never used before to look for what the method misses
-(docs/figures.md, *A broad lobe under distant lights a degree off*).
+stereo shapes disagreeing) on a capture whose lights are given exactly (``lights warned``). Use seeds
+never used before to look for what the method misses (docs/figures.md, *A broad lobe under distant
+lights a degree off*).
 
     .venv/bin/python benchmarks/bench_sweep.py [--size 1224x1024] [--seeds 61 62] [--cases LEDs glare]
 """
