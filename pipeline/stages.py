@@ -402,12 +402,14 @@ def _plate(
     if depth_c is not None and not plain:
         if scene.plain_outline:
             # the pair was matched over the brightness mask only, which the depth shows holds more than
-            # one sheet (the tops of rails under the plate's edge): matched again over every pixel that
-            # may be plate, so that the segmentation sees the plate's rim and what the mask left out
-            depth_c, again_s, depth_scale = _stereo_depth(cap, scene.candidates, opts)
+            # one sheet (the tops of rails under the plate's edge)
+            depth_c, depth_scale, seg, again_s = _matched_on_candidates(
+                cap, tgt, scene, field, opts
+            )
             stereo_s += again_s
             t_seg += again_s
-        seg = _segment(pre, depth_c, K, scene.candidates, depth_scale, field, tgt)
+        else:
+            seg = _segment(pre, depth_c, K, scene.candidates, depth_scale, field, tgt)
     mask = pre.mask if seg is None else seg.mask
     prior: np.ndarray | None
     if seg is not None:
@@ -545,16 +547,28 @@ def _segmented_on_candidates(
     So far on the brightness mask: lights that do not fit light the plate unevenly, and the mask
     follows its darker edges (a rust patch at the edge under LEDs given by their directions fell
     outside it, and the stereo pair, matched over that mask, left it a hole and a notch of the plate
-    unmeasured); the pair is matched again over every pixel that may be plate and the plate
-    segmented on that depth.
+    unmeasured): :func:`_matched_on_candidates`.
     """
-    plate.depth_mm, _, plate.depth_scale = _stereo_depth(cap, scene.candidates, opts)
-    plate.seg = _segment(
-        scene.pre, plate.depth_mm, cap.rig.left.K, scene.candidates, plate.depth_scale, field, tgt
-    )
-    plate.plain, plate.mask = False, plate.seg.mask
-    prior: np.ndarray = plate.seg.stereo_prior(plate.depth_mm)
+    plate.depth_mm, plate.depth_scale, seg, _ = _matched_on_candidates(cap, tgt, scene, field, opts)
+    plate.seg, plate.plain, plate.mask = seg, False, seg.mask
+    prior: np.ndarray = seg.stereo_prior(plate.depth_mm)
     return prior
+
+
+def _matched_on_candidates(
+    cap: Capture,
+    tgt: Target,
+    scene: Scene,
+    field: normals.NormalField | None,
+    opts: InspectOptions,
+) -> tuple[np.ndarray, int, segmentation.Segmentation, float]:
+    """A scene taken for plain by its outline, whose stereo pair was matched over the brightness mask
+    only: the pair matched again over every pixel that may be plate, and the plate segmented on that
+    depth, so that the segmentation sees the plate's rim and what the mask left out. Returns the depth,
+    its reduction (:func:`_stereo_depth`), the segmentation and the matching's run time (s)."""
+    depth, seconds, scale = _stereo_depth(cap, scene.candidates, opts)
+    seg = _segment(scene.pre, depth, cap.rig.left.K, scene.candidates, scale, field, tgt)
+    return depth, scale, seg, seconds
 
 
 def _on_segmented_plate(

@@ -89,19 +89,20 @@ def _plate_classes(
 def _nearer_outside(
     b: np.ndarray,
     ring: np.ndarray,
+    ring_share: np.ndarray,
     reference: np.ndarray,
     level: np.ndarray,
     in_share: np.ndarray,
     size: int,
 ) -> np.ndarray:
-    """Pixels nearer in brightness to the lit surroundings (``ring``) in their box than to the plate's
-    ``level``, where most of those surroundings are darker than ``OUTLINE_ALBEDO_RATIO`` times the plate's
-    ``reference`` (no painted or rusty steel is that much darker than the steel beside it; the rest is plate
-    the matcher left unmatched at its rim, or surroundings as bright as the plate)."""
+    """Pixels nearer in brightness to the lit surroundings (``ring``; ``ring_share`` its share of each
+    ``size`` box) in their box than to the plate's ``level``, where most of those surroundings are darker
+    than ``OUTLINE_ALBEDO_RATIO`` times the plate's ``reference`` (no painted or rusty steel is that much
+    darker than the steel beside it; the rest is plate the matcher left unmatched at its rim, or
+    surroundings as bright as the plate)."""
     with np.errstate(invalid="ignore"):
         dim = ring & (b < OUTLINE_ALBEDO_RATIO * reference)
     outside, dim_share = _local_mean(b, dim, size)
-    ring_share = cv2.blur(ring.astype(np.float32), (size, size), borderType=cv2.BORDER_CONSTANT)
     with np.errstate(invalid="ignore", divide="ignore"):
         apart = (in_share > 0) & (dim_share > 0.5 * ring_share) & (ring_share > 0)
         nearer: np.ndarray = apart & (b < 0.5 * (level + outside))
@@ -146,8 +147,10 @@ def lit_surroundings(
     size = 4 * reach_px + 1
     mean, in_share = _local_mean(b, core, size)
     bright, dark = _plate_classes(b, core, mean, size)
-    by_mean = region & (depth_in <= reach_px) & _nearer_outside(b, ring, mean, mean, in_share, size)
-    by_classes = region & _nearer_outside(b, ring, bright, dark, in_share, size)
+    ring_share = cv2.blur(ring.astype(np.float32), (size, size), borderType=cv2.BORDER_CONSTANT)
+    by_mean = _nearer_outside(b, ring, ring_share, mean, mean, in_share, size)
+    by_mean &= region & (depth_in <= reach_px)
+    by_classes = region & _nearer_outside(b, ring, ring_share, bright, dark, in_share, size)
     # joined to the outside through such pixels: grown from those touching it
     touching = cv2.dilate((~region).view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)
     by_mean = grow_within(touching & by_mean, by_mean, reach_px)
