@@ -4,7 +4,7 @@ Prints one table: for each scene, the right verdict, then per seed the radius er
 target, the verdict, the deviation RMS / max, the measured area against the target's and how many
 edge regions were left out as segmentation artefacts.
 
-    .venv/bin/python benchmarks/bench_surroundings.py [--size 1224x1024] [--seeds 0 1]
+    .venv/bin/python benchmarks/bench_surroundings.py [--size 1224x1024] [--seeds 0 1] [--scenes corner]
 
 Bundles are rendered once into a temporary folder; only ``inspect`` is timed.
 """
@@ -38,6 +38,8 @@ DARK_FLOOR = Floor(
 CUT = (Cutout.circle(400.0, -300.0, 260.0),)
 #: a corner bent 30 mm towards the cameras (a forming defect: the plate fails)
 BENT_CORNER = (Dent(x_mm=-1500.0, y_mm=-1500.0, radius_mm=150.0, depth_mm=-30.0),)
+#: another corner bent 20 mm away from the cameras, over a wider radius
+DOWN_CORNER = (Dent(x_mm=-1500.0, y_mm=1500.0, radius_mm=300.0, depth_mm=20.0),)
 NEAR = dict(near_field_mm=2800.0, light_elevation_deg=30.0, led_mu=1.5)
 #: name, plate, target radius (mm), capture options, right verdict
 SCENES = (
@@ -48,6 +50,7 @@ SCENES = (
     ("under-bent R4600, lit floor", PlateSpec(radius_mm=4600.0, floor=FLOOR), 5000.0, {}, "fail"),
     ("bent corner, dark background", PlateSpec(dents=BENT_CORNER), 5000.0, {}, "fail"),
     ("bent corner, lit floor", PlateSpec(dents=BENT_CORNER, floor=FLOOR), 5000.0, {}, "fail"),
+    ("corner bent down, lit floor", PlateSpec(dents=DOWN_CORNER, floor=FLOOR), 5000.0, {}, "fail"),
     ("LEDs, lit floor, cut-out", PlateSpec(cutouts=CUT, floor=FLOOR), 5000.0, NEAR, "pass"),
     (
         "concave R3500, floor 400 mm",
@@ -68,6 +71,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--size", default="1224x1024", help="image size WIDTHxHEIGHT px")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    parser.add_argument(
+        "--scenes", nargs="+", default=None, help="only the scenes whose name contains one of these"
+    )
     args = parser.parse_args()
     width, height = (int(v) for v in args.size.split("x"))
     print(f"\n## The plate among its surroundings ({width}x{height}, seeds {args.seeds})\n")
@@ -81,6 +87,8 @@ def main() -> None:
         root = Path(tmp)
         warm = False
         for name, plate, radius, capture, right in SCENES:
+            if args.scenes and not any(part in name for part in args.scenes):
+                continue
             cells, times = [], []
             for seed in args.seeds:
                 bundle = simulate_capture(

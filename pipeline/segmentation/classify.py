@@ -27,6 +27,12 @@ SUPPORT_WIDTH_MM = 250.0
 #: continuation.
 PROTRUSION_RESIDUAL_MM = 8.0
 PROTRUSION_SHARE = 0.3
+#: Such a part is the plate's own corner (bent off the smooth surface: a forming defect, kept and judged),
+#: not a support, when the concavity it leaves beside it in the plate's outline is under this share of
+#: how far it reaches beyond the rest of the plate's convex hull. A support reaching out from an edge
+#: leaves a concavity on either side about as deep as its reach (the share near 1); a corner the
+#: opening cut off rounds the outline out, leaving only the outline's roughness beside it.
+CORNER_CONCAVITY_SHARE = 0.75
 #: A larger unmatched area inside the plate is filled when the median angle between its photometric
 #: normals and the fitted surface's is at most this (deg): the stereo pair missed plate there.
 DROPOUT_NORMAL_DEG = 3.0
@@ -121,10 +127,12 @@ def classify(
         support_width_mm,
         max(PROTRUSION_RESIDUAL_MM, 5.0 * surface.rms_mm),
     )
+    min_half_width_px = max(1.5, support_width_mm / mm_per_px / 20)
+    protrusions &= ~outline_corners(core, wide_parts(protrusions, min_half_width_px))
     if protrusions.any():
         core &= ~protrusions
         core = largest_component(core)
-    feet = wide_parts(protrusions, max(1.5, support_width_mm / mm_per_px / 20))
+    feet = wide_parts(protrusions, min_half_width_px)
     enclosed = _enclosed(core, off | dark | ~ok, area, geometry, normals, max_dropout_mm2)
     # the rim: a pixel mostly dark (under half the plate's median brightness, unsmoothed) is not taken
     lit = b >= 0.5 * float(np.median(b[::4, ::4][core[::4, ::4]]))
@@ -310,6 +318,75 @@ def narrow_parts(core: np.ndarray, mm_per_px: float, width_mm: float) -> np.ndar
     back = cv2.resize(opened, (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
     parts: np.ndarray = core & ~back
     return parts
+
+
+def outline_corners(core: np.ndarray, parts: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the connected components of ``parts`` (within ``core``) that are corners of the plate's
+    outline rather than supports reaching out of it (``CORNER_CONCAVITY_SHARE``).
+
+    For each component: its reach, the largest distance of its pixels beyond the convex hull of the rest
+    of ``core`` (less every component); and the depth of the concavity it leaves, the largest distance
+    from the hull of the rest and the component of a pixel that this hull gains but neither fills. Only
+    a component that reaches beyond the rest's hull can be a corner (a part inside a notch is not)."""
+    out = np.zeros_like(parts)
+    rest = core & ~parts
+    if not parts.any() or not rest.any():
+        return out
+    rest_hull = cv2.convexHull(cv2.findNonZero(rest.view(np.uint8)))
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(parts.view(np.uint8), connectivity=8)
+    for i in range(1, n):
+        x, y, w, h = (int(v) for v in stats[i, :4])
+        part = labels == i
+        reach = _beyond_hull(rest_hull, part)
+        if reach <= 0:
+            continue
+        m = int(math.ceil(2 * reach)) + 2  # the concavity beside a support lies within its reach
+        window = (
+            max(0, x - m),
+            max(0, y - m),
+            min(core.shape[1], x + w + m),
+            min(core.shape[0], y + h + m),
+        )
+        if _concavity(rest_hull, rest, part, window) < CORNER_CONCAVITY_SHARE * reach:
+            out |= part
+    return out
+
+
+def _filled_hull(points: np.ndarray, window: tuple[int, int, int, int]) -> np.ndarray:
+    """(h, w) uint8: the convex polygon of ``points`` (N, 1, 2) filled on the window ``(x0, y0, x1, y1)``."""
+    x0, y0, x1, y1 = window
+    mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    hull = cv2.convexHull(points.reshape(-1, 1, 2).astype(np.int32))
+    cv2.fillConvexPoly(mask, hull - np.array([x0, y0], np.int32), 1)
+    return mask
+
+
+def _beyond_hull(hull: np.ndarray, part: np.ndarray) -> float:
+    """How far (px) ``part`` reaches beyond the convex polygon ``hull`` (N, 1, 2): the largest distance of its
+    pixels past the polygon's edge lines (0 when every pixel is inside)."""
+    v = hull.reshape(-1, 2).astype(np.float64)
+    edges = np.roll(v, -1, axis=0) - v
+    normals = np.stack([edges[:, 1], -edges[:, 0]], axis=1)
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    centre = v.mean(axis=0)
+    normals *= np.where(np.einsum("kc,kc->k", normals, centre - v) > 0, -1.0, 1.0)[:, None]
+    pts = np.argwhere(part)[:, ::-1].astype(np.float64)
+    signed = (pts @ normals.T) - np.einsum("kc,kc->k", normals, v)
+    return float(max(0.0, signed.max(axis=1).max()))
+
+
+def _concavity(
+    rest_hull: np.ndarray, rest: np.ndarray, part: np.ndarray, window: tuple[int, int, int, int]
+) -> float:
+    """The depth (px) of the concavity beside ``part``, within ``window``: see :func:`outline_corners`."""
+    x0, y0, x1, y1 = window
+    pts = np.concatenate([rest_hull.reshape(-1, 2), np.argwhere(part)[:, ::-1]]).astype(np.int32)
+    hull = _filled_hull(pts, window)
+    before = _filled_hull(rest_hull, window)
+    gap = (hull > 0) & (before == 0) & ~rest[y0:y1, x0:x1] & ~part[y0:y1, x0:x1]
+    if not gap.any():
+        return 0.0
+    return float(cv2.distanceTransform(hull, cv2.DIST_L2, 3)[gap].max())
 
 
 def wide_parts(parts: np.ndarray, min_half_width_px: float) -> np.ndarray:

@@ -202,6 +202,22 @@ def test_a_bent_edge_is_kept_not_cut_away(tmp_path_factory):
     assert np.count_nonzero(seg.mask & defect) > 0.85 * defect.sum()
 
 
+def test_a_bent_corner_over_the_floor_is_kept_not_cut_away(tmp_path_factory):
+    """A corner bent 30 mm towards the cameras over a lit floor: the support test's opening cuts it off as a
+    narrow part leaving the smooth surface, like a rail's top, but it rounds the plate's outline out
+    instead of reaching out of it, so it stays in the mask to be measured and judged."""
+    bent = Dent(x_mm=-1500.0, y_mm=-1500.0, radius_mm=150.0, depth_mm=-30.0)
+    scene = _scene(tmp_path_factory, "corner", PlateSpec(dents=(bent,), floor=FLOOR), seed=9)
+    truth = scene["truth"]
+    seg = _segment(scene)
+    xy = truth["plate_xy_mm"]
+    inside = cv2.erode(truth["mask"].view(np.uint8), np.ones((5, 5), np.uint8)) > 0  # the rim aside
+    defect = inside & (np.hypot(xy[..., 0] + 1500.0, xy[..., 1] + 1500.0) < 90.0)  # bent > 8 mm
+    assert defect.sum() > 40
+    assert np.count_nonzero(seg.region & defect) > 0.9 * defect.sum()
+    assert any("supports reaching out" in r for r in seg.reasons)  # the rails' tops still are
+
+
 def test_surroundings_step_along_the_edge(floor_scene, dark_cut_scene):
     """The step from the plate to what lies beside it: the floor 300-530 mm behind (rails less), a dark
     background has no depth (+inf)."""
