@@ -20,6 +20,7 @@ import contextlib
 import gc
 import json
 import logging
+import math
 import sys
 import time
 import traceback
@@ -429,12 +430,15 @@ def _cmd_gauge_study(args: argparse.Namespace) -> int:
         width, height = _pair(args.size, name="--size")
         if args.n < 2:
             raise BadArgument(f"--n: expected at least 2 repeats, got {args.n}")
+        if not (math.isfinite(args.specular) and args.specular >= 0):
+            raise BadArgument(f"--specular: expected a number >= 0, got {args.specular}")
         result = gauge.simulated_study(
             n=args.n,
             width=width,
             height=height,
             n_lights=args.lights,
             near_field_mm=args.near_field_mm,
+            specular=args.specular,
             seed=args.seed,
             workdir=args.out,
         )
@@ -747,6 +751,12 @@ def _add_gauge_study(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
         "--near-field-mm",
         type=float,
         help="simulated LEDs this high above the plate, positions given (default: distant lights)",
+    )
+    gs.add_argument(
+        "--specular",
+        type=float,
+        default=0.0,
+        help="simulated glossy coating: the specular lobe's strength against the diffuse (default 0, matte)",
     )
     gs.add_argument("--seed", type=int, default=0, help="first seed of the simulated repeats")
     gs.add_argument("--out", help="keep the bundles and results here (default: a temporary folder)")

@@ -246,6 +246,7 @@ def simulated_study(
     height: int = 1024,
     n_lights: int = 12,
     near_field_mm: float | None = None,
+    specular: float = 0.0,
     seed: int = 0,
     workdir: str | Path | None = None,
     inspect: Callable[..., Any] | None = None,
@@ -263,6 +264,9 @@ def simulated_study(
     near_field_mm : float or None
         LEDs this high above the plate with their positions in the capture (the real cell's lights);
         None: distant lights.
+    specular : float
+        A glossy coating: the specular lobe's strength against the diffuse light (0: matte; see
+        :class:`pipeline.simulate.CaptureSpec`).
     seed : int
         First seed of the repeats.
     workdir : path, optional
@@ -287,9 +291,11 @@ def simulated_study(
         n_lights=n_lights,
         near_field_mm=near_field_mm,
         led_mu=1.0 if near_field_mm else 0.0,
+        specular=specular,
     )
     cell = "near-field LEDs (positions given)" if near_field_mm else "distant lights"
-    label = f"simulated cell, {width}x{height}, {n_lights} lights, {cell}, cylinder R {plate.radius_mm:g} mm"
+    gloss = f", glossy (specular {specular:g})" if specular else ""
+    label = f"simulated cell, {width}x{height}, {n_lights} lights, {cell}{gloss}, cylinder R {plate.radius_mm:g} mm"
     with tempfile.TemporaryDirectory(prefix="plate-inspect-gauge-") as tmp:
         root = Path(workdir) if workdir is not None else Path(tmp)
         outs, K = [], default_rig(width=width, height=height).left.K

@@ -137,6 +137,17 @@ def test_gauge_study_prints_cg_and_cgk(capsys):
     assert "| radius mm |" in out and "Cgk" in out and "deviation at (+0, +0) mm" in out
 
 
+def test_gauge_study_of_a_glossy_cell_says_so(capsys):
+    code = main(["gauge-study", "--n", "2", "--size", "320x256", "--seed", "5", "--specular", "0.5"])
+    out = capsys.readouterr().out
+    assert code == 0 and "glossy (specular 0.5)" in out and "Cgk" in out
+
+
+def test_gauge_study_refuses_a_negative_specular_lobe(capsys):
+    assert main(["gauge-study", "--n", "2", "--specular", "-1"]) != 0
+    assert "--specular" in capsys.readouterr().err
+
+
 GLOSSY_LEDS = CaptureSpec(
     n_lights=18,
     specular=0.5,
