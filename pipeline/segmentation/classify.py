@@ -31,7 +31,9 @@ PROTRUSION_SHARE = 0.3
 #: not a support, when the concavity it leaves beside it in the plate's outline is under this share of
 #: how far it reaches beyond the rest of the plate's convex hull. A support reaching out from an edge
 #: leaves a concavity on either side about as deep as its reach (the share near 1); a corner the
-#: opening cut off rounds the outline out, leaving only the outline's roughness beside it.
+#: opening cut off rounds the outline out, leaving only the outline's roughness beside it. A corner
+#: reaches at most the opening disc's radius beyond the rest (a corner of 60 deg: the disc inscribed in
+#: it leaves its tip one radius beyond; a right angle 0.41 of it): a part reaching farther is not one.
 CORNER_CONCAVITY_SHARE = 0.75
 #: A larger unmatched area inside the plate is filled when the median angle between its photometric
 #: normals and the fitted surface's is at most this (deg): the stereo pair missed plate there.
@@ -128,7 +130,10 @@ def classify(
         max(PROTRUSION_RESIDUAL_MM, 5.0 * surface.rms_mm),
     )
     min_half_width_px = max(1.5, support_width_mm / mm_per_px / 20)
-    protrusions &= ~outline_corners(core, wide_parts(protrusions, min_half_width_px))
+    corners = outline_corners(
+        core, wide_parts(protrusions, min_half_width_px), 0.5 * support_width_mm / mm_per_px
+    )
+    protrusions &= ~corners
     if protrusions.any():
         core &= ~protrusions
         core = largest_component(core)
@@ -320,14 +325,16 @@ def narrow_parts(core: np.ndarray, mm_per_px: float, width_mm: float) -> np.ndar
     return parts
 
 
-def outline_corners(core: np.ndarray, parts: np.ndarray) -> np.ndarray:
+def outline_corners(core: np.ndarray, parts: np.ndarray, max_reach_px: float) -> np.ndarray:
     """(H, W) bool: the connected components of ``parts`` (within ``core``) that are corners of the plate's
     outline rather than supports reaching out of it (``CORNER_CONCAVITY_SHARE``).
 
     For each component: its reach, the largest distance of its pixels beyond the convex hull of the rest
     of ``core`` (less every component); and the depth of the concavity it leaves, the largest distance
     from the hull of the rest and the component of a pixel that this hull gains but neither fills. Only
-    a component that reaches beyond the rest's hull can be a corner (a part inside a notch is not)."""
+    a component that reaches beyond the rest's hull, by at most ``max_reach_px`` (the radius of the
+    opening that cut it off), can be a corner (a part inside a notch is not, nor surroundings at the
+    plate's depth reaching out far from its corner)."""
     out = np.zeros_like(parts)
     rest = core & ~parts
     if not parts.any() or not rest.any():
@@ -338,7 +345,7 @@ def outline_corners(core: np.ndarray, parts: np.ndarray) -> np.ndarray:
         x, y, w, h = (int(v) for v in stats[i, :4])
         part = labels == i
         reach = _beyond_hull(rest_hull, part)
-        if reach <= 0:
+        if not 0 < reach <= max_reach_px:
             continue
         m = int(math.ceil(2 * reach)) + 2  # the concavity beside a support lies within its reach
         window = (
