@@ -94,7 +94,8 @@ def _in_tail(arr: np.ndarray, k: int) -> dict[int, Any] | None:
     ordered against the stride, falls back to that partition)."""
     n = arr.size
     upper = 2 * k >= n
-    tail = n - k if upper else k + 2  # the values from the k-th up / from the smallest to the (k+1)-th
+    # the values from the k-th up, or from the smallest to the (k+1)-th
+    tail = n - k if upper else k + 2
     if n < TAIL_MIN_SIZE or TAIL_SHARE * tail > n:
         return None
     sample = arr[::TAIL_STRIDE]
