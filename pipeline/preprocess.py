@@ -18,6 +18,7 @@ import numpy.typing as npt
 from pipeline.formats import CaptureError
 from pipeline.io import Capture
 from pipeline.parallel import default_workers
+from pipeline.solvers import labelled
 from pipeline.surface.normals.noise import image_noise
 
 #: An array argument of the kernels (their dtypes are set by the callers).
@@ -419,20 +420,20 @@ def plate_mask(
     if highlight_free is not None:
         binary |= _otsu_binary(highlight_free)
     binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, np.ones((5, 5), np.uint8))
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=4)
+    n, labels, areas = labelled(binary, connectivity=4)
     if n <= 1:
         raise CaptureError(
             "photometric images: no plate found (no region brighter than the background)"
         )
-    largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    largest = 1 + int(np.argmax(areas[1:]))
     mask = _fill_holes(labels == largest)
     if erode_px > 0:
         k = 2 * erode_px + 1
         mask = cv2.erode(mask.view(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
         # erosion can cut off slivers at a ragged edge: keep the plate itself
-        n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.view(np.uint8), connectivity=4)
+        n, labels, areas = labelled(mask, connectivity=4)
         if n > 2:
-            mask = labels == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+            mask = labels == 1 + int(np.argmax(areas[1:]))
     if mask.mean() < min_fraction:
         raise CaptureError(
             f"photometric images: the plate covers {100 * mask.mean():.1f} % of the image, "

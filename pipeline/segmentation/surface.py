@@ -9,6 +9,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from pipeline.solvers import labelled
+
 #: Default depth band (mm) about the fitted surface within which a pixel can belong to the plate. The
 #: floor and the supports lie hundreds of millimetres behind the plate; a real bent edge or dent tens of
 #: millimetres off the smooth fit stays inside (so a forming defect is measured and judged, not cut away).
@@ -64,12 +66,10 @@ def _robust_fit(X: np.ndarray, w_obs: np.ndarray, z: np.ndarray, iterations: int
 
 def largest_component(mask: np.ndarray, connectivity: int = 8) -> np.ndarray:
     """The largest connected component of ``mask`` (all False when it is empty)."""
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(
-        mask.view(np.uint8), connectivity=connectivity
-    )
+    n, labels, areas = labelled(mask, connectivity=connectivity)
     if n <= 1:
         return np.zeros_like(mask)
-    largest: np.ndarray = labels == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    largest: np.ndarray = labels == 1 + int(np.argmax(areas[1:]))
     return largest
 
 
