@@ -42,7 +42,9 @@ def design(
     """Monomials ``xs^i ys^j`` (i + j <= degree) of the centred, scaled coordinates, (M, T)."""
     xs = (x - scale[0]) / scale[1]
     ys = (y - scale[2]) / scale[3]
-    cols = [xs**i * ys**j for d in range(degree + 1) for i in range(d, -1, -1) for j in [d - i]]
+    px = [xs**i for i in range(degree + 1)]  # each power once (the same values as in each product)
+    py = [ys**j for j in range(degree + 1)]
+    cols = [px[i] * py[d - i] for d in range(degree + 1) for i in range(d, -1, -1)]
     return np.stack(cols, axis=-1)
 
 
