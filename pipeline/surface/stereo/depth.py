@@ -478,8 +478,12 @@ def _on_left_grid(
     (``M = R1 K^-1``); a lookup touching any hole is a hole.
     """
     w, h = size
-    u = np.arange(w, dtype=np.float32)[None, :]
-    v = np.arange(h, dtype=np.float32)[:, None]
+    depth = np.full((h, w), np.nan, np.float32)
+    valid = np.zeros((h, w), bool)
+    rows, cols = (slice(0, h), slice(0, w)) if mask is None else _box(mask)
+    # the mask's bounding box only: every other pixel is a hole (the same values on it)
+    u = np.arange(w, dtype=np.float32)[None, cols]
+    v = np.arange(h, dtype=np.float32)[rows, None]
     den = (H_win[2, 0] * u + H_win[2, 1] * v + H_win[2, 2]).astype(np.float32)
     map_x = ((H_win[0, 0] * u + H_win[0, 1] * v + H_win[0, 2]) / den).astype(np.float32)
     map_y = ((H_win[1, 0] * u + H_win[1, 1] * v + H_win[1, 2]) / den).astype(np.float32)
@@ -497,9 +501,17 @@ def _on_left_grid(
         borderMode=cv2.BORDER_CONSTANT,
         borderValue=0,
     )
-    depth = (z_on_left / ray_z).astype(np.float32)
-    valid = (support > 0.999) & (depth > 0)
+    box_depth = (z_on_left / ray_z).astype(np.float32)
+    box_valid = (support > 0.999) & (box_depth > 0)
     if mask is not None:
-        valid &= mask
-    depth[~valid] = np.nan
+        box_valid &= mask[rows, cols]
+    depth[rows, cols] = np.where(box_valid, box_depth, np.float32(np.nan))
+    valid[rows, cols] = box_valid
     return depth, valid
+
+
+def _box(mask: np.ndarray) -> tuple[slice, slice]:
+    """The bounding box of a mask with at least one pixel: (rows, columns)."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    cols = np.flatnonzero(mask.any(axis=0))
+    return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
