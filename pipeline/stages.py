@@ -25,7 +25,15 @@ from pipeline import artifacts, segmentation
 from pipeline.artifacts import ARTIFACT_FILES
 from pipeline.formats import CaptureError
 from pipeline.io import Capture, Target, load_capture, load_target
-from pipeline.judge import curvature, deviation, registration, target_geometry, uncertainty, verdict
+from pipeline.judge import (
+    area,
+    curvature,
+    deviation,
+    registration,
+    target_geometry,
+    uncertainty,
+    verdict,
+)
 from pipeline.lights.model import Lights
 from pipeline.preprocess import (
     WORKING_CELL_MM,
@@ -634,7 +642,7 @@ def _judge(
     # the two longest first, a worker each: the registration then does not wait for the uncertainty
     curvature_job = pool.submit(_curvature, points, surface_mask)
     points_job = pool.submit(qualify, judged)
-    area_job = pool.submit(_pixel_area_mm2, surface.depth_mm, field.normals, rays, K)
+    area_job = pool.submit(area.pixel_area_mm2, surface.depth_mm, field.normals, rays, K)
     writes.append(
         pool.submit(artifacts.save_depth, out / ARTIFACT_FILES["depth"], surface.depth_mm)
     )
@@ -898,18 +906,3 @@ def _restricted(field: normals.NormalField, mask: np.ndarray) -> normals.NormalF
     keep = field.mask & ~drop
     filled = field.filled & keep
     return replace(field, mask=keep, filled=filled, n_filled=int(np.count_nonzero(filled)))
-
-
-def _pixel_area_mm2(
-    depth_mm: np.ndarray, normals: np.ndarray, rays: np.ndarray, K: np.ndarray
-) -> np.ndarray:
-    """(H, W) area (mm^2) of the surface patch each pixel sees.
-
-    A pixel spans the solid angle ``cos^3(a) / (fx fy)`` (``a``: its ray's angle to
-    the optical axis); at distance ``z / cos(a)`` on a surface tilted by ``t``
-    against the ray that is ``z^2 / (fx fy |n . r|)`` with ``r = K^-1 (u, v, 1)``.
-    """
-    n_dot_r = np.abs(np.einsum("hwc,hwc->hw", normals, rays))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        area: np.ndarray = depth_mm**2 / (K[0, 0] * K[1, 1] * n_dot_r)
-    return area
