@@ -41,6 +41,7 @@ References
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -56,6 +57,8 @@ from pipeline.solvers import percentile
 KNOT_FRACTION = 1.0 / 16.0
 #: Knot spacings tried, coarsest first (after a plane and a quadric in (u, v)).
 KNOT_LADDER = (1.0 / 2.0, 1.0 / 4.0, 1.0 / 8.0, 1.0 / 16.0)
+#: Threads that fit the ladder's rungs (each fit is independent: the same fits on any number).
+LADDER_WORKERS = 2
 #: Significance level of the lack-of-fit test that lets a finer correction in (see :func:`_chosen`): a
 #: coarser rung is kept unless the finest explains the stereo pair better than noise would with
 #: probability 1 - SIGNIFICANCE.
@@ -317,7 +320,9 @@ def _ladder_fits(
                 break
     else:
         rungs: list[Rung] = [PLANE, QUADRIC, *(k for k in KNOT_LADDER if k >= knot_fraction)]
-        fits = [f for f in map(fit, rungs) if f is not None]
+        # independent fits, mostly LAPACK and numpy's loops (the GIL released): two at a time
+        with ThreadPoolExecutor(max_workers=LADDER_WORKERS) as pool:
+            fits = [f for f in pool.map(fit, rungs) if f is not None]
     if not fits:
         raise ValueError(
             f"stereo_depth_mm: expected stereo depth over at least {4 * _POLYNOMIAL[PLANE]} blocks of {blocks.size} px of "
