@@ -39,8 +39,9 @@ from pipeline.preprocess import (
     WORKING_CELL_MM,
     Preprocessed,
     bin_capture,
-    preprocess,
+    plate_found,
     raw_noise_counts,
+    undistorted,
     working_binning,
 )
 from pipeline.surface import fusion, normals, reconstruct, stereo
@@ -234,13 +235,28 @@ def load_inputs(
     return cap, tgt
 
 
-def preprocess_scene(cap: Capture, opts: InspectOptions, clock: StageClock) -> Scene:
-    """Stage *preprocess*: the images ready for the normals, and where the plate may be (see :class:`Scene`)."""
+def preprocess_scene(
+    cap: Capture, opts: InspectOptions, clock: StageClock, pool: ThreadPoolExecutor | None = None
+) -> Scene:
+    """Stage *preprocess*: the images ready for the normals, and where the plate may be (see :class:`Scene`).
+    With ``pool``, the candidates are found on it while the plate mask is (both need only the images'
+    brightness)."""
     clock.begin("preprocess")
-    pre = preprocess(cap, workers=opts.workers)
-    candidates = (
-        segmentation.candidate_mask(_brightness(pre), seen=pre.seen) if cap.has_stereo else pre.mask
+    lit = undistorted(cap, workers=opts.workers)
+    job = (
+        pool.submit(segmentation.candidate_mask, lit.brightness, seen=lit.seen)
+        if pool is not None and cap.has_stereo
+        else None
     )
+    pre = plate_found(lit)
+    if job is not None:
+        candidates = job.result()
+    else:
+        candidates = (
+            segmentation.candidate_mask(_brightness(pre), seen=pre.seen)
+            if cap.has_stereo
+            else pre.mask
+        )
     plain_outline = cap.has_stereo and segmentation.plain_outline(pre.mask, candidates)
     region = pre.mask if plain_outline else candidates
     clock.end("preprocess")
