@@ -23,6 +23,7 @@ import numpy as np
 
 from pipeline import artifacts, segmentation
 from pipeline.artifacts import ARTIFACT_FILES
+from pipeline.camera import points_on_rays
 from pipeline.formats import CaptureError
 from pipeline.io import Capture, Target, load_capture, load_target
 from pipeline.judge import (
@@ -356,7 +357,7 @@ def reconstruct_view(
     _check_stereo_share(plate, cap, opts)
     surface = _surface(cap, tgt, scene, plate, field, opts, pool, clock)
     rays = started.rays.result()
-    points = surface.depth_mm[..., None] * rays
+    points = points_on_rays(surface.depth_mm, rays)
     clock.end("depth")
     view = View(
         surface=surface,
