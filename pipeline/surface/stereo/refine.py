@@ -76,14 +76,16 @@ def refine_disparity(
     support = valid.copy()
     inside = np.empty((h, w), bool)
     sums = np.empty((5, h, w), np.float32)  # wgt, wgt g, wgt r, wgt g r, wgt g g
+    blurred = np.empty_like(sums)
     for _ in range(int(iterations)):
         map_x = xs - d
         warped = cv2.remap(right, map_x, ys, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
         gx_w = cv2.remap(gx_r, map_x, ys, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
         # right(x - d - delta) + c ~ left, with an offset c per window  ->  delta = -cov(g, r) / var(g)
         _step_terms(map_x, gx_l, gx_w, left, warped, support, inside, sums)
-        blurred = [cv2.GaussianBlur(term, (0, 0), sigma_px) for term in sums]
-        _gauss_newton_step(*blurred, valid, inside, d, support)
+        for k in range(len(sums)):
+            cv2.GaussianBlur(sums[k], (0, 0), sigma_px, dst=blurred[k])
+        _gauss_newton_step(blurred, valid, inside, d, support)
     out = np.where(support & (np.abs(d - np.where(valid, disparity, 0)) <= max_step_px), d, np.nan)
     return out.astype(np.float32)
 
@@ -118,9 +120,9 @@ def _step_terms(
 
 @numba.njit(nogil=True, cache=True, error_model="numpy")
 def _gauss_newton_step(
-    s1: Arr, sg: Arr, sr: Arr, sgr: Arr, sgg: Arr, valid: Arr, inside: Arr, d: Arr, support: Arr
+    blurred: Arr, valid: Arr, inside: Arr, d: Arr, support: Arr
 ) -> None:  # pragma: no cover - compiled
-    """One Gauss-Newton step from the blurred terms of :func:`_step_terms`: ``d`` moved in place by
+    """One Gauss-Newton step from the blurred terms of :func:`_step_terms` (``blurred`` (5, H, W)): ``d`` moved in place by
     ``-num / den`` where ``den`` is not degenerate, ``support`` set to the pixels it moved. The
     numerator and denominator are the windows' centred sums (an intensity offset per window
     eliminated: zero-mean SSD). A glossy plate's lobe sits at different places in the two views (each
@@ -129,6 +131,7 @@ def _gauss_newton_step(
     near-field LEDs), the window's own offset takes it out. float32 in numpy's order of operations."""
     h, w = d.shape
     floor, zero = np.float32(1e-3), np.float32(0.0)
+    s1, sg, sr, sgr, sgg = blurred[0], blurred[1], blurred[2], blurred[3], blurred[4]
     for i in range(h):
         for j in range(w):
             inv = np.float32(1.0) / s1[i, j] if s1[i, j] > floor else zero
@@ -168,9 +171,11 @@ def match_correlation(
     warped = cv2.remap(right, map_x, ys, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
     sums = np.empty((6, h, w), np.float32)
     _correlation_terms(valid, left, warped, sums)
-    blurred = [cv2.GaussianBlur(term, (0, 0), sigma_px) for term in sums]
+    blurred = np.empty_like(sums)
+    for k in range(len(sums)):
+        cv2.GaussianBlur(sums[k], (0, 0), sigma_px, dst=blurred[k])
     zncc = np.empty((h, w), np.float32)
-    _zncc(*blurred, valid, zncc)
+    _zncc(blurred, valid, zncc)
     return zncc
 
 
@@ -195,13 +200,19 @@ def _correlation_terms(
 
 
 @numba.njit(nogil=True, cache=True, error_model="numpy")
-def _zncc(
-    norm: Arr, sl: Arr, sr: Arr, sll: Arr, srr: Arr, slr: Arr, valid: Arr, out: Arr
-) -> None:  # pragma: no cover - compiled
-    """The ZNCC from the blurred terms of :func:`_correlation_terms` into ``out``; NaN off the matches
+def _zncc(blurred: Arr, valid: Arr, out: Arr) -> None:  # pragma: no cover - compiled
+    """The ZNCC from the blurred terms of :func:`_correlation_terms` (``blurred`` (6, H, W)) into ``out``; NaN off the matches
     and where a window has no contrast. float32 in numpy's order of operations."""
     h, w = valid.shape
     floor, zero = np.float32(1e-6), np.float32(0.0)
+    norm, sl, sr, sll, srr, slr = (
+        blurred[0],
+        blurred[1],
+        blurred[2],
+        blurred[3],
+        blurred[4],
+        blurred[5],
+    )
     for i in range(h):
         for j in range(w):
             n = norm[i, j]
