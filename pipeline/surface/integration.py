@@ -544,7 +544,8 @@ def _prior_terms(
     hw = mask.shape
     if prior_depth_mm is None:
         return np.zeros(hw, np.float32), np.zeros(hw), 0.0, 0
-    prior = np.asarray(prior_depth_mm, dtype=np.float64)
+    # contiguous (a box of a grid too): the kernel is compiled for one layout
+    prior = np.ascontiguousarray(prior_depth_mm, dtype=np.float64)
     if prior.shape != hw:
         raise ValueError(f"prior_depth_mm: expected shape {hw}, got {prior.shape}")
     weight = np.asarray(prior_weight, dtype=np.float64)
@@ -554,6 +555,8 @@ def _prior_terms(
         weight = weight.reshape(1, 1)
     elif weight.shape != hw:
         raise ValueError(f"prior_weight: expected a scalar or shape {hw}, got {weight.shape}")
+    else:
+        weight = np.ascontiguousarray(weight)
     wd = np.empty(hw, np.float32)
     log_prior = np.empty(hw)
     bad_prior, bad_weight, n_used = _prior_arrays(

@@ -48,9 +48,8 @@ def image_noise(images: np.ndarray, mask: np.ndarray, *, side: int = 384) -> np.
     inner = m[1:-1, 1:-1] & m[:-2, 1:-1] & m[2:, 1:-1] & m[1:-1, :-2] & m[1:-1, 2:]
     if not inner.any():
         return out
-    stack = np.asarray(images)[(slice(None), *win)]
-    if stack.dtype != np.float32:
-        stack = stack.astype(np.float32)
+    # one contiguous float32 copy of the window: one layout for the kernel whatever the window
+    stack = np.ascontiguousarray(np.asarray(images)[(slice(None), *win)], dtype=np.float32)
     vals = np.empty((len(images), int(np.count_nonzero(inner))), np.float32)
     counts = _abs_laplacians(stack, np.ascontiguousarray(inner), vals)
     for k, count in enumerate(counts):
