@@ -36,14 +36,22 @@ def normalised_coords(
     return x, y
 
 
+def _powers(v: np.ndarray, degree: int) -> list[np.ndarray]:
+    """``v^0 .. v^degree`` by repeated products: numpy's ``v**k`` (k >= 3) of a negative base takes a slow
+    scalar path, and a product differs from it only in the last bit."""
+    powers = [np.ones_like(v), v]
+    for _ in range(2, degree + 1):
+        powers.append(powers[-1] * v)
+    return powers[: degree + 1]
+
+
 def design(
     x: np.ndarray, y: np.ndarray, degree: int, scale: tuple[float, float, float, float]
 ) -> np.ndarray:
     """Monomials ``xs^i ys^j`` (i + j <= degree) of the centred, scaled coordinates, (M, T)."""
     xs = (x - scale[0]) / scale[1]
     ys = (y - scale[2]) / scale[3]
-    px = [xs**i for i in range(degree + 1)]  # each power once (the same values as in each product)
-    py = [ys**j for j in range(degree + 1)]
+    px, py = _powers(xs, degree), _powers(ys, degree)
     cols = [px[i] * py[d - i] for d in range(degree + 1) for i in range(d, -1, -1)]
     return np.stack(cols, axis=-1)
 
