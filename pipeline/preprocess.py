@@ -18,6 +18,7 @@ import numpy.typing as npt
 from pipeline.formats import CaptureError
 from pipeline.io import Capture
 from pipeline.parallel import default_workers
+from pipeline.solvers import labelled
 from pipeline.surface.normals.noise import image_noise
 
 #: An array argument of the kernels (their dtypes are set by the callers).
@@ -253,8 +254,44 @@ def preprocess(
     highlights alone loses a dim rim that few lights reach (near-field LEDs'
     corners). Each lies on the plate; their union keeps both parts.
     """
+    _check_shadow_fraction(shadow_fraction)
+    return plate_found(
+        undistorted(capture, workers=workers), shadow_fraction=shadow_fraction, erode_px=erode_px
+    )
+
+
+def _check_shadow_fraction(shadow_fraction: float) -> None:
     if not 0.0 <= shadow_fraction < 1.0:
         raise ValueError(f"shadow_fraction: expected a value in [0, 1), got {shadow_fraction}")
+
+
+@dataclass(frozen=True)
+class Undistorted:
+    """The first part of :func:`preprocess`: the photometric images ready (as in :class:`Preprocessed`)
+    with their brightness ranks, the plate not yet found (:func:`plate_found`).
+
+    Attributes
+    ----------
+    images : (N, H, W) float32
+    saturated : (N, H, W) bool
+        Samples that interpolate from a saturated raw pixel (all False when ``any_saturated`` is).
+    any_saturated : bool
+    seen, brightest, brightness, glare_free
+        As in :class:`Preprocessed`.
+    """
+
+    images: np.ndarray
+    saturated: np.ndarray
+    any_saturated: bool
+    seen: np.ndarray
+    brightest: np.ndarray
+    brightness: np.ndarray
+    glare_free: np.ndarray
+
+
+def undistorted(capture: Capture, *, workers: int | None = None) -> Undistorted:
+    """Dark-subtract, normalise and undistort a capture's photometric images, and rank each pixel's
+    samples (the first part of :func:`preprocess`; ``workers`` as there)."""
     full_scale = float(2**capture.bit_depth - 1)
     camera = capture.rig.left
     map1, map2 = camera.undistort_maps()
@@ -303,23 +340,40 @@ def preprocess(
     glare_free = np.empty((h, w), np.float32)
     low_rank = n - 1 - int(GLARE_FREE_SHARE * n)  # from the top
     _brightest(images, brightest, int(HIGHLIGHT_SHARE * n), brightness, low_rank, glare_free)
+    return Undistorted(images, saturated, any_saturated, seen, brightest, brightness, glare_free)
+
+
+def plate_found(
+    u: Undistorted, *, shadow_fraction: float = 0.05, erode_px: int = 3
+) -> Preprocessed:
+    """The second part of :func:`preprocess`: the plate mask and each sample's validity (the
+    arguments as there)."""
+    _check_shadow_fraction(shadow_fraction)
+    n, h, w = u.images.shape
     # what either brightness tells from the dark: the maxima keep a rim that few lights reach, the
-    # maxima without their highlights keep a glossy plate's body (see Notes)
-    mask = plate_mask(brightest, erode_px=erode_px, highlight_free=brightness) & seen
+    # maxima without their highlights keep a glossy plate's body (see preprocess, Notes)
+    mask = plate_mask(u.brightest, erode_px=erode_px, highlight_free=u.brightness) & u.seen
     valid = np.empty((n, h, w), bool)
     n_lit, n_saturated = _validity(
-        images, brightest, saturated, any_saturated, seen, mask, np.float32(shadow_fraction), valid
+        u.images,
+        u.brightest,
+        u.saturated,
+        u.any_saturated,
+        u.seen,
+        mask,
+        np.float32(shadow_fraction),
+        valid,
     )
     return Preprocessed(
-        images=images,
+        images=u.images,
         valid=valid,
         mask=mask,
         n_saturated=n_saturated,
         n_shadowed=n * int(np.count_nonzero(mask)) - n_lit - n_saturated,
-        brightest=brightest,
-        seen=seen,
-        brightness=brightness,
-        glare_free=glare_free,
+        brightest=u.brightest,
+        seen=u.seen,
+        brightness=u.brightness,
+        glare_free=u.glare_free,
     )
 
 
@@ -419,20 +473,20 @@ def plate_mask(
     if highlight_free is not None:
         binary |= _otsu_binary(highlight_free)
     binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, np.ones((5, 5), np.uint8))
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=4)
+    n, labels, areas = labelled(binary, connectivity=4)
     if n <= 1:
         raise CaptureError(
             "photometric images: no plate found (no region brighter than the background)"
         )
-    largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    largest = 1 + int(np.argmax(areas[1:]))
     mask = _fill_holes(labels == largest)
     if erode_px > 0:
         k = 2 * erode_px + 1
         mask = cv2.erode(mask.view(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
         # erosion can cut off slivers at a ragged edge: keep the plate itself
-        n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.view(np.uint8), connectivity=4)
+        n, labels, areas = labelled(mask, connectivity=4)
         if n > 2:
-            mask = labels == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+            mask = labels == 1 + int(np.argmax(areas[1:]))
     if mask.mean() < min_fraction:
         raise CaptureError(
             f"photometric images: the plate covers {100 * mask.mean():.1f} % of the image, "

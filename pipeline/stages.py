@@ -23,16 +23,26 @@ import numpy as np
 
 from pipeline import artifacts, segmentation
 from pipeline.artifacts import ARTIFACT_FILES
+from pipeline.camera import points_on_rays
 from pipeline.formats import CaptureError
 from pipeline.io import Capture, Target, load_capture, load_target
-from pipeline.judge import curvature, deviation, registration, target_geometry, uncertainty, verdict
+from pipeline.judge import (
+    area,
+    curvature,
+    deviation,
+    registration,
+    target_geometry,
+    uncertainty,
+    verdict,
+)
 from pipeline.lights.model import Lights
 from pipeline.preprocess import (
     WORKING_CELL_MM,
     Preprocessed,
     bin_capture,
-    preprocess,
+    plate_found,
     raw_noise_counts,
+    undistorted,
     working_binning,
 )
 from pipeline.surface import fusion, normals, reconstruct, stereo
@@ -226,13 +236,28 @@ def load_inputs(
     return cap, tgt
 
 
-def preprocess_scene(cap: Capture, opts: InspectOptions, clock: StageClock) -> Scene:
-    """Stage *preprocess*: the images ready for the normals, and where the plate may be (see :class:`Scene`)."""
+def preprocess_scene(
+    cap: Capture, opts: InspectOptions, clock: StageClock, pool: ThreadPoolExecutor | None = None
+) -> Scene:
+    """Stage *preprocess*: the images ready for the normals, and where the plate may be (see :class:`Scene`).
+    With ``pool``, the candidates are found on it while the plate mask is (both need only the images'
+    brightness)."""
     clock.begin("preprocess")
-    pre = preprocess(cap, workers=opts.workers)
-    candidates = (
-        segmentation.candidate_mask(_brightness(pre), seen=pre.seen) if cap.has_stereo else pre.mask
+    lit = undistorted(cap, workers=opts.workers)
+    job = (
+        pool.submit(segmentation.candidate_mask, lit.brightness, seen=lit.seen)
+        if pool is not None and cap.has_stereo
+        else None
     )
+    pre = plate_found(lit)
+    if job is not None:
+        candidates = job.result()
+    else:
+        candidates = (
+            segmentation.candidate_mask(_brightness(pre), seen=pre.seen)
+            if cap.has_stereo
+            else pre.mask
+        )
     plain_outline = cap.has_stereo and segmentation.plain_outline(pre.mask, candidates)
     region = pre.mask if plain_outline else candidates
     clock.end("preprocess")
@@ -332,7 +357,7 @@ def reconstruct_view(
     _check_stereo_share(plate, cap, opts)
     surface = _surface(cap, tgt, scene, plate, field, opts, pool, clock)
     rays = started.rays.result()
-    points = surface.depth_mm[..., None] * rays
+    points = points_on_rays(surface.depth_mm, rays)
     clock.end("depth")
     view = View(
         surface=surface,
@@ -634,7 +659,7 @@ def _judge(
     # the two longest first, a worker each: the registration then does not wait for the uncertainty
     curvature_job = pool.submit(_curvature, points, surface_mask)
     points_job = pool.submit(qualify, judged)
-    area_job = pool.submit(_pixel_area_mm2, surface.depth_mm, field.normals, rays, K)
+    area_job = pool.submit(area.pixel_area_mm2, surface.depth_mm, field.normals, rays, K)
     writes.append(
         pool.submit(artifacts.save_depth, out / ARTIFACT_FILES["depth"], surface.depth_mm)
     )
@@ -898,18 +923,3 @@ def _restricted(field: normals.NormalField, mask: np.ndarray) -> normals.NormalF
     keep = field.mask & ~drop
     filled = field.filled & keep
     return replace(field, mask=keep, filled=filled, n_filled=int(np.count_nonzero(filled)))
-
-
-def _pixel_area_mm2(
-    depth_mm: np.ndarray, normals: np.ndarray, rays: np.ndarray, K: np.ndarray
-) -> np.ndarray:
-    """(H, W) area (mm^2) of the surface patch each pixel sees.
-
-    A pixel spans the solid angle ``cos^3(a) / (fx fy)`` (``a``: its ray's angle to
-    the optical axis); at distance ``z / cos(a)`` on a surface tilted by ``t``
-    against the ray that is ``z^2 / (fx fy |n . r|)`` with ``r = K^-1 (u, v, 1)``.
-    """
-    n_dot_r = np.abs(np.einsum("hwc,hwc->hw", normals, rays))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        area: np.ndarray = depth_mm**2 / (K[0, 0] * K[1, 1] * n_dot_r)
-    return area

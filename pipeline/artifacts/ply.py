@@ -236,8 +236,8 @@ def _write_ply(
     )
     with open(path, "wb") as fh:
         fh.write(header.encode("ascii") + b"\n")
-        fh.write(vdata.tobytes())
-        fh.write(fdata.tobytes())
+        fh.write(vdata.data)  # the arrays' own buffers (contiguous): no copy into bytes
+        fh.write(fdata.data)
 
 
 def read_mesh_ply(

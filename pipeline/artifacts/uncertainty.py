@@ -5,7 +5,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import cv2
+import numba
 import numpy as np
+import numpy.typing as npt
 
 from .checks import check_positive
 from .colours import NO_DATA_RGB
@@ -32,10 +34,47 @@ def write_uncertainty(
         at the top of the scale is measured too coarsely for a capable judgement (tolerance / U < 4).
     """
     check_positive("tolerance_mm", tolerance_mm)
-    u = np.where(mask, np.asarray(u_mm, dtype=np.float32), np.nan).astype(np.float32)
+    mask = np.ascontiguousarray(mask, dtype=bool)
+    u = np.empty(mask.shape, np.float32)
+    levels = np.empty(mask.shape, np.uint8)
+    _levels(
+        np.ascontiguousarray(u_mm, dtype=np.float32),
+        mask,
+        np.float32(tolerance_mm / 4.0),
+        u,
+        levels,
+    )
     out = Path(out_dir)
     np.save(out / UNCERTAINTY_FILES["uncertainty"], u)
-    scaled = np.clip(np.nan_to_num(u, nan=0.0) / (tolerance_mm / 4.0), 0.0, 1.0)
-    bgr = cv2.applyColorMap((255 * scaled).astype(np.uint8), cv2.COLORMAP_VIRIDIS)
-    bgr[~mask] = NO_DATA_RGB[::-1]
+    bgr = cv2.applyColorMap(levels, cv2.COLORMAP_VIRIDIS)
+    np.copyto(bgr, np.asarray(NO_DATA_RGB[::-1], np.uint8), where=~mask[..., None])
     cv2.imwrite(str(out / UNCERTAINTY_FILES["uncertainty_map"]), bgr)
+
+
+@numba.njit(nogil=True, cache=True)
+def _levels(
+    u_mm: npt.NDArray[np.float32],
+    mask: npt.NDArray[np.bool_],
+    top: np.float32,
+    u: npt.NDArray[np.float32],
+    levels: npt.NDArray[np.uint8],
+) -> None:  # pragma: no cover - compiled
+    """u = the uncertainty on the mask (NaN elsewhere) and ``levels`` its map's 0..255 index (0 at no
+    data, 255 at ``top`` and beyond), in float32 as ``np.nan_to_num``, ``/``, ``np.clip`` and ``255 *``
+    give them, in one pass; single-threaded (an artifact writer's thread)."""
+    h, w = mask.shape
+    big = np.finfo(np.float32).max
+    zero, one, full = np.float32(0.0), np.float32(1.0), np.float32(255.0)
+    for i in range(h):
+        for j in range(w):
+            v = u_mm[i, j] if mask[i, j] else np.float32(np.nan)
+            u[i, j] = v
+            if np.isnan(v):
+                x = zero
+            elif v == np.inf:
+                x = big
+            elif v == -np.inf:
+                x = -big
+            else:
+                x = v
+            levels[i, j] = np.uint8(full * min(max(x / top, zero), one))

@@ -1,5 +1,6 @@
 """The public API of :mod:`pipeline.judge` (read by type checkers, and by ``__init__.py`` to load it lazily)."""
 
+from .area import pixel_area_mm2
 from .curvature import CurvatureResult, principal_curvatures
 from .details import Details
 from .deviation import deviation_map
@@ -33,6 +34,7 @@ __all__ = [
     "judge",
     "load_plate_map",
     "load_sections",
+    "pixel_area_mm2",
     "plate_map",
     "principal_curvatures",
     "propagate",

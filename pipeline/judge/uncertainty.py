@@ -40,9 +40,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
+import numba
 import numpy as np
+import numpy.typing as npt
 from scipy import sparse
 from scipy.sparse.linalg import factorized
 
@@ -53,6 +56,9 @@ from pipeline.surface import fusion as fusion_mod
 from pipeline.surface import integration
 from pipeline.surface.normals import NormalField, SpecularFit
 from pipeline.surface.normals.noise import image_noise
+
+#: An array argument of the kernel (its dtype is set by the caller).
+Arr = npt.NDArray[Any]
 
 #: Coverage factor of every expanded uncertainty the inspection reports.
 COVERAGE_K = 2.0
@@ -360,10 +366,9 @@ def _photometric_var_mm2(x: Inputs, mask: np.ndarray, scale_px: float, step: int
         np.maximum(m - 3 - lobe_params, 0) + prior_dof
     )
     s2 = np.maximum(pooled, s0**2)
-    gram = np.einsum("npc,npd,np->pcd", g, g, lit.astype(np.float64))
-    # the dark frame's noise is one value shared by the pixel's samples: along gram^-1 G^T d
-    common = np.einsum("npc,np,n->pc", g, lit.astype(np.float64), dark)
-    tangential, shared = _tangential_parts(gram, common, n)  # per unit albedo
+    # per unit albedo; the dark frame's noise is one value shared by the pixel's samples: along
+    # gram^-1 G^T d
+    tangential, shared = _tangential_parts(g, lit, dark, n)
     var_n = s2 * tangential + shared
     var_n = var_n / np.maximum(rho, 1e-6) ** 2
     var_n = np.where((m >= 3) & np.isfinite(var_n), var_n, np.nan)
@@ -530,22 +535,82 @@ def _without_correction(
 
 
 def _tangential_parts(
-    gram: np.ndarray, common: np.ndarray, n: np.ndarray
+    g: np.ndarray, lit: np.ndarray, dark: np.ndarray, n: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Per pixel, from one inverse of ``gram``: the mean variance of the two tangential components of
-    ``gram^-1`` (the normal's covariance per unit image variance and albedo), and the mean squared
-    tangential component of ``gram^-1 common`` (a noise shared by all the pixel's samples); inf where
-    the lights leave the normal undetermined."""
-    independent = np.full(len(n), np.inf)
-    shared = np.full(len(n), np.inf)
-    ok = np.abs(np.linalg.det(gram)) > 1e-12
-    inv = np.linalg.inv(gram[ok])
-    nn = n[ok]
-    proj = np.eye(3)[None] - nn[:, :, None] * nn[:, None, :]
-    independent[ok] = 0.5 * np.einsum("pij,pjk,pki->p", proj, inv, proj)
-    t = np.einsum("pij,pjk,pk->pi", proj, inv, common[ok])
-    shared[ok] = 0.5 * np.sum(t * t, axis=1)
+    """Per pixel, from one inverse of its samples' Gram matrix ``gram = sum lit g g^T`` (``g`` (N, P, 3)
+    the irradiance vectors, ``lit`` (N, P) the samples used): the mean variance of the two tangential
+    components of ``gram^-1`` (the normal's covariance per unit image variance and albedo), and the
+    mean squared tangential component of ``gram^-1 common``, ``common = sum lit dark g`` (a noise
+    shared by all the pixel's samples, ``dark`` (N,)); inf where the lights leave the normal
+    undetermined (``|det gram| <= 1e-12``). ``n`` (P, 3): the unit normals."""
+    independent = np.empty(len(n))
+    shared = np.empty(len(n))
+    _tangential_kernel(
+        np.ascontiguousarray(g, dtype=np.float64),
+        np.ascontiguousarray(lit),
+        np.ascontiguousarray(dark, dtype=np.float64),
+        np.ascontiguousarray(n, dtype=np.float64),
+        independent,
+        shared,
+    )
     return independent, shared
+
+
+@numba.njit(nogil=True, cache=True)
+def _tangential_kernel(
+    g: Arr, lit: Arr, dark: Arr, n: Arr, independent: Arr, shared: Arr
+) -> None:  # pragma: no cover - compiled
+    """:func:`_tangential_parts` pixel by pixel (the 3x3 inverse by its adjugate); single-threaded (a
+    worker beside the registration)."""
+    m = lit.shape[0]
+    gram = np.empty((3, 3))
+    common = np.empty(3)
+    inv = np.empty((3, 3))
+    proj = np.empty((3, 3))
+    for p in range(n.shape[0]):
+        gram[:, :] = 0.0
+        common[:] = 0.0
+        for k in range(m):
+            if lit[k, p]:
+                for c in range(3):
+                    common[c] += g[k, p, c] * dark[k]
+                    for d in range(3):
+                        gram[c, d] += g[k, p, c] * g[k, p, d]
+        det = (
+            gram[0, 0] * (gram[1, 1] * gram[2, 2] - gram[1, 2] * gram[2, 1])
+            - gram[0, 1] * (gram[1, 0] * gram[2, 2] - gram[1, 2] * gram[2, 0])
+            + gram[0, 2] * (gram[1, 0] * gram[2, 1] - gram[1, 1] * gram[2, 0])
+        )
+        if not abs(det) > 1e-12:
+            independent[p] = np.inf
+            shared[p] = np.inf
+            continue
+        for r in range(3):  # the adjugate's transpose over the determinant
+            r1, r2 = (r + 1) % 3, (r + 2) % 3
+            for c in range(3):
+                c1, c2 = (c + 1) % 3, (c + 2) % 3
+                inv[c, r] = (gram[r1, c1] * gram[r2, c2] - gram[r1, c2] * gram[r2, c1]) / det
+        for r in range(3):
+            for c in range(3):
+                proj[r, c] = (1.0 if r == c else 0.0) - n[p, r] * n[p, c]
+        trace = 0.0
+        for i in range(3):
+            for j in range(3):
+                pi_j = 0.0
+                for k in range(3):
+                    pi_j += proj[i, k] * inv[k, j]
+                trace += pi_j * proj[j, i]
+        independent[p] = 0.5 * trace
+        norm2 = 0.0
+        for i in range(3):
+            t = 0.0
+            for j in range(3):
+                pi_j = 0.0
+                for k in range(3):
+                    pi_j += proj[i, k] * inv[k, j]
+                t += pi_j * common[j]
+            norm2 += t * t
+        shared[p] = 0.5 * norm2
 
 
 def _spread(coarse_var: np.ndarray, radius: int) -> np.ndarray:

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from pipeline.solvers import percentile
+from pipeline.solvers import labelled, percentile
 
 from .checks import check_bool_image, check_image
 
@@ -69,10 +69,8 @@ def candidate_mask(
     if not level > 0:
         raise ValueError("brightness: expected some light on the seen pixels, got none above zero")
     bright = ok & (smooth >= dark_fraction * level)
-    _n, labels, stats, _ = cv2.connectedComponentsWithStats(
-        (~bright).view(np.uint8), connectivity=4
-    )
-    speck = stats[:, cv2.CC_STAT_AREA] <= DARK_SPECK_PX
+    _n, labels, areas = labelled(~bright, connectivity=4)
+    speck = areas <= DARK_SPECK_PX
     speck[0] = False  # label 0: the bright pixels
     candidates: np.ndarray = (bright | speck[labels]) & ok
     return candidates

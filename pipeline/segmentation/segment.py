@@ -11,6 +11,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ..formats import CaptureError
+from ..solvers import labelled
 from .candidates import DARK_FRACTION, candidate_mask
 from .checks import check_bool_image, check_camera_matrix, check_image
 from .classify import SUPPORT_WIDTH_MM, Parts, classify
@@ -316,12 +317,10 @@ def _by_brightness(
         raise CaptureError(
             "photometric images: no plate found (no region brighter than the background)"
         )
-    n_lab, labels, stats, _ = cv2.connectedComponentsWithStats(
-        (~core).view(np.uint8), connectivity=4
-    )
+    n_lab, labels, areas = labelled(~core, connectivity=4)
     border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
     # without depth only specks can be told from openings: at most 0.05 % of the plate
-    small = stats[:, cv2.CC_STAT_AREA] <= max(4, int(5e-4 * np.count_nonzero(core)))
+    small = areas <= max(4, int(5e-4 * np.count_nonzero(core)))
     small[border] = False
     small[0] = False
     inner = np.ones(n_lab, bool)

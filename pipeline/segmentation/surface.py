@@ -9,6 +9,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from pipeline.solvers import labelled
+
 #: Default depth band (mm) about the fitted surface within which a pixel can belong to the plate. The
 #: floor and the supports lie hundreds of millimetres behind the plate; a real bent edge or dent tens of
 #: millimetres off the smooth fit stays inside (so a forming defect is measured and judged, not cut away).
@@ -34,13 +36,23 @@ def normalised_coords(
     return x, y
 
 
+def _powers(v: np.ndarray, degree: int) -> list[np.ndarray]:
+    """``v^0 .. v^degree`` by repeated products: numpy's ``v**k`` (k >= 3) of a negative base takes a slow
+    scalar path, and a product differs from it only in the last bit."""
+    powers = [np.ones_like(v), v]
+    for _ in range(2, degree + 1):
+        powers.append(powers[-1] * v)
+    return powers[: degree + 1]
+
+
 def design(
     x: np.ndarray, y: np.ndarray, degree: int, scale: tuple[float, float, float, float]
 ) -> np.ndarray:
     """Monomials ``xs^i ys^j`` (i + j <= degree) of the centred, scaled coordinates, (M, T)."""
     xs = (x - scale[0]) / scale[1]
     ys = (y - scale[2]) / scale[3]
-    cols = [xs**i * ys**j for d in range(degree + 1) for i in range(d, -1, -1) for j in [d - i]]
+    px, py = _powers(xs, degree), _powers(ys, degree)
+    cols = [px[i] * py[d - i] for d in range(degree + 1) for i in range(d, -1, -1)]
     return np.stack(cols, axis=-1)
 
 
@@ -64,12 +76,10 @@ def _robust_fit(X: np.ndarray, w_obs: np.ndarray, z: np.ndarray, iterations: int
 
 def largest_component(mask: np.ndarray, connectivity: int = 8) -> np.ndarray:
     """The largest connected component of ``mask`` (all False when it is empty)."""
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(
-        mask.view(np.uint8), connectivity=connectivity
-    )
+    n, labels, areas = labelled(mask, connectivity=connectivity)
     if n <= 1:
         return np.zeros_like(mask)
-    largest: np.ndarray = labels == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    largest: np.ndarray = labels == 1 + int(np.argmax(areas[1:]))
     return largest
 
 

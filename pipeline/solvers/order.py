@@ -58,16 +58,67 @@ def percentile(a: npt.ArrayLike, q: float | Sequence[float]) -> Any:
 
 def _order_statistics(arr: np.ndarray, ks: np.ndarray) -> dict[int, Any]:
     """The ``k``-th and ``k + 1``-th smallest values of ``arr`` for each ``k`` of ``ks`` (one partition
-    each: the ``k + 1``-th is the smallest of what lies above the ``k``-th)."""
+    each: the ``k + 1``-th is the smallest of what lies above the ``k``-th; of the tail beyond a
+    threshold only when ``k`` lies in a short tail, see :func:`_in_tail`)."""
     n = arr.size
     values: dict[int, Any] = {}
     for k in ks:
         k = int(k)
+        pair = _in_tail(arr, k)
+        if pair is not None:
+            values.update(pair)
+            continue
         part = np.partition(arr, k)
         values[k] = part[k]
         if k + 1 < n:
             values[k + 1] = part[k + 1 :].min()
     return values
+
+
+#: A sample of at least this many values whose order statistic lies in a tail of at most
+#: 1 / TAIL_SHARE of it is partitioned only beyond a threshold (:func:`_in_tail`).
+TAIL_MIN_SIZE = 50_000
+TAIL_SHARE = 8
+#: Every this many-th value is the subsample the threshold is taken from.
+TAIL_STRIDE = 16
+
+
+def _in_tail(arr: np.ndarray, k: int) -> dict[int, Any] | None:
+    """The ``k``-th and ``k + 1``-th smallest values of ``arr`` when ``k`` lies in one of its short tails,
+    found among the values beyond a threshold only; None when it does not (or the threshold missed).
+
+    The threshold is an order statistic of every :data:`TAIL_STRIDE`-th value, set a few standard
+    deviations of its rank deeper than the tail: the values beyond it (one comparison over the
+    sample) hold the two sought, which is checked by counting them before they are taken, so that the
+    values are the very ones of a partition of the whole sample (a threshold that missed, on a sample
+    ordered against the stride, falls back to that partition)."""
+    n = arr.size
+    upper = 2 * k >= n
+    # the values from the k-th up, or from the smallest to the (k+1)-th
+    tail = n - k if upper else k + 2
+    if n < TAIL_MIN_SIZE or TAIL_SHARE * tail > n:
+        return None
+    sample = arr[::TAIL_STRIDE]
+    m = sample.size
+    expected = tail * m / n
+    want = min(m - 1, int(expected + 4.0 * np.sqrt(expected)) + 8)
+    if upper:
+        t = np.partition(sample, m - 1 - want)[m - 1 - want]
+        beyond = arr[arr >= t]
+        j = k - (n - beyond.size)  # the values under t come first
+        if j < 0:
+            return None
+    else:
+        t = np.partition(sample, want)[want]
+        beyond = arr[arr <= t]
+        j = k
+        if beyond.size < k + 2:
+            return None
+    part = np.partition(beyond, j)
+    pair = {k: part[j]}
+    if k + 1 < n:
+        pair[k + 1] = part[j + 1 :].min()
+    return pair
 
 
 def _lerp(a: np.ndarray, b: np.ndarray, t: Any) -> Any:

@@ -41,6 +41,7 @@ References
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -56,6 +57,8 @@ from pipeline.solvers import percentile
 KNOT_FRACTION = 1.0 / 16.0
 #: Knot spacings tried, coarsest first (after a plane and a quadric in (u, v)).
 KNOT_LADDER = (1.0 / 2.0, 1.0 / 4.0, 1.0 / 8.0, 1.0 / 16.0)
+#: Threads that fit the ladder's rungs (each fit is independent: the same fits on any number).
+LADDER_WORKERS = 2
 #: Significance level of the lack-of-fit test that lets a finer correction in (see :func:`_chosen`): a
 #: coarser rung is kept unless the finest explains the stereo pair better than noise would with
 #: probability 1 - SIGNIFICANCE.
@@ -214,26 +217,24 @@ def fuse_low_frequencies(
             chosen.grid, blocks, rung=chosen.rung, n_params=chosen.grid.size, smoother=True
         )
     fraction = chosen.rung if chosen.rung not in _POLYNOMIAL else None
-    fused = np.full(z.shape, np.nan)
-    correction = np.full(z.shape, np.nan, np.float32)
-    _compose(zb, chosen.grid.evaluate(chosen.coef), mb, fused[box], correction[box])
     sigma_pix = fits[-1].sigma_pix if select else chosen.sigma_pix  # the finest rung's: the noise
     scale2 = _noise_variance(sigma_pix, blocks) * inflation
-    sd = model = None
-    if select:
-        sd = np.full(z.shape, np.nan, np.float32)
-        sd[box] = np.where(mb, _value_sd(chosen, scale2) * zb, np.nan)
-        if not finest:
-            finer = fits[next(i for i, f in enumerate(fits) if f is chosen) + 1]
-            model = np.full(z.shape, np.nan, np.float32)
-            model[box] = np.where(mb, _difference(finer, chosen) * zb, np.nan)
+    finer = None if finest else fits[next(i for i, f in enumerate(fits) if f is chosen) + 1]
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        # the maps of the correction's uncertainty on a worker, beside the fused depth
+        maps = pool.submit(_uncertainty_maps, chosen, finer, scale2, zb, mb, box, z.shape, select)
+        fused = np.full(z.shape, np.nan)
+        correction = np.full(z.shape, np.nan, np.float32)
+        _compose(zb, chosen.grid.evaluate(chosen.coef), mb, fused[box], correction[box])
+        disagreement = _disagreement(zb, correction[box], mb)
+        sd, model, noise_floor = maps.result()
     quadric = next((f for f in fits if f.rung == QUADRIC), None)
     return Fusion(
         depth_mm=fused,
         correction_mm=correction,
-        disagreement_mm=_disagreement(zb, correction[box], mb),
+        disagreement_mm=disagreement,
         stereo_noise_mm=float(sigma_pix * z_typ),
-        noise_floor_mm=float(3.0 * _nan_p95(sd[box][mb])) if sd is not None else 0.0,
+        noise_floor_mm=noise_floor,
         n_stereo=int(blocks.n_pixels),
         knot_spacing_px=None if fraction is None else float(chosen.grid.spacing),
         model=chosen.rung if isinstance(chosen.rung, str) else "spline",
@@ -243,6 +244,31 @@ def fuse_low_frequencies(
         bend_cov=None if quadric is None or not select else _bend_cov(quadric, scale2),
         model_sd_mm=model,
     )
+
+
+def _uncertainty_maps(
+    chosen: _Fitted,
+    finer: _Fitted | None,
+    scale2: float,
+    zb: np.ndarray,
+    mb: np.ndarray,
+    box: tuple[slice, slice],
+    shape: tuple[int, ...],
+    select: bool,
+) -> tuple[np.ndarray | None, np.ndarray | None, float]:
+    """:attr:`Fusion.correction_sd_mm`, :attr:`Fusion.model_sd_mm` (None without ``select``, the latter
+    also when the finest rung was chosen) and the noise floor (mm) of the chosen correction: its
+    standard deviation and its difference from the next finer rung, mm, on the mask (``mb`` on the
+    box ``box`` of a grid of ``shape``)."""
+    if not select:
+        return None, None, 0.0
+    sd = np.full(shape, np.nan, np.float32)
+    sd[box] = np.where(mb, _value_sd(chosen, scale2) * zb, np.nan)
+    model = None
+    if finer is not None:
+        model = np.full(shape, np.nan, np.float32)
+        model[box] = np.where(mb, _difference(finer, chosen) * zb, np.nan)
+    return sd, model, float(3.0 * _nan_p95(sd[box][mb]))
 
 
 def _check_inputs(
@@ -317,7 +343,9 @@ def _ladder_fits(
                 break
     else:
         rungs: list[Rung] = [PLANE, QUADRIC, *(k for k in KNOT_LADDER if k >= knot_fraction)]
-        fits = [f for f in map(fit, rungs) if f is not None]
+        # independent fits, mostly LAPACK and numpy's loops (the GIL released): two at a time
+        with ThreadPoolExecutor(max_workers=LADDER_WORKERS) as pool:
+            fits = [f for f in pool.map(fit, rungs) if f is not None]
     if not fits:
         raise ValueError(
             f"stereo_depth_mm: expected stereo depth over at least {4 * _POLYNOMIAL[PLANE]} blocks of {blocks.size} px of "

@@ -299,6 +299,11 @@ def integrate_normals(
     normals, mask, K = _check_normals_inputs(
         normals, mask, K, prior_depth_mm, reference_depth_mm, tol, max_iter
     )
+    box = _mask_box(mask)
+    if box is not None:
+        return _on_box(
+            box, normals, mask, K, prior_depth_mm, prior_weight, reference_depth_mm, tol, max_iter
+        )
     wd, log_prior, shift, n_prior = _prior_terms(prior_depth_mm, prior_weight, mask)
     if n_prior == 0 and reference_depth_mm is None:
         raise ValueError(
@@ -312,6 +317,64 @@ def integrate_normals(
     del system
     depth, result_mask = _metric_depth(x, mask, shift, floating, reference_depth_mm)
     return DepthResult(depth_mm=depth, mask=result_mask, iterations=it, residual=rel)
+
+
+#: The integration runs on the mask's bounding box (its origin on even rows and columns) when that
+#: leaves out at least this share of the grid: the pixels outside have no equation, and every
+#: kernel of the solve would pass over them.
+BOX_MIN_SAVING = 0.1
+
+
+def _mask_box(mask: Arr) -> tuple[slice, slice] | None:
+    """The mask's bounding box, its first row and column rounded down to even ones (the coarse grids
+    aggregate the same 2x2 blocks as on the whole grid), or None when it is nearly the whole grid."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    cols = np.flatnonzero(mask.any(axis=0))
+    if rows.size == 0:
+        return None
+    r0, c0 = rows[0] - rows[0] % 2, cols[0] - cols[0] % 2
+    r1, c1 = rows[-1] + 1, cols[-1] + 1
+    if (r1 - r0) * (c1 - c0) > (1.0 - BOX_MIN_SAVING) * mask.size:
+        return None
+    return slice(int(r0), int(r1)), slice(int(c0), int(c1))
+
+
+def _on_box(
+    box: tuple[slice, slice],
+    normals: Arr,
+    mask: Arr,
+    K: Arr,
+    prior_depth_mm: npt.ArrayLike | None,
+    prior_weight: float | np.ndarray,
+    reference_depth_mm: float | None,
+    tol: float,
+    max_iter: int,
+) -> DepthResult:
+    """:func:`integrate_normals` solved on ``box`` of the grid (the camera's principal point moved to
+    it), its depth and mask put back on the whole grid. The same equations: only the solve's
+    preconditioner sees other coarse grids, and the solution agrees within the solve's ``tol``."""
+    rows, cols = box
+    K_box = K.copy()
+    K_box[0, 2] -= cols.start
+    K_box[1, 2] -= rows.start
+    weight = np.asarray(prior_weight)
+    inner = integrate_normals(
+        normals[box],
+        mask[box],
+        K_box,
+        prior_depth_mm=None if prior_depth_mm is None else np.asarray(prior_depth_mm)[box],
+        prior_weight=weight[box] if weight.ndim == 2 else prior_weight,
+        reference_depth_mm=reference_depth_mm,
+        tol=tol,
+        max_iter=max_iter,
+    )
+    depth = np.full(mask.shape, np.nan)
+    depth[box] = inner.depth_mm
+    result_mask = np.zeros_like(mask)
+    result_mask[box] = inner.mask
+    return DepthResult(
+        depth_mm=depth, mask=result_mask, iterations=inner.iterations, residual=inner.residual
+    )
 
 
 def _check_normals_inputs(
@@ -481,7 +544,8 @@ def _prior_terms(
     hw = mask.shape
     if prior_depth_mm is None:
         return np.zeros(hw, np.float32), np.zeros(hw), 0.0, 0
-    prior = np.asarray(prior_depth_mm, dtype=np.float64)
+    # contiguous (a box of a grid too): the kernel is compiled for one layout
+    prior = np.ascontiguousarray(prior_depth_mm, dtype=np.float64)
     if prior.shape != hw:
         raise ValueError(f"prior_depth_mm: expected shape {hw}, got {prior.shape}")
     weight = np.asarray(prior_weight, dtype=np.float64)
@@ -491,6 +555,8 @@ def _prior_terms(
         weight = weight.reshape(1, 1)
     elif weight.shape != hw:
         raise ValueError(f"prior_weight: expected a scalar or shape {hw}, got {weight.shape}")
+    else:
+        weight = np.ascontiguousarray(weight)
     wd = np.empty(hw, np.float32)
     log_prior = np.empty(hw)
     bad_prior, bad_weight, n_used = _prior_arrays(

@@ -55,3 +55,23 @@ def test_the_input_is_left_as_it_was():
     before = a.copy()
     percentile(a, [5, 95])
     assert np.array_equal(a, before)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_large_samples_tails_are_numpys_to_the_bit(dtype):
+    """Samples large enough for the tail's threshold (pipeline.solvers.order._in_tail): random, with
+    ties, sorted both ways and constant (a threshold that misses falls back to the whole partition)."""
+    rng = np.random.default_rng(11)
+    n = 120_001
+    normal = rng.normal(size=n).astype(dtype)
+    samples = [
+        normal,
+        np.round(normal, 1),
+        np.sort(normal),
+        np.sort(normal)[::-1].copy(),
+        np.full(n, 2.5, dtype),
+        rng.exponential(size=(300, 401)).astype(dtype),
+    ]
+    for a in samples:
+        for q in (95, 99.5, 0.5, 5.0, [0.5, 99.5], 99.999, 0.001, 50, 100, 0):
+            assert _same(np.percentile(a, q), percentile(a, q)), q

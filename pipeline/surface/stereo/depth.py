@@ -36,8 +36,10 @@ import math
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
+import numba
 import numpy as np
 import numpy.typing as npt
 
@@ -62,6 +64,9 @@ from pipeline.surface.stereo.refine import (
     refine_disparity,
     scaled,
 )
+
+#: An array argument of the kernels (their dtypes are set by the callers).
+Arr = npt.NDArray[Any]
 
 #: Extra disparity searched on each side of the range implied by z_min..z_max, pixels.
 RANGE_MARGIN_PX = 2
@@ -478,12 +483,21 @@ def _on_left_grid(
     (``M = R1 K^-1``); a lookup touching any hole is a hole.
     """
     w, h = size
-    u = np.arange(w, dtype=np.float32)[None, :]
-    v = np.arange(h, dtype=np.float32)[:, None]
-    den = (H_win[2, 0] * u + H_win[2, 1] * v + H_win[2, 2]).astype(np.float32)
-    map_x = ((H_win[0, 0] * u + H_win[0, 1] * v + H_win[0, 2]) / den).astype(np.float32)
-    map_y = ((H_win[1, 0] * u + H_win[1, 1] * v + H_win[1, 2]) / den).astype(np.float32)
-    ray_z = (M[2, 0] * u + M[2, 1] * v + M[2, 2]).astype(np.float32)
+    depth = np.full((h, w), np.nan, np.float32)
+    valid = np.zeros((h, w), bool)
+    rows, cols = (slice(0, h), slice(0, w)) if mask is None else _box(mask)
+    # the mask's bounding box only: every other pixel is a hole (the same values on it)
+    shape = (rows.stop - rows.start, cols.stop - cols.start)
+    map_x, map_y, ray_z = (np.empty(shape, np.float32) for _ in range(3))
+    _lookup_maps(
+        np.ascontiguousarray(H_win, dtype=np.float64),
+        np.ascontiguousarray(M, dtype=np.float64),
+        rows.start,
+        cols.start,
+        map_x,
+        map_y,
+        ray_z,
+    )
     finite = np.isfinite(z_rect)
     z_filled = np.where(finite, z_rect, 0).astype(np.float32)
     z_on_left = cv2.remap(
@@ -497,9 +511,36 @@ def _on_left_grid(
         borderMode=cv2.BORDER_CONSTANT,
         borderValue=0,
     )
-    depth = (z_on_left / ray_z).astype(np.float32)
-    valid = (support > 0.999) & (depth > 0)
+    box_depth = (z_on_left / ray_z).astype(np.float32)
+    box_valid = (support > 0.999) & (box_depth > 0)
     if mask is not None:
-        valid &= mask
-    depth[~valid] = np.nan
+        box_valid &= mask[rows, cols]
+    depth[rows, cols] = np.where(box_valid, box_depth, np.float32(np.nan))
+    valid[rows, cols] = box_valid
     return depth, valid
+
+
+@numba.njit(nogil=True, cache=True)
+def _lookup_maps(
+    H_win: Arr, M: Arr, r0: int, c0: int, map_x: Arr, map_y: Arr, ray_z: Arr
+) -> None:  # pragma: no cover - compiled
+    """:func:`_on_left_grid`'s lookups for the pixels ``(c0 + j, r0 + i)``: the window pixel
+    ``H_win (u, v, 1)`` (its denominator rounded to float32 first) and the ray's ``(M (u, v, 1))_z``,
+    in float64 in numpy's order of operations, stored as float32 (the array expressions' values);
+    single-threaded (the stereo pair's worker)."""
+    h, w = map_x.shape
+    for i in range(h):
+        v = np.float64(r0 + i)
+        for j in range(w):
+            u = np.float64(c0 + j)
+            den = np.float64(np.float32(H_win[2, 0] * u + H_win[2, 1] * v + H_win[2, 2]))
+            map_x[i, j] = (H_win[0, 0] * u + H_win[0, 1] * v + H_win[0, 2]) / den
+            map_y[i, j] = (H_win[1, 0] * u + H_win[1, 1] * v + H_win[1, 2]) / den
+            ray_z[i, j] = M[2, 0] * u + M[2, 1] * v + M[2, 2]
+
+
+def _box(mask: np.ndarray) -> tuple[slice, slice]:
+    """The bounding box of a mask with at least one pixel: (rows, columns)."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    cols = np.flatnonzero(mask.any(axis=0))
+    return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)

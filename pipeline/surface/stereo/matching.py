@@ -4,12 +4,18 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
+import numba
 import numpy as np
+import numpy.typing as npt
 
 from pipeline.camera import StereoRig
 from pipeline.solvers import percentile
+
+#: An array argument of the kernels (their dtypes are set by the callers).
+Arr = npt.NDArray[Any]
 
 #: Matching window of SGBM, pixels (odd).
 BLOCK_SIZE = 5
@@ -234,24 +240,52 @@ def _sgbm(
         mode=cv2.StereoSGBM_MODE_SGBM_3WAY,
     )
     raw = matcher.compute(img_l, img_r)
-    d_win = raw.astype(np.float32) / 16.0
-    matched = (raw >= 0) & seen_l
-    # the matched right pixel must lie inside the right image too
-    cols = np.arange(win[0], dtype=np.float32)[None, :] - d_win
-    cols_i = np.clip(np.rint(cols), 0, win[0] - 1).astype(np.intp)
-    rows_i = np.broadcast_to(np.arange(win[1])[:, None], cols_i.shape)
-    matched &= (cols >= 0) & seen_r[rows_i, cols_i]
-    return np.where(matched, d_win, np.nan).astype(np.float32)
+    d_win = np.empty((win[1], win[0]), np.float32)
+    _seen_matches(raw, seen_l, seen_r, d_win)
+    return d_win
+
+
+@numba.njit(nogil=True, cache=True)
+def _seen_matches(
+    raw: Arr, seen_l: Arr, seen_r: Arr, out: Arr
+) -> None:  # pragma: no cover - compiled
+    """SGBM's fixed-point disparities ``raw`` (int16, 1/16 px) as float32 pixels into ``out``, NaN where
+    SGBM found no match or either camera does not see the matched pixel (the matched right pixel,
+    rounded half to even, must lie inside the right image too); single-threaded (the stereo pair's
+    worker)."""
+    h, w = raw.shape
+    sixteen, zero = np.float32(16.0), np.float32(0.0)
+    for i in range(h):
+        for j in range(w):
+            d = np.float32(raw[i, j]) / sixteen
+            col = np.float32(j) - d
+            c = min(max(np.rint(col), zero), np.float32(w - 1))
+            if raw[i, j] >= 0 and seen_l[i, j] and col >= zero and seen_r[i, int(c)]:
+                out[i, j] = d
+            else:
+                out[i, j] = np.nan
 
 
 def _levels_uint8(image: np.ndarray, lo: float, hi: float) -> np.ndarray:
     """``image`` mapped so ``lo`` / ``hi`` become 0 / 255, saturating beyond (all 0 if ``hi <= lo``)."""
     if not hi > lo:
         return np.zeros(image.shape, np.uint8)
-    levels: np.ndarray = np.clip(
-        (image - np.float32(lo)) * np.float32(255.0 / (hi - lo)) + 0.5, 0, 255
-    ).astype(np.uint8)
+    levels = np.empty(image.shape, np.uint8)
+    _to_levels(image, np.float32(lo), np.float32(255.0 / (hi - lo)), levels)
     return levels
+
+
+@numba.njit(nogil=True, cache=True)
+def _to_levels(
+    image: Arr, lo: np.float32, gain: np.float32, out: Arr
+) -> None:  # pragma: no cover - compiled
+    """out = ``(image - lo) * gain + 0.5`` clipped to 0..255 and truncated to uint8, in float32 (the
+    array expression's values); single-threaded."""
+    h, w = image.shape
+    half, top, zero = np.float32(0.5), np.float32(255.0), np.float32(0.0)
+    for i in range(h):
+        for j in range(w):
+            out[i, j] = np.uint8(min(max((image[i, j] - lo) * gain + half, zero), top))
 
 
 def search_range(d_lo: float, d_hi: float, quantum: int = 1) -> tuple[int, int]:

@@ -5,8 +5,12 @@ from __future__ import annotations
 from typing import Any
 
 import cv2
+import numba
 import numpy as np
 import numpy.typing as npt
+
+#: An array argument of the kernels (their dtypes are set by the callers).
+Arr = npt.NDArray[Any]
 
 #: Sub-pixel refinement: Gaussian window std (pixels) and Gauss-Newton iterations.
 REFINE_SIGMA_PX = 3.0
@@ -70,42 +74,73 @@ def refine_disparity(
     xs = np.arange(w, dtype=np.float32)[None, :]
     ys = np.broadcast_to(np.arange(h, dtype=np.float32)[:, None], (h, w))
     support = valid.copy()
+    inside = np.empty((h, w), bool)
+    sums = np.empty((5, h, w), np.float32)  # wgt, wgt g, wgt r, wgt g r, wgt g g
+    blurred = np.empty_like(sums)
     for _ in range(int(iterations)):
         map_x = xs - d
-        inside = (map_x >= 1) & (map_x <= w - 2)
         warped = cv2.remap(right, map_x, ys, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
-        g = 0.5 * (
-            gx_l + cv2.remap(gx_r, map_x, ys, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
-        )
-        r = left - warped
-        wgt = (support & inside).astype(np.float32)
+        gx_w = cv2.remap(gx_r, map_x, ys, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
         # right(x - d - delta) + c ~ left, with an offset c per window  ->  delta = -cov(g, r) / var(g)
-        num, den = _centred_sums(wgt, g, r, sigma_px)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            step = np.where(den > 1e-3, -num / den, 0).astype(np.float32)
-        d = d + step * valid
-        support = valid & inside & (den > 1e-3)
+        _step_terms(map_x, gx_l, gx_w, left, warped, support, inside, sums)
+        for k in range(len(sums)):
+            cv2.GaussianBlur(sums[k], (0, 0), sigma_px, dst=blurred[k])
+        _gauss_newton_step(blurred, valid, inside, d, support)
     out = np.where(support & (np.abs(d - np.where(valid, disparity, 0)) <= max_step_px), d, np.nan)
     return out.astype(np.float32)
 
 
-def _centred_sums(
-    wgt: np.ndarray, g: np.ndarray, r: np.ndarray, sigma_px: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Gaussian-windowed ``sum(w g r) - sum(w g) sum(w r) / sum(w)`` and ``sum(w g g) - sum(w g)^2 /
-    sum(w)``: the Gauss-Newton step's numerator and denominator with an unknown intensity offset per
-    window eliminated (zero-mean SSD). A glossy plate's lobe sits at different places in the two
-    views (each camera sees its own mirror points), so a matched point differs between them by an
-    additive, slowly varying brightness; plain SSD turns that difference into a disparity (mm of
-    depth under near-field LEDs), the window's own offset takes it out."""
-    s1 = cv2.GaussianBlur(wgt, (0, 0), sigma_px)
-    sg = cv2.GaussianBlur(wgt * g, (0, 0), sigma_px)
-    sr = cv2.GaussianBlur(wgt * r, (0, 0), sigma_px)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = np.where(s1 > 1e-3, 1.0 / s1, 0).astype(np.float32)
-    num = cv2.GaussianBlur(wgt * g * r, (0, 0), sigma_px) - sg * sr * inv
-    den = cv2.GaussianBlur(wgt * g * g, (0, 0), sigma_px) - sg * sg * inv
-    return num, den
+@numba.njit(nogil=True, cache=True)
+def _step_terms(
+    map_x: Arr, gx_l: Arr, gx_w: Arr, left: Arr, warped: Arr, support: Arr, inside: Arr, sums: Arr
+) -> None:  # pragma: no cover - compiled
+    """The windowed sums' terms of one Gauss-Newton step into ``sums`` (5, H, W): ``wgt``, ``wgt g``,
+    ``wgt r``, ``wgt g r`` and ``wgt g g``, with the symmetric gradient ``g`` (the left's and the
+    warped right's mean), the residual ``r = left - warped`` and the weight ``wgt`` (the pixel
+    supported and its warp ``map_x`` inside the right image, ``inside``, also written). float32 in
+    numpy's order of operations (the values of the array expressions they replace); single-threaded,
+    as it runs on the bands' threads."""
+    h, w = map_x.shape
+    half, lo, hi = np.float32(0.5), np.float32(1.0), np.float32(w - 2)
+    for i in range(h):
+        for j in range(w):
+            mx = map_x[i, j]
+            ins = (mx >= lo) & (mx <= hi)
+            inside[i, j] = ins
+            wgt = np.float32(1.0) if support[i, j] & ins else np.float32(0.0)
+            g = half * (gx_l[i, j] + gx_w[i, j])
+            r = left[i, j] - warped[i, j]
+            wg = wgt * g
+            sums[0, i, j] = wgt
+            sums[1, i, j] = wg
+            sums[2, i, j] = wgt * r
+            sums[3, i, j] = wg * r
+            sums[4, i, j] = wg * g
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def _gauss_newton_step(
+    blurred: Arr, valid: Arr, inside: Arr, d: Arr, support: Arr
+) -> None:  # pragma: no cover - compiled
+    """One Gauss-Newton step from the blurred terms of :func:`_step_terms` (``blurred`` (5, H, W)): ``d`` moved in place by
+    ``-num / den`` where ``den`` is not degenerate, ``support`` set to the pixels it moved. The
+    numerator and denominator are the windows' centred sums (an intensity offset per window
+    eliminated: zero-mean SSD). A glossy plate's lobe sits at different places in the two views (each
+    camera sees its own mirror points), so a matched point differs between them by an additive,
+    slowly varying brightness; plain SSD turns that difference into a disparity (mm of depth under
+    near-field LEDs), the window's own offset takes it out. float32 in numpy's order of operations."""
+    h, w = d.shape
+    floor, zero = np.float32(1e-3), np.float32(0.0)
+    s1, sg, sr, sgr, sgg = blurred[0], blurred[1], blurred[2], blurred[3], blurred[4]
+    for i in range(h):
+        for j in range(w):
+            inv = np.float32(1.0) / s1[i, j] if s1[i, j] > floor else zero
+            num = sgr[i, j] - sg[i, j] * sr[i, j] * inv
+            den = sgg[i, j] - sg[i, j] * sg[i, j] * inv
+            moved = den > floor
+            step = -num / den if moved else zero
+            d[i, j] = d[i, j] + step * (np.float32(1.0) if valid[i, j] else zero)
+            support[i, j] = valid[i, j] & inside[i, j] & moved
 
 
 def match_correlation(
@@ -134,17 +169,58 @@ def match_correlation(
     ys = np.broadcast_to(np.arange(h, dtype=np.float32)[:, None], (h, w))
     map_x = (xs - np.where(valid, disparity, 0)).astype(np.float32)
     warped = cv2.remap(right, map_x, ys, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
-    wgt = valid.astype(np.float32)
+    sums = np.empty((6, h, w), np.float32)
+    _correlation_terms(valid, left, warped, sums)
+    blurred = np.empty_like(sums)
+    for k in range(len(sums)):
+        cv2.GaussianBlur(sums[k], (0, 0), sigma_px, dst=blurred[k])
+    zncc = np.empty((h, w), np.float32)
+    _zncc(blurred, valid, zncc)
+    return zncc
 
-    def mean(x: npt.NDArray[Any]) -> npt.NDArray[Any]:
-        blurred: npt.NDArray[Any] = cv2.GaussianBlur(wgt * x, (0, 0), sigma_px)
-        return blurred
 
-    norm = mean(np.ones_like(left))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        m_l, m_r = mean(left) / norm, mean(warped) / norm
-        var_l = mean(left * left) / norm - m_l * m_l
-        var_r = mean(warped * warped) / norm - m_r * m_r
-        cov = mean(left * warped) / norm - m_l * m_r
-        zncc = cov / np.sqrt(np.maximum(var_l, 0) * np.maximum(var_r, 0))
-    return np.where(valid & (var_l > 1e-6) & (var_r > 1e-6), zncc, np.nan).astype(np.float32)
+@numba.njit(nogil=True, cache=True)
+def _correlation_terms(
+    valid: Arr, left: Arr, warped: Arr, sums: Arr
+) -> None:  # pragma: no cover - compiled
+    """The windowed means' terms of the ZNCC into ``sums`` (6, H, W): ``wgt``, ``wgt l``, ``wgt r``,
+    ``wgt l l``, ``wgt r r``, ``wgt l r`` (``l`` the left image, ``r`` the warped right, ``wgt`` 1 at
+    the matches). float32 in numpy's order of operations; single-threaded (the bands' threads)."""
+    h, w = valid.shape
+    for i in range(h):
+        for j in range(w):
+            wgt = np.float32(1.0) if valid[i, j] else np.float32(0.0)
+            a, b = left[i, j], warped[i, j]
+            sums[0, i, j] = wgt
+            sums[1, i, j] = wgt * a
+            sums[2, i, j] = wgt * b
+            sums[3, i, j] = wgt * (a * a)
+            sums[4, i, j] = wgt * (b * b)
+            sums[5, i, j] = wgt * (a * b)
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def _zncc(blurred: Arr, valid: Arr, out: Arr) -> None:  # pragma: no cover - compiled
+    """The ZNCC from the blurred terms of :func:`_correlation_terms` (``blurred`` (6, H, W)) into ``out``; NaN off the matches
+    and where a window has no contrast. float32 in numpy's order of operations."""
+    h, w = valid.shape
+    floor, zero = np.float32(1e-6), np.float32(0.0)
+    norm, sl, sr, sll, srr, slr = (
+        blurred[0],
+        blurred[1],
+        blurred[2],
+        blurred[3],
+        blurred[4],
+        blurred[5],
+    )
+    for i in range(h):
+        for j in range(w):
+            n = norm[i, j]
+            m_l, m_r = sl[i, j] / n, sr[i, j] / n
+            var_l = sll[i, j] / n - m_l * m_l
+            var_r = srr[i, j] / n - m_r * m_r
+            cov = slr[i, j] / n - m_l * m_r
+            if valid[i, j] and var_l > floor and var_r > floor:
+                out[i, j] = cov / np.sqrt(max(var_l, zero) * max(var_r, zero))
+            else:
+                out[i, j] = np.nan
