@@ -138,7 +138,9 @@ def test_gauge_study_prints_cg_and_cgk(capsys):
 
 
 def test_gauge_study_of_a_glossy_cell_says_so(capsys):
-    code = main(["gauge-study", "--n", "2", "--size", "320x256", "--seed", "5", "--specular", "0.5"])
+    code = main(
+        ["gauge-study", "--n", "2", "--size", "320x256", "--seed", "5", "--specular", "0.5"]
+    )
     out = capsys.readouterr().out
     assert code == 0 and "glossy (specular 0.5)" in out and "Cgk" in out
 
