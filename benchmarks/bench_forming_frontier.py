@@ -12,12 +12,14 @@ still face each pass's own draw ``N(0, s^2)`` in displacement: the best case of 
 
 - *The aim as it is*: median at the target, or short of it so that 0.5 % ends past 0.8 of the band
   (normal tails: the scatter known); its risk past the verdict's edge (0.95 of the band), summed
-  over the plates as the expected over-bent plates of one such pass each.
+  over the plates as the expected over-bent plates of one such pass each; the mean passes a plate
+  (the probe's included) should each pass after it be aimed so until the plate is within the band.
 - *A risk ``e`` past the verdict's edge*: median at the target or at ``0.95 b_d - z_e s``; the
   probability that the plate is not within the verdict's band after three such passes after its
   probe (each pass a fresh draw at the same aim, rolled while the plate is short; the plate keeps
   its deepest: the history rule), summed as the expected plates not done within 4 passes; and the
-  expected over-bent plates over those passes (``e`` each pass rolled).
+  expected over-bent plates over those passes (``e`` each pass rolled); the mean passes a plate,
+  as many as it needs.
 
 Real advice has more spread than this (the plate's yield, the old peak, the machine's give), so its
 counts are higher: a case this bound already fails, no estimate of the scatter mends.
@@ -58,20 +60,27 @@ def displacement_band(plate: SimPlate) -> float:
     return float(curvature_band(target) / slope)
 
 
-def usual_risk(b_d: np.ndarray, s: float) -> np.ndarray:
-    """The verdict's-edge risk of one pass aimed as the advice aims, the scatter known."""
+def usual_risk(b_d: np.ndarray, s: float) -> tuple[np.ndarray, np.ndarray]:
+    """One pass aimed as the advice aims, the scatter known: its risk past the verdict's edge, and
+    the probability that it ends short of the verdict's band."""
     median = np.minimum(0.0, 0.8 * b_d - s * stats.norm.isf(0.005))
-    return np.asarray(stats.norm.sf((0.95 * b_d - median) / s))
+    over = stats.norm.sf((0.95 * b_d - median) / s)
+    return np.asarray(over), np.asarray(stats.norm.cdf((-0.95 * b_d - median) / s))
 
 
-def three_passes(b_d: np.ndarray, s: float, risk: float) -> tuple[np.ndarray, np.ndarray]:
-    """Three passes after the probe, each at a risk ``risk`` past the verdict's edge (a pass is
-    rolled only while the plate is short; a short pass leaves the plate at its deepest): the
-    probability that the plate is still short after them, and its over-bending risk."""
+def three_passes(b_d: np.ndarray, s: float, risk: float) -> tuple[np.ndarray, ...]:
+    """Passes after the probe, each at a risk ``risk`` past the verdict's edge (a pass is rolled
+    only while the plate is short; a short pass leaves the plate at its deepest): the probability
+    that the plate is still short after three, its over-bending risk over those three, and its
+    expected passes, the probe's included, when it may take as many as it needs."""
     median = np.minimum(0.0, 0.95 * b_d - s * stats.norm.isf(risk))
     short = stats.norm.cdf((-0.95 * b_d - median) / s)
     over = stats.norm.sf((0.95 * b_d - median) / s)
-    return np.asarray(short**3), np.asarray(over * (1.0 + short + short**2))
+    return (
+        np.asarray(short**3),
+        np.asarray(over * (1.0 + short + short**2)),
+        np.asarray(1.0 + 1.0 / (1.0 - short)),
+    )
 
 
 def main() -> None:
@@ -88,23 +97,22 @@ def main() -> None:
         f"median {q[2]:.3f}, 95 % {q[3]:.3f}\n"
     )
     print(
-        "| scatter mm | plates with b_d < 2 s | the aim as it is: expected over-bent (one pass) "
+        "| scatter mm | plates with b_d < 2 s | the aim as it is: expected over-bent (one pass), "
+        "mean passes "
         + "".join(
-            f"| risk {r:g}: expected not done in 4, over-bent (3 passes) " for r in args.risks
+            f"| risk {r:g}: expected not done in 4, over-bent (3 passes), mean passes "
+            for r in args.risks
         )
         + "|"
     )
     print("|---" * (3 + len(args.risks)) + "|")
     for s in args.scatters:
-        cells = []
+        over, short = usual_risk(b_d, s)
+        cells = [f"{over.sum():.2f}, {np.mean(1.0 + 1.0 / (1.0 - short)):.2f}"]
         for r in args.risks:
-            short, over = three_passes(b_d, s, r)
-            cells.append(f"{short.sum():.1f}, {over.sum():.2f}")
-        print(
-            f"| {s:g} | {int((b_d < 2 * s).sum())} | {usual_risk(b_d, s).sum():.2f} | "
-            + " | ".join(cells)
-            + " |"
-        )
+            left, risk, passes = three_passes(b_d, s, r)
+            cells.append(f"{left.sum():.1f}, {risk.sum():.2f}, {passes.mean():.2f}")
+        print(f"| {s:g} | {int((b_d < 2 * s).sum())} | " + " | ".join(cells) + " |")
 
 
 if __name__ == "__main__":
