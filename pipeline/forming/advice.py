@@ -159,6 +159,11 @@ class AimSettings:
         """The over-bending risk one bending pass may take: ``over_probability / planned_passes``."""
         return self.over_probability / self.planned_passes
 
+    def verdict_risk(self, alpha: float) -> float:
+        """The risk a pass allowed ``alpha`` at the aim's margin may take past the verdict's edge:
+        ``alpha``, or ``verdict_probability`` when that is set and smaller."""
+        return alpha if self.verdict_probability is None else min(alpha, self.verdict_probability)
+
     def __post_init__(self) -> None:
         if not 0 < self.over_probability < 0.5:
             raise ValueError(
@@ -365,15 +370,14 @@ def aim(
         alpha, passes_left = _split_risk(place, predict, kt, band, settings, spent)
     placed = place(alpha)
     d = placed.displacement_mm
+    allowed = settings.verdict_risk(alpha)
     split = None if placed.least else _two_pass(plate, predict, d_lo, d, settings)
     if split is None and settings.scatter_two_pass and not placed.least and stalled is None:
-        allowed = min(alpha, settings.verdict_probability or alpha)
         split = _scatter_two_pass(plate, predict_safe, (d_lo, d), over_edge, allowed, settings)
     if split is not None:
         d = split[0]
         warnings.append(split[1])
     if placed.least:
-        allowed = min(alpha, settings.verdict_probability or alpha)
         words = _scatter_fills_band(stalled, d, placed.risk, allowed, given=not placed.blocked)
         warnings.append(words)
     return {
@@ -423,8 +427,8 @@ def _placer(
         allowed = alpha if edge_cap is None else min(alpha, edge_cap)
 
         def safe(x: float) -> float:
-            """At least 0 where either constraint is reached (the aim's margin, the verdict's
-            edge at its own risk): the first root is the deeper of the two limits' shallower."""
+            """At least 0 where either limit is reached (the aim's margin, or the verdict's edge
+            at its own risk): its first root is the shallower of the two."""
             return margin(x) if edge_cap is None else max(margin(x), risk(x) - allowed)
 
         d = min(root(safe), d_centre)
