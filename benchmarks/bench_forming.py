@@ -139,6 +139,25 @@ def main():
         help="keep the over-bending risk per plate, split over the passes it is expected to need "
         "(AimSettings.adaptive_split; default: per pass)",
     )
+    ap.add_argument(
+        "--verdict-probability",
+        type=float,
+        default=None,
+        help="the risk each bending pass may take past the verdict's edge, besides the aim's "
+        "(AimSettings.verdict_probability; default: off)",
+    )
+    ap.add_argument(
+        "--scatter-two-pass",
+        action="store_true",
+        help="a first correction whose scatter fills the band approaches in two passes "
+        "(AimSettings.scatter_two_pass; default: off)",
+    )
+    ap.add_argument(
+        "--known-scatter",
+        action="store_true",
+        help="with --stress: the advice knows each case's true pass scatter (its prior at the "
+        "truth, worth a million rows): what no estimate from the campaign can do better than",
+    )
     args = ap.parse_args()
     if args.stress:
         stress(args)
@@ -211,6 +230,19 @@ def _settings(args) -> AimSettings:
         over_probability=args.over_probability,
         scatter_confidence=args.scatter_confidence,
         adaptive_split=args.adaptive_split,
+        verdict_probability=args.verdict_probability,
+        scatter_two_pass=args.scatter_two_pass,
+    )
+
+
+def _priors(args, physics: TruePhysics) -> Priors:
+    """The advice's priors: the defaults, or (``--known-scatter``) the pass scatter known."""
+    if not args.known_scatter:
+        return Priors(scatter_share_dof=args.scatter_share_dof)
+    return Priors(
+        scatter_mm=physics.displacement_scatter_mm,
+        scatter_weight=1e6,
+        scatter_share_dof=args.scatter_share_dof,
     )
 
 
@@ -236,7 +268,7 @@ def stress(args) -> None:
                         np.random.default_rng(seed + 100),
                         learning=mode == "learning",
                         settings=_settings(args),
-                        priors=Priors(scatter_share_dof=args.scatter_share_dof),
+                        priors=_priors(args, physics),
                     )
                 )
             sums = [summary(o) for o in outs]

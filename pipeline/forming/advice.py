@@ -124,6 +124,17 @@ class AimSettings:
         expected to need (:func:`_split_risk`); ``planned_passes`` is then not used. A first pass
         keeps ``pass_probability`` (it is aimed for a low yield factor, a probe). False: each pass
         ``pass_probability``.
+    scatter_two_pass : bool
+        A plate's first correction whose spread is mostly the passes' scatter and which, with that
+        scatter's sd twice its estimate, would end past the verdict's edge with more than the allowed
+        risk, approaches in two passes: this one to the deepest setting that keeps that risk at twice
+        the scatter (its median at most ``two_pass_fraction`` of the remaining bend), the next from
+        its inspection (:func:`_scatter_two_pass`; issue 27, eighth round: a trial, off).
+    verdict_probability : float or None
+        The over-bending risk each bending pass may take past the verdict's edge (``verdict_band``),
+        besides the aim's ``pass_probability`` past ``over_band``: the least move given when the
+        scatter fills the band keeps this one too. None (default): only the aim's risk, whose share
+        past the verdict's edge is what the spread leaves (issue 27, eighth round: a trial, off).
     reverse_open_probability : float
         Allowed probability that a reverse pass opens the plate beyond ``target - over_band * band`` (it
         then needs one more bending pass, not a reverse or the scrap heap: a milder risk).
@@ -140,11 +151,18 @@ class AimSettings:
     planned_passes: int = 1
     scatter_confidence: float | None = None
     adaptive_split: bool = False
+    verdict_probability: float | None = None
+    scatter_two_pass: bool = False
 
     @property
     def pass_probability(self) -> float:
         """The over-bending risk one bending pass may take: ``over_probability / planned_passes``."""
         return self.over_probability / self.planned_passes
+
+    def verdict_risk(self, alpha: float) -> float:
+        """The risk a pass allowed ``alpha`` at the aim's margin may take past the verdict's edge:
+        ``alpha``, or ``verdict_probability`` when that is set and smaller."""
+        return alpha if self.verdict_probability is None else min(alpha, self.verdict_probability)
 
     def __post_init__(self) -> None:
         if not 0 < self.over_probability < 0.5:
@@ -182,6 +200,11 @@ class AimSettings:
             raise ValueError(
                 f"scatter_confidence: expected a number in (0, 1) or None, "
                 f"got {self.scatter_confidence!r}"
+            )
+        if self.verdict_probability is not None and not 0 < self.verdict_probability < 0.5:
+            raise ValueError(
+                f"verdict_probability: expected a number in (0, 0.5) or None, "
+                f"got {self.verdict_probability!r}"
             )
         if not (isinstance(self.min_rows, int) and self.min_rows >= 0):
             raise ValueError(f"min_rows: expected a non-negative integer, got {self.min_rows!r}")
@@ -334,19 +357,28 @@ def aim(
         else fitted.scatter_upper_scale(settings.scatter_confidence)
     )
 
-    place = _placer(predict, predict_safe, (kt, limit, over_edge), upper, (d_lo, d_max))
+    place = _placer(
+        predict,
+        predict_safe,
+        (kt, limit, over_edge),
+        (upper, settings.verdict_probability),
+        (d_lo, d_max),
+    )
 
     alpha, passes_left = settings.pass_probability, None
     if settings.adaptive_split and factor is None:
         alpha, passes_left = _split_risk(place, predict, kt, band, settings, spent)
     placed = place(alpha)
     d = placed.displacement_mm
+    allowed = settings.verdict_risk(alpha)
     split = None if placed.least else _two_pass(plate, predict, d_lo, d, settings)
+    if split is None and settings.scatter_two_pass and not placed.least and stalled is None:
+        split = _scatter_two_pass(plate, predict_safe, (d_lo, d), over_edge, allowed, settings)
     if split is not None:
         d = split[0]
         warnings.append(split[1])
     if placed.least:
-        words = _scatter_fills_band(stalled, d, placed.risk, alpha, given=not placed.blocked)
+        words = _scatter_fills_band(stalled, d, placed.risk, allowed, given=not placed.blocked)
         warnings.append(words)
     return {
         "blocked": placed.blocked,
@@ -365,14 +397,17 @@ def _placer(
     predict: Callable[[float], Prediction],
     predict_safe: Callable[[float], Prediction],
     levels: tuple[float, float, float],
-    upper: float | None,
+    bounds: tuple[float | None, float | None],
     span: tuple[float, float],
 ) -> Callable[[float], _Placed]:
     """The aim's rule as a function of the over-bending risk the pass may take: the setting (the
     smallest of the one whose median is the target, the one at the aim's margin, the least move's
     rule; module docstring). ``levels``: the target's curvature, the aim's margin, the verdict's
-    edge; ``span``: the least and the deepest setting."""
+    edge; ``bounds``: the scatter's upper credible scale (``AimSettings.scatter_confidence``) and
+    the risk allowed past the verdict's edge (``AimSettings.verdict_probability``), each None when
+    off; ``span``: the least and the deepest setting."""
     kt, limit, over_edge = levels
+    upper, edge_cap = bounds
     d_lo, d_max = span
 
     def centre(d: float) -> float:
@@ -388,15 +423,22 @@ def _placer(
 
     def place(alpha: float) -> _Placed:
         """The pass's setting when it may take the over-bending risk ``alpha``."""
-        safe, risk = _over_risks(predict_safe, limit, over_edge, 1.0 - alpha, upper)
+        margin, risk = _over_risks(predict_safe, limit, over_edge, 1.0 - alpha, upper)
+        allowed = alpha if edge_cap is None else min(alpha, edge_cap)
+
+        def safe(x: float) -> float:
+            """At least 0 where either limit is reached (the aim's margin, or the verdict's edge
+            at its own risk): its first root is the shallower of the two."""
+            return margin(x) if edge_cap is None else max(margin(x), risk(x) - allowed)
+
         d = min(root(safe), d_centre)
         # the least move already past the aim's margin: given when it keeps the risk of ending past
         # the band as the inspection judges it within the allowed probability, else no setting
         least = safe(d_lo) >= 0
-        blocked = least and risk(d_lo) > alpha
+        blocked = least and risk(d_lo) > allowed
         if least and not blocked:
             # the deepest setting whose risk of ending past the verdict's edge is the allowed one
-            d = min(root(lambda x: risk(x) - alpha), d_centre)
+            d = min(root(lambda x: risk(x) - allowed), d_centre)
         return _Placed(float(d), least, blocked, risk(d))
 
     return place
@@ -956,6 +998,57 @@ def _two_pass(
         f"the predicted spread fills the tolerance band (one pass would land within it with "
         f"{p_in:.0%}): approach in two passes, this one to {settings.two_pass_fraction:.0%} of the "
         "remaining bend, the next from its inspection"
+    )
+    return d_first, words
+
+
+def _scatter_two_pass(
+    plate: PlateRecord,
+    predict: Callable[[float], Prediction],
+    span: tuple[float, float],
+    over_edge: float,
+    allowed: float,
+    settings: AimSettings,
+) -> tuple[float, str] | None:
+    """The first of two passes when the scatter fills the band (``AimSettings.scatter_two_pass``),
+    ``(displacement_mm, words)``; else None.
+
+    For a plate's first correction (one pass rolled, inspected) whose prediction at the aim's setting
+    ``d`` (``span``: the least setting and ``d``) is mostly the passes' scatter (its share at least half
+    the sd), and which, with that share's sd twice its estimate (normal tails: the estimate from a few
+    plates may be half the truth), ends past the verdict's edge ``over_edge`` with more than
+    ``allowed``: this pass goes to the deepest setting whose risk at twice the scatter is ``allowed``,
+    its median at most ``two_pass_fraction`` of the remaining bend; the next starts from its
+    inspection, with the plate's own last pass known. The words state the share of the remaining bend
+    the median reaches.
+    """
+    d_lo, d = span
+    if len(plate.passes) != 1 or plate.passes[-1].measured_radius_mm is None:
+        return None
+    pred = predict(d).truth()
+    if pred.scatter_sd < 0.5 * pred.sd:
+        return None
+
+    def doubled_risk(x: float) -> float:
+        return predict(x).truth().with_scatter_variance(4.0).probability_above(over_edge)
+
+    if doubled_risk(d) <= allowed or doubled_risk(d_lo) > allowed:
+        return None
+    kt = target_curvature(plate.target)
+    k_now = measured_curvature(plate, plate.passes[-1].measured_radius_mm)
+    if kt <= k_now:
+        return None
+    d_first = float(optimize.brentq(lambda x: doubled_risk(x) - allowed, d_lo, d, xtol=1e-3))
+    goal = k_now + settings.two_pass_fraction * (kt - k_now)
+    if predict(d_first).median > goal and predict(d_lo).median < goal:
+        d_first = float(
+            optimize.brentq(lambda x: predict(x).median - goal, d_lo, d_first, xtol=1e-3)
+        )
+    share = (predict(d_first).median - k_now) / (kt - k_now)
+    words = (
+        "the pass's scatter fills the tolerance band (a scatter twice its estimate would put this "
+        f"pass past the band with more than {allowed:.2%}): approach in two passes, this one to "
+        f"{share:.0%} of the remaining bend, the next from its inspection"
     )
     return d_first, words
 
