@@ -17,8 +17,8 @@ hundreds of millimetres apart, so the plate is found as the near, smooth sheet o
    the parts narrower than ``support_width_mm`` whose depth leaves the smooth surface: supports that
    reach out beside the plate at its depth (a rail under its edge). Such a part that rounds the plate's
    outline out instead of reaching out of it (the concavity it leaves beside it well under its reach
-   beyond the rest's convex hull: a corner, which the opening cuts off, bent off the surface) is the
-   plate's own and stays (:func:`~pipeline.segmentation.classify.outline_corners`). Where a support
+   beyond the rest's convex hull, a reach no longer than the opening's radius: a corner, which the
+   opening cuts off, bent off the surface) is the plate's own and stays (:func:`~pipeline.segmentation.classify.outline_corners`). Where a support
    met the plate, the edge band is widened to a quarter of that width.
 4. *Holes stay holes*: a region enclosed by the plate is filled only if at most a quarter of it shows
    depth off the plate or darkness, and it is a small dropout (at most ``max_dropout_mm2``) or, given
