@@ -129,15 +129,13 @@ def classify(
         support_width_mm,
         max(PROTRUSION_RESIDUAL_MM, 5.0 * surface.rms_mm),
     )
-    min_half_width_px = max(1.5, support_width_mm / mm_per_px / 20)
-    corners = outline_corners(
-        core, wide_parts(protrusions, min_half_width_px), 0.5 * support_width_mm / mm_per_px
-    )
+    wide = wide_parts(protrusions, max(1.5, support_width_mm / mm_per_px / 20))
+    corners = outline_corners(core, wide, 0.5 * support_width_mm / mm_per_px)
     protrusions &= ~corners
     if protrusions.any():
         core &= ~protrusions
         core = largest_component(core)
-    feet = wide_parts(protrusions, min_half_width_px)
+    feet = wide & ~corners  # whole components leave: the others stay as wide as they were
     enclosed = _enclosed(core, off | dark | ~ok, area, geometry, normals, max_dropout_mm2)
     # the rim: a pixel mostly dark (under half the plate's median brightness, unsmoothed) is not taken
     lit = b >= 0.5 * float(np.median(b[::4, ::4][core[::4, ::4]]))
@@ -344,7 +342,8 @@ def outline_corners(core: np.ndarray, parts: np.ndarray, max_reach_px: float) ->
     for i in range(1, n):
         x, y, w, h = (int(v) for v in stats[i, :4])
         part = labels == i
-        reach = _beyond_hull(rest_hull, part)
+        pts = np.argwhere(part)[:, ::-1]  # (x, y) of its pixels
+        reach = _beyond_hull(rest_hull, pts)
         if not 0 < reach <= max_reach_px:
             continue
         m = int(math.ceil(2 * reach)) + 2  # the concavity beside a support lies within its reach
@@ -354,7 +353,7 @@ def outline_corners(core: np.ndarray, parts: np.ndarray, max_reach_px: float) ->
             min(core.shape[1], x + w + m),
             min(core.shape[0], y + h + m),
         )
-        if _concavity(rest_hull, rest, part, window) < CORNER_CONCAVITY_SHARE * reach:
+        if _concavity(rest_hull, rest, (part, pts), window) < CORNER_CONCAVITY_SHARE * reach:
             out |= part
     return out
 
@@ -368,26 +367,30 @@ def _filled_hull(points: np.ndarray, window: tuple[int, int, int, int]) -> np.nd
     return mask
 
 
-def _beyond_hull(hull: np.ndarray, part: np.ndarray) -> float:
-    """How far (px) ``part`` reaches beyond the convex polygon ``hull`` (N, 1, 2): the largest distance of its
-    pixels past the polygon's edge lines (0 when every pixel is inside)."""
+def _beyond_hull(hull: np.ndarray, pts: np.ndarray) -> float:
+    """How far (px) the pixels ``pts`` ((M, 2) x, y) reach beyond the convex polygon ``hull`` (N, 1, 2): the
+    largest distance of one past the polygon's edge lines (0 when every pixel is inside)."""
     v = hull.reshape(-1, 2).astype(np.float64)
     edges = np.roll(v, -1, axis=0) - v
     normals = np.stack([edges[:, 1], -edges[:, 0]], axis=1)
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
     centre = v.mean(axis=0)
     normals *= np.where(np.einsum("kc,kc->k", normals, centre - v) > 0, -1.0, 1.0)[:, None]
-    pts = np.argwhere(part)[:, ::-1].astype(np.float64)
-    signed = (pts @ normals.T) - np.einsum("kc,kc->k", normals, v)
+    signed = (pts.astype(np.float64) @ normals.T) - np.einsum("kc,kc->k", normals, v)
     return float(max(0.0, signed.max(axis=1).max()))
 
 
 def _concavity(
-    rest_hull: np.ndarray, rest: np.ndarray, part: np.ndarray, window: tuple[int, int, int, int]
+    rest_hull: np.ndarray,
+    rest: np.ndarray,
+    part_and_pts: tuple[np.ndarray, np.ndarray],
+    window: tuple[int, int, int, int],
 ) -> float:
-    """The depth (px) of the concavity beside ``part``, within ``window``: see :func:`outline_corners`."""
+    """The depth (px) of the concavity beside a part (its mask and its pixels' (x, y)), within ``window``:
+    see :func:`outline_corners`."""
     x0, y0, x1, y1 = window
-    pts = np.concatenate([rest_hull.reshape(-1, 2), np.argwhere(part)[:, ::-1]]).astype(np.int32)
+    part, part_pts = part_and_pts
+    pts = np.concatenate([rest_hull.reshape(-1, 2), part_pts]).astype(np.int32)
     hull = _filled_hull(pts, window)
     before = _filled_hull(rest_hull, window)
     gap = (hull > 0) & (before == 0) & ~rest[y0:y1, x0:x1] & ~part[y0:y1, x0:x1]
