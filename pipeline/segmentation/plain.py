@@ -7,6 +7,8 @@ import math
 import cv2
 import numpy as np
 
+from pipeline.solvers import labelled
+
 from .checks import check_bool_image, check_camera_matrix
 from .classify import SUPPORT_WIDTH_MM, narrow_parts, wide_parts
 from .surface import DEPTH_BAND_MM, FIT_SAMPLES, design, fit_surface, normalised_coords
@@ -118,10 +120,9 @@ def _unmatched_support(parts: np.ndarray, depth: np.ndarray, mm_per_px: float) -
     wide = wide_parts(parts, 0.5 * PLAIN_SUPPORT_MIN_WIDTH_MM / mm_per_px)
     if not wide.any():
         return False
-    n, labels = cv2.connectedComponents(wide.view(np.uint8), connectivity=8)
+    n, labels, areas = labelled(wide, connectivity=8)
     unmatched = ~np.isfinite(depth[wide])
     share = (
-        np.bincount(labels[wide], weights=unmatched.astype(np.float64), minlength=n)[1:]
-        / (np.bincount(labels[wide], minlength=n)[1:])
+        np.bincount(labels[wide], weights=unmatched.astype(np.float64), minlength=n)[1:] / areas[1:]
     )
     return bool(np.any(share > 0.5))
