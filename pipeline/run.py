@@ -80,6 +80,10 @@ def __getattr__(name: str) -> Any:
 
 #: A measured area (mask and edge band) under this share of the target's gets a warning in the result.
 AREA_WARNING_RATIO = 0.9
+#: Measured surface beyond the target's outline (left out of the judgement) over this share of the
+#: target's area gets a warning: a plate cut to its outline within a few mm has far less beyond it
+#: (2 mm all round a 3 m square: 0.3 %).
+BEYOND_OUTLINE_WARNING_SHARE = 0.01
 
 
 @dataclass(frozen=True)
@@ -250,6 +254,7 @@ def _inspect_stations(
             f"the measured area is {100 * ratio:.0f} % of the target's: openings, a plate partly out of "
             "view, or areas no station measured were not measured"
         )
+    warnings += _outline_warning(details, tgt)
     if not plate.uncertainty.capable(tgt.tolerance_mm):
         warnings.append(
             f"the measurement is not capable for this tolerance: its expanded uncertainty (k = 2) is "
@@ -314,6 +319,7 @@ def _details(m: Measurement, pre: Preprocessed, tgt: Target, *, near_field: bool
             radius_mm=_round(m.uncertainty.radius_mm, 3),
             components=m.uncertainty.components,
             edge_band_mm=m.edge_band_mm,
+            beyond_outline_mm2=round(m.beyond_outline_mm2, 1),
         ),
     )
 
@@ -349,7 +355,20 @@ def _warnings(surface: reconstruct.Surface, tgt: Target, details: Details) -> li
             f"the measured area is {100 * ratio:.0f} % of the target's: openings, a plate "
             f"partly out of view, or areas the stereo pair could not match were not measured (details.json: segmentation)"
         )
-    return warnings
+    return warnings + _outline_warning(details, tgt)
+
+
+def _outline_warning(details: Details, tgt: Target) -> list[str]:
+    """A warning when much of the measured surface lay beyond the target's outline (not judged)."""
+    beyond = 0.0 if details.uncertainty is None else details.uncertainty.beyond_outline_mm2
+    target_area = target_area_mm2(tgt)
+    if beyond <= BEYOND_OUTLINE_WARNING_SHARE * target_area:
+        return []
+    return [
+        f"{beyond / 1e6:.3f} m^2 of the measured surface ({100 * beyond / target_area:.1f} % of the "
+        "target's area) lay beyond the target's outline and was not judged: a plate larger than its "
+        "target, or its surroundings measured as plate (details.json: uncertainty.beyond_outline_mm2)"
+    ]
 
 
 def _capability_warnings(m: Measurement, cap: Capture, tgt: Target) -> list[str]:

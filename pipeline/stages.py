@@ -30,6 +30,7 @@ from pipeline.judge import (
     area,
     curvature,
     deviation,
+    outline,
     registration,
     target_geometry,
     uncertainty,
@@ -202,6 +203,9 @@ class Measurement:
     uncertainty: uncertainty.Uncertainty
     #: Width of the edge band left out of the judgement, mm (median pixel footprint times EDGE_BAND_PX).
     edge_band_mm: float
+    #: Measured surface beyond the target's outline, left out of the judgement, mm^2
+    #: (:mod:`pipeline.judge.outline`).
+    beyond_outline_mm2: float = 0.0
 
 
 def load_inputs(
@@ -650,7 +654,8 @@ def _judge(
     areas and every point's uncertainty beside the registration, each artifact written beside the main
     line as soon as it is known. ``writes``: the artifact writes under way (normals.png when the distant
     normals were written already); ``qualify``: every point's uncertainty on the judged pixels (the
-    surface without its edge band: :func:`edge_band`)."""
+    surface without its edge band: :func:`edge_band`), restricted once the registration has placed the
+    target's outline (:mod:`pipeline.judge.outline`)."""
     field, surface_mask = surface.field, surface.mask
     normals_written = bool(writes)
     clock.begin("curvature")
@@ -674,11 +679,19 @@ def _judge(
         )
     clock.begin("deviation")
     pose = registration.register_to_target(points, surface_mask, tgt)
-    # NaN in the edge band, left out by geometry so that every artifact agrees
+    beyond = outline.beyond_outline(points, surface_mask, tgt, pose)
+    if beyond.any():
+        band, judged = clipped_band(
+            surface_mask, beyond
+        )  # new arrays: the worker still reads judged
+    # the band is NaN, left out by geometry so that every artifact agrees
     dev = np.where(band, np.nan, deviation.deviation_map(points, surface_mask, tgt, pose))
+    point_u = points_job.result()
+    if beyond.any():
+        point_u = uncertainty.restricted(point_u, judged)
     radius = pose.fitted_radius_mm
     qualified = uncertainty.with_radius(
-        points_job.result(),
+        point_u,
         radius_mm=None if radius is None else float(radius),
         curved_direction=np.asarray(pose.T_cam_target)[:3, 0],
     )
@@ -717,7 +730,17 @@ def _judge(
         points=points,
         uncertainty=qualified,
         edge_band_mm=round(EDGE_BAND_PX * float(np.median(footprint)), 1),
+        beyond_outline_mm2=float(np.nansum(pixel_area[beyond])),
     )
+
+
+def clipped_band(mask: np.ndarray, beyond: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The band left out of the judgement when part of ``mask`` lies ``beyond`` the target's outline
+    (:mod:`pipeline.judge.outline`), and the judged pixels: the pixels beyond, and the :func:`edge_band`
+    of the plate clipped to the outline (the pixels at the cut mix plate and what lies past its edge,
+    as at the segmented outline). The judged pixels are a subset of those of ``mask``'s own band."""
+    band = beyond | edge_band(mask & ~beyond)
+    return band, mask & ~band
 
 
 def edge_band(mask: np.ndarray, width_px: int = EDGE_BAND_PX) -> np.ndarray:

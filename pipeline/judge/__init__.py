@@ -7,6 +7,7 @@ Modules, one job each:
 - :mod:`~pipeline.judge.fits`: cylinder, sphere and saddle fits to measured points;
 - :mod:`~pipeline.judge.curvature`: principal curvatures and the radius;
 - :mod:`~pipeline.judge.deviation`: the deviation map along the target's normal;
+- :mod:`~pipeline.judge.outline`: the points beyond the target's outline, left out of the judgement;
 - :mod:`~pipeline.judge.area`: the area each pixel sees;
 - :mod:`~pipeline.judge.uncertainty`: per-point and per-result expanded uncertainty (k = 2);
 - :mod:`~pipeline.judge.verdict`: the decision rule, defects and reasons;

@@ -5,6 +5,7 @@ from .curvature import CurvatureResult, principal_curvatures
 from .details import Details
 from .deviation import deviation_map
 from .fits import CylinderFit, PlaneFit, SphereFit, fit_cylinder, fit_plane, fit_sphere
+from .outline import beyond_outline
 from .plate_map import PlateMap, load_plate_map, plate_map
 from .registration import Registration, register_to_target
 from .sections import PlateFrame, Section, cut_sections, load_sections
@@ -26,6 +27,7 @@ __all__ = [
     "Section",
     "SphereFit",
     "Uncertainty",
+    "beyond_outline",
     "cut_sections",
     "deviation_map",
     "fit_cylinder",

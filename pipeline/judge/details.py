@@ -94,14 +94,16 @@ class FusionDetails:
 @dataclass(frozen=True)
 class UncertaintyDetails:
     """How the expanded uncertainties were made (:mod:`pipeline.judge.uncertainty`): ``k``, the figures (mm)
-    and the standard uncertainties behind them (``components``), and the edge band left out by
-    geometry (mm from the plate's outline and openings)."""
+    and the standard uncertainties behind them (``components``), and what was left out of the judgement
+    by geometry: the edge band (mm from the plate's outline and openings) and the measured surface
+    beyond the target's outline (mm^2, :mod:`pipeline.judge.outline`)."""
 
     k: float
     deviation_mm: float
     radius_mm: float | None
     components: dict[str, float]
     edge_band_mm: float
+    beyond_outline_mm2: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -39,7 +39,7 @@ References
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import cv2
@@ -262,6 +262,17 @@ def propagate_points(x: Inputs) -> PointUncertainty:
         extent_px=extent_px,
         bend_cov=None if x.fusion is None else x.fusion.bend_cov,
     )
+
+
+def restricted(p: PointUncertainty, judged: np.ndarray) -> PointUncertainty:
+    """``p`` on the judged pixels ``judged`` (a subset of the mask it was propagated on): the map NaN
+    elsewhere and the deviation's figure its 95th percentile there, as :func:`propagate_points` makes it."""
+    map_mm = np.where(judged, p.map_mm, np.float32(np.nan)).astype(np.float32)
+    values = map_mm[judged]
+    values = values[np.isfinite(values)]
+    if values.size == 0:
+        raise ValueError("judged: expected judged points with an uncertainty, got none")
+    return replace(p, map_mm=map_mm, deviation_mm=float(percentile(values, 95)))
 
 
 def with_radius(

@@ -24,7 +24,15 @@ import numpy as np
 from pipeline import artifacts
 from pipeline.artifacts import ARTIFACT_FILES
 from pipeline.io import Capture, Target, load_capture, load_target
-from pipeline.judge import curvature, deviation, registration, target_geometry, uncertainty, verdict
+from pipeline.judge import (
+    curvature,
+    deviation,
+    outline,
+    registration,
+    target_geometry,
+    uncertainty,
+    verdict,
+)
 from pipeline.judge.details import (
     BrightnessSegmentationDetails,
     Details,
@@ -45,6 +53,7 @@ from pipeline.stages import (
     InspectOptions,
     ProgressCallback,
     StageClock,
+    clipped_band,
     edge_band,
     load_inputs,
     preprocess_scene,
@@ -99,6 +108,8 @@ class StitchedPlate:
     stations: list[StationResult]
     edge_band_mm: float
     warnings: list[str]
+    #: Measured surface beyond the target's outline, left out of the judgement, mm^2.
+    beyond_outline_mm2: float = 0.0
 
 
 #: The station reconstructed already for a planned station (its reference), or None: reconstruct it
@@ -277,9 +288,10 @@ def _judge(
         clock.begin("deviation")
         pose = registration.register_to_target(points, mask, tgt)
         dev = deviation.deviation_map(points, mask, tgt, pose)
-        band = edge_band(mask)
+        # as for one view: the edge band, along the outline clipped to the target's, left out by geometry
+        beyond = outline.beyond_outline(points, mask, tgt, pose)
+        band, judged = clipped_band(mask, beyond)
         dev = np.where(band, np.nan, dev)
-        judged = mask & ~band
         qualified, reg_sd = _qualify(stations, poses, mosaic, pose, judged, tgt)
         normals, area = normals_job.result()
         has_normal = mask & np.isfinite(normals).all(axis=-1)
@@ -309,6 +321,7 @@ def _judge(
         registration_sd_mm=reg_sd,
         stations=stations,
         edge_band_mm=round(EDGE_BAND_PX * mosaic.cell_mm, 1),
+        beyond_outline_mm2=float(np.nansum(area[beyond])),
         warnings=[w for s in stations for w in s.warnings],
     )
 
@@ -522,6 +535,7 @@ def stitched_details(plate: StitchedPlate, tgt: Target) -> Details:
             else round(plate.uncertainty.radius_mm, 3),
             components=plate.uncertainty.components,
             edge_band_mm=plate.edge_band_mm,
+            beyond_outline_mm2=round(plate.beyond_outline_mm2, 1),
         ),
         stations=StitchDetails(cell_mm=round(m.cell_mm, 3), stations=stations, overlaps=overlaps),
     )
