@@ -16,7 +16,9 @@ itself and never reaches the outline: nothing is left out.
 
 from __future__ import annotations
 
-import cv2
+from typing import Any
+
+import numba
 import numpy as np
 import numpy.typing as npt
 
@@ -57,10 +59,31 @@ def beyond_outline(
     out = np.zeros(m.shape, bool)
     if tgt.shape == "mesh" or not m.any():
         return out
-    T = np.asarray(registration.T_cam_target, dtype=np.float64)
-    R, t = T[:3, :3], T[:3, 3]
-    to_target = np.hstack([R.T, (-R.T @ t)[:, None]])
-    q = cv2.transform(pts[m].reshape(-1, 1, 3), to_target).reshape(-1, 3)
+    T = np.ascontiguousarray(registration.T_cam_target, dtype=np.float64)
     half_x, half_y = (float(s) / 2 for s in tgt.size_mm)
-    out[m] = (np.abs(q[:, 0]) > half_x) | (np.abs(q[:, 1]) > half_y)
+    _beyond(np.ascontiguousarray(pts), np.ascontiguousarray(m), T, half_x, half_y, out)
     return out
+
+
+@numba.njit(nogil=True, cache=True)
+def _beyond(
+    pts: npt.NDArray[Any],
+    mask: npt.NDArray[Any],
+    T: npt.NDArray[Any],
+    half_x: float,
+    half_y: float,
+    out: npt.NDArray[Any],
+) -> None:  # pragma: no cover - compiled
+    """:func:`beyond_outline`'s test in one pass over the mask: a point's target-frame x and y,
+    ``R^T (p - t)`` with ``T = [R t]``, against the half sizes; single-threaded (the judging thread)."""
+    h, w = mask.shape
+    for i in range(h):
+        for j in range(w):
+            if not mask[i, j]:
+                continue
+            dx = pts[i, j, 0] - T[0, 3]
+            dy = pts[i, j, 1] - T[1, 3]
+            dz = pts[i, j, 2] - T[2, 3]
+            x = T[0, 0] * dx + T[1, 0] * dy + T[2, 0] * dz
+            y = T[0, 1] * dx + T[1, 1] * dy + T[2, 1] * dz
+            out[i, j] = abs(x) > half_x or abs(y) > half_y
