@@ -678,22 +678,8 @@ def _judge(
             )
         )
     clock.begin("deviation")
-    pose = registration.register_to_target(points, surface_mask, tgt)
-    beyond = outline.beyond_outline(points, surface_mask, tgt, pose)
-    if beyond.any():
-        band, judged = clipped_band(
-            surface_mask, beyond
-        )  # new arrays: the worker still reads judged
-    # the band is NaN, left out by geometry so that every artifact agrees
-    dev = np.where(band, np.nan, deviation.deviation_map(points, surface_mask, tgt, pose))
-    point_u = points_job.result()
-    if beyond.any():
-        point_u = uncertainty.restricted(point_u, judged)
-    radius = pose.fitted_radius_mm
-    qualified = uncertainty.with_radius(
-        point_u,
-        radius_mm=None if radius is None else float(radius),
-        curved_direction=np.asarray(pose.T_cam_target)[:3, 0],
+    pose, beyond, judged, dev, qualified = _registered(
+        points, surface_mask, band, judged, tgt, points_job
     )
     writes += write_deviation(pool, out, points, surface_mask, dev, tgt.tolerance_mm)
     writes.append(
@@ -732,6 +718,35 @@ def _judge(
         edge_band_mm=round(EDGE_BAND_PX * float(np.median(footprint)), 1),
         beyond_outline_mm2=float(np.nansum(pixel_area[beyond])),
     )
+
+
+def _registered(
+    points: np.ndarray,
+    surface_mask: np.ndarray,
+    band: np.ndarray,
+    judged: np.ndarray,
+    tgt: Target,
+    points_job: Future[uncertainty.PointUncertainty],
+) -> tuple[registration.Registration, np.ndarray, np.ndarray, np.ndarray, uncertainty.Uncertainty]:
+    """The target registered to the plate; the pixels beyond its outline (:mod:`pipeline.judge.outline`);
+    the judged pixels (``judged`` less them and the band drawn again along the outline so clipped: new
+    arrays, the qualifying worker still reads ``judged``); the deviation, NaN in the band (left out by
+    geometry, so that every artifact agrees); every judged point's uncertainty (``points_job``'s)."""
+    pose = registration.register_to_target(points, surface_mask, tgt)
+    beyond = outline.beyond_outline(points, surface_mask, tgt, pose)
+    if beyond.any():
+        band, judged = clipped_band(surface_mask, beyond)
+    dev = np.where(band, np.nan, deviation.deviation_map(points, surface_mask, tgt, pose))
+    point_u = points_job.result()
+    if beyond.any():
+        point_u = uncertainty.restricted(point_u, judged)
+    radius = pose.fitted_radius_mm
+    qualified = uncertainty.with_radius(
+        point_u,
+        radius_mm=None if radius is None else float(radius),
+        curved_direction=np.asarray(pose.T_cam_target)[:3, 0],
+    )
+    return pose, beyond, judged, dev, qualified
 
 
 def clipped_band(mask: np.ndarray, beyond: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
