@@ -770,10 +770,12 @@ def _held_to_quadric(f: _Fitted, blocks: _Blocks, scale2: float) -> _Fitted:
     departures ``d`` of the coefficients from the fit's own quadric (its projection in the
     metric of the normal matrix: the weighted least-squares quadric of the same blocks) are taken
     as independent with variance ``tau^2`` (empirical Bayes: ``tau^2`` from the departures
-    themselves, each weighted by how well it is known, Paule-Mandel [4]_), and the coefficients
-    are their posterior mean: a coefficient that many blocks hold keeps its value (its variance is
-    far below ``tau^2``), one that none holds returns to the quadric, and its posterior variance
-    (``tau^2`` at most) is the correction's standard deviation there.
+    themselves, each weighted by how well it is known, Paule-Mandel [4]_). A coefficient that the
+    blocks fix better than that spread (its least-squares variance below ``tau^2``) keeps its
+    least-squares value: the prior there would only shrink what the stereo pair proves (the bend of
+    near-field lights given by their directions grows towards the rim). One that they fix worse is
+    its posterior mean under the prior: held to the quadric as far as the blocks are weak, with a
+    posterior variance of ``tau^2`` at most, the correction's standard deviation there.
 
     References
     ----------
@@ -787,7 +789,9 @@ def _held_to_quadric(f: _Fitted, blocks: _Blocks, scale2: float) -> _Fitted:
     departure = f.coef - prior
     var = scale2 * np.clip(np.diag(np.linalg.pinv(N)), 0.0, None)
     tau2 = _between_variance(departure, var, dof=grid.size - Qc.shape[1])
-    A = N + (scale2 / tau2) * np.eye(grid.size)
+    # the prior only where it knows more than the data: a coefficient the blocks fix better than
+    # the departures spread keeps its least-squares value
+    A = N + np.diag(np.where(var > tau2, scale2 / tau2, 0.0))
     inverse = np.linalg.inv(A)
     coef = prior + inverse @ (N @ departure)
     Bv = grid.basis(blocks.centre_r, grid.nv)

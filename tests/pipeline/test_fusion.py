@@ -110,10 +110,10 @@ def test_a_coarser_splines_coefficients_beyond_the_stereo_blocks_stay_bounded(se
     all, and normals bent beyond a quadric: the test takes a spline coarser than the finest, whose
     corner coefficients no stereo block holds. Fitted by least squares (before), the island took
     the free continuation of those coefficients: on seeds 0-3 it was 4.2-6.7 mm off. Now a
-    coefficient's departure from the fit's quadric has a prior whose variance the well-held
-    coefficients set, so the island keeps to the quadric's continuation (2.1-2.9 mm off, 170 px
-    beyond any stereo block) and its stated uncertainty covers that; the plate elsewhere does not
-    change."""
+    coefficient that the blocks fix worse than the spread of the coefficients' departures from the
+    fit's quadric is held to that quadric by a prior of that spread, so the island keeps closer to
+    the quadric's continuation (2.3-3.4 mm off, 170 px beyond any stereo block), its stated
+    uncertainty covers that, and the plate elsewhere does not change."""
     z, _, _, u, v = _surface()
     z = z - _surface()[1]  # no dent
     mask = np.zeros((H, W), bool)
