@@ -22,13 +22,18 @@ finest spline, it is estimated as a smoother: its second-difference penalty a pr
 correction's roughness whose weight the data set (REML, :func:`_penalised`), so that its knot cells
 at the outline or in a thin part of the mask, which few stereo blocks hold, follow the plate inside
 as far as those blocks are weak instead of their correlated stereo error (bench_lights case 11, the
-plate's edge beside a glare-lit conveyor). The noise is measured on
-the data: the robust spread of the finest rung's block residuals and their correlation between
-neighbouring blocks (a stereo matcher's errors are correlated over its window and smoothness
-term), which inflates what pure noise takes out of the residual. So exact normals keep their shape
-(and their noise is all that reaches it), while wrong lights, whose bend the stereo pair proves,
-hand the plate's overall shape to it. The fit's covariance gives the correction's own standard
-deviation at every pixel and the bend's, for the uncertainty (:mod:`pipeline.judge.uncertainty`).
+plate's edge beside a glare-lit conveyor). When the test takes a coarser spline, its coefficients
+whose basis the blocks barely reach (the ring of knots beyond the outline, a corner of the mask's
+bounding box) are held to the fit's quadric by a prior whose variance the well-held ones set
+(:func:`_held_to_quadric`), instead of the free extrapolation of a few rim blocks (the sweep's
+glossy cells, seeds 92 and 99, whose stereo pair carries highlights at the rim). The noise is
+measured on the data: the robust spread of the finest rung's block residuals and their
+correlation between neighbouring blocks (a stereo matcher's errors are correlated over its window
+and smoothness term), which inflates what pure noise takes out of the residual. So exact normals
+keep their shape (and their noise is all that reaches it), while wrong lights, whose bend the
+stereo pair proves, hand the plate's overall shape to it. The fit's covariance gives the
+correction's own standard deviation at every pixel and the bend's, for the uncertainty
+(:mod:`pipeline.judge.uncertainty`).
 
 References
 ----------
@@ -211,7 +216,8 @@ def fuse_low_frequencies(
     blocks = _Blocks.of(zb, zsb, mb)
     fits = _ladder_fits(blocks, mb.shape, knot_fraction, select)
     chosen, inflation, evidence = _chosen(fits, blocks, coarsest) if select else (fits[0], 1.0, {})
-    finest = chosen is fits[-1]
+    index = next(i for i, f in enumerate(fits) if f is chosen)
+    finest = index == len(fits) - 1
     if select and finest and chosen.basis is None:  # the finest spline: estimated as a smoother
         chosen = _fit(
             chosen.grid, blocks, rung=chosen.rung, n_params=chosen.grid.size, smoother=True
@@ -219,7 +225,10 @@ def fuse_low_frequencies(
     fraction = chosen.rung if chosen.rung not in _POLYNOMIAL else None
     sigma_pix = fits[-1].sigma_pix if select else chosen.sigma_pix  # the finest rung's: the noise
     scale2 = _noise_variance(sigma_pix, blocks) * inflation
-    finer = None if finest else fits[next(i for i, f in enumerate(fits) if f is chosen) + 1]
+    finer = None if finest else fits[index + 1]
+    if select and not finest and chosen.basis is None:
+        # a coarser spline: its coefficients that no block holds are not left to free extrapolation
+        chosen = _held_to_quadric(chosen, blocks, scale2)
     with ThreadPoolExecutor(max_workers=1) as pool:
         # the maps of the correction's uncertainty on a worker, beside the fused depth
         maps = pool.submit(_uncertainty_maps, chosen, finer, scale2, zb, mb, box, z.shape, select)
@@ -542,7 +551,8 @@ def correction_basis(
     pixels (``rows``, ``cols``) of the surface's bounding box (``shape`` px; box coordinates): a plane
     or a quadric in (u, v), or the cubic splines of its knot spacing over the box. Whatever change of
     the photometric log depth lies in their span, the stereo pair's correction takes out (the
-    uncertainty's lobe part; the finest spline, estimated as a smoother, takes out a little less).
+    uncertainty's lobe part; a spline estimated with a prior, :func:`_penalised` and
+    :func:`_held_to_quadric`, takes out a little less).
     """
     if knot_spacing_px is not None:
         grid = _Grid.over(shape, knot_spacing_px)
@@ -748,6 +758,77 @@ def _fit(
         basis=Q,
         n_params=edf,
     )
+
+
+def _held_to_quadric(f: _Fitted, blocks: _Blocks, scale2: float) -> _Fitted:
+    """A spline rung of fixed size with a prior on its coefficients' departure from its quadric.
+
+    The ladder's fits are least squares (the lack-of-fit test compares them), so a coefficient
+    whose basis the blocks barely reach (the ring of knots beyond the mask's outline, a corner of
+    its bounding box) takes whatever a few rim blocks and the cubic's continuation give it, with a
+    standard deviation of many mm, and the correction there is free extrapolation. Here the
+    departures ``d`` of the coefficients from the fit's own quadric (its projection in the
+    metric of the normal matrix: the weighted least-squares quadric of the same blocks) are taken
+    as independent with variance ``tau^2`` (empirical Bayes: ``tau^2`` from the departures
+    themselves, each weighted by how well it is known, Paule-Mandel [4]_). A coefficient that the
+    blocks fix better than that spread (its least-squares variance below ``tau^2``) keeps its
+    least-squares value: the prior there would only shrink what the stereo pair proves (the bend of
+    near-field lights given by their directions grows towards the rim). One that they fix worse is
+    its posterior mean under the prior: held to the quadric as far as the blocks are weak, with a
+    posterior variance of ``tau^2`` at most, the correction's standard deviation there.
+
+    References
+    ----------
+    .. [4] R. C. Paule, J. Mandel, "Consensus values and weighting factors", J. Res. Natl. Bur.
+       Stand. 87 (1982) 377-385.
+    """
+    grid = f.grid
+    N = f.normal
+    Qc = _polynomial_basis(grid, 2)
+    prior = Qc @ np.linalg.solve(Qc.T @ N @ Qc, Qc.T @ (N @ f.coef))
+    departure = f.coef - prior
+    var = scale2 * np.clip(np.diag(np.linalg.pinv(N)), 0.0, None)
+    tau2 = _between_variance(departure, var, dof=grid.size - Qc.shape[1])
+    # the prior only where it knows more than the data: a coefficient the blocks fix better than
+    # the departures spread keeps its least-squares value
+    A = N + np.diag(np.where(var > tau2, scale2 / tau2, 0.0))
+    inverse = np.linalg.inv(A)
+    coef = prior + inverse @ (N @ departure)
+    Bv = grid.basis(blocks.centre_r, grid.nv)
+    Bu = grid.basis(blocks.centre_c, grid.nu)
+    residual = blocks.value - (Bv @ coef.reshape(grid.nv, grid.nu)) @ Bu.T
+    return _Fitted(
+        rung=f.rung,
+        grid=grid,
+        coef=coef,
+        sigma_pix=f.sigma_pix,
+        residual=np.where(blocks.count > 0, residual, 0.0),
+        normal=A,
+        inverse=inverse,
+        basis=None,
+        n_params=float(np.trace(inverse @ N)),
+    )
+
+
+#: Halvings of the bisection of :func:`_between_variance`: 2^-50 of its first bracket, round-off.
+_BISECTIONS = 50
+
+
+def _between_variance(values: np.ndarray, var: np.ndarray, *, dof: int) -> float:
+    """``tau^2`` of ``values ~ N(0, var + tau^2)`` by the Paule-Mandel moment equation
+    ``sum(values^2 / (var + tau^2)) = dof`` (a value far less sure than ``tau^2`` weighs little;
+    ``dof``: the values' count less the parameters fitted before them). At least the smallest
+    positive ``var`` over the values' count (no departure beyond the noise: held to the quadric)."""
+    n = max(dof, 1)
+    floor = float(np.min(var[var > 0])) / values.size if np.any(var > 0) else 1e-30
+    lo, hi = 0.0, float(np.sum(values**2)) + floor
+    for _ in range(_BISECTIONS):  # the sum falls as tau^2 grows
+        mid = 0.5 * (lo + hi)
+        if np.sum(values**2 / (var + mid)) > n:
+            lo = mid
+        else:
+            hi = mid
+    return max(0.5 * (lo + hi), floor)
 
 
 def _penalised(
