@@ -734,11 +734,12 @@ def _registered(
     geometry, so that every artifact agrees); every judged point's uncertainty (``points_job``'s)."""
     pose = registration.register_to_target(points, surface_mask, tgt)
     beyond = outline.beyond_outline(points, surface_mask, tgt, pose)
-    if beyond.any():
+    clipped = bool(beyond.any())
+    if clipped:
         band, judged = clipped_band(surface_mask, beyond)
     dev = np.where(band, np.nan, deviation.deviation_map(points, surface_mask, tgt, pose))
     point_u = points_job.result()
-    if beyond.any():
+    if clipped:
         point_u = uncertainty.restricted(point_u, judged)
     radius = pose.fitted_radius_mm
     qualified = uncertainty.with_radius(

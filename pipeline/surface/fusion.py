@@ -787,7 +787,7 @@ def _held_to_quadric(f: _Fitted, blocks: _Blocks, scale2: float) -> _Fitted:
     Qc = _polynomial_basis(grid, 2)
     prior = Qc @ np.linalg.solve(Qc.T @ N @ Qc, Qc.T @ (N @ f.coef))
     departure = f.coef - prior
-    var = scale2 * np.clip(np.diag(np.linalg.pinv(N)), 0.0, None)
+    var = np.clip(np.diag(_coef_cov(f, scale2)), 0.0, None)  # the fit's inverse, when it has one
     tau2 = _between_variance(departure, var, dof=grid.size - Qc.shape[1])
     # the prior only where it knows more than the data: a coefficient the blocks fix better than
     # the departures spread keeps its least-squares value

@@ -11,8 +11,9 @@ from pipeline.io import Target
 from pipeline.judge.outline import beyond_outline
 from pipeline.judge.registration import register_to_target
 from pipeline.run import inspect
-from pipeline.simulate import CaptureSpec, Floor, PlateSpec, rail_supports, simulate_capture
+from pipeline.simulate import CaptureSpec, PlateSpec, simulate_capture
 from pipeline.stages import EDGE_BAND_PX, clipped_band, edge_band
+from tests.pipeline.scenes import dark_floor_with_rails
 from tests.pipeline.surfaces import plate_grid
 
 
@@ -130,9 +131,7 @@ def test_a_rail_stub_past_a_plate_formed_exactly_is_not_judged(tmp_path):
     rail's top continues the plate's curved end for some 50 mm at its depth, and no segmentation test
     tells it from a flattened edge; judged, its stub failed the plate formed exactly at 6.7 mm. It lies
     beyond the target's outline, and the band is drawn along the outline there."""
-    floor = Floor(
-        gap_mm=300.0, albedo=0.03, texture=0.0, supports=rail_supports((3000.0, 3000.0), 300.0, 3)
-    )
+    floor = dark_floor_with_rails()
     bundle = simulate_capture(
         tmp_path / "bundle",
         plate=PlateSpec(floor=floor),

@@ -33,6 +33,7 @@ from pipeline.simulate import (
 )
 from pipeline.surface.normals import estimate_normals
 from tests.pipeline.bundles import before_segmentation
+from tests.pipeline.scenes import dark_floor_with_rails
 
 W, H = 612, 512
 FLOOR = Floor(gap_mm=300.0, supports=rail_supports((3000.0, 3000.0), 300.0, 3))
@@ -389,9 +390,7 @@ def test_a_refit_not_kept_leaves_the_rails_of_a_dark_floor_out(tmp_path, monkeyp
     28 710 px of rail measured. It is now measured again on the segmented plate, should a plain scene's
     brightness mask hold what the segmentation leaves out."""
     monkeypatch.setattr("pipeline.segmentation.plain_depth", lambda *args, **kwargs: True)
-    floor = Floor(
-        gap_mm=300.0, albedo=0.03, texture=0.0, supports=rail_supports((3000.0, 3000.0), 300.0, 3)
-    )
+    floor = dark_floor_with_rails()
     bundle = simulate_capture(
         tmp_path / "bundle",
         plate=PlateSpec(floor=floor),
