@@ -15,6 +15,7 @@ import numba
 import numpy as np
 import numpy.typing as npt
 
+from pipeline.camera import StereoRig
 from pipeline.formats import CaptureError
 from pipeline.io import Capture
 from pipeline.parallel import default_workers
@@ -115,11 +116,14 @@ def working_binning(capture: Capture, cell_mm: float | None, distance_mm: float)
     int
         ``>= 1``.
     """
+    return binning_factor(capture.rig.left.K, capture.working_distance_mm or distance_mm, cell_mm)
+
+
+def binning_factor(K: np.ndarray, z_mm: float, cell_mm: float | None) -> int:
+    """:func:`working_binning` of a left camera ``K`` at the depth ``z_mm``."""
     if cell_mm is None:
         return 1
-    K = capture.rig.left.K
-    z = capture.working_distance_mm or distance_mm
-    return max(1, int(cell_mm * max(K[0, 0], K[1, 1]) / z))
+    return max(1, int(cell_mm * max(K[0, 0], K[1, 1]) / z_mm))
 
 
 def bin_capture(capture: Capture, factor: int, *, workers: int | None = None) -> Capture:
@@ -166,22 +170,34 @@ def bin_capture(capture: Capture, factor: int, *, workers: int | None = None) ->
         list(pool.map(one, range(len(raws))))
     own, dark = raw_noise_counts(capture)
     n = capture.n_lights
-    rig = capture.rig
-    rms = None if rig.rms_px is None else rig.rms_px / factor
-    # the images' last rows and columns beyond a whole block are cropped first (K unchanged), so the
-    # resize is by exactly 1 / factor
-    whole = (size[0] * factor, size[1] * factor)
-    left, right = (replace(cam, image_size=whole).resized(size) for cam in (rig.left, rig.right))
-    rig = replace(rig, left=left, right=right, rms_px=rms)
     return replace(
         capture,
-        rig=rig,
+        rig=binned_rig(capture.rig, factor),
         images=np.stack(outs[:n]),
         dark=None if capture.dark is None else outs[n],
         stereo_left=None if capture.stereo_left is None else outs[n + 1],
         stereo_right=None if capture.stereo_right is None else outs[n + 2],
         raw_noise=(own / factor, None if dark is None else dark / factor),
     )
+
+
+def binned_rig(rig: StereoRig, factor: int) -> StereoRig:
+    """The calibration of images binned ``factor`` times (:func:`bin_capture`): both cameras resized to
+    ``image_size // factor``, the RMS (px) scaled with the pixels."""
+    w, h = rig.image_size
+    size = (w // factor, h // factor)
+    rms = None if rig.rms_px is None else rig.rms_px / factor
+    # the images' last rows and columns beyond a whole block are cropped first (K unchanged), so the
+    # resize is by exactly 1 / factor
+    whole = (size[0] * factor, size[1] * factor)
+    left, right = (replace(cam, image_size=whole).resized(size) for cam in (rig.left, rig.right))
+    return replace(rig, left=left, right=right, rms_px=rms)
+
+
+def bin_into(raw: np.ndarray, out: np.ndarray, factor: int, bit_depth: int) -> None:
+    """``out`` = ``raw`` binned ``factor`` times as :func:`bin_capture` bins each image (``bit_depth``:
+    the capture's, which sets the saturation level)."""
+    _bin_into(raw, out, factor, SATURATION_FRACTION * float(2**bit_depth - 1))
 
 
 def raw_noise_counts(capture: Capture) -> tuple[np.ndarray, float | None]:
@@ -289,51 +305,42 @@ class Undistorted:
     glare_free: np.ndarray
 
 
-def undistorted(capture: Capture, *, workers: int | None = None) -> Undistorted:
+def undistorted(
+    capture: Capture,
+    *,
+    workers: int | None = None,
+    folded: tuple[np.ndarray, np.ndarray, bool] | None = None,
+) -> Undistorted:
     """Dark-subtract, normalise and undistort a capture's photometric images, and rank each pixel's
-    samples (the first part of :func:`preprocess`; ``workers`` as there)."""
+    samples (the first part of :func:`preprocess`; ``workers`` as there).
+
+    ``folded``: the images already undistorted one by one as they were taken (``(images, saturated,
+    any_saturated)`` as :func:`undistort_into` gives them, :mod:`pipeline.acquisition.streaming`), only ranked here.
+    """
     full_scale = float(2**capture.bit_depth - 1)
-    camera = capture.rig.left
-    map1, map2 = camera.undistort_maps()
+    map1, map2 = capture.rig.left.undistort_maps()
     raw, dark = capture.images, capture.dark
     n, (h, w) = capture.n_lights, raw.shape[1:]
     # undistorted pixels whose ray leaves the raw image have no sample in any image
     seen = cv2.remap(
         np.ones(raw.shape[1:], np.uint8), map1, map2, cv2.INTER_NEAREST, borderValue=0
     ).astype(bool)
-    images = np.empty((n, h, w), np.float32)
-    saturated = np.zeros(
-        (n, h, w), bool
-    )  # zero pages: only the images with a saturated pixel touch theirs
-    threshold = SATURATION_FRACTION * full_scale
+    if folded is not None:
+        images, saturated, any_saturated = folded
+    else:
+        images = np.empty((n, h, w), np.float32)
+        # zero pages: only the images with a saturated pixel touch theirs
+        saturated = np.zeros((n, h, w), bool)
+        threshold = SATURATION_FRACTION * full_scale
+        gains = undistort_gains(capture.light_intensity, capture.bit_depth)
 
-    def one(k: int) -> bool:
-        img = raw[k]
-        gain = 1.0 / (capture.light_intensity[k] * full_scale)
-        # (img - dark) * gain in one pass
-        signal = (
-            cv2.addWeighted(img, gain, dark, -gain, 0.0)
-            if dark is not None
-            else cv2.multiply(img, gain)
-        )
-        cv2.remap(
-            signal,
-            map1,
-            map2,
-            cv2.INTER_LINEAR,
-            dst=images[k],
-            borderMode=cv2.BORDER_CONSTANT,
-            borderValue=0,
-        )
-        if img.max() >= threshold:
-            # a sample is bad if any raw pixel it interpolates from is saturated: dilate by one pixel first
-            bad = cv2.dilate((img >= threshold).view(np.uint8), np.ones((3, 3), np.uint8))
-            saturated[k] = cv2.remap(bad, map1, map2, cv2.INTER_NEAREST, borderValue=0).astype(bool)
-            return True
-        return False
+        def one(k: int) -> bool:
+            return undistort_into(
+                raw[k], dark, float(gains[k]), (map1, map2), threshold, images[k], saturated[k]
+            )
 
-    with ThreadPoolExecutor(max_workers=workers or default_workers()) as pool:
-        any_saturated = any(list(pool.map(one, range(n))))  # list: every image must be done
+        with ThreadPoolExecutor(max_workers=workers or default_workers()) as pool:
+            any_saturated = any(list(pool.map(one, range(n))))  # list: every image must be done
 
     brightest = np.empty((h, w), np.float32)
     brightness = np.empty((h, w), np.float32)
@@ -341,6 +348,49 @@ def undistorted(capture: Capture, *, workers: int | None = None) -> Undistorted:
     low_rank = n - 1 - int(GLARE_FREE_SHARE * n)  # from the top
     _brightest(images, brightest, int(HIGHLIGHT_SHARE * n), brightness, low_rank, glare_free)
     return Undistorted(images, saturated, any_saturated, seen, brightest, brightness, glare_free)
+
+
+def undistort_gains(intensity: np.ndarray, bit_depth: int) -> np.ndarray:
+    """Each photometric image's gain in :func:`undistort_into`: its samples as fractions of full scale
+    under a light of unit intensity."""
+    return 1.0 / (np.asarray(intensity, np.float64) * float(2**bit_depth - 1))
+
+
+def undistort_into(
+    raw: np.ndarray,
+    dark: np.ndarray | None,
+    gain: float,
+    maps: tuple[np.ndarray, np.ndarray],
+    threshold: float,
+    image: np.ndarray,
+    saturated: np.ndarray,
+) -> bool:
+    """One photometric image of :func:`undistorted`: ``image`` = ``(raw - dark) * gain`` on the undistorted
+    grid (``maps``: the left camera's :meth:`~pipeline.camera.CameraModel.undistort_maps`), ``saturated``
+    its samples that interpolate from a raw pixel at or above ``threshold`` (written only when there is
+    one: returns whether there is)."""
+    map1, map2 = maps
+    # (raw - dark) * gain in one pass
+    signal = (
+        cv2.addWeighted(raw, gain, dark, -gain, 0.0)
+        if dark is not None
+        else cv2.multiply(raw, gain)  # type: ignore[call-overload]  # (the stubs lack the scalar)
+    )
+    cv2.remap(
+        signal,
+        map1,
+        map2,
+        cv2.INTER_LINEAR,
+        dst=image,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=0,
+    )
+    if raw.max() >= threshold:
+        # a sample is bad if any raw pixel it interpolates from is saturated: dilate by one pixel first
+        bad = cv2.dilate((raw >= threshold).view(np.uint8), np.ones((3, 3), np.uint8))
+        saturated[...] = cv2.remap(bad, map1, map2, cv2.INTER_NEAREST, borderValue=0).astype(bool)
+        return True
+    return False
 
 
 def plate_found(
