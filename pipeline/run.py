@@ -211,7 +211,7 @@ def _inspect(
     # numba's parallel kernels (normals, depth) run on this thread only: never two at once.
     with ThreadPoolExecutor(max_workers=opts.workers or default_workers()) as pool:
         started = start_capture_work(cap, pool)
-        scene = preprocess_scene(cap, opts, clock, pool)
+        scene = preprocess_scene(cap, opts, clock, pool, frames)
         m = measure(cap, tgt, scene, opts, out, pool, clock, started)
     details = _details(m, scene.pre, tgt, near_field=cap.lights.any_point)
     warnings += _warnings(m.surface, tgt, details)

@@ -16,7 +16,7 @@ from collections.abc import Callable, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import cv2
 import numpy as np
@@ -159,6 +159,22 @@ class StageClock:
         return round(time.perf_counter() - self.start, 4)
 
 
+@runtime_checkable
+class FoldedFrames(Protocol):
+    """A bundle's frames folded as an acquisition took them
+    (:class:`pipeline.acquisition.streaming.StreamedFrames`): the inspection takes the binned capture
+    and the undistorted images from them when they were folded for its capture (None: computed here)."""
+
+    def binned(self, capture: Capture, factor: int) -> Capture | None: ...
+
+    def undistorted(self, capture: Capture) -> tuple[np.ndarray, np.ndarray, bool] | None: ...
+
+
+def _folded(frames: object) -> FoldedFrames | None:
+    """``frames`` when they were folded as they were taken, else None."""
+    return frames if isinstance(frames, FoldedFrames) else None
+
+
 @dataclass(frozen=True)
 class Scene:
     """What preprocessing found: the images, where the plate may be, and whether the scene is plain.
@@ -220,7 +236,8 @@ def load_inputs(
     """Stage *load*: the capture (with ``light_calibration`` applied, see :func:`pipeline.run.inspect`) and the target.
 
     ``frames``: a bundle's images already in memory by their bundle path (see
-    :func:`pipeline.io.load_capture`), taken from there instead of decoded from its files.
+    :func:`pipeline.io.load_capture`), taken from there instead of decoded from its files; frames
+    folded as they were taken (:class:`FoldedFrames`) come binned from there.
 
     The capture comes on the working grid of ``opts.working_cell_mm`` (binned, see
     :class:`InspectOptions`). A warning about the light calibration is appended to ``warnings``.
@@ -229,7 +246,9 @@ def load_inputs(
     clock.begin("load")
     cap = capture if isinstance(capture, Capture) else load_capture(capture, frames=frames)
     factor = working_binning(cap, opts.working_cell_mm, NOMINAL_DISTANCE_MM)
-    cap = bin_capture(cap, factor, workers=opts.workers)
+    streamed = None if isinstance(capture, Capture) else _folded(frames)
+    folded = None if streamed is None else streamed.binned(cap, factor)
+    cap = folded if folded is not None else bin_capture(cap, factor, workers=opts.workers)
     tgt = target if isinstance(target, Target) else load_target(target)
     cap = _apply_light_calibration(cap, light_calibration, warnings)
     if not cap.has_stereo and cap.working_distance_mm is None:
@@ -241,13 +260,20 @@ def load_inputs(
 
 
 def preprocess_scene(
-    cap: Capture, opts: InspectOptions, clock: StageClock, pool: ThreadPoolExecutor | None = None
+    cap: Capture,
+    opts: InspectOptions,
+    clock: StageClock,
+    pool: ThreadPoolExecutor | None = None,
+    frames: Mapping[str, np.ndarray] | None = None,
 ) -> Scene:
     """Stage *preprocess*: the images ready for the normals, and where the plate may be (see :class:`Scene`).
     With ``pool``, the candidates are found on it while the plate mask is (both need only the images'
-    brightness)."""
+    brightness). ``frames``: as for :func:`load_inputs` (images undistorted as they were taken are
+    taken from there)."""
     clock.begin("preprocess")
-    lit = undistorted(cap, workers=opts.workers)
+    streamed = _folded(frames)
+    folded = None if streamed is None else streamed.undistorted(cap)
+    lit = undistorted(cap, workers=opts.workers, folded=folded)
     job = (
         pool.submit(segmentation.candidate_mask, lit.brightness, seen=lit.seen)
         if pool is not None and cap.has_stereo

@@ -4,7 +4,8 @@ A ``cell-config/1`` file (docs/formats.md) names the cameras (GenICam through Ar
 simulator), the light controller (tcp or simulated), the lights, the calibration and optionally a
 conveyor (tcp or simulated); :func:`acquire` runs the sequence and writes a ``plate-capture/1``
 bundle, :func:`acquire_stations` carries a long plate station by station and writes one bundle per
-station (docs/stations.md). Setting up a real cell: docs/acquisition.md.
+station (docs/stations.md); :class:`StreamedFrames` folds each frame for the inspection that follows
+as it is taken. Setting up a real cell: docs/acquisition.md.
 """
 
 from ..formats import AcquisitionError
@@ -26,6 +27,7 @@ from .lights import (
     open_light_controller,
 )
 from .stations import acquire_stations
+from .streaming import StreamedFrames
 
 __all__ = [
     "AcquisitionError",
@@ -38,6 +40,7 @@ __all__ = [
     "SimulatedCell",
     "SimulatedConveyor",
     "SimulatedLightController",
+    "StreamedFrames",
     "TcpConveyor",
     "TcpLightController",
     "acquire",

@@ -1,0 +1,277 @@
+"""Frames folded as an acquisition takes them, so that the inspection that follows starts further on.
+
+An inspection that follows an acquisition at once (``plate-inspect acquire --target``, the service's
+acquire job) used to start from nothing when the last frame arrived. :class:`StreamedFrames` is the
+``frames`` mapping :func:`pipeline.acquisition.acquire` fills: each frame, as it is kept, is handed
+to one thread beside the acquisition, which converts it to float32, bins it onto the working grid
+(:func:`pipeline.preprocess.bin_capture`), measures its sensor noise and, a photometric image,
+subtracts the dark frame, normalises and undistorts it (:func:`pipeline.preprocess.undistort_into`).
+The acquisition takes the stereo pair and the dark frame before the photometric images, so only the
+last image's share is left when it arrives, and it is done while the bundle's last file is written.
+
+The inspection (:func:`pipeline.run.inspect` with ``frames``) takes the folded arrays only for the
+capture they were folded for: the bundle's bit depth, lights' intensities, calibration and working
+grid must be those the frames were folded with (a light calibration that changes the intensities,
+say, is not); otherwise it computes them from the frames, as from files. Either way the arrays are
+the same to the bit (``tests/pipeline/test_streaming.py``). A frame that cannot be folded (a colour
+frame, a wrong size) is left to the inspection's own loading, which names the file and the field.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import threading
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import replace
+
+import numpy as np
+
+from pipeline.camera import CameraModel, StereoRig
+from pipeline.io import Capture
+from pipeline.lights.model import Lights
+from pipeline.preprocess import (
+    SATURATION_FRACTION,
+    WORKING_CELL_MM,
+    bin_into,
+    binned_rig,
+    binning_factor,
+    undistort_gains,
+    undistort_into,
+)
+from pipeline.surface.normals.noise import image_noise
+
+from .config import CellConfig, load_cell_config
+
+__all__ = ["StreamedFrames"]
+
+_PHOTOMETRIC = re.compile(r"ps_(\d{2,})\.png")
+_STEREO = {"stereo_left.png": 0, "stereo_right.png": 1}
+
+
+class StreamedFrames(dict[str, np.ndarray]):
+    """A bundle's frames by file name (``ps_00.png``, ``dark.png``, ``stereo_left.png``, ...), each
+    folded on a thread as it is stored (module docstring) once :meth:`begin` has been called.
+
+    Parameters
+    ----------
+    rig : StereoRig
+        The cell's calibration (full size, as the frames are taken).
+    lights : Lights
+        The cell's photometric lights in image order (their intensities normalise the images).
+    working_distance_mm : float
+        The cell's working distance (sets the working grid, :func:`pipeline.preprocess.working_binning`).
+    cell_mm : float or None
+        The working grid's coarsest cell (:class:`pipeline.stages.InspectOptions` ``working_cell_mm``).
+    """
+
+    def __init__(
+        self,
+        rig: StereoRig,
+        lights: Lights,
+        working_distance_mm: float,
+        *,
+        cell_mm: float | None = WORKING_CELL_MM,
+    ) -> None:
+        super().__init__()
+        self._rig = rig
+        self._lights = lights
+        self._factor = binning_factor(rig.left.K, working_distance_mm, cell_mm)
+        grid = binned_rig(rig, self._factor) if self._factor > 1 else rig
+        self._camera: CameraModel = grid.left
+        self._maps = self._camera.undistort_maps()
+        w, h = grid.left.image_size
+        n = lights.n
+        self._binned = np.empty((n, h, w), np.float32)
+        self._images = np.empty((n, h, w), np.float32)
+        self._saturated = np.zeros((n, h, w), bool)
+        self._any_saturated = False
+        self._noise = np.zeros(n)
+        self._dark: np.ndarray | None = None
+        self._dark_noise: float | None = None
+        self._stereo: list[np.ndarray | None] = [None, None]
+        self._folded: set[int] = set()
+        self._waiting: list[int] = []  # photometric images folded before the dark frame arrived
+        self._failed = False
+        self._bit_depth: int | None = None
+        self._pool: ThreadPoolExecutor | None = None
+        self._jobs: list[Future[None]] = []
+        self._lock = threading.Lock()
+
+    @classmethod
+    def for_cell(cls, config: CellConfig | str | os.PathLike[str]) -> StreamedFrames:
+        """Frames of a cell (its ``cell-config/1`` file, or the configuration read)."""
+        cell = config if isinstance(config, CellConfig) else load_cell_config(config)
+        return cls(cell.rig, cell.lights, cell.working_distance_mm)
+
+    @property
+    def factor(self) -> int:
+        """The working grid's binning the frames are folded for."""
+        return self._factor
+
+    def begin(self, bit_depth: int) -> None:
+        """Fold every frame stored from now on (``bit_depth``: the cameras' significant bits, which
+        set full scale and the saturation level)."""
+        self._bit_depth = int(bit_depth)
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fold")
+
+    def __setitem__(self, name: str, image: np.ndarray) -> None:
+        super().__setitem__(name, image)
+        if self._pool is not None:
+            self._jobs.append(self._pool.submit(self._fold, name, image))
+
+    def close(self) -> None:
+        """Wait for the frames stored so far to be folded and stop the folding thread."""
+        for job in self._jobs:
+            job.exception()
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+
+    # ------------------------------------------------------------------ folding (its own thread)
+
+    def _fold(self, name: str, image: np.ndarray) -> None:
+        try:
+            self._fold_one(name, image)
+        except Exception:  # the inspection loads this frame itself and says what is wrong
+            self._failed = True
+
+    def _fold_one(self, name: str, image: np.ndarray) -> None:
+        photometric = _PHOTOMETRIC.fullmatch(name)
+        if photometric is None and name != "dark.png" and name not in _STEREO:
+            return
+        if image.ndim != 2 or image.dtype not in (np.uint8, np.uint16):
+            self._failed = True  # colour or odd frames: the inspection converts them itself
+            return
+        if (image.shape[1], image.shape[0]) != self._rig.image_size:
+            self._failed = True
+            return
+        raw = image.astype(np.float32)
+        if photometric is not None:
+            k = int(photometric.group(1))
+            if k >= self._lights.n:
+                self._failed = True
+                return
+            self._noise[k] = _noise(raw)
+            self._bin(raw, self._binned[k])
+            self._folded.add(k)
+            if self._dark is None:
+                self._waiting.append(k)
+            else:
+                self._undistort(k)
+        elif name == "dark.png":
+            self._dark_noise = _noise(raw)
+            self._dark = self._bin(raw)
+            for k in self._waiting:
+                self._undistort(k)
+            self._waiting.clear()
+        else:
+            self._stereo[_STEREO[name]] = self._bin(raw)
+
+    def _bin(self, raw: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """``raw`` on the working grid (into ``out`` when given)."""
+        if out is None:
+            if self._factor == 1:
+                return raw
+            w, h = self._camera.image_size
+            out = np.empty((h, w), np.float32)
+        if self._factor == 1:
+            np.copyto(out, raw)
+        else:
+            bin_into(raw, out, self._factor, self._depth())
+        return out
+
+    def _depth(self) -> int:
+        if self._bit_depth is None:
+            raise RuntimeError("StreamedFrames: begin(bit_depth) was not called")
+        return self._bit_depth
+
+    def _undistort(self, k: int) -> None:
+        depth = self._depth()
+        gain = float(undistort_gains(self._lights.intensity, depth)[k])
+        threshold = SATURATION_FRACTION * float(2**depth - 1)
+        if undistort_into(
+            self._binned[k],
+            self._dark,
+            gain,
+            self._maps,
+            threshold,
+            self._images[k],
+            self._saturated[k],
+        ):
+            self._any_saturated = True
+
+    # ------------------------------------------------------------------ taken by the inspection
+
+    def binned(self, capture: Capture, factor: int) -> Capture | None:
+        """``capture`` (loaded from these frames, full size) on the working grid of ``factor`` from the
+        folded frames, as :func:`pipeline.preprocess.bin_capture` gives it; None when they were not
+        folded for it (another grid, bit depth, calibration or lights, a frame not folded)."""
+        self._finish()
+        if not self._fits(capture, factor):
+            return None
+        left, right = self._stereo
+        folded = replace(
+            capture, images=self._binned, dark=self._dark, stereo_left=left, stereo_right=right
+        )
+        if factor == 1:  # the very arrays loading converted: bin_capture leaves them as they are
+            return folded
+        noise = (
+            self._noise / factor,
+            None if self._dark_noise is None else self._dark_noise / factor,
+        )
+        return replace(folded, rig=binned_rig(capture.rig, factor), raw_noise=noise)
+
+    def undistorted(self, capture: Capture) -> tuple[np.ndarray, np.ndarray, bool] | None:
+        """The photometric images of ``capture`` (on the working grid, lights as the inspection takes
+        them) undistorted as :func:`pipeline.preprocess.undistorted` does (its ``folded``); None when
+        they were folded for other lights, another bit depth or grid."""
+        self._finish()
+        if (
+            self._failed
+            or capture.bit_depth != self._bit_depth
+            or capture.n_lights != self._lights.n
+            or not np.array_equal(capture.light_intensity, self._lights.intensity)
+            or not _same_camera(capture.rig.left, self._camera)
+            or (capture.dark is None) != (self._dark is None)
+            or capture.images is not self._binned
+        ):
+            return None
+        return self._images, self._saturated, self._any_saturated
+
+    def _finish(self) -> None:
+        with self._lock:
+            self.close()
+            if self._waiting and not self._failed and self._bit_depth is not None:
+                for k in self._waiting:  # no dark frame came
+                    self._undistort(k)
+                self._waiting.clear()
+
+    def _fits(self, capture: Capture, factor: int) -> bool:
+        rig = capture.rig
+        return (
+            not self._failed
+            and self._bit_depth == capture.bit_depth
+            and factor == self._factor
+            and capture.n_lights == self._lights.n
+            and self._folded == set(range(self._lights.n))
+            and all(
+                _same_camera(a, b)
+                for a, b in ((rig.left, self._rig.left), (rig.right, self._rig.right))
+            )
+            and (capture.dark is None) == (self._dark is None)
+            and (capture.stereo_left is None) == (self._stereo[0] is None)
+            and (capture.stereo_right is None) == (self._stereo[1] is None)
+        )
+
+
+def _noise(raw: np.ndarray) -> float:
+    """One image's sensor noise as :func:`pipeline.preprocess.raw_noise_counts` measures it."""
+    return float(image_noise(raw[None], np.ones(raw.shape, bool))[0])
+
+
+def _same_camera(a: CameraModel, b: CameraModel) -> bool:
+    return (
+        a.image_size == b.image_size and np.array_equal(a.K, b.K) and np.array_equal(a.dist, b.dist)
+    )

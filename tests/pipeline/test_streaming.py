@@ -1,0 +1,112 @@
+"""Frames folded as they are taken (pipeline.acquisition.streaming): the very arrays loading, binning and
+undistorting give, taken only for the capture they were folded for; an acquired inspection reads as
+one of its written bundle."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from pipeline.acquisition import StreamedFrames, acquire, write_demo_cell
+from pipeline.io import load_capture
+from pipeline.preprocess import bin_capture, undistorted
+from pipeline.run import inspect
+from pipeline.simulate import CaptureSpec, PlateSpec, simulate_capture
+
+#: The order an acquisition takes them in (pipeline.acquisition.acquire).
+ORDER = ["stereo_left.png", "stereo_right.png", "dark.png"]
+
+
+@pytest.fixture(scope="module")
+def bundle(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("streaming") / "bundle"
+    simulate_capture(
+        out,
+        plate=PlateSpec(shape="cylinder", radius_mm=5000.0, convex=True),
+        capture=CaptureSpec(n_lights=6, width=612, height=512),
+        seed=3,
+    )
+    return out
+
+
+def _streamed(bundle: Path, factor: int, *, skip: tuple[str, ...] = ()) -> StreamedFrames:
+    """The bundle's frames (but ``skip``) stored in acquisition order into frames folded for ``factor``."""
+    cap = load_capture(bundle)
+    fx = max(cap.rig.left.K[0, 0], cap.rig.left.K[1, 1])
+    z = cap.working_distance_mm
+    assert z is not None
+    cell_mm = (factor + 0.5) * z / fx  # the working cell that bins by ``factor``
+    frames = StreamedFrames(cap.rig, cap.lights, z, cell_mm=cell_mm)
+    assert frames.factor == factor
+    frames.begin(cap.bit_depth)
+    names = ORDER + [f"ps_{k:02d}.png" for k in range(cap.n_lights)]
+    for name in (n for n in names if n not in skip):
+        frames[name] = cv2.imread(str(bundle / name), cv2.IMREAD_UNCHANGED)
+    return frames
+
+
+@pytest.mark.parametrize("factor", [1, 2])
+def test_folded_frames_are_the_arrays_of_loading_binning_and_undistorting(bundle, factor):
+    frames = _streamed(bundle, factor)
+    cap = load_capture(bundle, frames=frames)
+    folded = frames.binned(cap, factor)
+    expected = bin_capture(cap, factor)
+    assert folded is not None
+    for name in ("images", "dark", "stereo_left", "stereo_right"):
+        np.testing.assert_array_equal(getattr(folded, name), getattr(expected, name), err_msg=name)
+    np.testing.assert_array_equal(folded.rig.left.K, expected.rig.left.K)
+    assert folded.rig.image_size == expected.rig.image_size
+    if factor == 1:
+        assert folded.raw_noise is None and expected.raw_noise is None
+    else:
+        assert folded.raw_noise is not None and expected.raw_noise is not None
+        np.testing.assert_array_equal(folded.raw_noise[0], expected.raw_noise[0])
+        assert folded.raw_noise[1] == expected.raw_noise[1]
+
+    lit = frames.undistorted(folded)
+    assert lit is not None
+    ref = undistorted(expected)
+    got = undistorted(folded, folded=lit)
+    for name in ("images", "saturated", "brightest", "brightness", "glare_free", "seen"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=name)
+    assert got.any_saturated == ref.any_saturated
+
+
+def test_frames_folded_for_another_capture_are_not_taken(bundle):
+    frames = _streamed(bundle, 2)
+    cap = load_capture(bundle, frames=frames)
+    assert frames.binned(cap, 1) is None  # another working grid
+    assert frames.binned(replace(cap, bit_depth=cap.bit_depth - 1), 2) is None
+    folded = frames.binned(cap, 2)
+    assert folded is not None
+    # lights of other intensities (a light calibration applied, say): the images are normalised anew
+    brighter = replace(cap.lights, intensity=cap.lights.intensity * 1.1)
+    assert frames.undistorted(replace(folded, lights=brighter)) is None
+    assert frames.undistorted(bin_capture(cap, 2)) is None  # not the folded images
+
+    # a photometric image never stored, or one that could not be folded (a colour frame)
+    assert _streamed(bundle, 2, skip=("ps_03.png",)).binned(cap, 2) is None
+    colour = _streamed(bundle, 2)
+    colour["ps_01.png"] = np.zeros((*cap.images.shape[1:], 3), np.uint16)
+    assert colour.binned(cap, 2) is None
+
+
+def test_an_acquired_inspection_folds_its_frames_and_reads_as_its_bundle(tmp_path):
+    cell = write_demo_cell(tmp_path / "cell", n_lights=6, width=612, height=512)
+    frames = StreamedFrames.for_cell(cell)
+    bundle = acquire(cell, plate_id="P-STREAM", out_dir=tmp_path / "bundle", frames=frames)
+    target = cell.parent / "target.json"
+    streamed = inspect(bundle, target, out_dir=tmp_path / "streamed", frames=frames).document
+    from_files = inspect(bundle, target, out_dir=tmp_path / "files").document
+    assert frames.binned(load_capture(bundle), frames.factor) is not None  # taken, not recomputed
+    for name in ("depth.npy", "uncertainty.npy"):
+        assert (tmp_path / "streamed" / name).read_bytes() == (
+            tmp_path / "files" / name
+        ).read_bytes()
+    assert streamed["verdict"] == from_files["verdict"] == "pass"
+    assert streamed["radius_mm"] == from_files["radius_mm"]
+    assert streamed["deviation_mm"] == from_files["deviation_mm"]
