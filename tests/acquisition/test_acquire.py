@@ -81,21 +81,18 @@ def test_acceptance_gige_and_fake_cameras_tcp_lights(tmp_path, fake_gv, light_se
     }
     assert record["stereo_trigger"] == "together" and record["total_s"] > 0
     files = [frame["file"] for frame in record["frames"]]
-    assert files == [f"ps_{k:02d}.png" for k in range(N)] + [
-        "dark.png",
-        "stereo_left.png",
-        "stereo_right.png",
+    # the stereo pair first, then the dark frame and the photometric images: the last frame is one
+    assert files == ["stereo_left.png", "stereo_right.png", "dark.png"] + [
+        f"ps_{k:02d}.png" for k in range(N)
     ]
-    assert [frame["lights"] for frame in record["frames"][: N + 1]] == [[k] for k in range(N)] + [
-        []
-    ]
+    assert [frame["lights"] for frame in record["frames"][2:]] == [[]] + [[k] for k in range(N)]
     times = [frame["t_s"] for frame in record["frames"]]
     assert times == sorted(times)
 
     # the auto-exposure pre-shots under all lights, then one per light (the photometric exposure is
-    # set for a single light's frame), then light by light, then the stereo pair under all lights
+    # set for a single light's frame), then the stereo pair under all lights, then light by light
     assert server.commands == (
-        _all("ON") + _all("OFF") + SEQUENCE + SEQUENCE + _all("ON") + _all("OFF")
+        _all("ON") + _all("OFF") + SEQUENCE + _all("ON") + _all("OFF") + SEQUENCE
     )
 
     target = tmp_path / "cell" / "target.json"
@@ -133,13 +130,13 @@ def test_configured_exposure_takes_no_pre_shots_and_a_flood_light(tmp_path, ligh
 
     out = acquire(config, "P-2", tmp_path / "bundle")
 
-    assert server.commands == [*SEQUENCE, "FLOOD ON", "FLOOD OFF"]
+    assert server.commands == ["FLOOD ON", "FLOOD OFF", *SEQUENCE]
     record = json.loads((out / "capture.json").read_text())["acquisition"]
     assert record["pre_shots"] == 0 and record["stereo_lighting"] == "stereo light"
     assert record["cameras"]["left"]["exposure_us"] == {"photometric": 4000.0, "stereo": 4000.0}
     assert record["cameras"]["left"]["gain_db"] == 2.0
     assert record["cameras"]["right"]["exposure_us"] == {"stereo": 3000.0}
-    assert [f["lights"] for f in record["frames"][-2:]] == ["stereo light", "stereo light"]
+    assert [f["lights"] for f in record["frames"][:2]] == ["stereo light", "stereo light"]
 
 
 def test_configured_exposure_is_divided_among_all_lights_for_the_stereo_pair(tmp_path):
@@ -242,9 +239,9 @@ def test_light_controller_refusing_stops_the_acquisition_and_switches_the_light_
     tmp_path, light_server
 ):
     server = light_server(refuse="L2 ON")
-    config = write_cell(
-        tmp_path / "cell", left=FIXED_FAKE_1, right=FIXED_SIMULATED, lights=tcp_lights(server)
-    )
+    # a flood light for the stereo pair: "L2 ON" comes only with photometric image 2
+    lights = tcp_lights(server, stereo_on="FLOOD ON\n", stereo_off="FLOOD OFF\n")
+    config = write_cell(tmp_path / "cell", left=FIXED_FAKE_1, right=FIXED_SIMULATED, lights=lights)
 
     with pytest.raises(
         AcquisitionError, match=re.escape(f"light controller {server.address}: photometric image 2")
@@ -252,12 +249,13 @@ def test_light_controller_refusing_stops_the_acquisition_and_switches_the_light_
         acquire(config, "P", tmp_path / "bundle")
 
     assert "refused 'L2 ON': answered 'ERR refused'" in str(err.value)
-    assert server.commands == SEQUENCE[:6]  # L2 switched off again after the refusal
+    # the stereo pair first, then light by light: L2 switched off again after the refusal
+    assert server.commands == ["FLOOD ON", "FLOOD OFF", *SEQUENCE[:6]]
     assert _nothing_left(tmp_path)
 
 
 def test_light_controller_that_stops_answering_times_out(tmp_path, light_server, capsys):
-    server = light_server(stall_after=3)
+    server = light_server(stall_after=2 * N + 3)  # the stereo pair's 2 N, then L0 on and off, L1 on
     config = write_cell(
         tmp_path / "cell", left=FIXED_FAKE_1, right=FIXED_SIMULATED, lights=tcp_lights(server)
     )
@@ -298,7 +296,7 @@ def test_silent_light_controller_is_used_without_answers(tmp_path, light_server)
         "acquisition"
     ]
     assert record["light_controller"]["replies"] is False
-    assert server.settled() == SEQUENCE + _all("ON") + _all("OFF")  # no pre-shots
+    assert server.settled() == _all("ON") + _all("OFF") + SEQUENCE  # no pre-shots
 
 
 @pytest.mark.parametrize(("reply", "answering"), [("OK", True), (None, False)])
@@ -311,7 +309,7 @@ def test_echoed_commands_are_skipped(tmp_path, light_server, reply, answering):
         "acquisition"
     ]
     assert record["light_controller"]["replies"] is answering
-    assert server.settled() == SEQUENCE + _all("ON") + _all("OFF")
+    assert server.settled() == _all("ON") + _all("OFF") + SEQUENCE
 
 
 @pytest.mark.slow
@@ -322,9 +320,9 @@ def test_camera_vanishing_mid_sequence_leaves_no_bundle(tmp_path, light_server):
             on_command=lambda command: camera.stop() if command == "L2 ON" else None
         )
         left = {"driver": "aravis", "device_id": camera.device_id, "exposure_us": 5000.0}
-        config = write_cell(
-            tmp_path / "cell", left=left, right=FIXED_FAKE_1, lights=tcp_lights(server)
-        )
+        # a flood light for the stereo pair: "L2 ON" comes only with photometric image 2
+        lights = tcp_lights(server, stereo_on="FLOOD ON\n", stereo_off="FLOOD OFF\n")
+        config = write_cell(tmp_path / "cell", left=left, right=FIXED_FAKE_1, lights=lights)
         with pytest.raises(
             AcquisitionError,
             match=re.escape("left camera 127.0.0.1: photometric image 2 (ps_02.png): "),
@@ -332,7 +330,7 @@ def test_camera_vanishing_mid_sequence_leaves_no_bundle(tmp_path, light_server):
             acquire(config, "P", tmp_path / "bundle", frame_timeout_s=1.0)
     finally:
         camera.stop()
-    assert server.commands == SEQUENCE[:6]
+    assert server.commands == ["FLOOD ON", "FLOOD OFF", *SEQUENCE[:6]]
     assert _nothing_left(tmp_path)
 
 
@@ -345,7 +343,8 @@ def test_incomplete_frames_are_a_hardware_failure(tmp_path):
         )
         with pytest.raises(
             AcquisitionError,
-            match=r"left camera 127\.0\.0\.1: photometric image 0 .*: incomplete frame",
+            # the stereo pair is the first frame taken
+            match=r"left camera 127\.0\.0\.1: stereo pair .*: incomplete frame",
         ):
             acquire(config, "P", tmp_path / "bundle")
     finally:

@@ -116,7 +116,7 @@ def test_progress_names_the_station_and_each_bundle_is_reported_when_complete(de
     fractions = [f for _, _, f in stages]
     assert fractions == sorted(fractions) and fractions[0] >= 0.0 and fractions[-1] <= 1.0
     assert ("progress", "station 2/3: moving to 2100 mm", pytest.approx(1 / 3)) in stages
-    assert any(stage == "station 3/3: stereo_right.png taken" for _, stage, _ in stages)
+    assert any(stage == f"station 3/3: ps_{N - 1:02d}.png taken" for _, stage, _ in stages)
     # station k's bundle is reported before the conveyor moves on to station k + 1
     order = [e[1] if e[0] == "done" else e[1].split(":")[0] for e in events]
     assert order.index(0) < order.index("station 2/3") and order.index(1) < order.index(
@@ -149,10 +149,10 @@ def test_tcp_conveyor_lights_and_fake_gige_camera_in_step_order(
     assert "wrote 3 station bundles" in printed
 
     assert conveyor.commands == ["MOVE 0.000", "MOVE 2100.000", "MOVE 2096.750"]
-    frames = [c for k in range(N) for c in (f"L{k} ON", f"L{k} OFF")] + [
+    frames = [
         *(f"L{k} ON" for k in range(N)),
         *(f"L{k} OFF" for k in range(N)),
-    ]
+    ] + [c for k in range(N) for c in (f"L{k} ON", f"L{k} OFF")]
     assert log == [
         "MOVE 0.000",
         *frames,
@@ -171,7 +171,7 @@ def test_tcp_conveyor_lights_and_fake_gige_camera_in_step_order(
         travels.append(doc["station"]["travel_mm"])
         record = doc["acquisition"]["conveyor"]
         assert record["driver"] == "tcp" and record["address"] == conveyor.address
-        assert [f["file"] for f in doc["acquisition"]["frames"]][-1] == "stereo_right.png"
+        assert [f["file"] for f in doc["acquisition"]["frames"]][-1] == f"ps_{N - 1:02d}.png"
         assert load_capture(out / f"station_{k:02d}").images.shape[0] == N
     assert travels == [0.0, 2103.25, 4198.5]
 

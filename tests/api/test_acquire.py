@@ -157,7 +157,7 @@ def test_demo_cell_acquires_then_inspects(service, consumers, tmp_path):
         "n_lights": N,
     }
     assert [f["file"] for f in record["frames"]] == (
-        [f"ps_{k:02d}.png" for k in range(N)] + ["dark.png", "stereo_left.png", "stereo_right.png"]
+        ["stereo_left.png", "stereo_right.png", "dark.png"] + [f"ps_{k:02d}.png" for k in range(N)]
     )
     assert json.loads((_inputs(client, body["id"]) / "acquisition.json").read_text()) == {
         "cell_id": "demo",
@@ -252,7 +252,7 @@ def test_acceptance_cell_gige_and_fake_cameras_tcp_lights(
     )
     assert len(record["frames"]) == N + 3
     # auto-exposure pre-shots under all lights, then one per light, light by light, the stereo pair
-    assert server.commands == ALL_ON + ALL_OFF + SEQUENCE + SEQUENCE + ALL_ON + ALL_OFF
+    assert server.commands == ALL_ON + ALL_OFF + SEQUENCE + ALL_ON + ALL_OFF + SEQUENCE
     assert (
         client.get(f"/api/v1/inspections/{body['id']}/artifacts/capture.json").json()["acquisition"]
         == record
@@ -268,9 +268,9 @@ def test_controller_refusing_fails_the_job_naming_device_and_step(
 ):
     calls = tmp_path / "invocations.txt"
     server = light_server(refuse="L2 ON")
-    config = write_cell(
-        tmp_path / "cell", left=FIXED_FAKE_1, right=FIXED_SIMULATED, lights=tcp_lights(server)
-    )
+    # a flood light for the stereo pair: "L2 ON" comes only with photometric image 2
+    lights = tcp_lights(server, stereo_on="FLOOD ON\n", stereo_off="FLOOD OFF\n")
+    config = write_cell(tmp_path / "cell", left=FIXED_FAKE_1, right=FIXED_SIMULATED, lights=lights)
     client = service(cell_config=config)
     consumer = consumers(client.app.state.settings, invocations=calls)
 
@@ -283,7 +283,7 @@ def test_controller_refusing_fails_the_job_naming_device_and_step(
         f"acquisition failed: light controller {server.address}: photometric image 2 (ps_02.png): "
         "refused 'L2 ON': answered 'ERR refused'"
     )
-    assert server.commands == SEQUENCE[:6]  # light 2 switched off again
+    assert server.commands == ["FLOOD ON", "FLOOD OFF", *SEQUENCE[:6]]  # light 2 switched off again
     assert invocations(calls) == []  # nothing to inspect
     inputs = _inputs(client, body["id"])
     assert sorted(p.name for p in inputs.iterdir()) == [
