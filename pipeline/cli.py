@@ -275,7 +275,7 @@ def _cmd_calibrate_lights(args: argparse.Namespace) -> int:
 
 
 def _cmd_acquire(args: argparse.Namespace) -> int:
-    from pipeline.acquisition import acquire, acquire_stations, load_cell_config
+    from pipeline.acquisition import StreamedFrames, acquire, acquire_stations, load_cell_config
     from pipeline.run import EarlyStations, warm_up
 
     if not args.plate_id.strip():
@@ -294,11 +294,12 @@ def _cmd_acquire(args: argparse.Namespace) -> int:
         if args.verbose:
             print(f"[{100 * fraction:5.1f} %] {stage}", file=sys.stderr)
 
-    conveyor = load_cell_config(args.config).conveyor is not None
+    cell = load_cell_config(args.config)
     if args.target is not None:
         warm_up()  # kernel loading is start-up, not part of the measurement's timings
-    if not conveyor:
-        frames: dict[str, np.ndarray] = {}
+    if cell.conveyor is None:
+        # with --target each frame is folded for the inspection as it arrives
+        frames = StreamedFrames.for_cell(cell) if args.target is not None else {}
         out = acquire(
             args.config, args.plate_id, args.out, progress=progress, frames=frames, **timeout
         )

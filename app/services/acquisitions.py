@@ -38,7 +38,13 @@ from app.services.stations import capture_bundles
 from app.services.targets import TARGET_FILE, copy_target_files, create_target, validate_target_dir
 from app.settings import Settings
 from app.storage import Storage
-from pipeline.acquisition import CellConfig, acquire, acquire_stations, last_frame_time
+from pipeline.acquisition import (
+    CellConfig,
+    StreamedFrames,
+    acquire,
+    acquire_stations,
+    last_frame_time,
+)
 from pipeline.acquisition.stations import StationDone
 from pipeline.formats import AcquisitionError, InputError, PipelineError
 
@@ -295,7 +301,10 @@ def _capture(
     def report(stage: str, fraction: float) -> None:
         progress(CAPTURE_STAGE, fraction)
 
-    frames: dict[str, np.ndarray] = {}
+    # one view: each frame folded for the inspection as it arrives (pipeline.acquisition.streaming)
+    frames: dict[str, np.ndarray] = (
+        StreamedFrames.for_cell(config) if config.conveyor is None else {}
+    )
     try:
         if config.conveyor is None:
             bundles = [
