@@ -229,8 +229,9 @@ def record_capture(
 ) -> None:
     """After a capture: its cameras' description (``cell/state.json``) and their last frames' thumbnails.
 
-    The last frame of each camera is its image of the stereo pair (taken from ``frames``, the
-    bundle's images in memory by file name, where it is there; else read from the bundle); the
+    Each camera's frame shown is its image of the stereo pair, the one frame both cameras take (from
+    ``frames``, the bundle's images in memory by file name, where it is there; else read from the
+    bundle; the acquisition takes the pair first, the left camera's photometric images after it); the
     thumbnail is :data:`THUMBNAIL_WIDTH` px wide, 8-bit, its brightest samples (99.5th percentile)
     white. Every file is written beside its place and renamed into it (the web process reads them).
     """
