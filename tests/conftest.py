@@ -52,7 +52,7 @@ def fake_gv():
     """Aravis' fake GigE Vision camera on 127.0.0.1 (a process of its own), stopped after the test."""
     camera = FakeGigECamera()
     yield camera
-    camera.stop()
+    camera.close()
 
 
 @pytest.fixture(scope="session")

@@ -12,15 +12,20 @@ separate process that speaks GigE Vision over loopback.
 
 from __future__ import annotations
 
+import fcntl
 import shutil
 import socketserver
 import subprocess
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 FAKE_GV_CAMERA = "arv-fake-gv-camera-0.8"
 FAKE_GV_ADDRESS = "127.0.0.1"
+#: The file the test processes' fake GigE cameras take turns on (see :class:`FakeGigECamera`).
+FAKE_GV_LOCK = Path(tempfile.gettempdir()) / "plate-inspect-fake-gv.lock"
 
 
 class _Server(socketserver.ThreadingTCPServer):
@@ -186,7 +191,10 @@ class FakeGigECamera:
     """``arv-fake-gv-camera-0.8 -i 127.0.0.1 -s SERIAL [-r LOST]`` running until :meth:`stop`.
 
     Waits until Aravis opens the camera at 127.0.0.1 and checks that it is this one (its serial):
-    only one fake GigE camera can answer on the loopback address.
+    only one fake GigE camera can answer on the loopback address. So the test processes (pytest-xdist's
+    workers) take turns: each camera holds :data:`FAKE_GV_LOCK` from its start to :meth:`close`, after
+    the test (a camera stopped mid-test, one that vanishes, keeps the address free of another's until
+    then).
     """
 
     def __init__(self, serial: str = "PITEST", *, lost_packets_per_thousand: int = 0):
@@ -194,6 +202,8 @@ class FakeGigECamera:
             raise RuntimeError(
                 f"{FAKE_GV_CAMERA} not found: scripts/setup.sh installs Debian's aravis-tools"
             )
+        self._lock = open(FAKE_GV_LOCK, "a")  # noqa: SIM115 - held until close()
+        fcntl.flock(self._lock, fcntl.LOCK_EX)
         import gi
 
         gi.require_version("Aravis", "0.8")
@@ -210,28 +220,44 @@ class FakeGigECamera:
             "-r",
             str(lost_packets_per_thousand),
         ]
-        self._process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-        deadline = time.monotonic() + 15
-        while True:
-            if self._process.poll() is not None:
-                raise RuntimeError(
-                    f"{FAKE_GV_CAMERA} exited: {self._process.stdout.read().decode().strip()}"
-                )
-            try:
-                found = Aravis.Camera.new(FAKE_GV_ADDRESS).get_device_serial_number()
-            except GLib.Error:
-                found = None
-            if found == serial:
-                return
-            if found is not None or time.monotonic() > deadline:
-                self.stop()
-                raise RuntimeError(
-                    f"the fake GigE camera at {FAKE_GV_ADDRESS} is {found!r}, not this test's {serial!r}"
-                )
-            time.sleep(0.2)
+        try:
+            self._process = subprocess.Popen(
+                command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT
+            )
+            deadline = time.monotonic() + 15
+            while True:
+                if self._process.poll() is not None:
+                    raise RuntimeError(
+                        f"{FAKE_GV_CAMERA} exited: {self._process.stdout.read().decode().strip()}"
+                    )
+                try:
+                    found = Aravis.Camera.new(FAKE_GV_ADDRESS).get_device_serial_number()
+                except GLib.Error:
+                    found = None
+                if found == serial:
+                    return
+                if found is not None or time.monotonic() > deadline:
+                    self.stop()  # (the lock is released below)
+                    raise RuntimeError(
+                        f"the fake GigE camera at {FAKE_GV_ADDRESS} is {found!r}, not this test's {serial!r}"
+                    )
+                time.sleep(0.2)
+        except BaseException:
+            self._release()
+            raise
 
     def stop(self) -> None:
         """Stop the camera (it vanishes from the network)."""
         if self._process.poll() is None:
             self._process.terminate()
             self._process.wait(timeout=10)
+
+    def close(self) -> None:
+        """Stop the camera and let another test process start one."""
+        self.stop()
+        self._release()
+
+    def _release(self) -> None:
+        if not self._lock.closed:
+            fcntl.flock(self._lock, fcntl.LOCK_UN)
+            self._lock.close()

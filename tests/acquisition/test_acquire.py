@@ -329,7 +329,7 @@ def test_camera_vanishing_mid_sequence_leaves_no_bundle(tmp_path, light_server):
         ):
             acquire(config, "P", tmp_path / "bundle", frame_timeout_s=1.0)
     finally:
-        camera.stop()
+        camera.close()
     assert server.commands == ["FLOOD ON", "FLOOD OFF", *SEQUENCE[:6]]
     assert _nothing_left(tmp_path)
 
@@ -348,7 +348,7 @@ def test_incomplete_frames_are_a_hardware_failure(tmp_path):
         ):
             acquire(config, "P", tmp_path / "bundle")
     finally:
-        camera.stop()
+        camera.close()
     assert _nothing_left(tmp_path)
 
 
