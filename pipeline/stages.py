@@ -11,6 +11,7 @@ are read together; the stages' own work lives in their modules.
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -165,7 +166,9 @@ class FoldedFrames(Protocol):
     (:class:`pipeline.acquisition.streaming.StreamedFrames`): the inspection takes the binned capture
     and the undistorted images from them when they were folded for its capture (None: computed here)."""
 
-    def binned(self, capture: Capture, factor: int) -> Capture | None: ...
+    def capture(
+        self, path: str | os.PathLike[str], *, cell_mm: float | None, distance_mm: float
+    ) -> Capture | None: ...
 
     def undistorted(self, capture: Capture) -> tuple[np.ndarray, np.ndarray, bool] | None: ...
 
@@ -237,18 +240,23 @@ def load_inputs(
 
     ``frames``: a bundle's images already in memory by their bundle path (see
     :func:`pipeline.io.load_capture`), taken from there instead of decoded from its files; frames
-    folded as they were taken (:class:`FoldedFrames`) come binned from there.
+    folded as they were taken (:class:`FoldedFrames`) come from there already binned (the bundle's
+    files are then read for their JSON and image headers only).
 
     The capture comes on the working grid of ``opts.working_cell_mm`` (binned, see
     :class:`InspectOptions`). A warning about the light calibration is appended to ``warnings``.
     CaptureError when the capture has neither a stereo pair nor a working distance (no metric scale).
     """
     clock.begin("load")
-    cap = capture if isinstance(capture, Capture) else load_capture(capture, frames=frames)
-    factor = working_binning(cap, opts.working_cell_mm, NOMINAL_DISTANCE_MM)
-    streamed = None if isinstance(capture, Capture) else _folded(frames)
-    folded = None if streamed is None else streamed.binned(cap, factor)
-    cap = folded if folded is not None else bin_capture(cap, factor, workers=opts.workers)
+    cap: Capture | None = None
+    if not isinstance(capture, Capture) and (streamed := _folded(frames)) is not None:
+        cap = streamed.capture(
+            capture, cell_mm=opts.working_cell_mm, distance_mm=NOMINAL_DISTANCE_MM
+        )
+    if cap is None:
+        cap = capture if isinstance(capture, Capture) else load_capture(capture, frames=frames)
+        factor = working_binning(cap, opts.working_cell_mm, NOMINAL_DISTANCE_MM)
+        cap = bin_capture(cap, factor, workers=opts.workers)
     tgt = target if isinstance(target, Target) else load_target(target)
     cap = _apply_light_calibration(cap, light_calibration, warnings)
     if not cap.has_stereo and cap.working_distance_mm is None:

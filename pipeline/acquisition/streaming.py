@@ -24,11 +24,12 @@ import re
 import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 
 from pipeline.camera import CameraModel, StereoRig
-from pipeline.io import Capture
+from pipeline.io import Capture, read_capture_header
 from pipeline.lights.model import Lights
 from pipeline.preprocess import (
     SATURATION_FRACTION,
@@ -93,6 +94,8 @@ class StreamedFrames(dict[str, np.ndarray]):
         self._folded: set[int] = set()
         self._waiting: list[int] = []  # photometric images folded before the dark frame arrived
         self._failed = False
+        self._bits = 16  # the fewest bits a frame came in
+        self._peak = 0  # the brightest sample of any frame
         self._bit_depth: int | None = None
         self._pool: ThreadPoolExecutor | None = None
         self._jobs: list[Future[None]] = []
@@ -147,6 +150,9 @@ class StreamedFrames(dict[str, np.ndarray]):
         if (image.shape[1], image.shape[0]) != self._rig.image_size:
             self._failed = True
             return
+        # what loading checks of each frame's pixels (pipeline.io): its bits against the capture's
+        self._bits = min(self._bits, 8 * image.dtype.itemsize)
+        self._peak = max(self._peak, int(image.max()))
         raw = image.astype(np.float32)
         if photometric is not None:
             k = int(photometric.group(1))
@@ -204,24 +210,59 @@ class StreamedFrames(dict[str, np.ndarray]):
 
     # ------------------------------------------------------------------ taken by the inspection
 
-    def binned(self, capture: Capture, factor: int) -> Capture | None:
-        """``capture`` (loaded from these frames, full size) on the working grid of ``factor`` from the
-        folded frames, as :func:`pipeline.preprocess.bin_capture` gives it; None when they were not
-        folded for it (another grid, bit depth, calibration or lights, a frame not folded)."""
+    def capture(
+        self, path: str | os.PathLike[str], *, cell_mm: float | None, distance_mm: float
+    ) -> Capture | None:
+        """The bundle ``path`` written from these frames, loaded onto the working grid of ``cell_mm``
+        (``distance_mm``: the depth without a working distance) from the folded frames: the capture
+        :func:`pipeline.io.load_capture` and :func:`pipeline.preprocess.bin_capture` give, its
+        full-size images never made. None when the frames were not folded for it (another grid, bit
+        depth, calibration or lights, a frame not folded, pixels loading would refuse): it is then
+        loaded as any bundle, and what is wrong named there."""
         self._finish()
-        if not self._fits(capture, factor):
+        header = read_capture_header(path)
+        names = [image.name for image in header.images]
+        expected = [f"ps_{k:02d}.png" for k in range(self._lights.n)]
+        expected += ["dark.png", "stereo_left.png", "stereo_right.png"]
+        factor = binning_factor(
+            header.rig.left.K, header.working_distance_mm or distance_mm, cell_mm
+        )
+        if not (
+            not self._failed
+            and names == expected
+            and factor == self._factor
+            and header.bit_depth == self._bit_depth
+            and self._bits >= header.bit_depth
+            and self._peak <= 2**header.bit_depth - 1
+            and self._folded == set(range(self._lights.n))
+            and self._dark is not None
+            and all(side is not None for side in self._stereo)
+            and np.array_equal(header.lights.intensity, self._lights.intensity)
+            and _same_rig(header.rig, self._rig)
+        ):
             return None
         left, right = self._stereo
-        folded = replace(
-            capture, images=self._binned, dark=self._dark, stereo_left=left, stereo_right=right
+        capture = Capture(
+            plate_id=header.plate_id,
+            captured_at=header.captured_at,
+            rig=header.rig,
+            bit_depth=header.bit_depth,
+            lights=header.lights,
+            images=self._binned,
+            dark=self._dark,
+            stereo_left=left,
+            stereo_right=right,
+            working_distance_mm=header.working_distance_mm,
+            source=Path(path),
+            station=header.station,
         )
-        if factor == 1:  # the very arrays loading converted: bin_capture leaves them as they are
-            return folded
+        if factor == 1:  # bin_capture leaves a capture at full resolution as it is
+            return capture
         noise = (
             self._noise / factor,
             None if self._dark_noise is None else self._dark_noise / factor,
         )
-        return replace(folded, rig=binned_rig(capture.rig, factor), raw_noise=noise)
+        return replace(capture, rig=binned_rig(header.rig, factor), raw_noise=noise)
 
     def undistorted(self, capture: Capture) -> tuple[np.ndarray, np.ndarray, bool] | None:
         """The photometric images of ``capture`` (on the working grid, lights as the inspection takes
@@ -248,27 +289,19 @@ class StreamedFrames(dict[str, np.ndarray]):
                     self._undistort(k)
                 self._waiting.clear()
 
-    def _fits(self, capture: Capture, factor: int) -> bool:
-        rig = capture.rig
-        return (
-            not self._failed
-            and self._bit_depth == capture.bit_depth
-            and factor == self._factor
-            and capture.n_lights == self._lights.n
-            and self._folded == set(range(self._lights.n))
-            and all(
-                _same_camera(a, b)
-                for a, b in ((rig.left, self._rig.left), (rig.right, self._rig.right))
-            )
-            and (capture.dark is None) == (self._dark is None)
-            and (capture.stereo_left is None) == (self._stereo[0] is None)
-            and (capture.stereo_right is None) == (self._stereo[1] is None)
-        )
-
 
 def _noise(raw: np.ndarray) -> float:
     """One image's sensor noise as :func:`pipeline.preprocess.raw_noise_counts` measures it."""
     return float(image_noise(raw[None], np.ones(raw.shape, bool))[0])
+
+
+def _same_rig(a: StereoRig, b: StereoRig) -> bool:
+    return (
+        _same_camera(a.left, b.left)
+        and _same_camera(a.right, b.right)
+        and np.array_equal(a.R, b.R)
+        and np.array_equal(a.T, b.T)
+    )
 
 
 def _same_camera(a: CameraModel, b: CameraModel) -> bool:
