@@ -10,11 +10,13 @@ The acquisition takes the stereo pair and the dark frame before the photometric 
 last image's share is left when it arrives, and it is done while the bundle's last file is written.
 
 The inspection (:func:`pipeline.run.inspect` with ``frames``) takes the folded arrays only for the
-capture they were folded for: the bundle's bit depth, lights' intensities, calibration and working
-grid must be those the frames were folded with (a light calibration that changes the intensities,
-say, is not); otherwise it computes them from the frames, as from files. Either way the arrays are
-the same to the bit (``tests/pipeline/test_streaming.py``). A frame that cannot be folded (a colour
-frame, a wrong size) is left to the inspection's own loading, which names the file and the field.
+capture they were folded for: the bundle's frames, bit depth, lights' intensities, calibration and
+working grid must be those the frames were folded with (a light calibration that changes the
+intensities, say, is not); it then reads only the bundle's JSON and image headers
+(:func:`pipeline.io.read_capture_header`), and its full-size images are never made. Otherwise it
+loads the bundle from the frames, as from files. Either way the arrays are the same to the bit
+(``tests/pipeline/test_streaming.py``). A frame that cannot be folded (a colour frame, a wrong size,
+fewer bits than the capture's) is left to that loading, which names the file and the field.
 """
 
 from __future__ import annotations
