@@ -29,6 +29,11 @@ Arr = npt.NDArray[Any]
 SATURATION_FRACTION = 0.98
 
 
+def saturation_level(bit_depth: int) -> float:
+    """The raw count at and above which a sample of a ``bit_depth``-bit capture is saturated."""
+    return SATURATION_FRACTION * float(2**bit_depth - 1)
+
+
 #: The working grid's coarsest cell on the plate (mm): a capture whose pixels see a finer footprint at
 #: its working distance is binned by the largest whole factor that keeps the cell within this (see
 #: :func:`working_binning`). At 4 mm the default smallest failing region (100 mm^2,
@@ -157,7 +162,7 @@ def bin_capture(capture: Capture, factor: int, *, workers: int | None = None) ->
         return capture
     w, h = capture.rig.image_size
     size = (w // factor, h // factor)
-    threshold = SATURATION_FRACTION * float(2**capture.bit_depth - 1)
+    threshold = saturation_level(capture.bit_depth)
     raws = [*capture.images, capture.dark, capture.stereo_left, capture.stereo_right]
     outs = [np.empty((size[1], size[0]), np.float32) for _ in raws]
 
@@ -197,7 +202,7 @@ def binned_rig(rig: StereoRig, factor: int) -> StereoRig:
 def bin_into(raw: np.ndarray, out: np.ndarray, factor: int, bit_depth: int) -> None:
     """``out`` = ``raw`` binned ``factor`` times as :func:`bin_capture` bins each image (``bit_depth``:
     the capture's, which sets the saturation level)."""
-    _bin_into(raw, out, factor, SATURATION_FRACTION * float(2**bit_depth - 1))
+    _bin_into(raw, out, factor, saturation_level(bit_depth))
 
 
 def raw_noise_counts(capture: Capture) -> tuple[np.ndarray, float | None]:
@@ -317,7 +322,6 @@ def undistorted(
     ``folded``: the images already undistorted one by one as they were taken (``(images, saturated,
     any_saturated)`` as :func:`undistort_into` gives them, :mod:`pipeline.acquisition.streaming`), only ranked here.
     """
-    full_scale = float(2**capture.bit_depth - 1)
     map1, map2 = capture.rig.left.undistort_maps()
     raw, dark = capture.images, capture.dark
     n, (h, w) = capture.n_lights, raw.shape[1:]
@@ -331,7 +335,7 @@ def undistorted(
         images = np.empty((n, h, w), np.float32)
         # zero pages: only the images with a saturated pixel touch theirs
         saturated = np.zeros((n, h, w), bool)
-        threshold = SATURATION_FRACTION * full_scale
+        threshold = saturation_level(capture.bit_depth)
         gains = undistort_gains(capture.light_intensity, capture.bit_depth)
 
         def one(k: int) -> bool:

@@ -16,14 +16,14 @@ intensities, say, is not); it then reads only the bundle's JSON and image header
 (:func:`pipeline.io.read_capture_header`), and its full-size images are never made. Otherwise it
 loads the bundle from the frames, as from files. Either way the arrays are the same to the bit
 (``tests/pipeline/test_streaming.py``). A frame that cannot be folded (a colour frame, a wrong size,
-fewer bits than the capture's) is left to that loading, which names the file and the field.
+fewer bits than the capture's, a photometric image before the dark frame) is left to that loading,
+which names the file and the field.
 """
 
 from __future__ import annotations
 
 import os
 import re
-import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
@@ -34,11 +34,11 @@ from pipeline.camera import CameraModel, StereoRig
 from pipeline.io import Capture, read_capture_header
 from pipeline.lights.model import Lights
 from pipeline.preprocess import (
-    SATURATION_FRACTION,
     WORKING_CELL_MM,
     bin_into,
     binned_rig,
     binning_factor,
+    saturation_level,
     undistort_gains,
     undistort_into,
 )
@@ -94,14 +94,15 @@ class StreamedFrames(dict[str, np.ndarray]):
         self._dark_noise: float | None = None
         self._stereo: list[np.ndarray | None] = [None, None]
         self._folded: set[int] = set()
-        self._waiting: list[int] = []  # photometric images folded before the dark frame arrived
         self._failed = False
         self._bits = 16  # the fewest bits a frame came in
         self._peak = 0  # the brightest sample of any frame
         self._bit_depth: int | None = None
         self._pool: ThreadPoolExecutor | None = None
         self._jobs: list[Future[None]] = []
-        self._lock = threading.Lock()
+        self._gains = np.zeros(n)  # each image's, set by begin()
+        self._saturation = np.inf
+        self._everywhere = np.ones((rig.image_size[1], rig.image_size[0]), bool)
 
     @classmethod
     def for_cell(cls, config: CellConfig | str | os.PathLike[str]) -> StreamedFrames:
@@ -118,6 +119,8 @@ class StreamedFrames(dict[str, np.ndarray]):
         """Fold every frame stored from now on (``bit_depth``: the cameras' significant bits, which
         set full scale and the saturation level)."""
         self._bit_depth = int(bit_depth)
+        self._gains = undistort_gains(self._lights.intensity, self._bit_depth)
+        self._saturation = saturation_level(self._bit_depth)
         if self._pool is None:
             self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fold")
 
@@ -161,19 +164,16 @@ class StreamedFrames(dict[str, np.ndarray]):
             if k >= self._lights.n:
                 self._failed = True
                 return
-            self._noise[k] = _noise(raw)
+            if self._dark is None:  # the acquisition takes the dark frame first
+                self._failed = True
+                return
+            self._noise[k] = self._noise_of(raw)
             self._bin(raw, self._binned[k])
+            self._undistort(k)
             self._folded.add(k)
-            if self._dark is None:
-                self._waiting.append(k)
-            else:
-                self._undistort(k)
         elif name == "dark.png":
-            self._dark_noise = _noise(raw)
+            self._dark_noise = self._noise_of(raw)
             self._dark = self._bin(raw)
-            for k in self._waiting:
-                self._undistort(k)
-            self._waiting.clear()
         else:
             self._stereo[_STEREO[name]] = self._bin(raw)
 
@@ -195,16 +195,17 @@ class StreamedFrames(dict[str, np.ndarray]):
             raise RuntimeError("StreamedFrames: begin(bit_depth) was not called")
         return self._bit_depth
 
+    def _noise_of(self, raw: np.ndarray) -> float:
+        """One image's sensor noise as :func:`pipeline.preprocess.raw_noise_counts` measures it."""
+        return float(image_noise(raw[None], self._everywhere)[0])
+
     def _undistort(self, k: int) -> None:
-        depth = self._depth()
-        gain = float(undistort_gains(self._lights.intensity, depth)[k])
-        threshold = SATURATION_FRACTION * float(2**depth - 1)
         if undistort_into(
             self._binned[k],
             self._dark,
-            gain,
+            float(self._gains[k]),
             self._maps,
-            threshold,
+            self._saturation,
             self._images[k],
             self._saturated[k],
         ):
@@ -221,7 +222,7 @@ class StreamedFrames(dict[str, np.ndarray]):
         full-size images never made. None when the frames were not folded for it (another grid, bit
         depth, calibration or lights, a frame not folded, pixels loading would refuse): it is then
         loaded as any bundle, and what is wrong named there."""
-        self._finish()
+        self.close()
         header = read_capture_header(path)
         names = [image.name for image in header.images]
         expected = [f"ps_{k:02d}.png" for k in range(self._lights.n)]
@@ -270,31 +271,16 @@ class StreamedFrames(dict[str, np.ndarray]):
         """The photometric images of ``capture`` (on the working grid, lights as the inspection takes
         them) undistorted as :func:`pipeline.preprocess.undistorted` does (its ``folded``); None when
         they were folded for other lights, another bit depth or grid."""
-        self._finish()
+        self.close()
         if (
             self._failed
+            or capture.images is not self._binned  # the capture made from these frames
             or capture.bit_depth != self._bit_depth
-            or capture.n_lights != self._lights.n
             or not np.array_equal(capture.light_intensity, self._lights.intensity)
             or not _same_camera(capture.rig.left, self._camera)
-            or (capture.dark is None) != (self._dark is None)
-            or capture.images is not self._binned
         ):
             return None
         return self._images, self._saturated, self._any_saturated
-
-    def _finish(self) -> None:
-        with self._lock:
-            self.close()
-            if self._waiting and not self._failed and self._bit_depth is not None:
-                for k in self._waiting:  # no dark frame came
-                    self._undistort(k)
-                self._waiting.clear()
-
-
-def _noise(raw: np.ndarray) -> float:
-    """One image's sensor noise as :func:`pipeline.preprocess.raw_noise_counts` measures it."""
-    return float(image_noise(raw[None], np.ones(raw.shape, bool))[0])
 
 
 def _same_rig(a: StereoRig, b: StereoRig) -> bool:

@@ -20,7 +20,7 @@ from pipeline.simulate import CaptureSpec, PlateSpec, simulate_capture
 #: The depth assumed without a working distance (the bundles here have one).
 DISTANCE_MM = 3500.0
 #: The order an acquisition takes them in (pipeline.acquisition.acquire).
-ORDER = ["stereo_left.png", "stereo_right.png", "dark.png"]
+ORDER = ("stereo_left.png", "stereo_right.png", "dark.png")
 
 
 @pytest.fixture(scope="module")
@@ -43,8 +43,11 @@ def _cell_mm(bundle: Path, factor: int) -> float:
     return (factor + 0.5) * cap.working_distance_mm / fx
 
 
-def _streamed(bundle: Path, factor: int, *, skip: tuple[str, ...] = ()) -> StreamedFrames:
-    """The bundle's frames (but ``skip``) stored in acquisition order into frames folded for ``factor``."""
+def _streamed(
+    bundle: Path, factor: int, *, skip: tuple[str, ...] = (), order: tuple[str, ...] = ORDER
+) -> StreamedFrames:
+    """The bundle's frames (but ``skip``) stored in acquisition order (``order`` first, then the
+    photometric images) into frames folded for ``factor``."""
     cap = load_capture(bundle)
     assert cap.working_distance_mm is not None
     frames = StreamedFrames(
@@ -52,7 +55,7 @@ def _streamed(bundle: Path, factor: int, *, skip: tuple[str, ...] = ()) -> Strea
     )
     assert frames.factor == factor
     frames.begin(cap.bit_depth)
-    names = ORDER + [f"ps_{k:02d}.png" for k in range(cap.n_lights)]
+    names = [*order, *(f"ps_{k:02d}.png" for k in range(cap.n_lights))]
     for name in (n for n in names if n not in skip):
         frames[name] = cv2.imread(str(bundle / name), cv2.IMREAD_UNCHANGED)
     return frames
@@ -111,9 +114,12 @@ def test_frames_folded_for_another_capture_are_not_taken(bundle):
     assert frames.undistorted(replace(folded, bit_depth=folded.bit_depth - 1)) is None
     assert frames.undistorted(bin_capture(load_capture(bundle), 2)) is None  # not the folded images
 
-    # a photometric image never stored, one that could not be folded (a colour frame), one of fewer
-    # bits than the capture's (loading names the file and the field)
+    # a photometric image never stored or before the dark frame, one that could not be folded (a
+    # colour frame), one of fewer bits than the capture's (loading names the file and the field)
     assert _taken(_streamed(bundle, 2, skip=("ps_03.png",)), bundle, 2) is None
+    late_dark = _streamed(bundle, 2, skip=("dark.png",), order=ORDER[:2])
+    late_dark["dark.png"] = cv2.imread(str(bundle / "dark.png"), cv2.IMREAD_UNCHANGED)
+    assert _taken(late_dark, bundle, 2) is None  # photometric images before the dark frame
     colour = _streamed(bundle, 2)
     colour["ps_01.png"] = np.zeros((*folded.images.shape[1:], 3), np.uint16)
     assert _taken(colour, bundle, 2) is None
