@@ -767,11 +767,9 @@ def _registered(
     arrays, the qualifying worker still reads ``judged``); the deviation, NaN in the band (left out by
     geometry, so that every artifact agrees); every judged point's uncertainty (``points_job``'s)."""
     pose = registration.register_to_target(points, surface_mask, tgt)
-    beyond = outline.beyond_outline(points, surface_mask, tgt, pose)
-    clipped = bool(beyond.any())
-    if clipped:
-        band, judged = clipped_band(surface_mask, beyond)
-    dev = np.where(band, np.nan, deviation.deviation_map(points, surface_mask, tgt, pose))
+    beyond, clipped, band, judged, dev = judged_deviation(
+        points, surface_mask, band, judged, tgt, pose
+    )
     point_u = points_job.result()
     if clipped:
         point_u = uncertainty.restricted(point_u, judged)
@@ -782,6 +780,30 @@ def _registered(
         curved_direction=np.asarray(pose.T_cam_target)[:3, 0],
     )
     return pose, beyond, judged, dev, qualified
+
+
+def judged_deviation(
+    points: np.ndarray,
+    mask: np.ndarray,
+    band: np.ndarray,
+    judged: np.ndarray,
+    tgt: Target,
+    pose: registration.Registration,
+) -> tuple[np.ndarray, bool, np.ndarray, np.ndarray, np.ndarray]:
+    """The deviation of the registered plate where it is judged (one view and stations alike).
+
+    ``band`` and ``judged``: the :func:`edge_band` of ``mask`` and the rest of it. Returns the pixels
+    beyond the target's outline (:mod:`pipeline.judge.outline`), whether there are any, the band and
+    the judged pixels once the outline has clipped the plate (:func:`clipped_band`; ``band`` and
+    ``judged`` themselves when nothing lies beyond), and the deviation, NaN in the band: left out by
+    geometry, so that every artifact agrees.
+    """
+    beyond = outline.beyond_outline(points, mask, tgt, pose)
+    clipped = bool(beyond.any())
+    if clipped:
+        band, judged = clipped_band(mask, beyond)
+    dev = np.where(band, np.nan, deviation.deviation_map(points, mask, tgt, pose))
+    return beyond, clipped, band, judged, dev
 
 
 def clipped_band(mask: np.ndarray, beyond: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

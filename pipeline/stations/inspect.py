@@ -26,8 +26,6 @@ from pipeline.artifacts import ARTIFACT_FILES
 from pipeline.io import Capture, Target, load_capture, load_target
 from pipeline.judge import (
     curvature,
-    deviation,
-    outline,
     registration,
     target_geometry,
     uncertainty,
@@ -53,8 +51,8 @@ from pipeline.stages import (
     InspectOptions,
     ProgressCallback,
     StageClock,
-    clipped_band,
     edge_band,
+    judged_deviation,
     load_inputs,
     preprocess_scene,
     reconstruct_view,
@@ -287,11 +285,8 @@ def _judge(
         ]
         clock.begin("deviation")
         pose = registration.register_to_target(points, mask, tgt)
-        dev = deviation.deviation_map(points, mask, tgt, pose)
-        # as for one view: the edge band, along the outline clipped to the target's, left out by geometry
-        beyond = outline.beyond_outline(points, mask, tgt, pose)
-        band, judged = clipped_band(mask, beyond)
-        dev = np.where(band, np.nan, dev)
+        band = edge_band(mask)
+        beyond, _, band, judged, dev = judged_deviation(points, mask, band, mask & ~band, tgt, pose)
         qualified, reg_sd = _qualify(stations, poses, mosaic, pose, judged, tgt)
         normals, area = normals_job.result()
         has_normal = mask & np.isfinite(normals).all(axis=-1)
