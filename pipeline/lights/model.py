@@ -316,29 +316,54 @@ def light_vectors_block(
     l_k(X) into ``L`` (N, 3, w) float32 and divides the samples (N, w) float32 by the attenuation
     a_k(X) in place; a sample whose attenuation is below ``min_attenuation`` of the pixel's largest
     becomes unusable (``usable`` 0, ``m`` (w,) counts it out). Pixels without a depth get L = 0.
+
+    The model of :func:`light_at`, evaluated a light at a time over the block's pixels (loops the
+    compiler vectorises; the beam's power ``cos^mu`` in single precision, 1e-7 relative): at
+    1224x1024 with 12 LEDs it took 0.13 s of each near-field estimate a pixel at a time, 0.08 s so.
     """
     n, w = samples.shape
-    att = np.empty(n)
+    x0, x1, x2 = np.empty(w), np.empty(w), np.empty(w)
+    seen = np.empty(w, np.bool_)
+    v = float(i)
     for j in range(w):
         z = depth[i, j0 + j]
-        if not (z > 0.0):
+        seen[j] = z > 0.0
+        z = z if seen[j] else 0.0
+        u = float(j0 + j)
+        x0[j] = z * (kinv[0, 0] * u + kinv[0, 1] * v + kinv[0, 2])
+        x1[j] = z * (kinv[1, 0] * u + kinv[1, 1] * v + kinv[1, 2])
+        x2[j] = z * (kinv[2, 0] * u + kinv[2, 1] * v + kinv[2, 2])
+    att = np.empty((n, w))
+    cos = np.empty(w, np.float32)
+    for k in range(n):
+        if kind[k] != 1:  # distant: its direction everywhere, no attenuation
+            for j in range(w):
+                L[k, 0, j], L[k, 1, j], L[k, 2, j] = geometry[k, 0], geometry[k, 1], geometry[k, 2]
+                att[k, j] = 1.0
+            continue
+        g0, g1, g2 = geometry[k, 0], geometry[k, 1], geometry[k, 2]
+        a0, a1, a2 = axes[k, 0], axes[k, 1], axes[k, 2]
+        for j in range(w):
+            d0, d1, d2 = g0 - x0[j], g1 - x1[j], g2 - x2[j]
+            dist2 = d0 * d0 + d1 * d1 + d2 * d2
+            inv = 1.0 / np.sqrt(dist2)
+            L[k, 0, j], L[k, 1, j], L[k, 2, j] = d0 * inv, d1 * inv, d2 * inv
+            att[k, j] = REFERENCE_DISTANCE_MM * REFERENCE_DISTANCE_MM / dist2
+            cos[j] = max(-(d0 * a0 + d1 * a1 + d2 * a2) * inv, 0.0)
+        if mu[k] > 0.0:
+            power = np.float32(mu[k])
+            for j in range(w):
+                att[k, j] *= cos[j] ** power
+    for j in range(w):
+        if not seen[j]:
             L[:, :, j] = 0.0  # outside the mask: no samples are usable there
             continue
-        u = float(j0 + j)
-        v = float(i)
-        x0 = z * (kinv[0, 0] * u + kinv[0, 1] * v + kinv[0, 2])
-        x1 = z * (kinv[1, 0] * u + kinv[1, 1] * v + kinv[1, 2])
-        x2 = z * (kinv[2, 0] * u + kinv[2, 1] * v + kinv[2, 2])
         a_max = 0.0
         for k in range(n):
-            L[k, 0, j], L[k, 1, j], L[k, 2, j], a = light_at(
-                k, x0, x1, x2, geometry, axes, kind, mu
-            )
-            att[k] = a
-            a_max = max(a_max, a)
+            a_max = max(a_max, att[k, j])
         for k in range(n):
-            if att[k] > min_attenuation * a_max:
-                samples[k, j] = np.float32(samples[k, j] / att[k])
+            if att[k, j] > min_attenuation * a_max:
+                samples[k, j] = np.float32(samples[k, j] / att[k, j])
             elif usable[k, j] > 0:
                 usable[k, j] = np.float32(0.0)
                 samples[k, j] = np.float32(0.0)
