@@ -5,7 +5,8 @@ line take a ``workers`` count whose default comes from :func:`default_workers`; 
 (``plate-inspect``'s :func:`pipeline.cli.main`, the service's job consumer) call
 :func:`configure_process` once at start, before any compiled kernel runs, and
 :func:`pipeline.run.inspect` sets the same policy on its first call when nothing did before
-(:func:`set_process_policy`).
+(:func:`set_process_policy`), which also drops a compiled-kernel cache older than the modules it was
+compiled from (:func:`drop_stale_kernels`).
 """
 
 from __future__ import annotations
@@ -14,9 +15,11 @@ import contextlib
 import ctypes
 import ctypes.util
 import functools
+import json
 import os
 import sys
 import threading
+from pathlib import Path
 
 #: Environment variable that overrides the number of worker threads (an integer >= 1).
 WORKERS_ENV = "PLATE_INSPECT_WORKERS"
@@ -100,7 +103,9 @@ def set_process_policy() -> bool:
     :func:`pipeline.run.inspect` calls it, so that a program that calls the inspection without the
     entry points' start-up (a script, a notebook, another service) runs it as fast as the command line
     does (measured: 0.70 s against 0.60 s for a 1224x1024 inspection). Its effects are a process's
-    performance only, never a result. The second and later calls do nothing.
+    performance only, never a result; it also drops a compiled-kernel cache older than its sources
+    (:func:`drop_stale_kernels`), so that no kernel runs code the tree no longer holds.
+    The second and later calls do nothing.
 
     Returns
     -------
@@ -114,6 +119,7 @@ def set_process_policy() -> bool:
             return False
         _policy_set = True
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    drop_stale_kernels()  # before the first kernel loads from it
     return keep_freed_memory()
 
 
@@ -195,3 +201,75 @@ def _glibc() -> ctypes.CDLL | None:
     except (OSError, AttributeError):
         return None
     return libc
+
+
+#: The package whose compiled kernels are cached (:func:`drop_stale_kernels`).
+PACKAGE_ROOT = Path(__file__).resolve().parent
+#: The fingerprint's file, in the package's own ``__pycache__``.
+KERNEL_STAMP_NAME = "kernels.stamp"
+#: The cache's files (numba's index and code).
+KERNEL_CACHE_PATTERNS = ("*.nbi", "*.nbc")
+
+
+def drop_stale_kernels(root: Path = PACKAGE_ROOT) -> bool:
+    """Drop the kernels' cache under ``root`` when a module with kernels changed since it was kept.
+
+    numba caches a compiled kernel (``cache=True``) beside its module, in ``__pycache__`` (``*.nbi``, the
+    index, and ``*.nbc``, the code), and checks the cache against that module's file alone. A kernel
+    compiles the kernels it calls into its own code: when a called kernel's module changes (a pull, a
+    checkout) and the caller's does not, the caller goes on running the old callee. This happened in
+    this tree: the near-field light vectors (``lights/model.py``) were rewritten, and the robust
+    normals' kernel (``surface/normals/robust.py``, unchanged) ran the old ones until its cache was
+    removed by hand. The kernels compile again on their first call after a drop (``scripts/setup.sh``
+    compiles them at install).
+
+    The stamp lists the modules that use numba with their size and modification time; only those are
+    looked at on a process's start (a change elsewhere cannot change a compiled kernel). A module that
+    starts to call a kernel of a new module changes itself, and so drops the cache too.
+
+    Returns
+    -------
+    bool
+        True when the cache was dropped (no stamp yet, or a listed module changed), False when it
+        stands. A package that cannot be written (an installed, read-only one) is left as it is.
+    """
+    stamp = root / "__pycache__" / KERNEL_STAMP_NAME
+    try:
+        kept = json.loads(stamp.read_text())
+        if kept == _kernel_fingerprint(root, kept):
+            return False
+    except (OSError, ValueError, TypeError, AttributeError):
+        pass
+    try:
+        for pattern in KERNEL_CACHE_PATTERNS:
+            for cached in root.rglob(pattern):
+                cached.unlink(missing_ok=True)
+        stamp.parent.mkdir(exist_ok=True)
+        partial = stamp.with_name(f"{KERNEL_STAMP_NAME}.{os.getpid()}")
+        partial.write_text(json.dumps(_kernel_fingerprint(root, _kernel_modules(root))))
+        os.replace(partial, stamp)  # whole, even with other processes starting beside this one
+    except OSError:
+        return False
+    return True
+
+
+def _kernel_modules(root: Path) -> dict[str, list[int]]:
+    """The modules under ``root`` whose source mentions numba (relative paths; values filled by
+    :func:`_kernel_fingerprint`)."""
+    modules: dict[str, list[int]] = {}
+    for directory, subdirs, files in os.walk(root):
+        subdirs[:] = [d for d in subdirs if d != "__pycache__"]
+        for name in files:
+            path = Path(directory, name)
+            if name.endswith(".py") and b"numba" in path.read_bytes():
+                modules[str(path.relative_to(root))] = []
+    return modules
+
+
+def _kernel_fingerprint(root: Path, modules: dict[str, list[int]]) -> dict[str, list[int]]:
+    """Each of ``modules`` (relative paths) with its size and modification time (ns)."""
+    out: dict[str, list[int]] = {}
+    for relative in sorted(modules):
+        st = (root / relative).stat()
+        out[relative] = [st.st_size, st.st_mtime_ns]
+    return out

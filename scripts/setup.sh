@@ -28,8 +28,6 @@ fi
 # Exact versions from the lock file (regenerate it with scripts/lock.sh), then the project itself.
 .venv/bin/python -m pip install -q -r requirements.lock
 .venv/bin/python -m pip install -q --no-deps -e .
-# Compile the numba kernels into their on-disk cache now, not inside the first inspection or job.
-# A kernel's cache is keyed on its own file only: one that calls a kernel of another module that has
-# changed since (a pull, a checkout) would load the old code. Drop the old cache first.
-find pipeline -name '*.nbi' -delete -o -name '*.nbc' -delete
+# Compile the numba kernels into their on-disk cache now, not inside the first inspection or job (a
+# cache older than the sources is dropped first: pipeline.parallel.drop_stale_kernels).
 .venv/bin/python -c "from pipeline.run import warm_up; print(f'kernels compiled and cached ({warm_up(full=True):.0f} s)')"
