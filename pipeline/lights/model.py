@@ -318,8 +318,8 @@ def light_vectors_block(
     becomes unusable (``usable`` 0, ``m`` (w,) counts it out). Pixels without a depth get L = 0.
 
     The model of :func:`light_at`, evaluated a light at a time over the block's pixels (loops the
-    compiler vectorises; the beam's power ``cos^mu`` in single precision, 1e-7 relative): at
-    1224x1024 with 12 LEDs it took 0.13 s of each near-field estimate a pixel at a time, 0.08 s so.
+    compiler vectorises; the beam's power ``cos^mu`` in single precision, 1e-7 relative), where a
+    pixel at a time it took most of each near-field estimate (docs/figures.md, *Speed, end to end*).
     """
     n, w = samples.shape
     x0, x1, x2 = np.empty(w), np.empty(w), np.empty(w)
