@@ -174,9 +174,50 @@ def measure_lobe(
     the grid of LOBE_EXPONENTS (a start for a fit that fits the exponent itself).
 
     The test runs first on about PRETEST_PIXELS of the sampled pixels: a plate whose lobe explains
-    less than MIN_F / 2 there (a matte one: F about 1) is answered from that subsample; any other is
-    measured on all of them, so that the lobe of a glossy plate is the same as without the pretest.
+    less than MIN_F / 2 there (a matte one: F about 1) is answered from that subsample
+    (:func:`matte_lobe`); any other is measured on all of them, so that the lobe of a glossy plate is
+    the same as without the pretest.
     """
+    sampled = _lobe_samples(depth_mm, normals, mask, K, start_mm)
+    if sampled is None:
+        return Lobe(float("nan"), 0.0, 0.0)
+    idx, n_all = sampled
+    quick = _pretest(images, valid, lights, depth_mm, idx, n_all, mask.shape[1], K, gain, refine)
+    if quick.f_ratio < MIN_F / 2:
+        return quick
+    return _lobe_on(images, valid, lights, depth_mm, n_all, idx, mask.shape[1], K, gain, refine)
+
+
+def matte_lobe(
+    images: np.ndarray,
+    valid: np.ndarray | None,
+    lights: Lights,
+    depth_mm: np.ndarray,
+    mask: np.ndarray,
+    K: np.ndarray,
+    *,
+    start_mm: np.ndarray,
+) -> Lobe | None:
+    """:func:`measure_lobe`'s pretest alone (the normals those of ``start_mm``): the lobe when the plate is
+    matte there (F under MIN_F / 2), else None (measure it on every sampled pixel). No parallel kernel:
+    it may run on a worker beside the depth solve."""
+    sampled = _lobe_samples(depth_mm, None, mask, K, start_mm)
+    if sampled is None:
+        return None
+    idx, n_all = sampled
+    quick = _pretest(images, valid, lights, depth_mm, idx, n_all, mask.shape[1], K, None, True)
+    return quick if quick.f_ratio < MIN_F / 2 else None
+
+
+def _lobe_samples(
+    depth_mm: np.ndarray,
+    normals: np.ndarray | None,
+    mask: np.ndarray,
+    K: np.ndarray,
+    start_mm: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """:func:`measure_lobe`'s pixels (flat indices, about LOBE_SEARCH_PIXELS of the usable ones) and their
+    normals (P, 3); None with fewer than 100 usable pixels."""
     if normals is not None:
         finite_n = np.all(np.isfinite(normals), axis=-1)
     elif start_mm is not None:
@@ -186,21 +227,31 @@ def measure_lobe(
     ok_px = mask & np.isfinite(depth_mm) & finite_n
     idx = np.flatnonzero(ok_px.ravel())
     if idx.size < 100:
-        return Lobe(float("nan"), 0.0, 0.0)
+        return None
     idx = idx[:: max(1, idx.size // LOBE_SEARCH_PIXELS)]
     if normals is not None:
-        n_all = normals.reshape(-1, 3)[idx]
-    else:
-        assert start_mm is not None
-        n_all = surface_normals_at(start_mm, K, idx)
-        finite = np.all(np.isfinite(n_all), axis=-1)  # a degenerate neighbourhood: none in practice
-        idx, n_all = idx[finite], n_all[finite]
+        return idx, normals.reshape(-1, 3)[idx]
+    assert start_mm is not None
+    n_all = surface_normals_at(start_mm, K, idx)
+    finite = np.all(np.isfinite(n_all), axis=-1)  # a degenerate neighbourhood: none in practice
+    return idx[finite], n_all[finite]
+
+
+def _pretest(
+    images: np.ndarray,
+    valid: np.ndarray | None,
+    lights: Lights,
+    depth_mm: np.ndarray,
+    idx: np.ndarray,
+    n_all: np.ndarray,
+    w: int,
+    K: np.ndarray,
+    gain: np.ndarray | None,
+    refine: bool,
+) -> Lobe:
+    """The lobe on about PRETEST_PIXELS of the sampled pixels ``idx`` (normals ``n_all``)."""
     sub = slice(None, None, max(1, idx.size // PRETEST_PIXELS))
-    w = mask.shape[1]
-    quick = _lobe_on(images, valid, lights, depth_mm, n_all[sub], idx[sub], w, K, gain, refine)
-    if quick.f_ratio < MIN_F / 2:
-        return quick
-    return _lobe_on(images, valid, lights, depth_mm, n_all, idx, w, K, gain, refine)
+    return _lobe_on(images, valid, lights, depth_mm, n_all[sub], idx[sub], w, K, gain, refine)
 
 
 def _lobe_on(

@@ -21,6 +21,7 @@ Normals that still face away from their pixel's ray are filled from their neighb
 from __future__ import annotations
 
 import functools
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -288,11 +289,6 @@ def near_field_surface(
             "working_distance_mm: expected a distance without a stereo prior, got none"
         )
     _check_lights_in_front(lights, start, mask)
-    depth = np.where(mask, start, np.nan)
-    steps: list[float] = []
-    field = fused = None
-    dropped = 0
-    surface_mask = mask
     noise = float(np.median(image_noise(images, mask)))  # the images', the same at every estimate
     solve_kw: dict[str, Any] = dict(
         prior_mm=prior_mm,
@@ -300,11 +296,68 @@ def near_field_surface(
         stereo_weight=stereo_weight,
         tol=tol,
     )
+    lobe_wanted = model_lobe and prior_mm is not None and method == "robust"
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        surface, matte = _alternate(
+            images,
+            lights,
+            K,
+            np.where(mask, start, np.nan),
+            mask,
+            valid=valid,
+            method=method,
+            noise=noise,
+            solve_kw=solve_kw,
+            max_iterations=max_iterations,
+            step_tol_mm=step_tol_mm,
+            pretest=(pool, start) if lobe_wanted else None,
+        )
+    if lobe_wanted:
+        lobe = matte.result() if matte is not None else None
+        if lobe is None:  # not plainly matte on the starting surface: measured on the final one
+            lobe = glare.measure_lobe(
+                images, valid, lights, surface.depth_mm, None, surface.mask, K, start_mm=start
+            )
+        surface = with_lobe(
+            surface, images, lights, K, valid, StereoLobe(lobe, start), solve_kw, noise=noise
+        )
+    return surface
+
+
+def _alternate(
+    images: np.ndarray,
+    lights: Lights,
+    K: np.ndarray,
+    depth: np.ndarray,
+    mask: np.ndarray,
+    *,
+    valid: np.ndarray | None,
+    method: str,
+    noise: float,
+    solve_kw: dict[str, Any],
+    max_iterations: int,
+    step_tol_mm: float,
+    pretest: tuple[ThreadPoolExecutor, np.ndarray] | None,
+) -> tuple[Surface, Future[glare.Lobe | None] | None]:
+    """:func:`near_field_surface`'s alternation from ``depth`` (NaN off ``mask``): the surface, and with
+    ``pretest`` (a worker and the starting surface) the lobe's pretest on that surface
+    (:func:`pipeline.lights.glare.matte_lobe`), run on the worker beside the first depth solve: a matte
+    plate (the usual one) then waits for no lobe measurement after the last."""
+    steps: list[float] = []
+    field = fused = None
+    dropped = 0
+    surface_mask = mask
+    matte = None
     for it in range(1, max_iterations + 1):  # noqa: B007 (the count is returned)
         est_mask = surface_mask & np.isfinite(depth)
         field = nearfield.estimate_normals_near(
             images, lights, depth, K, est_mask, valid=valid, method=method, noise=noise
         )
+        if pretest is not None and matte is None:
+            pool, start = pretest
+            matte = pool.submit(
+                glare.matte_lobe, images, valid, lights, depth, est_mask, K, start_mm=start
+            )
         new_depth, surface_mask, field, fused, dropped = integrate_and_fuse(field, K, **solve_kw)
         both = surface_mask & np.isfinite(depth)
         step = (
@@ -318,15 +371,7 @@ def near_field_surface(
             break
     if field is None:
         raise ValueError(f"max_iterations: expected at least 1, got {max_iterations}")
-    surface = Surface(depth, surface_mask, field, fused, it, tuple(steps), dropped)
-    if model_lobe and prior_mm is not None and method == "robust":
-        lobe = glare.measure_lobe(
-            images, valid, lights, surface.depth_mm, None, surface.mask, K, start_mm=start
-        )
-        surface = with_lobe(
-            surface, images, lights, K, valid, StereoLobe(lobe, start), solve_kw, noise=noise
-        )
-    return surface
+    return Surface(depth, surface_mask, field, fused, it, tuple(steps), dropped), matte
 
 
 def _refit_with_lobe(
