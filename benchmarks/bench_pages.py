@@ -7,7 +7,9 @@ A fresh SQLite data directory, a plate target with drawing, hull and block and a
 simulated dented inspection at the given size run by the job code (``app.jobs.execute_inspection``),
 then ``--repeat`` requests of each page through the app (in process, no network). Prints a table:
 each request's seconds and the median, against issue 26's budgets (result page 0.5 s, report.pdf
-2 s, on a 2-core machine).
+2 s, on a 2-core machine). The service refuses a simulated capture over 2 Mpx unless
+``PLATE_INSPECT_MAX_SIMULATED_PIXELS`` is raised: at 2448x2048 run it with
+``PLATE_INSPECT_MAX_SIMULATED_PIXELS=6000000``.
 """
 
 from __future__ import annotations
