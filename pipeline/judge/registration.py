@@ -21,6 +21,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from pipeline.io import Target
+from pipeline.judge.area import pixel_area_mm2
 from pipeline.judge.fits import (
     MAX_FIT_POINTS,
     check_grid,
@@ -239,7 +240,7 @@ def _footprint_frame(
 
     Started at the pixels' centroid, which leans towards the side nearer the camera (more pixels per
     mm^2 there), then moved to the middle of the footprint's extent along the frame's in-surface axes
-    (:func:`_footprint_centre`, the points weighted by the plate's area their pixels cover) until it
+    (:func:`_footprint_centre`, the points weighted by the plate's area their pixels see) until it
     stays (:data:`FRAME_STEPS` at most). On a curved shape the extent is measured along the tangent
     plane at the origin, and a plate's arc projects symmetrically onto it only from the arc's middle:
     one step left a plate rolled 15 deg about its axis 18 mm off its middle (3000 mm wide at 3 m, its
@@ -260,9 +261,8 @@ def _footprint_frame(
 def _pixel_area_weights(
     tgt: Target, fitted: tuple[np.ndarray, ...], sample: np.ndarray
 ) -> np.ndarray:
-    """Each point's share of the plate's area (up to a constant): the surface a pixel covers at point
-    ``X`` of normal ``n`` (the fitted shape's), ``z^3 / |n . X|`` (the pixel's solid angle ``cos^3 / f^2``
-    at distance ``z / cos``, over the incidence's cosine)."""
+    """Each point's share of the plate's area (up to the constant ``fx fy``): the area its pixel sees
+    (:func:`pipeline.judge.area.pixel_area_mm2`) with the fitted shape's normal at the point."""
     if tgt.shape == "plane":
         n = np.broadcast_to(fitted[0], sample.shape)
     elif tgt.shape == "cylinder":
@@ -272,8 +272,8 @@ def _pixel_area_weights(
     else:
         n = sample - fitted[0]
     n = n / np.linalg.norm(n, axis=1, keepdims=True)
-    incidence = np.abs(np.einsum("ij,ij->i", n, sample))
-    weight: np.ndarray = sample[:, 2] ** 3 / np.maximum(incidence, 1e-9)
+    z = sample[:, 2]
+    weight: np.ndarray = pixel_area_mm2(z[None], n[None], (sample / z[:, None])[None], np.eye(3))[0]
     return weight
 
 

@@ -12,7 +12,7 @@ import pytest
 from pipeline.formats import InputError
 from pipeline.io import light_calibration_document, load_capture, load_light_calibration
 from pipeline.lights import fit as light_fit
-from pipeline.lights.model import CAMERA_HEAD_RADIUS_MM, Lights
+from pipeline.lights.model import CAMERA_HEAD_RADIUS_MM, Lights, light_vectors_block
 
 from .bundles import write_bundle
 
@@ -112,6 +112,52 @@ def test_irradiance_follows_the_documented_model():
     assert E[2] == pytest.approx(2.0 * 0.5 * c**2 * c)
     # a surface facing away gets nothing
     assert lights.irradiance(X[:1], -n[:1])[0, 0] == 0.0
+
+
+def test_the_normals_kernels_light_model_is_the_documented_one():
+    # lights.model.light_vectors_block, which the near-field normals' kernel calls, evaluates the model
+    # a light at a time (the beam's power in single precision): it must give Lights.directions_at and
+    # attenuation_at, for point lights with and without a beam profile and a distant light among them
+    rng = np.random.default_rng(3)
+    n_points = 5
+    positions = np.c_[
+        rng.uniform(-1500.0, 1500.0, (n_points, 2)), rng.uniform(-300.0, 300.0, n_points)
+    ]
+    axes = np.array([0.0, 0.0, 3000.0]) - positions
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    nan3 = np.full((1, 3), np.nan)
+    lights = Lights(
+        directions=np.r_[np.full((n_points, 3), np.nan), [[0.6, 0.0, -0.8]]],
+        positions_mm=np.r_[positions, nan3],
+        axes=np.r_[axes, nan3],
+        mu=np.array([0.0, 1.0, 1.5, 2.3, 0.7, 0.0]),
+        intensity=np.ones(n_points + 1),
+    )
+    n, h, w = lights.n, 4, 30
+    K = np.array([[900.0, 0.0, 15.0], [0.0, 900.0, 2.0], [0.0, 0.0, 1.0]])
+    depth = 3000.0 + rng.uniform(-200.0, 200.0, (h, w))
+    depth[1, 7] = np.nan  # a pixel without a surface point
+    geometry, ax, kind = lights.kernel_arrays()
+    for i in range(h):
+        samples = np.ones((n, w), np.float32)
+        usable = np.ones((n, w), np.float32)
+        m = np.full(w, n, np.int64)
+        L = np.empty((n, 3, w), np.float32)
+        light_vectors_block(
+            depth, np.linalg.inv(K), geometry, ax, kind, lights.mu, 0.0, i, 0, samples, usable, m, L
+        )
+        X = depth[i, :, None] * (
+            np.c_[np.arange(w), np.full(w, i), np.ones(w)] @ np.linalg.inv(K).T
+        )
+        seen = np.isfinite(X[:, 2])
+        np.testing.assert_allclose(
+            L[:, :, seen], lights.directions_at(X[seen]).transpose(0, 2, 1), rtol=0, atol=1e-6
+        )
+        np.testing.assert_allclose(
+            samples[:, seen], 1.0 / lights.attenuation_at(X[seen]), rtol=2e-6
+        )
+        assert not L[:, :, ~seen].any() and (samples[:, ~seen] == 1.0).all()
+        assert (m == n).all() and usable.all()
 
 
 def test_nominal_directions_keep_the_irradiance_at_the_centre():
