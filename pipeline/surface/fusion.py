@@ -272,7 +272,7 @@ def _uncertainty_maps(
     if not select:
         return None, None, 0.0
     sd = np.full(shape, np.nan, np.float32)
-    sd[box] = np.where(mb, _value_sd(chosen, scale2) * zb, np.nan)
+    sd[box] = np.where(mb, _value_sd(chosen, scale2, mb) * zb, np.nan)
     model = None
     if finer is not None:
         model = np.full(shape, np.nan, np.float32)
@@ -459,40 +459,82 @@ def _coef_cov(f: _Fitted, scale2: float) -> np.ndarray:
     return cov_spline
 
 
-def _value_sd(f: _Fitted, scale2: float) -> np.ndarray:
-    """Standard deviation of a fit's value at every pixel of its box (log depth), from its covariance,
-    computed on every 8th pixel and interpolated."""
+def _value_sd(f: _Fitted, scale2: float, mask: np.ndarray) -> np.ndarray:
+    """Standard deviation of a fit's value at every pixel of its box (log depth) beyond a plane in (u, v),
+    from its covariance, computed on every 8th pixel and interpolated.
+
+    The deviation is read after a rigid registration to the target, which takes up any error of scale
+    and tilt: what remains of the correction's error at a pixel is its value less the least-squares
+    plane through its values over the surface ``mask`` (the box's pixels). With ``c`` the coefficients'
+    error (covariance ``C``), ``b(x)`` a pixel's basis row and ``a(x) = (1, u, v)``, the plane's
+    coefficients are ``G c`` with ``G = (A^T A)^-1 A^T B`` over the sampled surface, and the residual
+    ``(b(x) - a(x)^T G) c`` has the variance
+    ``b C b^T - 2 b (C G^T) a + a^T (G C G^T) a``. A plane rung's error is such a plane: nothing remains.
+    """
     cov = _coef_cov(f, scale2)
     grid = f.grid
     h, w = grid.shape
-    rv, ru = np.arange(0, h + 7, 8).clip(max=h - 1), np.arange(0, w + 7, 8).clip(max=w - 1)
+    rv, ru = _samples(h), _samples(w)
     Bv, Bu = grid.basis(rv, grid.nv), grid.basis(ru, grid.nu)
     # var(v, u) = sum_{ab,cd} Bv[v,a] Bu[u,b] C[ab,cd] Bv[v,c] Bu[u,d]
     C = cov.reshape(grid.nv, grid.nu, grid.nv, grid.nu)
     tmp = np.einsum("va,abcd->vbcd", Bv, C, optimize=True)
     tmp = np.einsum("vc,vbcd->vbd", Bv, tmp, optimize=True)
     var = np.einsum("ub,vbd,ud->vu", Bu, tmp, Bu, optimize=True)
-    sd = np.sqrt(np.clip(var, 0.0, None)).astype(np.float32)
-    full: np.ndarray = cv2.resize(
-        sd, (int(ru[-1] + 1), int(rv[-1] + 1)), interpolation=cv2.INTER_LINEAR
-    )
-    return full[:h, :w]
+    m = mask[np.ix_(rv.astype(np.int64).clip(max=h - 1), ru.astype(np.int64).clip(max=w - 1))]
+    m = m.astype(np.float64)
+    if m.sum() >= 3:
+        # the plane's functions on the sampled grid, centred and scaled (well conditioned)
+        vv = (rv - rv.mean()) / max(float(h), 1.0)
+        uu = (ru - ru.mean()) / max(float(w), 1.0)
+        planes = (
+            np.ones(m.shape),
+            np.broadcast_to(uu, m.shape),
+            np.broadcast_to(vv[:, None], m.shape),
+        )
+        At_B = np.stack([(Bv.T @ (m * fk) @ Bu).ravel() for fk in planes])  # (3, p)
+        AtA = np.array([[np.sum(m * fi * fj) for fj in planes] for fi in planes])
+        G = np.linalg.solve(AtA, At_B)  # (3, p)
+        D = cov @ G.T  # (p, 3): cov(c, plane coefficients)
+        E = G @ D  # (3, 3): the plane coefficients' covariance
+        cross = sum(planes[k] * ((Bv @ D[:, k].reshape(grid.nv, grid.nu)) @ Bu.T) for k in range(3))
+        quad = sum(planes[i] * planes[j] * E[i, j] for i in range(3) for j in range(3))
+        var = var - 2.0 * cross + quad
+    return _on_pixels(np.sqrt(np.clip(var, 0.0, None)), h, w)
 
 
 def _difference(finer: _Fitted, chosen: _Fitted) -> np.ndarray:
     """|finer - chosen| (log depth) at every pixel of their box, computed on every 8th pixel and
     interpolated (both are smooth on the scale of the finer rung's knots)."""
     h, w = chosen.grid.shape
-    rv, ru = np.arange(0, h + 7, 8).clip(max=h - 1), np.arange(0, w + 7, 8).clip(max=w - 1)
+    rv, ru = _samples(h), _samples(w)
 
     def sampled(f: _Fitted) -> np.ndarray:
         g = f.grid
         values: np.ndarray = (g.basis(rv, g.nv) @ f.coef.reshape(g.nv, g.nu)) @ g.basis(ru, g.nu).T
         return values
 
-    d = np.abs(sampled(finer) - sampled(chosen)).astype(np.float32)
+    return _on_pixels(np.abs(sampled(finer) - sampled(chosen)), h, w)
+
+
+#: The maps of the correction's uncertainty are computed on every this many pixels and interpolated.
+_MAP_STEP = 8
+
+
+def _samples(n: int) -> np.ndarray:
+    """Pixel positions along an axis of ``n`` pixels at which the maps are computed: the centres of
+    :data:`_MAP_STEP`-pixel cells, where :func:`_on_pixels`' bilinear enlargement puts them."""
+    return np.arange(-(-n // _MAP_STEP)) * _MAP_STEP + (_MAP_STEP - 1) / 2.0
+
+
+def _on_pixels(values: np.ndarray, h: int, w: int) -> np.ndarray:
+    """Values at :func:`_samples` positions brought to every pixel of an (h, w) box, float32 (bilinear;
+    the outer half cells keep their nearest sample's value)."""
+    rows, cols = values.shape
     full: np.ndarray = cv2.resize(
-        d, (int(ru[-1] + 1), int(rv[-1] + 1)), interpolation=cv2.INTER_LINEAR
+        values.astype(np.float32),
+        (cols * _MAP_STEP, rows * _MAP_STEP),
+        interpolation=cv2.INTER_LINEAR,
     )
     return full[:h, :w]
 

@@ -135,3 +135,32 @@ def test_a_coarser_splines_coefficients_beyond_the_stereo_blocks_stay_bounded(se
     assert fused.correction_sd_mm is not None and fused.model_sd_mm is not None
     stated = np.hypot(fused.correction_sd_mm, fused.model_sd_mm)[island]
     assert np.all(np.abs(err[island]) <= 2.0 * stated)
+
+
+@pytest.mark.parametrize("rung", ["plane", "quadric", 0.25])
+def test_the_corrections_sd_is_what_a_rigid_registration_leaves_of_its_error(rung):
+    """The correction's standard deviation (``Fusion.correction_sd_mm``) is that of its error less the
+    least-squares plane through it over the surface (a registration takes up scale and tilt): a plane
+    rung's is nil; a finer rung's matches draws of the coefficients from their covariance."""
+    from pipeline.surface import fusion as fm
+
+    z, _, mask, _, _ = _surface()
+    rng = np.random.default_rng(5)
+    blocks = fm._Blocks.of(z, _stereo(z, mask, rng), mask)
+    fitted = next(f for f in fm._ladder_fits(blocks, mask.shape, 0.25, True) if f.rung == rung)
+    scale2 = fm._noise_variance(fitted.sigma_pix, blocks)
+    sd = fm._value_sd(fitted, scale2, mask)
+    cov = fm._coef_cov(fitted, scale2)
+    if rung == "plane":
+        assert np.max(sd[mask]) < 1e-6 * np.sqrt(np.max(np.diag(cov)))
+        return
+    draws = rng.multivariate_normal(np.zeros(cov.shape[0]), cov, size=400, method="eigh")
+    vv, uu = np.nonzero(mask)
+    pick = rng.choice(vv.size, 3000, replace=False)
+    vv, uu = vv[pick], uu[pick]
+    A = np.stack([np.ones(vv.size), uu, vv], axis=1).astype(np.float64)
+    Bv, Bu = fitted.grid.basis(vv, fitted.grid.nv), fitted.grid.basis(uu, fitted.grid.nu)
+    values = np.einsum("pa,nab,pb->np", Bv, draws.reshape(-1, fitted.grid.nv, fitted.grid.nu), Bu)
+    plane = np.linalg.lstsq(A, values.T, rcond=None)[0]
+    left = values - (A @ plane).T
+    np.testing.assert_allclose(sd[vv, uu], left.std(axis=0), rtol=0.15, atol=0.05 * left.std())
