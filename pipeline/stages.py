@@ -101,8 +101,14 @@ class InspectOptions:
         working distance sets the scale instead, or the capture is refused without one.
     stereo_max_width : int
         A stereo pair wider than this (px) is matched reduced by the smallest whole
-        factor that fits: its depth only anchors the scale and the lowest frequencies
-        of the fused surface.
+        factor that fits (it bounds the matcher's time and memory). The working grid's
+        pair is matched at full size up to a 2448-wide sensor that cannot be binned to its
+        working cell (the head 4.2 m away): what the stereo pair can prove of the plate's
+        bend, and so the fusion's correction and the uncertainty, stands on its resolution.
+        Matched at half size there, a plate formed exactly read p95 0.089 mm (stereo noise
+        4.5 mm a pixel) against 0.028 mm at full size (1.9 mm), and 3 lights reported U95
+        only 1.4 times the 12 lights' (1.9 times at full size), for 0.4 s more
+        (``benchmarks/bench_capable.py --size 2448x2048 --seeds 71 --cases "head 4.2 m"``).
     depth_tol : float
         Relative residual at which the depth solve stops (``tol`` of
         :func:`pipeline.surface.integration.integrate_normals`). Measured on a simulated plate at
@@ -124,7 +130,7 @@ class InspectOptions:
     stereo_weight: float = 1e-4
     depth_margin: float = 1.0
     min_stereo_pct: float = 20.0
-    stereo_max_width: int = 1600
+    stereo_max_width: int = 2600
     depth_tol: float = 1e-4
     workers: int | None = None
     working_cell_mm: float | None = WORKING_CELL_MM
@@ -659,7 +665,7 @@ def stereo_weight_on_grid(weight: float, K: np.ndarray, distance_mm: float) -> f
     pixels. On a grid finer than :data:`STEREO_WEIGHT_CELL_MM` (a capture that cannot be binned by a
     whole factor to its working cell: 2448x2048 with the head 4.2 m away, 2.3 mm) the same weight per
     pixel would let the stereo pair reach proportionally shorter wavelengths on the plate, while its
-    noise per pixel does not fall (it is matched at most ``stereo_max_width`` wide). There the weight
+    noise per pixel falls less than the cell (or not at all, matched reduced above ``stereo_max_width``). There the weight
     keeps the wavelength in mm: it is scaled by ``(cell / STEREO_WEIGHT_CELL_MM)^2``. A perfect plate
     read p95 0.119 mm at 2448x2048 and 4.2 m with the weight per pixel, a smooth dome of stereo noise
     over U95 0.089 mm; 0.089 mm with it scaled, U95 0.099 mm. A coarser grid keeps the weight per

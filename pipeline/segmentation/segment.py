@@ -75,7 +75,7 @@ def segment_plate(
         Width of the edge band, pixels (>= 0), for a stereo depth matched at this grid's resolution.
     depth_scale_px : int
         The stereo depth was matched on this grid reduced this many times (:mod:`pipeline.stages`
-        matches a pair wider than 1600 px reduced): the matcher's smearing across an edge grows with it, so the
+        matches a pair wider than ``InspectOptions.stereo_max_width`` reduced): the matcher's smearing across an edge grows with it, so the
         edge band and the zone of the normals check are this many times wider (>= 1).
     max_dropout_mm2 : float
         Largest unmatched region inside the plate filled as a stereo dropout, mm^2 (>= 0).

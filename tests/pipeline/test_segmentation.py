@@ -359,7 +359,7 @@ def test_stereo_prior_keeps_only_the_plates_depth(floor_cut_scene):
 
 
 def test_depth_matched_at_half_size(floor_cut_scene):
-    """A depth matched on a grid reduced twice (as run.py does above 1600 px) is segmented there and the
+    """A depth matched on a grid reduced twice (as the stages do above ``stereo_max_width``) is segmented there and the
     decisions brought back; the edge band doubles."""
     truth = floor_cut_scene["truth"]
     full = _segment(floor_cut_scene)
