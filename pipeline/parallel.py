@@ -19,7 +19,10 @@ import json
 import os
 import sys
 import threading
+from collections.abc import Callable, Iterable
+from concurrent.futures import Executor, Future
 from pathlib import Path
+from typing import Any, Generic, TypeVar
 
 #: Environment variable that overrides the number of worker threads (an integer >= 1).
 WORKERS_ENV = "PLATE_INSPECT_WORKERS"
@@ -70,6 +73,48 @@ def default_workers() -> int:
     if hasattr(os, "sched_getaffinity"):
         return len(os.sched_getaffinity(0))
     return os.cpu_count() or 1
+
+
+T = TypeVar("T")
+
+
+class Deferred(Generic[T]):
+    """Work submitted to a pool that the caller does itself when it asks for the result before a worker
+    has started it (:meth:`result`).
+
+    A caller that would otherwise wait for its pool's queue to drain (the artifact writes at the end of
+    an inspection, two workers and a queue of files) takes the work still queued instead of idling: the
+    same calls, on the caller's thread.
+    """
+
+    def __init__(self, pool: Executor, fn: Callable[..., T], *args: Any, **kwargs: Any) -> None:
+        self._call = functools.partial(fn, *args, **kwargs)
+        self.future: Future[T] = pool.submit(self._call)
+
+    def result(self) -> T:
+        """The call's result: run here when no worker has started it, else the worker's (its exception
+        raised as :meth:`concurrent.futures.Future.result` raises it)."""
+        if self.future.cancel():
+            return self._call()
+        return self.future.result()
+
+
+def finish(work: Iterable[Deferred[Any]]) -> None:
+    """Wait for every piece of ``work``, first doing here each one that no worker has started (the most
+    recently submitted first), then waiting for those under way; the first exception is raised."""
+    work = list(work)
+    for item in reversed(work):
+        if item.future.cancel():
+            item.future = _done(item._call())
+    for item in work:
+        item.result()
+
+
+def _done(value: T) -> Future[T]:
+    """A future that holds ``value``."""
+    future: Future[T] = Future()
+    future.set_result(value)
+    return future
 
 
 _policy_lock = threading.Lock()

@@ -38,6 +38,7 @@ from pipeline.judge import (
     verdict,
 )
 from pipeline.lights.model import Lights
+from pipeline.parallel import Deferred, finish
 from pipeline.preprocess import (
     WORKING_CELL_MM,
     Preprocessed,
@@ -367,7 +368,7 @@ def reconstruct_view(
     started: CaptureWork,
     *,
     normals_png: Path | None = None,
-) -> tuple[View, list[Future[Any]]]:
+) -> tuple[View, list[Deferred[Any]]]:
     """Stages *normals*, *stereo* and *depth* of one view, work beside the main line on ``pool``.
 
     ``started``: the capture's work, submitted before the preprocessing (:func:`start_capture_work`).
@@ -391,12 +392,12 @@ def reconstruct_view(
         clock.end("normals")
     clock.begin("stereo")
     plate, field = _plate(stereo_job, cap, scene, field, tgt, opts, clock)
-    writes = []
+    writes: list[Deferred[Any]] = []
     if field is not None and normals_png is not None:
         # normals.png now, while the depth is solved on this thread (the few normals dropped later as facing
         # away are then shown as estimated)
         writes.append(
-            pool.submit(artifacts.write_normals_png, normals_png, field.normals, field.mask)
+            Deferred(pool, artifacts.write_normals_png, normals_png, field.normals, field.mask)
         )
     _check_stereo_share(plate, cap, opts)
     surface = _surface(cap, tgt, scene, plate, field, opts, pool, clock)
@@ -686,7 +687,7 @@ def _judge(
     K: np.ndarray,
     out: Path,
     pool: ThreadPoolExecutor,
-    writes: list[Future[Any]],
+    writes: list[Deferred[Any]],
     clock: StageClock,
     qualify: Callable[[np.ndarray], uncertainty.PointUncertainty],
 ) -> Measurement:
@@ -706,11 +707,12 @@ def _judge(
     points_job = pool.submit(qualify, judged)
     area_job = pool.submit(area.pixel_area_mm2, surface.depth_mm, field.normals, rays, K)
     writes.append(
-        pool.submit(artifacts.save_depth, out / ARTIFACT_FILES["depth"], surface.depth_mm)
+        Deferred(pool, artifacts.save_depth, out / ARTIFACT_FILES["depth"], surface.depth_mm)
     )
     if not normals_written:
         writes.append(
-            pool.submit(
+            Deferred(
+                pool,
                 artifacts.write_normals_png,
                 out / ARTIFACT_FILES["normals"],
                 field.normals,
@@ -723,7 +725,8 @@ def _judge(
     )
     writes += write_deviation(pool, out, points, surface_mask, dev, tgt.tolerance_mm)
     writes.append(
-        pool.submit(
+        Deferred(
+            pool,
             artifacts.write_uncertainty,
             out,
             qualified.map_mm,
@@ -743,9 +746,8 @@ def _judge(
     clock.end("deviation")
     clock.begin("artifacts")
     writes.append(write_target(pool, out, tgt, pose))
+    finish(writes)  # the writes no worker has started yet are made here, instead of waiting
     curv, clock.timings["curvature"] = curvature_job.result()
-    for write in writes:
-        write.result()
     return Measurement(
         surface=surface,
         plate=plate,
@@ -883,10 +885,12 @@ def _raw_noise(
 
 def write_target(
     pool: ThreadPoolExecutor, out: Path, tgt: Target, pose: registration.Registration
-) -> Future[Any]:
-    """Submit the write of target.ply, the target's surface in the measured plate's pose; its future."""
+) -> Deferred[Any]:
+    """Submit the write of target.ply, the target's surface in the measured plate's pose (see
+    :class:`pipeline.parallel.Deferred`)."""
     verts, faces = target_geometry.target_surface(tgt)
-    return pool.submit(
+    return Deferred(
+        pool,
         artifacts.write_target_ply,
         out / ARTIFACT_FILES["target_surface"],
         verts,
@@ -902,10 +906,12 @@ def write_deviation(
     mask: np.ndarray,
     dev: np.ndarray,
     tolerance_mm: float,
-) -> list[Future[Any]]:
-    """Submit the writes of surface.ply and deviation.png (the deviation known); their futures."""
+) -> list[Deferred[Any]]:
+    """Submit the writes of surface.ply and deviation.png (the deviation known; see
+    :class:`pipeline.parallel.Deferred`)."""
     return [
-        pool.submit(
+        Deferred(
+            pool,
             artifacts.write_surface_ply,
             out / ARTIFACT_FILES["surface"],
             points,
@@ -913,7 +919,8 @@ def write_deviation(
             dev,
             tolerance_mm=tolerance_mm,
         ),
-        pool.submit(
+        Deferred(
+            pool,
             artifacts.write_deviation_png,
             out / ARTIFACT_FILES["deviation_map"],
             dev,

@@ -14,7 +14,7 @@ import math
 import os
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -42,7 +42,7 @@ from pipeline.judge.details import (
     region_details,
 )
 from pipeline.lights.model import Lights
-from pipeline.parallel import default_workers
+from pipeline.parallel import Deferred, default_workers, finish
 from pipeline.solvers import percentile
 from pipeline.stages import (
     DISAGREEMENT_FRACTION,
@@ -281,7 +281,7 @@ def _judge(
         curvature_job = pool.submit(_curvature, points, mask)
         normals_job = pool.submit(_grid_normals, points, mosaic.cell_mm)
         writes = [
-            pool.submit(artifacts.save_depth, out / ARTIFACT_FILES["depth"], points[..., 2]),
+            Deferred(pool, artifacts.save_depth, out / ARTIFACT_FILES["depth"], points[..., 2])
         ]
         clock.begin("deviation")
         pose = registration.register_to_target(points, mask, tgt)
@@ -291,8 +291,12 @@ def _judge(
         normals, area = normals_job.result()
         has_normal = mask & np.isfinite(normals).all(axis=-1)
         writes.append(
-            pool.submit(
-                artifacts.write_normals_png, out / ARTIFACT_FILES["normals"], normals, has_normal
+            Deferred(
+                pool,
+                artifacts.write_normals_png,
+                out / ARTIFACT_FILES["normals"],
+                normals,
+                has_normal,
             )
         )
         judgement = verdict.judge(
@@ -301,9 +305,8 @@ def _judge(
         clock.end("deviation")
         clock.begin("artifacts")
         writes += _write_artifacts(pool, out, mosaic, dev, qualified.map_mm, judged, tgt, pose)
+        finish(writes)  # the writes no worker has started yet are made here, instead of waiting
         curv, clock.timings["curvature"] = curvature_job.result()
-        for w in writes:
-            w.result()
     return StitchedPlate(
         plate_id=stations[0].ref.plate_id,
         mosaic=mosaic,
@@ -337,12 +340,12 @@ def _write_artifacts(
     judged: np.ndarray,
     tgt: Target,
     pose: registration.Registration,
-) -> list[Future[Any]]:
+) -> list[Deferred[Any]]:
     """Submit the writes of surface.ply, deviation.png, the uncertainty's files and target.ply."""
     points, mask, tol = mosaic.points, mosaic.mask, tgt.tolerance_mm
     return [
         *write_deviation(pool, out, points, mask, dev, tol),
-        pool.submit(artifacts.write_uncertainty, out, u_map, judged, tolerance_mm=tol),
+        Deferred(pool, artifacts.write_uncertainty, out, u_map, judged, tolerance_mm=tol),
         write_target(pool, out, tgt, pose),
     ]
 

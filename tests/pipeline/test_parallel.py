@@ -128,3 +128,40 @@ def test_the_prefaulted_heap_serves_the_first_images_without_page_faults():
     fresh, prefaulted = faults(False), faults(True)
     assert fresh > 1_000
     assert prefaulted < 0.05 * fresh
+
+
+def test_deferred_work_is_done_by_the_caller_when_no_worker_has_started_it():
+    """``finish`` runs on the caller's thread each piece of work still queued (the last submitted
+    first) and waits for the rest; every result and exception is the call's own."""
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from pipeline.parallel import Deferred, finish
+
+    release, started = threading.Event(), threading.Event()
+    ran_on: dict[str, str] = {}
+
+    def work(name: str) -> str:
+        if name == "busy":
+            started.set()
+            release.wait(5)
+        ran_on[name] = threading.current_thread().name
+        return name
+
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="worker") as pool:
+        busy = Deferred(pool, work, "busy")
+        queued = [Deferred(pool, work, f"queued {k}") for k in range(3)]
+        assert started.wait(5)
+        threading.Timer(0.2, release.set).start()
+        finish([busy, *queued])
+    assert ran_on["busy"].startswith("worker")
+    assert all(ran_on[f"queued {k}"] == threading.current_thread().name for k in range(3))
+    assert [d.result() for d in (busy, *queued)] == ["busy", "queued 0", "queued 1", "queued 2"]
+
+    def fail() -> None:
+        raise OSError("disk full")
+
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        blocker = Deferred(pool, release.wait, 5)
+        with pytest.raises(OSError, match="disk full"):
+            finish([blocker, Deferred(pool, fail)])
