@@ -14,7 +14,8 @@ it found:
   shape (the correction's knot spacing, or the plate's extent when it sets only scale, tilt and
   bend).
 - **Stereo correction** (per point). The standard deviation of the chosen correction from its fit's
-  covariance, the noise and its correlation measured on the data (:class:`pipeline.surface.fusion.Fusion`).
+  covariance, the noise and its correlation measured on the data, of its error beyond the plane in
+  (u, v) through it (the registration takes up scale and tilt; :class:`pipeline.surface.fusion.Fusion`).
 - **Scale** (per point and radius). The stereo pair's scale rests on its disparities: the matcher's
   disparity quantum (1/16 px, a rectangular distribution) and the calibration's reprojection
   error over its board's corners give a relative scale uncertainty ``u_d / d``; a point moves by

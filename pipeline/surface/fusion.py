@@ -117,8 +117,9 @@ class Fusion:
         medians' residuals of the finest rung, as if the noise were independent between samples).
     noise_floor_mm : float
         How much disagreement the stereo noise alone explains: 3 standard deviations of the chosen
-        correction's value (its covariance, the noise's correlation included), 95th percentile over
-        the surface, mm.
+        correction's value beyond its plane, as the disagreement is (``correction_sd_mm``: its
+        covariance, the noise's correlation included), 95th percentile over the surface, mm; 0 for a
+        plane.
     n_stereo : int
         Stereo pixels in the fit.
     knot_spacing_px : float or None
@@ -134,7 +135,8 @@ class Fusion:
         within its threshold.
     correction_sd_mm : (H, W) float32 or None
         Standard deviation of the chosen correction at every pixel from the stereo noise (its fit's
-        covariance), mm; NaN outside the mask.
+        covariance), beyond the least-squares plane in (u, v) through the correction's error over the
+        mask (a rigid registration takes up scale and tilt), mm; NaN outside the mask.
     model_sd_mm : (H, W) float32 or None
         How far the next finer rung's correction lies from the chosen one at every pixel, mm (NaN
         outside the mask; None when the finest was chosen): the structure the lack-of-fit test did
