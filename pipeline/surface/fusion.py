@@ -53,7 +53,7 @@ import cv2
 import numba as nb
 import numpy as np
 import numpy.typing as npt
-from scipy import linalg, special
+from scipy import linalg, optimize, special
 
 from pipeline.solvers import percentile
 
@@ -854,25 +854,24 @@ def _held_to_quadric(f: _Fitted, blocks: _Blocks, scale2: float) -> _Fitted:
     )
 
 
-#: Halvings of the bisection of :func:`_between_variance`: 2^-50 of its first bracket, round-off.
-_BISECTIONS = 50
-
-
 def _between_variance(values: np.ndarray, var: np.ndarray, *, dof: int) -> float:
     """``tau^2`` of ``values ~ N(0, var + tau^2)`` by the Paule-Mandel moment equation
     ``sum(values^2 / (var + tau^2)) = dof`` (a value far less sure than ``tau^2`` weighs little;
-    ``dof``: the values' count less the parameters fitted before them). At least the smallest
-    positive ``var`` over the values' count (no departure beyond the noise: held to the quadric)."""
+    ``dof``: the values' count less the parameters fitted before them), solved by Brent's method. At
+    least the smallest positive ``var`` over the values' count (no departure beyond the noise: held to
+    the quadric)."""
     n = max(dof, 1)
     floor = float(np.min(var[var > 0])) / values.size if np.any(var > 0) else 1e-30
-    lo, hi = 0.0, float(np.sum(values**2)) + floor
-    for _ in range(_BISECTIONS):  # the sum falls as tau^2 grows
-        mid = 0.5 * (lo + hi)
-        if np.sum(values**2 / (var + mid)) > n:
-            lo = mid
-        else:
-            hi = mid
-    return max(0.5 * (lo + hi), floor)
+    squares = values**2
+
+    def excess(tau2: float) -> float:  # falls as tau^2 grows
+        return float(np.sum(squares / (var + tau2))) - n
+
+    if excess(floor) <= 0.0:
+        return floor
+    # at hi the sum is below sum(values^2) / hi < 1 <= n
+    hi = float(np.sum(squares)) + floor
+    return float(optimize.brentq(excess, floor, hi, xtol=1e-9 * floor, rtol=1e-12))
 
 
 def _penalised(
