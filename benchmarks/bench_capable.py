@@ -55,6 +55,18 @@ CASES: tuple[tuple[str, dict[str, Any], dict[str, Any], float | None], ...] = (
         {"working_distance_mm": 4200.0},
         None,
     ),
+    (
+        "12 lights, head 3.5 m away",
+        {"distance_mm": 3500.0},
+        {"working_distance_mm": 3500.0},
+        None,
+    ),
+    (
+        "3 lights, head 3.5 m away",
+        {"distance_mm": 3500.0},
+        {"n_lights": 3, "working_distance_mm": 3500.0},
+        None,
+    ),
     ("12 LEDs 2.8 m, positions", {}, LED, None),
     ("12 LEDs 2.8 m, nominal directions", {}, {**LED, "manifest_lights": "nominal"}, None),
     ("12 lights written 1 deg off", {}, {"light_error_deg": 1.0}, None),
