@@ -91,30 +91,33 @@ class Deferred(Generic[T]):
         self._call = functools.partial(fn, *args, **kwargs)
         self.future: Future[T] = pool.submit(self._call)
 
-    def result(self) -> T:
-        """The call's result: run here when no worker has started it, else the worker's (its exception
-        raised as :meth:`concurrent.futures.Future.result` raises it)."""
+    def run_if_queued(self) -> None:
+        """Make the call here, on the caller's thread, when no worker has started it (its result, or its
+        exception, then comes from here)."""
         if self.future.cancel():
-            return self._call()
+            done: Future[T] = Future()
+            try:
+                done.set_result(self._call())
+            except Exception as err:  # kept, as a worker's future keeps it, for result() to raise
+                done.set_exception(err)
+            self.future = done
+
+    def result(self) -> T:
+        """The call's result: made here when no worker has started it (:meth:`run_if_queued`), else the
+        worker's (its exception raised as :meth:`concurrent.futures.Future.result` raises it)."""
+        self.run_if_queued()
         return self.future.result()
 
 
 def finish(work: Iterable[Deferred[Any]]) -> None:
-    """Wait for every piece of ``work``, first doing here each one that no worker has started (the most
-    recently submitted first), then waiting for those under way; the first exception is raised."""
+    """Wait for every piece of ``work``, first making here each one that no worker has started (the most
+    recently submitted first), then waiting for those under way; the first exception, in the order of
+    ``work``, is raised."""
     work = list(work)
     for item in reversed(work):
-        if item.future.cancel():
-            item.future = _done(item._call())
+        item.run_if_queued()
     for item in work:
         item.result()
-
-
-def _done(value: T) -> Future[T]:
-    """A future that holds ``value``."""
-    future: Future[T] = Future()
-    future.set_result(value)
-    return future
 
 
 _policy_lock = threading.Lock()

@@ -158,10 +158,17 @@ def test_deferred_work_is_done_by_the_caller_when_no_worker_has_started_it():
     assert all(ran_on[f"queued {k}"] == threading.current_thread().name for k in range(3))
     assert [d.result() for d in (busy, *queued)] == ["busy", "queued 0", "queued 1", "queued 2"]
 
+    calls = []
+
     def fail() -> None:
+        calls.append(1)
         raise OSError("disk full")
 
     with ThreadPoolExecutor(max_workers=1) as pool:
         blocker = Deferred(pool, release.wait, 5)
+        failing = Deferred(pool, fail)
         with pytest.raises(OSError, match="disk full"):
-            finish([blocker, Deferred(pool, fail)])
+            finish([blocker, failing])
+        with pytest.raises(OSError, match="disk full"):  # kept, not made again
+            failing.result()
+    assert len(calls) == 1
