@@ -1,12 +1,13 @@
 """Process policy: how many worker threads the pipeline uses, and how OpenMP's threads wait.
 
-The library sets nothing process-wide on import. Its functions that run work beside their main
-line take a ``workers`` count whose default comes from :func:`default_workers`; the entry points
+Importing the pipeline's modules sets nothing process-wide, with one exception: the orchestration
+entry point, :mod:`pipeline.run`, sets this policy (:func:`set_process_policy`) and loads the
+compiled kernels from their cache (:func:`load_cached_kernels`) when it is imported, so that no
+inspection of the process loads them. Functions that run work beside their main line take a
+``workers`` count whose default comes from :func:`default_workers`; the entry points
 (``plate-inspect``'s :func:`pipeline.cli.main`, the service's job consumer) call
-:func:`configure_process` once at start, before any compiled kernel runs, and
-:func:`pipeline.run.inspect` sets the same policy on its first call when nothing did before
-(:func:`set_process_policy`), which also drops a compiled-kernel cache older than the modules it was
-compiled from (:func:`drop_stale_kernels`).
+:func:`configure_process` once at start, before any compiled kernel runs. The policy also drops a
+compiled-kernel cache older than the modules it was compiled from (:func:`drop_stale_kernels`).
 """
 
 from __future__ import annotations
@@ -122,6 +123,10 @@ def finish(work: Iterable[Deferred[Any]]) -> None:
 
 _policy_lock = threading.Lock()
 _policy_set = False
+#: Whether the policy's malloc settings took (:func:`keep_freed_memory`), and whether
+#: :func:`configure_process` has started paging the heap in.
+_heap_kept = False
+_prefaulted = False
 
 
 def configure_process() -> None:
@@ -141,16 +146,22 @@ def configure_process() -> None:
     :func:`prefault_heap` pages the heap in on a thread of its own while the process imports its
     modules on the other core.
     """
-    if set_process_policy():
-        prefault_heap()
+    global _prefaulted
+    set_process_policy()
+    with _policy_lock:
+        if not _heap_kept or _prefaulted:
+            return
+        _prefaulted = True
+    prefault_heap()
 
 
 def set_process_policy() -> bool:
     """The thread and memory policy of :func:`configure_process` without its paging-in, once per process.
 
-    :func:`pipeline.run.inspect` calls it, so that a program that calls the inspection without the
-    entry points' start-up (a script, a notebook, another service) runs it as fast as the command line
-    does (measured: 0.70 s against 0.60 s for a 1224x1024 inspection). Its effects are a process's
+    :mod:`pipeline.run` calls it when imported (and :func:`pipeline.run.inspect` on each call), so that
+    a program that calls the inspection without the entry points' start-up (a script, a notebook,
+    another service) runs it as fast as the command line does (measured: 0.70 s against 0.60 s for a
+    1224x1024 inspection). Its effects are a process's
     performance only, never a result; it also drops a compiled-kernel cache older than its sources
     (:func:`drop_stale_kernels`), so that no kernel runs code the tree no longer holds.
     The second and later calls do nothing.
@@ -161,14 +172,15 @@ def set_process_policy() -> bool:
         Whether this call set the malloc policy (see :func:`keep_freed_memory`); False on every call
         after the first.
     """
-    global _policy_set
+    global _policy_set, _heap_kept
     with _policy_lock:
         if _policy_set:
             return False
         _policy_set = True
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     drop_stale_kernels()  # before the first kernel loads from it
-    return keep_freed_memory()
+    _heap_kept = keep_freed_memory()
+    return _heap_kept
 
 
 def keep_freed_memory() -> bool:
@@ -299,6 +311,53 @@ def drop_stale_kernels(root: Path = PACKAGE_ROOT) -> bool:
     except OSError:
         return False
     return True
+
+
+def load_cached_kernels(package: str = __package__ or "pipeline") -> int:
+    """Load every compiled kernel of ``package``'s imported modules that the on-disk cache holds.
+
+    numba loads a cached kernel on its first call: about 5 ms each, and 0.12 s more for numba's own
+    set-up in the first one, which made a process's first inspection 0.4 s longer than its second at
+    1224x1024 (46 kernels; ``benchmarks/bench_pipeline.py --bare``). Loading them here moves that to
+    the process's start. Only kernels whose cache entry is fresh for this machine and this source are
+    loaded: a missing or stale one (a changed module, another CPU) is left to compile on its first
+    call, never here. Loading a parallel kernel starts OpenMP's threads: set the process policy
+    first (:func:`set_process_policy`).
+
+    Returns
+    -------
+    int
+        The number of kernels (signatures) loaded; 0 when this numba keeps its cache otherwise.
+    """
+    from numba.core.registry import CPUDispatcher
+
+    loaded = 0
+    prefix = package + "."
+    for name, module in list(sys.modules.items()):
+        if module is None or not (name == package or name.startswith(prefix)):
+            continue
+        for value in list(vars(module).values()):
+            if isinstance(value, CPUDispatcher) and value.__module__ == name:
+                loaded += _load_cached(value)
+    return loaded
+
+
+def _load_cached(kernel: Any) -> int:
+    """Load ``kernel``'s (a numba dispatcher's) signatures that its cache holds for this machine and source
+    (numba's index keys: signature, codegen, code hash); 0 when its cache is not numba's usual one."""
+    try:
+        cache = kernel._cache
+        codegen = kernel.targetctx.codegen()
+        keys = [
+            key
+            for key in cache._cache_file._load_index()
+            if cache._index_key(key[0], codegen) == key
+        ]
+    except (AttributeError, TypeError, OSError, ValueError):  # another numba, or no readable cache
+        return 0
+    for key in keys:
+        kernel.compile(key[0])  # found in the cache: loaded, not compiled
+    return len(keys)
 
 
 def _kernel_modules(root: Path) -> dict[str, list[int]]:
