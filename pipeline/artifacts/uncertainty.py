@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import cv2
@@ -36,19 +37,27 @@ def write_uncertainty(
     check_positive("tolerance_mm", tolerance_mm)
     mask = np.ascontiguousarray(mask, dtype=bool)
     u = np.empty(mask.shape, np.float32)
-    levels = np.empty(mask.shape, np.uint8)
+    bgr = np.empty((*mask.shape, 3), np.uint8)
     _levels(
         np.ascontiguousarray(u_mm, dtype=np.float32),
         mask,
         np.float32(tolerance_mm / 4.0),
+        _viridis_bgr(),
+        np.asarray(NO_DATA_RGB[::-1], np.uint8),
         u,
-        levels,
+        bgr,
     )
     out = Path(out_dir)
     np.save(out / UNCERTAINTY_FILES["uncertainty"], u)
-    bgr = cv2.applyColorMap(levels, cv2.COLORMAP_VIRIDIS)
-    np.copyto(bgr, np.asarray(NO_DATA_RGB[::-1], np.uint8), where=~mask[..., None])
     cv2.imwrite(str(out / UNCERTAINTY_FILES["uncertainty_map"]), bgr)
+
+
+@functools.cache
+def _viridis_bgr() -> npt.NDArray[np.uint8]:
+    """OpenCV's viridis colour map as a table (256, 3) of BGR, level by level (``cv2.applyColorMap`` is
+    this table applied to each pixel)."""
+    ramp = np.arange(256, dtype=np.uint8).reshape(1, 256)
+    return np.ascontiguousarray(cv2.applyColorMap(ramp, cv2.COLORMAP_VIRIDIS)[0])
 
 
 @numba.njit(nogil=True, cache=True)
@@ -56,12 +65,15 @@ def _levels(
     u_mm: npt.NDArray[np.float32],
     mask: npt.NDArray[np.bool_],
     top: np.float32,
+    lut: npt.NDArray[np.uint8],
+    no_data: npt.NDArray[np.uint8],
     u: npt.NDArray[np.float32],
-    levels: npt.NDArray[np.uint8],
+    bgr: npt.NDArray[np.uint8],
 ) -> None:  # pragma: no cover - compiled
-    """u = the uncertainty on the mask (NaN elsewhere) and ``levels`` its map's 0..255 index (0 at no
-    data, 255 at ``top`` and beyond), in float32 as ``np.nan_to_num``, ``/``, ``np.clip`` and ``255 *``
-    give them, in one pass; single-threaded (an artifact writer's thread)."""
+    """u = the uncertainty on the mask (NaN elsewhere) and ``bgr`` its map: the colour ``lut`` (256, 3) at
+    the 0..255 level (255 at ``top`` and beyond; the level in float32 as ``np.nan_to_num``, ``/``,
+    ``np.clip`` and ``255 *`` give it), ``no_data`` off the mask, in one pass; single-threaded (an
+    artifact writer's thread)."""
     h, w = mask.shape
     big = np.finfo(np.float32).max
     zero, one, full = np.float32(0.0), np.float32(1.0), np.float32(255.0)
@@ -77,4 +89,12 @@ def _levels(
                 x = -big
             else:
                 x = v
-            levels[i, j] = np.uint8(full * min(max(x / top, zero), one))
+            if mask[i, j]:
+                level = np.uint8(full * min(max(x / top, zero), one))
+                bgr[i, j, 0], bgr[i, j, 1], bgr[i, j, 2] = (
+                    lut[level, 0],
+                    lut[level, 1],
+                    lut[level, 2],
+                )
+            else:
+                bgr[i, j, 0], bgr[i, j, 1], bgr[i, j, 2] = no_data[0], no_data[1], no_data[2]
