@@ -30,7 +30,10 @@ WORKERS_ENV = "PLATE_INSPECT_WORKERS"
 
 #: glibc malloc: blocks up to this many bytes come from the heap, where a freed block is reused,
 #: instead of a fresh mapping that the kernel zeroes page by page on first touch (glibc's
-#: largest allowed value, 32 MiB on 64-bit: an image of 1224x1024 float64 is 10 MB).
+#: largest allowed value, 32 MiB on 64-bit: an image of 1224x1024 float64 is 10 MB). The policy
+#: also allows no mapping at all (``M_MMAP_MAX`` 0), so that larger blocks (a capture's stack of
+#: twelve 1224x1024 float32 images is 60 MB) come from the heap too; the threshold then stands for
+#: a process whose environment sets ``MALLOC_MMAP_MAX_``.
 MALLOC_MMAP_THRESHOLD_BYTES = 32 * 2**20
 #: glibc malloc: free memory at the top of the heap is given back to the system only beyond this.
 MALLOC_TRIM_THRESHOLD_BYTES = 2**30
@@ -43,10 +46,8 @@ MALLOC_ARENAS = 1
 PREFAULT_HEAP_BYTES = 512 * 2**20
 #: The paging-in thread's nice value: it takes only time the process's other threads leave.
 PREFAULT_NICE = 19
-#: The blocks it is paged in by: under :data:`MALLOC_MMAP_THRESHOLD_BYTES`, so they come from the heap.
-PREFAULT_BLOCK_BYTES = 16 * 2**20
 #: mallopt parameters (glibc's malloc.h).
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_ARENA_MAX = -1, -3, -8
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_MMAP_MAX, _M_ARENA_MAX = -1, -3, -4, -8
 
 
 def default_workers() -> int:
@@ -207,6 +208,8 @@ def keep_freed_memory() -> bool:
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
     if "MALLOC_ARENA_MAX" not in os.environ:
         mallopt(_M_ARENA_MAX, MALLOC_ARENAS)
+    if "MALLOC_MMAP_MAX_" not in os.environ:
+        mallopt(_M_MMAP_MAX, 0)
     return bool(
         mallopt(_M_MMAP_THRESHOLD, MALLOC_MMAP_THRESHOLD_BYTES)
         and mallopt(_M_TRIM_THRESHOLD, MALLOC_TRIM_THRESHOLD_BYTES)
@@ -216,9 +219,12 @@ def keep_freed_memory() -> bool:
 def prefault_heap(total_bytes: int = PREFAULT_HEAP_BYTES) -> threading.Thread | None:
     """Page in ``total_bytes`` of the heap on a daemon thread, then free it for reuse.
 
-    Call after :func:`keep_freed_memory` succeeded: the blocks (each
-    :data:`PREFAULT_BLOCK_BYTES`) then come from the heap and stay there when freed, paged in, so
-    that the first inspection's images land on memory the kernel has already zeroed. The work is
+    Call after :func:`keep_freed_memory` succeeded: the block then comes from the heap and stays there
+    when freed, paged in, so that the first inspection's images land on memory the kernel has
+    already zeroed. One block, so that the paged-in memory is one free stretch of the heap: in blocks
+    of 16 MB, the small blocks that other threads took meanwhile (the kernels loaded at
+    :mod:`pipeline.run`'s import) lay between them, a 30 MB array found no room there, and the first
+    inspection faulted 35 000-85 000 fresh pages in (0.5-0.8 s of system time). The work is
     done by libc (``malloc``, ``memset``, ``free`` through ctypes, which releases the GIL) on a thread
     of nice :data:`PREFAULT_NICE`: it runs on a core the process's imports leave idle, and yields to
     the warm-up and the inspection. Returns the thread (None off glibc).
@@ -237,14 +243,9 @@ def prefault_heap(total_bytes: int = PREFAULT_HEAP_BYTES) -> threading.Thread | 
     def page_in() -> None:
         with contextlib.suppress(OSError, AttributeError):  # the idle core's time only
             os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), PREFAULT_NICE)
-        blocks = []
-        for _ in range(max(1, total_bytes // PREFAULT_BLOCK_BYTES)):
-            block = malloc(PREFAULT_BLOCK_BYTES)
-            if not block:
-                break
-            memset(block, 0, PREFAULT_BLOCK_BYTES)
-            blocks.append(block)
-        for block in reversed(blocks):  # top of the heap first: the blocks merge into its free top
+        block = malloc(total_bytes)
+        if block:
+            memset(block, 0, total_bytes)
             free(block)
 
     thread = threading.Thread(target=page_in, name="plate-inspect-prefault", daemon=True)
