@@ -221,10 +221,10 @@ def prefault_heap(total_bytes: int = PREFAULT_HEAP_BYTES) -> threading.Thread | 
 
     Call after :func:`keep_freed_memory` succeeded: the block then comes from the heap and stays there
     when freed, paged in, so that the first inspection's images land on memory the kernel has
-    already zeroed. One block, so that the paged-in memory is one free stretch of the heap: in blocks
-    of 16 MB, the small blocks that other threads took meanwhile (the kernels loaded at
-    :mod:`pipeline.run`'s import) lay between them, a 30 MB array found no room there, and the first
-    inspection faulted 35 000-85 000 fresh pages in (0.5-0.8 s of system time). The work is
+    already zeroed. One block, so that the paged-in memory is one free stretch of the heap: taken in
+    blocks of 16 MB, the small blocks that other threads took meanwhile (the kernels loaded at
+    :mod:`pipeline.run`'s import) could lie between them, and an inspection's largest arrays then
+    found no room there and paged fresh memory in. The work is
     done by libc (``malloc``, ``memset``, ``free`` through ctypes, which releases the GIL) on a thread
     of nice :data:`PREFAULT_NICE`: it runs on a core the process's imports leave idle, and yields to
     the warm-up and the inspection. Returns the thread (None off glibc).
@@ -317,10 +317,10 @@ def drop_stale_kernels(root: Path = PACKAGE_ROOT) -> bool:
 def load_cached_kernels(package: str = __package__ or "pipeline") -> int:
     """Load every compiled kernel of ``package``'s imported modules that the on-disk cache holds.
 
-    numba loads a cached kernel on its first call: about 5 ms each, and 0.12 s more for numba's own
-    set-up in the first one, which made a process's first inspection 0.4 s longer than its second at
-    1224x1024 (46 kernels; ``benchmarks/bench_pipeline.py --bare``). Loading them here moves that to
-    the process's start. Only kernels whose cache entry is fresh for this machine and this source are
+    numba loads a cached kernel on its first call (and sets itself up in the first one), which made a
+    process's first inspection markedly longer than its second (``benchmarks/bench_pipeline.py
+    --bare``: docs/figures.md). Loading them here moves that to the process's start. Only kernels
+    whose cache entry is fresh for this machine and this source are
     loaded: a missing or stale one (a changed module, another CPU) is left to compile on its first
     call, never here. Loading a parallel kernel starts OpenMP's threads: set the process policy
     first (:func:`set_process_policy`).
