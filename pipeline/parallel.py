@@ -32,8 +32,7 @@ WORKERS_ENV = "PLATE_INSPECT_WORKERS"
 #: instead of a fresh mapping that the kernel zeroes page by page on first touch (glibc's
 #: largest allowed value, 32 MiB on 64-bit: an image of 1224x1024 float64 is 10 MB). The policy
 #: also allows no mapping at all (``M_MMAP_MAX`` 0), so that larger blocks (a capture's stack of
-#: twelve 1224x1024 float32 images is 60 MB) come from the heap too; the threshold then stands for
-#: a process whose environment sets ``MALLOC_MMAP_MAX_``.
+#: twelve 1224x1024 float32 images is 60 MB) come from the heap too.
 MALLOC_MMAP_THRESHOLD_BYTES = 32 * 2**20
 #: glibc malloc: free memory at the top of the heap is given back to the system only beyond this.
 MALLOC_TRIM_THRESHOLD_BYTES = 2**30
@@ -187,9 +186,10 @@ def set_process_policy() -> bool:
 def keep_freed_memory() -> bool:
     """Have glibc's malloc keep freed memory for reuse (see :data:`MALLOC_MMAP_THRESHOLD_BYTES`).
 
-    The process then holds its peak of heap memory (up to :data:`MALLOC_TRIM_THRESHOLD_BYTES` of it
-    free) instead of giving it back after each inspection. Nothing is changed when either setting
-    is already given in the environment (``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_TRIM_THRESHOLD_``),
+    Every block comes from the heap (no mapping of its own, ``M_MMAP_MAX`` 0). The process then holds
+    its peak of heap memory (up to :data:`MALLOC_TRIM_THRESHOLD_BYTES` of it free) instead of giving
+    it back after each inspection. Nothing is changed when any of these settings is already given in
+    the environment (``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_MMAP_MAX_``, ``MALLOC_TRIM_THRESHOLD_``),
     or off glibc.
 
     Returns
@@ -198,7 +198,8 @@ def keep_freed_memory() -> bool:
         Whether the policy was set.
     """
     if not sys.platform.startswith("linux") or any(
-        name in os.environ for name in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_")
+        name in os.environ
+        for name in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_MMAP_MAX_", "MALLOC_TRIM_THRESHOLD_")
     ):
         return False
     libc = _glibc()
@@ -208,10 +209,9 @@ def keep_freed_memory() -> bool:
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
     if "MALLOC_ARENA_MAX" not in os.environ:
         mallopt(_M_ARENA_MAX, MALLOC_ARENAS)
-    if "MALLOC_MMAP_MAX_" not in os.environ:
-        mallopt(_M_MMAP_MAX, 0)
     return bool(
         mallopt(_M_MMAP_THRESHOLD, MALLOC_MMAP_THRESHOLD_BYTES)
+        and mallopt(_M_MMAP_MAX, 0)
         and mallopt(_M_TRIM_THRESHOLD, MALLOC_TRIM_THRESHOLD_BYTES)
     )
 
@@ -320,10 +320,9 @@ def load_cached_kernels(package: str = __package__ or "pipeline") -> int:
     numba loads a cached kernel on its first call (and sets itself up in the first one), which made a
     process's first inspection markedly longer than its second (``benchmarks/bench_pipeline.py
     --bare``: docs/figures.md). Loading them here moves that to the process's start. Only kernels
-    whose cache entry is fresh for this machine and this source are
-    loaded: a missing or stale one (a changed module, another CPU) is left to compile on its first
-    call, never here. Loading a parallel kernel starts OpenMP's threads: set the process policy
-    first (:func:`set_process_policy`).
+    whose cache entry is fresh for this machine and this source are loaded: a missing or stale one (a
+    changed module, another CPU) is left to compile on its first call, never here. Loading a parallel
+    kernel starts OpenMP's threads: set the process policy first (:func:`set_process_policy`).
 
     Returns
     -------

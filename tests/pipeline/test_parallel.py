@@ -114,12 +114,14 @@ def test_a_bare_caller_inspects_under_the_policy():
 def test_freed_memory_is_kept_for_reuse_unless_the_user_chose(monkeypatch):
     from pipeline.parallel import keep_freed_memory
 
-    monkeypatch.delenv("MALLOC_MMAP_THRESHOLD_", raising=False)
-    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
+    for name in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_MMAP_MAX_", "MALLOC_TRIM_THRESHOLD_"):
+        monkeypatch.delenv(name, raising=False)
     if sys.platform.startswith("linux"):  # glibc accepts the settings
         assert keep_freed_memory()
-    monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "131072")
-    assert not keep_freed_memory()
+    for name, value in (("MALLOC_TRIM_THRESHOLD_", "131072"), ("MALLOC_MMAP_MAX_", "65536")):
+        with monkeypatch.context() as env:
+            env.setenv(name, value)
+            assert not keep_freed_memory()
 
 
 PAGED_IN = """
