@@ -158,8 +158,7 @@ def configure_process() -> None:
 def set_process_policy() -> bool:
     """The thread and memory policy of :func:`configure_process` without its paging-in, once per process.
 
-    :mod:`pipeline.run` calls it when imported (and :func:`pipeline.run.inspect` on each call), so that
-    a program that calls the inspection without the entry points' start-up (a script, a notebook,
+    :mod:`pipeline.run` calls it when imported, so that a program that calls the inspection without the entry points' start-up (a script, a notebook,
     another service) runs it as fast as the command line does (measured: 0.70 s against 0.60 s for a
     1224x1024 inspection). Its effects are a process's
     performance only, never a result; it also drops a compiled-kernel cache older than its sources

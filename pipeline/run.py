@@ -162,7 +162,6 @@ def inspect(
     pipeline.formats.CaptureError
         A valid capture that cannot be measured (no plate found, no metric scale).
     """
-    set_process_policy()  # a caller without the entry points' start-up: the same threads and heap
     opts = options or InspectOptions()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -539,8 +538,8 @@ def _round(value: float | None, digits: int) -> float | None:
     return None if value is None else round(float(value), digits)
 
 
-# A process that imports the entry point inspects: its process policy is set and the compiled kernels
-# are loaded now, at its start, so that not even its first inspection loads them (issue 25: 0.4 s of a
-# bare script's first 1224x1024 inspection; pipeline.parallel.load_cached_kernels).
+# A process that imports the entry point inspects: its process policy is set (a caller without the
+# entry points' start-up gets the same threads and heap) and the compiled kernels are loaded now, at its
+# start, so that not even its first inspection loads them (pipeline.parallel.load_cached_kernels).
 set_process_policy()
 load_cached_kernels()

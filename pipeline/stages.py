@@ -109,8 +109,8 @@ class InspectOptions:
         Matched at half size there, a plate formed exactly read p95 0.089 mm (stereo noise
         4.5 mm a pixel) against 0.028 mm at full size (1.9 mm), and 3 lights reported U95
         only 1.4 times the 12 lights' (1.9 times at full size)
-        (``benchmarks/bench_capable.py --size 2448x2048 --seeds 71 --cases "head 4.2 m"``); the
-        stereo stage took 0.51 s instead of 0.20 s, mostly beside the normals (docs/figures.md).
+        (``benchmarks/bench_capable.py --size 2448x2048 --seeds 71 --cases "head 4.2 m"``); its
+        cost, mostly beside the normals, is in docs/figures.md.
     depth_tol : float
         Relative residual at which the depth solve stops (``tol`` of
         :func:`pipeline.surface.integration.integrate_normals`). Measured on a simulated plate at
@@ -668,9 +668,11 @@ def stereo_weight_on_grid(weight: float, K: np.ndarray, distance_mm: float) -> f
     whole factor to its working cell: 2448x2048 with the head 4.2 m away, 2.3 mm) the same weight per
     pixel would let the stereo pair reach proportionally shorter wavelengths on the plate, while its
     noise per pixel falls less than the cell (not at all where the pair is matched reduced, above
-    ``stereo_max_width``). There the weight keeps the wavelength in mm: it is scaled by ``(cell / STEREO_WEIGHT_CELL_MM)^2``. A perfect plate
-    read p95 0.119 mm at 2448x2048 and 4.2 m with the weight per pixel, a smooth dome of stereo noise
-    over U95 0.089 mm; 0.089 mm with it scaled, U95 0.099 mm. A coarser grid keeps the weight per
+    ``stereo_max_width``). There the weight keeps the wavelength in mm: it is scaled by
+    ``(cell / STEREO_WEIGHT_CELL_MM)^2``. With the pair matched at half size (before
+    ``stereo_max_width`` let it be matched whole), a perfect plate read p95 0.119 mm at 2448x2048 and
+    4.2 m with the weight per pixel, a smooth dome of stereo noise over U95 0.089 mm; 0.089 mm with it
+    scaled, U95 0.099 mm. A coarser grid keeps the weight per
     pixel: the pair's noise grows with the distance (as its square), and scaled up at 1224x1024 and
     4.2 m it let in more of it (p95 0.066 -> 0.090 mm).
     """
