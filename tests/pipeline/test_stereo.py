@@ -330,6 +330,33 @@ def test_the_refinement_in_bands_of_rows_gives_the_whole_windows_values(plate_3m
     np.testing.assert_array_equal(maps[5], maps[1])
 
 
+def test_a_band_of_columns_refined_against_the_whole_right_image_gives_the_same_values():
+    # the check computes only the matches' bounding box, a window radius wider, against every column of
+    # the right image: the windowed sums are weighted by the matches, so nothing beyond it counts
+    from pipeline.surface.stereo.depth import WINDOW_RADIUS_PX
+    from pipeline.surface.stereo.refine import REFINE_SIGMA_PX, match_correlation, refine_disparity
+
+    rng = np.random.default_rng(3)
+    h, w = 120, 260
+    texture = cv2.GaussianBlur(rng.normal(0, 40, (h, w + 40)).astype(np.float32), (0, 0), 1.5) + 128
+    xs = np.arange(w, dtype=np.float32)[None, :].repeat(h, 0)
+    ys = np.arange(h, dtype=np.float32)[:, None].repeat(w, 1)
+    true_d = 9.0 + 0.01 * xs
+    left = cv2.remap(texture, xs + 20, ys, cv2.INTER_CUBIC)
+    right = cv2.remap(texture, xs + 20 + true_d, ys, cv2.INTER_CUBIC)
+    start = np.full((h, w), np.nan, np.float32)
+    start[10:110, 90:230] = np.round(true_d[10:110, 90:230])
+    c0 = 90 - WINDOW_RADIUS_PX
+    whole = refine_disparity(left, right, start)
+    band = refine_disparity(left[:, c0:], right, start[:, c0:], right_x0=c0)
+    np.testing.assert_array_equal(band, whole[:, c0:])
+    assert np.isfinite(band).mean() > 0.4
+    np.testing.assert_array_equal(
+        match_correlation(left[:, c0:], right, band, sigma_px=REFINE_SIGMA_PX, right_x0=c0),
+        match_correlation(left, right, whole, sigma_px=REFINE_SIGMA_PX)[:, c0:],
+    )
+
+
 def test_row_bands_tile_the_rows_with_their_halo():
     from pipeline.surface.stereo.depth import row_bands
 

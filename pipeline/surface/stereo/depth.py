@@ -79,10 +79,12 @@ COARSE_PERCENTILES = (0.5, 99.5)
 FINE_MARGIN_PX = 8
 #: Fewer trusted coarse matches than this: the fine pass searches the whole given depth range instead.
 COARSE_MIN_MATCHES = 50
+#: The radius of the refinement's Gaussian window (OpenCV's kernel for float images reaches ``4 sigma``).
+WINDOW_RADIUS_PX = math.ceil(4 * REFINE_SIGMA_PX)
 #: Rows of its neighbours computed beside each band of the refinement and correlation check
-#: (:func:`_checked_disparity`): a row depends on rows within ``REFINE_ITERATIONS + 1`` Gaussian
-#: windows (OpenCV's radius ``4 sigma`` for float images), with room to spare.
-CHECK_HALO_PX = (REFINE_ITERATIONS + 1) * math.ceil(4 * REFINE_SIGMA_PX) + 16
+#: (:func:`_checked_disparity`): a disparity depends on the windows around it only, each step's on
+#: those within one radius, so a row on those within ``REFINE_ITERATIONS + 1`` radii.
+CHECK_HALO_PX = (REFINE_ITERATIONS + 1) * WINDOW_RADIUS_PX
 
 
 @dataclass(frozen=True)
@@ -416,33 +418,45 @@ def _checked_disparity(fp: MatchPass, shift: int, refine: bool) -> np.ndarray:
     """The fine pass's disparities refined (``refine``) and correlation-checked: matches whose windowed ZNCC
     is under ``MIN_ZNCC`` are holes (NaN). Rectified window grid, full-size pixels.
 
-    The window is checked in bands of rows on :func:`pipeline.parallel.default_workers` threads (OpenCV's
-    filters and numpy's loops release the GIL), each with :data:`CHECK_HALO_PX` rows of its
-    neighbours: a row's result depends on rows within ``(REFINE_ITERATIONS + 1)`` Gaussian windows
-    (radius ``4 REFINE_SIGMA_PX``) only, so the bands give the very values of one pass over the
-    whole window (``tests/pipeline/test_stereo.py``)."""
-    scaled_l, scaled_r = scaled(fp.rect_l, *fp.levels[0]), scaled(fp.rect_r, *fp.levels[1])
+    Only the matches' bounding box, one window radius wider, is computed: the windowed sums are
+    weighted by the matches, zero beyond it. It is checked in bands of rows on
+    :func:`pipeline.parallel.default_workers` threads (OpenCV's filters and numpy's loops release the
+    GIL), each with :data:`CHECK_HALO_PX` rows of its neighbours. So the result is the very values of one
+    pass over the whole window (``tests/pipeline/test_stereo.py``)."""
     d_rel = fp.d_win - np.float32(shift)
-    bands = row_bands(d_rel.shape[0], default_workers(), CHECK_HALO_PX)
+    checked = np.full(d_rel.shape, np.nan, np.float32)
+    finite = np.isfinite(d_rel)
+    if not finite.any():
+        return checked
+    rows, cols = _box(finite, WINDOW_RADIUS_PX)
+    # the right image keeps every column: a match's right pixel lies up to the disparity to the left
+    scaled_l = scaled(fp.rect_l[rows, cols], *fp.levels[0])
+    scaled_r = scaled(fp.rect_r[rows], *fp.levels[1])
+    d_box = d_rel[rows, cols]
+    bands = row_bands(d_box.shape[0], default_workers(), CHECK_HALO_PX)
 
     def check(band: tuple[int, int, int, int]) -> np.ndarray:
         lo, hi, keep_lo, keep_hi = band
-        rows = slice(lo, hi)
-        d = _checked_band(scaled_l[rows], scaled_r[rows], d_rel[rows], refine)
+        band_rows = slice(lo, hi)
+        d = _checked_band(
+            scaled_l[band_rows], scaled_r[band_rows], d_box[band_rows], refine, cols.start
+        )
         return d[keep_lo - lo : keep_hi - lo]
 
     if len(bands) == 1:
-        checked = check(bands[0])
+        box = check(bands[0])
     else:
         with ThreadPoolExecutor(max_workers=len(bands)) as pool:
-            checked = np.concatenate(list(pool.map(check, bands)))
-    return (checked + np.float32(shift)).astype(np.float32)
+            box = np.concatenate(list(pool.map(check, bands)))
+    checked[rows, cols] = box + np.float32(shift)
+    return checked
 
 
 def _checked_band(
-    scaled_l: np.ndarray, scaled_r: np.ndarray, d_rel: np.ndarray, refine: bool
+    scaled_l: np.ndarray, scaled_r: np.ndarray, d_rel: np.ndarray, refine: bool, right_x0: int
 ) -> np.ndarray:
-    """:func:`_checked_disparity` on one band of rows (disparities relative to the pass's shift)."""
+    """:func:`_checked_disparity` on one band of rows (disparities relative to the pass's shift; the left
+    image and the disparities from column ``right_x0`` of the right image on)."""
     if refine:
         d_rel = refine_disparity(
             scaled_l,
@@ -451,10 +465,13 @@ def _checked_band(
             sigma_px=REFINE_SIGMA_PX,
             iterations=REFINE_ITERATIONS,
             max_step_px=REFINE_MAX_STEP_PX,
+            right_x0=right_x0,
         )
     else:
         d_rel = d_rel.copy()
-    zncc = match_correlation(scaled_l, scaled_r, d_rel, sigma_px=REFINE_SIGMA_PX)
+    zncc = match_correlation(
+        scaled_l, scaled_r, d_rel, sigma_px=REFINE_SIGMA_PX, right_x0=right_x0
+    )
     d_rel[~(zncc >= MIN_ZNCC)] = np.nan
     return d_rel
 
@@ -539,8 +556,13 @@ def _lookup_maps(
             ray_z[i, j] = M[2, 0] * u + M[2, 1] * v + M[2, 2]
 
 
-def _box(mask: np.ndarray) -> tuple[slice, slice]:
-    """The bounding box of a mask with at least one pixel: (rows, columns)."""
+def _box(mask: np.ndarray, margin: int = 0) -> tuple[slice, slice]:
+    """The bounding box of a mask with at least one pixel, ``margin`` px wider within the mask's grid:
+    (rows, columns)."""
     rows = np.flatnonzero(mask.any(axis=1))
     cols = np.flatnonzero(mask.any(axis=0))
-    return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
+    h, w = mask.shape
+    return (
+        slice(max(0, int(rows[0]) - margin), min(h, int(rows[-1]) + 1 + margin)),
+        slice(max(0, int(cols[0]) - margin), min(w, int(cols[-1]) + 1 + margin)),
+    )

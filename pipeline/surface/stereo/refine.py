@@ -37,6 +37,7 @@ def refine_disparity(
     sigma_px: float = REFINE_SIGMA_PX,
     iterations: int = REFINE_ITERATIONS,
     max_step_px: float = REFINE_MAX_STEP_PX,
+    right_x0: int = 0,
 ) -> np.ndarray:
     """Sub-pixel refinement of a rectified disparity map by windowed Gauss-Newton (Lucas-Kanade along rows).
 
@@ -50,7 +51,8 @@ def refine_disparity(
     Parameters
     ----------
     left, right : (H, W) float32
-        Rectified images on the same grid, same photometric scale.
+        Rectified images on the same grid, same photometric scale (``right`` may be wider: see
+        ``right_x0``).
     disparity : (H, W) float32
         Starting disparity ``x_left - x_right`` in pixels of this grid; NaN = hole.
     sigma_px : float
@@ -58,6 +60,9 @@ def refine_disparity(
     iterations : int
     max_step_px : float
         A pixel whose refined disparity moved more than this from the start is a hole.
+    right_x0 : int
+        The column of ``right`` that column 0 of ``left`` and ``disparity`` sits on (a band of
+        columns refined against the whole right image).
 
     Returns
     -------
@@ -71,7 +76,7 @@ def refine_disparity(
     kernel = np.array([[-0.5, 0.0, 0.5]], np.float32)
     gx_l = cv2.filter2D(left, cv2.CV_32F, kernel, borderType=cv2.BORDER_REPLICATE)
     gx_r = cv2.filter2D(right, cv2.CV_32F, kernel, borderType=cv2.BORDER_REPLICATE)
-    xs = np.arange(w, dtype=np.float32)[None, :]
+    xs = np.arange(right_x0, right_x0 + w, dtype=np.float32)[None, :]
     ys = np.broadcast_to(np.arange(h, dtype=np.float32)[:, None], (h, w))
     support = valid.copy()
     inside = np.empty((h, w), bool)
@@ -82,7 +87,7 @@ def refine_disparity(
         warped = cv2.remap(right, map_x, ys, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
         gx_w = cv2.remap(gx_r, map_x, ys, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
         # right(x - d - delta) + c ~ left, with an offset c per window  ->  delta = -cov(g, r) / var(g)
-        _step_terms(map_x, gx_l, gx_w, left, warped, support, inside, sums)
+        _step_terms(map_x, right.shape[1], gx_l, gx_w, left, warped, support, inside, sums)
         for k in range(len(sums)):
             cv2.GaussianBlur(sums[k], (0, 0), sigma_px, dst=blurred[k])
         _gauss_newton_step(blurred, valid, inside, d, support)
@@ -92,16 +97,25 @@ def refine_disparity(
 
 @numba.njit(nogil=True, cache=True)
 def _step_terms(
-    map_x: Arr, gx_l: Arr, gx_w: Arr, left: Arr, warped: Arr, support: Arr, inside: Arr, sums: Arr
+    map_x: Arr,
+    right_width: int,
+    gx_l: Arr,
+    gx_w: Arr,
+    left: Arr,
+    warped: Arr,
+    support: Arr,
+    inside: Arr,
+    sums: Arr,
 ) -> None:  # pragma: no cover - compiled
     """The windowed sums' terms of one Gauss-Newton step into ``sums`` (5, H, W): ``wgt``, ``wgt g``,
     ``wgt r``, ``wgt g r`` and ``wgt g g``, with the symmetric gradient ``g`` (the left's and the
     warped right's mean), the residual ``r = left - warped`` and the weight ``wgt`` (the pixel
-    supported and its warp ``map_x`` inside the right image, ``inside``, also written). float32 in
+    supported and its warp ``map_x`` inside the right image, ``right_width`` px wide: ``inside``,
+    also written). float32 in
     numpy's order of operations (the values of the array expressions they replace); single-threaded,
     as it runs on the bands' threads."""
     h, w = map_x.shape
-    half, lo, hi = np.float32(0.5), np.float32(1.0), np.float32(w - 2)
+    half, lo, hi = np.float32(0.5), np.float32(1.0), np.float32(right_width - 2)
     for i in range(h):
         for j in range(w):
             mx = map_x[i, j]
@@ -144,18 +158,20 @@ def _gauss_newton_step(
 
 
 def match_correlation(
-    left: np.ndarray, right: np.ndarray, disparity: np.ndarray, *, sigma_px: float
+    left: np.ndarray, right: np.ndarray, disparity: np.ndarray, *, sigma_px: float, right_x0: int = 0
 ) -> np.ndarray:
     """Zero-mean normalised cross-correlation of each match over a Gaussian window.
 
     Parameters
     ----------
     left, right : (H, W) float32
-        Rectified images on the same grid.
+        Rectified images on the same grid (``right`` may be wider: see ``right_x0``).
     disparity : (H, W) float32
         ``x_left - x_right``, pixels; NaN = hole.
     sigma_px : float
         Std of the Gaussian window, pixels.
+    right_x0 : int
+        The column of ``right`` that column 0 of ``left`` and ``disparity`` sits on.
 
     Returns
     -------
@@ -165,7 +181,7 @@ def match_correlation(
     """
     h, w = disparity.shape
     valid = np.isfinite(disparity)
-    xs = np.arange(w, dtype=np.float32)[None, :]
+    xs = np.arange(right_x0, right_x0 + w, dtype=np.float32)[None, :]
     ys = np.broadcast_to(np.arange(h, dtype=np.float32)[:, None], (h, w))
     map_x = (xs - np.where(valid, disparity, 0)).astype(np.float32)
     warped = cv2.remap(right, map_x, ys, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
