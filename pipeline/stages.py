@@ -392,16 +392,18 @@ def reconstruct_view(
         )
         clock.end("normals")
     clock.begin("stereo")
-    plate, field = _plate(stereo_job, cap, scene, field, tgt, opts, clock)
-    writes: list[Deferred[Any]] = []
-    if field is not None and normals_png is not None:
-        # normals.png now, while the depth is solved on this thread (the few normals dropped later as facing
-        # away are then shown as estimated)
-        writes.append(
-            Deferred(pool, artifacts.write_normals_png, normals_png, field.normals, field.mask)
-        )
-    _check_stereo_share(plate, cap, opts)
-    surface = _surface(cap, tgt, scene, plate, field, opts, pool, clock)
+    plate, on_plate, plain_check = _plate(stereo_job, cap, scene, field, tgt, opts, clock, pool)
+    writes = _normals_written(pool, normals_png, on_plate)
+    surface = _measured_surface(cap, tgt, scene, plate, on_plate, opts, pool, clock, plain_check)
+    if surface is None:
+        # the stereo depth shows more than one sheet in the brightness mask (the tops of rails under the
+        # plate's edge): the pair matched again over every pixel that may be plate, the plate segmented
+        finish(writes)
+        plate, on_plate = _not_plain(cap, tgt, scene, field, opts, clock, plate)
+        writes = _normals_written(pool, normals_png, on_plate)
+        surface = _measured_surface(cap, tgt, scene, plate, on_plate, opts, pool, clock, None)
+        if surface is None:  # pragma: no cover - only a plain check returns None
+            raise AssertionError("a segmented plate is measured without a plain check")
     rays = started.rays.result()
     points = points_on_rays(surface.depth_mm, rays)
     clock.end("depth")
@@ -454,33 +456,65 @@ def _plate(
     tgt: Target,
     opts: InspectOptions,
     clock: StageClock,
-) -> tuple[Plate, normals.NormalField | None]:
+    pool: ThreadPoolExecutor,
+) -> tuple[Plate, normals.NormalField | None, Future[bool] | None]:
     """The stereo depth, and the plate among its surroundings (#17): the near, smooth sheet of the stereo
     depth; openings stay holes, supports beside the plate and an edge band are left out. A plain scene (a
     plate over a dark conveyor, no opening), or no stereo pair: the brightness mask. The distant normal
-    field comes back restricted to the plate."""
+    field comes back restricted to the plate.
+
+    A scene plain by its outline is taken for plain while its depth decides on ``pool``
+    (:func:`pipeline.segmentation.plain_depth`, beside the surface's solve): the third value, None
+    otherwise. When the depth says no, :func:`_not_plain` gives the plate."""
     pre, K = scene.pre, cap.rig.left.K
     depth_c, stereo_s, depth_scale = (
         stereo_job.result() if stereo_job is not None else (None, 0.0, 1)
     )
     t_seg = time.perf_counter()
     seg = None
-    plain = (
-        scene.plain_outline
-        and depth_c is not None
-        and segmentation.plain_depth(pre.mask, depth_c, K)
+    plain_check = None
+    if scene.plain_outline and depth_c is not None:
+        plain_check = pool.submit(segmentation.plain_depth, pre.mask, depth_c, K)
+    elif depth_c is not None:
+        seg = _segment(pre, depth_c, K, scene.candidates, depth_scale, field, tgt)
+    plate, field = _on_plate(pre, field, seg, depth_c, depth_scale)
+    clock.timings["stereo"] = stereo_s
+    clock.timings["segmentation"] = round(time.perf_counter() - t_seg, 4)
+    return plate, field, plain_check
+
+
+def _not_plain(
+    cap: Capture,
+    tgt: Target,
+    scene: Scene,
+    field: normals.NormalField | None,
+    opts: InspectOptions,
+    clock: StageClock,
+    taken: Plate,
+) -> tuple[Plate, normals.NormalField | None]:
+    """The plate of a scene taken for plain by its outline (``taken``: its brightness mask) whose stereo
+    depth shows more than one sheet there (:func:`pipeline.segmentation.plain_depth`): the pair matched
+    over the brightness mask only is matched again over every pixel that may be plate and the plate
+    segmented on that depth (:func:`_matched_on_candidates`). ``field``: the normals not yet restricted."""
+    t_seg = time.perf_counter()
+    depth_c, depth_scale, seg, again_s = _matched_on_candidates(cap, tgt, scene, field, opts)
+    plate, field = _on_plate(scene.pre, field, seg, depth_c, depth_scale)
+    clock.timings["stereo"] = round(clock.timings["stereo"] + again_s, 4)
+    clock.timings["segmentation"] = round(
+        clock.timings["segmentation"] + time.perf_counter() - t_seg - again_s, 4
     )
-    if depth_c is not None and not plain:
-        if scene.plain_outline:
-            # the pair was matched over the brightness mask only, which the depth shows holds more than
-            # one sheet (the tops of rails under the plate's edge)
-            depth_c, depth_scale, seg, again_s = _matched_on_candidates(
-                cap, tgt, scene, field, opts
-            )
-            stereo_s += again_s
-            t_seg += again_s
-        else:
-            seg = _segment(pre, depth_c, K, scene.candidates, depth_scale, field, tgt)
+    return plate, field
+
+
+def _on_plate(
+    pre: Preprocessed,
+    field: normals.NormalField | None,
+    seg: segmentation.Segmentation | None,
+    depth_c: np.ndarray | None,
+    depth_scale: int,
+) -> tuple[Plate, normals.NormalField | None]:
+    """The plate ``seg`` found (None: the brightness mask, a plain scene's), its stereo prior from the
+    depth ``depth_c``, and the distant normal field restricted to it."""
     mask = pre.mask if seg is None else seg.mask
     prior: np.ndarray | None
     if seg is not None:
@@ -489,20 +523,53 @@ def _plate(
         prior = None if depth_c is None else np.where(mask, depth_c, np.nan)
     if field is not None:
         field = _restricted(field, mask)
-    clock.timings["stereo"] = stereo_s
-    clock.timings["segmentation"] = round(time.perf_counter() - t_seg, 4)
     matched_pct = (
         None if prior is None else 100.0 * np.count_nonzero(np.isfinite(prior) & mask) / mask.sum()
     )
-    return Plate(
+    plate = Plate(
         mask=mask,
         seg=seg,
-        plain=plain,
+        plain=seg is None and depth_c is not None,
         prior=prior,
         matched_pct=matched_pct,
         depth_mm=depth_c,
         depth_scale=depth_scale,
-    ), field
+    )
+    return plate, field
+
+
+def _normals_written(
+    pool: ThreadPoolExecutor, path: Path | None, field: normals.NormalField | None
+) -> list[Deferred[Any]]:
+    """normals.png of the distant normals on the plate submitted (none without a field or a path), to be
+    written while the depth is solved on this thread (the few normals dropped later as facing away are
+    then shown as estimated)."""
+    if field is None or path is None:
+        return []
+    return [Deferred(pool, artifacts.write_normals_png, path, field.normals, field.mask)]
+
+
+def _measured_surface(
+    cap: Capture,
+    tgt: Target,
+    scene: Scene,
+    plate: Plate,
+    field: normals.NormalField | None,
+    opts: InspectOptions,
+    pool: ThreadPoolExecutor,
+    clock: StageClock,
+    plain_check: Future[bool] | None,
+) -> reconstruct.Surface | None:
+    """The plate's surface (:func:`_check_stereo_share`, then :func:`_surface`); None when ``plain_check``
+    (the depth's verdict on a scene taken for plain) says its brightness mask is not the plate: the
+    surface is then measured on the plate :func:`_not_plain` gives."""
+    try:
+        _check_stereo_share(plate, cap, opts)
+        return _surface(cap, tgt, scene, plate, field, opts, pool, clock, plain_check)
+    except Exception:  # what a plate taken for plain raises counts only if it is the plate
+        if plain_check is not None and not plain_check.result():
+            return None
+        raise
 
 
 def _check_stereo_share(plate: Plate, cap: Capture, opts: InspectOptions) -> None:
@@ -530,11 +597,17 @@ def _surface(
     opts: InspectOptions,
     pool: ThreadPoolExecutor,
     clock: StageClock,
-) -> reconstruct.Surface:
+    plain_check: Future[bool] | None = None,
+) -> reconstruct.Surface | None:
     """Stages *normals* (point lights) and *depth*: the metric surface, with the lights refitted on the stereo
     geometry when they bend it away from the stereo pair's (``plate`` then holds the segmented plate).
     Under distant lights a glossy coating's lobe is measured on the stereo surface on ``pool`` beside the
-    integration, and the normals are fitted with it (:func:`pipeline.surface.reconstruct.with_lobe`)."""
+    integration, and the normals are fitted with it (:func:`pipeline.surface.reconstruct.with_lobe`).
+
+    ``plain_check``: the depth's verdict on a scene taken for plain (:func:`_plate`), awaited before
+    anything but the distant normals' integration; None is returned when it says no."""
+    if plain_check is not None and cap.lights.any_point and not plain_check.result():
+        return None
     pre, K = scene.pre, cap.rig.left.K
     solve: dict[str, Any] = dict(
         prior_mm=plate.prior,
@@ -573,6 +646,10 @@ def _surface(
         else None
     )
     surface = reconstruct.distant_surface(field, K, **solve)
+    if plain_check is not None and not plain_check.result():
+        if lobe_job is not None:
+            lobe_job.cancel()
+        return None
     if lobe_job is not None:
         surface = reconstruct.with_lobe(
             surface, pre.images, cap.lights, K, pre.valid, lobe_job.result(), solve
