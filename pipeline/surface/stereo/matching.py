@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -156,28 +157,22 @@ def match_pass(
     # window cameras: x_left' = x_left - x0, x_right' = x_right - x0 + shift, so SGBM's disparity is d - shift >= 0
     K1w = np.array([[f, 0.0, -x0], [0.0, f, -y0], [0.0, 0.0, 1.0]])
     K2w = np.array([[f, 0.0, -x0 + shift], [0.0, f, -y0], [0.0, 0.0, 1.0]])
-    rect_l, seen_l = _rectified(left, K_l, dist_l, R1, K1w, win)
-    rect_r, seen_r = _rectified(right, K_r, dist_r, R2, K2w, win)
-    if levels is None:
-        levels = (_grey_levels(rect_l, seen_l), _grey_levels(rect_r, seen_r))
-    img_l, img_r = _levels_uint8(rect_l, *levels[0]), _levels_uint8(rect_r, *levels[1])
-    t1 = time.perf_counter()
-    d_win = _sgbm(img_l, img_r, num_disp, seen_l, seen_r)
-    if mask is not None:
-        # only plate pixels count (the background lies at another depth)
-        mask_win = (
-            cv2.warpPerspective(
-                mask.astype(np.uint8), K1w @ R1 @ K_mask_inv, win, flags=cv2.INTER_NEAREST
-            )
-            > 0
+    # the right image on a thread of its own beside the left (OpenCV's remaps release the GIL), the
+    # mask's window beside the matching
+    with ThreadPoolExecutor(max_workers=1) as side:
+        right_job = side.submit(_rectified, right, K_r, dist_r, R2, K2w, win)
+        rect_l, seen_l = _rectified(left, K_l, dist_l, R1, K1w, win)
+        rect_r, seen_r = right_job.result()
+        if levels is None:
+            levels = (_grey_levels(rect_l, seen_l), _grey_levels(rect_r, seen_r))
+        img_l, img_r = _levels_uint8(rect_l, *levels[0]), _levels_uint8(rect_r, *levels[1])
+        t1 = time.perf_counter()
+        mask_job = (
+            None if mask is None else side.submit(_mask_window, mask, K1w @ R1 @ K_mask_inv, win)
         )
-        # a matching block that straddles the plate's edge mixes two depths: such pixels are holes
-        edge = BLOCK_SIZE // 2 + 1
-        mask_win = (
-            cv2.erode(mask_win.astype(np.uint8), np.ones((2 * edge + 1, 2 * edge + 1), np.uint8))
-            > 0
-        )
-        d_win[~mask_win] = np.nan
+        d_win = _sgbm(img_l, img_r, num_disp, seen_l, seen_r)
+        if mask_job is not None:  # only plate pixels count (the background lies at another depth)
+            d_win[~mask_job.result()] = np.nan
     d_win = (d_win + np.float32(shift)).astype(np.float32)
     return MatchPass(
         d_win,
@@ -192,6 +187,17 @@ def match_pass(
         levels,
         (t1 - t0, time.perf_counter() - t1),
     )
+
+
+def _mask_window(mask: np.ndarray, H: np.ndarray, win: tuple[int, int]) -> np.ndarray:
+    """The pixels of the rectified window (``H``: the mask's grid to the window) whose matching block lies
+    on the mask: a block that straddles the plate's edge mixes two depths."""
+    mask_win = cv2.warpPerspective(mask.astype(np.uint8), H, win, flags=cv2.INTER_NEAREST) > 0
+    edge = BLOCK_SIZE // 2 + 1
+    eroded: np.ndarray = (
+        cv2.erode(mask_win.astype(np.uint8), np.ones((2 * edge + 1, 2 * edge + 1), np.uint8)) > 0
+    )
+    return eroded
 
 
 def _rectified(

@@ -82,13 +82,18 @@ def refine_disparity(
     inside = np.empty((h, w), bool)
     sums = np.empty((5, h, w), np.float32)  # wgt, wgt g, wgt r, wgt g r, wgt g g
     blurred = np.empty_like(sums)
-    for _ in range(int(iterations)):
+    weights = np.empty((h, w), np.float32)  # the last blurred wgt
+    for step in range(int(iterations)):
         map_x = xs - d
         warped = cv2.remap(right, map_x, ys, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
         gx_w = cv2.remap(gx_r, map_x, ys, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
         # right(x - d - delta) + c ~ left, with an offset c per window  ->  delta = -cov(g, r) / var(g)
         _step_terms(map_x, right.shape[1], gx_l, gx_w, left, warped, support, inside, sums)
-        for k in range(len(sums)):
+        # the weights' window sums stand while no pixel's weight changed (the usual case)
+        same_weights = step > 0 and np.array_equal(sums[0], weights)
+        if not same_weights:
+            weights[...] = sums[0]
+        for k in range(1 if same_weights else 0, len(sums)):
             cv2.GaussianBlur(sums[k], (0, 0), sigma_px, dst=blurred[k])
         _gauss_newton_step(blurred, valid, inside, d, support)
     out = np.where(support & (np.abs(d - np.where(valid, disparity, 0)) <= max_step_px), d, np.nan)
