@@ -7,6 +7,7 @@ camera is the reference frame of everything; the stereo extrinsics follow
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -134,10 +135,9 @@ class CameraModel:
         )
 
     def undistort_maps(self) -> tuple[np.ndarray, np.ndarray]:
-        """``cv2.remap`` maps from the undistorted grid (same K) to the raw image."""
-        return cv2.initUndistortRectifyMap(
-            self.K, self.dist, np.eye(3), self.K, self.image_size, cv2.CV_32FC1
-        )
+        """``cv2.remap`` maps from the undistorted grid (same K) to the raw image (read-only: the last few
+        cameras' maps are kept, a cell inspects plate after plate with one calibration)."""
+        return _undistort_maps(self.K.tobytes(), self.dist.tobytes(), self.image_size)
 
     def project(self, points_mm: np.ndarray) -> np.ndarray:
         """Project points of this camera's frame into its raw (distorted) image.
@@ -153,6 +153,25 @@ class CameraModel:
         pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 1, 3)
         uv, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), self.K, self.dist)
         return uv.reshape(-1, 2)
+
+
+@functools.lru_cache(maxsize=4)
+def _undistort_maps(
+    K: bytes, dist: bytes, image_size: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """:meth:`CameraModel.undistort_maps` of the camera whose ``K`` (3, 3) and ``dist`` (5,) float64 have
+    these bytes."""
+    maps: tuple[np.ndarray, np.ndarray] = cv2.initUndistortRectifyMap(
+        np.frombuffer(K).reshape(3, 3),
+        np.frombuffer(dist),
+        np.eye(3),
+        np.frombuffer(K).reshape(3, 3),
+        image_size,
+        cv2.CV_32FC1,
+    )
+    for m in maps:
+        m.setflags(write=False)
+    return maps
 
 
 def undistorted_rays(K: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
