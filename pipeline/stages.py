@@ -17,7 +17,7 @@ from collections.abc import Callable, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, Protocol, overload, runtime_checkable
 
 import cv2
 import numpy as np
@@ -399,11 +399,10 @@ def reconstruct_view(
         # the stereo depth shows more than one sheet in the brightness mask (the tops of rails under the
         # plate's edge): the pair matched again over every pixel that may be plate, the plate segmented
         finish(writes)
-        plate, on_plate = _not_plain(cap, tgt, scene, field, opts, clock, plate)
+        plate, on_plate = _not_plain(cap, tgt, scene, field, opts, clock)
         writes = _normals_written(pool, normals_png, on_plate)
-        surface = _measured_surface(cap, tgt, scene, plate, on_plate, opts, pool, clock, None)
-        if surface is None:  # pragma: no cover - only a plain check returns None
-            raise AssertionError("a segmented plate is measured without a plain check")
+        _check_stereo_share(plate, cap, opts)
+        surface = _surface(cap, tgt, scene, plate, on_plate, opts, pool, clock)
     rays = started.rays.result()
     points = points_on_rays(surface.depth_mm, rays)
     clock.end("depth")
@@ -490,10 +489,9 @@ def _not_plain(
     field: normals.NormalField | None,
     opts: InspectOptions,
     clock: StageClock,
-    taken: Plate,
 ) -> tuple[Plate, normals.NormalField | None]:
-    """The plate of a scene taken for plain by its outline (``taken``: its brightness mask) whose stereo
-    depth shows more than one sheet there (:func:`pipeline.segmentation.plain_depth`): the pair matched
+    """The plate of a scene taken for plain by its outline whose stereo depth shows more than one sheet
+    in its brightness mask (:func:`pipeline.segmentation.plain_depth`): the pair matched
     over the brightness mask only is matched again over every pixel that may be plate and the plate
     segmented on that depth (:func:`_matched_on_candidates`). ``field``: the normals not yet restricted."""
     t_seg = time.perf_counter()
@@ -586,6 +584,34 @@ def _check_stereo_share(plate: Plate, cap: Capture, opts: InspectOptions) -> Non
                 f"at least {opts.min_stereo_pct:.0f} %, and there is no working_distance_mm to fall back on"
             )
         plate.prior = None
+
+
+@overload
+def _surface(
+    cap: Capture,
+    tgt: Target,
+    scene: Scene,
+    plate: Plate,
+    field: normals.NormalField | None,
+    opts: InspectOptions,
+    pool: ThreadPoolExecutor,
+    clock: StageClock,
+    plain_check: None = None,
+) -> reconstruct.Surface: ...
+
+
+@overload
+def _surface(
+    cap: Capture,
+    tgt: Target,
+    scene: Scene,
+    plate: Plate,
+    field: normals.NormalField | None,
+    opts: InspectOptions,
+    pool: ThreadPoolExecutor,
+    clock: StageClock,
+    plain_check: Future[bool] | None,
+) -> reconstruct.Surface | None: ...
 
 
 def _surface(
