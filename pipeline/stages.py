@@ -17,7 +17,7 @@ from collections.abc import Callable, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Protocol, overload, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import cv2
 import numpy as np
@@ -394,7 +394,13 @@ def reconstruct_view(
     clock.begin("stereo")
     plate, on_plate, plain_check = _plate(stereo_job, cap, scene, field, tgt, opts, clock, pool)
     writes = _normals_written(pool, normals_png, on_plate)
-    surface = _measured_surface(cap, tgt, scene, plate, on_plate, opts, pool, clock, plain_check)
+    surface: reconstruct.Surface | None
+    try:
+        _check_stereo_share(plate, cap, opts)
+        surface = _surface(cap, tgt, scene, plate, on_plate, opts, pool, clock, plain_check)
+    except Exception as err:  # what a plate taken for plain raised counts only if it is the plate
+        _raise_unless_not_plain(plain_check, err)
+        surface = None
     if surface is None:
         # the stereo depth shows more than one sheet in the brightness mask (the tops of rails under the
         # plate's edge): the pair matched again over every pixel that may be plate, the plate segmented
@@ -547,27 +553,24 @@ def _normals_written(
     return [Deferred(pool, artifacts.write_normals_png, path, field.normals, field.mask)]
 
 
-def _measured_surface(
-    cap: Capture,
-    tgt: Target,
-    scene: Scene,
-    plate: Plate,
-    field: normals.NormalField | None,
-    opts: InspectOptions,
-    pool: ThreadPoolExecutor,
-    clock: StageClock,
-    plain_check: Future[bool] | None,
-) -> reconstruct.Surface | None:
-    """The plate's surface (:func:`_check_stereo_share`, then :func:`_surface`); None when ``plain_check``
-    (the depth's verdict on a scene taken for plain) says its brightness mask is not the plate: the
-    surface is then measured on the plate :func:`_not_plain` gives."""
-    try:
-        _check_stereo_share(plate, cap, opts)
-        return _surface(cap, tgt, scene, plate, field, opts, pool, clock, plain_check)
-    except Exception:  # what a plate taken for plain raises counts only if it is the plate
-        if plain_check is not None and not plain_check.result():
-            return None
-        raise
+class _NotPlain(Exception):
+    """The stereo depth of a scene taken for plain says its brightness mask is not the plate."""
+
+
+def _raise_unless_not_plain(plain_check: Future[bool] | None, err: Exception) -> None:
+    """``err``, raised on a plate taken for plain, raised again unless ``plain_check`` says that plate is
+    not the plate (then it counts for nothing)."""
+    if not isinstance(err, _NotPlain) and (plain_check is None or plain_check.result()):
+        raise err
+
+
+def _confirm_plain(plain_check: Future[bool] | None, work: Future[Any] | None = None) -> None:
+    """Raise :class:`_NotPlain` when ``plain_check`` says no (``work`` begun on the plate so taken is then
+    cancelled if it has not started)."""
+    if plain_check is not None and not plain_check.result():
+        if work is not None:
+            work.cancel()
+        raise _NotPlain
 
 
 def _check_stereo_share(plate: Plate, cap: Capture, opts: InspectOptions) -> None:
@@ -586,34 +589,6 @@ def _check_stereo_share(plate: Plate, cap: Capture, opts: InspectOptions) -> Non
         plate.prior = None
 
 
-@overload
-def _surface(
-    cap: Capture,
-    tgt: Target,
-    scene: Scene,
-    plate: Plate,
-    field: normals.NormalField | None,
-    opts: InspectOptions,
-    pool: ThreadPoolExecutor,
-    clock: StageClock,
-    plain_check: None = None,
-) -> reconstruct.Surface: ...
-
-
-@overload
-def _surface(
-    cap: Capture,
-    tgt: Target,
-    scene: Scene,
-    plate: Plate,
-    field: normals.NormalField | None,
-    opts: InspectOptions,
-    pool: ThreadPoolExecutor,
-    clock: StageClock,
-    plain_check: Future[bool] | None,
-) -> reconstruct.Surface | None: ...
-
-
 def _surface(
     cap: Capture,
     tgt: Target,
@@ -624,16 +599,14 @@ def _surface(
     pool: ThreadPoolExecutor,
     clock: StageClock,
     plain_check: Future[bool] | None = None,
-) -> reconstruct.Surface | None:
+) -> reconstruct.Surface:
     """Stages *normals* (point lights) and *depth*: the metric surface, with the lights refitted on the stereo
     geometry when they bend it away from the stereo pair's (``plate`` then holds the segmented plate).
     Under distant lights a glossy coating's lobe is measured on the stereo surface on ``pool`` beside the
     integration, and the normals are fitted with it (:func:`pipeline.surface.reconstruct.with_lobe`).
 
     ``plain_check``: the depth's verdict on a scene taken for plain (:func:`_plate`), awaited before
-    anything but the distant normals' integration; None is returned when it says no."""
-    if plain_check is not None and cap.lights.any_point and not plain_check.result():
-        return None
+    anything but the distant normals' integration (:class:`_NotPlain` when it says no)."""
     pre, K = scene.pre, cap.rig.left.K
     solve: dict[str, Any] = dict(
         prior_mm=plate.prior,
@@ -644,6 +617,7 @@ def _surface(
         tol=opts.depth_tol,
     )
     if cap.lights.any_point:
+        _confirm_plain(plain_check)
         # point lights: normals and surface alternate; "normals" times the whole alternation (with its
         # integrations), "depth" what follows
         t_near = time.perf_counter()
@@ -672,10 +646,7 @@ def _surface(
         else None
     )
     surface = reconstruct.distant_surface(field, K, **solve)
-    if plain_check is not None and not plain_check.result():
-        if lobe_job is not None:
-            lobe_job.cancel()
-        return None
+    _confirm_plain(plain_check, lobe_job)
     if lobe_job is not None:
         surface = reconstruct.with_lobe(
             surface, pre.images, cap.lights, K, pre.valid, lobe_job.result(), solve

@@ -469,9 +469,7 @@ def _checked_band(
         )
     else:
         d_rel = d_rel.copy()
-    zncc = match_correlation(
-        scaled_l, scaled_r, d_rel, sigma_px=REFINE_SIGMA_PX, right_x0=right_x0
-    )
+    zncc = match_correlation(scaled_l, scaled_r, d_rel, sigma_px=REFINE_SIGMA_PX, right_x0=right_x0)
     d_rel[~(zncc >= MIN_ZNCC)] = np.nan
     return d_rel
 

@@ -163,7 +163,12 @@ def _gauss_newton_step(
 
 
 def match_correlation(
-    left: np.ndarray, right: np.ndarray, disparity: np.ndarray, *, sigma_px: float, right_x0: int = 0
+    left: np.ndarray,
+    right: np.ndarray,
+    disparity: np.ndarray,
+    *,
+    sigma_px: float,
+    right_x0: int = 0,
 ) -> np.ndarray:
     """Zero-mean normalised cross-correlation of each match over a Gaussian window.
 
