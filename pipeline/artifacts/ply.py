@@ -8,6 +8,7 @@ import os
 from collections.abc import Sequence
 from typing import Any
 
+import numba
 import numpy as np
 import numpy.typing as npt
 from plyfile import PlyData, PlyElementParseError, PlyHeaderParseError
@@ -89,17 +90,11 @@ def write_surface_ply(
             limit_mm = float(finite.max()) if finite.size and finite.max() > 0 else 1.0
     check_positive("limit_mm", limit_mm)
 
-    def valid_at(stride: int) -> np.ndarray:
-        """The grid points at this stride that are in the mask and finite (checked on those only)."""
-        sub = pts[
-            ::stride, ::stride
-        ]  # coordinate by coordinate: all(axis=-1) over 3 took 5x as long
-        finite = np.isfinite(sub[..., 0]) & np.isfinite(sub[..., 1]) & np.isfinite(sub[..., 2])
-        return mask[::stride, ::stride] & finite
-
+    valid = np.empty((h, w), bool)  # in the mask and finite
+    _valid_points(pts, mask, valid)
     stride = max(1, int(math.sqrt(np.count_nonzero(mask) / max_vertices)))
     while True:
-        sub = valid_at(stride)
+        sub = valid[::stride, ::stride]
         cell = sub[:-1, :-1] & sub[:-1, 1:] & sub[1:, :-1] & sub[1:, 1:]
         used = np.zeros_like(sub)
         used[:-1, :-1] |= cell
@@ -115,17 +110,10 @@ def write_surface_ply(
             f"({np.count_nonzero(sub)} valid points of {sub.shape[1]}x{sub.shape[0]} at that stride): nothing to mesh"
         )
 
-    index = np.full(sub.shape, -1, dtype=np.int64)
-    index[used] = np.arange(np.count_nonzero(used))
-    a, b = index[:-1, :-1][cell], index[:-1, 1:][cell]
-    c, d = index[1:, :-1][cell], index[1:, 1:][cell]
-    # (a, c, b) and (b, c, d): with x along columns and y along rows, the normal is -z (towards the cameras).
-    faces = np.stack([np.stack([a, c, b], axis=1), np.stack([b, c, d], axis=1)], axis=1).reshape(
-        -1, 3
-    )
-
-    vertices = pts[::stride, ::stride][used]
-    vdev = dev[::stride, ::stride][used]
+    vertices = np.empty((np.count_nonzero(used), 3), np.float32)
+    vdev = np.empty(len(vertices), np.float64)
+    faces = np.empty((2 * np.count_nonzero(cell), 3), np.int32)
+    _mesh(pts[::stride, ::stride], dev[::stride, ::stride], used, cell, vertices, vdev, faces)
     colours = deviation_colormap(vdev, limit_mm=limit_mm)
     comments = [
         "plate-inspect measured surface: mm, left camera frame (x right, y down, z forward)",
@@ -133,6 +121,58 @@ def write_surface_ply(
         f"vertex colour: blue-white-red saturated at +/- {limit_mm:g} mm, grey = no deviation",
     ]
     _write_ply(path, vertices, faces, comments=comments, colours=colours, deviation=vdev)
+
+
+@numba.njit(nogil=True, cache=True)
+def _valid_points(
+    pts: npt.NDArray[np.float64], mask: npt.NDArray[np.bool_], out: npt.NDArray[np.bool_]
+) -> None:  # pragma: no cover - compiled
+    """``out`` (H, W) = the points (H, W, 3) in ``mask`` whose three coordinates are finite."""
+    h, w = mask.shape
+    for i in range(h):
+        for j in range(w):
+            out[i, j] = (
+                mask[i, j]
+                and np.isfinite(pts[i, j, 0])
+                and np.isfinite(pts[i, j, 1])
+                and np.isfinite(pts[i, j, 2])
+            )
+
+
+@numba.njit(nogil=True, cache=True)
+def _mesh(
+    pts: npt.NDArray[np.float64],
+    dev: npt.NDArray[np.float64],
+    used: npt.NDArray[np.bool_],
+    cell: npt.NDArray[np.bool_],
+    vertices: npt.NDArray[np.float32],
+    vdev: npt.NDArray[np.float64],
+    faces: npt.NDArray[np.int32],
+) -> None:  # pragma: no cover - compiled
+    """The mesh of the subsampled grid ``pts`` (h, w, 3) (``dev`` (h, w) its deviations): the ``used``
+    points in row-major order into ``vertices`` (float32) and ``vdev``, and two faces per ``cell``
+    (h - 1, w - 1), row-major, into ``faces``: corners a b / c d give (a, c, b) and (b, c, d), whose
+    normal is -z (towards the cameras) with x along columns and y along rows."""
+    h, w = used.shape
+    index = np.empty((h, w), np.int64)
+    n = 0
+    for i in range(h):
+        for j in range(w):
+            if used[i, j]:
+                index[i, j] = n
+                vertices[n, 0] = pts[i, j, 0]
+                vertices[n, 1] = pts[i, j, 1]
+                vertices[n, 2] = pts[i, j, 2]
+                vdev[n] = dev[i, j]
+                n += 1
+    f = 0
+    for i in range(h - 1):
+        for j in range(w - 1):
+            if cell[i, j]:
+                a, b, c, d = index[i, j], index[i, j + 1], index[i + 1, j], index[i + 1, j + 1]
+                faces[f, 0], faces[f, 1], faces[f, 2] = a, c, b
+                faces[f + 1, 0], faces[f + 1, 1], faces[f + 1, 2] = b, c, d
+                f += 2
 
 
 def write_target_ply(
@@ -198,7 +238,7 @@ def write_target_ply(
 
 def _write_ply(
     path: str | os.PathLike[str],
-    vertices: npt.NDArray[np.float64],
+    vertices: npt.NDArray[np.floating[Any]],
     faces: npt.NDArray[Any],
     *,
     comments: Sequence[str],
