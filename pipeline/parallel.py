@@ -20,7 +20,7 @@ import json
 import os
 import sys
 import threading
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Executor, Future
 from pathlib import Path
 from typing import Any, Generic, TypeVar
@@ -74,6 +74,24 @@ def default_workers() -> int:
     if hasattr(os, "sched_getaffinity"):
         return len(os.sched_getaffinity(0))
     return os.cpu_count() or 1
+
+
+@contextlib.contextmanager
+def kernel_threads_spared(spare: int) -> Iterator[None]:
+    """Within the block, the parallel numba kernels started on this thread run on ``spare`` threads fewer
+    than numba's count (at least one): the threads left are the work's beside them.
+
+    numba's thread count is the calling thread's own; the results of the pipeline's parallel kernels do
+    not depend on it (their loops' iterations are independent).
+    """
+    import numba  # the policy module imports no kernel machinery at import
+
+    n = numba.get_num_threads()
+    numba.set_num_threads(max(1, n - max(0, int(spare))))
+    try:
+        yield
+    finally:
+        numba.set_num_threads(n)
 
 
 T = TypeVar("T")

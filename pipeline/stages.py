@@ -38,7 +38,7 @@ from pipeline.judge import (
     verdict,
 )
 from pipeline.lights.model import Lights
-from pipeline.parallel import Deferred, finish
+from pipeline.parallel import Deferred, finish, kernel_threads_spared
 from pipeline.preprocess import (
     WORKING_CELL_MM,
     Preprocessed,
@@ -381,15 +381,18 @@ def reconstruct_view(
     field = None
     clock.begin("normals")
     if not cap.lights.any_point:
-        # distant lights: the normals do not depend on the surface, estimated while stereo matches
-        field = normals.estimate_normals(
-            pre.images,
-            cap.light_dirs,
-            scene.region,
-            valid=pre.valid,
-            method=opts.normals_method,
-            camera_matrix=K,
-        )
+        # distant lights: the normals do not depend on the surface, estimated while stereo matches, on a
+        # core fewer than the machine has: the stereo pair's chain (coarse pass, matching, refinement) is
+        # the longer, and the main line waits for both
+        with kernel_threads_spared(1 if stereo_job is not None else 0):
+            field = normals.estimate_normals(
+                pre.images,
+                cap.light_dirs,
+                scene.region,
+                valid=pre.valid,
+                method=opts.normals_method,
+                camera_matrix=K,
+            )
         clock.end("normals")
     clock.begin("stereo")
     plate, on_plate, plain_check = _plate(stereo_job, cap, scene, field, tgt, opts, clock, pool)

@@ -30,6 +30,29 @@ def test_default_workers_refuses_a_bad_override(monkeypatch, value):
         default_workers()
 
 
+def test_kernel_threads_spared_for_the_block_and_on_this_thread_only():
+    import threading
+
+    import numba
+
+    from pipeline.parallel import kernel_threads_spared
+
+    n = numba.get_num_threads()
+    seen = {}
+    with kernel_threads_spared(1):
+        seen["inside"] = numba.get_num_threads()
+        other = threading.Thread(target=lambda: seen.setdefault("other", numba.get_num_threads()))
+        other.start()
+        other.join()
+        with kernel_threads_spared(n + 5):
+            seen["at least one"] = numba.get_num_threads()
+    assert seen == {"inside": max(1, n - 1), "other": n, "at least one": 1}
+    assert numba.get_num_threads() == n
+    with pytest.raises(RuntimeError), kernel_threads_spared(1):
+        raise RuntimeError("left the block")
+    assert numba.get_num_threads() == n
+
+
 def test_importing_the_command_line_and_the_stages_sets_no_process_policy():
     env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
     code = "import os, pipeline.cli, pipeline.stages; print(os.environ.get('OMP_WAIT_POLICY'))"
