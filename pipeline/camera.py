@@ -161,13 +161,9 @@ def _undistort_maps(
 ) -> tuple[np.ndarray, np.ndarray]:
     """:meth:`CameraModel.undistort_maps` of the camera whose ``K`` (3, 3) and ``dist`` (5,) float64 have
     these bytes."""
+    camera = np.frombuffer(K).reshape(3, 3)
     maps: tuple[np.ndarray, np.ndarray] = cv2.initUndistortRectifyMap(
-        np.frombuffer(K).reshape(3, 3),
-        np.frombuffer(dist),
-        np.eye(3),
-        np.frombuffer(K).reshape(3, 3),
-        image_size,
-        cv2.CV_32FC1,
+        camera, np.frombuffer(dist), np.eye(3), camera, image_size, cv2.CV_32FC1
     )
     for m in maps:
         m.setflags(write=False)

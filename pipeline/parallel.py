@@ -176,9 +176,9 @@ def configure_process() -> None:
 def set_process_policy() -> bool:
     """The thread and memory policy of :func:`configure_process` without its paging-in, once per process.
 
-    :mod:`pipeline.run` calls it when imported, so that a program that calls the inspection without the entry points' start-up (a script, a notebook,
-    another service) runs it as fast as the command line does (measured: 0.70 s against 0.60 s for a
-    1224x1024 inspection). Its effects are a process's
+    :mod:`pipeline.run` calls it when imported, so that a program that calls the inspection without the
+    entry points' start-up (a script, a notebook, another service) runs it as fast as the command line
+    does (``benchmarks/bench_pipeline.py --bare``: docs/figures.md). Its effects are a process's
     performance only, never a result; it also drops a compiled-kernel cache older than its sources
     (:func:`drop_stale_kernels`), so that no kernel runs code the tree no longer holds.
     The second and later calls do nothing.

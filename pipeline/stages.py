@@ -208,11 +208,15 @@ class Plate:
 
     mask: np.ndarray
     seg: segmentation.Segmentation | None
-    plain: bool
     prior: np.ndarray | None
     matched_pct: float | None
     depth_mm: np.ndarray | None
     depth_scale: int
+
+    @property
+    def plain(self) -> bool:
+        """A plain scene's plate: its brightness mask, one sheet in the stereo depth (not segmented)."""
+        return self.seg is None and self.depth_mm is not None
 
 
 @dataclass(frozen=True)
@@ -536,7 +540,6 @@ def _on_plate(
     plate = Plate(
         mask=mask,
         seg=seg,
-        plain=seg is None and depth_c is not None,
         prior=prior,
         matched_pct=matched_pct,
         depth_mm=depth_c,
@@ -698,7 +701,7 @@ def _segmented_on_candidates(
     unmeasured): :func:`_matched_on_candidates`.
     """
     plate.depth_mm, plate.depth_scale, seg, _ = _matched_on_candidates(cap, tgt, scene, field, opts)
-    plate.seg, plate.plain, plate.mask = seg, False, seg.mask
+    plate.seg, plate.mask = seg, seg.mask
     prior: np.ndarray = seg.stereo_prior(plate.depth_mm)
     return prior
 

@@ -116,9 +116,8 @@ def _step_terms(
     ``wgt r``, ``wgt g r`` and ``wgt g g``, with the symmetric gradient ``g`` (the left's and the
     warped right's mean), the residual ``r = left - warped`` and the weight ``wgt`` (the pixel
     supported and its warp ``map_x`` inside the right image, ``right_width`` px wide: ``inside``,
-    also written). float32 in
-    numpy's order of operations (the values of the array expressions they replace); single-threaded,
-    as it runs on the bands' threads."""
+    also written). float32 in numpy's order of operations (the values of the array expressions they
+    replace); single-threaded, as it runs on the bands' threads."""
     h, w = map_x.shape
     half, lo, hi = np.float32(0.5), np.float32(1.0), np.float32(right_width - 2)
     for i in range(h):
