@@ -11,6 +11,7 @@ import numba
 import numpy as np
 import numpy.typing as npt
 
+from ..io.png import write_rgb
 from .checks import check_mask, check_positive
 from .colours import default_limit_mm, deviation_colormap
 
@@ -87,7 +88,7 @@ def write_deviation_png(
     canvas = np.full((height, rgb.shape[1] + panel.shape[1], 3), 255, dtype=np.uint8)
     canvas[: rgb.shape[0], : rgb.shape[1]] = rgb
     canvas[:, rgb.shape[1] :] = panel
-    _imwrite(path, canvas)
+    write_rgb(path, canvas)
 
 
 def deviation_png_layout(shape_hw: tuple[int, ...]) -> tuple[int, int]:
@@ -235,10 +236,7 @@ def write_normals_png(
         raise ValueError(
             f"normals: expected unit vectors inside the mask, got a length off by {worst:.3g}"
         )
-    if not cv2.imwrite(str(path), bgr):
-        raise OSError(
-            f"{path}: cannot write the image (is the suffix .png and the folder writable?)"
-        )
+    write_rgb(path, bgr[..., ::-1])
 
 
 @numba.njit(nogil=True, cache=True)
@@ -270,11 +268,3 @@ def _encode_normals(
             bgr[i, j, 1] = min(max(np.rint(127.5 - 127.5 * y), 0.0), 255.0)
             bgr[i, j, 2] = min(max(np.rint(127.5 + 127.5 * x), 0.0), 255.0)
     return int(bad_rows.sum()), float(worst_rows.max()) if h else 0.0
-
-
-def _imwrite(path: str | os.PathLike[str], rgb: npt.NDArray[np.uint8]) -> None:
-    """Write an RGB image (OpenCV writes BGR); OSError naming the path when it cannot."""
-    if not cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
-        raise OSError(
-            f"{path}: cannot write the image (is the suffix .png and the folder writable?)"
-        )

@@ -10,6 +10,7 @@ import numba
 import numpy as np
 import numpy.typing as npt
 
+from ..io.png import write_rgb
 from .checks import check_positive
 from .colours import NO_DATA_RGB
 
@@ -49,7 +50,7 @@ def write_uncertainty(
     )
     out = Path(out_dir)
     np.save(out / UNCERTAINTY_FILES["uncertainty"], u)
-    cv2.imwrite(str(out / UNCERTAINTY_FILES["uncertainty_map"]), bgr)
+    write_rgb(out / UNCERTAINTY_FILES["uncertainty_map"], bgr[..., ::-1])
 
 
 @functools.cache

@@ -1,4 +1,5 @@
-"""The fast decoder of a camera's grey PNG (pipeline.io.png) against libpng, each PNG row filter."""
+"""The fast decoder of a camera's grey PNG (pipeline.io.png) against libpng, each PNG row filter; the
+RGB encoder of the inspection's pictures against libpng and Pillow."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.io.png import PngError, decode_grey_into
+from pipeline.io.png import PngError, decode_grey_into, encode_rgb, write_rgb
 
 
 def _chunk(kind: bytes, body: bytes) -> bytes:
@@ -131,3 +132,24 @@ def test_damaged_files_are_refused_with_the_reason() -> None:
             + _chunk(b"IEND", b""),
             out,
         )
+
+
+def test_rgb_images_encode_to_pngs_libpng_and_pillow_read_back(tmp_path) -> None:
+    from PIL import Image
+
+    rng = np.random.default_rng(5)
+    rgb = rng.integers(0, 256, (37, 53, 3), dtype=np.uint8)
+    rgb[10:20] = (128, 128, 128)  # a flat stretch, as off the plate
+    bgr = np.ascontiguousarray(rgb[..., ::-1])
+    write_rgb(tmp_path / "a.png", bgr[..., ::-1])  # a strided view is taken as it is
+    np.testing.assert_array_equal(cv2.imread(str(tmp_path / "a.png"))[..., ::-1], rgb)
+    with Image.open(tmp_path / "a.png") as im:
+        im.verify()  # every chunk's CRC and the image data's Adler-32
+    with Image.open(tmp_path / "a.png") as im:
+        assert im.mode == "RGB"
+        np.testing.assert_array_equal(np.asarray(im), rgb)
+    assert (tmp_path / "a.png").read_bytes() == encode_rgb(rgb)
+    with pytest.raises(ValueError, match=r"rgb: expected \(H, W, 3\) uint8"):
+        encode_rgb(rgb[..., 0])
+    with pytest.raises(OSError, match="cannot write the image"):
+        write_rgb(tmp_path / "missing" / "a.png", rgb)
