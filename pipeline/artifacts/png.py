@@ -228,22 +228,22 @@ def write_normals_png(
     if n.ndim != 3 or n.shape[2] != 3:
         raise ValueError(f"normals: expected shape (H, W, 3), got {n.shape}")
     mask = np.ascontiguousarray(check_mask(mask, n.shape[:2]))
-    bgr = np.empty(n.shape, np.uint8)
-    n_bad, worst = _encode_normals(n, mask, bgr)
+    rgb = np.empty(n.shape, np.uint8)
+    n_bad, worst = _encode_normals(n, mask, rgb)
     if n_bad:
         raise ValueError(f"normals: expected finite values inside the mask, got {n_bad} non-finite")
     if worst > 1e-3:
         raise ValueError(
             f"normals: expected unit vectors inside the mask, got a length off by {worst:.3g}"
         )
-    write_rgb(path, bgr[..., ::-1])
+    write_rgb(path, rgb)
 
 
 @numba.njit(nogil=True, cache=True)
 def _encode_normals(
-    n: npt.NDArray[np.float32], mask: npt.NDArray[np.bool_], bgr: npt.NDArray[np.uint8]
+    n: npt.NDArray[np.float32], mask: npt.NDArray[np.bool_], rgb: npt.NDArray[np.uint8]
 ) -> tuple[int, float]:
-    """The normal map of :func:`write_normals_png` into ``bgr`` (H, W, 3) uint8, in OpenCV's channel order.
+    """The normal map of :func:`write_normals_png` into ``rgb`` (H, W, 3) uint8.
 
     Returns (the number of non-finite normals inside the mask, the largest | |n| - 1 | there).
     Single-threaded: the pipeline writes it from a worker thread, and numba's parallel kernels
@@ -255,16 +255,16 @@ def _encode_normals(
     for i in range(h):
         for j in range(w):
             if not mask[i, j]:
-                bgr[i, j, 0] = bgr[i, j, 1] = bgr[i, j, 2] = 0
+                rgb[i, j, 0] = rgb[i, j, 1] = rgb[i, j, 2] = 0
                 continue
             x, y, z = n[i, j, 0], n[i, j, 1], n[i, j, 2]
             if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
                 bad_rows[i] += 1
-                bgr[i, j, 0] = bgr[i, j, 1] = bgr[i, j, 2] = 0
+                rgb[i, j, 0] = rgb[i, j, 1] = rgb[i, j, 2] = 0
                 continue
             worst_rows[i] = max(worst_rows[i], abs(np.sqrt(x * x + y * y + z * z) - 1.0))
             # (R, G, B) = 127.5 (1 + x, 1 - y, 1 - z), rounded half to even like np.rint, clipped
-            bgr[i, j, 0] = min(max(np.rint(127.5 - 127.5 * z), 0.0), 255.0)
-            bgr[i, j, 1] = min(max(np.rint(127.5 - 127.5 * y), 0.0), 255.0)
-            bgr[i, j, 2] = min(max(np.rint(127.5 + 127.5 * x), 0.0), 255.0)
+            rgb[i, j, 0] = min(max(np.rint(127.5 + 127.5 * x), 0.0), 255.0)
+            rgb[i, j, 1] = min(max(np.rint(127.5 - 127.5 * y), 0.0), 255.0)
+            rgb[i, j, 2] = min(max(np.rint(127.5 - 127.5 * z), 0.0), 255.0)
     return int(bad_rows.sum()), float(worst_rows.max()) if h else 0.0

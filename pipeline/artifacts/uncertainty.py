@@ -38,27 +38,27 @@ def write_uncertainty(
     check_positive("tolerance_mm", tolerance_mm)
     mask = np.ascontiguousarray(mask, dtype=bool)
     u = np.empty(mask.shape, np.float32)
-    bgr = np.empty((*mask.shape, 3), np.uint8)
+    rgb = np.empty((*mask.shape, 3), np.uint8)
     _levels(
         np.ascontiguousarray(u_mm, dtype=np.float32),
         mask,
         np.float32(tolerance_mm / 4.0),
-        _viridis_bgr(),
-        np.asarray(NO_DATA_RGB[::-1], np.uint8),
+        _viridis_rgb(),
+        np.asarray(NO_DATA_RGB, np.uint8),
         u,
-        bgr,
+        rgb,
     )
     out = Path(out_dir)
     np.save(out / UNCERTAINTY_FILES["uncertainty"], u)
-    write_rgb(out / UNCERTAINTY_FILES["uncertainty_map"], bgr[..., ::-1])
+    write_rgb(out / UNCERTAINTY_FILES["uncertainty_map"], rgb)
 
 
 @functools.cache
-def _viridis_bgr() -> npt.NDArray[np.uint8]:
-    """OpenCV's viridis colour map as a table (256, 3) of BGR, level by level (``cv2.applyColorMap`` is
-    this table applied to each pixel)."""
+def _viridis_rgb() -> npt.NDArray[np.uint8]:
+    """OpenCV's viridis colour map as a table (256, 3) of RGB, level by level (``cv2.applyColorMap`` is
+    this table, in BGR, applied to each pixel)."""
     ramp = np.arange(256, dtype=np.uint8).reshape(1, 256)
-    return np.ascontiguousarray(cv2.applyColorMap(ramp, cv2.COLORMAP_VIRIDIS)[0])
+    return np.ascontiguousarray(cv2.applyColorMap(ramp, cv2.COLORMAP_VIRIDIS)[0, :, ::-1])
 
 
 @numba.njit(nogil=True, cache=True)
@@ -69,9 +69,9 @@ def _levels(
     lut: npt.NDArray[np.uint8],
     no_data: npt.NDArray[np.uint8],
     u: npt.NDArray[np.float32],
-    bgr: npt.NDArray[np.uint8],
+    rgb: npt.NDArray[np.uint8],
 ) -> None:  # pragma: no cover - compiled
-    """u = the uncertainty on the mask (NaN elsewhere) and ``bgr`` its map: the colour ``lut`` (256, 3) at
+    """u = the uncertainty on the mask (NaN elsewhere) and ``rgb`` its map: the colour ``lut`` (256, 3) at
     the 0..255 level (255 at ``top`` and beyond; the level in float32 as ``np.nan_to_num``, ``/``,
     ``np.clip`` and ``255 *`` give it), ``no_data`` off the mask, in one pass; single-threaded (an
     artifact writer's thread)."""
@@ -92,10 +92,10 @@ def _levels(
                 x = v
             if mask[i, j]:
                 level = np.uint8(full * min(max(x / top, zero), one))
-                bgr[i, j, 0], bgr[i, j, 1], bgr[i, j, 2] = (
+                rgb[i, j, 0], rgb[i, j, 1], rgb[i, j, 2] = (
                     lut[level, 0],
                     lut[level, 1],
                     lut[level, 2],
                 )
             else:
-                bgr[i, j, 0], bgr[i, j, 1], bgr[i, j, 2] = no_data[0], no_data[1], no_data[2]
+                rgb[i, j, 0], rgb[i, j, 1], rgb[i, j, 2] = no_data[0], no_data[1], no_data[2]

@@ -206,8 +206,8 @@ def _rows(raw: np.ndarray, bpp: int, out: np.ndarray) -> int:  # pragma: no cove
 
 
 def encode_rgb(rgb: np.ndarray) -> bytes:
-    """An 8-bit RGB image (H, W, 3) uint8, any strides (a BGR array's ``[..., ::-1]`` view will do) as
-    the bytes of a PNG file: one IDAT chunk, every row without a filter, libdeflate at :data:`RGB_LEVEL`."""
+    """An 8-bit RGB image (H, W, 3) uint8 as the bytes of a PNG file: one IDAT chunk, every row without
+    a filter, libdeflate at :data:`RGB_LEVEL` (a C-contiguous image is copied once, into the rows)."""
     if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
         raise ValueError(f"rgb: expected (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
     h, w = rgb.shape[:2]

@@ -17,6 +17,7 @@ from pipeline.artifacts import (
     write_normals_png,
     write_surface_ply,
     write_target_ply,
+    write_uncertainty,
 )
 
 GREY = (128, 128, 128)
@@ -286,6 +287,20 @@ def test_normals_png_mapping(tmp_path):
     np.testing.assert_array_equal(rgb[0, 1], (128, 255, 128))
     np.testing.assert_array_equal(rgb[0, 2], np.rint([1.6 * 127.5, 127.5, 1.8 * 127.5]))
     np.testing.assert_array_equal(rgb[3, 4], (0, 0, 0))
+
+
+def test_uncertainty_map_is_viridis_up_to_a_quarter_of_the_tolerance(tmp_path):
+    # uncertainty.png: OpenCV's viridis at the level 255 * U / (tolerance / 4), saturating there; grey off
+    # the judged points; uncertainty.npy the values on them, NaN elsewhere
+    u = np.array([[0.0, 0.25, 0.5], [1.0, np.nan, 0.1]], np.float32)
+    mask = np.array([[True, True, True], [True, False, True]])
+    write_uncertainty(tmp_path, u, mask, tolerance_mm=2.0)
+    rgb = _read_rgb(tmp_path / "uncertainty.png")
+    levels = np.array([[0, 127, 255], [255, 0, 51]], np.uint8)
+    viridis = cv2.cvtColor(cv2.applyColorMap(levels, cv2.COLORMAP_VIRIDIS), cv2.COLOR_BGR2RGB)
+    np.testing.assert_array_equal(rgb[mask], viridis[mask])
+    np.testing.assert_array_equal(rgb[1, 1], GREY)
+    np.testing.assert_array_equal(np.load(tmp_path / "uncertainty.npy"), np.where(mask, u, np.nan))
 
 
 def test_normals_png_bad_inputs(tmp_path):

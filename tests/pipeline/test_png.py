@@ -141,7 +141,7 @@ def test_rgb_images_encode_to_pngs_libpng_and_pillow_read_back(tmp_path) -> None
     rgb = rng.integers(0, 256, (37, 53, 3), dtype=np.uint8)
     rgb[10:20] = (128, 128, 128)  # a flat stretch, as off the plate
     bgr = np.ascontiguousarray(rgb[..., ::-1])
-    write_rgb(tmp_path / "a.png", bgr[..., ::-1])  # a strided view is taken as it is
+    write_rgb(tmp_path / "a.png", bgr[..., ::-1])  # a strided view (copied into the rows)
     np.testing.assert_array_equal(cv2.imread(str(tmp_path / "a.png"))[..., ::-1], rgb)
     with Image.open(tmp_path / "a.png") as im:
         im.verify()  # every chunk's CRC and the image data's Adler-32
