@@ -97,6 +97,26 @@ def kernel_threads_spared(spare: int) -> Iterator[None]:
         numba.set_num_threads(n)
 
 
+@functools.cache
+def _blas_controller() -> Any:
+    """The process's thread-pool libraries (threadpoolctl's ``ThreadpoolController``), found once: a
+    controller scans every library the process has loaded, which ``threadpool_limits`` does on each call."""
+    from threadpoolctl import ThreadpoolController
+
+    return ThreadpoolController()
+
+
+def single_threaded_blas() -> Any:
+    """A context manager (threadpoolctl's limiter) within which BLAS runs on its caller's thread only.
+
+    The pipeline's BLAS calls are small (3x3 systems, N x 3 products, a few fits' normal equations):
+    OpenBLAS's threads would only spin after each one and take a core from the work beside it. Leaving
+    the block restores the limits found on entering it; ``restore_original_limits()`` does the same for
+    a limiter kept open.
+    """
+    return _blas_controller().limit(limits=1, user_api="blas")
+
+
 T = TypeVar("T")
 
 

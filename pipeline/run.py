@@ -18,7 +18,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from pipeline.artifacts import ARTIFACT_FILES, RESULT_FILE
 from pipeline.formats import RESULT_FORMAT, PipelineError, ResultFile, ResultUncertainty
@@ -37,7 +36,12 @@ from pipeline.judge.registration import Registration, pixel_in_target_frame
 from pipeline.judge.target_geometry import target_area_mm2
 from pipeline.judge.verdict import Judgement
 from pipeline.lights.model import Lights
-from pipeline.parallel import default_workers, load_cached_kernels, set_process_policy
+from pipeline.parallel import (
+    default_workers,
+    load_cached_kernels,
+    set_process_policy,
+    single_threaded_blas,
+)
 from pipeline.preprocess import Preprocessed
 from pipeline.stages import (
     DISAGREEMENT_FRACTION,
@@ -167,10 +171,7 @@ def inspect(
     out.mkdir(parents=True, exist_ok=True)
     clock = StageClock(progress)
     try:
-        # BLAS calls here are small (3x3 systems, N x 3 products): OpenBLAS threads would only spin
-        # after each one and take a core from the work running beside it (measured: ~0.3 core-s
-        # per inspection at 1224x1024)
-        with threadpool_limits(limits=1, user_api="blas"):
+        with single_threaded_blas():
             if isinstance(capture, (Capture, str, Path)):
                 return _inspect(capture, target, out, clock, opts, light_calibration, frames)
             bundles = list(capture)

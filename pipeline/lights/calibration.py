@@ -27,13 +27,13 @@ from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from pipeline.formats import CaptureError, InputError
 from pipeline.io import Capture
 from pipeline.judge.fits import fit_plane
 from pipeline.lights.fit import JointFit, PlatePose, Samples, initial_point_lights, joint_fit
 from pipeline.lights.model import Lights
+from pipeline.parallel import single_threaded_blas
 from pipeline.preprocess import preprocess
 from pipeline.surface import stereo
 
@@ -250,9 +250,7 @@ def _fit(
 
     Returns the fit, the samples it used and the Jacobian evaluations of all rounds.
     """
-    with threadpool_limits(
-        limits=1, user_api="blas"
-    ):  # small products: a second BLAS thread only spins
+    with single_threaded_blas():  # small products: a second BLAS thread only spins
         start = initial_point_lights(given, pose, data, initial_mu=initial_mu)
         # mu held first: a light aimed far from where the start has it would otherwise run mu down to 0,
         # where its axis no longer changes anything and stays wrong
@@ -266,7 +264,7 @@ def _fit(
     keep = np.all(np.abs(r) <= 6.0 * sigma, axis=1)
     if np.count_nonzero(~keep) > 0 and np.count_nonzero(keep) >= 0.5 * len(keep):
         data = Samples(data.intensity[keep], data.points[keep], data.normals[keep])
-        with threadpool_limits(limits=1, user_api="blas"):
+        with single_threaded_blas():
             fit = joint_fit(fit.lights, data)
         iterations += fit.njev
     return fit, data, iterations

@@ -43,11 +43,11 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from scipy import special
-from threadpoolctl import threadpool_limits
 
 from pipeline.lights import fit as light_fit
 from pipeline.lights import glare
 from pipeline.lights.model import Lights
+from pipeline.parallel import single_threaded_blas
 
 #: At most this many sample blocks enter the fits.
 MAX_SAMPLES = 3000
@@ -227,7 +227,7 @@ def refine_lights(
         return None
     pose = _plate_pose(data)
     centre = pose.centre_mm
-    with threadpool_limits(limits=1, user_api="blas"):
+    with single_threaded_blas():
         rms_given = _rms(data, lights)
         glossy = _GlossySamples(images, valid, mask, lights, depth_mm, K, max_samples, seed)
         distant = _refine_distant(data, lights)

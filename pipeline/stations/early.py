@@ -23,11 +23,10 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
-from threadpoolctl import threadpool_limits
-
 from pipeline.formats import CaptureError, InputError, PipelineError
 from pipeline.io import Target, load_target
 from pipeline.lights.model import Lights
+from pipeline.parallel import single_threaded_blas
 from pipeline.stages import InspectOptions
 
 from .inspect import StationResult, reconstruct_station
@@ -82,7 +81,7 @@ class EarlyStations:
         self._jobs: dict[int, Future[StationResult | None]] = {}
         self._failed = threading.Event()
         # as pipeline.run.inspect: BLAS calls here are small, its threads would only spin
-        self._blas = threadpool_limits(limits=1, user_api="blas")
+        self._blas = single_threaded_blas()
 
     def __enter__(self) -> EarlyStations:
         return self

@@ -242,3 +242,17 @@ def test_deferred_work_is_done_by_the_caller_when_no_worker_has_started_it():
         with pytest.raises(OSError, match="disk full"):  # kept, not made again
             failing.result()
     assert len(calls) == 1
+
+
+def test_blas_runs_on_its_callers_thread_within_the_block_and_as_before_after_it():
+    from threadpoolctl import threadpool_info
+
+    from pipeline.parallel import single_threaded_blas
+
+    def blas_threads() -> list[int]:
+        return [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+
+    before = blas_threads()
+    with single_threaded_blas():
+        assert blas_threads() and all(n == 1 for n in blas_threads())
+    assert blas_threads() == before
