@@ -75,16 +75,19 @@ def deviation_map(
     T_target_cam = np.hstack([R.T, (-R.T @ t)[:, None]])
     cam = T_target_cam[:, 3]  # camera centre in the target frame
     if tgt.shape != "mesh":
-        # Analytic shapes: in chunks of pixels, so the float64 temporaries stay in cache instead of
-        # allocating several (H, W, 3) arrays (their page faults cost more than the arithmetic).
-        out = np.empty(m.size, dtype=np.float32)
-        flat = pts.reshape(-1, 3)
-        for start in range(0, flat.shape[0], _CHUNK):
-            x = cv2.transform(flat[start : start + _CHUNK].reshape(-1, 1, 3), T_target_cam).reshape(
-                -1, 3
-            )
-            out[start : start + _CHUNK] = _analytic_deviation(x, tgt, cam)
-        dev: np.ndarray = out.reshape(m.shape)
+        # Analytic shapes: over the mask's bounding box (each pixel's value is its own), in bands of rows,
+        # so the float64 temporaries stay in cache instead of allocating several (H, W, 3) arrays
+        # (their page faults cost more than the arithmetic).
+        dev = np.full(m.shape, np.nan, dtype=np.float32)
+        rows, cols = np.flatnonzero(m.any(axis=1)), np.flatnonzero(m.any(axis=0))
+        if rows.size == 0:
+            return dev
+        c0, c1 = int(cols[0]), int(cols[-1]) + 1
+        band = max(1, _CHUNK // (c1 - c0))
+        for r0 in range(int(rows[0]), int(rows[-1]) + 1, band):
+            r1 = min(r0 + band, int(rows[-1]) + 1)
+            x = cv2.transform(pts[r0:r1, c0:c1], T_target_cam).reshape(-1, 3)
+            dev[r0:r1, c0:c1] = _analytic_deviation(x, tgt, cam).reshape(r1 - r0, c1 - c0)
         dev[~m] = np.nan
         return dev
     # Mesh: camera frame -> plate coordinates of the mesh grid in one transform, in chunks as above.
@@ -109,7 +112,7 @@ def deviation_map(
     return dev
 
 
-_CHUNK = 1 << 16  # pixels per chunk of deviation_map's analytic shapes
+_CHUNK = 1 << 16  # pixels per band of deviation_map's analytic shapes
 _MESH_CHUNK = 1 << 18  # and of mesh targets (each chunk samples the grid with cv2.remap)
 
 
