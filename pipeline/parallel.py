@@ -27,9 +27,6 @@ from typing import Any, Generic, TypeVar
 
 #: Environment variable that overrides the number of worker threads (an integer >= 1).
 WORKERS_ENV = "PLATE_INSPECT_WORKERS"
-#: Environment variable OpenCV reads for its own thread count: when it is set, the policy leaves
-#: OpenCV's threads as it says (:func:`single_threaded_opencv`).
-OPENCV_THREADS_ENV = "OPENCV_FOR_THREADS_NUM"
 
 #: glibc malloc: blocks up to this many bytes come from the heap, where a freed block is reused,
 #: instead of a fresh mapping that the kernel zeroes page by page on first touch (glibc's
@@ -177,8 +174,7 @@ def configure_process() -> None:
     parallel region unless told otherwise; on the cell's 2-core computer that spinning takes the
     second core from the work beside it (stereo, artifact writing; measured in docs/figures.md,
     *Speed, end to end*). ``OMP_WAIT_POLICY=PASSIVE`` is read by libgomp when it starts, so this
-    must run before the first kernel; a value already set in the environment wins. OpenCV runs on
-    its callers' threads only (:func:`single_threaded_opencv`), for the same reason.
+    must run before the first kernel; a value already set in the environment wins.
 
     An inspection allocates and frees images of several MB many times over: with glibc's default
     policy most of them are fresh mappings, and zeroing their pages took ~0.3 of the ~1.4
@@ -219,35 +215,9 @@ def set_process_policy() -> bool:
             return False
         _policy_set = True
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    single_threaded_opencv()
     drop_stale_kernels()  # before the first kernel loads from it
     _heap_kept = keep_freed_memory()
     return _heap_kept
-
-
-def single_threaded_opencv() -> bool:
-    """Have OpenCV's functions run on their caller's thread only (``cv2.setNumThreads(1)``), unless
-    :data:`OPENCV_THREADS_ENV` is set.
-
-    An inspection runs its own work beside its main line on the machine's cores (the stereo pair's
-    matching beside the normals, the correlation check in bands of rows, the artifacts): OpenCV's
-    parallel loops on top of that put more threads on the cores than there are cores, and a call
-    waits for its slowest part while another thread holds that core (the paired timings in
-    docs/figures.md, *OpenCV on its caller's thread*). OpenCV computes every pixel the same way
-    whatever its thread count, SGBM included (``tests/pipeline/test_stereo.py``): results do not
-    depend on it.
-
-    Returns
-    -------
-    bool
-        Whether OpenCV's thread count was set.
-    """
-    if OPENCV_THREADS_ENV in os.environ:
-        return False
-    import cv2  # the policy module imports no image library at import
-
-    cv2.setNumThreads(1)
-    return True
 
 
 def keep_freed_memory() -> bool:

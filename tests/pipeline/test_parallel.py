@@ -147,25 +147,6 @@ def test_freed_memory_is_kept_for_reuse_unless_the_user_chose(monkeypatch):
             assert not keep_freed_memory()
 
 
-OPENCV_THREADS = """
-import cv2
-import pipeline.run
-print(cv2.getNumThreads())
-"""
-
-
-@pytest.mark.parametrize(("given", "expected"), [(None, 1), ("2", 2)])
-def test_the_policy_runs_opencv_on_its_callers_threads_unless_the_user_chose(given, expected):
-    # in a process of its own (this one's policy was set by conftest): importing the entry point sets it
-    env = {k: v for k, v in os.environ.items() if k != "OPENCV_FOR_THREADS_NUM"}
-    if given is not None:
-        env["OPENCV_FOR_THREADS_NUM"] = given
-    out = subprocess.run(
-        [sys.executable, "-c", OPENCV_THREADS], env=env, capture_output=True, text=True, check=True
-    )
-    assert int(out.stdout) == expected
-
-
 PAGED_IN = """
 import resource, sys
 from pipeline.parallel import keep_freed_memory, prefault_heap
