@@ -330,6 +330,24 @@ def test_the_refinement_in_bands_of_rows_gives_the_whole_windows_values(plate_3m
     np.testing.assert_array_equal(maps[5], maps[1])
 
 
+def test_the_depth_does_not_depend_on_opencvs_thread_count(plate_3m):
+    # OpenCV's thread count is the process's (cv2.setNumThreads, OPENCV_FOR_THREADS_NUM): SGBM's parallel
+    # loop and every filter and remap give the same values on any count of threads
+    rig, left, right, _, mask = plate_3m
+    before = cv2.getNumThreads()
+    maps = {}
+    try:
+        for threads in (1, 2, 3):
+            cv2.setNumThreads(threads)
+            maps[threads] = stereo_depth(
+                left, right, rig, z_min_mm=2500.0, z_max_mm=3500.0, mask=mask
+            ).depth_mm
+    finally:
+        cv2.setNumThreads(before)
+    np.testing.assert_array_equal(maps[2], maps[1])
+    np.testing.assert_array_equal(maps[3], maps[1])
+
+
 def test_a_band_of_columns_refined_against_the_whole_right_image_gives_the_same_values():
     # the check computes only the matches' bounding box, a window radius wider, against every column of
     # the right image: the windowed sums are weighted by the matches, so nothing beyond it counts
