@@ -236,7 +236,7 @@ def write_rgb(path: str | os.PathLike[str], rgb: np.ndarray) -> None:
         raise OSError(f"{path}: cannot write the image ({err.strerror or err})") from err
 
 
-def _chunk(kind: bytes, body: bytes) -> bytes:
+def _chunk(kind: bytes, body: bytes | bytearray) -> bytes:
     """One PNG chunk: length, type, data and the CRC of type and data."""
     crc = deflate.crc32(body, deflate.crc32(kind))
     return len(body).to_bytes(4, "big") + kind + body + crc.to_bytes(4, "big")
