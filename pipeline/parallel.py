@@ -96,8 +96,9 @@ def kernel_threads_spared(spare: int) -> Iterator[None]:
 
 @functools.cache
 def _blas_controller() -> Any:
-    """The process's thread-pool libraries (threadpoolctl's ``ThreadpoolController``), found once: a
-    controller scans every library the process has loaded, which ``threadpool_limits`` does on each call."""
+    """The process's thread-pool libraries (threadpoolctl's ``ThreadpoolController``), found once, at the
+    first call (after :mod:`pipeline.run`'s imports have loaded numpy's and scipy's BLAS): a controller
+    scans every library the process has loaded, which ``threadpool_limits`` does on each call."""
     from threadpoolctl import ThreadpoolController
 
     return ThreadpoolController()
