@@ -21,6 +21,7 @@ from pipeline.io import Target
 from pipeline.judge.fits import check_grid
 from pipeline.judge.registration import Registration
 from pipeline.judge.target_geometry import check_target, mesh_grid
+from pipeline.solvers import bounding_box
 
 
 def _check_registration(registration: Registration) -> np.ndarray:
@@ -79,13 +80,14 @@ def deviation_map(
         # so the float64 temporaries stay in cache instead of allocating several (H, W, 3) arrays
         # (their page faults cost more than the arithmetic).
         dev = np.full(m.shape, np.nan, dtype=np.float32)
-        rows, cols = np.flatnonzero(m.any(axis=1)), np.flatnonzero(m.any(axis=0))
-        if rows.size == 0:
+        box = bounding_box(m)
+        if box is None:
             return dev
-        c0, c1 = int(cols[0]), int(cols[-1]) + 1
+        rows, cols = box
+        c0, c1 = cols.start, cols.stop
         band = max(1, _CHUNK // (c1 - c0))
-        for r0 in range(int(rows[0]), int(rows[-1]) + 1, band):
-            r1 = min(r0 + band, int(rows[-1]) + 1)
+        for r0 in range(rows.start, rows.stop, band):
+            r1 = min(r0 + band, rows.stop)
             x = cv2.transform(pts[r0:r1, c0:c1], T_target_cam).reshape(-1, 3)
             dev[r0:r1, c0:c1] = _analytic_deviation(x, tgt, cam).reshape(r1 - r0, c1 - c0)
         dev[~m] = np.nan

@@ -52,7 +52,7 @@ from scipy.sparse.linalg import factorized
 
 from pipeline.lights import glare
 from pipeline.lights.model import Lights
-from pipeline.solvers import percentile
+from pipeline.solvers import bounding_box, percentile
 from pipeline.surface import fusion as fusion_mod
 from pipeline.surface import integration
 from pipeline.surface.normals import NormalField, SpecularFit
@@ -320,9 +320,11 @@ def _registration_sd_mm(
 
 
 def _extent_px(mask: np.ndarray) -> float:
-    rows = np.flatnonzero(mask.any(axis=1))
-    cols = np.flatnonzero(mask.any(axis=0))
-    return float(max(rows[-1] - rows[0] + 1, cols[-1] - cols[0] + 1))
+    """The larger side (px) of the bounding box of a mask with at least one pixel."""
+    box = bounding_box(mask)
+    assert box is not None  # propagate_points refuses an empty mask
+    rows, cols = box
+    return float(max(rows.stop - rows.start, cols.stop - cols.start))
 
 
 def _integration_scale_px(fused: fusion_mod.Fusion | None, extent_px: float) -> float:

@@ -4,7 +4,7 @@
 - :mod:`~pipeline.solvers.robust_lm`: robust nonlinear least squares of a few parameters
   (Levenberg-Marquardt, soft-L1 loss), for the geometric fits and the mesh registration;
 - :mod:`~pipeline.solvers.order`: ``np.percentile`` of large samples to the bit, faster;
-- :mod:`~pipeline.solvers.components`: connected components and their areas.
+- :mod:`~pipeline.solvers.components`: connected components and their areas, a mask's bounding box.
 
 A *grid system* is a symmetric linear system on an (H, W) grid: a masked graph Laplacian over
 4-neighbour edges plus a diagonal term. It lives on arrays padded with one cell of zeros on every
@@ -28,7 +28,7 @@ The parallel kernels must not run concurrently from two threads (numba's workque
 stays float32; ``np.float64(x)`` is used where it matters.
 """
 
-from .components import labelled
+from .components import bounding_box, labelled
 from .multigrid import Multigrid
 from .order import percentile
 from .pcg import pcg, solve_grid_system
@@ -36,6 +36,7 @@ from .robust_lm import robust_gauss_newton, robust_scale
 
 __all__ = [
     "Multigrid",
+    "bounding_box",
     "labelled",
     "pcg",
     "percentile",

@@ -55,7 +55,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy import linalg, optimize, special
 
-from pipeline.solvers import percentile
+from pipeline.solvers import bounding_box, percentile
 
 #: Finest knot spacing of the correction spline as a fraction of the plate's larger extent in the
 #: image: at most, the stereo pair governs shape wider than about this.
@@ -207,9 +207,8 @@ def fuse_low_frequencies(
         stereo pixels for the coarsest correction.
     """
     z, zs, mask = _check_inputs(depth_ps_mm, stereo_depth_mm, mask, knot_fraction)
-    rows = np.flatnonzero(mask.any(axis=1))
-    cols = np.flatnonzero(mask.any(axis=0))
-    box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+    box = bounding_box(mask)
+    assert box is not None  # _check_inputs refuses an empty mask
     zb, zsb, mb = z[box], zs[box], mask[box]
     if np.any(mb & ~((zb > 0) & (zb < np.inf))):
         raise ValueError("depth_ps_mm: expected finite depths > 0 mm on the mask")

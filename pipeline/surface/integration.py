@@ -48,7 +48,7 @@ import numpy.typing as npt
 import scipy.ndimage
 
 from pipeline.camera import check_camera_matrix
-from pipeline.solvers import solve_grid_system
+from pipeline.solvers import bounding_box, solve_grid_system
 
 #: An array argument of the kernels (their dtypes are set by the callers).
 Arr = npt.NDArray[Any]
@@ -328,15 +328,14 @@ BOX_MIN_SAVING = 0.1
 def _mask_box(mask: Arr) -> tuple[slice, slice] | None:
     """The mask's bounding box, its first row and column rounded down to even ones (the coarse grids
     aggregate the same 2x2 blocks as on the whole grid), or None when it is nearly the whole grid."""
-    rows = np.flatnonzero(mask.any(axis=1))
-    cols = np.flatnonzero(mask.any(axis=0))
-    if rows.size == 0:
+    box = bounding_box(mask)
+    if box is None:
         return None
-    r0, c0 = rows[0] - rows[0] % 2, cols[0] - cols[0] % 2
-    r1, c1 = rows[-1] + 1, cols[-1] + 1
+    r0, c0 = box[0].start - box[0].start % 2, box[1].start - box[1].start % 2
+    r1, c1 = box[0].stop, box[1].stop
     if (r1 - r0) * (c1 - c0) > (1.0 - BOX_MIN_SAVING) * mask.size:
         return None
-    return slice(int(r0), int(r1)), slice(int(c0), int(c1))
+    return slice(r0, r1), slice(c0, c1)
 
 
 def _on_box(

@@ -45,7 +45,7 @@ import numpy.typing as npt
 
 from pipeline.camera import StereoRig
 from pipeline.parallel import default_workers
-from pipeline.solvers import percentile
+from pipeline.solvers import bounding_box, percentile
 from pipeline.surface.stereo.matching import (
     BLOCK_SIZE,
     MatchPass,
@@ -425,10 +425,10 @@ def _checked_disparity(fp: MatchPass, shift: int, refine: bool) -> np.ndarray:
     pass over the whole window (``tests/pipeline/test_stereo.py``)."""
     d_rel = fp.d_win - np.float32(shift)
     checked = np.full(d_rel.shape, np.nan, np.float32)
-    finite = np.isfinite(d_rel)
-    if not finite.any():
+    matched = bounding_box(np.isfinite(d_rel), WINDOW_RADIUS_PX)
+    if matched is None:
         return checked
-    rows, cols = _box(finite, WINDOW_RADIUS_PX)
+    rows, cols = matched
     # the right image keeps every column: a match's right pixel lies up to the disparity to the left
     scaled_l = scaled(fp.rect_l[rows, cols], *fp.levels[0])
     scaled_r = scaled(fp.rect_r[rows], *fp.levels[1])
@@ -500,7 +500,10 @@ def _on_left_grid(
     w, h = size
     depth = np.full((h, w), np.nan, np.float32)
     valid = np.zeros((h, w), bool)
-    rows, cols = (slice(0, h), slice(0, w)) if mask is None else _box(mask)
+    box = (slice(0, h), slice(0, w)) if mask is None else bounding_box(mask)
+    if box is None:  # an empty mask: every pixel a hole
+        return depth, valid
+    rows, cols = box
     # the mask's bounding box only: every other pixel is a hole (the same values on it)
     shape = (rows.stop - rows.start, cols.stop - cols.start)
     map_x, map_y, ray_z = (np.empty(shape, np.float32) for _ in range(3))
@@ -552,15 +555,3 @@ def _lookup_maps(
             map_x[i, j] = (H_win[0, 0] * u + H_win[0, 1] * v + H_win[0, 2]) / den
             map_y[i, j] = (H_win[1, 0] * u + H_win[1, 1] * v + H_win[1, 2]) / den
             ray_z[i, j] = M[2, 0] * u + M[2, 1] * v + M[2, 2]
-
-
-def _box(mask: np.ndarray, margin: int = 0) -> tuple[slice, slice]:
-    """The bounding box of a mask with at least one pixel, ``margin`` px wider within the mask's grid:
-    (rows, columns)."""
-    rows = np.flatnonzero(mask.any(axis=1))
-    cols = np.flatnonzero(mask.any(axis=0))
-    h, w = mask.shape
-    return (
-        slice(max(0, int(rows[0]) - margin), min(h, int(rows[-1]) + 1 + margin)),
-        slice(max(0, int(cols[0]) - margin), min(w, int(cols[-1]) + 1 + margin)),
-    )
